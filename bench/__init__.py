@@ -1,0 +1,1 @@
+"""Benchmarks: each measures bodynet side by side with a baseline in the same run."""

@@ -1,0 +1,1 @@
+"""The ``bodynet`` command: one entry point, one subcommand per service."""

@@ -1,0 +1,82 @@
+"""``bodynet <subcommand>``: argument parsing only; each subcommand calls a
+``main``-style function of its module with explicit arguments."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+
+from bodynet.nodes.captures import CaptureStats, Format, read_capture, sample_json
+
+log = logging.getLogger("bodynet")
+
+
+def cmd_decode(args: argparse.Namespace) -> int:
+    """Decode a capture: one JSON object per sample on stdout, a summary on stderr."""
+    stats = CaptureStats()
+    out = sys.stdout
+    try:
+        for sample in read_capture(args.file, args.format, stats, args.rate_hz):
+            out.write(json.dumps(sample_json(sample), separators=(",", ":")) + "\n")
+    except OSError as exc:
+        print(f"bodynet decode: cannot read {args.file}: {exc.strerror or exc}", file=sys.stderr)
+        return 2
+    except BrokenPipeError:  # e.g. piped into head
+        return 0
+    print(stats.summary(), file=sys.stderr)
+    return 0
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    from bodynet.cli.demo import run_demo
+
+    return run_demo(args.captures)
+
+
+def cmd_bench(args: argparse.Namespace) -> int:
+    from bodynet.bench.decode import run
+
+    return run(seconds=args.seconds, out_dir=args.out)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="bodynet", description=__doc__)
+    parser.add_argument("-v", "--verbose", action="count", default=0, help="more logging")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    p = sub.add_parser("decode", help="decode a capture file to JSON lines")
+    p.add_argument("--format", required=True, choices=[f.value for f in Format])
+    p.add_argument("--rate-hz", type=float, default=None,
+                   help="samples' time base where the capture has none "
+                        "(concentrator: 1/22 ms; imu-central: 25 Hz)")  # fmt: skip
+    p.add_argument("file", type=Path)
+    p.set_defaults(func=cmd_decode)
+
+    p = sub.add_parser("demo", help="the main job: show the system at work")
+    p.add_argument("--captures", type=Path, default=Path("tests/data"),
+                   help="folder of bundled captures")  # fmt: skip
+    p.set_defaults(func=cmd_demo)
+
+    p = sub.add_parser("bench", help="benchmarks, side by side with their baselines")
+    p.add_argument("--seconds", type=float, default=1.0, help="time per measurement")
+    p.add_argument("--out", type=Path, default=Path("bench-results"))
+    p.set_defaults(func=cmd_bench)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(
+        level=(logging.WARNING, logging.INFO, logging.DEBUG)[min(args.verbose, 2)],
+        format="%(asctime)s %(name)s %(levelname)s %(message)s",
+    )
+    code: int = args.func(args)
+    return code
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,1 @@
+"""Clients of the body network: viewer, recorder, replay, export, game, report."""

@@ -1,0 +1,168 @@
+"""The raw-sample message bodynet carries on Zenoh (version 1).
+
+Compact binary, little-endian, one message per sample; a Zenoh payload may
+hold several messages back to back (a batch), which :class:`RawSampleDecoder`
+splits. Layout::
+
+    offset size  field
+    0      2     magic  b"BN"
+    2      1     version = 1
+    3      1     kind: 1 = OLE + accelerometer, 2 = quaternion
+    4      1     source: 0 unknown, 1 CAN, 2 concentrator, 3 IMU central
+    5      1     flags, reserved: sent as 0, ignored on receipt
+    6      2     node number (uint16, >= 1)
+    8      4     sequence number (uint32, per node, wraps)
+    12     8     source timestamp t_ns (int64, ns since the Unix epoch)
+    20     ...   body
+    kind 1: encoder, accel x, y, z     4 x int16              ->  28 bytes in all
+    kind 2: w, x, y, z                 4 x float64, then
+            extra length n, extra      uint8, n bytes        ->  53 + n bytes
+
+Quaternions travel as float64 so a sample decodes to exactly what was sent;
+they must be finite with a norm in 0.9..1.1, as every decoder checks.
+"""
+
+from __future__ import annotations
+
+import struct
+
+from ..errors import DecodeError, Reason, Rejected
+from ..messages import OleAccel, Quat, RawSample, Source
+from ._common import GarbageRun, ole_values, unit_quat
+
+MAGIC = b"BN"
+VERSION = 1
+KIND_OLE_ACCEL = 1
+KIND_QUAT = 2
+
+_HEADER = struct.Struct("<2sBBBBHIq")
+_OLE = struct.Struct("<4h")
+_QUAT = struct.Struct("<4dB")
+HEADER_LEN = _HEADER.size
+_SOURCES = {s.value: s for s in Source}
+
+StreamEvent = RawSample | Rejected
+
+
+def encode(sample: RawSample) -> bytes:
+    """One message for ``sample``."""
+    r = sample.reading
+    if isinstance(r, Quat):
+        if len(r.extra) > 255:
+            raise ValueError("extra bytes longer than 255")
+        kind, body = KIND_QUAT, _QUAT.pack(*r.wxyz, len(r.extra)) + r.extra
+    else:
+        kind, body = KIND_OLE_ACCEL, _OLE.pack(*ole_values(r))
+    header = _HEADER.pack(
+        MAGIC, VERSION, kind, sample.source, 0, r.node, sample.seq & 0xFFFFFFFF, sample.t_ns
+    )
+    return header + body
+
+
+def encode_batch(samples: list[RawSample]) -> bytes:
+    return b"".join(map(encode, samples))
+
+
+def _length(buf: bytes | bytearray, pos: int) -> int | None:
+    """Total length of the message at ``pos``, or None if more bytes are needed.
+
+    Each header field is checked as soon as its bytes are there, so a bad
+    stretch is judged the same way however the input is chunked; raises
+    ``DecodeError`` on a bad field.
+    """
+    avail = len(buf) - pos
+    if buf[pos] != MAGIC[0] or (avail > 1 and buf[pos + 1] != MAGIC[1]):
+        raise DecodeError(Reason.BAD_MAGIC, f"magic {bytes(buf[pos : pos + 2])!r}")
+    if avail > 2 and buf[pos + 2] != VERSION:
+        raise DecodeError(Reason.BAD_VERSION, f"version {buf[pos + 2]}")
+    kind = buf[pos + 3] if avail > 3 else None
+    if kind is not None and kind not in (KIND_OLE_ACCEL, KIND_QUAT):
+        raise DecodeError(Reason.BAD_KIND, f"kind {kind}")
+    if avail < HEADER_LEN:
+        return None
+    if kind == KIND_OLE_ACCEL:
+        return HEADER_LEN + _OLE.size
+    if avail < HEADER_LEN + _QUAT.size:
+        return None
+    return HEADER_LEN + _QUAT.size + buf[pos + HEADER_LEN + _QUAT.size - 1]
+
+
+def _decode_at(buf: bytes | bytearray, pos: int, length: int) -> RawSample:
+    _, _, kind, source, _, node, seq, t_ns = _HEADER.unpack_from(buf, pos)
+    if source not in _SOURCES:
+        raise DecodeError(Reason.BAD_KIND, f"source {source}")
+    if node == 0:
+        raise DecodeError(Reason.UNKNOWN_NODE, "node 0")
+    body = pos + HEADER_LEN
+    if kind == KIND_OLE_ACCEL:
+        e, x, y, z = _OLE.unpack_from(buf, body)
+        reading: OleAccel | Quat = OleAccel(node, e, (x, y, z))
+    else:
+        w, qx, qy, qz, _ = _QUAT.unpack_from(buf, body)
+        extra = bytes(buf[body + _QUAT.size : pos + length])
+        reading = Quat(node, unit_quat(w, qx, qy, qz, normalise=False), extra)
+    return RawSample(reading, seq, t_ns, _SOURCES[source])
+
+
+def decode(payload: bytes | bytearray) -> RawSample:
+    """Exactly one message; ``DecodeError`` if ``payload`` is anything else."""
+    length = _length(payload, 0)
+    if length is None or length > len(payload):
+        raise DecodeError(Reason.TRUNCATED, f"{len(payload)} bytes")
+    if length != len(payload):
+        raise DecodeError(Reason.BAD_LENGTH, f"{len(payload)} bytes, message is {length}")
+    return _decode_at(payload, 0, length)
+
+
+def decode_batch(payload: bytes | bytearray) -> list[StreamEvent]:
+    """Every message of one payload, with rejections in place of bad ones."""
+    decoder = RawSampleDecoder()
+    return decoder.feed(payload) + decoder.close()
+
+
+class RawSampleDecoder:
+    """Streaming decoder of concatenated messages; resynchronises on the magic."""
+
+    def __init__(self) -> None:
+        self._buf = bytearray()
+        self._garbage = GarbageRun()
+
+    def feed(self, data: bytes | bytearray) -> list[StreamEvent]:
+        buf = self._buf
+        buf += data
+        out: list[StreamEvent] = []
+        pos = 0
+        while pos < len(buf):
+            try:
+                length = _length(buf, pos)
+            except DecodeError as exc:
+                if exc.reason is Reason.BAD_MAGIC:
+                    nxt = buf.find(MAGIC, pos + 1)
+                    if nxt < 0:  # keep a last b"B" that may start the next magic
+                        nxt = len(buf) - 1 if buf.endswith(MAGIC[:1]) else len(buf)
+                    self._garbage.add(buf[pos:nxt])
+                    pos = nxt
+                else:
+                    self._garbage.flush(out)
+                    checked = 3 if exc.reason is Reason.BAD_VERSION else 4  # bytes judged
+                    out.append(Rejected.of(exc, buf[pos : pos + checked]))
+                    pos += len(MAGIC)
+                continue
+            if length is None or pos + length > len(buf):
+                break
+            self._garbage.flush(out)
+            try:
+                out.append(_decode_at(buf, pos, length))
+            except DecodeError as exc:
+                out.append(Rejected.of(exc, buf[pos : pos + length]))
+            pos += length
+        del buf[:pos]
+        return out
+
+    def close(self) -> list[StreamEvent]:
+        out: list[StreamEvent] = []
+        self._garbage.flush(out)
+        if self._buf:
+            out.append(Rejected(Reason.TRUNCATED, f"{len(self._buf)} bytes", bytes(self._buf[:64])))
+        self._buf.clear()
+        return out

@@ -1,0 +1,128 @@
+"""The key space: every Zenoh key expression bodynet uses is built here.
+
+Raw samples live at ``body/<limb>/<side>/<site>/raw``. The ``<limb>/<side>``
+pair is a *branch* of the SmartSuit distributed bus (000 seed, ch. 3.1.7):
+left arm, right arm, left leg, right leg and trunk-head, so ``body/arm/left/**``
+selects one branch. Sites name where a sensor sits: SmartSuit modules by the
+joint their encoder spans (``shoulder``, ``elbow``...), IMU tags of the 003 seed
+(Table 5.2) by the segment they ride on (``upperarm``, ``forearm``...), so the
+two systems can share one body without their keys colliding.
+
+Nothing else in the code base writes a key as a string literal.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from enum import StrEnum
+
+ROOT = "body"
+
+
+class Limb(StrEnum):
+    """The first key level below ``body``: which part of the body network."""
+
+    ARM = "arm"
+    LEG = "leg"
+    TRUNK = "trunk"
+
+
+class Side(StrEnum):
+    LEFT = "left"
+    RIGHT = "right"
+    MID = "mid"
+
+
+class Stream(StrEnum):
+    """The last key level: what a key carries about its site."""
+
+    RAW = "raw"
+
+
+class KeySpaceError(ValueError):
+    """A key expression that is not part of the bodynet key space."""
+
+
+@dataclass(frozen=True, slots=True, order=True)
+class Branch:
+    """One branch of the body bus, such as the left arm."""
+
+    limb: Limb
+    side: Side
+
+    def __post_init__(self) -> None:
+        if (self.limb is Limb.TRUNK) != (self.side is Side.MID):
+            raise KeySpaceError(f"no branch {self.limb}/{self.side}: only the trunk is 'mid'")
+
+    @property
+    def key(self) -> str:
+        return f"{ROOT}/{self.limb}/{self.side}"
+
+    @property
+    def selector(self) -> str:
+        """Key expression matching everything published on this branch."""
+        return f"{self.key}/**"
+
+    def __str__(self) -> str:
+        return f"{self.side}-{self.limb}" if self.side is not Side.MID else str(self.limb)
+
+
+LEFT_ARM = Branch(Limb.ARM, Side.LEFT)
+RIGHT_ARM = Branch(Limb.ARM, Side.RIGHT)
+LEFT_LEG = Branch(Limb.LEG, Side.LEFT)
+RIGHT_LEG = Branch(Limb.LEG, Side.RIGHT)
+TRUNK = Branch(Limb.TRUNK, Side.MID)
+
+#: The five branches of the distributed bus, in the seed's node order.
+BRANCHES: tuple[Branch, ...] = (LEFT_ARM, RIGHT_ARM, LEFT_LEG, RIGHT_LEG, TRUNK)
+
+#: Site names each limb may carry. SmartSuit modules first, then IMU segments.
+SITES: dict[Limb, tuple[str, ...]] = {
+    Limb.ARM: ("shoulder", "elbow", "wrist", "upperarm", "forearm", "hand"),
+    Limb.LEG: ("hip", "knee", "ankle", "thigh", "shank", "foot"),
+    Limb.TRUNK: ("head", "upper_trunk", "lower_trunk", "forehead", "chest", "sacrum"),
+}
+
+
+@dataclass(frozen=True, slots=True, order=True)
+class Site:
+    """A sensor site: one branch plus a site name, e.g. the left elbow."""
+
+    branch: Branch
+    name: str
+
+    def __post_init__(self) -> None:
+        if self.name not in SITES[self.branch.limb]:
+            raise KeySpaceError(f"site {self.name!r} is not on limb {self.branch.limb}")
+
+    def key(self, stream: Stream = Stream.RAW) -> str:
+        return f"{self.branch.key}/{self.name}/{stream}"
+
+    @property
+    def raw_key(self) -> str:
+        return self.key(Stream.RAW)
+
+    def __str__(self) -> str:
+        return f"{self.branch.side}/{self.branch.limb}/{self.name}"
+
+
+def raw_key(limb: Limb | str, side: Side | str, site: str) -> str:
+    """Key of the raw samples of one site: ``raw_key("arm", "left", "elbow")``."""
+    return Site(Branch(Limb(limb), Side(side)), site).raw_key
+
+
+def all_raw() -> str:
+    """Key expression matching every raw sample of a body."""
+    return f"{ROOT}/*/*/*/{Stream.RAW}"
+
+
+def parse(key: str) -> tuple[Site, Stream]:
+    """Split a concrete key into its site and stream; raise ``KeySpaceError`` if foreign."""
+    parts = key.split("/")
+    if len(parts) != 5 or parts[0] != ROOT:
+        raise KeySpaceError(f"not a bodynet site key: {key!r}")
+    try:
+        site = Site(Branch(Limb(parts[1]), Side(parts[2])), parts[3])
+        return site, Stream(parts[4])
+    except ValueError as exc:
+        raise KeySpaceError(f"not a bodynet site key: {key!r} ({exc})") from None

@@ -1,0 +1,89 @@
+"""Messages shared by every role: sensor readings and the stamped raw sample.
+
+Readings are what a wire format says about one node at one instant, with no
+time attached (codecs read no clock). A :class:`RawSample` is a reading stamped
+by the process that received it: source time in integer nanoseconds and a
+per-node sequence number. That is what travels on Zenoh.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from enum import IntEnum
+
+
+class Source(IntEnum):
+    """Which kind of hardware (or emulator) a sample came through."""
+
+    UNKNOWN = 0
+    CAN = 1
+    CONCENTRATOR = 2
+    IMU_CENTRAL = 3
+
+
+@dataclass(frozen=True, slots=True)
+class OleAccel:
+    """A SmartSuit sensing module: optical linear encoder plus accelerometer.
+
+    ``encoder`` counts 0.1 mm of cable travel (signed); ``accel`` is x, y, z in
+    accelerometer counts (1024 per g by default).
+    """
+
+    node: int
+    encoder: int
+    accel: tuple[int, int, int]
+
+
+@dataclass(frozen=True, slots=True)
+class Quat:
+    """An orientation sensor: unit quaternion w, x, y, z.
+
+    ``extra`` keeps payload bytes a format carries beside the quaternion
+    (bytes 16-24 of an IMU data-matrix line), uninterpreted.
+    """
+
+    node: int
+    wxyz: tuple[float, float, float, float]
+    extra: bytes = b""
+
+
+Reading = OleAccel | Quat
+
+
+@dataclass(frozen=True, slots=True)
+class RawSample:
+    """A reading as published on ``body/<limb>/<side>/<site>/raw``.
+
+    ``t_ns`` is the source timestamp (integer ns, the receiver's clock or the
+    capture's), ``seq`` the per-node sequence number (uint32, wraps).
+    """
+
+    reading: Reading
+    seq: int
+    t_ns: int
+    source: Source = Source.UNKNOWN
+
+
+@dataclass(frozen=True, slots=True)
+class NoNewData:
+    """IMU central: the sensor sent nothing new since the last tick (flag 00)."""
+
+    node: int
+
+
+@dataclass(frozen=True, slots=True)
+class SensorAbsent:
+    """IMU central: the sensor has never been seen since power-up (flag ff)."""
+
+    node: int
+
+
+@dataclass(frozen=True, slots=True)
+class Tick:
+    """A stream decoder's marker: the events that follow belong to tick ``index``.
+
+    The IMU central prints each sensor's line once per tick; a decoder emits a
+    ``Tick`` when the sensor numbers start over.
+    """
+
+    index: int

@@ -1,0 +1,1 @@
+"""The gateway: calibration and kinematics between raw samples and poses."""

@@ -1,0 +1,1 @@
+"""Sources of raw samples: captures, emulated nodes and hardware bridges."""

@@ -1,0 +1,216 @@
+"""Property tests of every codec: round trips, chunking, and random bytes."""
+
+from __future__ import annotations
+
+import itertools
+import math
+from collections.abc import Callable, Sequence
+from typing import Any, Protocol
+
+from hypothesis import given
+from hypothesis import strategies as st
+
+from bodynet.core.codecs import concentrator, imu_matrix, raw_sample, smartsuit_can
+from bodynet.core.errors import Rejected
+from bodynet.core.messages import (
+    NoNewData,
+    OleAccel,
+    Quat,
+    RawSample,
+    SensorAbsent,
+    Source,
+    Tick,
+)  # fmt: skip
+
+
+class StreamDecoder(Protocol):
+    def feed(self, data: bytes) -> Sequence[Any]: ...
+    def close(self) -> Sequence[Any]: ...
+
+
+int16 = st.integers(-0x8000, 0x7FFF)
+accel = st.tuples(int16, int16, int16)
+
+
+@st.composite
+def unit_quats(draw: st.DrawFn) -> tuple[float, float, float, float]:
+    v = draw(st.tuples(*[st.floats(-1, 1, allow_nan=False)] * 4))
+    n = math.sqrt(sum(c * c for c in v))
+    if n < 1e-3:
+        return (1.0, 0.0, 0.0, 0.0)
+    w, x, y, z = (c / n for c in v)
+    return (w, x, y, z)
+
+
+def ole(nodes: st.SearchStrategy[int]) -> st.SearchStrategy[OleAccel]:
+    return st.builds(OleAccel, nodes, int16, accel)
+
+
+def chunked(data: bytes, cuts: list[int]) -> list[bytes]:
+    points = sorted({c % (len(data) + 1) for c in cuts})
+    edges = [0, *points, len(data)]
+    return [data[a:b] for a, b in itertools.pairwise(edges)]
+
+
+def decode_all(make: Callable[[], StreamDecoder], chunks: list[bytes]) -> list[Any]:
+    decoder = make()
+    events: list[Any] = []
+    for chunk in chunks:
+        events += decoder.feed(chunk)
+    return events + list(decoder.close())
+
+
+def quats_close(a: Sequence[float], b: Sequence[float], tol: float) -> bool:
+    return all(abs(x - y) <= tol for x, y in zip(a, b, strict=True))
+
+
+cuts = st.lists(st.integers(0, 10_000), max_size=12)
+
+# --- round trips ----------------------------------------------------------------------
+
+
+@given(ole(st.integers(1, 12)))
+def test_can_roundtrip_ole(reading: OleAccel) -> None:
+    assert smartsuit_can.decode_frame(smartsuit_can.encode_reading(reading)) == reading
+
+
+@given(st.integers(13, 15), unit_quats())
+def test_can_roundtrip_quat_within_q14(node: int, q: tuple[float, ...]) -> None:
+    out = smartsuit_can.decode_frame(smartsuit_can.encode_reading(Quat(node, q)))  # type: ignore[arg-type]
+    assert isinstance(out, Quat)
+    assert out.node == node
+    assert quats_close(out.wxyz, q, 2e-4)
+
+
+@given(st.lists(ole(st.integers(1, 12)), max_size=20), cuts)
+def test_slcan_stream_any_chunking(readings: list[OleAccel], cut: list[int]) -> None:
+    data = b"".join(smartsuit_can.encode_slcan(smartsuit_can.encode_reading(r)) for r in readings)
+    assert decode_all(smartsuit_can.SmartSuitSlcanDecoder, chunked(data, cut)) == readings
+
+
+@st.composite
+def exchanges(draw: st.DrawFn) -> tuple[bytes, list[OleAccel]]:
+    readings = draw(st.lists(ole(st.integers(1, 15)), max_size=20))
+    data = b""
+    for r in readings:
+        if draw(st.booleans()):
+            newline = draw(st.sampled_from([b"", b"\r", b"\n", b"\r\n"]))
+            upper = draw(st.booleans())
+            data += concentrator.request(r.node) + concentrator.encode_reply(
+                r, newline=newline, upper=upper
+            )
+        else:
+            data += concentrator.encode_extended_request(r.node)
+            data += concentrator.encode_extended_reply(r)
+    return data, readings
+
+
+@given(exchanges(), cuts)
+def test_concentrator_roundtrip_any_chunking(
+    ex: tuple[bytes, list[OleAccel]], cut: list[int]
+) -> None:
+    data, readings = ex
+    assert decode_all(concentrator.ConcentratorDecoder, chunked(data, cut)) == readings
+
+
+imu_events = st.one_of(
+    st.builds(Quat, st.integers(1, 15), unit_quats(), st.binary(min_size=9, max_size=9)),
+    st.builds(NoNewData, st.integers(1, 15)),
+    st.builds(SensorAbsent, st.integers(1, 15)),
+)
+
+
+@given(imu_events)
+def test_imu_line_roundtrip(event: Quat | NoNewData | SensorAbsent) -> None:
+    out = imu_matrix.decode_line(imu_matrix.encode_line(event)[:-1])
+    if isinstance(event, Quat):
+        assert isinstance(out, Quat)
+        assert (out.node, out.extra) == (event.node, event.extra)
+        assert quats_close(out.wxyz, event.wxyz, 1e-6)
+    else:
+        assert out == event
+
+
+@given(st.lists(imu_events, max_size=30), cuts, st.booleans())
+def test_imu_stream_any_chunking(events: list[Any], cut: list[int], crlf: bool) -> None:
+    lines = [imu_matrix.encode_line(e) for e in events]
+    if crlf:
+        lines = [line[:-1] + b"\r\n" for line in lines]
+    data = b"".join(lines)
+    whole = decode_all(imu_matrix.ImuMatrixDecoder, [data])
+    assert decode_all(imu_matrix.ImuMatrixDecoder, chunked(data, cut)) == whole
+    assert [e.node for e in whole if not isinstance(e, Tick)] == [e.node for e in events]
+
+
+raw_samples = st.builds(
+    RawSample,
+    st.one_of(
+        ole(st.integers(1, 0xFFFF)),
+        st.builds(Quat, st.integers(1, 0xFFFF), unit_quats(), st.binary(max_size=255)),
+    ),
+    st.integers(0, 0xFFFFFFFF),
+    st.integers(-(2**63), 2**63 - 1),
+    st.sampled_from(Source),
+)
+
+
+@given(raw_samples)
+def test_raw_sample_roundtrip_exact(sample: RawSample) -> None:
+    assert raw_sample.decode(raw_sample.encode(sample)) == sample
+
+
+@given(st.lists(raw_samples, max_size=20), cuts)
+def test_raw_sample_batch_any_chunking(samples: list[RawSample], cut: list[int]) -> None:
+    data = raw_sample.encode_batch(samples)
+    assert decode_all(raw_sample.RawSampleDecoder, chunked(data, cut)) == samples
+
+
+# --- random bytes: only declared events, whatever the chunking --------------------------
+
+DECLARED = {
+    "slcan": (smartsuit_can.SmartSuitSlcanDecoder, (OleAccel, Quat, Rejected)),
+    "concentrator": (concentrator.ConcentratorDecoder, (OleAccel, Rejected)),
+    "imu": (imu_matrix.ImuMatrixDecoder, (Quat, NoNewData, SensorAbsent, Tick, Rejected)),
+    "raw": (raw_sample.RawSampleDecoder, (RawSample, Rejected)),
+}
+
+# Bytes that look like each format, so the fuzzing reaches past the first check.
+noisy = st.lists(
+    st.one_of(
+        st.binary(max_size=40),
+        st.sampled_from([b"\r", b"\n", b"\x07", b"I", b"E", b"BN\x01", b"T0006FFFF8", b"0101"]),
+        st.text("0123456789abcdefEXYZ \r\n-", max_size=30).map(str.encode),
+    ),
+    max_size=30,
+).map(b"".join)
+
+
+@given(st.sampled_from(sorted(DECLARED)), noisy, cuts)
+def test_random_bytes_only_declared_events(name: str, data: bytes, cut: list[int]) -> None:
+    make, types = DECLARED[name]
+    whole = decode_all(make, [data])
+    assert all(isinstance(e, types) for e in whole)
+    assert decode_all(make, chunked(data, cut)) == whole
+
+
+@given(noisy)
+def test_good_imu_line_after_garbage_still_decodes(garbage: bytes) -> None:
+    good = Quat(7, (1.0, 0.0, 0.0, 0.0), bytes(9))
+    events = decode_all(
+        imu_matrix.ImuMatrixDecoder, [garbage + b"\n" + imu_matrix.encode_line(good)]
+    )
+    assert events[-1] == good
+
+
+@given(noisy)
+def test_good_concentrator_reply_after_garbage_still_decodes(garbage: bytes) -> None:
+    good = OleAccel(4, 12, (1, 2, 3))
+    data = garbage + concentrator.request(4) + concentrator.encode_reply(good)
+    assert decode_all(concentrator.ConcentratorDecoder, [data])[-1] == good
+
+
+@given(noisy)
+def test_good_slcan_frame_after_garbage_still_decodes(garbage: bytes) -> None:
+    good = OleAccel(4, 12, (1, 2, 3))
+    data = garbage + b"\r" + smartsuit_can.encode_slcan(smartsuit_can.encode_reading(good))
+    assert decode_all(smartsuit_can.SmartSuitSlcanDecoder, [data])[-1] == good
