@@ -1,5 +1,7 @@
-"""``bodynet <subcommand>``: argument parsing only; each subcommand calls a
-``main``-style function of its module with explicit arguments."""
+"""bodynet: a distributed body-network gateway for wearable motion capture.
+
+(Argument parsing only: each subcommand calls a ``main``-style function of
+its module with explicit arguments.)"""
 
 from __future__ import annotations
 
@@ -10,7 +12,10 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
+from bodynet.cli import nodes as nodes_cli
 from bodynet.nodes.captures import CaptureStats, Format, read_capture, sample_json
+from bodynet.nodes.motion import ROUTINES
+from bodynet.session import DEFAULT_ROUTER, add_session_args, config_from_args, open_session
 
 log = logging.getLogger("bodynet")
 
@@ -33,8 +38,22 @@ def cmd_decode(args: argparse.Namespace) -> int:
 
 def cmd_demo(args: argparse.Namespace) -> int:
     from bodynet.cli.demo import run_demo
+    from bodynet.cli.nodes import stop_on_signals
 
-    return run_demo(args.captures)
+    return run_demo(args.listen, args.routine, args.seconds, stop_on_signals())
+
+
+def cmd_router(args: argparse.Namespace) -> int:
+    from bodynet.cli.nodes import stop_on_signals
+
+    if not args.listen and not args.config:
+        args.listen = [DEFAULT_ROUTER]
+    stop = stop_on_signals()
+    session = open_session(config_from_args(args))
+    print(f"bodynet router listening on {', '.join(args.listen)}", flush=True)
+    stop.wait()
+    session.close()
+    return 0
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
@@ -44,7 +63,10 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="bodynet", description=__doc__)
+    parser = argparse.ArgumentParser(
+        prog="bodynet",
+        description="A distributed body-network gateway for wearable motion capture.",
+    )
     parser.add_argument("-v", "--verbose", action="count", default=0, help="more logging")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
@@ -57,9 +79,21 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_decode)
 
     p = sub.add_parser("demo", help="the main job: show the system at work")
-    p.add_argument("--captures", type=Path, default=Path("tests/data"),
-                   help="folder of bundled captures")  # fmt: skip
+    p.add_argument("-l", "--listen", default=DEFAULT_ROUTER, help="where the router listens")
+    p.add_argument(
+        "--routine",
+        default="reach",
+        choices=sorted(ROUTINES),
+        help="motion of the emulated body (default reach)",
+    )
+    p.add_argument("--seconds", type=float, default=None, help="stop after this long")  # fmt: skip
     p.set_defaults(func=cmd_demo)
+
+    nodes_cli.add_parsers(sub)
+
+    p = sub.add_parser("router", help="a Zenoh router for the body network (no zenohd needed)")
+    add_session_args(p, default_mode="router")
+    p.set_defaults(func=cmd_router)
 
     p = sub.add_parser("bench", help="benchmarks, side by side with their baselines")
     p.add_argument("--seconds", type=float, default=1.0, help="time per measurement")

@@ -37,6 +37,7 @@ class Stream(StrEnum):
     """The last key level: what a key carries about its site."""
 
     RAW = "raw"
+    TRUTH = "truth"  # an emulator's ground truth for the site
 
 
 class KeySpaceError(ValueError):
@@ -76,6 +77,15 @@ TRUNK = Branch(Limb.TRUNK, Side.MID)
 #: The five branches of the distributed bus, in the seed's node order.
 BRANCHES: tuple[Branch, ...] = (LEFT_ARM, RIGHT_ARM, LEFT_LEG, RIGHT_LEG, TRUNK)
 
+
+def branch_named(name: str) -> Branch:
+    """The branch called ``name`` (``left-arm``, ``right-leg``, ``trunk``...)."""
+    for branch in BRANCHES:
+        if str(branch) == name:
+            return branch
+    raise KeySpaceError(f"no branch {name!r}; branches: {', '.join(map(str, BRANCHES))}")
+
+
 #: Site names each limb may carry. SmartSuit modules first, then IMU segments.
 SITES: dict[Limb, tuple[str, ...]] = {
     Limb.ARM: ("shoulder", "elbow", "wrist", "upperarm", "forearm", "hand"),
@@ -114,6 +124,22 @@ def raw_key(limb: Limb | str, side: Side | str, site: str) -> str:
 def all_raw() -> str:
     """Key expression matching every raw sample of a body."""
     return f"{ROOT}/*/*/*/{Stream.RAW}"
+
+
+#: Admin keys start with a verbatim chunk (``@...``), which Zenoh wildcards never
+#: match: ``body/**`` gets data only, and admin traffic is asked for by name.
+HEALTH = f"{ROOT}/@health"
+
+
+def health_key(source: str) -> str:
+    """Admin key of one bridge's health, e.g. ``body/@health/can-vcan0``."""
+    return f"{HEALTH}/{chunk(source)}"
+
+
+def chunk(text: str) -> str:
+    """``text`` made safe as one key chunk (no ``/ * $ ? # @`` or spaces)."""
+    safe = "".join(c if c.isalnum() or c in "-_." else "-" for c in text).strip("-")
+    return safe or "unnamed"
 
 
 def parse(key: str) -> tuple[Site, Stream]:

@@ -8,6 +8,7 @@ tags (003 seed, Table 5.2): fifteen sensors by their table number.
 from __future__ import annotations
 
 from collections.abc import Mapping
+from dataclasses import dataclass
 from types import MappingProxyType
 
 from .keys import LEFT_ARM, LEFT_LEG, RIGHT_ARM, RIGHT_LEG, TRUNK, Branch, Site
@@ -64,3 +65,48 @@ def smartsuit_branch_index(node: int) -> int:
 
 def branch_of(node: int) -> Branch:
     return SMARTSUIT_SITES[node].branch
+
+
+@dataclass(frozen=True, slots=True)
+class Mount:
+    """Where a site's sensor sits: on ``segment``, ``fraction`` of its length along it.
+
+    For a SmartSuit module, ``ole_angle`` names the joint angle its encoder
+    spans; its accelerometer rides on ``segment``.
+    """
+
+    segment: str
+    fraction: float = 0.5
+    ole_angle: str | None = None
+
+
+#: SmartSuit module -> the joint dof its encoder measures (000 seed, ch. 3.1.6
+#: and 4.3.2: the encoder covers the dof the accelerometer is blind to).
+OLE_DOF = {
+    "shoulder": "rotation", "elbow": "flexion", "wrist": "flexion",
+    "hip": "rotation", "knee": "flexion", "ankle": "flexion",
+}  # fmt: skip
+
+_MODULE_SEGMENT = {"shoulder": "upperarm", "elbow": "forearm", "wrist": "hand",
+                   "hip": "thigh", "knee": "shank", "ankle": "foot"}  # fmt: skip
+_TRUNK_SEGMENT = {
+    "head": ("head", 0.5), "upper_trunk": ("thorax", 0.6), "lower_trunk": ("pelvis", 0.5),
+    "forehead": ("head", 0.6), "chest": ("thorax", 0.7), "sacrum": ("pelvis", 0.3),
+}  # fmt: skip
+_IMU_FRACTION = {"upperarm": 0.5, "forearm": 0.7, "hand": 0.4, "thigh": 0.5, "shank": 0.5,
+                 "foot": 0.5}  # fmt: skip
+
+
+def mount(site: Site) -> Mount:
+    """The default mount of a site's sensor."""
+    side = site.branch.side
+    if site.branch == TRUNK:
+        segment, fraction = _TRUNK_SEGMENT[site.name]
+        return Mount(segment, fraction)
+    if site.name in OLE_DOF:
+        return Mount(
+            f"{side}_{_MODULE_SEGMENT[site.name]}",
+            0.5,
+            f"{side}_{site.name}_{OLE_DOF[site.name]}_deg",
+        )
+    return Mount(f"{side}_{site.name}", _IMU_FRACTION[site.name])

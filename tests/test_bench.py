@@ -10,8 +10,13 @@ from pathlib import Path
 
 def test_tiny_decode_benchmark_writes_its_table(tmp_path: Path) -> None:
     bodynet = Path(sys.executable).with_name("bodynet")
-    result = subprocess.run([str(bodynet), "bench", "--seconds", "0.02", "--out", str(tmp_path)],
-                            capture_output=True, text=True, timeout=120, check=False)  # fmt: skip
+    result = subprocess.run(
+        [str(bodynet), "bench", "--seconds", "0.02", "--out", str(tmp_path)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+    )
     assert result.returncode == 0, result.stderr
     rows = json.loads((tmp_path / "decode.json").read_text())["rows"]
     names = {r["name"] for r in rows}
@@ -20,12 +25,20 @@ def test_tiny_decode_benchmark_writes_its_table(tmp_path: Path) -> None:
     assert "| imu-central lines |" in (tmp_path / "decode.md").read_text()
 
 
-def test_demo_decodes_the_bundled_captures() -> None:
+def test_demo_runs_the_live_body_network() -> None:
+    from zenoh_helpers import free_port
+
     bodynet = Path(sys.executable).with_name("bodynet")
-    root = Path(__file__).parents[1]
-    result = subprocess.run([str(bodynet), "demo"], cwd=root, capture_output=True, text=True,
-                            timeout=120, check=False)  # fmt: skip
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    result = subprocess.run(
+        [str(bodynet), "demo", "--seconds", "2", "-l", endpoint],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+    )
     assert result.returncode == 0, result.stderr
-    assert "body/arm/left/elbow/raw" in result.stdout
-    assert "body/leg/right/foot/raw" not in result.stdout  # sensor 15 is never seen there
-    assert "decoded 400, rejected 7" in result.stdout
+    last = result.stdout.split("-- t =")[-1]
+    assert "15 live keys" in last
+    for key in ("body/arm/left/elbow/raw", "body/arm/right/wrist/raw", "body/leg/right/foot/raw"):
+        assert key in last

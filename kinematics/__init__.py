@@ -1,0 +1,1 @@
+"""Kinematics of the body model with Pinocchio, shared by emulators and gateway."""

@@ -1,0 +1,104 @@
+"""The body model in Pinocchio, built from a :class:`~bodynet.core.skeleton.Skeleton`.
+
+Model (constant) and Data (working memory) are kept apart as Pinocchio does.
+The root is a free-flyer at the pelvis; every dof of the skeleton is one
+revolute joint about its (unaligned) axis, so ``q = [root position (3), root
+quaternion x, y, z, w (4), joint angles in rad (skeleton order)]``. Each segment
+gets a frame at its joint centre, and each sensor site a frame where it sits.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import pinocchio as pin
+
+from bodynet.core.skeleton import Skeleton, Vec3
+
+ROOT_NQ = 7
+
+
+@dataclass(frozen=True, slots=True)
+class SiteMount:
+    """A sensor site on a segment: ``fraction`` of the segment's length along it."""
+
+    name: str
+    segment: str
+    fraction: float = 0.5
+
+
+class BodyModel:
+    """Forward kinematics of a skeleton, with frames for segments and sites."""
+
+    def __init__(self, skeleton: Skeleton, sites: Sequence[SiteMount] = ()) -> None:
+        self.skeleton = skeleton
+        model = pin.Model()
+        model.name = "bodynet"
+        root = model.addJoint(0, pin.JointModelFreeFlyer(), pin.SE3.Identity(), "root")
+        segment_joint = {"pelvis": root}
+        for joint in skeleton.joints:
+            parent = segment_joint[joint.parent]
+            placement = pin.SE3(np.eye(3), np.array(joint.offset))
+            for dof in joint.dofs:
+                axis = np.array(dof.axis, dtype=float)
+                parent = model.addJoint(
+                    parent,
+                    pin.JointModelRevoluteUnaligned(axis),
+                    placement,
+                    f"{joint.name}_{dof.name}",
+                )
+                placement = pin.SE3.Identity()
+            segment_joint[joint.child] = parent
+        self.segment_frames: dict[str, int] = {}
+        for segment, jid in segment_joint.items():
+            frame = pin.Frame(segment, jid, pin.SE3.Identity(), pin.FrameType.OP_FRAME)
+            self.segment_frames[segment] = model.addFrame(frame)
+        self.site_frames: dict[str, int] = {}
+        for site in sites:
+            direction = np.array(skeleton.directions[site.segment])
+            offset = direction * skeleton.segment_length(site.segment) * site.fraction
+            frame = pin.Frame(
+                site.name,
+                segment_joint[site.segment],
+                pin.SE3(np.eye(3), offset),
+                pin.FrameType.OP_FRAME,
+            )
+            self.site_frames[site.name] = model.addFrame(frame)
+        self.model = model
+        self.data = model.createData()
+        self.angle_names = skeleton.angle_names()
+        self._index = {name: ROOT_NQ + i for i, name in enumerate(self.angle_names)}
+
+    @property
+    def nq(self) -> int:
+        return int(self.model.nq)
+
+    def q(
+        self,
+        angles_deg: Mapping[str, float],
+        root_position: Vec3 | None = None,
+        root_quat_xyzw: Sequence[float] = (0.0, 0.0, 0.0, 1.0),
+    ) -> np.ndarray:
+        """Configuration vector from named joint angles (others stay 0)."""
+        q = np.zeros(self.nq)
+        q[:3] = root_position if root_position is not None else (0, 0, self.skeleton.root_height())
+        q[3:7] = root_quat_xyzw
+        for name, value in angles_deg.items():
+            q[self._index[name]] = math.radians(value)
+        return q
+
+    def angles_deg(self, q: np.ndarray) -> dict[str, float]:
+        return {n: math.degrees(q[i]) for n, i in self._index.items()}
+
+    def frame_placements(
+        self, q: np.ndarray, frames: Sequence[int]
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """World rotations (n, 3, 3) and positions (n, 3) of ``frames`` at ``q``."""
+        pin.framesForwardKinematics(self.model, self.data, q)
+        omf = self.data.oMf
+        rotations = np.array([omf[f].rotation for f in frames])
+        positions = np.array([omf[f].translation for f in frames])
+        return rotations, positions

@@ -1,0 +1,197 @@
+"""The emulated body: a routine drives the body model, sensor models read it.
+
+:class:`BodyEmulator` gives, for any time, the readings of a set of emulated
+sensors (SmartSuit modules, SmartSuit trunk IMUs, IMU tags) and the ground
+truth they came from. It does no I/O: the hardware emulators put its readings
+on real transports.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass
+from enum import StrEnum
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from bodynet.core.calibration import OleCalibration, default_ole
+from bodynet.core.keys import Branch, Site
+from bodynet.core.messages import OleAccel, Quat, Reading
+from bodynet.core.profile import IMU_SITES, SMARTSUIT_QUAT_NODES, SMARTSUIT_SITES, mount
+from bodynet.core.skeleton import build_skeleton
+from bodynet.kinematics.model import BodyModel, SiteMount
+from bodynet.nodes.motion import Routine
+from bodynet.nodes.sensors import AccelBank, OleModel, QuatBank, accel_mount
+
+
+class Kind(StrEnum):
+    MODULE = "module"  # SmartSuit OLE + accelerometer
+    TRUNK_IMU = "trunk-imu"  # SmartSuit trunk-head IMU (Q14 quaternion on CAN)
+    TAG = "tag"  # IMU suit BLE tag
+
+
+@dataclass(frozen=True, slots=True)
+class EmulatedSensor:
+    node: int
+    site: Site
+    kind: Kind
+
+
+def smartsuit_sensors(branches: Iterable[Branch] | None = None) -> list[EmulatedSensor]:
+    """SmartSuit nodes of the given branches (all five by default)."""
+    wanted = set(branches) if branches is not None else None
+    return [
+        EmulatedSensor(n, s, Kind.TRUNK_IMU if n in SMARTSUIT_QUAT_NODES else Kind.MODULE)
+        for n, s in SMARTSUIT_SITES.items()
+        if wanted is None or s.branch in wanted
+    ]
+
+
+def imu_tags(
+    sensors: Iterable[int] | None = None, branches: Iterable[Branch] | None = None
+) -> list[EmulatedSensor]:
+    """IMU tags by sensor number and/or branch (all fifteen by default)."""
+    numbers = set(sensors) if sensors is not None else set(IMU_SITES)
+    wanted = set(branches) if branches is not None else None
+    return [
+        EmulatedSensor(n, s, Kind.TAG)
+        for n, s in IMU_SITES.items()
+        if n in numbers and (wanted is None or s.branch in wanted)
+    ]
+
+
+@dataclass(frozen=True, slots=True)
+class Truth:
+    """What a sensor's segment really did: its joint's angles and orientation."""
+
+    angles_deg: Mapping[str, float]
+    segment: str
+    segment_quat_wxyz: tuple[float, float, float, float]
+
+
+@dataclass(frozen=True, slots=True)
+class Realism:
+    """How far emulated sensors fall short of ideal ones."""
+
+    accel_noise_g: float = 0.01
+    accel_bias_g: float = 0.02  # bias of each axis drawn within +/- this
+    quat_noise_deg: float = 0.3
+    yaw_drift_deg_per_min: float = 0.0
+    ole_slack_mm: float = 0.0
+    random_tag_mounts: bool = True
+
+    @classmethod
+    def ideal(cls) -> Realism:
+        return cls(0.0, 0.0, 0.0, 0.0, 0.0, False)
+
+
+class BodyEmulator:
+    """Readings and ground truth of emulated sensors on a body under a routine."""
+
+    def __init__(
+        self,
+        routine: Routine,
+        sensors: Sequence[EmulatedSensor],
+        *,
+        realism: Realism | None = None,
+        lengths: Mapping[str, float] | None = None,
+        ole: Mapping[str, OleCalibration] | None = None,
+        seed: int = 0,
+        accel_step_s: float = 0.005,
+    ) -> None:
+        self.routine = routine
+        self.sensors = list(sensors)
+        self.realism = realism or Realism()
+        self.skeleton = build_skeleton(lengths)
+        self._h = accel_step_s
+        rng = np.random.default_rng(seed)
+        mounts = {s: mount(s.site) for s in self.sensors}
+        self.model = BodyModel(
+            self.skeleton,
+            [SiteMount(f"n{s.node}-{s.kind}", m.segment, m.fraction) for s, m in mounts.items()],
+        )
+        self._frames = [self.model.site_frames[f"n{s.node}-{s.kind}"] for s in self.sensors]
+        self._segment_frames = [self.model.segment_frames[mounts[s].segment] for s in self.sensors]
+        self._mounts = [mounts[s] for s in self.sensors]
+        self._joint_angles = [self._angles_of(m.segment) for m in self._mounts]
+        r = self.realism
+        self._ole: dict[int, tuple[OleModel, str]] = {}
+        accel_idx, accel_mounts, quat_idx, quat_mounts = [], [], [], []
+        for i, (s, m) in enumerate(zip(self.sensors, self._mounts, strict=True)):
+            if s.kind is Kind.MODULE:
+                assert m.ole_angle is not None
+                cal = (ole or {}).get(m.ole_angle) or default_ole(s.site.name)
+                self._ole[i] = (OleModel(cal, r.ole_slack_mm), m.ole_angle)
+                joint = next(j for j in self.skeleton.joints if j.child == m.segment)
+                direction = np.array(self.skeleton.directions[m.segment])
+                accel_idx.append(i)
+                accel_mounts.append(accel_mount(direction, np.array(joint.dofs[0].axis)))
+            else:
+                quat_idx.append(i)
+                random_mount = s.kind is Kind.TAG and r.random_tag_mounts
+                quat_mounts.append(
+                    Rotation.random(random_state=int(rng.integers(1 << 31))).as_quat()
+                    if random_mount
+                    else np.array([0.0, 0.0, 0.0, 1.0])
+                )
+        self._accel_idx, self._quat_idx = np.array(accel_idx, int), np.array(quat_idx, int)
+        bias = rng.uniform(-r.accel_bias_g, r.accel_bias_g, (len(accel_idx), 3))
+        self._accel = AccelBank(
+            np.array(accel_mounts).reshape(-1, 3, 3), r.accel_noise_g, bias, rng
+        )
+        self._quat = QuatBank(
+            Rotation.from_quat(np.array(quat_mounts).reshape(-1, 4)),
+            r.quat_noise_deg,
+            r.yaw_drift_deg_per_min,
+            rng,
+        )
+
+    def _angles_of(self, segment: str) -> tuple[str, ...]:
+        for joint in self.skeleton.joints:
+            if joint.child == segment:
+                return joint.angle_names()
+        return ()
+
+    def angles(self, t_s: float) -> dict[str, float]:
+        return self.routine.angles(t_s)
+
+    def sample(self, t_s: float) -> tuple[list[Reading], list[Truth]]:
+        """Every sensor's reading at ``t_s``, and the truth behind each."""
+        angles = self.angles(t_s)
+        n = len(self._frames)
+        rot, pos = self.model.frame_placements(
+            self.model.q(angles), self._frames + self._segment_frames
+        )
+        seg_rot = rot[n:]
+        readings: list[Reading | None] = [None] * n
+        if len(self._accel_idx):
+            sites = [self._frames[i] for i in self._accel_idx]
+            _, before = self.model.frame_placements(self.model.q(self.angles(t_s - self._h)), sites)
+            _, after = self.model.frame_placements(self.model.q(self.angles(t_s + self._h)), sites)
+            accel = (after - 2 * pos[self._accel_idx] + before) / (self._h * self._h)
+            counts = self._accel.read(seg_rot[self._accel_idx], accel)
+            for row, i in enumerate(self._accel_idx):
+                ole, ole_angle = self._ole[int(i)]
+                x, y, z = (int(c) for c in counts[row])
+                readings[i] = OleAccel(
+                    self.sensors[i].node, ole.read(angles.get(ole_angle, 0.0)), (x, y, z)
+                )
+        if len(self._quat_idx):
+            quats = self._quat.read(seg_rot[self._quat_idx], t_s)
+            for row, i in enumerate(self._quat_idx):
+                w, x, y, z = (float(c) for c in quats[row])
+                readings[i] = Quat(self.sensors[i].node, (w, x, y, z))
+        true_quats = np.roll(Rotation.from_matrix(seg_rot).as_quat(canonical=True), 1, axis=1)
+        truths = [
+            Truth({a: angles.get(a, 0.0) for a in names}, m.segment, tuple(float(c) for c in q))  # type: ignore[arg-type]
+            for names, m, q in zip(self._joint_angles, self._mounts, true_quats, strict=True)
+        ]
+        return [r for r in readings if r is not None], truths
+
+
+def angle_between_deg(q1: Sequence[float], q2: Sequence[float]) -> float:
+    """Rotation angle (deg) between two unit quaternions w, x, y, z."""
+    dot = abs(sum(a * b for a, b in zip(q1, q2, strict=True)))
+    return math.degrees(2 * math.acos(min(1.0, dot)))

@@ -1,0 +1,355 @@
+"""Emulated hardware on real transports, driven by a :class:`BodyEmulator`.
+
+- :class:`CanNodes`: SmartSuit sensing nodes sending their frames every 10 ms
+  on any python-can bus (``virtual`` in one process, ``socketcan`` vcan...).
+- :class:`ConcentratorEmulator`: a Data Concentrator on a pseudo-terminal
+  answering request characters on its ~22 ms cycle (115200 baud).
+- :class:`ImuCentralEmulator`: the IMU central on a pseudo-terminal printing the
+  data matrix every tick (230400 baud).
+- :class:`SlcanAdapterEmulator`: a Lawicel slcan USB-CAN adapter on a
+  pseudo-terminal, with SmartSuit nodes behind it, so python-can's ``slcan``
+  interface is exercised end to end.
+
+Each pseudo-terminal is reached through a stable symlink (like udev's
+``/dev/serial/by-id/...``), so :meth:`PtyPort.unplug` and :meth:`PtyPort.plug`
+emulate pulling the USB cable and putting it back.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import select
+import termios
+import threading
+import time
+import tty
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+import can
+
+from bodynet.core.codecs import concentrator, imu_matrix, smartsuit_can
+from bodynet.core.codecs.smartsuit_can import SlcanDecoder, SlcanReply
+from bodynet.core.messages import NoNewData, OleAccel, Quat, Reading, SensorAbsent
+from bodynet.nodes.emulator import BodyEmulator, Truth
+
+log = logging.getLogger(__name__)
+
+TruthSink = Callable[[int, Truth, int], None]  # node, truth, t_ns
+CAN_PERIOD_S = 0.01
+CONCENTRATOR_CYCLE_S = 0.022
+IMU_TICK_S = 0.04  # 25 Hz: about what 230400 baud carries for 15 sensors
+_BAUD = {115200: termios.B115200, 230400: termios.B230400}
+
+
+class Clock:
+    """Seconds since ``t0`` on the monotonic clock; shared so emulators agree."""
+
+    def __init__(self, t0: float | None = None) -> None:
+        self.t0 = time.monotonic() if t0 is None else t0
+
+    def now(self) -> float:
+        return time.monotonic() - self.t0
+
+
+class _Loop:
+    """A background thread with a stop event."""
+
+    def __init__(self, name: str) -> None:
+        self.name = name
+        self.stop_event = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def start(self) -> None:
+        self.stop_event.clear()
+        self._thread = threading.Thread(target=self._guarded, name=self.name, daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        self.stop_event.set()
+        if self._thread is not None:
+            self._thread.join(timeout=5)
+
+    def _guarded(self) -> None:
+        try:
+            self.run()
+        except Exception:
+            log.exception("%s stopped", self.name)
+
+    def run(self) -> None:
+        raise NotImplementedError
+
+
+def _sample(body: BodyEmulator, clock: Clock, truth: TruthSink | None) -> list[Reading]:
+    readings, truths = body.sample(clock.now())
+    if truth is not None:
+        t_ns = time.time_ns()
+        for reading, tr in zip(readings, truths, strict=True):
+            truth(reading.node, tr, t_ns)
+    return readings
+
+
+class CanNodes(_Loop):
+    """SmartSuit nodes on a python-can bus, one frame each every 10 ms."""
+
+    def __init__(
+        self,
+        bus: can.BusABC,
+        body: BodyEmulator,
+        clock: Clock | None = None,
+        truth: TruthSink | None = None,
+        period_s: float = CAN_PERIOD_S,
+    ) -> None:
+        super().__init__("can-nodes")
+        self.bus, self.body, self.clock, self.truth = bus, body, clock or Clock(), truth
+        self.period_s = period_s
+        self.sent = 0
+
+    def run(self) -> None:
+        deadline = time.monotonic()
+        while not self.stop_event.is_set():
+            for reading in _sample(self.body, self.clock, self.truth):
+                frame = smartsuit_can.encode_reading(reading)
+                self.bus.send(
+                    can.Message(
+                        arbitration_id=frame.arbitration_id, data=frame.data, is_extended_id=True
+                    )
+                )
+                self.sent += 1
+            deadline += self.period_s
+            self.stop_event.wait(max(0.0, deadline - time.monotonic()))
+
+
+class PtyPort:
+    """A pseudo-terminal whose far end is reached through a stable symlink."""
+
+    def __init__(self, link: Path, baud: int) -> None:
+        self.link = Path(link)
+        self.baud = baud
+        self.master: int | None = None
+        self._slave: int | None = None
+        self.plugged = threading.Event()
+
+    def plug(self) -> None:
+        """Create the device (again) and point the symlink at it."""
+        master, slave = os.openpty()
+        tty.setraw(slave)
+        attrs = termios.tcgetattr(slave)
+        attrs[4] = attrs[5] = _BAUD.get(self.baud, termios.B115200)
+        termios.tcsetattr(slave, termios.TCSANOW, attrs)
+        tmp = self.link.with_name(self.link.name + ".tmp")
+        tmp.unlink(missing_ok=True)
+        tmp.symlink_to(os.ttyname(slave))
+        tmp.replace(self.link)
+        self.master, self._slave = master, slave
+        self.plugged.set()
+
+    def unplug(self) -> None:
+        """Remove the device: its users' reads and writes fail, as on a USB unplug."""
+        self.plugged.clear()
+        self.link.unlink(missing_ok=True)
+        for fd in (self.master, self._slave):
+            if fd is not None:
+                os.close(fd)
+        self.master = self._slave = None
+
+    def read(self, timeout: float) -> bytes:
+        """What the far end wrote, waiting up to ``timeout``; b"" if nothing."""
+        master = self.master
+        if master is None:
+            self.plugged.wait(timeout)
+            return b""
+        try:
+            ready, _, _ = select.select([master], [], [], timeout)
+            return os.read(master, 4096) if ready else b""
+        except OSError:
+            return b""
+
+    def write(self, data: bytes) -> None:
+        master = self.master
+        if master is None:
+            return
+        with contextlib.suppress(OSError):  # unplugged meanwhile
+            os.write(master, data)
+
+
+class _PtyEmulator(_Loop):
+    def __init__(self, name: str, link: Path, baud: int) -> None:
+        super().__init__(name)
+        self.port = PtyPort(link, baud)
+
+    @property
+    def link(self) -> Path:
+        return self.port.link
+
+    def start(self) -> None:
+        self.port.plug()
+        super().start()
+
+    def stop(self) -> None:
+        super().stop()
+        if self.port.master is not None:
+            self.port.unplug()
+
+
+class ConcentratorEmulator(_PtyEmulator):
+    """The Data Concentrator: one reply per ~22 ms cycle to each request.
+
+    Requests are short (``'I'`` for node 1...) or extended lines; replies come
+    in the same form. Nodes in ``silent`` never answer (a dead sensor).
+    """
+
+    def __init__(
+        self,
+        link: Path,
+        body: BodyEmulator,
+        clock: Clock | None = None,
+        truth: TruthSink | None = None,
+        cycle_s: float = CONCENTRATOR_CYCLE_S,
+        silent: Sequence[int] = (),
+    ) -> None:
+        super().__init__("concentrator-emulator", link, 115200)
+        self.body, self.clock, self.truth = body, clock or Clock(), truth
+        self.cycle_s = cycle_s
+        self.silent = set(silent)
+        self.replies = 0
+
+    def run(self) -> None:
+        pending: list[tuple[int, bool]] = []  # (node, extended)
+        line = bytearray()
+        next_cycle = time.monotonic()
+        while not self.stop_event.is_set():
+            wait = max(0.0, next_cycle - time.monotonic()) if pending else 0.05
+            for b in self.port.read(wait):
+                node = concentrator.node_of_request(b)
+                if node is not None and not line:
+                    pending.append((node, False))
+                elif b in b"\r\n":
+                    if line:
+                        try:
+                            result = concentrator.decode_extended(line)
+                        except ValueError:
+                            result = None
+                        if isinstance(result, int):
+                            pending.append((result, True))
+                        line.clear()
+                elif 0x30 <= b <= 0x39 or b in b" +-":
+                    line.append(b)
+            if pending and time.monotonic() >= next_cycle:
+                node, extended = pending.pop(0)
+                self._answer(node, extended)
+                next_cycle = time.monotonic() + self.cycle_s
+
+    def _answer(self, node: int, extended: bool) -> None:
+        if node in self.silent:
+            return
+        for reading in _sample(self.body, self.clock, self.truth):
+            if reading.node == node and isinstance(reading, OleAccel):
+                self.port.write(
+                    concentrator.encode_extended_reply(reading)
+                    if extended
+                    else concentrator.encode_reply(reading)
+                )
+                self.replies += 1
+
+
+class ImuCentralEmulator(_PtyEmulator):
+    """The IMU central: every tick one line per sensor slot 1..15.
+
+    Emulated tags print flag 01 with their quaternion; slots with no tag print
+    ff (never seen); a tag in ``dropouts`` prints 00 (no new data) on every
+    ``dropout_every``-th tick.
+    """
+
+    def __init__(
+        self,
+        link: Path,
+        body: BodyEmulator,
+        clock: Clock | None = None,
+        truth: TruthSink | None = None,
+        tick_s: float = IMU_TICK_S,
+        dropouts: Sequence[int] = (),
+        dropout_every: int = 4,
+    ) -> None:
+        super().__init__("imu-central-emulator", link, 230400)
+        self.body, self.clock, self.truth = body, clock or Clock(), truth
+        self.tick_s = tick_s
+        self.dropouts, self.dropout_every = set(dropouts), dropout_every
+        self.ticks = 0
+
+    def run(self) -> None:
+        deadline = time.monotonic()
+        while not self.stop_event.is_set():
+            readings = {r.node: r for r in _sample(self.body, self.clock, self.truth)}
+            lines = []
+            for slot in range(1, imu_matrix.MAX_SENSORS + 1):
+                reading = readings.get(slot)
+                if not isinstance(reading, Quat):
+                    lines.append(imu_matrix.encode_line(SensorAbsent(slot)))
+                elif slot in self.dropouts and self.ticks % self.dropout_every == 1:
+                    lines.append(imu_matrix.encode_line(NoNewData(slot)))
+                else:
+                    extra = (self.ticks & 0xFFFF).to_bytes(2, "little")  # a line counter
+                    lines.append(imu_matrix.encode_line(Quat(slot, reading.wxyz, extra)))
+            self.port.write(b"".join(lines))
+            self.ticks += 1
+            deadline += self.tick_s
+            self.port.read(max(0.0, deadline - time.monotonic()))  # drain, and pace
+
+
+class SlcanAdapterEmulator(_PtyEmulator):
+    """A Lawicel slcan adapter with SmartSuit nodes on its CAN side.
+
+    Answers the host's commands (``S``/``s`` bitrate, ``O``/``L`` open,
+    ``C`` close, ``V`` version, ``N`` serial number, ``T``/``t`` transmit) and,
+    while open, forwards a frame of each node every 10 ms as a ``T`` line.
+    """
+
+    def __init__(
+        self,
+        link: Path,
+        body: BodyEmulator,
+        clock: Clock | None = None,
+        truth: TruthSink | None = None,
+        period_s: float = CAN_PERIOD_S,
+    ) -> None:
+        super().__init__("slcan-emulator", link, 115200)
+        self.body, self.clock, self.truth = body, clock or Clock(), truth
+        self.period_s = period_s
+        self.is_open = False
+        self.sent = 0
+        self.received: list[smartsuit_can.CanFrame] = []
+
+    def run(self) -> None:
+        decoder = SlcanDecoder()
+        deadline = time.monotonic()
+        while not self.stop_event.is_set():
+            for event in decoder.feed(self.port.read(max(0.0, deadline - time.monotonic()))):
+                self._command(event)
+            if time.monotonic() < deadline:
+                continue
+            deadline += self.period_s
+            if self.is_open:
+                frames = [
+                    smartsuit_can.encode_reading(r)
+                    for r in _sample(self.body, self.clock, self.truth)
+                ]
+                self.port.write(b"".join(map(smartsuit_can.encode_slcan, frames)))
+                self.sent += len(frames)
+
+    def _command(self, event: object) -> None:
+        if isinstance(event, smartsuit_can.CanFrame):
+            self.received.append(event)
+            self.port.write(b"Z\r" if event.is_extended_id else b"z\r")
+            return
+        text = event.text if isinstance(event, SlcanReply) else ""
+        reply = {"V": b"V1013\r", "N": b"NBN01\r"}.get(text[:1], b"\r")
+        if text[:1] in ("O", "L"):
+            self.is_open = True
+        elif text[:1] == "C":
+            self.is_open = False
+        elif text[:1] not in ("S", "s", "V", "N", "F", "Z", "M", "m"):
+            reply = b"\a"
+        self.port.write(reply)

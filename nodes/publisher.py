@@ -1,0 +1,205 @@
+"""Putting a source's readings on Zenoh: raw samples, liveliness and health.
+
+Every bridge (CAN, concentrator, IMU central) and every emulated node hands
+its decoded readings to one :class:`SitePublisher`, which
+
+- stamps each with its sequence number and source time and publishes it as a
+  raw-sample message on the node's site key;
+- holds one liveliness token per node, on that same key, while the node
+  delivers: declared at its first sample, dropped once it has missed
+  ``stale_periods`` periods (or at close), declared again when it returns;
+- counts per node samples, sequence gaps and rejections, and publishes this
+  health as JSON on ``body/@health/<source>`` every second and whenever a node
+  comes or goes.
+
+Sequence numbers come from the source's own structure where it has one (the
+IMU central's tick, the concentrator's poll cycle); :class:`PeriodicSeq`
+derives them from arrival times otherwise, so a gap means a missed period.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import threading
+import time
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+
+import zenoh
+
+from bodynet.core import keys
+from bodynet.core.codecs import raw_sample
+from bodynet.core.errors import Reason, RejectCounts, Rejected
+from bodynet.core.keys import Site
+from bodynet.core.messages import RawSample, Reading, Source
+
+log = logging.getLogger(__name__)
+
+HEALTH_PERIOD_S = 1.0
+
+
+@dataclass
+class NodeHealth:
+    site: Site
+    samples: int = 0
+    gaps: int = 0
+    rejected: RejectCounts = field(default_factory=RejectCounts)
+    last_seq: int | None = None
+    last_seen: float = 0.0  # monotonic
+    alive: bool = False
+    window: list[float] = field(default_factory=list)  # arrival times of the last second
+
+    def as_json(self, now: float) -> dict[str, object]:
+        recent = [t for t in self.window if now - t <= 1.0]
+        return {
+            "key": self.site.raw_key,
+            "alive": self.alive,
+            "rate_hz": len(recent),
+            "samples": self.samples,
+            "gaps": self.gaps,
+            "rejected": dict(self.rejected),
+        }
+
+
+class PeriodicSeq:
+    """Sequence numbers from arrival times of a source sending every ``period_s``."""
+
+    def __init__(self, period_s: float) -> None:
+        self.period_s = period_s
+        self._last: dict[int, tuple[int, float]] = {}
+
+    def next(self, node: int, t_s: float) -> int:
+        last = self._last.get(node)
+        seq = 0 if last is None else last[0] + max(1, round((t_s - last[1]) / self.period_s))
+        self._last[node] = (seq, t_s)
+        return seq
+
+
+class SitePublisher:
+    """One source's readings onto Zenoh; see the module docstring."""
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        sites: Mapping[int, Site],
+        source: Source,
+        name: str,
+        period_s: float,
+        stale_periods: float = 5.0,
+    ) -> None:
+        self.session = session
+        self.sites = dict(sites)
+        self.source = source
+        self.name = name
+        self.stale_after_s = max(stale_periods * period_s, 0.05)
+        self.nodes: dict[int, NodeHealth] = {}
+        self.rejected = RejectCounts()
+        self.device = "starting"
+        self._publishers: dict[int, zenoh.Publisher] = {}
+        self._tokens: dict[int, zenoh.LivelinessToken] = {}
+        self._health_pub = session.declare_publisher(keys.health_key(name))
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._last_health = 0.0
+        self._watch = threading.Thread(target=self._watchdog, name=f"{name}-watch", daemon=True)
+        self._watch.start()
+
+    def publish(self, reading: Reading, seq: int, t_ns: int | None = None) -> None:
+        """Publish one reading of node ``reading.node`` (ignored if not in ``sites``)."""
+        site = self.sites.get(reading.node)
+        if site is None:
+            self.reject(Rejected(Reason.UNKNOWN_NODE, f"node {reading.node} not in this profile"))
+            return
+        now = time.monotonic()
+        payload = raw_sample.encode(RawSample(reading, seq, t_ns or time.time_ns(), self.source))
+        with self._lock:
+            health = self.nodes.get(reading.node)
+            if health is None:
+                health = self.nodes[reading.node] = NodeHealth(site)
+            if health.last_seq is not None and seq > health.last_seq + 1:
+                health.gaps += seq - health.last_seq - 1
+            health.last_seq = seq
+            health.samples += 1
+            health.last_seen = now
+            health.window.append(now)
+            if len(health.window) > 4096 or (health.window and now - health.window[0] > 1.0):
+                health.window = [t for t in health.window if now - t <= 1.0]
+            publisher = self._publishers.get(reading.node)
+            if publisher is None:
+                publisher = self._publishers[reading.node] = self.session.declare_publisher(
+                    site.raw_key, congestion_control=zenoh.CongestionControl.BLOCK
+                )
+            came_back = not health.alive
+            if came_back:
+                health.alive = True
+                self._tokens[reading.node] = self.session.liveliness().declare_token(site.raw_key)
+        publisher.put(payload)
+        if came_back:
+            log.info("%s: node %d (%s) is live", self.name, reading.node, site.raw_key)
+            self.publish_health()
+
+    def reject(self, rejected: Rejected, node: int | None = None) -> None:
+        """Count a rejection, against ``node`` too when it is known."""
+        with self._lock:
+            self.rejected[rejected.reason] += 1
+            if node is not None and node in self.nodes:
+                self.nodes[node].rejected[rejected.reason] += 1
+        log.debug(
+            "%s: rejected %s: %s %r", self.name, rejected.reason, rejected.detail, rejected.data
+        )
+
+    def set_device(self, state: str) -> None:
+        """Say how the device behind the source is doing (``connected``...)."""
+        if state != self.device:
+            self.device = state
+            self.publish_health()
+
+    def health(self) -> dict[str, object]:
+        now = time.monotonic()
+        with self._lock:
+            return {
+                "source": self.name,
+                "kind": self.source.name.lower(),
+                "device": self.device,
+                "t_ns": time.time_ns(),
+                "rejected": dict(self.rejected),
+                "nodes": {str(n): h.as_json(now) for n, h in sorted(self.nodes.items())},
+            }
+
+    def publish_health(self) -> None:
+        self._last_health = time.monotonic()
+        self._health_pub.put(json.dumps(self.health()).encode())
+
+    def _watchdog(self) -> None:
+        while not self._stop.wait(min(0.05, self.stale_after_s / 4)):
+            now = time.monotonic()
+            gone = []
+            with self._lock:
+                for node, health in self.nodes.items():
+                    if health.alive and now - health.last_seen > self.stale_after_s:
+                        health.alive = False
+                        gone.append(node)
+                        token = self._tokens.pop(node, None)
+                        if token is not None:
+                            token.undeclare()
+            for node in gone:
+                log.info("%s: node %d went quiet", self.name, node)
+            if gone or now - self._last_health >= HEALTH_PERIOD_S:
+                self.publish_health()
+
+    def close(self) -> None:
+        """Drop every token and publisher; the session stays open."""
+        self._stop.set()
+        self._watch.join(timeout=2)
+        with self._lock:
+            for token in self._tokens.values():
+                token.undeclare()
+            self._tokens.clear()
+            for node in self.nodes.values():
+                node.alive = False
+            for publisher in self._publishers.values():
+                publisher.undeclare()
+            self._publishers.clear()
+        self.publish_health()
+        self._health_pub.undeclare()

@@ -1,0 +1,98 @@
+"""Zenoh sessions for every bodynet process: the standard flags and defaults.
+
+Every service takes the same session flags as the zenoh-python examples:
+``--mode``, ``-e/--connect``, ``-l/--listen``, ``-c/--config`` and
+``--cfg KEY:VALUE``. Precedence: command line, then environment
+(``BODYNET_ZENOH_CONFIG`` names a config file, ``BODYNET_ZENOH_CONNECT`` a
+comma-separated list of endpoints), then the config file, then bodynet's
+defaults: client mode towards the gateway's router on ``tcp/127.0.0.1:7447``,
+multicast scouting off (endpoints are explicit), waiting for the router if it
+is not up yet and reconnecting quickly when it comes back.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import zenoh
+
+DEFAULT_ROUTER = "tcp/127.0.0.1:7447"
+MODES = ("client", "peer", "router")
+
+
+def add_session_args(parser: argparse.ArgumentParser, default_mode: str = "client") -> None:
+    """Add the standard Zenoh session flags to ``parser``."""
+    group = parser.add_argument_group("Zenoh session")
+    group.add_argument("--mode", choices=MODES, default=None,
+                       help=f"session mode (default: {default_mode})")  # fmt: skip
+    group.add_argument(
+        "-e",
+        "--connect",
+        action="append",
+        default=[],
+        metavar="ENDPOINT",
+        help=f"endpoint to connect to (default for a client: {DEFAULT_ROUTER})",
+    )
+    group.add_argument("-l", "--listen", action="append", default=[], metavar="ENDPOINT",
+                       help="endpoint to listen on")  # fmt: skip
+    group.add_argument("-c", "--config", type=Path, default=None, help="Zenoh JSON5 config file")
+    group.add_argument(
+        "--cfg",
+        action="append",
+        default=[],
+        metavar="KEY:VALUE",
+        help="a config entry, VALUE in JSON5, e.g. --cfg 'scouting/multicast/enabled:true'",
+    )
+    parser.set_defaults(zenoh_default_mode=default_mode)
+
+
+def session_config(
+    mode: str = "client",
+    connect: Sequence[str] = (),
+    listen: Sequence[str] = (),
+    config_file: Path | None = None,
+    entries: Sequence[str] = (),
+) -> zenoh.Config:
+    """A Zenoh config from explicit arguments (see the module docstring)."""
+    env_file = os.environ.get("BODYNET_ZENOH_CONFIG")
+    path = config_file or (Path(env_file) if env_file else None)
+    conf = zenoh.Config.from_file(str(path)) if path else zenoh.Config()
+    if not connect and (env_connect := os.environ.get("BODYNET_ZENOH_CONNECT")):
+        connect = [e.strip() for e in env_connect.split(",") if e.strip()]
+    if not connect and not path and mode == "client":
+        connect = [DEFAULT_ROUTER]
+
+    def put(key: str, value: Any) -> None:
+        conf.insert_json5(key, json.dumps(value))
+
+    if not path:
+        put("scouting/multicast/enabled", False)
+        put("connect/timeout_ms", -1 if mode == "client" else 0)
+        put("connect/retry", {"period_init_ms": 100, "period_max_ms": 500})
+    put("mode", mode)
+    if connect:
+        put("connect/endpoints", list(connect))
+    if listen:
+        put("listen/endpoints", list(listen))
+    for entry in entries:
+        key, sep, value = entry.partition(":")
+        if not sep:
+            raise ValueError(f"--cfg wants KEY:VALUE, not {entry!r}")
+        conf.insert_json5(key, value)
+    return conf
+
+
+def config_from_args(args: argparse.Namespace) -> zenoh.Config:
+    mode = args.mode or getattr(args, "zenoh_default_mode", "client")
+    return session_config(mode, args.connect, args.listen, args.config, args.cfg)
+
+
+def open_session(conf: zenoh.Config) -> zenoh.Session:
+    """Open a session; Zenoh's own logging follows ``RUST_LOG`` if set."""
+    zenoh.try_init_log_from_env()
+    return zenoh.open(conf)

@@ -1,0 +1,75 @@
+"""`bodynet node` processes on a loopback router: branches come and go live."""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+import zenoh
+from zenoh_helpers import Collector, Liveliness, raw_collector
+
+from bodynet.core.keys import LEFT_ARM, RIGHT_ARM
+from bodynet.core.profile import SMARTSUIT_SITES
+
+BODYNET = Path(sys.executable).with_name("bodynet")
+
+
+@pytest.fixture
+def processes() -> Iterator[list[subprocess.Popen[str]]]:
+    procs: list[subprocess.Popen[str]] = []
+    yield procs
+    for p in procs:
+        if p.poll() is None:
+            p.kill()
+        p.wait(timeout=10)
+
+
+def keys_of(branch: object) -> set[str]:
+    return {s.raw_key for s in SMARTSUIT_SITES.values() if s.branch == branch}
+
+
+def test_branches_hot_plug(
+    zsession: zenoh.Session, router_endpoint: str, processes: list[subprocess.Popen[str]]
+) -> None:
+    live = Liveliness(zsession)
+    truth = Collector(zsession, "body/*/*/*/truth", json.loads)
+    common = ["--routine", "reach", "--ideal", "-e", router_endpoint]
+    left = subprocess.Popen(
+        [str(BODYNET), "node", "smartsuit", "--branch", "left-arm", "--via", "slcan", *common],
+        text=True,
+        stderr=subprocess.PIPE,
+    )
+    right = subprocess.Popen(
+        [
+            str(BODYNET),
+            "node",
+            "smartsuit",
+            "--branch",
+            "right-arm",
+            "--via",
+            "concentrator",
+            *common,
+        ],
+        text=True,
+        stderr=subprocess.PIPE,
+    )
+    processes += [left, right]
+    both = keys_of(LEFT_ARM) | keys_of(RIGHT_ARM)
+    live.wait_for(lambda alive: both <= alive, timeout=30)
+    seen = truth.wait_for(lambda s: len({k for k, _ in s}) >= 6)
+    assert {"t_ns", "segment", "segment_quat_wxyz", "angles_deg"} <= set(seen[0][1])
+
+    right.send_signal(signal.SIGTERM)  # unplug the right arm: only its nodes go
+    assert right.wait(timeout=15) == 0
+    alive = live.wait_for(lambda alive: not (keys_of(RIGHT_ARM) & alive))
+    assert keys_of(LEFT_ARM) <= alive
+    raw = raw_collector(zsession, "body/arm/left/*/raw")
+    raw.wait_for(lambda s: len(s) >= 30)  # the left arm never noticed
+
+    left.send_signal(signal.SIGKILL)  # a crash is seen too, by the token vanishing
+    live.wait_for(lambda alive: not alive)
