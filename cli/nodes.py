@@ -87,16 +87,22 @@ def cmd_emulate(args: argparse.Namespace) -> int:
     from bodynet.nodes import services
 
     stop = stop_on_signals()
-    services.emulate(
-        args.device,
-        stop,
-        _options(args),
-        link=args.link,
-        branches=_branches(args),
-        sensors=_numbers(args.sensors) if args.sensors else None,
-        silent=_numbers(args.silent) if args.silent else (),
-        bus_args={"interface": args.interface, "channel": args.channel},
-    )
+    session = open_session(config_from_args(args)) if args.truth else None
+    try:
+        services.emulate(
+            args.device,
+            stop,
+            _options(args),
+            link=args.link,
+            branches=_branches(args),
+            sensors=_numbers(args.sensors) if args.sensors else None,
+            silent=_numbers(args.silent) if args.silent else (),
+            bus_args={"interface": args.interface, "channel": args.channel},
+            truth_session=session,
+        )
+    finally:
+        if session is not None:
+            session.close()
     return 0
 
 
@@ -179,6 +185,12 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
             )
             p.set_defaults(interface=None, channel=None)
         p.add_argument("--silent", help="concentrator: nodes that never answer, e.g. 3")
+        p.add_argument(
+            "--truth",
+            action="store_true",
+            help="publish the ground truth on Zenoh (session flags below)",
+        )
+        add_session_args(p)
         p.set_defaults(func=cmd_emulate)
 
     node = sub.add_parser("node", help="emulated sensors with their bridge, live on Zenoh")

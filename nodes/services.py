@@ -133,12 +133,16 @@ def emulate(
     sensors: Sequence[int] | None = None,
     silent: Sequence[int] = (),
     bus_args: Mapping[str, Any] | None = None,
+    truth_session: zenoh.Session | None = None,
 ) -> None:
     """Run one emulated device until ``stop``: ``slcan``, ``concentrator``,
-    ``imu-central`` (on a pseudo-terminal behind ``link``) or ``can`` (on a bus)."""
+    ``imu-central`` (on a pseudo-terminal behind ``link``) or ``can`` (on a bus).
+    With ``truth_session``, the ground truth is published there too."""
+    sites = IMU_SITES if kind == "imu-central" else SMARTSUIT_SITES
+    sink = truth_sink(truth_session, sites) if truth_session is not None else None
     if kind == "can":
         with can.Bus(**dict(bus_args or {})) as bus:
-            nodes = CanNodes(bus, _body(options, smartsuit_sensors(branches)))
+            nodes = CanNodes(bus, _body(options, smartsuit_sensors(branches)), truth=sink)
             nodes.start()
             stop.wait()
             nodes.stop()
@@ -146,12 +150,12 @@ def emulate(
     assert link is not None
     device: ConcentratorEmulator | ImuCentralEmulator | SlcanAdapterEmulator
     if kind == "slcan":
-        device = SlcanAdapterEmulator(link, _body(options, smartsuit_sensors(branches)))
+        device = SlcanAdapterEmulator(link, _body(options, smartsuit_sensors(branches)), truth=sink)
     elif kind == "concentrator":
         body = _body(options, smartsuit_sensors(branches))
-        device = ConcentratorEmulator(link, body, silent=silent)
+        device = ConcentratorEmulator(link, body, truth=sink, silent=silent)
     else:
-        device = ImuCentralEmulator(link, _body(options, imu_tags(sensors, branches)))
+        device = ImuCentralEmulator(link, _body(options, imu_tags(sensors, branches)), truth=sink)
     device.start()
     print(f"emulated {kind} on {device.link} -> {device.link.resolve()}", flush=True)
     stop.wait()

@@ -73,3 +73,57 @@ def test_branches_hot_plug(
 
     left.send_signal(signal.SIGKILL)  # a crash is seen too, by the token vanishing
     live.wait_for(lambda alive: not alive)
+
+
+def test_emulated_adapter_process_and_bridge_process(
+    zsession: zenoh.Session,
+    router_endpoint: str,
+    tmp_path: Path,
+    processes: list[subprocess.Popen[str]],
+) -> None:
+    """Hardware emulated in one process, bridged by another, as with real hardware."""
+    link = tmp_path / "ttyACM-bodynet"
+    emulator = subprocess.Popen(
+        [
+            str(BODYNET),
+            "emulate",
+            "slcan",
+            "--link",
+            str(link),
+            "--branch",
+            "right-arm",
+            "--routine",
+            "elbow-slow",
+            "--truth",
+            "-e",
+            router_endpoint,
+        ],
+        text=True,
+        stdout=subprocess.PIPE,
+    )
+    processes.append(emulator)
+    assert emulator.stdout is not None
+    assert f"emulated slcan on {link}" in emulator.stdout.readline()
+    truth = Collector(zsession, "body/arm/right/*/truth", json.loads)
+    raw = raw_collector(zsession, "body/arm/right/*/raw")
+    bridge = subprocess.Popen(
+        [
+            str(BODYNET),
+            "bridge",
+            "can",
+            "--interface",
+            "slcan",
+            "--channel",
+            str(link),
+            "-e",
+            router_endpoint,
+        ],
+        text=True,
+    )
+    processes.append(bridge)
+    seen = raw.wait_for(lambda s: len({k for k, _ in s}) == 3, timeout=30)
+    assert {k for k, _ in seen} == keys_of(RIGHT_ARM)
+    truth.wait_for(lambda s: len(s) >= 3)
+    for p in (bridge, emulator):
+        p.send_signal(signal.SIGINT)
+        assert p.wait(timeout=15) == 0

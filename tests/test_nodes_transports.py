@@ -226,3 +226,23 @@ def test_serial_device_unplugged_and_back(
     assert seqs == sorted(seqs)  # sequence numbers keep rising across the reconnect
     central.stop()
     bridge.close()
+
+
+def test_can_adapter_unplugged_and_back(
+    zsession: zenoh.Session, tmp_path: Path, run_thread: Callable[..., threading.Event]
+) -> None:
+    adapter = SlcanAdapterEmulator(tmp_path / "slcan0", still_body(smartsuit_sensors([LEFT_ARM])))
+    adapter.start()
+    raw, health = raw_collector(zsession), health_collector(zsession)
+    bridge = CanBridge(zsession, "can-unplug")
+    run_thread(bridge.run_bus, interface="slcan", channel=str(adapter.link), sleep_after_open=0)
+    raw.wait_for(lambda s: len(s) >= 30)
+    adapter.port.unplug()
+    health.wait_for(lambda h: bool(h) and h[-1][1]["device"] == "disconnected")
+    n = len(raw.seen) + raw.queue.qsize()
+    adapter.port.plug()
+    health.wait_for(lambda h: h[-1][1]["device"] == "connected")
+    raw.wait_for(lambda s: len(s) >= n + 30)
+    assert bridge.publisher.nodes[1].gaps > 0  # the outage shows as missed periods
+    adapter.stop()
+    bridge.close()
