@@ -102,12 +102,15 @@ class SitePublisher:
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self._last_health = 0.0
+        self._closed = False
         self._watch = threading.Thread(target=self._watchdog, name=f"{name}-watch", daemon=True)
         self._watch.start()
 
     def publish(self, reading: Reading, seq: int, t_ns: int | None = None) -> None:
         """Publish one reading of node ``reading.node`` (ignored if not in ``sites``)."""
         site = self.sites.get(reading.node)
+        if self._closed:
+            return
         if site is None:
             self.reject(Rejected(Reason.UNKNOWN_NODE, f"node {reading.node} not in this profile"))
             return
@@ -168,6 +171,8 @@ class SitePublisher:
             }
 
     def publish_health(self) -> None:
+        if self._closed:
+            return
         self._last_health = time.monotonic()
         self._health_pub.put(json.dumps(self.health()).encode())
 
@@ -189,7 +194,10 @@ class SitePublisher:
                 self.publish_health()
 
     def close(self) -> None:
-        """Drop every token and publisher; the session stays open."""
+        """Drop every token and publisher; the session stays open. Later calls
+        of :meth:`publish` and :meth:`set_device` do nothing."""
+        if self._closed:
+            return
         self._stop.set()
         self._watch.join(timeout=2)
         with self._lock:
@@ -202,4 +210,5 @@ class SitePublisher:
                 publisher.undeclare()
             self._publishers.clear()
         self.publish_health()
+        self._closed = True
         self._health_pub.undeclare()

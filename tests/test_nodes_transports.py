@@ -46,22 +46,34 @@ def expected(sensors: list[Any]) -> dict[int, Any]:
     return {r.node: r for r in readings}
 
 
-@pytest.fixture
-def run_thread() -> Iterator[Callable[..., threading.Event]]:
-    """Run a bridge's blocking ``run`` in a thread; stopped at teardown."""
-    started: list[tuple[threading.Thread, threading.Event]] = []
+class Running:
+    """A bridge's blocking ``run`` in a thread."""
 
-    def start(target: Callable[..., None], *args: Any, **kwargs: Any) -> threading.Event:
-        stop = threading.Event()
-        thread = threading.Thread(target=target, args=(*args, stop), kwargs=kwargs, daemon=True)
-        thread.start()
-        started.append((thread, stop))
-        return stop
+    def __init__(self, target: Callable[..., None], args: tuple[Any, ...], kwargs: Any) -> None:
+        self.stop_event = threading.Event()
+        self.thread = threading.Thread(
+            target=target, args=(*args, self.stop_event), kwargs=kwargs, daemon=True
+        )
+        self.thread.start()
+
+    def stop(self) -> None:
+        self.stop_event.set()
+        self.thread.join(timeout=10)
+        assert not self.thread.is_alive()
+
+
+@pytest.fixture
+def run_thread() -> Iterator[Callable[..., Running]]:
+    """Start a bridge's ``run`` in a thread; every one is stopped at teardown."""
+    started: list[Running] = []
+
+    def start(target: Callable[..., None], *args: Any, **kwargs: Any) -> Running:
+        started.append(Running(target, args, kwargs))
+        return started[-1]
 
     yield start
-    for thread, stop in started:
-        stop.set()
-        thread.join(timeout=10)
+    for running in started:
+        running.stop()
 
 
 def per_key(seen: list[tuple[str, RawSample]], n: int, keys: set[str]) -> bool:
@@ -72,14 +84,16 @@ def per_key(seen: list[tuple[str, RawSample]], n: int, keys: set[str]) -> bool:
 
 
 def test_slcan_adapter_over_pty_with_python_can(
-    zsession: zenoh.Session, tmp_path: Path, run_thread: Callable[..., threading.Event]
+    zsession: zenoh.Session, tmp_path: Path, run_thread: Callable[..., Running]
 ) -> None:
     sensors = smartsuit_sensors([LEFT_ARM])
     adapter = SlcanAdapterEmulator(tmp_path / "slcan0", still_body(sensors))
     adapter.start()
     raw = raw_collector(zsession)
     bridge = CanBridge(zsession, "slcan-test")
-    run_thread(bridge.run_bus, interface="slcan", channel=str(adapter.link), sleep_after_open=0)
+    running = run_thread(
+        bridge.run_bus, interface="slcan", channel=str(adapter.link), sleep_after_open=0
+    )
     keys = {SMARTSUIT_SITES[n].raw_key for n in (1, 2, 3)}
     seen = raw.wait_for(lambda s: per_key(s, 20, keys))
     want = expected(sensors)
@@ -88,19 +102,20 @@ def test_slcan_adapter_over_pty_with_python_can(
         assert sample.reading == want[sample.reading.node]
         assert key == SMARTSUIT_SITES[sample.reading.node].raw_key
     assert adapter.is_open  # python-can opened the adapter with its 'O' command
+    running.stop()
     adapter.stop()
     bridge.close()
 
 
 def test_concentrator_over_pty_with_a_dead_node(
-    zsession: zenoh.Session, tmp_path: Path, run_thread: Callable[..., threading.Event]
+    zsession: zenoh.Session, tmp_path: Path, run_thread: Callable[..., Running]
 ) -> None:
     sensors = smartsuit_sensors([LEFT_ARM])
     dc = ConcentratorEmulator(tmp_path / "dc", still_body(sensors), silent=[3])
     dc.start()
     raw, health = raw_collector(zsession), health_collector(zsession)
     bridge = ConcentratorBridge(zsession, "dc-test", nodes=(1, 2, 3))
-    run_thread(bridge.run, str(dc.link))
+    running = run_thread(bridge.run, str(dc.link))
     keys = {SMARTSUIT_SITES[n].raw_key for n in (1, 2)}
     seen = raw.wait_for(lambda s: per_key(s, 5, keys))
     want = expected(sensors)
@@ -111,19 +126,20 @@ def test_concentrator_over_pty_with_a_dead_node(
     )
     last = report[-1][1]
     assert set(last["nodes"]) == {"1", "2"}  # node 3 never delivered: never alive
+    running.stop()
     dc.stop()
     bridge.close()
 
 
 def test_imu_central_over_pty_counts_gaps(
-    zsession: zenoh.Session, tmp_path: Path, run_thread: Callable[..., threading.Event]
+    zsession: zenoh.Session, tmp_path: Path, run_thread: Callable[..., Running]
 ) -> None:
     tags = imu_tags(range(1, 9))  # tags 9-15 absent: the central prints ff for them
     central = ImuCentralEmulator(tmp_path / "imu", still_body(tags), dropouts=[3], tick_s=0.01)
     central.start()
     raw = raw_collector(zsession)
     bridge = ImuCentralBridge(zsession, "imu-test")
-    run_thread(bridge.run, str(central.link))
+    running = run_thread(bridge.run, str(central.link))
     keys = {IMU_SITES[n].raw_key for n in range(1, 9)}
     seen = raw.wait_for(lambda s: per_key(s, 12, keys))
     want = expected(tags)
@@ -140,6 +156,7 @@ def test_imu_central_over_pty_counts_gaps(
     assert bridge.publisher.nodes[3].gaps > 0
     assert bridge.publisher.nodes[1].gaps == 0
     assert bridge.absent == set(range(9, 16))
+    running.stop()
     central.stop()
     bridge.close()
 
@@ -161,12 +178,12 @@ def test_candump_replay(zsession: zenoh.Session, data_dir: Path) -> None:
 
 
 def test_virtual_bus_bad_frames_counted_good_ones_flow(
-    zsession: zenoh.Session, run_thread: Callable[..., threading.Event]
+    zsession: zenoh.Session, run_thread: Callable[..., Running]
 ) -> None:
     channel = f"bad-frames-{time.monotonic_ns()}"
     raw, health = raw_collector(zsession), health_collector(zsession)
     bridge = CanBridge(zsession, "bad-frames")
-    run_thread(bridge.run_bus, interface="virtual", channel=channel)
+    running = run_thread(bridge.run_bus, interface="virtual", channel=channel)
     health.wait_for(lambda h: any(m["device"] == "connected" for _, m in h))
     with can.Bus(interface="virtual", channel=channel) as bus:
         for msg in (
@@ -183,16 +200,17 @@ def test_virtual_bus_bad_frames_counted_good_ones_flow(
     assert {str(r): n for r, n in bridge.publisher.rejected.items()} == {
         "standard_id": 1, "remote_frame": 1, "bad_dlc": 1, "unknown_node": 1, "error_frame": 1,
     }  # fmt: skip
+    running.stop()
     bridge.close()
 
 
 def test_liveliness_follows_the_nodes(
-    zsession: zenoh.Session, run_thread: Callable[..., threading.Event]
+    zsession: zenoh.Session, run_thread: Callable[..., Running]
 ) -> None:
     channel = f"live-{time.monotonic_ns()}"
     live = Liveliness(zsession)
     bridge = CanBridge(zsession, "live-test")
-    run_thread(bridge.run_bus, interface="virtual", channel=channel)
+    running = run_thread(bridge.run_bus, interface="virtual", channel=channel)
     keys = {SMARTSUIT_SITES[n].raw_key for n in (1, 2, 3)}
     with can.Bus(interface="virtual", channel=channel) as bus:
         nodes = CanNodes(bus, still_body(smartsuit_sensors([LEFT_ARM])))
@@ -203,18 +221,19 @@ def test_liveliness_follows_the_nodes(
         nodes.start()  # and come back with it
         live.wait_for(lambda alive: keys <= alive)
         nodes.stop()
+    running.stop()
     bridge.close()  # closing drops every token at once
     live.wait_for(lambda alive: not alive)
 
 
 def test_serial_device_unplugged_and_back(
-    zsession: zenoh.Session, tmp_path: Path, run_thread: Callable[..., threading.Event]
+    zsession: zenoh.Session, tmp_path: Path, run_thread: Callable[..., Running]
 ) -> None:
     central = ImuCentralEmulator(tmp_path / "imu", still_body(imu_tags([1, 2])), tick_s=0.01)
     central.start()
     raw, health = raw_collector(zsession), health_collector(zsession)
     bridge = ImuCentralBridge(zsession, "unplug-test")
-    run_thread(bridge.run, str(central.link))
+    running = run_thread(bridge.run, str(central.link))
     raw.wait_for(lambda s: len(s) >= 10)
     central.port.unplug()
     health.wait_for(lambda h: bool(h) and h[-1][1]["device"] == "disconnected")
@@ -224,18 +243,21 @@ def test_serial_device_unplugged_and_back(
     seen = raw.wait_for(lambda s: len(s) >= n + 10)
     seqs = [s.seq for _, s in seen if s.reading.node == 1]
     assert seqs == sorted(seqs)  # sequence numbers keep rising across the reconnect
+    running.stop()
     central.stop()
     bridge.close()
 
 
 def test_can_adapter_unplugged_and_back(
-    zsession: zenoh.Session, tmp_path: Path, run_thread: Callable[..., threading.Event]
+    zsession: zenoh.Session, tmp_path: Path, run_thread: Callable[..., Running]
 ) -> None:
     adapter = SlcanAdapterEmulator(tmp_path / "slcan0", still_body(smartsuit_sensors([LEFT_ARM])))
     adapter.start()
     raw, health = raw_collector(zsession), health_collector(zsession)
     bridge = CanBridge(zsession, "can-unplug")
-    run_thread(bridge.run_bus, interface="slcan", channel=str(adapter.link), sleep_after_open=0)
+    running = run_thread(
+        bridge.run_bus, interface="slcan", channel=str(adapter.link), sleep_after_open=0
+    )
     raw.wait_for(lambda s: len(s) >= 30)
     adapter.port.unplug()
     health.wait_for(lambda h: bool(h) and h[-1][1]["device"] == "disconnected")
@@ -244,5 +266,6 @@ def test_can_adapter_unplugged_and_back(
     health.wait_for(lambda h: h[-1][1]["device"] == "connected")
     raw.wait_for(lambda s: len(s) >= n + 30)
     assert bridge.publisher.nodes[1].gaps > 0  # the outage shows as missed periods
+    running.stop()
     adapter.stop()
     bridge.close()
