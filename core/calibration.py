@@ -84,5 +84,7 @@ class OleCalibration:
 def default_ole(joint: str) -> OleCalibration:
     """Default calibration of a joint type (``"elbow"``, ``"knee"``...)."""
     if joint == "elbow":
-        return OleCalibration(ELBOW_RADIUS_MM, tuple(10 * d for d in ELBOW_SF_D_CM), ELBOW_SF)
+        return OleCalibration(
+            ELBOW_RADIUS_MM, tuple(round(10 * d, 6) for d in ELBOW_SF_D_CM), ELBOW_SF
+        )
     return OleCalibration(DEFAULT_RADIUS_MM[joint])

@@ -102,3 +102,12 @@ class BodyModel:
         rotations = np.array([omf[f].rotation for f in frames])
         positions = np.array([omf[f].translation for f in frames])
         return rotations, positions
+
+
+def accel_axes(direction: np.ndarray, flexion_axis: np.ndarray) -> np.ndarray:
+    """A SmartSuit accelerometer's axes in its segment frame, as columns: x along
+    the segment away from the body, y along the joint's flexion axis, z = x cross y."""
+    x = direction / np.linalg.norm(direction)
+    y = flexion_axis - x * float(x @ flexion_axis)
+    y /= np.linalg.norm(y)
+    return np.column_stack([x, y, np.cross(x, y)])

@@ -21,9 +21,9 @@ from bodynet.core.keys import Branch, Site
 from bodynet.core.messages import OleAccel, Quat, Reading
 from bodynet.core.profile import IMU_SITES, SMARTSUIT_QUAT_NODES, SMARTSUIT_SITES, mount
 from bodynet.core.skeleton import build_skeleton
-from bodynet.kinematics.model import BodyModel, SiteMount
+from bodynet.kinematics.model import BodyModel, SiteMount, accel_axes
 from bodynet.nodes.motion import Routine
-from bodynet.nodes.sensors import AccelBank, OleModel, QuatBank, accel_mount
+from bodynet.nodes.sensors import AccelBank, OleModel, QuatBank
 
 
 class Kind(StrEnum):
@@ -127,7 +127,7 @@ class BodyEmulator:
                 joint = next(j for j in self.skeleton.joints if j.child == m.segment)
                 direction = np.array(self.skeleton.directions[m.segment])
                 accel_idx.append(i)
-                accel_mounts.append(accel_mount(direction, np.array(joint.dofs[0].axis)))
+                accel_mounts.append(accel_axes(direction, np.array(joint.dofs[0].axis)))
             else:
                 quat_idx.append(i)
                 random_mount = s.kind is Kind.TAG and r.random_tag_mounts

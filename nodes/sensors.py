@@ -55,14 +55,6 @@ class OleModel:
         return round(self._reading / MM_PER_COUNT)
 
 
-def accel_mount(direction: np.ndarray, flexion_axis: np.ndarray) -> np.ndarray:
-    """Sensor axes in the segment frame, as columns: x distal, y flexion axis."""
-    x = direction / np.linalg.norm(direction)
-    y = flexion_axis - x * float(x @ flexion_axis)
-    y /= np.linalg.norm(y)
-    return np.column_stack([x, y, np.cross(x, y)])
-
-
 @dataclass
 class AccelBank:
     """Tri-axis accelerometers on segments, read together (one row per sensor)."""

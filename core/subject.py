@@ -1,0 +1,112 @@
+"""A subject's profile: segment lengths and sensor calibrations, versioned.
+
+The profile is what calibration produces and the gateway consumes. It is kept
+as plain data here (no file I/O); ``bodynet.gateway.profile_file`` reads and
+writes it as TOML a user can read and edit:
+
+```toml
+version = 1
+subject = "subject-1"
+
+[segments]             # metres
+upperarm = 0.293
+forearm = 0.265
+
+[ole.left_elbow_flexion_deg]   # encoder of one joint dof (000 seed, eq. 14-15)
+radius_mm = 26.93
+sf_travel_mm = [0.0, 14.1, 28.0, 39.1, 48.6, 52.2]
+sf = [1.0, 1.0, 1.007, 1.084, 1.161, 1.261]
+
+[imu_mounts]           # sensor orientation in its segment (w, x, y, z), from T-pose
+"body/arm/left/upperarm/raw" = [1.0, 0.0, 0.0, 0.0]
+```
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field, replace
+from types import MappingProxyType
+from typing import Any
+
+from .calibration import OleCalibration, default_ole
+from .profile import OLE_DOF, SMARTSUIT_SITES
+
+VERSION = 1
+QuatWxyz = tuple[float, float, float, float]
+
+
+def default_ole_table() -> dict[str, OleCalibration]:
+    """Encoder calibration of every SmartSuit module's dof, by joint angle name."""
+    out = {}
+    for site in SMARTSUIT_SITES.values():
+        if site.name in OLE_DOF:
+            name = f"{site.branch.side}_{site.name}_{OLE_DOF[site.name]}_deg"
+            out[name] = default_ole(site.name)
+    return out
+
+
+class ProfileError(ValueError):
+    """A profile that cannot be used, with the reason."""
+
+
+@dataclass(frozen=True)
+class Profile:
+    subject: str = "subject-1"
+    lengths: Mapping[str, float] = field(default_factory=dict)  # over the skeleton's defaults
+    ole: Mapping[str, OleCalibration] = field(default_factory=default_ole_table)
+    imu_mounts: Mapping[str, QuatWxyz] = field(default_factory=dict)  # raw key -> mount
+    accel_counts_per_g: float = 1024.0
+    version: int = VERSION
+
+    def with_mounts(self, mounts: Mapping[str, QuatWxyz]) -> Profile:
+        return replace(self, imu_mounts=MappingProxyType({**self.imu_mounts, **mounts}))
+
+    def with_ole(self, angle: str, calibration: OleCalibration) -> Profile:
+        return replace(self, ole=MappingProxyType({**self.ole, angle: calibration}))
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "version": self.version,
+            "subject": self.subject,
+            "accel_counts_per_g": self.accel_counts_per_g,
+            "segments": dict(self.lengths),
+            "ole": {
+                name: {"radius_mm": c.radius_mm, "sf_travel_mm": list(c.sf_d_mm), "sf": list(c.sf)}
+                for name, c in sorted(self.ole.items())
+            },
+            "imu_mounts": {k: list(q) for k, q in sorted(self.imu_mounts.items())},
+        }
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any]) -> Profile:
+        version = data.get("version")
+        if version != VERSION:
+            raise ProfileError(f"profile version {version!r}; this bodynet reads version {VERSION}")
+        try:
+            ole = dict(default_ole_table())
+            for name, c in data.get("ole", {}).items():
+                ole[name] = OleCalibration(
+                    float(c["radius_mm"]),
+                    tuple(map(float, c.get("sf_travel_mm", [0.0]))),
+                    tuple(map(float, c.get("sf", [1.0]))),
+                )
+            mounts = {}
+            for key, q in data.get("imu_mounts", {}).items():
+                if len(q) != 4:
+                    raise ProfileError(f"imu_mounts[{key!r}] needs 4 numbers (w, x, y, z)")
+                w, x, y, z = map(float, q)
+                mounts[key] = (w, x, y, z)
+            return cls(
+                subject=str(data.get("subject", "subject-1")),
+                lengths=MappingProxyType(
+                    {k: float(v) for k, v in data.get("segments", {}).items()}
+                ),
+                ole=MappingProxyType(ole),
+                imu_mounts=MappingProxyType(mounts),
+                accel_counts_per_g=float(data.get("accel_counts_per_g", 1024.0)),
+            )
+        except (KeyError, TypeError, ValueError) as exc:
+            if isinstance(exc, ProfileError):
+                raise
+            raise ProfileError(f"bad profile: {exc}") from None

@@ -1,0 +1,292 @@
+"""From raw samples to joint angles and segment poses, for one body.
+
+Per joint, the angles come from the best source at hand:
+
+1. Both segments carry an orientation sensor (IMU tag, SmartSuit trunk IMU):
+   the relative rotation ``R_parent^T R_child`` split into the joint's dofs.
+   A sensor's segment orientation is ``R_sensor R_mount^T``, the mount coming
+   from T-pose calibration (:func:`tpose_mounts`).
+2. A SmartSuit module spans the joint: its encoder gives the dof it measures
+   (000 seed, eq. 14-15), and at the shoulders and hips its accelerometer's
+   tilt gives flexion and abduction (eq. 9-13 and the 7-DOF mapping of ch.
+   4.3.2, solved in closed form against the parent segment's vertical).
+3. Otherwise the dof is unobserved: it holds 0 and is flagged.
+
+Angles are split with continuity: at a gimbal lock (the middle dof at +/-90
+degrees) or where the tilt has no unique answer (the segment along the
+vertical), the ambiguous dof holds its last value instead of jumping. Angles
+outside the range of motion are clamped and flagged. Positions come from
+Pinocchio's forward kinematics of the assembled configuration, the pelvis
+fixed at standing height.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from bodynet.core.keys import Site
+from bodynet.core.messages import OleAccel, Quat, RawSample
+from bodynet.core.profile import OLE_DOF, mount
+from bodynet.core.skeleton import TPOSE, Joint, build_skeleton, rom
+from bodynet.core.subject import Profile, QuatWxyz
+from bodynet.kinematics.model import BodyModel, accel_axes
+
+GIMBAL_COS = 1e-3  # |cos(middle angle)| below this is a gimbal lock
+TILT_MIN = 0.05  # |component| below this: the tilt has no unique answer
+
+
+def _rot(axis: np.ndarray, angle_rad: float) -> np.ndarray:
+    return Rotation.from_rotvec(axis * angle_rad).as_matrix()  # type: ignore[no-any-return]
+
+
+@dataclass(frozen=True)
+class JointAxes:
+    """A joint's dofs as a scipy Euler sequence with signs."""
+
+    joint: Joint
+    seq: str
+    signs: np.ndarray
+    axes: tuple[np.ndarray, ...]
+
+    @classmethod
+    def of(cls, joint: Joint) -> JointAxes:
+        letters, signs = [], []
+        for dof in joint.dofs:
+            k = int(np.argmax(np.abs(dof.axis)))
+            letters.append("XYZ"[k])
+            signs.append(float(np.sign(dof.axis[k])))
+        seq = "".join(letters) + "".join(c for c in "XYZ" if c not in letters)
+        return cls(joint, seq[:3], np.array(signs), tuple(np.array(d.axis) for d in joint.dofs))
+
+    def matrix(self, angles_deg: np.ndarray) -> np.ndarray:
+        out = np.eye(3)
+        for axis, angle in zip(self.axes, angles_deg, strict=True):
+            out = out @ _rot(axis, math.radians(angle))
+        return out
+
+    def split(self, rel: np.ndarray, previous: np.ndarray | None) -> np.ndarray:
+        """Angles (deg) of the joint's dofs for a relative rotation.
+
+        A three-angle split has two solutions, ``(a, b, c)`` and
+        ``(a + 180, 180 - b, c + 180)``: the one inside the range of motion and
+        nearest the previous angles wins. At a gimbal lock (``b`` at +/-90) the
+        first angle holds its previous value and the third takes the rest.
+        """
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", UserWarning)  # scipy's gimbal-lock warning
+            euler = Rotation.from_matrix(rel).as_euler(self.seq, degrees=True)
+        n = len(self.axes)
+        if n == 3 and previous is not None and abs(math.cos(math.radians(euler[1]))) < GIMBAL_COS:
+            first = previous[0] * self.signs[0]
+            head = _rot(np.eye(3)["XYZ".index(self.seq[0])], math.radians(first))
+            head = head @ _rot(np.eye(3)["XYZ".index(self.seq[1])], math.radians(euler[1]))
+            rest = Rotation.from_matrix(head.T @ rel).as_rotvec()
+            euler = np.array([first, euler[1], math.degrees(rest["XYZ".index(self.seq[2])])])
+            return euler * self.signs  # type: ignore[no-any-return]
+        other = np.array([_wrap(euler[0] + 180), _wrap(180 - euler[1]), _wrap(euler[2] + 180)])
+        signs = np.concatenate([self.signs, np.ones(3 - n)])
+        candidates = [euler * signs, other * signs]
+        if n < 3:  # the unused angles must vanish: only one candidate can be exact
+            best = min(candidates, key=lambda c: float(np.abs(c[n:]).sum()))
+            return best[:n]  # type: ignore[no-any-return]
+        return _nearest([c[:n] for c in candidates], previous, self.joint.angle_names())
+
+
+def _nearest(candidates: list[np.ndarray], previous: np.ndarray | None,
+             names: tuple[str, ...]) -> np.ndarray:  # fmt: skip
+    """The candidate inside the range of motion (if any) nearest ``previous`` (or 0)."""
+
+    def outside(c: np.ndarray) -> float:
+        return sum(max(0.0, lo - v, v - hi) for v, (lo, hi) in zip(c, map(rom, names), strict=True))
+
+    ref = previous if previous is not None else np.zeros(len(names))
+    return min(candidates, key=lambda c: (outside(c), float(np.abs(c - ref).sum())))
+
+
+@dataclass(frozen=True)
+class BodyOutput:
+    """One tick of one body: every joint angle and every segment pose."""
+
+    t_ns: int
+    angles_deg: Mapping[str, float]
+    rel_deg: Mapping[str, float]  # joint -> total rotation from the calibration pose
+    flags: Mapping[str, str]  # angle -> "clamped" or "unobserved"
+    segments: Mapping[str, tuple[tuple[float, float, float], QuatWxyz]]  # position, orientation
+    joints_m: Mapping[str, tuple[float, float, float]]  # joint centres
+    sources: Mapping[str, int]  # raw key -> source t_ns of the sample used
+
+
+@dataclass
+class _Memory:
+    angles: dict[str, np.ndarray] = field(default_factory=dict)
+
+
+class BodySolver:
+    """Joint angles and poses of one body from its latest raw samples."""
+
+    def __init__(self, profile: Profile | None = None) -> None:
+        self.profile = profile or Profile()
+        self.skeleton = build_skeleton(self.profile.lengths)
+        self.model = BodyModel(self.skeleton)
+        self.axes = {j.name: JointAxes.of(j) for j in self.skeleton.joints}
+        self._calibration = {j.name: self.axes[j.name].matrix(
+            np.array([TPOSE.get(n, 0.0) for n in j.angle_names()])) for j in self.skeleton.joints}  # fmt: skip
+        self._frames = [self.model.segment_frames[s] for s in self.skeleton.segments]
+        self._memory = _Memory()
+        self._mount_cache: dict[str, np.ndarray] = {}
+
+    def _mount(self, key: str) -> np.ndarray:
+        m = self._mount_cache.get(key)
+        if m is None:
+            w, x, y, z = self.profile.imu_mounts.get(key, (1.0, 0.0, 0.0, 0.0))
+            m = self._mount_cache[key] = Rotation.from_quat([x, y, z, w]).as_matrix()
+        return m
+
+    def solve(self, samples: Mapping[Site, RawSample]) -> BodyOutput:
+        """Angles and poses from the latest sample of each site."""
+        measured: dict[str, np.ndarray] = {}
+        modules: dict[str, tuple[Site, OleAccel]] = {}
+        for site, sample in samples.items():
+            seg = mount(site).segment
+            r = sample.reading
+            if isinstance(r, Quat):
+                if seg not in measured:
+                    w, x, y, z = r.wxyz
+                    sensor = Rotation.from_quat([x, y, z, w]).as_matrix()
+                    measured[seg] = sensor @ self._mount(site.raw_key).T
+            elif site.name in OLE_DOF:
+                modules[seg] = (site, r)
+        world: dict[str, np.ndarray] = {"pelvis": measured.get("pelvis", np.eye(3))}
+        angles: dict[str, float] = {}
+        flags: dict[str, str] = {}
+        rel: dict[str, float] = {}
+        for joint in self.skeleton.joints:
+            ax = self.axes[joint.name]
+            parent = world[joint.parent]
+            previous = self._memory.angles.get(joint.name)
+            names = joint.angle_names()
+            if joint.child in measured:
+                values = ax.split(parent.T @ measured[joint.child], previous)
+            elif joint.child in modules:
+                values = self._from_module(
+                    joint, ax, parent, *modules[joint.child], previous, flags
+                )
+            else:
+                values = np.zeros(len(names))
+                flags.update(dict.fromkeys(names, "unobserved"))
+            for i, name in enumerate(names):
+                lo, hi = rom(name)
+                if not lo <= values[i] <= hi:
+                    values[i] = min(max(values[i], lo), hi)
+                    flags[name] = "clamped"
+                angles[name] = float(values[i])
+            self._memory.angles[joint.name] = values
+            joint_rot = ax.matrix(values)
+            world[joint.child] = parent @ joint_rot
+            rel[joint.name] = math.degrees(
+                Rotation.from_matrix(self._calibration[joint.name].T @ joint_rot).magnitude()
+            )
+        root = Rotation.from_matrix(world["pelvis"]).as_quat()
+        rotations, positions = self.model.frame_placements(
+            self.model.q(angles, None, root), self._frames
+        )
+        quats = np.roll(Rotation.from_matrix(rotations).as_quat(canonical=True), 1, axis=1)
+        segments = {
+            s: (tuple(map(float, p)), tuple(map(float, q)))
+            for s, p, q in zip(self.skeleton.segments, positions, quats, strict=True)
+        }
+        joints = {j.name: segments[j.child][0] for j in self.skeleton.joints}
+        return BodyOutput(
+            t_ns=max((s.t_ns for s in samples.values()), default=0),
+            angles_deg=angles, rel_deg=rel, flags=flags,
+            segments=segments, joints_m=joints,  # type: ignore[arg-type]
+            sources={site.raw_key: s.t_ns for site, s in samples.items()},
+        )  # fmt: skip
+
+    def _from_module(self, joint: Joint, ax: JointAxes, parent: np.ndarray, site: Site,
+                     reading: OleAccel, previous: np.ndarray | None,
+                     flags: dict[str, str]) -> np.ndarray:  # fmt: skip
+        names = joint.angle_names()
+        values = previous.copy() if previous is not None else np.zeros(len(names))
+        ole_name = f"{site.branch.side}_{site.name}_{OLE_DOF[site.name]}_deg"
+        ole_index = names.index(ole_name)
+        cal = self.profile.ole.get(ole_name)
+        if cal is not None:
+            values[ole_index] = float(cal.angle_deg(reading.encoder))
+        if len(names) == 3 and ole_index == 2:  # shoulder, hip: flexion and abduction from tilt
+            up_sensor = np.array(reading.accel, dtype=float)
+            norm = np.linalg.norm(up_sensor)
+            if norm > 0.1 * self.profile.accel_counts_per_g:
+                tilt = self._tilt(ax, parent, up_sensor / norm, values, joint)
+                values[:2] = tilt
+        else:
+            for i, name in enumerate(names):
+                if i != ole_index:
+                    flags[name] = "unobserved"
+                    values[i] = 0.0
+        return values
+
+    def _tilt(self, ax: JointAxes, parent: np.ndarray, up_sensor: np.ndarray, values: np.ndarray,
+              joint: Joint) -> np.ndarray:  # fmt: skip
+        """Flexion and abduction putting the sensor's measured "up" on the parent's vertical.
+
+        Solves ``R_a1(f) R_a2(a) R_a3(rot) u_seg = u_parent`` with a1 = +/-Y and
+        a2 = +/-X: the X component fixes f (two candidates: the one nearer the
+        last value wins), then the Y-Z plane gives a.
+        """
+        seg = joint.child
+        m = accel_axes(np.array(self.skeleton.directions[seg]), ax.axes[0])
+        u_seg = m @ up_sensor
+        v = _rot(ax.axes[2], math.radians(values[2])) @ u_seg
+        u_p = parent.T @ np.array([0.0, 0.0, 1.0])
+        s1, s2 = ax.signs[0], ax.signs[1]
+        a, b, c = u_p[0], -u_p[2], v[0]
+        r = math.hypot(a, b)
+        prev = values[:2].copy()
+        if r < TILT_MIN:  # the parent's vertical gives no grip on flexion: hold it
+            phis = [math.radians(prev[0] * s1)]
+        else:
+            base, spread = math.atan2(b, a), math.acos(max(-1.0, min(1.0, c / r)))
+            phis = [base + spread, base - spread]
+        candidates = []
+        for phi1 in phis:
+            w = _rot(np.array([0.0, 1.0, 0.0]), -phi1) @ u_p
+            if math.hypot(v[1], v[2]) < TILT_MIN or math.hypot(w[1], w[2]) < TILT_MIN:
+                phi2 = math.radians(prev[1] * s2)  # along the vertical: abduction is free, hold it
+            else:
+                phi2 = math.atan2(w[2], w[1]) - math.atan2(v[2], v[1])
+            candidates.append(np.array([_wrap(math.degrees(phi1)) * s1,
+                                        _wrap(math.degrees(phi2)) * s2]))  # fmt: skip
+        return _nearest(candidates, prev, joint.angle_names()[:2])
+
+
+def _wrap(deg: float) -> float:
+    return (deg + 180.0) % 360.0 - 180.0
+
+
+def tpose_mounts(
+    window: Mapping[Site, list[QuatWxyz]], profile: Profile | None = None
+) -> dict[str, QuatWxyz]:
+    """Sensor-to-segment mounts from a still T-pose window of orientation samples.
+
+    Assumes every tag shares one heading reference and that the subject faces
+    +X of it during the T-pose.
+    """
+    skeleton = build_skeleton((profile or Profile()).lengths)
+    model = BodyModel(skeleton)
+    out: dict[str, QuatWxyz] = {}
+    for site, quats in window.items():
+        if not quats:
+            continue
+        seg = mount(site).segment
+        seg_rot, _ = model.frame_placements(model.q(dict(TPOSE)), [model.segment_frames[seg]])
+        mean = Rotation.from_quat([[x, y, z, w] for w, x, y, z in quats]).mean()
+        x, y, z, w = Rotation.from_matrix(seg_rot[0].T @ mean.as_matrix()).as_quat(canonical=True)
+        out[site.raw_key] = (float(w), float(x), float(y), float(z))
+    return out

@@ -1,0 +1,177 @@
+"""Kinematic round trips: joint angles -> emulated sensors -> solver -> the same angles."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+
+import numpy as np
+import pytest
+
+from bodynet.core.keys import LEFT_ARM, Site
+from bodynet.core.messages import OleAccel, RawSample
+from bodynet.core.profile import IMU_SITES, SMARTSUIT_SITES
+from bodynet.core.subject import Profile
+from bodynet.gateway.solver import BodySolver, tpose_mounts
+from bodynet.nodes.emulator import (
+    BodyEmulator,
+    EmulatedSensor,
+    Kind,
+    Realism,
+    imu_tags,
+    smartsuit_sensors,
+)
+from bodynet.nodes.motion import ROUTINES, Routine, keyframes
+
+# ideal sensors, but IMU tags mounted at random: calibration must find the mounts
+IDEAL_RANDOM_MOUNTS = Realism(0.0, 0.0, 0.0, 0.0, 0.0, random_tag_mounts=True)
+SEED = 1  # the same seed gives the same (random) mounts: the same suit, worn once
+
+
+def site_of(sensor: EmulatedSensor) -> Site:
+    return sensor.site
+
+
+def calibrated_profile(tags: Sequence[EmulatedSensor]) -> Profile:
+    body = BodyEmulator(ROUTINES["tpose"], tags, realism=IDEAL_RANDOM_MOUNTS, seed=SEED)
+    window: dict[Site, list[tuple[float, float, float, float]]] = {}
+    for k in range(5):
+        readings, _ = body.sample(k * 0.01)
+        for sensor, r in zip(tags, readings, strict=True):
+            window.setdefault(sensor.site, []).append(r.wxyz)  # type: ignore[union-attr]
+    return Profile().with_mounts(tpose_mounts(window))
+
+
+def solve_at(solver: BodySolver, body: BodyEmulator, t: float) -> Mapping[str, float]:
+    readings, _ = body.sample(t)
+    samples = {
+        s.site: RawSample(r, 0, int(t * 1e9)) for s, r in zip(body.sensors, readings, strict=True)
+    }
+    return solver.solve(samples).angles_deg
+
+
+@pytest.mark.parametrize("routine", ["upper-body", "lower-body", "full-body", "walk", "reach"])
+def test_imu_body_round_trip(routine: str) -> None:
+    tags = imu_tags()
+    solver = BodySolver(calibrated_profile(tags))
+    body = BodyEmulator(ROUTINES[routine], tags, realism=IDEAL_RANDOM_MOUNTS, seed=SEED)
+    for t in np.linspace(0.0, 13.0, 131):
+        truth = ROUTINES[routine].angles(float(t))
+        angles = solve_at(solver, body, float(t))
+        for name, value in angles.items():
+            assert value == pytest.approx(truth.get(name, 0.0), abs=1e-6), (routine, t, name)
+
+
+def holds(poses: Sequence[Mapping[str, float]]) -> tuple[Routine, list[float]]:
+    """Each pose held 1 s after a 1 s move; returns the routine and mid-hold times."""
+    frames = [(0.0, {}), (1.0, {})]
+    for i, pose in enumerate(poses):
+        frames += [(2.0 * i + 2, pose), (2.0 * i + 3, pose)]
+    return Routine("holds", "", keyframes(frames, loop=False)), [
+        2.0 * i + 2.5 for i in range(len(poses))
+    ]
+
+
+ARM_POSES = [
+    {"left_shoulder_flexion_deg": 60.0, "left_elbow_flexion_deg": 45.0},
+    {
+        "left_shoulder_abduction_deg": 70.0,
+        "left_shoulder_rotation_deg": 20.0,
+        "left_wrist_flexion_deg": 30.0,
+    },
+    {
+        "left_shoulder_flexion_deg": 30.0,
+        "left_shoulder_abduction_deg": 40.0,
+        "left_elbow_flexion_deg": 120.0,
+    },
+    {"left_shoulder_flexion_deg": 120.0, "left_shoulder_rotation_deg": -30.0},
+    {"left_hip_flexion_deg": 40.0, "left_knee_flexion_deg": 60.0, "left_ankle_flexion_deg": 10.0},
+    {
+        "right_hip_abduction_deg": 20.0,
+        "right_hip_rotation_deg": 15.0,
+        "right_knee_flexion_deg": 90.0,
+    },
+]
+
+# quantisation: 0.1 mm of travel over R >= 25 mm is at most 0.23 deg; 1/1024 g of tilt 0.06 deg
+SMARTSUIT_TOL = 0.3
+
+
+def test_smartsuit_round_trip_at_still_poses() -> None:
+    sensors = smartsuit_sensors()
+    routine, times = holds(ARM_POSES)
+    body = BodyEmulator(routine, sensors, realism=Realism.ideal())
+    solver = BodySolver(Profile())
+    for t, pose in zip(times, ARM_POSES, strict=True):
+        readings, _ = body.sample(t)
+        out = solver.solve(
+            {s.site: RawSample(r, 0, 0) for s, r in zip(sensors, readings, strict=True)}
+        )
+        for name, value in out.angles_deg.items():
+            if out.flags.get(name) == "unobserved":
+                continue
+            assert value == pytest.approx(pose.get(name, 0.0), abs=SMARTSUIT_TOL), (t, name)
+    assert out.flags["left_elbow_pronation_deg"] == "unobserved"
+
+
+def test_hybrid_body_imu_at_the_shoulder() -> None:
+    """The 000 seed's proposal: an IMU on the upper arm removes the shoulder's
+    yaw singularity; the encoders still give elbow and wrist."""
+    arm = smartsuit_sensors([LEFT_ARM])
+    tags = [t for t in imu_tags() if t.site.branch != LEFT_ARM or t.site.name == "upperarm"]
+    profile = calibrated_profile(tags)
+    poses = [
+        {"left_shoulder_flexion_deg": 90.0, "left_shoulder_abduction_deg": 90.0,  # horizontal
+         "left_elbow_flexion_deg": 60.0},
+        {"left_shoulder_abduction_deg": 30.0, "left_shoulder_rotation_deg": 40.0,
+         "left_wrist_flexion_deg": 45.0, "lumbar_flexion_deg": 20.0},
+    ]  # fmt: skip
+    routine, times = holds(poses)
+    body = BodyEmulator(routine, [*arm, *tags], realism=IDEAL_RANDOM_MOUNTS, seed=SEED)
+    solver = BodySolver(profile)
+    for t, pose in zip(times, poses, strict=True):
+        angles = solve_at(solver, body, t)
+        for name in ("left_shoulder_flexion_deg", "left_shoulder_abduction_deg",
+                     "left_shoulder_rotation_deg", "lumbar_flexion_deg"):  # fmt: skip
+            assert angles[name] == pytest.approx(pose.get(name, 0.0), abs=1e-6), name
+        for name in ("left_elbow_flexion_deg", "left_wrist_flexion_deg"):
+            assert angles[name] == pytest.approx(pose.get(name, 0.0), abs=SMARTSUIT_TOL), name
+
+
+def test_out_of_range_angles_are_clamped_and_flagged() -> None:
+    solver = BodySolver(Profile())
+    elbow = SMARTSUIT_SITES[2]
+    out = solver.solve({elbow: RawSample(OleAccel(2, 900, (-1024, 0, 0)), 0, 0)})  # 90 mm
+    assert out.angles_deg["left_elbow_flexion_deg"] == 150.0
+    assert out.flags["left_elbow_flexion_deg"] == "clamped"
+
+
+def test_outputs_pose_and_relative_rotation() -> None:
+    tags = imu_tags()
+    solver = BodySolver(calibrated_profile(tags))
+    body = BodyEmulator(ROUTINES["tpose"], tags, realism=IDEAL_RANDOM_MOUNTS, seed=SEED)
+    readings, _ = body.sample(0.0)
+    out = solver.solve({IMU_SITES[r.node]: RawSample(r, 3, 42) for r in readings})
+    assert all(
+        v == pytest.approx(0.0, abs=1e-6) for v in out.rel_deg.values()
+    )  # at calibration pose
+    hand = out.segments["left_hand"][0]
+    # T-pose: the left hand's joint centre is out along +Y at shoulder height
+    assert hand[1] == pytest.approx(0.22 + 0.293 + 0.265, abs=1e-6)
+    assert out.joints_m["left_wrist"] == hand
+    assert out.sources["body/arm/left/hand/raw"] == 42
+    assert out.t_ns == 42
+
+
+def test_gimbal_lock_holds_the_ambiguous_dof() -> None:
+    """Through abduction 90 (the T-pose) the split stays continuous."""
+    tags = [t for t in imu_tags() if t.site.name in ("chest", "upperarm")]
+    solver = BodySolver(calibrated_profile(tags))
+    motion = keyframes([(0.0, {"left_shoulder_flexion_deg": 30.0, "left_shoulder_abduction_deg": 80.0}),
+                        (1.0, {"left_shoulder_flexion_deg": 30.0, "left_shoulder_abduction_deg": 100.0})],
+                       loop=False)  # fmt: skip
+    body = BodyEmulator(
+        Routine("through", "", motion), tags, realism=IDEAL_RANDOM_MOUNTS, seed=SEED
+    )
+    flex = [solve_at(solver, body, t)["left_shoulder_flexion_deg"] for t in np.linspace(0, 1, 41)]
+    assert max(abs(f - 30.0) for f in flex) < 1e-3
+    assert Kind.TAG is tags[0].kind
