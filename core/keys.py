@@ -126,9 +126,26 @@ def all_raw() -> str:
     return f"{ROOT}/*/*/*/{Stream.RAW}"
 
 
+POSE = "pose"
+
+
+def pose_key(branch: Branch | None = None) -> str:
+    """Where the gateway publishes poses: the whole body, or one branch's view."""
+    return f"{ROOT}/{POSE}" if branch is None else f"{branch.key}/{POSE}"
+
+
+def all_poses() -> str:
+    """Every pose message of a body: the whole body and each branch view."""
+    return f"{ROOT}/**/{POSE}"
+
+
 #: Admin keys start with a verbatim chunk (``@...``), which Zenoh wildcards never
 #: match: ``body/**`` gets data only, and admin traffic is asked for by name.
 HEALTH = f"{ROOT}/@health"
+
+
+TOPOLOGY = f"{ROOT}/@topology"
+CALIBRATE_TPOSE = f"{ROOT}/@calibrate/tpose"
 
 
 def health_key(source: str) -> str:

@@ -98,8 +98,9 @@ class JointAxes:
         return _nearest([c[:n] for c in candidates], previous, self.joint.angle_names())
 
 
-def _nearest(candidates: list[np.ndarray], previous: np.ndarray | None,
-             names: tuple[str, ...]) -> np.ndarray:  # fmt: skip
+def _nearest(
+    candidates: list[np.ndarray], previous: np.ndarray | None, names: tuple[str, ...]
+) -> np.ndarray:
     """The candidate inside the range of motion (if any) nearest ``previous`` (or 0)."""
 
     def outside(c: np.ndarray) -> float:
@@ -135,8 +136,10 @@ class BodySolver:
         self.skeleton = build_skeleton(self.profile.lengths)
         self.model = BodyModel(self.skeleton)
         self.axes = {j.name: JointAxes.of(j) for j in self.skeleton.joints}
-        self._calibration = {j.name: self.axes[j.name].matrix(
-            np.array([TPOSE.get(n, 0.0) for n in j.angle_names()])) for j in self.skeleton.joints}  # fmt: skip
+        self._calibration = {
+            j.name: self.axes[j.name].matrix(np.array([TPOSE.get(n, 0.0) for n in j.angle_names()]))
+            for j in self.skeleton.joints
+        }
         self._frames = [self.model.segment_frames[s] for s in self.skeleton.segments]
         self._memory = _Memory()
         self._mount_cache: dict[str, np.ndarray] = {}
@@ -204,14 +207,24 @@ class BodySolver:
         joints = {j.name: segments[j.child][0] for j in self.skeleton.joints}
         return BodyOutput(
             t_ns=max((s.t_ns for s in samples.values()), default=0),
-            angles_deg=angles, rel_deg=rel, flags=flags,
-            segments=segments, joints_m=joints,  # type: ignore[arg-type]
+            angles_deg=angles,
+            rel_deg=rel,
+            flags=flags,
+            segments=segments,
+            joints_m=joints,  # type: ignore[arg-type]
             sources={site.raw_key: s.t_ns for site, s in samples.items()},
-        )  # fmt: skip
+        )
 
-    def _from_module(self, joint: Joint, ax: JointAxes, parent: np.ndarray, site: Site,
-                     reading: OleAccel, previous: np.ndarray | None,
-                     flags: dict[str, str]) -> np.ndarray:  # fmt: skip
+    def _from_module(
+        self,
+        joint: Joint,
+        ax: JointAxes,
+        parent: np.ndarray,
+        site: Site,
+        reading: OleAccel,
+        previous: np.ndarray | None,
+        flags: dict[str, str],
+    ) -> np.ndarray:
         names = joint.angle_names()
         values = previous.copy() if previous is not None else np.zeros(len(names))
         ole_name = f"{site.branch.side}_{site.name}_{OLE_DOF[site.name]}_deg"
@@ -232,8 +245,14 @@ class BodySolver:
                     values[i] = 0.0
         return values
 
-    def _tilt(self, ax: JointAxes, parent: np.ndarray, up_sensor: np.ndarray, values: np.ndarray,
-              joint: Joint) -> np.ndarray:  # fmt: skip
+    def _tilt(
+        self,
+        ax: JointAxes,
+        parent: np.ndarray,
+        up_sensor: np.ndarray,
+        values: np.ndarray,
+        joint: Joint,
+    ) -> np.ndarray:
         """Flexion and abduction putting the sensor's measured "up" on the parent's vertical.
 
         Solves ``R_a1(f) R_a2(a) R_a3(rot) u_seg = u_parent`` with a1 = +/-Y and
@@ -261,8 +280,9 @@ class BodySolver:
                 phi2 = math.radians(prev[1] * s2)  # along the vertical: abduction is free, hold it
             else:
                 phi2 = math.atan2(w[2], w[1]) - math.atan2(v[2], v[1])
-            candidates.append(np.array([_wrap(math.degrees(phi1)) * s1,
-                                        _wrap(math.degrees(phi2)) * s2]))  # fmt: skip
+            candidates.append(
+                np.array([_wrap(math.degrees(phi1)) * s1, _wrap(math.degrees(phi2)) * s2])
+            )
         return _nearest(candidates, prev, joint.angle_names()[:2])
 
 

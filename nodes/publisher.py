@@ -7,7 +7,7 @@ its decoded readings to one :class:`SitePublisher`, which
   raw-sample message on the node's site key;
 - holds one liveliness token per node, on that same key, while the node
   delivers: declared at its first sample, dropped once it has missed
-  ``stale_periods`` periods (or at close), declared again when it returns;
+  ``stale_periods`` periods (0.3 s at least), or at close, declared again when it returns;
 - counts per node samples, sequence gaps and rejections, and publishes this
   health as JSON on ``body/@health/<source>`` every second and whenever a node
   comes or goes.
@@ -37,6 +37,7 @@ from bodynet.core.messages import RawSample, Reading, Source
 log = logging.getLogger(__name__)
 
 HEALTH_PERIOD_S = 1.0
+MIN_STALE_S = 0.3
 
 
 @dataclass
@@ -92,7 +93,8 @@ class SitePublisher:
         self.sites = dict(sites)
         self.source = source
         self.name = name
-        self.stale_after_s = max(stale_periods * period_s, 0.05)
+        # never below 0.3 s: a busy machine can hold a 100 Hz node back for tens of ms
+        self.stale_after_s = max(stale_periods * period_s, MIN_STALE_S)
         self.nodes: dict[int, NodeHealth] = {}
         self.rejected = RejectCounts()
         self.device = "starting"

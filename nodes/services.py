@@ -40,7 +40,7 @@ from bodynet.nodes.hardware import (
     TruthSink,
 )
 from bodynet.nodes.imu_bridge import ImuCentralBridge
-from bodynet.nodes.motion import ROUTINES
+from bodynet.nodes.motion import ROUTINES, Routine
 
 log = logging.getLogger(__name__)
 
@@ -69,15 +69,14 @@ def truth_sink(session: zenoh.Session, sites: Mapping[int, Site]) -> TruthSink:
 
 @dataclass(frozen=True)
 class EmulationOptions:
-    routine: str = "random"
+    routine: str | Routine = "random"  # a name in ROUTINES, or a routine
     realism: Realism = field(default_factory=Realism)
     seed: int = 0
 
 
 def _body(options: EmulationOptions, sensors: Sequence[Any]) -> BodyEmulator:
-    return BodyEmulator(
-        ROUTINES[options.routine], sensors, realism=options.realism, seed=options.seed
-    )
+    routine = ROUTINES[options.routine] if isinstance(options.routine, str) else options.routine
+    return BodyEmulator(routine, sensors, realism=options.realism, seed=options.seed)
 
 
 def bridge_can(

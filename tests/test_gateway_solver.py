@@ -120,18 +120,29 @@ def test_hybrid_body_imu_at_the_shoulder() -> None:
     tags = [t for t in imu_tags() if t.site.branch != LEFT_ARM or t.site.name == "upperarm"]
     profile = calibrated_profile(tags)
     poses = [
-        {"left_shoulder_flexion_deg": 90.0, "left_shoulder_abduction_deg": 90.0,  # horizontal
-         "left_elbow_flexion_deg": 60.0},
-        {"left_shoulder_abduction_deg": 30.0, "left_shoulder_rotation_deg": 40.0,
-         "left_wrist_flexion_deg": 45.0, "lumbar_flexion_deg": 20.0},
-    ]  # fmt: skip
+        {
+            "left_shoulder_flexion_deg": 90.0,
+            "left_shoulder_abduction_deg": 90.0,  # horizontal
+            "left_elbow_flexion_deg": 60.0,
+        },
+        {
+            "left_shoulder_abduction_deg": 30.0,
+            "left_shoulder_rotation_deg": 40.0,
+            "left_wrist_flexion_deg": 45.0,
+            "lumbar_flexion_deg": 20.0,
+        },
+    ]
     routine, times = holds(poses)
     body = BodyEmulator(routine, [*arm, *tags], realism=IDEAL_RANDOM_MOUNTS, seed=SEED)
     solver = BodySolver(profile)
     for t, pose in zip(times, poses, strict=True):
         angles = solve_at(solver, body, t)
-        for name in ("left_shoulder_flexion_deg", "left_shoulder_abduction_deg",
-                     "left_shoulder_rotation_deg", "lumbar_flexion_deg"):  # fmt: skip
+        for name in (
+            "left_shoulder_flexion_deg",
+            "left_shoulder_abduction_deg",
+            "left_shoulder_rotation_deg",
+            "lumbar_flexion_deg",
+        ):
             assert angles[name] == pytest.approx(pose.get(name, 0.0), abs=1e-6), name
         for name in ("left_elbow_flexion_deg", "left_wrist_flexion_deg"):
             assert angles[name] == pytest.approx(pose.get(name, 0.0), abs=SMARTSUIT_TOL), name
@@ -166,9 +177,13 @@ def test_gimbal_lock_holds_the_ambiguous_dof() -> None:
     """Through abduction 90 (the T-pose) the split stays continuous."""
     tags = [t for t in imu_tags() if t.site.name in ("chest", "upperarm")]
     solver = BodySolver(calibrated_profile(tags))
-    motion = keyframes([(0.0, {"left_shoulder_flexion_deg": 30.0, "left_shoulder_abduction_deg": 80.0}),
-                        (1.0, {"left_shoulder_flexion_deg": 30.0, "left_shoulder_abduction_deg": 100.0})],
-                       loop=False)  # fmt: skip
+    motion = keyframes(
+        [
+            (0.0, {"left_shoulder_flexion_deg": 30.0, "left_shoulder_abduction_deg": 80.0}),
+            (1.0, {"left_shoulder_flexion_deg": 30.0, "left_shoulder_abduction_deg": 100.0}),
+        ],
+        loop=False,
+    )
     body = BodyEmulator(
         Routine("through", "", motion), tags, realism=IDEAL_RANDOM_MOUNTS, seed=SEED
     )

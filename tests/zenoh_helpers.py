@@ -44,7 +44,9 @@ class Collector:
         while not done(self.seen):
             left = deadline - time.monotonic()
             if left <= 0:
-                raise AssertionError(f"timed out; got {len(self.seen)} messages: {self.seen[-3:]}")
+                raise AssertionError(
+                    f"timed out; got {len(self.seen)}: {str(self.seen[-2:])[:600]}"
+                )
             with contextlib.suppress(queue.Empty):
                 self.seen.append(self.queue.get(timeout=left))
         return self.seen

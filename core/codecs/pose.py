@@ -1,0 +1,115 @@
+"""The gateway's output message: one body's joint angles and segment poses.
+
+JSON (UTF-8), version 1, one object per tick, for clients in any language:
+
+```json
+{"v": 1, "seq": 118, "t_ns": 1700000000000000000,
+ "angles_deg": {"left_elbow_flexion_deg": 42.1, ...},
+ "rel_deg": {"left_elbow": 42.1, ...},
+ "flags": {"left_elbow_pronation_deg": "unobserved"},
+ "segments": {"left_forearm": {"p": [0.0, 0.22, 1.17], "q": [0.93, 0.0, -0.36, 0.0]}, ...},
+ "joints_m": {"left_elbow": [0.0, 0.22, 1.17], ...},
+ "sources": {"body/arm/left/elbow/raw": 1700000000000000000, ...},
+ "stale": ["body/leg/left/foot/raw"]}
+```
+
+World frame +X forward, +Y left, +Z up, metres; ``q`` is a unit quaternion
+w, x, y, z. ``t_ns`` is the newest source timestamp that went into the tick;
+``sources`` gives each sample's own. A branch view (``body/arm/left/pose``)
+has the same shape, limited to that branch's joints and segments.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+from ..errors import DecodeError, Reason
+
+VERSION = 1
+
+Vec3 = tuple[float, float, float]
+QuatWxyz = tuple[float, float, float, float]
+
+
+@dataclass(frozen=True)
+class PoseFrame:
+    seq: int
+    t_ns: int
+    angles_deg: Mapping[str, float]
+    rel_deg: Mapping[str, float]
+    segments: Mapping[str, tuple[Vec3, QuatWxyz]]
+    joints_m: Mapping[str, Vec3]
+    flags: Mapping[str, str] = field(default_factory=dict)
+    sources: Mapping[str, int] = field(default_factory=dict)
+    stale: Sequence[str] = ()
+
+    def subset(self, joints: Sequence[str], segments: Sequence[str], keys_prefix: str) -> PoseFrame:
+        """The view of one branch: its joints, segments and sources."""
+        js = set(joints)
+        return PoseFrame(
+            self.seq,
+            self.t_ns,
+            {n: v for n, v in self.angles_deg.items() if n.rsplit("_", 2)[0] in js},
+            {j: v for j, v in self.rel_deg.items() if j in js},
+            {s: self.segments[s] for s in segments if s in self.segments},
+            {j: v for j, v in self.joints_m.items() if j in js},
+            {n: f for n, f in self.flags.items() if n.rsplit("_", 2)[0] in js},
+            {k: t for k, t in self.sources.items() if k.startswith(keys_prefix)},
+            [k for k in self.stale if k.startswith(keys_prefix)],
+        )
+
+
+def _r(v: float) -> float:
+    return round(v, 6)
+
+
+def encode(frame: PoseFrame) -> bytes:
+    return json.dumps(
+        {
+            "v": VERSION,
+            "seq": frame.seq,
+            "t_ns": frame.t_ns,
+            "angles_deg": {k: _r(v) for k, v in frame.angles_deg.items()},
+            "rel_deg": {k: _r(v) for k, v in frame.rel_deg.items()},
+            "flags": dict(frame.flags),
+            "segments": {
+                s: {"p": [_r(c) for c in p], "q": [_r(c) for c in q]}
+                for s, (p, q) in frame.segments.items()
+            },
+            "joints_m": {j: [_r(c) for c in p] for j, p in frame.joints_m.items()},
+            "sources": dict(frame.sources),
+            "stale": list(frame.stale),
+        },
+        separators=(",", ":"),
+    ).encode()
+
+
+def decode(payload: bytes | bytearray) -> PoseFrame:
+    """One pose message; ``DecodeError`` if it is not one."""
+    try:
+        d: dict[str, Any] = json.loads(payload)
+        if not isinstance(d, dict):
+            raise DecodeError(Reason.GARBAGE, "not a JSON object")
+        if d.get("v") != VERSION:
+            raise DecodeError(Reason.BAD_VERSION, f"version {d.get('v')!r}")
+        return PoseFrame(
+            int(d["seq"]),
+            int(d["t_ns"]),
+            {str(k): float(v) for k, v in d["angles_deg"].items()},
+            {str(k): float(v) for k, v in d["rel_deg"].items()},
+            {
+                str(s): (tuple(map(float, v["p"])), tuple(map(float, v["q"])))  # type: ignore[misc]
+                for s, v in d["segments"].items()
+            },
+            {str(j): tuple(map(float, p)) for j, p in d["joints_m"].items()},  # type: ignore[misc]
+            {str(k): str(v) for k, v in d.get("flags", {}).items()},
+            {str(k): int(v) for k, v in d.get("sources", {}).items()},
+            [str(k) for k in d.get("stale", [])],
+        )
+    except DecodeError:
+        raise
+    except (ValueError, TypeError, KeyError, AttributeError) as exc:
+        raise DecodeError(Reason.GARBAGE, f"not a pose message: {exc}") from None
