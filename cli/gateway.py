@@ -77,3 +77,60 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
     p.add_argument("--seconds", type=float, default=1.0, help="still window to average")
     add_session_args(p)
     p.set_defaults(func=cmd_calibrate_tpose)
+
+
+def cmd_process(args: argparse.Namespace) -> int:
+    from bodynet.gateway.offline import process
+    from bodynet.nodes.captures import Format
+
+    fmt = args.format or ("can-log" if args.input.suffix.lower() in (".log", ".asc", ".blf", ".trc")
+                          else None)  # fmt: skip
+    if fmt is None:
+        print("bodynet process: say which --format the capture is in", file=sys.stderr)
+        return 2
+    try:
+        profile = _profile(args.profile)
+        result = process(args.input, Format(fmt), args.output, profile, args.rate_hz,
+                         args.tick_hz, args.tpose_s)  # fmt: skip
+    except (ProfileError, OSError) as exc:
+        print(f"bodynet process: {exc}", file=sys.stderr)
+        return 2
+    print(f"{result.ticks} ticks from {result.samples} samples -> {args.output}; "
+          f"T-pose calibrated {len(result.calibrated)} sensors; {result.stats.summary()}",
+          file=sys.stderr)  # fmt: skip
+    return 0
+
+
+def cmd_export(args: argparse.Namespace) -> int:
+    from bodynet.clients.export import export_csv
+    from bodynet.clients.mcap_store import StoreError
+
+    try:
+        rows = export_csv(args.recording, args.output)
+    except (StoreError, OSError) as exc:
+        print(f"bodynet export: {exc}", file=sys.stderr)
+        return 2
+    print(f"{rows} rows -> {args.output}", file=sys.stderr)
+    return 0
+
+
+def add_offline_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    from bodynet.nodes.captures import Format
+
+    p = sub.add_parser("process", help="run the gateway over a capture into an MCAP file")
+    p.add_argument("input", type=Path, help="a capture (any format of `bodynet decode`)")
+    p.add_argument("--format", choices=[f.value for f in Format])
+    p.add_argument("--rate-hz", type=float, default=None, help="as for `bodynet decode`")
+    p.add_argument("--tick-hz", type=float, default=100.0, help="most poses per second of capture")
+    p.add_argument("--tpose-s", type=float, default=3.0,
+                   help="seconds at the start in T-pose, to calibrate orientation sensors")  # fmt: skip
+    p.add_argument("--profile", type=Path, help="subject profile (TOML)")
+    p.add_argument("-o", "--output", type=Path, required=True, help="the MCAP file to write")
+    p.set_defaults(func=cmd_process)
+
+    p = sub.add_parser("export", help="export a recording to a standard format")
+    esub = p.add_subparsers(dest="kind", required=True, metavar="FORMAT")
+    c = esub.add_parser("csv", help="joint angles, rotations and joint centres, one row per tick")
+    c.add_argument("recording", type=Path, help="an MCAP file with poses")
+    c.add_argument("-o", "--output", type=Path, required=True)
+    c.set_defaults(func=cmd_export)

@@ -92,6 +92,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     nodes_cli.add_parsers(sub)
     gateway_cli.add_parsers(sub)
+    gateway_cli.add_offline_parsers(sub)
 
     p = sub.add_parser("router", help="a Zenoh router for the body network (no zenohd needed)")
     add_session_args(p, default_mode="router")

@@ -1,0 +1,132 @@
+"""MCAP files of the body network: poses and raw samples, readable by any tool.
+
+Topics are the Zenoh keys. Messages are JSON with a JSON Schema, so generic
+MCAP tools (Foxglove, the ``mcap`` CLI) can open and plot them:
+
+| topic                          | schema              | message                          |
+|--------------------------------|---------------------|----------------------------------|
+| ``body/pose``, ``body/*/*/pose`` | ``bodynet.PoseFrame`` | the gateway's pose message as is |
+| ``body/<limb>/<side>/<site>/raw`` | ``bodynet.RawSample`` | ``{node, seq, t_ns, source, encoder, accel}`` or ``{..., quat_wxyz}`` |
+
+Log time is the sample's source time in ns (for a processed capture, the
+capture's own time base). Files are created readable by the owner only: this
+is health data.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from collections.abc import Iterable, Iterator
+from pathlib import Path
+from typing import Any
+
+from mcap.exceptions import McapError
+from mcap.reader import make_reader
+from mcap.writer import CompressionType, Writer
+
+from bodynet.core.codecs import pose
+from bodynet.core.messages import OleAccel, RawSample
+
+POSE_SCHEMA = {
+    "title": "bodynet.PoseFrame",
+    "type": "object",
+    "properties": {
+        "v": {"type": "integer"},
+        "seq": {"type": "integer"},
+        "t_ns": {"type": "integer"},
+        "angles_deg": {"type": "object", "additionalProperties": {"type": "number"}},
+        "rel_deg": {"type": "object", "additionalProperties": {"type": "number"}},
+        "flags": {"type": "object", "additionalProperties": {"type": "string"}},
+        "segments": {"type": "object"},
+        "joints_m": {"type": "object"},
+        "sources": {"type": "object"},
+        "stale": {"type": "array", "items": {"type": "string"}},
+    },
+}
+RAW_SCHEMA = {
+    "title": "bodynet.RawSample",
+    "type": "object",
+    "properties": {
+        "node": {"type": "integer"},
+        "seq": {"type": "integer"},
+        "t_ns": {"type": "integer"},
+        "source": {"type": "string"},
+        "encoder": {"type": "integer"},
+        "accel": {"type": "array", "items": {"type": "integer"}},
+        "quat_wxyz": {"type": "array", "items": {"type": "number"}},
+    },
+}
+
+
+class StoreError(RuntimeError):
+    """An MCAP file that cannot be read as bodynet data, with the reason."""
+
+
+def raw_json(sample: RawSample) -> dict[str, Any]:
+    r = sample.reading
+    out: dict[str, Any] = {"node": r.node, "seq": sample.seq, "t_ns": sample.t_ns,
+                           "source": sample.source.name.lower()}  # fmt: skip
+    if isinstance(r, OleAccel):
+        out.update(encoder=r.encoder, accel=list(r.accel))
+    else:
+        out["quat_wxyz"] = list(r.wxyz)
+    return out
+
+
+class McapSink:
+    """Writes poses and raw samples to one MCAP file."""
+
+    def __init__(self, path: Path, chunk_size: int = 64 * 1024) -> None:
+        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+        self._stream = os.fdopen(fd, "wb")
+        self._writer = Writer(self._stream, chunk_size=chunk_size, compression=CompressionType.ZSTD)
+        self._writer.start(profile="", library="bodynet")
+        self._schemas = {
+            "pose": self._writer.register_schema("bodynet.PoseFrame", "jsonschema",
+                                                 json.dumps(POSE_SCHEMA).encode()),
+            "raw": self._writer.register_schema("bodynet.RawSample", "jsonschema",
+                                                json.dumps(RAW_SCHEMA).encode()),
+        }  # fmt: skip
+        self._channels: dict[str, int] = {}
+        self.messages = 0
+
+    def _channel(self, topic: str, kind: str) -> int:
+        channel = self._channels.get(topic)
+        if channel is None:
+            channel = self._channels[topic] = self._writer.register_channel(
+                topic, "json", self._schemas[kind]
+            )
+        return channel
+
+    def write_pose(self, topic: str, frame: pose.PoseFrame, log_time_ns: int) -> None:
+        self._writer.add_message(self._channel(topic, "pose"), log_time_ns, pose.encode(frame),
+                                 log_time_ns)  # fmt: skip
+        self.messages += 1
+
+    def write_raw(self, topic: str, sample: RawSample, log_time_ns: int) -> None:
+        data = json.dumps(raw_json(sample), separators=(",", ":")).encode()
+        self._writer.add_message(self._channel(topic, "raw"), log_time_ns, data, log_time_ns)
+        self.messages += 1
+
+    def close(self) -> None:
+        self._writer.finish()
+        self._stream.close()
+
+
+def read_poses(path: Path, topic: str = "body/pose") -> Iterator[tuple[int, pose.PoseFrame]]:
+    """(log time ns, pose) of every message on ``topic``, in log-time order."""
+    for _, _, message in _messages(path, [topic]):
+        yield message.log_time, pose.decode(message.data)
+
+
+def _messages(path: Path, topics: Iterable[str]) -> Iterator[Any]:
+    try:
+        with path.open("rb") as f:
+            yield from make_reader(f).iter_messages(topics=list(topics))
+    except (McapError, ValueError, EOFError, OSError) as exc:
+        raise StoreError(f"{path}: not a complete MCAP file ({exc})") from None
+    except Exception as exc:  # the mcap reader raises struct.error on truncated files
+        if type(exc).__module__ == "struct" or type(exc).__name__ == "error":
+            raise StoreError(f"{path}: not a complete MCAP file ({exc})") from None
+        raise

@@ -1,0 +1,114 @@
+"""`bodynet process` and `bodynet export csv` on captures made by the emulators."""
+
+from __future__ import annotations
+
+import csv
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from bodynet.core.codecs import imu_matrix, smartsuit_can
+from bodynet.core.keys import LEFT_ARM
+from bodynet.core.messages import Quat
+from bodynet.core.skeleton import TPOSE
+from bodynet.nodes.emulator import BodyEmulator, Realism, imu_tags, smartsuit_sensors
+from bodynet.nodes.motion import ROUTINES, Routine, keyframes
+
+BODYNET = Path(sys.executable).with_name("bodynet")
+IDEAL_RANDOM_MOUNTS = Realism(0.0, 0.0, 0.0, 0.0, 0.0, random_tag_mounts=True)
+
+
+def run(*args: object) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([str(BODYNET), *map(str, args)], capture_output=True, text=True,
+                          timeout=120, check=False)  # fmt: skip
+
+
+def rows(path: Path) -> list[dict[str, str]]:
+    with path.open() as f:
+        return list(csv.DictReader(f))
+
+
+def test_imu_capture_processed_to_the_true_angles(tmp_path: Path) -> None:
+    """3 s of T-pose, then the upper-body routine, through the data matrix at 25 Hz."""
+    upper = ROUTINES["upper-body"].angles
+    motion = Routine("capture", "", lambda t: dict(TPOSE) if t < 3.0 else upper(t - 3.0))
+    body = BodyEmulator(motion, imu_tags(), realism=IDEAL_RANDOM_MOUNTS, seed=4)
+    capture = tmp_path / "session.txt"
+    with capture.open("wb") as f:
+        for tick in range(25 * 9):
+            readings, _ = body.sample(tick / 25)
+            f.write(b"".join(imu_matrix.encode_line(r) for r in readings if isinstance(r, Quat)))
+    out = tmp_path / "session.mcap"
+    result = run("process", capture, "--format", "imu-central", "-o", out)
+    assert result.returncode == 0, result.stderr
+    assert "T-pose calibrated 15 sensors" in result.stderr
+    assert run("export", "csv", out, "-o", tmp_path / "s.csv").returncode == 0
+    table = rows(tmp_path / "s.csv")
+    assert len(table) == 25 * 9  # one row per data-matrix frame
+    decoded = run("decode", "--format", "imu-central", capture).stdout.splitlines()
+    times = sorted({json.loads(line)["t_s"] for line in decoded})
+    assert [float(r["t_s"]) for r in table] == times  # the same time base as decode
+    for row in table[::10]:
+        truth = motion.angles(float(row["t_s"]))
+        for name in ("left_shoulder_abduction_deg", "lumbar_rotation_deg", "neck_rotation_deg",
+                     "right_shoulder_flexion_deg", "lumbar_lateral_deg"):  # fmt: skip
+            assert float(row[name]) == pytest.approx(truth.get(name, 0.0), abs=0.01), (
+                row["t_s"],
+                name,
+            )
+    assert float(table[0]["left_wrist_x_m"]) == pytest.approx(0.0, abs=1e-3)  # T-pose: arms out
+    assert float(table[0]["left_wrist_y_m"]) == pytest.approx(0.22 + 0.293 + 0.265, abs=1e-3)
+
+
+def test_can_log_processed_to_the_true_angles(tmp_path: Path) -> None:
+    poses = [{}, {"left_shoulder_flexion_deg": 45.0, "left_elbow_flexion_deg": 90.0},
+             {"left_shoulder_abduction_deg": 60.0, "left_wrist_flexion_deg": 30.0}]  # fmt: skip
+    frames = []
+    for i, pose in enumerate(poses):
+        frames += [(2.0 * i, pose), (2.0 * i + 1, pose)]
+    motion = keyframes(frames, loop=False)
+    body = BodyEmulator(Routine("holds", "", motion), smartsuit_sensors([LEFT_ARM]),
+                        realism=Realism.ideal())  # fmt: skip
+    log = tmp_path / "arm.log"
+    with log.open("w") as f:
+        for tick in range(500):
+            t = tick * 0.01
+            readings, _ = body.sample(t)
+            for r in readings:
+                frame = smartsuit_can.encode_reading(r)
+                f.write(
+                    f"({1000 + t:.6f}) can0 {frame.arbitration_id:08X}#{frame.data.hex().upper()}\n"
+                )
+    out = tmp_path / "arm.mcap"
+    assert run("process", log, "-o", out).returncode == 0
+    assert run("export", "csv", out, "-o", tmp_path / "arm.csv").returncode == 0
+    table = {round(float(r["t_s"]) - 1000, 2): r for r in rows(tmp_path / "arm.csv")}
+    for t, pose in ((0.5, poses[0]), (2.5, poses[1]), (4.5, poses[2])):
+        row = table[t]
+        for name in ("left_shoulder_flexion_deg", "left_shoulder_abduction_deg",
+                     "left_elbow_flexion_deg", "left_wrist_flexion_deg"):  # fmt: skip
+            assert float(row[name]) == pytest.approx(pose.get(name, 0.0), abs=0.3), (t, name)
+
+
+def test_export_refuses_what_it_cannot_read(tmp_path: Path, data_dir: Path) -> None:
+    out = tmp_path / "x.csv"
+    junk = tmp_path / "junk.mcap"
+    junk.write_bytes(b"\x89MCAP0\r\n" + bytes(50))
+    result = run("export", "csv", junk, "-o", out)
+    assert result.returncode == 2
+    assert "not a complete MCAP file" in result.stderr
+    assert "Traceback" not in result.stderr
+    assert not out.exists()
+    # a complete recording cut short at the end
+    good = tmp_path / "good.mcap"
+    assert run("process", data_dir / "smartsuit_arm.log", "-o", good).returncode == 0
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(good.read_bytes()[: good.stat().st_size // 2])
+    result = run("export", "csv", cut, "-o", out)
+    assert result.returncode == 2
+    assert "Traceback" not in result.stderr
+    assert not out.exists()
+    assert not out.with_name("x.csv.part").exists()
