@@ -123,7 +123,7 @@ def add_offline_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignor
     p.add_argument("--rate-hz", type=float, default=None, help="as for `bodynet decode`")
     p.add_argument("--tick-hz", type=float, default=100.0, help="most poses per second of capture")
     p.add_argument("--tpose-s", type=float, default=3.0,
-                   help="seconds at the start in T-pose, to calibrate orientation sensors")  # fmt: skip
+                   help="seconds at the start in T-pose, to calibrate orientation sensors")
     p.add_argument("--profile", type=Path, help="subject profile (TOML)")
     p.add_argument("-o", "--output", type=Path, required=True, help="the MCAP file to write")
     p.set_defaults(func=cmd_process)

@@ -3,10 +3,10 @@
 Topics are the Zenoh keys. Messages are JSON with a JSON Schema, so generic
 MCAP tools (Foxglove, the ``mcap`` CLI) can open and plot them:
 
-| topic                          | schema              | message                          |
-|--------------------------------|---------------------|----------------------------------|
-| ``body/pose``, ``body/*/*/pose`` | ``bodynet.PoseFrame`` | the gateway's pose message as is |
-| ``body/<limb>/<side>/<site>/raw`` | ``bodynet.RawSample`` | ``{node, seq, t_ns, source, encoder, accel}`` or ``{..., quat_wxyz}`` |
+- ``body/pose`` and ``body/<limb>/<side>/pose``: schema ``bodynet.PoseFrame``,
+  the gateway's pose message as it is;
+- ``body/<limb>/<side>/<site>/raw``: schema ``bodynet.RawSample``,
+  ``{node, seq, t_ns, source, encoder, accel}`` or ``{..., quat_wxyz}``.
 
 Log time is the sample's source time in ns (for a processed capture, the
 capture's own time base). Files are created readable by the owner only: this

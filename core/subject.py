@@ -57,6 +57,7 @@ class Profile:
     ole: Mapping[str, OleCalibration] = field(default_factory=default_ole_table)
     imu_mounts: Mapping[str, QuatWxyz] = field(default_factory=dict)  # raw key -> mount
     accel_counts_per_g: float = 1024.0
+    accel_filter: float = 0.5  # weight of a new accelerometer sample in the tilt filter
     version: int = VERSION
 
     def with_mounts(self, mounts: Mapping[str, QuatWxyz]) -> Profile:
@@ -70,6 +71,7 @@ class Profile:
             "version": self.version,
             "subject": self.subject,
             "accel_counts_per_g": self.accel_counts_per_g,
+            "accel_filter": self.accel_filter,
             "segments": dict(self.lengths),
             "ole": {
                 name: {"radius_mm": c.radius_mm, "sf_travel_mm": list(c.sf_d_mm), "sf": list(c.sf)}
@@ -97,6 +99,9 @@ class Profile:
                     raise ProfileError(f"imu_mounts[{key!r}] needs 4 numbers (w, x, y, z)")
                 w, x, y, z = map(float, q)
                 mounts[key] = (w, x, y, z)
+            accel_filter = float(data.get("accel_filter", 0.5))
+            if not 0.0 < accel_filter <= 1.0:
+                raise ProfileError(f"accel_filter must be in (0, 1], not {accel_filter}")
             return cls(
                 subject=str(data.get("subject", "subject-1")),
                 lengths=MappingProxyType(
@@ -105,6 +110,7 @@ class Profile:
                 ole=MappingProxyType(ole),
                 imu_mounts=MappingProxyType(mounts),
                 accel_counts_per_g=float(data.get("accel_counts_per_g", 1024.0)),
+                accel_filter=accel_filter,
             )
         except (KeyError, TypeError, ValueError) as exc:
             if isinstance(exc, ProfileError):

@@ -126,6 +126,7 @@ class BodyOutput:
 @dataclass
 class _Memory:
     angles: dict[str, np.ndarray] = field(default_factory=dict)
+    up: dict[str, np.ndarray] = field(default_factory=dict)  # filtered "up" of each accelerometer
 
 
 class BodySolver:
@@ -235,15 +236,25 @@ class BodySolver:
         if len(names) == 3 and ole_index == 2:  # shoulder, hip: flexion and abduction from tilt
             up_sensor = np.array(reading.accel, dtype=float)
             norm = np.linalg.norm(up_sensor)
-            if norm > 0.1 * self.profile.accel_counts_per_g:
-                tilt = self._tilt(ax, parent, up_sensor / norm, values, joint)
-                values[:2] = tilt
+            if norm > 0.1 * self.profile.accel_counts_per_g:  # not in free fall
+                up = self._filtered_up(site.raw_key, up_sensor / norm)
+                values[:2] = self._tilt(ax, parent, up, values, joint)
         else:
             for i, name in enumerate(names):
                 if i != ole_index:
                     flags[name] = "unobserved"
                     values[i] = 0.0
         return values
+
+    def _filtered_up(self, key: str, up: np.ndarray) -> np.ndarray:
+        """Light low-pass filtering of an accelerometer's direction (exponential,
+        ``accel_filter`` of the new sample each time), against vibration."""
+        last = self._memory.up.get(key)
+        if last is not None:
+            up = last + self.profile.accel_filter * (up - last)
+            up /= np.linalg.norm(up)
+        self._memory.up[key] = up
+        return up
 
     def _tilt(
         self,

@@ -66,9 +66,11 @@ def test_imu_capture_processed_to_the_true_angles(tmp_path: Path) -> None:
 def test_can_log_processed_to_the_true_angles(tmp_path: Path) -> None:
     poses = [{}, {"left_shoulder_flexion_deg": 45.0, "left_elbow_flexion_deg": 90.0},
              {"left_shoulder_abduction_deg": 60.0, "left_wrist_flexion_deg": 30.0}]  # fmt: skip
-    frames = []
+    # each pose from rest and back, as in the reaching task: an accelerometer and an
+    # encoder leave two arm poses for one reading, and continuity picks between them
+    frames: list[tuple[float, dict[str, float]]] = []
     for i, pose in enumerate(poses):
-        frames += [(2.0 * i, pose), (2.0 * i + 1, pose)]
+        frames += [(2.0 * i, pose), (2.0 * i + 1, pose), (2.0 * i + 1.5, {})]
     motion = keyframes(frames, loop=False)
     body = BodyEmulator(Routine("holds", "", motion), smartsuit_sensors([LEFT_ARM]),
                         realism=Realism.ideal())  # fmt: skip
