@@ -1,71 +1,95 @@
-"""The main job, until the gateway lands: the body network live on one machine.
+"""The main job: the whole body network live on one machine.
 
-An embedded Zenoh router, an emulated full body made of both source systems
-(SmartSuit left arm over CAN, right arm through the Data Concentrator, IMU
-tags for trunk and legs, each on its real transport and bridge), and a live
-table of what each key carries, read back from Zenoh as any client would.
+The gateway with its embedded Zenoh router; an emulated full body made of
+both source systems on their real transports (SmartSuit left arm over CAN,
+right arm through the Data Concentrator, IMU tags for trunk and legs), which
+stands in T-pose for the first seconds while the gateway calibrates, then
+moves; a recorder writing everything to MCAP; and a live table of joint
+angles read back from the gateway's poses, as any client would.
 """
 
 from __future__ import annotations
 
+import contextlib
+import json
 import threading
 import time
-from collections import Counter
+from pathlib import Path
 
-import zenoh
-
+from bodynet.clients.recorder import Recorder
 from bodynet.core import keys
-from bodynet.core.codecs import raw_sample
+from bodynet.core.codecs import pose
 from bodynet.core.errors import DecodeError
-from bodynet.core.messages import OleAccel
+from bodynet.core.skeleton import TPOSE
+from bodynet.gateway.service import Gateway
+from bodynet.nodes.motion import ROUTINES, Routine
 from bodynet.nodes.services import EmulationOptions, body_plan, run_node
 from bodynet.session import open_session, session_config
 
-
-def _describe(sample: raw_sample.RawSample) -> str:
-    r = sample.reading
-    if isinstance(r, OleAccel):
-        return f"encoder {r.encoder:6d}  accel {r.accel}"
-    return "quat " + " ".join(f"{c:+.3f}" for c in r.wxyz)
+TPOSE_S = 3.0
+SHOWN = ("lumbar_flexion_deg", "left_shoulder_flexion_deg", "left_shoulder_abduction_deg",
+         "left_elbow_flexion_deg", "right_shoulder_abduction_deg", "right_elbow_flexion_deg",
+         "left_hip_flexion_deg", "left_knee_flexion_deg", "right_knee_flexion_deg")  # fmt: skip
 
 
-def run_demo(endpoint: str, routine: str, seconds: float | None, stop: threading.Event) -> int:
-    """Run router, emulated body and a live view of its keys until ``stop`` (or ``seconds``)."""
-    router = open_session(session_config("router", listen=[endpoint]))
-    node = open_session(session_config("client", connect=[endpoint]))
-    viewer = open_session(session_config("client", connect=[endpoint]))
-    counts: Counter[str] = Counter()
-    latest: dict[str, str] = {}
-
-    def on_raw(sample: zenoh.Sample) -> None:
-        key = str(sample.key_expr)
-        try:
-            latest[key] = _describe(raw_sample.decode(sample.payload.to_bytes()))
-        except DecodeError as exc:
-            latest[key] = f"rejected: {exc}"
-        counts[key] += 1
-
-    sub = viewer.declare_subscriber(keys.all_raw(), on_raw)
-    thread = threading.Thread(
-        target=run_node, daemon=True, args=(node, stop, body_plan(), EmulationOptions(routine))
+def run_demo(endpoint: str, routine: str, seconds: float | None, record: Path,
+             stop: threading.Event) -> int:  # fmt: skip
+    """Run everything until ``stop`` (Ctrl-C) or for ``seconds``."""
+    moves = ROUTINES[routine].angles
+    scripted = Routine("demo", "", lambda t: dict(TPOSE) if t < TPOSE_S else moves(t - TPOSE_S))
+    gw_session = open_session(session_config("router", listen=[endpoint]))
+    gateway = Gateway(gw_session)
+    gw_thread = threading.Thread(target=gateway.run, args=(stop,), daemon=True)
+    gw_thread.start()
+    node_session = open_session(session_config("client", connect=[endpoint]))
+    nodes = threading.Thread(
+        target=run_node,
+        daemon=True,
+        args=(node_session, stop, body_plan(), EmulationOptions(scripted)),
     )
-    thread.start()
-    print(f"bodynet demo: router on {endpoint}; emulated body doing {routine!r}.")
+    nodes.start()
+    client = open_session(session_config("client", connect=[endpoint]))
+    recorder = Recorder(client, record)
+    latest: dict[str, pose.PoseFrame] = {}
+
+    def on_pose(sample: object) -> None:
+        with contextlib.suppress(DecodeError):  # the demo shows poses; others are the gateway's
+            latest["body"] = pose.decode(sample.payload.to_bytes())  # type: ignore[attr-defined]
+
+    sub = client.declare_subscriber(keys.pose_key(), on_pose)
+    print(f"bodynet demo: gateway and router on {endpoint}; recording to {record}")
+    print(f"  emulated body: T-pose for {TPOSE_S:g} s (the gateway calibrates), then {routine!r}")
     print(
-        "Subscribe from elsewhere with: bodynet ... -e " + endpoint.replace("127.0.0.1", "<host>")
+        f"  poses: {keys.pose_key()} and {keys.all_poses()}; from another machine: "
+        f"-e {endpoint.replace('127.0.0.1', '<this-host>')} (gateway -l tcp/0.0.0.0:7447)"
     )
     start = time.monotonic()
-    last = dict(counts)
+    calibrated = False
     while not stop.wait(1.0):
-        now = dict(counts)
-        print(f"\n-- t = {time.monotonic() - start:4.1f} s: {len(now)} live keys")
-        for key in sorted(now):
-            print(f"   {key:34} {now[key] - last.get(key, 0):4d} Hz   {latest.get(key, '')}")
-        last = now
-        if seconds is not None and time.monotonic() - start >= seconds:
+        elapsed = time.monotonic() - start
+        if not calibrated and elapsed >= TPOSE_S:
+            calibrated = True
+            replies = list(client.get(f"{keys.CALIBRATE_TPOSE}?seconds=1.5", timeout=10))
+            result = (
+                json.loads(replies[0].ok.payload.to_bytes()) if replies and replies[0].ok else {}
+            )
+            print(f"\n  T-pose calibration: {len(result.get('calibrated', []))} sensors")
+        frame = latest.get("body")
+        if frame is not None:
+            cells = "  ".join(f"{n.removesuffix('_deg')} {frame.angles_deg.get(n, 0.0):6.1f}"
+                              for n in SHOWN)  # fmt: skip
+            print(
+                f"-- t {elapsed:5.1f} s  tick {frame.seq:6d}  sources {len(frame.sources):2d}  "
+                f"stale {len(frame.stale)}  recorded {recorder.messages}\n   {cells}"
+            )
+        if seconds is not None and elapsed >= seconds:
             stop.set()
-    thread.join(timeout=10)
     sub.undeclare()
-    for session in (viewer, node, router):
+    recorder.close()
+    for thread in (nodes, gw_thread):
+        thread.join(timeout=10)
+    gateway.close()
+    for session in (client, node_session, gw_session):
         session.close()
+    print(f"bodynet demo: stopped; {recorder.messages} messages in {record}")
     return 0

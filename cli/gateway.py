@@ -77,6 +77,7 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
     p.add_argument("--seconds", type=float, default=1.0, help="still window to average")
     add_session_args(p)
     p.set_defaults(func=cmd_calibrate_tpose)
+    add_calibrate_ole_parser(csub)
 
 
 def cmd_process(args: argparse.Namespace) -> int:
@@ -122,8 +123,12 @@ def add_offline_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignor
     p.add_argument("--format", choices=[f.value for f in Format])
     p.add_argument("--rate-hz", type=float, default=None, help="as for `bodynet decode`")
     p.add_argument("--tick-hz", type=float, default=100.0, help="most poses per second of capture")
-    p.add_argument("--tpose-s", type=float, default=3.0,
-                   help="seconds at the start in T-pose, to calibrate orientation sensors")
+    p.add_argument(
+        "--tpose-s",
+        type=float,
+        default=3.0,
+        help="seconds at the start in T-pose, to calibrate orientation sensors",
+    )
     p.add_argument("--profile", type=Path, help="subject profile (TOML)")
     p.add_argument("-o", "--output", type=Path, required=True, help="the MCAP file to write")
     p.set_defaults(func=cmd_process)
@@ -134,3 +139,106 @@ def add_offline_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignor
     c.add_argument("recording", type=Path, help="an MCAP file with poses")
     c.add_argument("-o", "--output", type=Path, required=True)
     c.set_defaults(func=cmd_export)
+
+
+def _module_site(joint: str) -> tuple[str, str]:
+    """The raw key and encoder angle name of a SmartSuit joint like ``left_elbow``."""
+    from bodynet.core.profile import OLE_DOF, SMARTSUIT_SITES
+
+    for site in SMARTSUIT_SITES.values():
+        if f"{site.branch.side}_{site.name}" == joint and site.name in OLE_DOF:
+            return site.raw_key, f"{joint}_{OLE_DOF[site.name]}_deg"
+    raise SystemExit(f"bodynet calibrate ole: no SmartSuit encoder at {joint!r}")
+
+
+def _still_counts(session: object, key: str, seconds: float) -> tuple[float, float, int]:
+    """Mean and spread of the encoder over ``seconds`` of live samples of ``key``."""
+    import queue
+    import statistics
+    import time
+
+    import zenoh
+
+    from bodynet.core.codecs import raw_sample
+    from bodynet.core.errors import DecodeError
+    from bodynet.core.messages import OleAccel
+
+    got: queue.SimpleQueue[int] = queue.SimpleQueue()
+
+    def on_sample(sample: zenoh.Sample) -> None:
+        try:
+            reading = raw_sample.decode(sample.payload.to_bytes()).reading
+        except DecodeError:
+            return
+        if isinstance(reading, OleAccel):
+            got.put(reading.encoder)
+
+    assert isinstance(session, zenoh.Session)
+    sub = session.declare_subscriber(key, on_sample)
+    values: list[int] = []
+    end = time.monotonic() + seconds
+    try:
+        while (left := end - time.monotonic()) > 0 or not values:
+            try:
+                values.append(got.get(timeout=max(left, 0.0) + (0.0 if values else 5.0)))
+            except queue.Empty:
+                if not values:
+                    raise SystemExit(f"bodynet calibrate ole: no samples on {key}") from None
+                break
+    finally:
+        sub.undeclare()
+    return statistics.fmean(values), statistics.pstdev(values), len(values)
+
+
+def cmd_calibrate_ole(args: argparse.Namespace) -> int:
+    from bodynet.gateway import profile_file
+    from bodynet.gateway.calibrate import fit_calibration
+
+    key, angle_name = _module_site(args.joint)
+    pairs: list[tuple[float, float]] = []
+    if args.from_pairs:
+        for line in args.from_pairs.read_text().splitlines():
+            fields = [f.strip() for f in line.replace(";", ",").split(",")]
+            try:
+                pairs.append((float(fields[0]), float(fields[1])))
+            except (ValueError, IndexError):
+                continue  # a header or a blank line
+    else:
+        angles = [float(a) for a in args.angles.split(",")]
+        session = open_session(config_from_args(args))
+        try:
+            for angle in angles:
+                print(f"Hold {args.joint} at {angle:g} deg and keep still, then press Enter",
+                      file=sys.stderr, flush=True)  # fmt: skip
+                if not sys.stdin.readline():
+                    print("bodynet calibrate ole: input ended; nothing written", file=sys.stderr)
+                    return 1
+                mean, spread, n = _still_counts(session, key, args.still_s)
+                print(f"  {angle:g} deg: {mean:.1f} counts (sd {spread:.2f}, {n} samples)",
+                      file=sys.stderr)  # fmt: skip
+                pairs.append((angle, mean))
+        finally:
+            session.close()
+    if len(pairs) < 2:
+        print("bodynet calibrate ole: need at least two (angle, counts) pairs", file=sys.stderr)
+        return 2
+    cal, fit = fit_calibration([a for a, _ in pairs], [c for _, c in pairs])
+    profile = _profile(args.profile).with_ole(angle_name, cal)
+    profile_file.save(profile, args.profile)
+    table = ", ".join(f"{d:g} mm: {s:.3f}" for d, s in zip(cal.sf_d_mm, cal.sf, strict=True))
+    print(
+        f"{angle_name}: R = {cal.radius_mm:.2f} mm (eq. 26 over all poses: "
+        f"{fit.radius_mm:.2f} mm, r = {fit.r:.4f}); SF: {table}; saved to {args.profile}"
+    )
+    return 0
+
+
+def add_calibrate_ole_parser(csub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    p = csub.add_parser("ole", help="an encoder's radius and scale factors from reference poses")
+    p.add_argument("--joint", required=True, help="e.g. left_elbow, right_knee")
+    p.add_argument("--angles", default="0,30,60,90,120,140", help="reference angles to hold (deg)")
+    p.add_argument("--from-pairs", type=Path, help="CSV of angle_deg,counts instead of live poses")
+    p.add_argument("--still-s", type=float, default=1.0, help="still window to average per pose")
+    p.add_argument("--profile", type=Path, required=True, help="profile to update (or create)")
+    add_session_args(p)
+    p.set_defaults(func=cmd_calibrate_ole)

@@ -41,7 +41,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     from bodynet.cli.demo import run_demo
     from bodynet.cli.nodes import stop_on_signals
 
-    return run_demo(args.listen, args.routine, args.seconds, stop_on_signals())
+    return run_demo(args.listen, args.routine, args.seconds, args.record, stop_on_signals())
 
 
 def cmd_router(args: argparse.Namespace) -> int:
@@ -87,7 +87,9 @@ def build_parser() -> argparse.ArgumentParser:
         choices=sorted(ROUTINES),
         help="motion of the emulated body (default reach)",
     )
-    p.add_argument("--seconds", type=float, default=None, help="stop after this long")  # fmt: skip
+    p.add_argument("--seconds", type=float, default=None, help="stop after this long")
+    p.add_argument("--record", type=Path, default=Path("bodynet-demo.mcap"),
+                   help="where the recorder writes (default bodynet-demo.mcap)")  # fmt: skip
     p.set_defaults(func=cmd_demo)
 
     nodes_cli.add_parsers(sub)

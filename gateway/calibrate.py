@@ -60,3 +60,25 @@ def fit_scale_factors(angles_deg: Sequence[float], counts: Sequence[float],
         best = max(best, table[d])
         sf.append(best)
     return OleCalibration(radius_mm, tuple(travels), tuple(sf))
+
+
+#: Angles up to this are taken as the linear part of the curve (SF = 1 in Table 4.1).
+LINEAR_UP_TO_DEG = 45.0
+
+
+def fit_calibration(
+    angles_deg: Sequence[float], counts: Sequence[float]
+) -> tuple[OleCalibration, RadiusFit]:
+    """R from the linear part of the curve (eq. 26, through the origin), then the
+    SF table that maps every reference pose onto its angle."""
+    linear = [(a, c) for a, c in zip(angles_deg, counts, strict=True) if 0 < a <= LINEAR_UP_TO_DEG]
+    if len(linear) < 1:
+        linear = [(a, c) for a, c in zip(angles_deg, counts, strict=True) if a > 0]
+    if not linear:
+        raise ValueError("need at least one reference angle above 0")
+    # least squares through the origin: D = R * alpha
+    radius = sum(c * MM_PER_COUNT * math.radians(a) for a, c in linear) / sum(
+        math.radians(a) ** 2 for a, _ in linear
+    )
+    fit = fit_radius(angles_deg, counts) if len(angles_deg) >= 2 else RadiusFit(radius, 0.0, 1.0, 1)
+    return fit_scale_factors(angles_deg, counts, radius), fit

@@ -23,11 +23,11 @@ fixed at standing height.
 from __future__ import annotations
 
 import math
-import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
+import pinocchio as pin
 from scipy.spatial.transform import Rotation
 
 from bodynet.core.keys import Site
@@ -41,8 +41,41 @@ GIMBAL_COS = 1e-3  # |cos(middle angle)| below this is a gimbal lock
 TILT_MIN = 0.05  # |component| below this: the tilt has no unique answer
 
 
+# Per-tick maths uses Pinocchio's rotation functions: scipy's Rotation objects cost
+# hundreds of microseconds a call, which a solver at 100 Hz per body cannot pay.
 def _rot(axis: np.ndarray, angle_rad: float) -> np.ndarray:
-    return Rotation.from_rotvec(axis * angle_rad).as_matrix()  # type: ignore[no-any-return]
+    return pin.exp3(axis * angle_rad)  # type: ignore[no-any-return]
+
+
+def _angle_deg(rot: np.ndarray) -> float:
+    """Rotation angle of a rotation matrix (accurate near 0, unlike acos of the trace)."""
+    return math.degrees(float(np.linalg.norm(pin.log3(rot))))
+
+
+def _quat_wxyz(rot: np.ndarray) -> QuatWxyz:
+    q = pin.Quaternion(rot)
+    q.normalize()
+    w, x, y, z = q.w, q.x, q.y, q.z
+    if w < 0:  # canonical: w >= 0
+        w, x, y, z = -w, -x, -y, -z
+    return (float(w), float(x), float(y), float(z))
+
+
+def _matrix(q: QuatWxyz) -> np.ndarray:
+    w, x, y, z = q
+    return pin.Quaternion(w, x, y, z).normalized().toRotationMatrix()  # type: ignore[no-any-return]
+
+
+def _euler(rot: np.ndarray, seq: str) -> np.ndarray:
+    """Intrinsic Tait-Bryan angles (deg) of ``rot`` for ``seq``, a permutation of XYZ:
+    ``rot = R_i(a) R_j(b) R_k(c)``, with b in [-90, 90]."""
+    i, j, k = ("XYZ".index(c) for c in seq)
+    e = 1.0 if (j - i) % 3 == 1 else -1.0  # cyclic or not
+    r = rot.tolist()
+    b = math.asin(max(-1.0, min(1.0, e * r[i][k])))
+    a = math.atan2(-e * r[j][k], r[k][k])
+    c = math.atan2(-e * r[i][j], r[i][i])
+    return np.degrees([a, b, c])
 
 
 @dataclass(frozen=True)
@@ -76,17 +109,15 @@ class JointAxes:
         A three-angle split has two solutions, ``(a, b, c)`` and
         ``(a + 180, 180 - b, c + 180)``: the one inside the range of motion and
         nearest the previous angles wins. At a gimbal lock (``b`` at +/-90) the
-        first angle holds its previous value and the third takes the rest.
+        first angle holds its previous value (0 at first) and the third takes the rest.
         """
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", UserWarning)  # scipy's gimbal-lock warning
-            euler = Rotation.from_matrix(rel).as_euler(self.seq, degrees=True)
+        euler = _euler(rel, self.seq)
         n = len(self.axes)
-        if n == 3 and previous is not None and abs(math.cos(math.radians(euler[1]))) < GIMBAL_COS:
-            first = previous[0] * self.signs[0]
+        if n == 3 and abs(math.cos(math.radians(euler[1]))) < GIMBAL_COS:
+            first = previous[0] * self.signs[0] if previous is not None else 0.0
             head = _rot(np.eye(3)["XYZ".index(self.seq[0])], math.radians(first))
             head = head @ _rot(np.eye(3)["XYZ".index(self.seq[1])], math.radians(euler[1]))
-            rest = Rotation.from_matrix(head.T @ rel).as_rotvec()
+            rest = pin.log3(head.T @ rel)
             euler = np.array([first, euler[1], math.degrees(rest["XYZ".index(self.seq[2])])])
             return euler * self.signs  # type: ignore[no-any-return]
         other = np.array([_wrap(euler[0] + 180), _wrap(180 - euler[1]), _wrap(euler[2] + 180)])
@@ -149,7 +180,7 @@ class BodySolver:
         m = self._mount_cache.get(key)
         if m is None:
             w, x, y, z = self.profile.imu_mounts.get(key, (1.0, 0.0, 0.0, 0.0))
-            m = self._mount_cache[key] = Rotation.from_quat([x, y, z, w]).as_matrix()
+            m = self._mount_cache[key] = _matrix((w, x, y, z))
         return m
 
     def solve(self, samples: Mapping[Site, RawSample]) -> BodyOutput:
@@ -161,9 +192,7 @@ class BodySolver:
             r = sample.reading
             if isinstance(r, Quat):
                 if seg not in measured:
-                    w, x, y, z = r.wxyz
-                    sensor = Rotation.from_quat([x, y, z, w]).as_matrix()
-                    measured[seg] = sensor @ self._mount(site.raw_key).T
+                    measured[seg] = _matrix(r.wxyz) @ self._mount(site.raw_key).T
             elif site.name in OLE_DOF:
                 modules[seg] = (site, r)
         world: dict[str, np.ndarray] = {"pelvis": measured.get("pelvis", np.eye(3))}
@@ -193,14 +222,13 @@ class BodySolver:
             self._memory.angles[joint.name] = values
             joint_rot = ax.matrix(values)
             world[joint.child] = parent @ joint_rot
-            rel[joint.name] = math.degrees(
-                Rotation.from_matrix(self._calibration[joint.name].T @ joint_rot).magnitude()
-            )
-        root = Rotation.from_matrix(world["pelvis"]).as_quat()
+            rel[joint.name] = _angle_deg(self._calibration[joint.name].T @ joint_rot)
+        w, x, y, z = _quat_wxyz(world["pelvis"])
+        root = (x, y, z, w)
         rotations, positions = self.model.frame_placements(
             self.model.q(angles, None, root), self._frames
         )
-        quats = np.roll(Rotation.from_matrix(rotations).as_quat(canonical=True), 1, axis=1)
+        quats = [_quat_wxyz(r) for r in rotations]
         segments = {
             s: (tuple(map(float, p)), tuple(map(float, q)))
             for s, p, q in zip(self.skeleton.segments, positions, quats, strict=True)

@@ -25,20 +25,26 @@ def test_tiny_decode_benchmark_writes_its_table(tmp_path: Path) -> None:
     assert "| imu-central lines |" in (tmp_path / "decode.md").read_text()
 
 
-def test_demo_runs_the_live_body_network() -> None:
+def test_demo_runs_the_live_body_network(tmp_path: Path) -> None:
     from zenoh_helpers import free_port
+
+    from bodynet.clients.mcap_store import read_poses
 
     bodynet = Path(sys.executable).with_name("bodynet")
     endpoint = f"tcp/127.0.0.1:{free_port()}"
+    record = tmp_path / "demo.mcap"
     result = subprocess.run(
-        [str(bodynet), "demo", "--seconds", "2", "-l", endpoint],
+        [str(bodynet), "demo", "--seconds", "5", "-l", endpoint, "--record", str(record)],
         capture_output=True,
         text=True,
-        timeout=60,
+        timeout=90,
         check=False,
     )
     assert result.returncode == 0, result.stderr
-    last = result.stdout.split("-- t =")[-1]
-    assert "15 live keys" in last
-    for key in ("body/arm/left/elbow/raw", "body/arm/right/wrist/raw", "body/leg/right/foot/raw"):
-        assert key in last
+    assert "T-pose calibration: 9 sensors" in result.stdout
+    last = result.stdout.split("-- t")[-1]
+    assert "sources 15" in last
+    assert "stale 0" in last
+    poses = list(read_poses(record))  # the recorder's file is complete and readable
+    assert len(poses) > 10
+    assert len(poses[-1][1].sources) == 15
