@@ -176,9 +176,16 @@ class PtyPort:
 
 
 class _PtyEmulator(_Loop):
-    def __init__(self, name: str, link: Path, baud: int) -> None:
+    """A device on a pseudo-terminal, driven by an emulated body."""
+
+    def __init__(self, name: str, link: Path, baud: int, body: BodyEmulator,
+                 clock: Clock | None, truth: TruthSink | None) -> None:  # fmt: skip
         super().__init__(name)
         self.port = PtyPort(link, baud)
+        self.body, self.clock, self.truth = body, clock or Clock(), truth
+
+    def sample(self) -> list[Reading]:
+        return _sample(self.body, self.clock, self.truth)
 
     @property
     def link(self) -> Path:
@@ -210,8 +217,7 @@ class ConcentratorEmulator(_PtyEmulator):
         cycle_s: float = CONCENTRATOR_CYCLE_S,
         silent: Sequence[int] = (),
     ) -> None:
-        super().__init__("concentrator-emulator", link, 115200)
-        self.body, self.clock, self.truth = body, clock or Clock(), truth
+        super().__init__("concentrator-emulator", link, 115200, body, clock, truth)
         self.cycle_s = cycle_s
         self.silent = set(silent)
         self.replies = 0
@@ -245,7 +251,7 @@ class ConcentratorEmulator(_PtyEmulator):
     def _answer(self, node: int, extended: bool) -> None:
         if node in self.silent:
             return
-        for reading in _sample(self.body, self.clock, self.truth):
+        for reading in self.sample():
             if reading.node == node and isinstance(reading, OleAccel):
                 self.port.write(
                     concentrator.encode_extended_reply(reading)
@@ -273,8 +279,7 @@ class ImuCentralEmulator(_PtyEmulator):
         dropouts: Sequence[int] = (),
         dropout_every: int = 4,
     ) -> None:
-        super().__init__("imu-central-emulator", link, 230400)
-        self.body, self.clock, self.truth = body, clock or Clock(), truth
+        super().__init__("imu-central-emulator", link, 230400, body, clock, truth)
         self.tick_s = tick_s
         self.dropouts, self.dropout_every = set(dropouts), dropout_every
         self.ticks = 0
@@ -282,7 +287,7 @@ class ImuCentralEmulator(_PtyEmulator):
     def run(self) -> None:
         deadline = time.monotonic()
         while not self.stop_event.is_set():
-            readings = {r.node: r for r in _sample(self.body, self.clock, self.truth)}
+            readings = {r.node: r for r in self.sample()}
             lines = []
             for slot in range(1, imu_matrix.MAX_SENSORS + 1):
                 reading = readings.get(slot)
@@ -315,8 +320,7 @@ class SlcanAdapterEmulator(_PtyEmulator):
         truth: TruthSink | None = None,
         period_s: float = CAN_PERIOD_S,
     ) -> None:
-        super().__init__("slcan-emulator", link, 115200)
-        self.body, self.clock, self.truth = body, clock or Clock(), truth
+        super().__init__("slcan-emulator", link, 115200, body, clock, truth)
         self.period_s = period_s
         self.is_open = False
         self.sent = 0
@@ -332,10 +336,7 @@ class SlcanAdapterEmulator(_PtyEmulator):
                 continue
             deadline += self.period_s
             if self.is_open:
-                frames = [
-                    smartsuit_can.encode_reading(r)
-                    for r in _sample(self.body, self.clock, self.truth)
-                ]
+                frames = [smartsuit_can.encode_reading(r) for r in self.sample()]
                 self.port.write(b"".join(map(smartsuit_can.encode_slcan, frames)))
                 self.sent += len(frames)
 

@@ -13,6 +13,7 @@ QUAT_NORM_RANGE = (0.9, 1.1)
 _SQ_LO, _SQ_HI = QUAT_NORM_RANGE[0] ** 2, QUAT_NORM_RANGE[1] ** 2
 
 INT16_MIN, INT16_MAX = -0x8000, 0x7FFF
+HEX_DIGITS = frozenset(b"0123456789abcdefABCDEF")
 
 
 def unit_quat(

@@ -32,7 +32,7 @@ import struct
 from ..errors import DecodeError, Reason, Rejected
 from ..messages import OleAccel
 from ..profile import smartsuit_branch_index
-from ._common import GarbageRun, check_int16, ole_values
+from ._common import HEX_DIGITS, GarbageRun, check_int16, ole_values
 
 MAX_NODES = 15
 FIRST_REQUEST = ord("I")
@@ -40,7 +40,6 @@ REPLY_LEN = 20
 EXTENDED_TYPE = 1  # the type code bodynet sends: motion data
 _MAX_EXTENDED = 80  # longest plausible extended line
 _TEMPLATE = {0: ord("E"), 5: ord("X"), 10: ord("Y"), 15: ord("Z")}
-_HEX = frozenset(b"0123456789abcdefABCDEF")
 _REPLY = re.compile(rb"E([0-9A-Fa-f]{4})X([0-9A-Fa-f]{4})Y([0-9A-Fa-f]{4})Z([0-9A-Fa-f]{4})")
 _INT16x4 = struct.Struct(">4h")
 _EXT_CHARS = frozenset(b"0123456789+- \t")
@@ -120,7 +119,7 @@ def _match(data: bytes | bytearray, start: int = 0) -> int:
     for i in range(start, end):
         k = i - start
         expected = _TEMPLATE.get(k)
-        if (data[i] != expected) if expected is not None else (data[i] not in _HEX):
+        if (data[i] != expected) if expected is not None else (data[i] not in HEX_DIGITS):
             return k
     return end - start
 

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 from ..errors import DecodeError, Reason, Rejected
 from ..messages import OleAccel, Quat, Reading
 from ..profile import SMARTSUIT_QUAT_NODES
-from ._common import INT16_MAX, INT16_MIN, GarbageRun, ole_values, unit_quat
+from ._common import HEX_DIGITS, INT16_MAX, INT16_MIN, GarbageRun, ole_values, unit_quat
 
 MAX_NODES = 15
 Q14 = 1 << 14
@@ -106,7 +106,6 @@ class SlcanReply:
 _MAX_SLCAN = 64
 _SLCAN_END = b"\r\a"
 _ID_DIGITS = {ord("T"): 8, ord("R"): 8, ord("t"): 3, ord("r"): 3}
-_HEX = frozenset(b"0123456789abcdefABCDEF")
 _DLC_DIGITS = {b"%d" % n for n in range(DLC + 1)}
 
 
@@ -134,7 +133,7 @@ def decode_slcan(line: bytes | bytearray) -> CanFrame | SlcanReply:
     ident_text, dlc_text = line[1 : 1 + digits], line[1 + digits : 2 + digits]
     if len(ident_text) != digits or len(dlc_text) != 1:
         raise DecodeError(Reason.BAD_LENGTH, "line too short for identifier and DLC")
-    if not _HEX.issuperset(ident_text) or bytes(dlc_text) not in _DLC_DIGITS:
+    if not HEX_DIGITS.issuperset(ident_text) or bytes(dlc_text) not in _DLC_DIGITS:
         raise DecodeError(Reason.NOT_HEX, "bad identifier or DLC digit")
     ident, dlc = int(ident_text, 16), int(dlc_text)
     if ident > (0x1FFFFFFF if extended else 0x7FF):
@@ -142,7 +141,7 @@ def decode_slcan(line: bytes | bytearray) -> CanFrame | SlcanReply:
     payload = line[2 + digits :]
     if len(payload) != (0 if remote else 2 * dlc):
         raise DecodeError(Reason.BAD_LENGTH, f"{len(payload)} data characters for DLC {dlc}")
-    if not _HEX.issuperset(payload):
+    if not HEX_DIGITS.issuperset(payload):
         raise DecodeError(Reason.NOT_HEX, "non-hex data")
     return CanFrame(ident, bytes.fromhex(payload.decode()), extended, remote, False, dlc)
 
