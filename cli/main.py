@@ -58,9 +58,13 @@ def cmd_router(args: argparse.Namespace) -> int:
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
-    from bodynet.bench.decode import run
+    from bodynet.bench import decode, gateway
 
-    return run(seconds=args.seconds, out_dir=args.out)
+    if args.only in (None, "decode"):
+        decode.run(seconds=args.seconds, out_dir=args.out)
+    if args.only in (None, "gateway"):
+        gateway.run(seconds=args.gateway_seconds, out_dir=args.out)
+    return 0
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -101,7 +105,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_router)
 
     p = sub.add_parser("bench", help="benchmarks, side by side with their baselines")
-    p.add_argument("--seconds", type=float, default=1.0, help="time per measurement")
+    p.add_argument("--seconds", type=float, default=1.0, help="time per decode measurement")
+    p.add_argument("--gateway-seconds", type=float, default=10.0, help="time of the gateway run")
+    p.add_argument("--only", choices=("decode", "gateway"), help="run one benchmark only")
     p.add_argument("--out", type=Path, default=Path("bench-results"))
     p.set_defaults(func=cmd_bench)
     return parser

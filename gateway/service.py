@@ -65,6 +65,7 @@ def frame_of(output: BodyOutput, seq: int, stale: Sequence[str]) -> pose.PoseFra
 class _Site:
     sample: RawSample
     arrived: float  # monotonic
+    fresh: bool = True  # not yet in a solved tick
 
 
 class Gateway:
@@ -202,42 +203,55 @@ class Gateway:
 
     # --- the work loop -----------------------------------------------------------------
     def run(self, stop: threading.Event) -> None:
-        last_solve = 0.0
-        dirty = False
+        """Solve when every live site has delivered since the last solve (a whole
+        frame of the sources is in: the lowest latency), or else ``period_s``
+        after the first new sample (sources of different rates)."""
+        first_new: float | None = None  # when the oldest unsolved sample came
+        force = False
         last_health = time.monotonic()
         while not stop.is_set():
-            timeout = max(0.0, last_solve + self.period_s - time.monotonic()) if dirty else 0.1
+            wait = 0.1 if first_new is None else first_new + self.period_s - time.monotonic()
             try:
-                item = self._queue.get(timeout=timeout)
-                self._take(item)
-                dirty = True
-                while True:  # drain what else has come: one solve for the lot
-                    self._take(self._queue.get_nowait())
+                item = self._queue.get(timeout=max(0.0, wait))
+                while True:  # take what else has come: one solve for the lot
+                    if item is None:
+                        force = True
+                    else:
+                        self._take(item)
+                        first_new = first_new or time.monotonic()
+                    item = self._queue.get_nowait()
             except queue.Empty:
                 pass
             now = time.monotonic()
-            if dirty and now - last_solve >= self.period_s:
+            due = first_new is not None and (
+                now - first_new >= self.period_s or self._frame_complete(now)
+            )
+            if due or force:
                 try:
                     self._solve_and_publish(now)
                 except Exception:  # one bad tick must not end the service
                     self.solver_errors += 1
                     if self.solver_errors <= 3:
                         log.exception("gateway: a tick failed (%d so far)", self.solver_errors)
-                last_solve, dirty = now, False
+                first_new, force = None, False
             if now - last_health >= 1.0:
                 last_health = now
-                dirty = dirty or self._newly_stale(now)
+                force = self._newly_stale(now)
                 self._publish_topology()
                 self._health_pub.put(json.dumps(self.health()).encode())
+
+    def _frame_complete(self, now: float) -> bool:
+        """Has every site that is not stale delivered since the last solve?"""
+        with self._lock:
+            return all(v.fresh or now - v.arrived > STALE_S for v in self._latest.values())
 
     def _newly_stale(self, now: float) -> bool:
         with self._lock:
             return any(now - v.arrived > STALE_S and s.raw_key not in self._published_stale
                        for s, v in self._latest.items())  # fmt: skip
 
-    def _take(self, item: tuple[Site, RawSample] | None) -> None:
-        if item is None:
-            return
+    def _take(self, item: tuple[Site, RawSample]) -> None:
+        """Keep a sample as its site's latest (and, for T-pose, its recent history)."""
         site, sample = item
         now = time.monotonic()
         self.samples += 1
@@ -252,6 +266,8 @@ class Gateway:
     def _solve_and_publish(self, now: float) -> None:
         with self._lock:
             latest = {site: s.sample for site, s in self._latest.items()}
+            for s in self._latest.values():
+                s.fresh = False
             stale = sorted(
                 s.raw_key for s, v in self._latest.items()
                 if now - v.arrived > STALE_S or s.raw_key in self._gone

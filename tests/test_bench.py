@@ -48,3 +48,13 @@ def test_demo_runs_the_live_body_network(tmp_path: Path) -> None:
     poses = list(read_poses(record))  # the recorder's file is complete and readable
     assert len(poses) > 10
     assert len(poses[-1][1].sources) == 15
+
+
+def test_tiny_gateway_benchmark_reports_both_paths(tmp_path: Path) -> None:
+    from bodynet.bench import gateway
+
+    result = gateway.run(seconds=1.0, out_dir=tmp_path)
+    assert 0 < result["sent"] <= 1500  # at most 15 nodes x 100 Hz x 1 s
+    assert result["relay"]["received"] > 0
+    assert result["gateway"]["poses"] > 0
+    assert (tmp_path / "gateway.md").read_text().startswith("| path |")
