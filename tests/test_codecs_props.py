@@ -214,3 +214,30 @@ def test_good_slcan_frame_after_garbage_still_decodes(garbage: bytes) -> None:
     good = OleAccel(4, 12, (1, 2, 3))
     data = garbage + b"\r" + smartsuit_can.encode_slcan(smartsuit_can.encode_reading(good))
     assert decode_all(smartsuit_can.SmartSuitSlcanDecoder, [data])[-1] == good
+
+
+@given(st.one_of(st.binary(max_size=80), noisy))
+def test_single_message_decoders_raise_only_declared_errors(data: bytes) -> None:
+    from bodynet.core.codecs import pose
+    from bodynet.core.errors import DecodeError
+
+    decoders = (
+        raw_sample.decode,
+        pose.decode,
+        imu_matrix.decode_line,
+        smartsuit_can.decode_slcan,
+        concentrator.decode_extended,
+        lambda d: concentrator.decode_reply(d, 1),
+    )
+    for decode in decoders:
+        try:
+            decode(data)
+        except DecodeError:
+            pass
+    for frame_data in (data[:8], data):
+        try:
+            smartsuit_can.decode_frame(
+                smartsuit_can.CanFrame(0x0006FFFF, frame_data, dlc=len(frame_data))
+            )
+        except DecodeError:
+            pass

@@ -109,3 +109,41 @@ def test_gateway_calibrates_tracks_and_flags_stale(
     node_session.close()
     seen = poses.wait_for(lambda s: bool(s[-1][1].stale), timeout=10) if gateway.samples else []
     assert close_to(seen[-1][1], TARGET, 0.3)
+
+
+def test_garbage_on_raw_keys_is_counted_and_never_stops_the_body(
+    gateway: Gateway, router_endpoint: str, zsession: zenoh.Session
+) -> None:
+    held = {"left_elbow_flexion_deg": 60.0}
+    plans = [NodePlan("smartsuit", "can", (LEFT_ARM,))]
+    node_session = client(router_endpoint)
+    options = EmulationOptions(Routine("held", "", lambda t: dict(held)), Realism.ideal())
+    nodes = Running(run_node, node_session, plans, options, "victim")
+    poses = Collector(zsession, keys.pose_key(), pose.decode)
+    poses.wait_for(
+        lambda s: bool(s) and abs(s[-1][1].angles_deg["left_elbow_flexion_deg"] - 60) < 0.3
+    )
+    hostile = client(router_endpoint)
+    bad = [
+        b"",
+        b"\x00" * 28,
+        b"BN\x01\x01" + bytes(100),
+        b"BN\x09" + bytes(30),
+        b"{}",
+        bytes(range(256)),
+    ]
+    for i in range(2000):  # as fast as it goes, on a live key and on keys outside the key space
+        hostile.put("body/arm/left/elbow/raw", bad[i % len(bad)])
+        hostile.put("body/arm/left/bogus/raw", b"BN")
+    held["left_elbow_flexion_deg"] = 100.0
+    n = len(poses.seen)
+    poses.wait_for(
+        lambda s: len(s) > n and abs(s[-1][1].angles_deg["left_elbow_flexion_deg"] - 100) < 0.3
+    )
+    assert sum(gateway.rejected.values()) >= 4000
+    assert gateway.solver_errors == 0
+    health = json.loads(next(iter(zsession.get(keys.TOPOLOGY, timeout=5))).ok.payload.to_bytes())
+    assert "left-arm" in health["branches"]
+    hostile.close()
+    nodes.stop()
+    node_session.close()

@@ -71,6 +71,8 @@ def _length(buf: bytes | bytearray, pos: int) -> int | None:
     ``DecodeError`` on a bad field.
     """
     avail = len(buf) - pos
+    if avail <= 0:
+        return None
     if buf[pos] != MAGIC[0] or (avail > 1 and buf[pos + 1] != MAGIC[1]):
         raise DecodeError(Reason.BAD_MAGIC, f"magic {bytes(buf[pos : pos + 2])!r}")
     if avail > 2 and buf[pos + 2] != VERSION:
