@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import math
 from collections.abc import Callable, Sequence
@@ -230,14 +231,10 @@ def test_single_message_decoders_raise_only_declared_errors(data: bytes) -> None
         lambda d: concentrator.decode_reply(d, 1),
     )
     for decode in decoders:
-        try:
+        with contextlib.suppress(DecodeError):  # anything else fails the test
             decode(data)
-        except DecodeError:
-            pass
     for frame_data in (data[:8], data):
-        try:
+        with contextlib.suppress(DecodeError):
             smartsuit_can.decode_frame(
                 smartsuit_can.CanFrame(0x0006FFFF, frame_data, dlc=len(frame_data))
             )
-        except DecodeError:
-            pass
