@@ -25,6 +25,7 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 import pinocchio as pin
@@ -39,6 +40,7 @@ from bodynet.kinematics.model import BodyModel, accel_axes
 
 GIMBAL_COS = 1e-3  # |cos(middle angle)| below this is a gimbal lock
 TILT_MIN = 0.05  # |component| below this: the tilt has no unique answer
+MISS = 0.05  # a gravity fit further off than this (about 3 degrees) is no fit
 
 
 # Per-tick maths uses Pinocchio's rotation functions: scipy's Rotation objects cost
@@ -98,10 +100,14 @@ class JointAxes:
         return cls(joint, seq[:3], np.array(signs), tuple(np.array(d.axis) for d in joint.dofs))
 
     def matrix(self, angles_deg: np.ndarray) -> np.ndarray:
-        out = np.eye(3)
-        for axis, angle in zip(self.axes, angles_deg, strict=True):
+        out = _rot(self.axes[0], math.radians(angles_deg[0]))
+        for axis, angle in zip(self.axes[1:], angles_deg[1:], strict=True):
             out = out @ _rot(axis, math.radians(angle))
         return out
+
+    def dof(self, i: int, angle_deg: float) -> np.ndarray:
+        """The rotation of dof ``i`` alone."""
+        return _rot(self.axes[i], math.radians(angle_deg))
 
     def split(self, rel: np.ndarray, previous: np.ndarray | None) -> np.ndarray:
         """Angles (deg) of the joint's dofs for a relative rotation.
@@ -157,7 +163,10 @@ class BodyOutput:
 @dataclass
 class _Memory:
     angles: dict[str, np.ndarray] = field(default_factory=dict)
-    up: dict[str, np.ndarray] = field(default_factory=dict)  # filtered "up" of each accelerometer
+    up: dict[str, np.ndarray] = field(default_factory=dict)
+    tilt: dict[str, np.ndarray] = field(
+        default_factory=dict
+    )  # (pronation, deviation) per wrist  # filtered "up" of each accelerometer
 
 
 class BodySolver:
@@ -199,6 +208,22 @@ class BodySolver:
         angles: dict[str, float] = {}
         flags: dict[str, str] = {}
         rel: dict[str, float] = {}
+
+        def commit(joint: Joint, values: np.ndarray) -> None:
+            """Clamp to the range of motion, record, and carry the chain on."""
+            ax = self.axes[joint.name]
+            for i, name in enumerate(joint.angle_names()):
+                lo, hi = rom(name)
+                if not lo <= values[i] <= hi:
+                    values[i] = min(max(values[i], lo), hi)
+                    flags[name] = "clamped"
+                angles[name] = float(values[i])
+            self._memory.angles[joint.name] = values
+            joint_rot = ax.matrix(values)
+            world[joint.child] = world[joint.parent] @ joint_rot
+            rel[joint.name] = _angle_deg(self._calibration[joint.name].T @ joint_rot)
+
+        by_child = {j.child: j for j in self.skeleton.joints}
         for joint in self.skeleton.joints:
             ax = self.axes[joint.name]
             parent = world[joint.parent]
@@ -207,22 +232,21 @@ class BodySolver:
             if joint.child in measured:
                 values = ax.split(parent.T @ measured[joint.child], previous)
             elif joint.child in modules:
-                values = self._from_module(
-                    joint, ax, parent, *modules[joint.child], previous, flags
-                )
+                site, reading = modules[joint.child]
+                values = self._from_module(joint, ax, parent, site, reading, previous, flags)
+                if len(names) == 2 and reading is not None:  # wrist, ankle: the distal tilt
+                    upstream = by_child[joint.parent]
+                    chained = (
+                        joint.parent not in measured
+                        and joint.parent in modules
+                        and len(upstream.dofs) == 2  # the elbow: its pronation is unknown too
+                    )
+                    values = self._distal_tilt(joint, values, upstream if chained else None,
+                                               world, site, reading, flags, commit)  # fmt: skip
             else:
                 values = np.zeros(len(names))
                 flags.update(dict.fromkeys(names, "unobserved"))
-            for i, name in enumerate(names):
-                lo, hi = rom(name)
-                if not lo <= values[i] <= hi:
-                    values[i] = min(max(values[i], lo), hi)
-                    flags[name] = "clamped"
-                angles[name] = float(values[i])
-            self._memory.angles[joint.name] = values
-            joint_rot = ax.matrix(values)
-            world[joint.child] = parent @ joint_rot
-            rel[joint.name] = _angle_deg(self._calibration[joint.name].T @ joint_rot)
+            commit(joint, values)
         w, x, y, z = _quat_wxyz(world["pelvis"])
         root = (x, y, z, w)
         rotations, positions = self.model.frame_placements(
@@ -274,6 +298,72 @@ class BodySolver:
                     values[i] = 0.0
         return values
 
+    def _distal_tilt(
+        self,
+        joint: Joint,
+        values: np.ndarray,
+        upstream: Joint | None,
+        world: dict[str, np.ndarray],
+        site: Site,
+        reading: OleAccel,
+        flags: dict[str, str],
+        commit: Any,
+    ) -> np.ndarray:
+        """The second dof of a wrist or ankle (deviation, inversion) from the
+        accelerometer on the hand or foot, and with ``upstream`` (an elbow
+        measured by its encoder only) that joint's second dof too (pronation):
+        the angles that put the sensor's measured "up" on the world vertical,
+        found by Gauss-Newton from the last values, so a direction gravity
+        cannot see keeps its value instead of jumping (000 seed, eq. 21-23)."""
+        up_sensor = np.array(reading.accel, dtype=float)
+        norm = float(np.linalg.norm(up_sensor))
+        if norm <= 0.1 * self.profile.accel_counts_per_g:
+            return values
+        ax = self.axes[joint.name]
+        seg = joint.child
+        mount_axes = accel_axes(np.array(self.skeleton.directions[seg]), ax.axes[0])
+        target = mount_axes @ self._filtered_up(site.raw_key, up_sensor / norm)
+        up_world = np.array([0.0, 0.0, 1.0])
+        if upstream is None:
+            fixed = world[joint.parent] @ ax.dof(0, values[0])
+
+            def predict(x: np.ndarray) -> np.ndarray:
+                return (fixed @ ax.dof(1, x[0])).T @ up_world  # type: ignore[no-any-return]
+
+            (values[1],) = _gauss_newton(predict, np.array([values[1]]), target)
+            flags.pop(joint.angle_names()[1], None)
+            return values
+        up_ax = self.axes[upstream.name]
+        up_values = self._memory.angles[upstream.name].copy()
+        fixed = world[upstream.parent] @ up_ax.dof(0, up_values[0])
+        wrist_flexion = ax.dof(0, values[0])
+
+        def predict2(x: np.ndarray) -> np.ndarray:
+            chain = fixed @ up_ax.dof(1, x[0]) @ wrist_flexion @ ax.dof(1, x[1])
+            return chain.T @ up_world  # type: ignore[no-any-return]
+
+        prev = self._memory.tilt.get(joint.name, np.zeros(2))
+        names = (upstream.angle_names()[1], joint.angle_names()[1])
+
+        def rank(x: np.ndarray) -> tuple[bool, float, float]:
+            miss = float(np.linalg.norm(predict2(x) - target)) > MISS
+            outside = sum(
+                max(0.0, lo - v, v - hi) for v, (lo, hi) in zip(x, map(rom, names), strict=True)
+            )
+            return miss, outside, float(np.abs(x - prev).sum())
+
+        fits = [_gauss_newton(predict2, prev, target)]
+        if rank(fits[0])[:2] != (False, 0.0):  # no good fit near the last answer: try neutral
+            fits.append(_gauss_newton(predict2, np.zeros(2), target))
+
+        solution = min(fits, key=rank)
+        self._memory.tilt[joint.name] = solution
+        up_values[1], values[1] = solution
+        flags.pop(upstream.angle_names()[1], None)
+        flags.pop(joint.angle_names()[1], None)
+        commit(upstream, up_values)
+        return values
+
     def _filtered_up(self, key: str, up: np.ndarray) -> np.ndarray:
         """Light low-pass filtering of an accelerometer's direction (exponential,
         ``accel_filter`` of the new sample each time), against vibration."""
@@ -323,6 +413,27 @@ class BodySolver:
                 np.array([_wrap(math.degrees(phi1)) * s1, _wrap(math.degrees(phi2)) * s2])
             )
         return _nearest(candidates, prev, joint.angle_names()[:2])
+
+
+def _gauss_newton(predict: Any, x0: np.ndarray, target: np.ndarray, iters: int = 5) -> np.ndarray:
+    """Angles (deg) near ``x0`` with ``predict(x)`` closest to ``target``.
+
+    Least-squares steps (minimum norm), so a direction the target cannot
+    see is left where it was."""
+    x = x0.astype(float).copy()
+    h = 1e-3
+    eye = np.eye(len(x))
+    for _ in range(iters):
+        y = predict(x)
+        r = y - target
+        jac = np.column_stack([(predict(x + h * e) - y) / h for e in eye])
+        # damped normal equations: a direction gravity cannot see gets no step
+        jtj = jac.T @ jac
+        step = np.linalg.solve(jtj + 1e-6 * np.trace(jtj) * eye + 1e-12 * eye, -jac.T @ r)
+        x += np.clip(step, -30.0, 30.0)
+        if float(np.abs(step).max()) < 1e-3:  # degrees: far below the sensors' resolution
+            break
+    return np.array([_wrap(v) for v in x])
 
 
 def _wrap(deg: float) -> float:
