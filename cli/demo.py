@@ -12,11 +12,13 @@ from __future__ import annotations
 
 import contextlib
 import json
+import os
 import threading
 import time
 from pathlib import Path
 
 from bodynet.clients.recorder import Recorder
+from bodynet.clients.view import Viewer, view_live
 from bodynet.core import keys
 from bodynet.core.codecs import pose
 from bodynet.core.errors import DecodeError
@@ -32,9 +34,39 @@ SHOWN = ("lumbar_flexion_deg", "left_shoulder_flexion_deg", "left_shoulder_abduc
          "left_hip_flexion_deg", "left_knee_flexion_deg", "right_knee_flexion_deg")  # fmt: skip
 
 
+def _say_where(endpoint: str, record: Path, routine: str, address: str, rrd: Path | None) -> None:
+    print(f"bodynet demo: gateway and router on {endpoint}; recording to {record}")
+    if address:
+        print(f"  live view: the web viewer at {address}")
+    if rrd is not None:
+        print(f"  live view saved to {rrd} (open it with: .venv/bin/rerun {rrd})")
+    print(f"  emulated body: T-pose for {TPOSE_S:g} s (the gateway calibrates), then {routine!r}")
+    print(
+        f"  poses: {keys.pose_key()} and {keys.all_poses()}; from another machine: "
+        f"-e {endpoint.replace('127.0.0.1', '<this-host>')} (gateway -l tcp/0.0.0.0:7447)"
+    )
+
+
+def _status_line(elapsed: float, frame: pose.PoseFrame, recorded: int) -> str:
+    cells = "  ".join(
+        f"{n.removesuffix('_deg')} {frame.angles_deg.get(n, 0.0):6.1f}" for n in SHOWN
+    )
+    return (
+        f"-- t {elapsed:5.1f} s  tick {frame.seq:6d}  sources {len(frame.sources):2d}  "
+        f"stale {len(frame.stale)}  recorded {recorded}\n   {cells}"
+    )
+
+
 def run_demo(endpoint: str, routine: str, seconds: float | None, record: Path,
-             stop: threading.Event) -> int:  # fmt: skip
-    """Run everything until ``stop`` (Ctrl-C) or for ``seconds``."""
+             stop: threading.Event, viewer_mode: str = "auto", rrd: Path | None = None,
+             web_port: int | None = None) -> int:  # fmt: skip
+    """Run everything until ``stop`` (Ctrl-C) or for ``seconds``. The live view
+    is a window where there is a display, else the web viewer plus a saved
+    ``.rrd`` (``viewer_mode`` "none": the ``.rrd`` only)."""
+    if viewer_mode == "auto":
+        viewer_mode = "native" if os.environ.get("DISPLAY") else "web"
+    if viewer_mode != "native" and rrd is None:
+        rrd = record.with_suffix(".rrd")
     moves = ROUTINES[routine].angles
     scripted = Routine("demo", "", lambda t: dict(TPOSE) if t < TPOSE_S else moves(t - TPOSE_S))
     gw_session = open_session(session_config("router", listen=[endpoint]))
@@ -50,6 +82,9 @@ def run_demo(endpoint: str, routine: str, seconds: float | None, record: Path,
     nodes.start()
     client = open_session(session_config("client", connect=[endpoint]))
     recorder = Recorder(client, record)
+    viewer = Viewer.start(viewer_mode, rrd, web_port=web_port)
+    view_thread = threading.Thread(target=view_live, args=(client, viewer, stop), daemon=True)
+    view_thread.start()
     latest: dict[str, pose.PoseFrame] = {}
 
     def on_pose(sample: object) -> None:
@@ -57,12 +92,7 @@ def run_demo(endpoint: str, routine: str, seconds: float | None, record: Path,
             latest["body"] = pose.decode(sample.payload.to_bytes())  # type: ignore[attr-defined]
 
     sub = client.declare_subscriber(keys.pose_key(), on_pose)
-    print(f"bodynet demo: gateway and router on {endpoint}; recording to {record}")
-    print(f"  emulated body: T-pose for {TPOSE_S:g} s (the gateway calibrates), then {routine!r}")
-    print(
-        f"  poses: {keys.pose_key()} and {keys.all_poses()}; from another machine: "
-        f"-e {endpoint.replace('127.0.0.1', '<this-host>')} (gateway -l tcp/0.0.0.0:7447)"
-    )
+    _say_where(endpoint, record, routine, viewer.address, rrd)
     start = time.monotonic()
     calibrated = False
     while not stop.wait(1.0):
@@ -76,19 +106,15 @@ def run_demo(endpoint: str, routine: str, seconds: float | None, record: Path,
             print(f"\n  T-pose calibration: {len(result.get('calibrated', []))} sensors")
         frame = latest.get("body")
         if frame is not None:
-            cells = "  ".join(f"{n.removesuffix('_deg')} {frame.angles_deg.get(n, 0.0):6.1f}"
-                              for n in SHOWN)  # fmt: skip
-            print(
-                f"-- t {elapsed:5.1f} s  tick {frame.seq:6d}  sources {len(frame.sources):2d}  "
-                f"stale {len(frame.stale)}  recorded {recorder.messages}\n   {cells}"
-            )
+            print(_status_line(elapsed, frame, recorder.messages))
         if seconds is not None and elapsed >= seconds:
             stop.set()
     sub.undeclare()
     recorder.close()
-    for thread in (nodes, gw_thread):
+    for thread in (view_thread, nodes, gw_thread):
         thread.join(timeout=10)
     gateway.close()
+    viewer.close()
     for session in (client, node_session, gw_session):
         session.close()
     print(f"bodynet demo: stopped; {recorder.messages} messages in {record}")

@@ -41,7 +41,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
     from bodynet.cli.demo import run_demo
     from bodynet.cli.nodes import stop_on_signals
 
-    return run_demo(args.listen, args.routine, args.seconds, args.record, stop_on_signals())
+    return run_demo(args.listen, args.routine, args.seconds, args.record, stop_on_signals(),
+                    args.viewer, args.rrd, args.web_port)  # fmt: skip
 
 
 def cmd_router(args: argparse.Namespace) -> int:
@@ -92,6 +93,16 @@ def build_parser() -> argparse.ArgumentParser:
         help="motion of the emulated body (default reach)",
     )
     p.add_argument("--seconds", type=float, default=None, help="stop after this long")
+    p.add_argument(
+        "--viewer",
+        choices=("auto", "native", "web", "none"),
+        default="auto",
+        help="live view: a window if there is a display, else the web viewer",
+    )
+    p.add_argument(
+        "--rrd", type=Path, help="where the live view is saved (default beside --record)"
+    )
+    p.add_argument("--web-port", type=int, default=None, help="web viewer port (default 9090)")
     p.add_argument("--record", type=Path, default=Path("bodynet-demo.mcap"),
                    help="where the recorder writes (default bodynet-demo.mcap)")  # fmt: skip
     p.set_defaults(func=cmd_demo)
@@ -99,6 +110,7 @@ def build_parser() -> argparse.ArgumentParser:
     nodes_cli.add_parsers(sub)
     gateway_cli.add_parsers(sub)
     gateway_cli.add_offline_parsers(sub)
+    gateway_cli.add_view_parser(sub)
 
     p = sub.add_parser("router", help="a Zenoh router for the body network (no zenohd needed)")
     add_session_args(p, default_mode="router")

@@ -34,7 +34,20 @@ def test_demo_runs_the_live_body_network(tmp_path: Path) -> None:
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     record = tmp_path / "demo.mcap"
     result = subprocess.run(
-        [str(bodynet), "demo", "--seconds", "5", "-l", endpoint, "--record", str(record)],
+        [
+            str(bodynet),
+            "demo",
+            "--seconds",
+            "5",
+            "-l",
+            endpoint,
+            "--record",
+            str(record),
+            "--viewer",
+            "none",
+            "--rrd",
+            str(tmp_path / "demo.rrd"),
+        ],
         capture_output=True,
         text=True,
         timeout=90,
@@ -48,6 +61,23 @@ def test_demo_runs_the_live_body_network(tmp_path: Path) -> None:
     poses = list(read_poses(record))  # the recorder's file is complete and readable
     assert len(poses) > 10
     assert len(poses[-1][1].sources) == 15
+    # the live view, read back by Rerun's own tool: figure, angles, gauges and status
+    rerun = Path(sys.executable).with_name("rerun")
+    printed = subprocess.run(
+        [str(rerun), "rrd", "print", str(tmp_path / "demo.rrd")],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=True,
+    ).stdout
+    for entity in (
+        "/body/figure",
+        "/body/joints",
+        "/angles/left_elbow_flexion",
+        "/gauges",
+        "/status",
+    ):
+        assert f"- {entity} -" in printed, entity
 
 
 def test_tiny_gateway_benchmark_reports_both_paths(tmp_path: Path) -> None:
