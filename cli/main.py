@@ -12,6 +12,7 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
+from bodynet.cli import clients as clients_cli
 from bodynet.cli import gateway as gateway_cli
 from bodynet.cli import nodes as nodes_cli
 from bodynet.nodes.captures import CaptureStats, Format, read_capture, sample_json
@@ -109,8 +110,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     nodes_cli.add_parsers(sub)
     gateway_cli.add_parsers(sub)
-    gateway_cli.add_offline_parsers(sub)
-    gateway_cli.add_view_parser(sub)
+    gateway_cli.add_process_parser(sub)
+    clients_cli.add_parsers(sub)
 
     p = sub.add_parser("router", help="a Zenoh router for the body network (no zenohd needed)")
     add_session_args(p, default_mode="router")

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import json
 import os
+import struct
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import Any
@@ -124,9 +125,6 @@ def _messages(path: Path, topics: Iterable[str]) -> Iterator[Any]:
     try:
         with path.open("rb") as f:
             yield from make_reader(f).iter_messages(topics=list(topics))
-    except (McapError, ValueError, EOFError, OSError) as exc:
+    # the mcap reader raises struct.error, not an McapError, on some truncated files
+    except (McapError, ValueError, EOFError, OSError, struct.error) as exc:
         raise StoreError(f"{path}: not a complete MCAP file ({exc})") from None
-    except Exception as exc:  # the mcap reader raises struct.error on truncated files
-        if type(exc).__module__ == "struct" or type(exc).__name__ == "error":
-            raise StoreError(f"{path}: not a complete MCAP file ({exc})") from None
-        raise

@@ -1,0 +1,82 @@
+"""Command-line wiring of the clients: ``view`` and ``export``."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from bodynet.session import add_session_args, config_from_args, open_session
+
+
+def cmd_export(args: argparse.Namespace) -> int:
+    from bodynet.clients.export import export_csv
+    from bodynet.clients.mcap_store import StoreError
+
+    try:
+        rows = export_csv(args.recording, args.output)
+    except (StoreError, OSError) as exc:
+        print(f"bodynet export: {exc}", file=sys.stderr)
+        return 2
+    print(f"{rows} rows -> {args.output}", file=sys.stderr)
+    return 0
+
+
+def cmd_view(args: argparse.Namespace) -> int:
+    import os
+
+    from bodynet.clients.mcap_store import StoreError
+    from bodynet.clients.view import Viewer, view_live, view_recording
+
+    mode = args.viewer
+    if mode == "auto":
+        mode = (
+            "none"
+            if args.recording and args.save
+            else ("native" if os.environ.get("DISPLAY") else "web")
+        )
+    viewer = Viewer.start(mode, args.save, args.url, args.web_port, args.grpc_port)
+    if viewer.address:
+        print(f"bodynet view: web viewer at {viewer.address}", flush=True)
+    try:
+        if args.recording:
+            try:
+                n = view_recording(args.recording, viewer)
+            except StoreError as exc:
+                print(f"bodynet view: {exc}", file=sys.stderr)
+                return 2
+        else:
+            from bodynet.cli.nodes import stop_on_signals
+
+            stop = stop_on_signals()
+            session = open_session(config_from_args(args))
+            try:
+                n = view_live(session, viewer, stop)
+            finally:
+                session.close()
+    finally:
+        viewer.close()
+    print(f"bodynet view: {n} poses" + (f", saved to {args.save}" if args.save else ""),
+          file=sys.stderr)  # fmt: skip
+    return 0
+
+
+def add_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    p = sub.add_parser("view", help="the body in Rerun, live or from a recording")
+    p.add_argument("recording", type=Path, nargs="?", help="an MCAP recording (else: live)")
+    p.add_argument("--viewer", choices=("auto", "native", "web", "connect", "none"), default="auto",
+                   help="a window (if there is a display), the web viewer, or a running "
+                        "viewer (--url); 'none' with --save writes the .rrd only")  # fmt: skip
+    p.add_argument("--save", type=Path, help="also write the recording to this .rrd")
+    p.add_argument("--url", help="with --viewer connect: the viewer's gRPC url")
+    p.add_argument("--web-port", type=int, default=None, help="with --viewer web (default 9090)")
+    p.add_argument("--grpc-port", type=int, default=None, help="with --viewer web (default 9876)")
+    add_session_args(p)
+    p.set_defaults(func=cmd_view)
+
+    p = sub.add_parser("export", help="export a recording to a standard format")
+    esub = p.add_subparsers(dest="kind", required=True, metavar="FORMAT")
+    c = esub.add_parser("csv", help="joint angles, rotations and joint centres, one row per tick")
+    c.add_argument("recording", type=Path, help="an MCAP file with poses")
+    c.add_argument("-o", "--output", type=Path, required=True)
+    c.set_defaults(func=cmd_export)
