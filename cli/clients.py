@@ -80,3 +80,76 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
     c.add_argument("recording", type=Path, help="an MCAP file with poses")
     c.add_argument("-o", "--output", type=Path, required=True)
     c.set_defaults(func=cmd_export)
+
+
+def cmd_record(args: argparse.Namespace) -> int:
+    import time
+
+    from bodynet.cli.nodes import stop_on_signals
+    from bodynet.clients.mcap_store import StoreError, salvage
+    from bodynet.clients.recorder import DEFAULT_KEYS, Recorder
+
+    if args.salvage:
+        try:
+            n = salvage(args.salvage, args.output)
+        except (StoreError, OSError) as exc:
+            print(f"bodynet record: {exc}", file=sys.stderr)
+            return 2
+        print(f"bodynet record: {n} messages salvaged into {args.output}", file=sys.stderr)
+        return 0
+    stop = stop_on_signals()
+    session = open_session(config_from_args(args))
+    recorder = Recorder(session, args.output, args.keys or DEFAULT_KEYS,
+                        int(args.rotate_mb * 1e6), args.rotate_s)  # fmt: skip
+    start = time.monotonic()
+    try:
+        while not stop.wait(1.0):
+            elapsed = time.monotonic() - start
+            print(f"\\rrecording {recorder.files[-1]}: {recorder.messages} messages, "
+                  f"{elapsed:.0f} s, {recorder.messages / elapsed:.0f}/s", end="",
+                  file=sys.stderr, flush=True)  # fmt: skip
+    finally:
+        recorder.close()
+        session.close()
+    print(f"\\nbodynet record: {recorder.messages} messages in "
+          f"{', '.join(map(str, recorder.files))}", file=sys.stderr)  # fmt: skip
+    return 0
+
+
+def cmd_replay(args: argparse.Namespace) -> int:
+    from bodynet.cli.nodes import stop_on_signals
+    from bodynet.clients.mcap_store import StoreError
+    from bodynet.clients.replay import replay
+
+    stop = stop_on_signals()
+    session = open_session(config_from_args(args))
+    try:
+        n = replay(session, args.recording, stop, args.keys or None, args.speed, args.loop,
+                   progress=not args.quiet)  # fmt: skip
+    except StoreError as exc:
+        print(f"bodynet replay: {exc}", file=sys.stderr)
+        return 2
+    finally:
+        session.close()
+    print(f"bodynet replay: {n} samples published", file=sys.stderr)
+    return 0
+
+
+def add_record_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    p = sub.add_parser("record", help="record raw samples and poses to MCAP")
+    p.add_argument("keys", nargs="*", help="key expressions (default: every raw sample and pose)")
+    p.add_argument("-o", "--output", type=Path, required=True, help="the MCAP file")
+    p.add_argument("--rotate-mb", type=float, default=0.0, help="start a new file past this size")
+    p.add_argument("--rotate-s", type=float, default=0.0, help="start a new file past this age")
+    p.add_argument("--salvage", type=Path, help="turn this unfinished file into -o, and stop")
+    add_session_args(p)
+    p.set_defaults(func=cmd_record)
+
+    p = sub.add_parser("replay", help="publish a recording's raw samples again")
+    p.add_argument("recording", type=Path)
+    p.add_argument("--keys", nargs="*", help="topics to replay (default: every raw sample)")
+    p.add_argument("--speed", type=float, default=1.0, help="2 plays twice as fast")
+    p.add_argument("--loop", action="store_true")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    add_session_args(p)
+    p.set_defaults(func=cmd_replay)

@@ -112,6 +112,7 @@ def build_parser() -> argparse.ArgumentParser:
     gateway_cli.add_parsers(sub)
     gateway_cli.add_process_parser(sub)
     clients_cli.add_parsers(sub)
+    clients_cli.add_record_parsers(sub)
 
     p = sub.add_parser("router", help="a Zenoh router for the body network (no zenohd needed)")
     add_session_args(p, default_mode="router")

@@ -121,10 +121,83 @@ def read_poses(path: Path, topic: str = "body/pose") -> Iterator[tuple[int, pose
         yield message.log_time, pose.decode(message.data)
 
 
-def _messages(path: Path, topics: Iterable[str]) -> Iterator[Any]:
+def _messages(path: Path, topics: Iterable[str] | None) -> Iterator[Any]:
     try:
         with path.open("rb") as f:
-            yield from make_reader(f).iter_messages(topics=list(topics))
+            yield from make_reader(f).iter_messages(topics=None if topics is None else list(topics))
     # the mcap reader raises struct.error, not an McapError, on some truncated files
     except (McapError, ValueError, EOFError, OSError, struct.error) as exc:
         raise StoreError(f"{path}: not a complete MCAP file ({exc})") from None
+
+
+def raw_from_json(data: bytes) -> RawSample:
+    """The raw sample a ``bodynet.RawSample`` message holds (see :func:`raw_json`)."""
+    from bodynet.core.messages import Quat, Source
+
+    try:
+        d = json.loads(data)
+        if "quat_wxyz" in d:
+            w, x, y, z = (float(c) for c in d["quat_wxyz"])
+            reading: OleAccel | Quat = Quat(int(d["node"]), (w, x, y, z))
+        else:
+            ax, ay, az = (int(c) for c in d["accel"])
+            reading = OleAccel(int(d["node"]), int(d["encoder"]), (ax, ay, az))
+        return RawSample(reading, int(d["seq"]), int(d["t_ns"]), Source[str(d["source"]).upper()])
+    except (ValueError, KeyError, TypeError) as exc:
+        raise StoreError(f"not a raw-sample message: {exc}") from None
+
+
+def read_raw(
+    path: Path, topics: Iterable[str] | None = None
+) -> Iterator[tuple[str, int, RawSample]]:
+    """(topic, log time ns, sample) of the raw samples of a recording, in log-time order."""
+    for schema, channel, message in _messages(path, topics):
+        if schema is not None and schema.name == "bodynet.RawSample":
+            yield channel.topic, message.log_time, raw_from_json(message.data)
+
+
+def count_messages(path: Path) -> int:
+    """Messages in a recording, from its summary (0 if it has none)."""
+    try:
+        with path.open("rb") as f:
+            summary = make_reader(f).get_summary()
+    except (McapError, ValueError, EOFError, OSError, struct.error) as exc:
+        raise StoreError(f"{path}: not a complete MCAP file ({exc})") from None
+    stats = summary.statistics if summary is not None else None
+    return int(stats.message_count) if stats is not None else 0
+
+
+def salvage(src: Path, dst: Path) -> int:
+    """Copy every message of an unfinished file (a recorder killed mid-write)
+    up to its last complete chunk into a complete file; returns how many."""
+    from mcap.records import Channel, Message, Schema
+    from mcap.stream_reader import StreamReader
+
+    tmp = dst.with_name(dst.name + ".part")
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    count = 0
+    with open(src, "rb") as f, os.fdopen(fd, "wb") as out:
+        writer = Writer(out, chunk_size=64 * 1024, compression=CompressionType.ZSTD)
+        writer.start(profile="", library="bodynet salvage")
+        schemas: dict[int, int] = {}
+        channels: dict[int, int] = {}
+        try:
+            for record in StreamReader(f).records:
+                if isinstance(record, Schema):
+                    schemas[record.id] = writer.register_schema(
+                        record.name, record.encoding, record.data
+                    )
+                elif isinstance(record, Channel):
+                    channels[record.id] = writer.register_channel(
+                        record.topic, record.message_encoding, schemas.get(record.schema_id, 0),
+                        dict(record.metadata),
+                    )  # fmt: skip
+                elif isinstance(record, Message) and record.channel_id in channels:
+                    writer.add_message(channels[record.channel_id], record.log_time, record.data,
+                                       record.publish_time)  # fmt: skip
+                    count += 1
+        except (McapError, ValueError, EOFError, struct.error):
+            pass  # the end of what was written: everything before it is kept
+        writer.finish()
+    os.replace(tmp, dst)
+    return count

@@ -25,19 +25,43 @@ DEFAULT_KEYS = (keys.all_raw(), keys.all_poses())
 
 
 class Recorder:
+    """Writes what it receives to ``path``. With ``rotate_bytes`` / ``rotate_s``
+    it goes on in ``<stem>-001.mcap``, ``-002``... once the current file is
+    that large or that old (0: never)."""
+
     def __init__(
-        self, session: zenoh.Session, path: Path, key_exprs: Sequence[str] = DEFAULT_KEYS
+        self,
+        session: zenoh.Session,
+        path: Path,
+        key_exprs: Sequence[str] = DEFAULT_KEYS,
+        rotate_bytes: int = 0,
+        rotate_s: float = 0.0,
     ) -> None:
         self.path = path
+        self.files = [path]
         self.rejected = RejectCounts()
+        self.rotate_bytes, self.rotate_s = rotate_bytes, rotate_s
         self._sink = McapSink(path)
+        self._opened = time.monotonic()
+        self._done = 0  # messages in files already closed
         self._lock = threading.Lock()
         self._closed = False
         self._subs = [session.declare_subscriber(k, self._on_sample) for k in key_exprs]
 
     @property
     def messages(self) -> int:
-        return self._sink.messages
+        return self._done + self._sink.messages
+
+    def _rotate_if_due(self) -> None:
+        too_big = self.rotate_bytes and self.files[-1].stat().st_size >= self.rotate_bytes
+        too_old = self.rotate_s and time.monotonic() - self._opened >= self.rotate_s
+        if too_big or too_old:
+            self._sink.close()
+            self._done += self._sink.messages
+            nxt = self.path.with_name(f"{self.path.stem}-{len(self.files):03d}{self.path.suffix}")
+            self.files.append(nxt)
+            self._sink = McapSink(nxt)
+            self._opened = time.monotonic()
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
         key = str(sample.key_expr)
@@ -46,6 +70,7 @@ class Recorder:
             with self._lock:
                 if self._closed:
                     return
+                self._rotate_if_due()
                 if key.endswith(f"/{keys.POSE}"):
                     frame = pose.decode(data)
                     self._sink.write_pose(key, frame, frame.t_ns or time.time_ns())
