@@ -18,7 +18,10 @@ from collections import Counter
 from pathlib import Path
 
 from bodynet.core.codecs import concentrator, imu_matrix, smartsuit_can
+from bodynet.core.keys import LEFT_ARM
 from bodynet.core.messages import NoNewData, OleAccel, Quat, SensorAbsent
+from bodynet.nodes.emulator import BodyEmulator, Realism, smartsuit_sensors
+from bodynet.nodes.motion import ROUTINES
 
 HERE = Path(__file__).parent
 
@@ -28,14 +31,16 @@ def _axis_quat(angle: float, axis: tuple[float, float, float]) -> tuple[float, .
     return (math.cos(angle / 2), axis[0] * s, axis[1] * s, axis[2] * s)
 
 
+_ARM = BodyEmulator(ROUTINES["elbow-slow"], smartsuit_sensors([LEFT_ARM]), realism=Realism.ideal())
+
+
 def _arm(node: int, t: float) -> OleAccel:
-    """Module ``node`` of an arm flexing slowly: encoder and tilt in counts."""
-    phase = t * 2 * math.pi * 0.6 + node
-    angle = math.radians(45) * (1 - math.cos(phase))  # 0..90 degrees
-    encoder = round(angle * 26.93 * 10)  # travel = R * angle, in 0.1 mm counts
-    ax = round(1024 * math.cos(angle))
-    az = round(-1024 * math.sin(angle))
-    return OleAccel(node, encoder, (ax, 3, az))
+    """Module ``node`` of a left arm flexing its elbow 0-90-0 at 0.6 Hz, as the
+    emulator's ideal sensors read it (so the captures are physically consistent)."""
+    readings, _ = _ARM.sample(t)
+    reading = next(r for r in readings if r.node == node)
+    assert isinstance(reading, OleAccel)
+    return reading
 
 
 def can_log() -> Counter[str]:
