@@ -49,13 +49,12 @@ def _feed(endpoint: str, seconds: float, sent: Any, ready: Any) -> None:
     ready.wait()
     start = time.monotonic()
     tick = 0
-    while (now := time.monotonic()) - start < seconds:
+    while time.monotonic() - start < seconds:
         for pub, reading in zip(pubs, frames[tick % len(frames)], strict=True):
             pub.put(raw_sample.encode(RawSample(reading, tick, time.time_ns(), Source.IMU_CENTRAL)))
             sent.value += 1
         tick += 1
         time.sleep(max(0.0, start + tick / RATE_HZ - time.monotonic()))
-    del now
     session.close()
 
 

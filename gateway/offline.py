@@ -20,7 +20,7 @@ from bodynet.core import keys
 from bodynet.core.keys import BRANCHES, Site
 from bodynet.core.messages import Quat, RawSample, Source
 from bodynet.core.subject import Profile
-from bodynet.gateway.service import branch_parts, frame_of
+from bodynet.gateway.service import branch_views, pose_frame
 from bodynet.gateway.solver import BodySolver, tpose_mounts
 from bodynet.nodes.captures import CapturedSample, CaptureStats, Format, read_capture
 
@@ -77,13 +77,10 @@ def process(path: Path, fmt: Format | str, out: Path, profile: Profile | None = 
                 sink.write_raw(s.site.raw_key, sample, sample.t_ns)
             ticks += 1
             t_ns = round(tick[-1].t_s * 1e9)
-            frame = frame_of(solver.solve(latest), ticks, [])
+            frame = pose_frame(solver.solve(latest), ticks, [])
             sink.write_pose(keys.pose_key(), frame, t_ns)
-            for branch in BRANCHES:
-                joints, segments = branch_parts(branch)
-                sink.write_pose(
-                    keys.pose_key(branch), frame.subset(joints, segments, branch.key + "/"), t_ns
-                )
+            for branch, view in branch_views(frame, BRANCHES).items():
+                sink.write_pose(keys.pose_key(branch), view, t_ns)
     finally:
         sink.close()
     return ProcessResult(ticks, stats.decoded, sorted(mounts), stats)

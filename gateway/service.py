@@ -21,7 +21,7 @@ import queue
 import threading
 import time
 from collections import deque
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -56,7 +56,16 @@ def branch_parts(branch: Branch) -> tuple[tuple[str, ...], tuple[str, ...]]:
     )
 
 
-def frame_of(output: BodyOutput, seq: int, stale: Sequence[str]) -> pose.PoseFrame:
+def branch_views(frame: pose.PoseFrame, branches: Iterable[Branch]) -> dict[Branch, pose.PoseFrame]:
+    """Each branch's view of a whole-body pose: its joints, segments and sources."""
+    views = {}
+    for branch in branches:
+        joints, segments = branch_parts(branch)
+        views[branch] = frame.subset(joints, segments, branch.key + "/")
+    return views
+
+
+def pose_frame(output: BodyOutput, seq: int, stale: Sequence[str]) -> pose.PoseFrame:
     return pose.PoseFrame(seq, output.t_ns, output.angles_deg, output.rel_deg, output.segments,
                           output.joints_m, output.flags, output.sources, list(stale))  # fmt: skip
 
@@ -276,11 +285,10 @@ class Gateway:
             solver = self.solver
         output = solver.solve(latest)
         self.ticks += 1
-        frame = frame_of(output, self.ticks, stale)
+        frame = pose_frame(output, self.ticks, stale)
         self._body_pub.put(pose.encode(frame))
-        for branch, pub in self._branch_pubs.items():
-            joints, segments = branch_parts(branch)
-            pub.put(pose.encode(frame.subset(joints, segments, branch.key + "/")))
+        for branch, view in branch_views(frame, self._branch_pubs).items():
+            self._branch_pubs[branch].put(pose.encode(view))
 
     def health(self) -> dict[str, object]:
         return {"source": "gateway", "t_ns": time.time_ns(), "samples": self.samples,

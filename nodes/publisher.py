@@ -23,6 +23,7 @@ import json
 import logging
 import threading
 import time
+from collections import deque
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 
@@ -49,7 +50,7 @@ class NodeHealth:
     last_seq: int | None = None
     last_seen: float = 0.0  # monotonic
     alive: bool = False
-    window: list[float] = field(default_factory=list)  # arrival times of the last second
+    window: deque[float] = field(default_factory=deque)  # arrival times of the last second
 
     def as_json(self, now: float) -> dict[str, object]:
         recent = [t for t in self.window if now - t <= 1.0]
@@ -128,8 +129,8 @@ class SitePublisher:
             health.samples += 1
             health.last_seen = now
             health.window.append(now)
-            if len(health.window) > 4096 or (health.window and now - health.window[0] > 1.0):
-                health.window = [t for t in health.window if now - t <= 1.0]
+            while now - health.window[0] > 1.0:
+                health.window.popleft()
             publisher = self._publishers.get(reading.node)
             if publisher is None:
                 publisher = self._publishers[reading.node] = self.session.declare_publisher(
