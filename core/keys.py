@@ -8,6 +8,12 @@ joint their encoder spans (``shoulder``, ``elbow``...), IMU tags of the 003 seed
 (Table 5.2) by the segment they ride on (``upperarm``, ``forearm``...), so the
 two systems can share one body without their keys colliding.
 
+Several subjects share one network through Zenoh namespaces: a process
+started with ``--subject alice`` sees and writes ``body/...`` while the wire
+carries ``alice/body/...``. A process without a namespace (a gateway serving
+every subject, a listing of the subjects present) uses ``subject_prefix`` and
+``split_subject``.
+
 Nothing else in the code base writes a key as a string literal.
 """
 
@@ -169,3 +175,32 @@ def parse(key: str) -> tuple[Site, Stream]:
         return site, Stream(parts[4])
     except ValueError as exc:
         raise KeySpaceError(f"not a bodynet site key: {key!r} ({exc})") from None
+
+
+#: Every subject's namespace, as the first chunk of a key expression.
+ANY_SUBJECT = "*"
+
+
+def subject_name(name: str) -> str:
+    """``name`` if it can be a subject namespace (one key chunk, not ``body``)."""
+    if not name or name == ROOT or chunk(name) != name:
+        raise KeySpaceError(
+            f"subject {name!r} must be one key chunk of letters, digits, '-', '_' or '.', "
+            f"and not {ROOT!r}"
+        )
+    return name
+
+
+def subject_prefix(subject: str | None) -> str:
+    """What a namespace-less session puts before ``body/...`` for ``subject``."""
+    return "" if subject is None else f"{subject}/"
+
+
+def split_subject(key: str) -> tuple[str | None, str]:
+    """``("alice", "body/...")`` for ``alice/body/...``; ``(None, key)`` for ``body/...``."""
+    if key.startswith(ROOT + "/"):
+        return None, key
+    subject, sep, rest = key.partition("/")
+    if not sep or not rest.startswith(ROOT + "/"):
+        raise KeySpaceError(f"not a bodynet key: {key!r}")
+    return subject, rest

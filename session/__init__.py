@@ -8,6 +8,10 @@ comma-separated list of endpoints), then the config file, then bodynet's
 defaults: client mode towards the gateway's router on ``tcp/127.0.0.1:7447``,
 multicast scouting off (endpoints are explicit), waiting for the router if it
 is not up yet and reconnecting quickly when it comes back.
+
+``--subject NAME`` (or ``BODYNET_SUBJECT``) runs the session in the Zenoh
+namespace ``NAME``: the process keeps using ``body/...`` keys while the
+network carries ``NAME/body/...``, so several subjects share one router.
 """
 
 from __future__ import annotations
@@ -20,6 +24,8 @@ from pathlib import Path
 from typing import Any
 
 import zenoh
+
+from bodynet.core.keys import KeySpaceError, subject_name
 
 DEFAULT_ROUTER = "tcp/127.0.0.1:7447"
 MODES = ("client", "peer", "router")
@@ -48,7 +54,21 @@ def add_session_args(parser: argparse.ArgumentParser, default_mode: str = "clien
         metavar="KEY:VALUE",
         help="a config entry, VALUE in JSON5, e.g. --cfg 'scouting/multicast/enabled:true'",
     )
+    group.add_argument(
+        "--subject",
+        default=None,
+        type=_subject_arg,
+        help="run in this subject's namespace (keys stay body/...; default: none, "
+        "or $BODYNET_SUBJECT)",
+    )
     parser.set_defaults(zenoh_default_mode=default_mode)
+
+
+def _subject_arg(text: str) -> str:
+    try:
+        return subject_name(text)
+    except KeySpaceError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
 
 
 def session_config(
@@ -57,6 +77,7 @@ def session_config(
     listen: Sequence[str] = (),
     config_file: Path | None = None,
     entries: Sequence[str] = (),
+    subject: str | None = None,
 ) -> zenoh.Config:
     """A Zenoh config from explicit arguments (see the module docstring)."""
     env_file = os.environ.get("BODYNET_ZENOH_CONFIG")
@@ -79,6 +100,9 @@ def session_config(
         put("connect/endpoints", list(connect))
     if listen:
         put("listen/endpoints", list(listen))
+    subject = subject or os.environ.get("BODYNET_SUBJECT") or None
+    if subject:
+        put("namespace", subject_name(subject))
     for entry in entries:
         key, sep, value = entry.partition(":")
         if not sep:
@@ -89,7 +113,8 @@ def session_config(
 
 def config_from_args(args: argparse.Namespace) -> zenoh.Config:
     mode = args.mode or getattr(args, "zenoh_default_mode", "client")
-    return session_config(mode, args.connect, args.listen, args.config, args.cfg)
+    subject = getattr(args, "subject", None)
+    return session_config(mode, args.connect, args.listen, args.config, args.cfg, subject)
 
 
 def open_session(conf: zenoh.Config) -> zenoh.Session:

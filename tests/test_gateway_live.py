@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import queue
 import threading
 from collections.abc import Iterator
 from pathlib import Path
@@ -147,3 +148,38 @@ def test_garbage_on_raw_keys_is_counted_and_never_stops_the_body(
     hostile.close()
     nodes.stop()
     node_session.close()
+
+
+def test_subjects_are_namespaces_that_keep_keys_inside(router_endpoint: str) -> None:
+    """``--subject`` puts a process in a namespace: it writes ``body/...``, the
+    wire carries ``<subject>/body/...``, and another subject never sees it."""
+    from bodynet.session import open_session, session_config
+
+    def subject_client(name: str | None) -> zenoh.Session:
+        return open_session(session_config("client", [router_endpoint], subject=name))
+
+    alice, bob, anyone = subject_client("alice"), subject_client("bob"), subject_client(None)
+    try:
+        seen_bob: queue.SimpleQueue[str] = queue.SimpleQueue()
+        seen_all: queue.SimpleQueue[str] = queue.SimpleQueue()
+        bob.declare_subscriber(keys.all_raw(), lambda s: seen_bob.put(str(s.key_expr)))
+        anyone.declare_subscriber(
+            keys.ANY_SUBJECT + "/" + keys.all_raw(), lambda s: seen_all.put(str(s.key_expr))
+        )
+        key = keys.raw_key("arm", "left", "elbow")
+        # a fresh subscription may miss the first puts while routes settle
+        while True:
+            alice.put(key, b"a")
+            try:
+                assert seen_all.get(timeout=0.2) == "alice/" + key
+                break
+            except queue.Empty:
+                continue
+        bob.put(key, b"b")
+        assert seen_all.get(timeout=5) == "bob/" + key
+        assert seen_bob.get(timeout=5) == key  # bob sees his own, inside his namespace
+        with pytest.raises(queue.Empty):
+            seen_bob.get(timeout=0.3)  # and never alice's
+    finally:
+        for s in (alice, bob, anyone):
+            s.close()

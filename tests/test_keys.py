@@ -60,3 +60,18 @@ def test_branch_and_site_validation() -> None:
         Branch(Limb.TRUNK, Side.LEFT)
     with pytest.raises(KeySpaceError):
         Site(LEFT_ARM, "hip")
+
+
+def test_subject_names_and_split() -> None:
+    assert keys.subject_name("alice") == "alice"
+    for bad in ("", "body", "a/b", "a*", "@x", "a b"):
+        with pytest.raises(keys.KeySpaceError):
+            keys.subject_name(bad)
+    assert keys.split_subject("alice/body/arm/left/elbow/raw") == (
+        "alice",
+        "body/arm/left/elbow/raw",
+    )
+    assert keys.split_subject("body/pose") == (None, "body/pose")
+    assert keys.subject_prefix("bob") + keys.pose_key() == "bob/body/pose"
+    with pytest.raises(keys.KeySpaceError):
+        keys.split_subject("alice/other/x")
