@@ -8,6 +8,10 @@ MCAP tools (Foxglove, the ``mcap`` CLI) can open and plot them:
 - ``body/<limb>/<side>/<site>/raw``: schema ``bodynet.RawSample``,
   ``{node, seq, t_ns, source, encoder, accel}`` or ``{..., quat_wxyz}``.
 
+- ``@gaps``: schema ``bodynet.Gap``, one record per jump in a topic's
+  sequence numbers the recorder saw (``topic``, ``after_seq``, ``missing``,
+  ``from_t_ns``, ``to_t_ns``): where the recording is incomplete.
+
 Log time is the sample's source time in ns (for a processed capture, the
 capture's own time base). Files are created readable by the owner only: this
 is health data.
@@ -19,6 +23,7 @@ import json
 import os
 import struct
 from collections.abc import Iterable, Iterator
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
@@ -59,6 +64,32 @@ RAW_SCHEMA = {
     },
 }
 
+GAP_SCHEMA = {
+    "title": "bodynet.Gap",
+    "type": "object",
+    "properties": {
+        "topic": {"type": "string"},
+        "after_seq": {"type": "integer"},
+        "missing": {"type": "integer"},
+        "from_t_ns": {"type": "integer"},
+        "to_t_ns": {"type": "integer"},
+    },
+}
+# not a Zenoh key: a channel of the recording only (admin-like, so `body/**` never matches it)
+GAPS_TOPIC = "@gaps"
+
+
+@dataclass(frozen=True)
+class Gap:
+    """``missing`` messages of ``topic`` after sequence number ``after_seq``, between
+    the source times ``from_t_ns`` (the last one before) and ``to_t_ns`` (the next)."""
+
+    topic: str
+    after_seq: int
+    missing: int
+    from_t_ns: int
+    to_t_ns: int
+
 
 class StoreError(RuntimeError):
     """An MCAP file that cannot be read as bodynet data, with the reason."""
@@ -88,6 +119,8 @@ class McapSink:
                                                  json.dumps(POSE_SCHEMA).encode()),
             "raw": self._writer.register_schema("bodynet.RawSample", "jsonschema",
                                                 json.dumps(RAW_SCHEMA).encode()),
+            "gap": self._writer.register_schema("bodynet.Gap", "jsonschema",
+                                                json.dumps(GAP_SCHEMA).encode()),
         }  # fmt: skip
         self._channels: dict[str, int] = {}
         self.messages = 0
@@ -108,6 +141,11 @@ class McapSink:
     def write_raw(self, topic: str, sample: RawSample, log_time_ns: int) -> None:
         data = json.dumps(raw_json(sample), separators=(",", ":")).encode()
         self._writer.add_message(self._channel(topic, "raw"), log_time_ns, data, log_time_ns)
+        self.messages += 1
+
+    def write_gap(self, gap: Gap) -> None:
+        data = json.dumps(asdict(gap), separators=(",", ":")).encode()
+        self._writer.add_message(self._channel(GAPS_TOPIC, "gap"), gap.to_t_ns, data, gap.to_t_ns)
         self.messages += 1
 
     def close(self) -> None:
@@ -154,6 +192,14 @@ def read_raw(
     for schema, channel, message in _messages(path, topics):
         if schema is not None and schema.name == "bodynet.RawSample":
             yield channel.topic, message.log_time, raw_from_json(message.data)
+
+
+def read_gaps(path: Path) -> list[Gap]:
+    """The gap records of a recording (see :class:`Gap`), in log-time order."""
+    try:
+        return [Gap(**json.loads(m.data)) for _, _, m in _messages(path, [GAPS_TOPIC])]
+    except (ValueError, TypeError) as exc:
+        raise StoreError(f"{path}: a gap record that is not one ({exc})") from None
 
 
 def count_messages(path: Path) -> int:

@@ -2,6 +2,14 @@
 
 Subscribes to the chosen key expressions (raw samples, poses) and writes each
 message with its source time; the file is complete once :meth:`close` runs.
+
+Nothing is lost to a router restart where it can be fetched again: the
+subscriptions are Zenoh advanced subscribers with recovery, so raw samples
+missed while the router was away come back from the node publishers' caches
+(see ``bodynet.nodes.publisher``), in order. What cannot come back is written
+down: every jump in a topic's sequence numbers (raw ``seq``, pose ``seq``) is a
+gap record on the ``@gaps`` channel (see ``mcap_store.GAPS_TOPIC``), so a
+recording says where it is incomplete.
 """
 
 from __future__ import annotations
@@ -13,8 +21,9 @@ from collections.abc import Sequence
 from pathlib import Path
 
 import zenoh
+import zenoh.ext
 
-from bodynet.clients.mcap_store import McapSink
+from bodynet.clients.mcap_store import Gap, McapSink
 from bodynet.core import keys
 from bodynet.core.codecs import pose, raw_sample
 from bodynet.core.errors import DecodeError, RejectCounts
@@ -46,7 +55,13 @@ class Recorder:
         self._done = 0  # messages in files already closed
         self._lock = threading.Lock()
         self._closed = False
-        self._subs = [session.declare_subscriber(k, self._on_sample) for k in key_exprs]
+        self._last_seq: dict[str, tuple[int, int]] = {}  # topic -> (seq, t_ns) last written
+        self.gaps: list[Gap] = []
+        recovery = zenoh.ext.RecoveryConfig(heartbeat=True)
+        self._subs = [
+            zenoh.ext.declare_advanced_subscriber(session, k, self._on_sample, recovery=recovery)
+            for k in key_exprs
+        ]
 
     @property
     def messages(self) -> int:
@@ -73,12 +88,26 @@ class Recorder:
                 self._rotate_if_due()
                 if key.endswith(f"/{keys.POSE}"):
                     frame = pose.decode(data)
-                    self._sink.write_pose(key, frame, frame.t_ns or time.time_ns())
+                    t_ns = frame.t_ns or time.time_ns()
+                    self._note_seq(key, frame.seq, t_ns)
+                    self._sink.write_pose(key, frame, t_ns)
                 else:
                     raw = raw_sample.decode(data)
+                    self._note_seq(key, raw.seq, raw.t_ns)
                     self._sink.write_raw(key, raw, raw.t_ns)
         except DecodeError as exc:
             self.rejected[exc.reason] += 1
+
+    def _note_seq(self, topic: str, seq: int, t_ns: int) -> None:
+        """Write a gap record if ``seq`` skips numbers after the topic's last one.
+        A lower number (a restarted gateway, a wrapped counter) starts afresh."""
+        last = self._last_seq.get(topic)
+        self._last_seq[topic] = (seq, t_ns)
+        if last is not None and seq > last[0] + 1:
+            gap = Gap(topic, last[0], seq - last[0] - 1, last[1], t_ns)
+            self.gaps.append(gap)
+            self._sink.write_gap(gap)
+            log.info("recorder: %d missing on %s after seq %d", gap.missing, topic, last[0])
 
     def close(self) -> None:
         for sub in self._subs:

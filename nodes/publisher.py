@@ -15,6 +15,12 @@ its decoded readings to one :class:`SitePublisher`, which
 Sequence numbers come from the source's own structure where it has one (the
 IMU central's tick, the concentrator's poll cycle); :class:`PeriodicSeq`
 derives them from arrival times otherwise, so a gap means a missed period.
+
+Raw samples go out through Zenoh's advanced publisher (``zenoh.ext``): it
+keeps the last :data:`CACHE_SAMPLES` samples of each node and sends a
+heartbeat, so an advanced subscriber (the recorder) that missed samples, e.g.
+while the router was restarting, fetches them from this cache once it is
+back. Plain subscribers (the gateway) see ordinary samples.
 """
 
 from __future__ import annotations
@@ -28,6 +34,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 import zenoh
+import zenoh.ext
 
 from bodynet.core import keys
 from bodynet.core.codecs import raw_sample
@@ -39,6 +46,9 @@ log = logging.getLogger(__name__)
 
 HEALTH_PERIOD_S = 1.0
 MIN_STALE_S = 0.3
+# samples kept per node for recovery: 10 s at 100 Hz, longer than a router restart
+CACHE_SAMPLES = 1000
+HEARTBEAT_S = 0.1
 
 
 @dataclass
@@ -78,6 +88,17 @@ class PeriodicSeq:
         return seq
 
 
+def _raw_publisher(session: zenoh.Session, key: str) -> zenoh.ext.AdvancedPublisher:
+    """A publisher whose recent samples a recovering subscriber can fetch again."""
+    return zenoh.ext.declare_advanced_publisher(
+        session,
+        key,
+        congestion_control=zenoh.CongestionControl.BLOCK,
+        cache=zenoh.ext.CacheConfig(CACHE_SAMPLES),
+        sample_miss_detection=zenoh.ext.MissDetectionConfig(heartbeat=HEARTBEAT_S),
+    )
+
+
 class SitePublisher:
     """One source's readings onto Zenoh; see the module docstring."""
 
@@ -99,7 +120,7 @@ class SitePublisher:
         self.nodes: dict[int, NodeHealth] = {}
         self.rejected = RejectCounts()
         self.device = "starting"
-        self._publishers: dict[int, zenoh.Publisher] = {}
+        self._publishers: dict[int, zenoh.ext.AdvancedPublisher] = {}
         self._tokens: dict[int, zenoh.LivelinessToken] = {}
         self._health_pub = session.declare_publisher(keys.health_key(name))
         self._lock = threading.Lock()
@@ -133,8 +154,8 @@ class SitePublisher:
                 health.window.popleft()
             publisher = self._publishers.get(reading.node)
             if publisher is None:
-                publisher = self._publishers[reading.node] = self.session.declare_publisher(
-                    site.raw_key, congestion_control=zenoh.CongestionControl.BLOCK
+                publisher = self._publishers[reading.node] = _raw_publisher(
+                    self.session, site.raw_key
                 )
             came_back = not health.alive
             if came_back:
