@@ -155,8 +155,8 @@ def test_selective_subscription_across_hosts(
     router.wait_line("listening")
     local = f"tcp/127.0.0.1:{PORT}"
     services.start("gateway", in_ns(laptop, "gateway", "--mode", "client", "-e", local))
-    services.start("home-nodes", in_ns(home, "node", "imu", "--sensors", SENSORS,
-                                       "--routine", "walk", "-e", f"tcp/{home_gw}:{PORT}"))  # fmt: skip
+    to_laptop = f"tcp/{home_gw}:{PORT}"
+    services.start("home", in_ns(home, "node", "imu", "--sensors", SENSORS, "-e", to_laptop))
 
     watcher = client(f"tcp/{laptop_addr}:{PORT}")
     live = Liveliness(watcher, keys.all_raw())
