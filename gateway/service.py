@@ -32,6 +32,7 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
 import zenoh
 
 from bodynet.core import keys
@@ -75,9 +76,28 @@ def branch_views(frame: pose.PoseFrame, branches: Iterable[Branch]) -> dict[Bran
     return views
 
 
+def _rounded(values: Iterable[float]) -> list[float]:
+    return np.round(np.fromiter(values, float), 6).tolist()  # type: ignore[no-any-return]
+
+
 def pose_frame(output: BodyOutput, seq: int, stale: Sequence[str]) -> pose.PoseFrame:
-    return pose.PoseFrame(seq, output.t_ns, output.angles_deg, output.rel_deg, output.segments,
-                          output.joints_m, output.flags, output.sources, list(stale))  # fmt: skip
+    """The message of one tick, numbers rounded to 1e-6 (microdegrees, micrometres)."""
+    segments = list(output.segments.items())
+    flat = _rounded(c for _, (p, q) in segments for c in (*p, *q))
+    return pose.PoseFrame(
+        seq,
+        output.t_ns,
+        dict(zip(output.angles_deg, _rounded(output.angles_deg.values()), strict=True)),
+        dict(zip(output.rel_deg, _rounded(output.rel_deg.values()), strict=True)),
+        {s: (tuple(flat[7 * i : 7 * i + 3]), tuple(flat[7 * i + 3 : 7 * i + 7]))  # type: ignore[misc]
+         for i, (s, _) in enumerate(segments)},
+        {j: tuple(p) for j, p in zip(output.joints_m, np.round(  # type: ignore[misc]
+            np.array(list(output.joints_m.values()), dtype=float).reshape(-1, 3), 6).tolist(),
+            strict=True)},
+        output.flags,
+        output.sources,
+        list(stale),
+    )  # fmt: skip
 
 
 @dataclass
