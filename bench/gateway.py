@@ -30,7 +30,12 @@ def _session(endpoint: str) -> Any:
     return open_session(session_config("client", connect=[endpoint]))
 
 
-def _feed(endpoint: str, seconds: float, sent: Any, ready: Any) -> None:
+def subject(i: int, bodies: int) -> str:
+    """Key prefix of body ``i``: none for a single body, else ``s<i>/``."""
+    return "" if bodies == 1 else f"s{i:02d}/"
+
+
+def _feed(endpoint: str, seconds: float, sent: Any, ready: Any, bodies: range, total: int) -> None:
     import zenoh
 
     from bodynet.core.codecs import raw_sample
@@ -45,20 +50,28 @@ def _feed(endpoint: str, seconds: float, sent: Any, ready: Any) -> None:
         body.sample(k / RATE_HZ)[0] for k in range(int(RATE_HZ))
     ]  # a second of motion, looped
     block = zenoh.CongestionControl.BLOCK
-    pubs = [session.declare_publisher(t.site.raw_key, congestion_control=block) for t in tags]
+    pubs = [
+        [session.declare_publisher(subject(b, total) + t.site.raw_key, congestion_control=block)
+         for t in tags]
+        for b in bodies
+    ]  # fmt: skip
     ready.wait()
     start = time.monotonic()
     tick = 0
     while time.monotonic() - start < seconds:
-        for pub, reading in zip(pubs, frames[tick % len(frames)], strict=True):
-            pub.put(raw_sample.encode(RawSample(reading, tick, time.time_ns(), Source.IMU_CENTRAL)))
-            sent.value += 1
+        frame = frames[tick % len(frames)]
+        for body_pubs in pubs:
+            for pub, reading in zip(body_pubs, frame, strict=True):
+                sample = RawSample(reading, tick, time.time_ns(), Source.IMU_CENTRAL)
+                pub.put(raw_sample.encode(sample))
+            with sent.get_lock():
+                sent.value += len(body_pubs)
         tick += 1
         time.sleep(max(0.0, start + tick / RATE_HZ - time.monotonic()))
     session.close()
 
 
-def _relay(endpoint: str, stop: Any) -> None:
+def _relay(endpoint: str, stop: Any, cpu: Any) -> None:
     session = _session(endpoint)
     pubs: dict[str, Any] = {}
 
@@ -67,23 +80,30 @@ def _relay(endpoint: str, stop: Any) -> None:
         pub = pubs.get(key) or pubs.setdefault(key, session.declare_publisher("bench/relay/" + key))
         pub.put(sample.payload)
 
-    sub = session.declare_subscriber("body/*/*/*/raw", on_raw)
+    subs = [
+        session.declare_subscriber(sel, on_raw) for sel in ("body/*/*/*/raw", "*/body/*/*/*/raw")
+    ]
+    cpu0 = time.process_time()
     stop.wait()
-    sub.undeclare()
+    cpu.value = time.process_time() - cpu0
+    for sub in subs:
+        sub.undeclare()
     session.close()
 
 
-def _gateway(endpoint: str, stop: Any, samples: Any) -> None:
+def _gateway(endpoint: str, stop: Any, samples: Any, cpu: Any, all_subjects: bool) -> None:
     import threading
 
     from bodynet.gateway.service import Gateway
 
     session = _session(endpoint)
-    gateway = Gateway(session)
+    gateway = Gateway(session, all_subjects=all_subjects)
     done = threading.Event()
     thread = threading.Thread(target=gateway.run, args=(done,))
     thread.start()
+    cpu0 = time.process_time()
     stop.wait()
+    cpu.value = time.process_time() - cpu0
     done.set()
     thread.join()
     samples.value = gateway.samples
@@ -91,8 +111,16 @@ def _gateway(endpoint: str, stop: Any, samples: Any) -> None:
     session.close()
 
 
-def run(seconds: float = 5.0, out_dir: Path = Path("bench-results")) -> dict[str, Any]:
-    """Run the comparison; print a table; write ``gateway.json`` and ``gateway.md``."""
+def _stats(lat: list[int]) -> dict[str, float]:
+    if not lat:
+        return {"n": 0, "p50_ms": float("nan"), "p99_ms": float("nan")}
+    arr = np.array(lat) / 1e6
+    return {"n": len(lat), "p50_ms": float(np.percentile(arr, 50)),
+            "p99_ms": float(np.percentile(arr, 99))}  # fmt: skip
+
+
+def run_once(bodies: int, seconds: float) -> dict[str, Any]:
+    """One side-by-side run of relay and gateway fed ``bodies`` bodies."""
     import socket
 
     from bodynet.core.codecs import pose, raw_sample
@@ -105,24 +133,32 @@ def run(seconds: float = 5.0, out_dir: Path = Path("bench-results")) -> dict[str
     router = open_session(session_config("router", listen=[endpoint]))
     ctx = mp.get_context("spawn")
     sent, gw_samples = ctx.Value("q", 0), ctx.Value("q", 0)
+    relay_cpu, gw_cpu = ctx.Value("d", 0.0), ctx.Value("d", 0.0)
     stop, ready = ctx.Event(), ctx.Event()
-    relay = ctx.Process(target=_relay, args=(endpoint, stop))
-    gateway = ctx.Process(target=_gateway, args=(endpoint, stop, gw_samples))
-    feeder = ctx.Process(target=_feed, args=(endpoint, seconds, sent, ready))
-    for p in (relay, gateway, feeder):
+    relay = ctx.Process(target=_relay, args=(endpoint, stop, relay_cpu))
+    gateway = ctx.Process(target=_gateway, args=(endpoint, stop, gw_samples, gw_cpu, bodies > 1))
+    # one feeder process per 10 bodies, so the feed keeps its rate
+    feeders = [
+        ctx.Process(target=_feed, args=(endpoint, seconds, sent, ready,
+                                        range(i, min(i + 10, bodies)), bodies))
+        for i in range(0, bodies, 10)
+    ]  # fmt: skip
+    for p in (relay, gateway, *feeders):
         p.start()
     probe = open_session(session_config("client", connect=[endpoint]))
     relay_lat: list[int] = []
     pose_lat: list[int] = []
+    pose_selector = keys_pose(bodies)
     subs = [
         probe.declare_subscriber("bench/relay/**", lambda s: relay_lat.append(
             time.time_ns() - raw_sample.decode(s.payload.to_bytes()).t_ns)),
-        probe.declare_subscriber("body/pose", lambda s: pose_lat.append(
+        probe.declare_subscriber(pose_selector, lambda s: pose_lat.append(
             time.time_ns() - pose.decode(s.payload.to_bytes()).t_ns)),
     ]  # fmt: skip
     time.sleep(2.0)  # subscriptions propagate; the gateway process has imported Pinocchio
     ready.set()
-    feeder.join()
+    for f in feeders:
+        f.join()
     time.sleep(0.5)  # the last samples drain
     stop.set()
     for p in (relay, gateway):
@@ -131,39 +167,73 @@ def run(seconds: float = 5.0, out_dir: Path = Path("bench-results")) -> dict[str
         sub.undeclare()
     probe.close()
     router.close()
-
-    def stats(lat: list[int]) -> dict[str, float]:
-        if not lat:
-            return {"n": 0, "p50_ms": float("nan"), "p99_ms": float("nan")}
-        arr = np.array(lat) / 1e6
-        return {
-            "n": len(lat),
-            "p50_ms": float(np.percentile(arr, 50)),
-            "p99_ms": float(np.percentile(arr, 99)),
-        }
-
-    r, g = stats(relay_lat), stats(pose_lat)
-    result = {
-        "machine": f"{platform.machine()}, {mp.cpu_count()} cores, "
-        f"Python {platform.python_version()}",
-        "seconds": seconds, "rate_hz_per_node": RATE_HZ, "nodes": 15, "sent": sent.value,
-        "relay": {**r, "received": len(relay_lat)},
-        "gateway": {**g, "samples_received": gw_samples.value, "poses": len(pose_lat)},
+    r, g = _stats(relay_lat), _stats(pose_lat)
+    expected_poses = seconds * RATE_HZ * bodies
+    return {
+        "bodies": bodies, "sent": sent.value,
+        "relay": {**r, "received": len(relay_lat), "lost": sent.value - len(relay_lat),
+                  "cpu_ms_per_body_s": 1e3 * relay_cpu.value / seconds / bodies},
+        "gateway": {**g, "samples_received": gw_samples.value,
+                    "lost": sent.value - gw_samples.value, "poses": len(pose_lat),
+                    "pose_rate": len(pose_lat) / expected_poses,
+                    "cpu_ms_per_body_s": 1e3 * gw_cpu.value / seconds / bodies},
         "p50_ratio": g["p50_ms"] / r["p50_ms"] if r["n"] and g["n"] else None,
         "p99_ratio": g["p99_ms"] / r["p99_ms"] if r["n"] and g["n"] else None,
     }  # fmt: skip
-    table = (
-        "| path | messages | lost | p50 ms | p99 ms |\n|---|---:|---:|---:|---:|\n"
-        f"| bare relay (raw -> raw) | {len(relay_lat)} | {sent.value - len(relay_lat)} | "
-        f"{r['p50_ms']:.2f} | {r['p99_ms']:.2f} |\n"
-        f"| gateway (raw -> pose) | {len(pose_lat)} poses from {gw_samples.value} samples | "
-        f"{sent.value - gw_samples.value} | {g['p50_ms']:.2f} | {g['p99_ms']:.2f} |\n"
+
+
+def keys_pose(bodies: int) -> str:
+    from bodynet.core import keys
+
+    return keys.pose_key() if bodies == 1 else keys.ANY_SUBJECT + "/" + keys.pose_key()
+
+
+def sustained(row: dict[str, Any], path: str) -> bool:
+    """No sample lost, and (for the gateway) at least 90% of the ticks delivered."""
+    ok = row[path]["lost"] == 0 and row[path]["n"] > 0
+    return bool(ok and (path == "relay" or row[path]["pose_rate"] >= 0.9))
+
+
+def run(
+    seconds: float = 5.0,
+    out_dir: Path = Path("bench-results"),
+    bodies: tuple[int, ...] = (1, 5, 20, 50),
+) -> dict[str, Any]:
+    """Run the comparison for each number of bodies; print a table; write
+    ``gateway.json`` and ``gateway.md``."""
+    rows = [run_once(n, seconds) for n in bodies]
+    best = {
+        path: max((r["bodies"] for r in rows if sustained(r, path)), default=0)
+        for path in ("relay", "gateway")
+    }
+    result = {
+        "machine": f"{platform.machine()}, {mp.cpu_count()} cores, "
+        f"Python {platform.python_version()}",
+        "seconds": seconds, "rate_hz_per_node": RATE_HZ, "nodes_per_body": 15,
+        "runs": rows, "sustained_bodies": best,
+        "sustained_ratio": best["gateway"] / best["relay"] if best["relay"] else None,
+    }  # fmt: skip
+    lines = [
+        "| bodies | path | sent | lost | poses/s per body | p50 ms | p99 ms | p99 ratio "
+        "| CPU ms per body-second |",
+        "|---:|---|---:|---:|---:|---:|---:|---:|---:|",
+    ]
+    for row in rows:
+        r, g = row["relay"], row["gateway"]
+        lines.append(
+            f"| {row['bodies']} | bare relay (raw -> raw) | {row['sent']} | {r['lost']} "
+            f"| | {r['p50_ms']:.2f} | {r['p99_ms']:.2f} | | {r['cpu_ms_per_body_s']:.0f} |"
+        )
+        ratio = f"{row['p99_ratio']:.2f}" if row["p99_ratio"] else "-"
+        lines.append(f"| {row['bodies']} | gateway (raw -> pose) | {row['sent']} | {g['lost']} "
+                     f"| {g['pose_rate'] * RATE_HZ:.0f} | {g['p50_ms']:.2f} | {g['p99_ms']:.2f} "
+                     f"| {ratio} | {g['cpu_ms_per_body_s']:.0f} |")  # fmt: skip
+    table = "\n".join(lines) + (
+        f"\n\nSustained with zero loss: relay {best['relay']} bodies, "
+        f"gateway {best['gateway']} bodies (at least 90% of ticks delivered).\n"
     )
-    print(
-        f"Gateway vs bare relay, one body (15 nodes x {RATE_HZ:g} Hz), {seconds:g} s, "
-        f"{result['machine']}\n\n{table}\n"
-        f"p50 ratio {result['p50_ratio']}, p99 ratio {result['p99_ratio']}"
-    )
+    print(f"Gateway vs bare relay (15 nodes x {RATE_HZ:g} Hz per body), {seconds:g} s each, "
+          f"{result['machine']}\n\n{table}")  # fmt: skip
     out_dir.mkdir(parents=True, exist_ok=True)
     (out_dir / "gateway.json").write_text(json.dumps(result, indent=2))
     (out_dir / "gateway.md").write_text(table)

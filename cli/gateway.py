@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from contextlib import suppress
 from pathlib import Path
 
 from bodynet.core import keys
@@ -32,12 +33,21 @@ def cmd_gateway(args: argparse.Namespace) -> int:
         return 2
     if (args.mode or "router") == "router" and not args.listen and not args.config:
         args.listen = [DEFAULT_ROUTER]
+    if args.all_subjects and args.subject:
+        print("bodynet gateway: --all-subjects or --subject, not both", file=sys.stderr)
+        return 2
     stop = stop_on_signals()
     session = open_session(config_from_args(args))
     branches = [branch_named(b) for b in args.branch] or None
-    gateway = Gateway(session, profile, args.profile, branches, args.rate_hz)
+    gateway = Gateway(session, profile, args.profile, branches, args.rate_hz,
+                      all_subjects=args.all_subjects, profile_dir=args.profile_dir)  # fmt: skip
     where = ", ".join(args.listen) if args.listen else "its router"
-    print(f"bodynet gateway: subject {profile.subject!r}, serving on {where}; "
+    served = (
+        "every subject (<subject>/body/...)"
+        if args.all_subjects
+        else f"subject {args.subject or profile.subject!r}"
+    )
+    print(f"bodynet gateway: {served}, serving on {where}; "
           f"poses on {keys.pose_key()} and {keys.all_poses()}", flush=True)  # fmt: skip
     try:
         gateway.run(stop)
@@ -45,6 +55,43 @@ def cmd_gateway(args: argparse.Namespace) -> int:
         gateway.close()
         session.close()
     return 0
+
+
+def cmd_subjects(args: argparse.Namespace) -> int:
+    """One JSON line per subject on the network: its live nodes (liveliness
+    tokens) and branches, and whether a gateway answers for it."""
+    session = open_session(config_from_args(args))
+    nodes: dict[str | None, set[str]] = {}
+    served: set[str | None] = set()
+    try:
+        for prefix in ("", keys.ANY_SUBJECT + "/"):
+            for reply in session.liveliness().get(prefix + keys.all_raw(), timeout=args.timeout):
+                if reply.ok is not None:
+                    with suppress(keys.KeySpaceError):
+                        name, key = keys.split_subject(str(reply.ok.key_expr))
+                        nodes.setdefault(name, set()).add(key)
+            for reply in session.get(prefix + keys.TOPOLOGY, timeout=args.timeout):
+                if reply.ok is not None:
+                    with suppress(keys.KeySpaceError):
+                        served.add(keys.split_subject(str(reply.ok.key_expr))[0])
+    finally:
+        session.close()
+    for name in sorted(nodes.keys() | served, key=lambda n: n or ""):
+        live = nodes.get(name, set())
+        branches = sorted({str(keys.parse(k)[0].branch) for k in live if _is_site(k)})
+        print(json.dumps({"subject": name, "nodes": len(live), "branches": branches,
+                          "gateway": name in served}))  # fmt: skip
+    if not nodes and not served:
+        print("bodynet subjects: no subject on the network", file=sys.stderr)
+    return 0
+
+
+def _is_site(key: str) -> bool:
+    try:
+        keys.parse(key)
+    except keys.KeySpaceError:
+        return False
+    return True
 
 
 def cmd_calibrate_tpose(args: argparse.Namespace) -> int:
@@ -68,8 +115,18 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
     p.add_argument("--branch", action="append", default=[],
                    help="serve only these branches (repeatable; default all)")  # fmt: skip
     p.add_argument("--rate-hz", type=float, default=100.0, help="most poses per second")
+    p.add_argument("--all-subjects", action="store_true",
+                   help="serve every subject on the network, each a body of its own")  # fmt: skip
+    p.add_argument("--profile-dir", type=Path,
+                   help="with --all-subjects: <subject>.toml profiles (default.toml "
+                        "without namespace), written by T-pose calibration")  # fmt: skip
     add_session_args(p, default_mode="router")
     p.set_defaults(func=cmd_gateway)
+
+    p = sub.add_parser("subjects", help="list the subjects on the network and their branches")
+    p.add_argument("--timeout", type=float, default=2.0, help="seconds to wait for answers")
+    add_session_args(p)
+    p.set_defaults(func=cmd_subjects)
 
     cal = sub.add_parser("calibrate", help="calibrate sensors of the subject")
     csub = cal.add_subparsers(dest="what", required=True, metavar="WHAT")

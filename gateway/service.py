@@ -11,6 +11,13 @@ keeps its last sample, flagged stale; other branches carry on. Garbage on the
 raw keys is counted (``body/@health/gateway``), never fatal.
 ``body/@calibrate/tpose`` answers a query by calibrating the IMU mounts from
 the last ``seconds`` of samples (the subject standing in T-pose).
+
+Several subjects: a gateway in a subject's namespace (``--subject``) serves
+that subject as above. With ``all_subjects`` it serves every subject present
+(``<subject>/body/...``, and the namespace-less ``body/...``) from one
+process: each subject is a body of its own (solver, topology, publishers and
+profile file, created when its first sample comes), all solved by one worker.
+Nothing one subject sends reaches another's output.
 """
 
 from __future__ import annotations
@@ -25,6 +32,7 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
 import zenoh
 
 from bodynet.core import keys
@@ -32,7 +40,7 @@ from bodynet.core.codecs import pose, raw_sample
 from bodynet.core.errors import DecodeError, Reason, RejectCounts
 from bodynet.core.keys import BRANCHES, Branch, Site
 from bodynet.core.messages import Quat, RawSample
-from bodynet.core.subject import Profile
+from bodynet.core.subject import Profile, ProfileError, QuatWxyz
 from bodynet.gateway import profile_file
 from bodynet.gateway.solver import BodyOutput, BodySolver, tpose_mounts
 
@@ -40,6 +48,9 @@ log = logging.getLogger(__name__)
 
 STALE_S = 0.5
 HISTORY_S = 5.0
+#: Bodies one gateway takes on; samples of further subjects are counted, not served
+#: (a publisher inventing subject names must not exhaust the gateway).
+MAX_SUBJECTS = 64
 
 
 def branch_parts(branch: Branch) -> tuple[tuple[str, ...], tuple[str, ...]]:
@@ -65,9 +76,28 @@ def branch_views(frame: pose.PoseFrame, branches: Iterable[Branch]) -> dict[Bran
     return views
 
 
+def _rounded(values: Iterable[float]) -> list[float]:
+    return np.round(np.fromiter(values, float), 6).tolist()  # type: ignore[no-any-return]
+
+
 def pose_frame(output: BodyOutput, seq: int, stale: Sequence[str]) -> pose.PoseFrame:
-    return pose.PoseFrame(seq, output.t_ns, output.angles_deg, output.rel_deg, output.segments,
-                          output.joints_m, output.flags, output.sources, list(stale))  # fmt: skip
+    """The message of one tick, numbers rounded to 1e-6 (microdegrees, micrometres)."""
+    segments = list(output.segments.items())
+    flat = _rounded(c for _, (p, q) in segments for c in (*p, *q))
+    return pose.PoseFrame(
+        seq,
+        output.t_ns,
+        dict(zip(output.angles_deg, _rounded(output.angles_deg.values()), strict=True)),
+        dict(zip(output.rel_deg, _rounded(output.rel_deg.values()), strict=True)),
+        {s: (tuple(flat[7 * i : 7 * i + 3]), tuple(flat[7 * i + 3 : 7 * i + 7]))  # type: ignore[misc]
+         for i, (s, _) in enumerate(segments)},
+        {j: tuple(p) for j, p in zip(output.joints_m, np.round(  # type: ignore[misc]
+            np.array(list(output.joints_m.values()), dtype=float).reshape(-1, 3), 6).tolist(),
+            strict=True)},
+        output.flags,
+        output.sources,
+        list(stale),
+    )  # fmt: skip
 
 
 @dataclass
@@ -77,52 +107,185 @@ class _Site:
     fresh: bool = True  # not yet in a solved tick
 
 
+class _Body:
+    """One subject's body in the gateway: its latest samples, solver and publishers.
+
+    ``prefix`` is what the gateway's session puts before ``body/...`` for this
+    subject (empty in a subject's own namespace). Callers hold the gateway's lock
+    around anything that touches the samples."""
+
+    def __init__(self, session: zenoh.Session, prefix: str, profile: Profile,
+                 profile_path: Path | None, branches: Sequence[Branch]) -> None:  # fmt: skip
+        self.prefix = prefix
+        self.profile_path = profile_path
+        self.solver = BodySolver(profile)
+        self.latest: dict[Site, _Site] = {}
+        self.history: dict[Site, deque[tuple[float, RawSample]]] = {}
+        self.alive: set[str] = set()
+        self.gone: set[str] = set()  # keys whose token went away
+        self.published_stale: set[str] = set()
+        self.topology_text = ""
+        self.samples = 0
+        self.ticks = 0
+        self.first_new: float | None = None  # when the oldest unsolved sample came
+        self.force = False  # solve at once (the topology changed)
+        cc = zenoh.CongestionControl.BLOCK
+        self.body_pub = session.declare_publisher(prefix + keys.pose_key(), congestion_control=cc)
+        self.branch_pubs = {
+            b: session.declare_publisher(prefix + keys.pose_key(b), congestion_control=cc)
+            for b in branches
+        }
+        self.topology_pub = session.declare_publisher(prefix + keys.TOPOLOGY)
+        self.health_pub = session.declare_publisher(prefix + keys.health_key("gateway"))
+
+    def take(self, site: Site, sample: RawSample, now: float) -> None:
+        """Keep a sample as its site's latest (and, for T-pose, its recent history)."""
+        self.samples += 1
+        self.latest[site] = _Site(sample, now)
+        if isinstance(sample.reading, Quat):
+            hist = self.history.setdefault(site, deque())
+            hist.append((now, sample))
+            while hist and now - hist[0][0] > HISTORY_S:
+                hist.popleft()
+        if self.first_new is None:
+            self.first_new = now
+
+    def frame_complete(self, now: float) -> bool:
+        """Has every site that is not stale delivered since the last solve?"""
+        return all(v.fresh or now - v.arrived > STALE_S for v in self.latest.values())
+
+    def newly_stale(self, now: float) -> bool:
+        return any(now - v.arrived > STALE_S and s.raw_key not in self.published_stale
+                   for s, v in self.latest.items())  # fmt: skip
+
+    def snapshot(self, now: float) -> tuple[dict[Site, RawSample], list[str], BodySolver]:
+        """What the next solve needs; marks every sample as used."""
+        latest = {site: s.sample for site, s in self.latest.items()}
+        for s in self.latest.values():
+            s.fresh = False
+        stale = sorted(
+            s.raw_key for s, v in self.latest.items()
+            if now - v.arrived > STALE_S or s.raw_key in self.gone
+        )  # fmt: skip
+        self.published_stale = set(stale)
+        self.first_new, self.force = None, False
+        return latest, stale, self.solver
+
+    def publish(self, frame: pose.PoseFrame) -> None:
+        self.body_pub.put(pose.encode(frame))
+        for branch, view in branch_views(frame, self.branch_pubs).items():
+            self.branch_pubs[branch].put(pose.encode(view))
+
+    def topology(self, now: float) -> dict[str, object]:
+        branches: dict[str, dict[str, object]] = {}
+        for key in sorted(self.alive | {s.raw_key for s in self.latest}):
+            try:
+                site, _ = keys.parse(key)
+            except keys.KeySpaceError:
+                continue
+            seen = self.latest.get(site)
+            state = "alive" if key in self.alive else "gone"
+            if seen is None or now - seen.arrived > STALE_S:
+                state = "stale" if key in self.alive else state
+            branch = branches.setdefault(str(site.branch), {"nodes": {}})
+            nodes = branch["nodes"]
+            assert isinstance(nodes, dict)
+            nodes[key] = {"state": state, "node": seen.sample.reading.node if seen else None,
+                          "last_t_ns": seen.sample.t_ns if seen else None}  # fmt: skip
+        return {"t_ns": time.time_ns(), "branches": branches}
+
+    def tpose_window(self, now: float, seconds: float) -> dict[Site, list[QuatWxyz]]:
+        return {
+            site: [s.reading.wxyz for t, s in hist
+                   if now - t <= seconds and isinstance(s.reading, Quat)]
+            for site, hist in self.history.items()
+        }  # fmt: skip
+
+    def close(self) -> None:
+        for pub in (self.body_pub, self.topology_pub, self.health_pub,
+                    *self.branch_pubs.values()):  # fmt: skip
+            pub.undeclare()
+
+
+@dataclass(frozen=True, slots=True)
+class _Token:
+    """A node's liveliness token came (``alive``) or went."""
+
+    key: str
+    alive: bool
+
+
+_Input = tuple[str | None, Site, RawSample] | tuple[str | None, _Token, None]
+
+
 class Gateway:
-    """See the module docstring. ``run(stop)`` serves until ``stop`` is set."""
+    """See the module docstring. ``run(stop)`` serves until ``stop`` is set.
+
+    ``profile``/``profile_path`` are the subject's (single-subject gateway).
+    With ``all_subjects``, each subject's profile is ``profile_dir/<subject>.toml``
+    (``default.toml`` for the namespace-less subject), the defaults until a
+    calibration writes it."""
 
     def __init__(self, session: zenoh.Session, profile: Profile | None = None,
                  profile_path: Path | None = None, branches: Sequence[Branch] | None = None,
-                 rate_hz: float = 100.0) -> None:  # fmt: skip
+                 rate_hz: float = 100.0, *, all_subjects: bool = False,
+                 profile_dir: Path | None = None) -> None:  # fmt: skip
         self.session = session
-        self.profile_path = profile_path
-        self.solver = BodySolver(profile)
         self.branches = tuple(branches) if branches else BRANCHES
         self.period_s = 1.0 / rate_hz
+        self.all_subjects = all_subjects
+        self.profile_dir = profile_dir
         self.rejected = RejectCounts()
-        self.samples = 0
-        self.ticks = 0
         self.solver_errors = 0
-        # raw samples, or None: "the topology changed, publish again"
-        self._queue: queue.SimpleQueue[tuple[Site, RawSample] | None] = queue.SimpleQueue()
-        self._latest: dict[Site, _Site] = {}
-        self._history: dict[Site, deque[tuple[float, RawSample]]] = {}
-        self._alive: set[str] = set()
-        self._gone: set[str] = set()  # keys whose token went away
-        self._published_stale: set[str] = set()
-        self._topology = ""
+        self.refused_subjects = 0
+        # (subject, site, sample), or (subject, token change, None)
+        self._queue: queue.SimpleQueue[_Input] = queue.SimpleQueue()
         self._lock = threading.Lock()
-        selectors = [keys.all_raw()] if branches is None else [f"{b.key}/*/raw" for b in branches]
-        self._subs = [session.declare_subscriber(sel, self._on_raw) for sel in selectors]
-        self._live = session.liveliness().declare_subscriber(
-            keys.all_raw(), self._on_token, history=True
-        )
-        cc = zenoh.CongestionControl.BLOCK
-        self._body_pub = session.declare_publisher(keys.pose_key(), congestion_control=cc)
-        self._branch_pubs = {
-            b: session.declare_publisher(keys.pose_key(b), congestion_control=cc)
-            for b in self.branches
-        }
-        self._topology_pub = session.declare_publisher(keys.TOPOLOGY)
-        self._health_pub = session.declare_publisher(keys.health_key("gateway"))
+        self._bodies: dict[str | None, _Body] = {}
+        if not all_subjects:
+            self._bodies[None] = _Body(session, "", profile or Profile(), profile_path,
+                                       self.branches)  # fmt: skip
+        prefixes = ("", keys.ANY_SUBJECT + "/") if all_subjects else ("",)
+        inner = [keys.all_raw()] if branches is None else [f"{b.key}/*/raw" for b in branches]
+        self._subs = [session.declare_subscriber(p + sel, self._on_raw)
+                      for p in prefixes for sel in inner]  # fmt: skip
+        self._live = [
+            session.liveliness().declare_subscriber(p + keys.all_raw(), self._on_token,
+                                                    history=True)
+            for p in prefixes
+        ]  # fmt: skip
         self._queryables = [
-            session.declare_queryable(keys.TOPOLOGY, self._on_topology_query),
-            session.declare_queryable(keys.CALIBRATE_TPOSE, self._on_tpose_query),
+            q
+            for p in prefixes
+            for q in (
+                session.declare_queryable(p + keys.TOPOLOGY, self._on_topology_query),
+                session.declare_queryable(p + keys.CALIBRATE_TPOSE, self._on_tpose_query),
+            )
         ]
+
+    # --- counters over every body ---------------------------------------------------
+    @property
+    def samples(self) -> int:
+        return sum(b.samples for b in list(self._bodies.values()))
+
+    @property
+    def ticks(self) -> int:
+        return sum(b.ticks for b in list(self._bodies.values()))
+
+    @property
+    def solver(self) -> BodySolver:
+        """The solver of the subject of a single-subject gateway."""
+        return self._bodies[None].solver
+
+    def subjects(self) -> list[str | None]:
+        """The subjects served so far (``None``: the namespace-less one)."""
+        with self._lock:
+            return list(self._bodies)
 
     # --- input (Zenoh's threads) ---------------------------------------------------
     def _on_raw(self, sample: zenoh.Sample) -> None:
-        key = str(sample.key_expr)
         try:
+            subject, key = keys.split_subject(str(sample.key_expr))
             site, _ = keys.parse(key)
             raw = raw_sample.decode(sample.payload.to_bytes())
         except DecodeError as exc:
@@ -131,180 +294,188 @@ class Gateway:
         except keys.KeySpaceError:
             self.rejected[Reason.UNKNOWN_NODE] += 1
             return
-        self._queue.put((site, raw))
+        self._queue.put((subject, site, raw))
 
     def _on_token(self, sample: zenoh.Sample) -> None:
-        key = str(sample.key_expr)
+        try:
+            subject, key = keys.split_subject(str(sample.key_expr))
+        except keys.KeySpaceError:
+            return
+        self._queue.put((subject, _Token(key, sample.kind == zenoh.SampleKind.PUT), None))
+
+    def _body(self, subject: str | None) -> _Body | None:
+        """The subject's body, made on first sight (a refusal is counted)."""
+        body = self._bodies.get(subject)
+        if body is not None:
+            return body
         with self._lock:
-            if sample.kind == zenoh.SampleKind.PUT:
-                self._alive.add(key)
-                self._gone.discard(key)
-            else:
-                self._alive.discard(key)
-                self._gone.add(key)
-        self._publish_topology()
-        self._queue.put(None)
+            if subject in self._bodies:
+                return self._bodies[subject]
+            if len(self._bodies) >= MAX_SUBJECTS:
+                self.refused_subjects += 1
+                return None
+            path = None
+            if self.profile_dir is not None:
+                path = self.profile_dir / f"{subject or 'default'}.toml"
+            try:
+                profile = profile_file.load(path) if path and path.exists() else Profile()
+            except ProfileError as exc:
+                log.error("gateway: %s; subject %s runs on default calibration", exc, subject)
+                profile = Profile()
+            prefix = keys.subject_prefix(subject)
+            body = _Body(self.session, prefix, profile, path, self.branches)
+            self._bodies[subject] = body
+            log.info("gateway: serving subject %s", subject or "(no namespace)")
+            return body
 
     # --- topology ------------------------------------------------------------------
-    def topology(self) -> dict[str, object]:
-        now = time.monotonic()
+    def topology(self, subject: str | None = None) -> dict[str, object]:
+        """The topology of one subject's body (empty if it has not been seen)."""
+        body = self._bodies.get(subject)
+        if body is None:
+            return {"t_ns": time.time_ns(), "branches": {}}
         with self._lock:
-            alive = set(self._alive)
-            latest = dict(self._latest)
-        branches: dict[str, dict[str, object]] = {}
-        for key in sorted(alive | {s.raw_key for s in latest}):
-            try:
-                site, _ = keys.parse(key)
-            except keys.KeySpaceError:
-                continue
-            seen = latest.get(site)
-            state = "alive" if key in alive else "gone"
-            if seen is None or now - seen.arrived > STALE_S:
-                state = "stale" if key in alive else state
-            branch = branches.setdefault(str(site.branch), {"nodes": {}})
-            nodes = branch["nodes"]
-            assert isinstance(nodes, dict)
-            nodes[key] = {"state": state, "node": seen.sample.reading.node if seen else None,
-                          "last_t_ns": seen.sample.t_ns if seen else None}  # fmt: skip
-        return {"t_ns": time.time_ns(), "branches": branches}
+            return body.topology(time.monotonic())
 
-    def _publish_topology(self) -> None:
-        topo = self.topology()
-        text = json.dumps({k: v for k, v in topo.items() if k != "t_ns"}, sort_keys=True)
-        if text != self._topology:
-            self._topology = text
-            self._topology_pub.put(json.dumps(topo).encode())
+    def _publish_topology(self, body: _Body) -> None:
+        with self._lock:
+            topo = body.topology(time.monotonic())
+            text = json.dumps({k: v for k, v in topo.items() if k != "t_ns"}, sort_keys=True)
+            if text == body.topology_text:
+                return
+            body.topology_text = text
+        body.topology_pub.put(json.dumps(topo).encode())
+
+    def _answering(self, query: zenoh.Query, key: str) -> list[tuple[str | None, _Body, str]]:
+        """The bodies whose ``key`` (under their prefix) the query asks for."""
+        asked = query.key_expr
+        return [
+            (subject, body, body.prefix + key)
+            for subject, body in list(self._bodies.items())
+            if asked.intersects(zenoh.KeyExpr(body.prefix + key))
+        ]
 
     def _on_topology_query(self, query: zenoh.Query) -> None:
-        query.reply(keys.TOPOLOGY, json.dumps(self.topology()).encode())
+        for subject, _, key in self._answering(query, keys.TOPOLOGY):
+            query.reply(key, json.dumps(self.topology(subject)).encode())
 
     # --- T-pose calibration ----------------------------------------------------------
-    def calibrate_tpose(self, seconds: float = 1.0) -> dict[str, object]:
-        """Mounts of every orientation sensor from its last ``seconds`` of samples."""
-        now = time.monotonic()
+    def calibrate_tpose(
+        self, seconds: float = 1.0, subject: str | None = None
+    ) -> dict[str, object]:
+        """Mounts of every orientation sensor of a subject from its last ``seconds``."""
+        body = self._bodies.get(subject)
+        if body is None:
+            return {"ok": False, "error": "no samples of this subject"}
         with self._lock:
-            window = {
-                site: [
-                    s.reading.wxyz
-                    for t, s in hist
-                    if now - t <= seconds and isinstance(s.reading, Quat)
-                ]
-                for site, hist in self._history.items()
-            }
-        mounts = tpose_mounts({s: q for s, q in window.items() if q}, self.solver.profile)
+            window = body.tpose_window(time.monotonic(), seconds)
+        mounts = tpose_mounts({s: q for s, q in window.items() if q}, body.solver.profile)
         if not mounts:
             return {"ok": False, "error": "no orientation samples in the window"}
-        profile = self.solver.profile.with_mounts(mounts)
+        profile = body.solver.profile.with_mounts(mounts)
         with self._lock:
-            self.solver = BodySolver(profile)
-        if self.profile_path is not None:
-            profile_file.save(profile, self.profile_path)
+            body.solver = BodySolver(profile)
+        if body.profile_path is not None:
+            profile_file.save(profile, body.profile_path)
         log.info("T-pose calibration of %d sensors", len(mounts))
-        return {"ok": True, "calibrated": sorted(mounts), "profile": str(self.profile_path or "")}
+        return {"ok": True, "calibrated": sorted(mounts), "profile": str(body.profile_path or "")}
 
     def _on_tpose_query(self, query: zenoh.Query) -> None:
         try:
             seconds = float(query.parameters.get("seconds") or 1.0)
         except ValueError:
             seconds = 1.0
-        result = self.calibrate_tpose(seconds)
-        query.reply(keys.CALIBRATE_TPOSE, json.dumps(result).encode())
+        for subject, _, key in self._answering(query, keys.CALIBRATE_TPOSE):
+            query.reply(key, json.dumps(self.calibrate_tpose(seconds, subject)).encode())
 
     # --- the work loop -----------------------------------------------------------------
     def run(self, stop: threading.Event) -> None:
-        """Solve when every live site has delivered since the last solve (a whole
-        frame of the sources is in: the lowest latency), or else ``period_s``
-        after the first new sample (sources of different rates)."""
-        first_new: float | None = None  # when the oldest unsolved sample came
-        force = False
+        """Solve a body when every live site of it has delivered since its last
+        solve (a whole frame of the sources is in: the lowest latency), or else
+        ``period_s`` after its first new sample (sources of different rates).
+        Samples that come while the worker is busy are taken together: under
+        load a body is solved less often, with its newest samples, and no
+        sample waits behind a backlog."""
         last_health = time.monotonic()
         while not stop.is_set():
-            wait = 0.1 if first_new is None else first_new + self.period_s - time.monotonic()
+            firsts = [b.first_new for b in list(self._bodies.values()) if b.first_new is not None]
+            wait = 0.1 if not firsts else min(firsts) + self.period_s - time.monotonic()
             try:
                 item = self._queue.get(timeout=max(0.0, wait))
-                while True:  # take what else has come: one solve for the lot
-                    if item is None:
-                        force = True
-                    else:
-                        self._take(item)
-                        first_new = first_new or time.monotonic()
+                while True:  # take what else has come: one solve per body for the lot
+                    self._take(item)
                     item = self._queue.get_nowait()
             except queue.Empty:
                 pass
             now = time.monotonic()
-            due = first_new is not None and (
-                now - first_new >= self.period_s or self._frame_complete(now)
-            )
-            if due or force:
-                try:
-                    self._solve_and_publish(now)
-                except Exception:  # one bad tick must not end the service
-                    self.solver_errors += 1
-                    if self.solver_errors <= 3:
-                        log.exception("gateway: a tick failed (%d so far)", self.solver_errors)
-                first_new, force = None, False
+            for body in list(self._bodies.values()):
+                with self._lock:
+                    due = body.force or self._due(body, now)
+                if due:
+                    self._solve_and_publish(body, now)
             if now - last_health >= 1.0:
                 last_health = now
-                force = self._newly_stale(now)
-                self._publish_topology()
-                self._health_pub.put(json.dumps(self.health()).encode())
+                self._housekeeping(now)
 
-    def _frame_complete(self, now: float) -> bool:
-        """Has every site that is not stale delivered since the last solve?"""
+    def _due(self, body: _Body, now: float) -> bool:
+        if body.first_new is None:
+            return False
+        return now - body.first_new >= self.period_s or body.frame_complete(now)
+
+    def _take(self, item: _Input) -> None:
+        subject, what, sample = item
+        body = self._body(subject)
+        if body is None:
+            return
+        if isinstance(what, _Token):
+            with self._lock:
+                (body.alive.add if what.alive else body.alive.discard)(what.key)
+                (body.gone.discard if what.alive else body.gone.add)(what.key)
+                body.force = True
+            self._publish_topology(body)
+        elif sample is not None:
+            with self._lock:
+                body.take(what, sample, time.monotonic())
+
+    def _housekeeping(self, now: float) -> None:
+        """Once a second: stale sites get a tick of their own, topology and health go out."""
+        for body in list(self._bodies.values()):
+            with self._lock:
+                body.force = body.force or body.newly_stale(now)
+            self._publish_topology(body)
+            body.health_pub.put(json.dumps(self.health(body)).encode())
+
+    def _solve_and_publish(self, body: _Body, now: float) -> None:
         with self._lock:
-            return all(v.fresh or now - v.arrived > STALE_S for v in self._latest.values())
+            latest, stale, solver = body.snapshot(now)
+        try:
+            output = solver.solve(latest)
+        except Exception:  # one bad tick must not end the service
+            self.solver_errors += 1
+            if self.solver_errors <= 3:
+                log.exception("gateway: a tick failed (%d so far)", self.solver_errors)
+            return
+        body.ticks += 1
+        body.publish(pose_frame(output, body.ticks, stale))
 
-    def _newly_stale(self, now: float) -> bool:
-        with self._lock:
-            return any(now - v.arrived > STALE_S and s.raw_key not in self._published_stale
-                       for s, v in self._latest.items())  # fmt: skip
-
-    def _take(self, item: tuple[Site, RawSample]) -> None:
-        """Keep a sample as its site's latest (and, for T-pose, its recent history)."""
-        site, sample = item
-        now = time.monotonic()
-        self.samples += 1
-        with self._lock:
-            self._latest[site] = _Site(sample, now)
-            if isinstance(sample.reading, Quat):
-                hist = self._history.setdefault(site, deque())
-                hist.append((now, sample))
-                while hist and now - hist[0][0] > HISTORY_S:
-                    hist.popleft()
-
-    def _solve_and_publish(self, now: float) -> None:
-        with self._lock:
-            latest = {site: s.sample for site, s in self._latest.items()}
-            for s in self._latest.values():
-                s.fresh = False
-            stale = sorted(
-                s.raw_key for s, v in self._latest.items()
-                if now - v.arrived > STALE_S or s.raw_key in self._gone
-            )  # fmt: skip
-            self._published_stale = set(stale)
-            solver = self.solver
-        output = solver.solve(latest)
-        self.ticks += 1
-        frame = pose_frame(output, self.ticks, stale)
-        self._body_pub.put(pose.encode(frame))
-        for branch, view in branch_views(frame, self._branch_pubs).items():
-            self._branch_pubs[branch].put(pose.encode(view))
-
-    def health(self) -> dict[str, object]:
-        return {"source": "gateway", "t_ns": time.time_ns(), "samples": self.samples,
-                "ticks": self.ticks, "solver_errors": self.solver_errors,
-                "rejected": dict(self.rejected)}  # fmt: skip
+    def health(self, body: _Body | None = None) -> dict[str, object]:
+        """Counters of the gateway (and of one body's share of it)."""
+        out: dict[str, object] = {"source": "gateway", "t_ns": time.time_ns(),
+                                  "samples": self.samples, "ticks": self.ticks,
+                                  "solver_errors": self.solver_errors,
+                                  "rejected": dict(self.rejected),
+                                  "subjects": len(self._bodies),
+                                  "refused_subjects": self.refused_subjects}  # fmt: skip
+        if body is not None:
+            out["body"] = {"samples": body.samples, "ticks": body.ticks}
+        return out
 
     def close(self) -> None:
         for q in self._queryables:
             q.undeclare()
         for sub in self._subs:
             sub.undeclare()
-        self._live.undeclare()
-        for pub in (
-            self._body_pub,
-            self._topology_pub,
-            self._health_pub,
-            *self._branch_pubs.values(),
-        ):
-            pub.undeclare()
+        for live in self._live:
+            live.undeclare()
+        for body in list(self._bodies.values()):
+            body.close()

@@ -147,6 +147,68 @@ def _nearest(
     return min(candidates, key=lambda c: (outside(c), float(np.abs(c - ref).sum())))
 
 
+class _SplitBatch:
+    """:meth:`JointAxes.split` for many joints at once, in array form.
+
+    An IMU body splits a dozen relative rotations per tick; numpy over the
+    lot costs what one joint costs in scalar code. Rows at a gimbal lock go
+    back to the scalar split, which holds the first angle there."""
+
+    def __init__(self, axes: list[JointAxes]) -> None:
+        self.axes = axes
+        self.index = {ax.joint.name: r for r, ax in enumerate(axes)}
+        ijk = np.array([["XYZ".index(c) for c in ax.seq] for ax in axes]).reshape(-1, 3)
+        self.i, self.j, self.k = ijk.T
+        self.e = np.where((self.j - self.i) % 3 == 1, 1.0, -1.0)
+        self.n = np.array([len(ax.axes) for ax in axes])
+        self.signs = np.ones((len(axes), 3))
+        self.lo = np.full((len(axes), 3), -np.inf)
+        self.hi = np.full((len(axes), 3), np.inf)
+        for r, ax in enumerate(axes):
+            self.signs[r, : self.n[r]] = ax.signs
+            for d, name in enumerate(ax.joint.angle_names()):
+                self.lo[r, d], self.hi[r, d] = rom(name)
+        self.unused = np.arange(3)[None, :] >= self.n[:, None]
+
+    def split(
+        self, rows: np.ndarray, rel: np.ndarray, previous: list[np.ndarray | None]
+    ) -> list[np.ndarray]:
+        """Angles (deg) of joints ``rows`` for relative rotations ``rel`` (m, 3, 3)."""
+        m = np.arange(len(rows))
+        i, j, k, e = self.i[rows], self.j[rows], self.k[rows], self.e[rows]
+        b = np.arcsin(np.clip(e * rel[m, i, k], -1.0, 1.0))
+        a = np.arctan2(-e * rel[m, j, k], rel[m, k, k])
+        c = np.arctan2(-e * rel[m, i, j], rel[m, i, i])
+        euler = np.degrees(np.column_stack([a, b, c]))
+        other = (np.column_stack([euler[:, 0] + 180, 180 - euler[:, 1], euler[:, 2] + 180])
+                 + 180.0) % 360.0 - 180.0  # fmt: skip
+        signs = self.signs[rows]
+        first, second = euler * signs, other * signs
+        n = self.n[rows]
+        unused = self.unused[rows]
+        # fewer than three dofs: the candidate whose unused angles vanish
+        pick_two = np.abs(second * unused).sum(1) < np.abs(first * unused).sum(1)
+        # three dofs: inside the range of motion, then nearest the previous angles
+        ref = np.array([p if p is not None and len(p) == 3 else np.zeros(3) for p in previous])
+        lo, hi = self.lo[rows], self.hi[rows]
+
+        def outside(cand: np.ndarray) -> np.ndarray:
+            return np.maximum(0.0, np.maximum(lo - cand, cand - hi)).sum(1)  # type: ignore[no-any-return]
+
+        out1, out2 = outside(first), outside(second)
+        d1, d2 = np.abs(first - ref).sum(1), np.abs(second - ref).sum(1)
+        pick_three = (out2 < out1) | ((out2 == out1) & (d2 < d1))
+        chosen = np.where(np.where(n == 3, pick_three, pick_two)[:, None], second, first)
+        gimbal = (n == 3) & (np.abs(np.cos(b)) < GIMBAL_COS)
+        result = []
+        for r, row in enumerate(rows):
+            if gimbal[r]:
+                result.append(self.axes[row].split(rel[r], previous[r]))
+            else:
+                result.append(chosen[r, : n[r]].copy())
+        return result
+
+
 @dataclass(frozen=True)
 class BodyOutput:
     """One tick of one body: every joint angle and every segment pose."""
@@ -182,6 +244,7 @@ class BodySolver:
             for j in self.skeleton.joints
         }
         self._frames = [self.model.segment_frames[s] for s in self.skeleton.segments]
+        self._batch = _SplitBatch([self.axes[j.name] for j in self.skeleton.joints])
         self._memory = _Memory()
         self._mount_cache: dict[str, np.ndarray] = {}
 
@@ -194,16 +257,7 @@ class BodySolver:
 
     def solve(self, samples: Mapping[Site, RawSample]) -> BodyOutput:
         """Angles and poses from the latest sample of each site."""
-        measured: dict[str, np.ndarray] = {}
-        modules: dict[str, tuple[Site, OleAccel]] = {}
-        for site, sample in samples.items():
-            seg = mount(site).segment
-            r = sample.reading
-            if isinstance(r, Quat):
-                if seg not in measured:
-                    measured[seg] = _matrix(r.wxyz) @ self._mount(site.raw_key).T
-            elif site.name in OLE_DOF:
-                modules[seg] = (site, r)
+        measured, modules = self._by_segment(samples)
         world: dict[str, np.ndarray] = {"pelvis": measured.get("pelvis", np.eye(3))}
         angles: dict[str, float] = {}
         flags: dict[str, str] = {}
@@ -224,12 +278,15 @@ class BodySolver:
             rel[joint.name] = _angle_deg(self._calibration[joint.name].T @ joint_rot)
 
         by_child = {j.child: j for j in self.skeleton.joints}
+        split = self._split_direct(measured, world["pelvis"])
         for joint in self.skeleton.joints:
             ax = self.axes[joint.name]
             parent = world[joint.parent]
             previous = self._memory.angles.get(joint.name)
             names = joint.angle_names()
-            if joint.child in measured:
+            if joint.name in split:
+                values = split[joint.name]
+            elif joint.child in measured:
                 values = ax.split(parent.T @ measured[joint.child], previous)
             elif joint.child in modules:
                 site, reading = modules[joint.child]
@@ -252,11 +309,12 @@ class BodySolver:
         rotations, positions = self.model.frame_placements(
             self.model.q(angles, None, root), self._frames
         )
-        quats = [_quat_wxyz(r) for r in rotations]
+        xyzw = Rotation.from_matrix(rotations).as_quat(canonical=True)
         segments = {
-            s: (tuple(map(float, p)), tuple(map(float, q)))
-            for s, p, q in zip(self.skeleton.segments, positions, quats, strict=True)
-        }
+            s: (tuple(p), (q[3], q[0], q[1], q[2]))
+            for s, p, q in zip(self.skeleton.segments, positions.tolist(), xyzw.tolist(),
+                               strict=True)
+        }  # fmt: skip
         joints = {j.name: segments[j.child][0] for j in self.skeleton.joints}
         return BodyOutput(
             t_ns=max((s.t_ns for s in samples.values()), default=0),
@@ -267,6 +325,44 @@ class BodySolver:
             joints_m=joints,  # type: ignore[arg-type]
             sources={site.raw_key: s.t_ns for site, s in samples.items()},
         )
+
+    def _by_segment(
+        self, samples: Mapping[Site, RawSample]
+    ) -> tuple[dict[str, np.ndarray], dict[str, tuple[Site, OleAccel]]]:
+        """Segment orientations of the orientation sensors, and the SmartSuit
+        modules by the segment they ride on."""
+        measured: dict[str, np.ndarray] = {}
+        modules: dict[str, tuple[Site, OleAccel]] = {}
+        for site, sample in samples.items():
+            seg = mount(site).segment
+            r = sample.reading
+            if isinstance(r, Quat):
+                if seg not in measured:
+                    measured[seg] = _matrix(r.wxyz) @ self._mount(site.raw_key).T
+            elif site.name in OLE_DOF:
+                modules[seg] = (site, r)
+        return measured, modules
+
+    def _split_direct(
+        self, measured: Mapping[str, np.ndarray], pelvis: np.ndarray
+    ) -> dict[str, np.ndarray]:
+        """Angles of the joints between two orientation sensors (or the root and
+        one), all at once. Each comes from its two segments' measured orientations,
+        so a parent joint clamped to its range of motion does not move its child's."""
+        direct = [
+            j for j in self.skeleton.joints
+            if j.child in measured and (j.parent in measured or j.parent == "pelvis")
+        ]  # fmt: skip
+        if not direct:
+            return {}
+        parents = [pelvis if j.parent == "pelvis" else measured[j.parent] for j in direct]
+        rel = np.einsum(
+            "nji,njk->nik", np.array(parents), np.array([measured[j.child] for j in direct])
+        )
+        rows = np.array([self._batch.index[j.name] for j in direct])
+        previous = [self._memory.angles.get(j.name) for j in direct]
+        values = self._batch.split(rows, rel, previous)
+        return {j.name: v for j, v in zip(direct, values, strict=True)}
 
     def _from_module(
         self,

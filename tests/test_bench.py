@@ -83,8 +83,13 @@ def test_demo_runs_the_live_body_network(tmp_path: Path) -> None:
 def test_tiny_gateway_benchmark_reports_both_paths(tmp_path: Path) -> None:
     from bodynet.bench import gateway
 
-    result = gateway.run(seconds=1.0, out_dir=tmp_path)
-    assert 0 < result["sent"] <= 1500  # at most 15 nodes x 100 Hz x 1 s
-    assert result["relay"]["received"] > 0
-    assert result["gateway"]["poses"] > 0
-    assert (tmp_path / "gateway.md").read_text().startswith("| path |")
+    result = gateway.run(seconds=1.0, out_dir=tmp_path, bodies=(1, 2))
+    one, two = result["runs"]
+    assert 0 < one["sent"] <= 1500  # at most 15 nodes x 100 Hz x 1 s
+    assert 1500 < two["sent"] <= 3000
+    for row in (one, two):
+        assert row["relay"]["received"] > 0
+        assert row["gateway"]["poses"] > 0
+    # two bodies: poses of both subjects came back
+    assert two["gateway"]["samples_received"] > one["gateway"]["samples_received"]
+    assert (tmp_path / "gateway.md").read_text().startswith("| bodies |")

@@ -183,3 +183,53 @@ def test_subjects_are_namespaces_that_keep_keys_inside(router_endpoint: str) -> 
     finally:
         for s in (alice, bob, anyone):
             s.close()
+
+
+def test_one_gateway_serves_several_subjects_apart(router_endpoint: str, tmp_path: Path) -> None:
+    """An all-subjects gateway: each subject's nodes run in its own namespace and
+    get a body of their own; poses, topology and calibration never mix."""
+    from bodynet.session import open_session, session_config
+
+    session = client(router_endpoint)
+    gw = Gateway(session, all_subjects=True, profile_dir=tmp_path)
+    running = Running(gw.run)
+    held = {"alice": 30.0, "bob": 110.0}
+    sessions, nodes = [], []
+    for name, elbow in held.items():
+        node_session = open_session(session_config("client", [router_endpoint], subject=name))
+        routine = Routine(name, "", lambda t, e=elbow: {"left_elbow_flexion_deg": e})
+        plan = [NodePlan("smartsuit", "can", (LEFT_ARM,))]
+        options = EmulationOptions(routine, Realism.ideal())
+        sessions.append(node_session)
+        nodes.append(Running(run_node, node_session, plan, options, name))
+    watcher = client(router_endpoint)
+    bob_inside = open_session(session_config("client", [router_endpoint], subject="bob"))
+    try:
+        for name, elbow in held.items():
+            poses = Collector(watcher, keys.subject_prefix(name) + keys.pose_key(), pose.decode)
+            last = poses.wait_for(bool, timeout=20)[-1][1]
+            assert abs(last.angles_deg["left_elbow_flexion_deg"] - elbow) < 0.3
+            assert all(k.startswith("body/arm/left/") for k in last.sources)
+        # a client in bob's namespace sees bob's body as plain body/pose
+        inside = Collector(bob_inside, keys.pose_key(), pose.decode)
+        frame = inside.wait_for(bool, timeout=10)[-1][1]
+        assert abs(frame.angles_deg["left_elbow_flexion_deg"] - 110.0) < 0.3
+
+        # one query lists every subject's topology
+        replies = list(watcher.get(keys.ANY_SUBJECT + "/" + keys.TOPOLOGY, timeout=5))
+        listed = {keys.split_subject(str(r.ok.key_expr))[0] for r in replies if r.ok}
+        assert listed == {"alice", "bob"}
+        for r in replies:
+            assert "left-arm" in json.loads(r.ok.payload.to_bytes())["branches"]
+
+        # T-pose calibration asked of alice answers for alice alone
+        calibration = list(watcher.get("alice/" + keys.CALIBRATE_TPOSE, timeout=10))
+        assert [str(r.ok.key_expr) for r in calibration] == ["alice/" + keys.CALIBRATE_TPOSE]
+        assert set(gw.subjects()) == {"alice", "bob"}
+    finally:
+        for n in nodes:
+            n.stop()
+        running.stop()
+        gw.close()
+        for s in (*sessions, watcher, bob_inside, session):
+            s.close()

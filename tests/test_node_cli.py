@@ -127,3 +127,31 @@ def test_emulated_adapter_process_and_bridge_process(
     for p in (bridge, emulator):
         p.send_signal(signal.SIGINT)
         assert p.wait(timeout=15) == 0
+
+
+def test_subjects_on_one_router_are_listed_and_served_by_one_gateway(
+    zsession: zenoh.Session, router_endpoint: str, processes: list[subprocess.Popen[str]]
+) -> None:
+    """`bodynet node --subject` x2, `bodynet gateway --all-subjects`, `bodynet subjects`."""
+    from bodynet.core import keys
+    from bodynet.core.codecs import pose
+
+    common = ["--routine", "reach", "--ideal", "-e", router_endpoint]
+    for name, branch in (("alice", "left-arm"), ("bob", "right-arm")):
+        processes.append(subprocess.Popen(
+            [str(BODYNET), "node", "smartsuit", "--branch", branch, "--subject", name, *common],
+            text=True, stderr=subprocess.PIPE))  # fmt: skip
+    processes.append(subprocess.Popen(
+        [str(BODYNET), "gateway", "--all-subjects", "--mode", "client", "-e", router_endpoint],
+        text=True, stdout=subprocess.PIPE))  # fmt: skip
+    for name in ("alice", "bob"):
+        Collector(zsession, f"{name}/{keys.pose_key()}", pose.decode).wait_for(bool, timeout=30)
+    listing = subprocess.run(
+        [str(BODYNET), "subjects", "-e", router_endpoint],
+        capture_output=True, text=True, timeout=60, check=True)  # fmt: skip
+    rows = {row["subject"]: row for row in map(json.loads, listing.stdout.splitlines())}
+    assert set(rows) == {"alice", "bob"}
+    assert rows["alice"]["branches"] == ["left-arm"]
+    assert rows["alice"]["gateway"]
+    assert rows["bob"]["branches"] == ["right-arm"]
+    assert rows["bob"]["nodes"] == 3

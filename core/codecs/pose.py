@@ -24,6 +24,7 @@ from __future__ import annotations
 import json
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
+from functools import lru_cache
 from typing import Any
 
 from ..errors import DecodeError, Reason
@@ -52,34 +53,35 @@ class PoseFrame:
         return PoseFrame(
             self.seq,
             self.t_ns,
-            {n: v for n, v in self.angles_deg.items() if n.rsplit("_", 2)[0] in js},
+            {n: v for n, v in self.angles_deg.items() if _joint_of(n) in js},
             {j: v for j, v in self.rel_deg.items() if j in js},
             {s: self.segments[s] for s in segments if s in self.segments},
             {j: v for j, v in self.joints_m.items() if j in js},
-            {n: f for n, f in self.flags.items() if n.rsplit("_", 2)[0] in js},
+            {n: f for n, f in self.flags.items() if _joint_of(n) in js},
             {k: t for k, t in self.sources.items() if k.startswith(keys_prefix)},
             [k for k in self.stale if k.startswith(keys_prefix)],
         )
 
 
-def _r(v: float) -> float:
-    return round(v, 6)
+@lru_cache(maxsize=1024)
+def _joint_of(angle_name: str) -> str:
+    """``left_elbow`` of ``left_elbow_flexion_deg``."""
+    return angle_name.rsplit("_", 2)[0]
 
 
 def encode(frame: PoseFrame) -> bytes:
+    """The message, numbers as given (the gateway rounds them to 1e-6 when it
+    builds the frame, once for the body and all its branch views)."""
     return json.dumps(
         {
             "v": VERSION,
             "seq": frame.seq,
             "t_ns": frame.t_ns,
-            "angles_deg": {k: _r(v) for k, v in frame.angles_deg.items()},
-            "rel_deg": {k: _r(v) for k, v in frame.rel_deg.items()},
+            "angles_deg": dict(frame.angles_deg),
+            "rel_deg": dict(frame.rel_deg),
             "flags": dict(frame.flags),
-            "segments": {
-                s: {"p": [_r(c) for c in p], "q": [_r(c) for c in q]}
-                for s, (p, q) in frame.segments.items()
-            },
-            "joints_m": {j: [_r(c) for c in p] for j, p in frame.joints_m.items()},
+            "segments": {s: {"p": p, "q": q} for s, (p, q) in frame.segments.items()},
+            "joints_m": dict(frame.joints_m),
             "sources": dict(frame.sources),
             "stale": list(frame.stale),
         },
