@@ -148,11 +148,11 @@ def test_compose_services_as_local_processes(services: Services, tmp_path: Path)
         return {b for b, info in branches.items()
                 if any(n["state"] == "alive" for n in info["nodes"].values())}  # fmt: skip
 
-    five = {"arm/left", "arm/right", "leg/left", "leg/right", "trunk/mid"}
+    five = {str(b) for b in keys.BRANCHES}
     topology.wait_for(lambda seen: alive_branches(seen) == five, timeout=60)
     # `docker compose stop node-right-arm`: SIGTERM; the branch goes, live
     assert started["node-right-arm"].stop(signal.SIGTERM) == 0
-    topology.wait_for(lambda seen: alive_branches(seen) == five - {"arm/right"}, timeout=30)
+    topology.wait_for(lambda seen: alive_branches(seen) == five - {str(RIGHT_ARM)}, timeout=30)
     right = {s.raw_key for s in SMARTSUIT_SITES.values() if s.branch == RIGHT_ARM}
     assert not (right & live.wait_for(lambda alive: not (right & alive)))
 
