@@ -65,7 +65,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
     if args.only in (None, "decode"):
         decode.run(seconds=args.seconds, out_dir=args.out)
     if args.only in (None, "gateway"):
-        gateway.run(seconds=args.gateway_seconds, out_dir=args.out)
+        gateway.run(seconds=args.gateway_seconds, out_dir=args.out, bodies=tuple(args.bodies))
     return 0
 
 
@@ -121,6 +121,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("bench", help="benchmarks, side by side with their baselines")
     p.add_argument("--seconds", type=float, default=1.0, help="time per decode measurement")
     p.add_argument("--gateway-seconds", type=float, default=10.0, help="time of the gateway run")
+    p.add_argument("--bodies", type=int, nargs="+", default=[1, 5, 20, 50],
+                   help="numbers of bodies the gateway run is fed (default 1 5 20 50)")  # fmt: skip
     p.add_argument("--only", choices=("decode", "gateway"), help="run one benchmark only")
     p.add_argument("--out", type=Path, default=Path("bench-results"))
     p.set_defaults(func=cmd_bench)

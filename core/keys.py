@@ -21,6 +21,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from enum import StrEnum
+from functools import lru_cache
 
 ROOT = "body"
 
@@ -165,6 +166,7 @@ def chunk(text: str) -> str:
     return safe or "unnamed"
 
 
+@lru_cache(maxsize=4096)  # on every sample's path; the key space is small
 def parse(key: str) -> tuple[Site, Stream]:
     """Split a concrete key into its site and stream; raise ``KeySpaceError`` if foreign."""
     parts = key.split("/")
@@ -196,6 +198,7 @@ def subject_prefix(subject: str | None) -> str:
     return "" if subject is None else f"{subject}/"
 
 
+@lru_cache(maxsize=4096)
 def split_subject(key: str) -> tuple[str | None, str]:
     """``("alice", "body/...")`` for ``alice/body/...``; ``(None, key)`` for ``body/...``."""
     if key.startswith(ROOT + "/"):

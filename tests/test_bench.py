@@ -11,7 +11,7 @@ from pathlib import Path
 def test_tiny_decode_benchmark_writes_its_table(tmp_path: Path) -> None:
     bodynet = Path(sys.executable).with_name("bodynet")
     result = subprocess.run(
-        [str(bodynet), "bench", "--seconds", "0.02", "--out", str(tmp_path)],
+        [str(bodynet), "bench", "--only", "decode", "--seconds", "0.02", "--out", str(tmp_path)],
         capture_output=True,
         text=True,
         timeout=120,
