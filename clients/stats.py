@@ -89,18 +89,30 @@ def repetitions(
 def trial_bounds(x: Array, peaks: npt.ArrayLike) -> list[tuple[int, int]]:
     """Cut a channel into one trial per repetition peak: ``(start, stop)`` indices.
 
-    Trials meet at the lowest sample between two consecutive peaks; the first
-    starts at the lowest sample before the first peak, the last ends at the
-    lowest sample after the last peak (``stop`` is inclusive).
+    Trials meet at the lowest sample between two consecutive peaks. The first
+    starts at the lowest sample within half a cycle (half the median spacing of
+    the peaks) before the first peak, the last ends at the lowest within half a
+    cycle after the last peak, so a still stretch before or after the movement
+    stays out of the trials. ``stop`` is inclusive.
     """
     a = _vector(x, "trials")
     p = np.asarray(peaks, dtype=int)
     if p.size == 0:
         return []
-    edges = [int(np.argmin(a[: p[0] + 1]))]
+    half = int(np.median(np.diff(p)) // 2) if p.size > 1 else a.size
+    lo = max(0, p[0] - half)
+    edges = [int(lo + np.argmin(a[lo : p[0] + 1]))]
     edges += [int(lo + np.argmin(a[lo : hi + 1])) for lo, hi in itertools.pairwise(p)]
-    edges.append(int(p[-1] + np.argmin(a[p[-1] :])))
+    edges.append(int(p[-1] + np.argmin(a[p[-1] : p[-1] + half + 1])))
     return list(itertools.pairwise(edges))
+
+
+def roughness(x: Array) -> float:
+    """Standard deviation of the sample-to-sample change over the span: small
+    for a smooth movement, large for a channel that jumps (an ambiguity, a clamp)."""
+    a = _vector(x, "roughness", 3)
+    span = float(np.ptp(a))
+    return float(np.std(np.diff(a))) / span if span > 0 else float("inf")
 
 
 def time_normalise(t: Array, x: Array, points: int = TRIAL_POINTS) -> npt.NDArray[np.float64]:
@@ -199,7 +211,9 @@ def icc(trials: Array, form: str = ICC_FORM) -> Icc:
         raise StatsError("ICC: the channel does not move (no variance between positions)")
     trial, position = np.indices(m.shape)
     long = pd.DataFrame({"trial": trial.ravel(), "position": position.ravel(), "x": m.ravel()})
-    table = pingouin.intraclass_corr(long, targets="position", raters="trial", ratings="x")
+    # identical trials leave no error variance: ICC 1, pingouin divides by zero on the way
+    with np.errstate(divide="ignore", invalid="ignore"):
+        table = pingouin.intraclass_corr(long, targets="position", raters="trial", ratings="x")
     table = table.set_index("Type")
     low, high = table.loc[form, "CI95%"]
     return Icc(
