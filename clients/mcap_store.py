@@ -6,7 +6,10 @@ MCAP tools (Foxglove, the ``mcap`` CLI) can open and plot them:
 - ``body/pose`` and ``body/<limb>/<side>/pose``: schema ``bodynet.PoseFrame``,
   the gateway's pose message as it is;
 - ``body/<limb>/<side>/<site>/raw``: schema ``bodynet.RawSample``,
-  ``{node, seq, t_ns, source, encoder, accel}`` or ``{..., quat_wxyz}``.
+  ``{node, seq, t_ns, source, encoder, accel}`` or ``{..., quat_wxyz}``;
+- ``body/<limb>/<side>/<site>/truth``: schema ``bodynet.Truth``, an emulator's
+  ground truth as it publishes it (``t_ns``, ``angles_deg``, ``segment``,
+  ``segment_quat_wxyz``), when the recording asked for it.
 
 Log time is the sample's source time in ns (for a processed capture, the
 capture's own time base). Files are created readable by the owner only: this
@@ -58,6 +61,16 @@ RAW_SCHEMA = {
         "quat_wxyz": {"type": "array", "items": {"type": "number"}},
     },
 }
+TRUTH_SCHEMA = {
+    "title": "bodynet.Truth",
+    "type": "object",
+    "properties": {
+        "t_ns": {"type": "integer"},
+        "angles_deg": {"type": "object", "additionalProperties": {"type": "number"}},
+        "segment": {"type": "string"},
+        "segment_quat_wxyz": {"type": "array", "items": {"type": "number"}},
+    },
+}
 
 
 class StoreError(RuntimeError):
@@ -88,6 +101,8 @@ class McapSink:
                                                  json.dumps(POSE_SCHEMA).encode()),
             "raw": self._writer.register_schema("bodynet.RawSample", "jsonschema",
                                                 json.dumps(RAW_SCHEMA).encode()),
+            "truth": self._writer.register_schema("bodynet.Truth", "jsonschema",
+                                                  json.dumps(TRUTH_SCHEMA).encode()),
         }  # fmt: skip
         self._channels: dict[str, int] = {}
         self.messages = 0
@@ -108,6 +123,12 @@ class McapSink:
     def write_raw(self, topic: str, sample: RawSample, log_time_ns: int) -> None:
         data = json.dumps(raw_json(sample), separators=(",", ":")).encode()
         self._writer.add_message(self._channel(topic, "raw"), log_time_ns, data, log_time_ns)
+        self.messages += 1
+
+    def write_truth(self, topic: str, truth_json: bytes, log_time_ns: int) -> None:
+        """An emulator's ground-truth message, as published (JSON bytes)."""
+        self._writer.add_message(self._channel(topic, "truth"), log_time_ns, truth_json,
+                                 log_time_ns)  # fmt: skip
         self.messages += 1
 
     def close(self) -> None:
@@ -154,6 +175,18 @@ def read_raw(
     for schema, channel, message in _messages(path, topics):
         if schema is not None and schema.name == "bodynet.RawSample":
             yield channel.topic, message.log_time, raw_from_json(message.data)
+
+
+def read_truth(path: Path) -> Iterator[tuple[str, int, dict[str, float]]]:
+    """(topic, log time ns, true joint angles) of the ground truth a recording holds."""
+    for schema, channel, message in _messages(path, None):
+        if schema is not None and schema.name == "bodynet.Truth":
+            try:
+                angles = json.loads(message.data)["angles_deg"]
+                values = {str(k): float(v) for k, v in angles.items()}
+            except (ValueError, KeyError, TypeError, AttributeError) as exc:
+                raise StoreError(f"{path}: not a ground-truth message: {exc}") from None
+            yield channel.topic, message.log_time, values
 
 
 def count_messages(path: Path) -> int:

@@ -6,6 +6,7 @@ message with its source time; the file is complete once :meth:`close` runs.
 
 from __future__ import annotations
 
+import json
 import logging
 import threading
 import time
@@ -17,7 +18,7 @@ import zenoh
 from bodynet.clients.mcap_store import McapSink
 from bodynet.core import keys
 from bodynet.core.codecs import pose, raw_sample
-from bodynet.core.errors import DecodeError, RejectCounts
+from bodynet.core.errors import DecodeError, Reason, RejectCounts
 
 log = logging.getLogger(__name__)
 
@@ -74,6 +75,8 @@ class Recorder:
                 if key.endswith(f"/{keys.POSE}"):
                     frame = pose.decode(data)
                     self._sink.write_pose(key, frame, frame.t_ns or time.time_ns())
+                elif key.endswith(f"/{keys.Stream.TRUTH}"):
+                    self._sink.write_truth(key, data, _truth_time(data))
                 else:
                     raw = raw_sample.decode(data)
                     self._sink.write_raw(key, raw, raw.t_ns)
@@ -86,3 +89,11 @@ class Recorder:
         with self._lock:
             self._closed = True
             self._sink.close()
+
+
+def _truth_time(data: bytes) -> int:
+    """The source time of a ground-truth message (JSON with ``t_ns``)."""
+    try:
+        return int(json.loads(data)["t_ns"])
+    except (ValueError, KeyError, TypeError) as exc:
+        raise DecodeError(Reason.GARBAGE, f"not a ground-truth message: {exc}") from None

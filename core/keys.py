@@ -133,6 +133,11 @@ def all_raw() -> str:
     return f"{ROOT}/*/*/*/{Stream.RAW}"
 
 
+def all_truth() -> str:
+    """Key expression matching every emulator's ground truth."""
+    return f"{ROOT}/*/*/*/{Stream.TRUTH}"
+
+
 POSE = "pose"
 
 
