@@ -30,7 +30,7 @@ def _session(endpoint: str) -> Any:
     return open_session(session_config("client", connect=[endpoint]))
 
 
-def _feed(endpoint: str, seconds: float, sent: Any, ready: Any) -> None:
+def _feed(endpoint: str, seconds: float, sent: Any, ready: Any, rate_hz: float = RATE_HZ) -> None:
     import zenoh
 
     from bodynet.core.codecs import raw_sample
@@ -42,7 +42,7 @@ def _feed(endpoint: str, seconds: float, sent: Any, ready: Any) -> None:
     tags = imu_tags()
     body = BodyEmulator(ROUTINES["walk"], tags)
     frames = [
-        body.sample(k / RATE_HZ)[0] for k in range(int(RATE_HZ))
+        body.sample(k / rate_hz)[0] for k in range(int(rate_hz))
     ]  # a second of motion, looped
     block = zenoh.CongestionControl.BLOCK
     pubs = [session.declare_publisher(t.site.raw_key, congestion_control=block) for t in tags]
@@ -54,7 +54,7 @@ def _feed(endpoint: str, seconds: float, sent: Any, ready: Any) -> None:
             pub.put(raw_sample.encode(RawSample(reading, tick, time.time_ns(), Source.IMU_CENTRAL)))
             sent.value += 1
         tick += 1
-        time.sleep(max(0.0, start + tick / RATE_HZ - time.monotonic()))
+        time.sleep(max(0.0, start + tick / rate_hz - time.monotonic()))
     session.close()
 
 
@@ -91,8 +91,14 @@ def _gateway(endpoint: str, stop: Any, samples: Any) -> None:
     session.close()
 
 
-def run(seconds: float = 5.0, out_dir: Path = Path("bench-results")) -> dict[str, Any]:
-    """Run the comparison; print a table; write ``gateway.json`` and ``gateway.md``."""
+def run(
+    seconds: float = 5.0,
+    out_dir: Path = Path("bench-results"),
+    rate_hz: float = RATE_HZ,
+    name: str = "gateway",
+) -> dict[str, Any]:
+    """Run the comparison, each node sending ``rate_hz``; print a table; write
+    ``<name>.json`` and ``<name>.md``."""
     import socket
 
     from bodynet.core.codecs import pose, raw_sample
@@ -108,7 +114,7 @@ def run(seconds: float = 5.0, out_dir: Path = Path("bench-results")) -> dict[str
     stop, ready = ctx.Event(), ctx.Event()
     relay = ctx.Process(target=_relay, args=(endpoint, stop))
     gateway = ctx.Process(target=_gateway, args=(endpoint, stop, gw_samples))
-    feeder = ctx.Process(target=_feed, args=(endpoint, seconds, sent, ready))
+    feeder = ctx.Process(target=_feed, args=(endpoint, seconds, sent, ready, rate_hz))
     for p in (relay, gateway, feeder):
         p.start()
     probe = open_session(session_config("client", connect=[endpoint]))
@@ -146,7 +152,7 @@ def run(seconds: float = 5.0, out_dir: Path = Path("bench-results")) -> dict[str
     result = {
         "machine": f"{platform.machine()}, {mp.cpu_count()} cores, "
         f"Python {platform.python_version()}",
-        "seconds": seconds, "rate_hz_per_node": RATE_HZ, "nodes": 15, "sent": sent.value,
+        "seconds": seconds, "rate_hz_per_node": rate_hz, "nodes": 15, "sent": sent.value,
         "relay": {**r, "received": len(relay_lat)},
         "gateway": {**g, "samples_received": gw_samples.value, "poses": len(pose_lat)},
         "p50_ratio": g["p50_ms"] / r["p50_ms"] if r["n"] and g["n"] else None,
@@ -160,11 +166,11 @@ def run(seconds: float = 5.0, out_dir: Path = Path("bench-results")) -> dict[str
         f"{sent.value - gw_samples.value} | {g['p50_ms']:.2f} | {g['p99_ms']:.2f} |\n"
     )
     print(
-        f"Gateway vs bare relay, one body (15 nodes x {RATE_HZ:g} Hz), {seconds:g} s, "
+        f"Gateway vs bare relay, one body (15 nodes x {rate_hz:g} Hz), {seconds:g} s, "
         f"{result['machine']}\n\n{table}\n"
         f"p50 ratio {result['p50_ratio']}, p99 ratio {result['p99_ratio']}"
     )
     out_dir.mkdir(parents=True, exist_ok=True)
-    (out_dir / "gateway.json").write_text(json.dumps(result, indent=2))
-    (out_dir / "gateway.md").write_text(table)
+    (out_dir / f"{name}.json").write_text(json.dumps(result, indent=2))
+    (out_dir / f"{name}.md").write_text(table)
     return result

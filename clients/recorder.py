@@ -73,7 +73,7 @@ class Recorder:
                 self._rotate_if_due()
                 if key.endswith(f"/{keys.POSE}"):
                     frame = pose.decode(data)
-                    self._sink.write_pose(key, frame, frame.t_ns or time.time_ns())
+                    self._sink.write_pose(key, frame, frame.t_ns or time.time_ns(), data)
                 else:
                     raw = raw_sample.decode(data)
                     self._sink.write_raw(key, raw, raw.t_ns)
