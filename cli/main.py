@@ -60,13 +60,32 @@ def cmd_router(args: argparse.Namespace) -> int:
     return 0
 
 
-def cmd_bench(args: argparse.Namespace) -> int:
-    from bodynet.bench import decode, gateway
+BENCHMARKS = ("decode", "gateway", "peer", "rate", "recorder", "faults", "soak")
 
-    if args.only in (None, "decode"):
+
+def cmd_bench(args: argparse.Namespace) -> int:
+    from bodynet.bench import decode, faults, gateway, peer, recorder, report, soak
+
+    only = args.only or [b for b in BENCHMARKS if b != "soak"]  # the soak on demand
+    if "decode" in only:
         decode.run(seconds=args.seconds, out_dir=args.out)
-    if args.only in (None, "gateway"):
+    if "gateway" in only:
         gateway.run(seconds=args.gateway_seconds, out_dir=args.out, bodies=tuple(args.bodies))
+    if "peer" in only:
+        peer.run(seconds=args.gateway_seconds, out_dir=args.out)
+    if "rate" in only:
+        gateway.run(seconds=args.gateway_seconds, out_dir=args.out, bodies=(1,),
+                    rate_hz=args.rate_hz, name="rate")  # fmt: skip
+    if "recorder" in only:
+        recorder.run(seconds=args.seconds, out_dir=args.out)
+    if "faults" in only:
+        faults.run(out_dir=args.out, repeat=args.repeat)
+    if "soak" in only:
+        result = soak.run(minutes=args.minutes, out_dir=args.out)
+        if not result["pass"]:
+            print("bodynet bench: the soak failed (loss or memory growth)", file=sys.stderr)
+            return 1
+    report.write(args.out)
     return 0
 
 
@@ -125,7 +144,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--gateway-seconds", type=float, default=10.0, help="time of the gateway run")
     p.add_argument("--bodies", type=int, nargs="+", default=[1, 5, 20, 50],
                    help="numbers of bodies the gateway run is fed (default 1 5 20 50)")  # fmt: skip
-    p.add_argument("--only", choices=("decode", "gateway"), help="run one benchmark only")
+    p.add_argument("--only", action="append", choices=BENCHMARKS,
+                   help="run only this benchmark (repeatable; default all but soak)")  # fmt: skip
+    p.add_argument("--rate-hz", type=float, default=1000.0,
+                   help="per-node rate of the `rate` benchmark (default 1000)")  # fmt: skip
+    p.add_argument("--repeat", type=int, default=3, help="runs of each fault (worst reported)")
+    p.add_argument("--minutes", type=float, default=10.0, help="length of the soak")
     p.add_argument("--out", type=Path, default=Path("bench-results"))
     p.set_defaults(func=cmd_bench)
     return parser

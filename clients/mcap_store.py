@@ -21,6 +21,7 @@ from __future__ import annotations
 import json
 import os
 import struct
+import time
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import Any
@@ -89,9 +90,11 @@ def raw_json(sample: RawSample) -> dict[str, Any]:
 
 
 class McapSink:
-    """Writes poses and raw samples to one MCAP file."""
+    """Writes poses and raw samples to one MCAP file. A chunk is closed and
+    flushed once it holds ``chunk_size`` bytes or is ``max_chunk_s`` old, so a
+    writer killed mid-file loses at most that much (see :func:`salvage`)."""
 
-    def __init__(self, path: Path, chunk_size: int = 64 * 1024) -> None:
+    def __init__(self, path: Path, chunk_size: int = 64 * 1024, max_chunk_s: float = 0.5) -> None:
         fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
         self._stream = os.fdopen(fd, "wb")
         self._writer = Writer(self._stream, chunk_size=chunk_size, compression=CompressionType.ZSTD)
@@ -106,6 +109,8 @@ class McapSink:
         }  # fmt: skip
         self._channels: dict[str, int] = {}
         self.messages = 0
+        self._max_chunk_s = max_chunk_s
+        self._chunk_opened = time.monotonic()
 
     def _channel(self, topic: str, kind: str) -> int:
         channel = self._channels.get(topic)
@@ -115,15 +120,24 @@ class McapSink:
             )
         return channel
 
-    def write_pose(self, topic: str, frame: pose.PoseFrame, log_time_ns: int) -> None:
-        self._writer.add_message(self._channel(topic, "pose"), log_time_ns, pose.encode(frame),
-                                 log_time_ns)  # fmt: skip
-        self.messages += 1
+    def write_pose(self, topic: str, frame: pose.PoseFrame, log_time_ns: int,
+                   data: bytes | None = None) -> None:  # fmt: skip
+        """``data``: the frame's message as received, stored as it is (encoding a
+        pose again costs twice as much as decoding it)."""
+        data = pose.encode(frame) if data is None else data
+        self._add(self._channel(topic, "pose"), log_time_ns, data)
 
     def write_raw(self, topic: str, sample: RawSample, log_time_ns: int) -> None:
         data = json.dumps(raw_json(sample), separators=(",", ":")).encode()
-        self._writer.add_message(self._channel(topic, "raw"), log_time_ns, data, log_time_ns)
+        self._add(self._channel(topic, "raw"), log_time_ns, data)
+
+    def _add(self, channel: int, log_time_ns: int, data: bytes) -> None:
+        self._writer.add_message(channel, log_time_ns, data, log_time_ns)
         self.messages += 1
+        now = time.monotonic()
+        if now - self._chunk_opened >= self._max_chunk_s:
+            self._writer.flush()  # closes the open chunk: on disk, salvageable
+            self._chunk_opened = now
 
     def write_truth(self, topic: str, truth_json: bytes, log_time_ns: int) -> None:
         """An emulator's ground-truth message, as published (JSON bytes)."""

@@ -74,7 +74,7 @@ class Recorder:
                 self._rotate_if_due()
                 if key.endswith(f"/{keys.POSE}"):
                     frame = pose.decode(data)
-                    self._sink.write_pose(key, frame, frame.t_ns or time.time_ns())
+                    self._sink.write_pose(key, frame, frame.t_ns or time.time_ns(), data)
                 elif key.endswith(f"/{keys.Stream.TRUTH}"):
                     self._sink.write_truth(key, data, _truth_time(data))
                 else:
