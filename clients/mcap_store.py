@@ -197,7 +197,11 @@ def read_poses(path: Path, topic: str = "body/pose") -> Iterator[tuple[int, pose
 
 def _messages(path: Path, topics: Iterable[str] | None) -> Iterator[Any]:
     try:
-        with path.open("rb") as f:
+        f = path.open("rb")
+    except OSError as exc:
+        raise StoreError(f"{path}: cannot read it ({exc.strerror})") from None
+    try:
+        with f:
             yield from make_reader(f).iter_messages(topics=None if topics is None else list(topics))
     # the mcap reader raises struct.error, not an McapError, on some truncated files
     except (McapError, ValueError, EOFError, OSError, struct.error) as exc:
@@ -233,7 +237,11 @@ def read_raw(
 def count_messages(path: Path, topic: str | None = None) -> int:
     """Messages in a recording (or on one topic), from its summary (0 if it has none)."""
     try:
-        with path.open("rb") as f:
+        f = path.open("rb")
+    except OSError as exc:
+        raise StoreError(f"{path}: cannot read it ({exc.strerror})") from None
+    try:
+        with f:
             summary = make_reader(f).get_summary()
     except (McapError, ValueError, EOFError, OSError, struct.error) as exc:
         raise StoreError(f"{path}: not a complete MCAP file ({exc})") from None
