@@ -36,17 +36,21 @@ def local_poses(
     same order, reshape with ``as_quat().reshape(..., S, 4)``).
     """
     shape = positions.shape
-    p = positions.reshape(-1, shape[-2], 3)
-    q = quats_wxyz.reshape(-1, shape[-2], 4)
+    n_seg = shape[-2]
+    p = positions.reshape(-1, n_seg, 3)
+    n_frames = p.shape[0]
+    # one more slot per frame holds the world (origin, identity): index -1, the
+    # root's parent, picks it
+    p_ext = np.concatenate([p, np.zeros((n_frames, 1, 3))], axis=1)
+    q_ext = np.concatenate(
+        [quats_wxyz.reshape(-1, n_seg, 4), np.tile([1.0, 0.0, 0.0, 0.0], (n_frames, 1, 1))], axis=1
+    )
+    world = Rotation.from_quat(q_ext.reshape(-1, 4), scalar_first=True)
     parents = np.asarray(parent_index)
-    is_child = (parents >= 0)[None, :, None]
-    above = np.maximum(parents, 0)
-    # the root's parent is the world: origin, identity rotation
-    parent_p = np.where(is_child, p[:, above], 0.0)
-    parent_q = np.where(is_child, q[:, above], np.array([1.0, 0.0, 0.0, 0.0]))
-    inv = Rotation.from_quat(parent_q.reshape(-1, 4), scalar_first=True).inv()
-    translations = inv.apply((p - parent_p).reshape(-1, 3)).reshape(shape)
-    return translations, inv * Rotation.from_quat(q.reshape(-1, 4), scalar_first=True)
+    rows = np.arange(n_frames)[:, None] * (n_seg + 1)
+    inv = world[(rows + np.where(parents < 0, n_seg, parents)).ravel()].inv()
+    translations = inv.apply((p - p_ext[:, parents]).reshape(-1, 3)).reshape(shape)
+    return translations, inv * world[(rows + np.arange(n_seg)).ravel()]
 
 
 def frame_transforms_json(
@@ -66,7 +70,9 @@ def frame_transforms_json(
     index = {n: i for i, n in enumerate(names)}
     parent_index = [index[parents[n]] if n in parents else -1 for n in names]
     translations, rotations = local_poses(pos, quat, parent_index)
-    xyzw = rotations.as_quat()
+    # 0.1 µm and 1e-9 are below what the pose carries; + 0.0 turns -0.0 into 0.0
+    moves = (np.round(translations, 7) + 0.0).tolist()
+    turns = (np.round(rotations.as_quat(), 9) + 0.0).tolist()
     stamp = {"sec": t_ns // 1_000_000_000, "nsec": t_ns % 1_000_000_000}
     return {
         "transforms": [
@@ -74,13 +80,9 @@ def frame_transforms_json(
                 "timestamp": stamp,
                 "parent_frame_id": parents.get(n, world_frame),
                 "child_frame_id": n,
-                "translation": _named("xyz", translations[i], 7),
-                "rotation": _named("xyzw", xyzw[i], 9),
+                "translation": dict(zip("xyz", moves[i], strict=True)),
+                "rotation": dict(zip("xyzw", turns[i], strict=True)),
             }
             for i, n in enumerate(names)
         ]
     }
-
-
-def _named(axes: str, values: np.ndarray, digits: int) -> dict[str, float]:
-    return {a: round(float(v), digits) for a, v in zip(axes, values, strict=True)}

@@ -43,6 +43,8 @@ AXES: Mapping[str, np.ndarray] = {
     "z": np.eye(3),
 }
 UNITS: Mapping[str, float] = {"m": 1.0, "cm": 100.0}
+#: Frames converted at a time: bounds the memory of long recordings.
+CHUNK_FRAMES = 4096
 #: The root turns about the vertical first (heading), then the side axis, then forward.
 ROOT_ORDER_BODYNET: tuple[Vec3, ...] = ((0.0, 0.0, 1.0), (0.0, 1.0, 0.0), (1.0, 0.0, 0.0))
 
@@ -77,22 +79,17 @@ def write_bvh(
     segs = track.segments
     index = {s: i for i, s in enumerate(segs)}
     parent_index = [index[parents[s]] if s in parents else -1 for s in segs]
-    translations, rotations = local_poses(track.segment_p, track.segment_q, parent_index)
-    # constant for a rigid body; the median over frames evens out the 1 µm
-    # rounding of the pose messages (+ 0.0 turns -0.0 into 0.0)
+    # constant for a rigid body; the median evens out the 1 µm rounding of the
+    # pose messages (+ 0.0 turns -0.0 into 0.0)
+    head = slice(0, 1000)
+    translations, _ = local_poses(track.segment_p[head], track.segment_q[head], parent_index)
     offsets = np.round(np.median(translations, axis=0) @ m.T * scale, 6) + 0.0  # (S, 3)
-    # the same rotation seen in BVH axes: M R M^T
-    to_bvh = Rotation.from_matrix(m)
-    local = to_bvh * rotations * to_bvh.inv()  # (F*S,), frame-major
     orders = channel_orders(skeleton, m)
-    n_frames, n_segs = len(track), len(segs)
-    local_by_segment = [local[np.arange(n_frames) * n_segs + s] for s in range(n_segs)]
-
     children: dict[str, list[str]] = {s: [] for s in segs}
     for child, parent in parents.items():
         children[parent].append(child)
     lines = ["HIERARCHY"]
-    columns: list[np.ndarray] = []
+    written: list[str] = []  # segments in the order the file lists them
 
     def vec(v: np.ndarray) -> str:
         return " ".join(f"{c:.6f}" for c in v)
@@ -100,6 +97,7 @@ def write_bvh(
     def emit(seg: str, depth: int) -> None:
         pad = "\t" * depth
         is_root = seg == ROOT_SEGMENT
+        written.append(seg)
         lines.append(f"{pad}{'ROOT' if is_root else 'JOINT'} {seg}")
         lines.append(f"{pad}{{")
         rot_channels = [f"{c}rotation" for c in orders[seg]]
@@ -107,11 +105,9 @@ def write_bvh(
             lines.append(f"{pad}\tOFFSET {vec(np.zeros(3))}")
             lines.append(f"{pad}\tCHANNELS 6 Xposition Yposition Zposition "
                          + " ".join(rot_channels))  # fmt: skip
-            columns.append(track.segment_p[:, index[seg]] @ m.T * scale)
         else:
             lines.append(f"{pad}\tOFFSET {vec(offsets[index[seg]])}")
             lines.append(f"{pad}\tCHANNELS 3 " + " ".join(rot_channels))
-        columns.append(euler_deg(local_by_segment[index[seg]], orders[seg]))
         for child in children[seg]:
             emit(child, depth + 1)
         if not children[seg]:
@@ -121,9 +117,23 @@ def write_bvh(
         lines.append(f"{pad}}}")
 
     emit(ROOT_SEGMENT, 0)
-    lines += ["MOTION", f"Frames: {n_frames}", f"Frame Time: {1.0 / rate_hz:.8f}"]
-    motion = np.hstack(columns)
+    lines += ["MOTION", f"Frames: {len(track)}", f"Frame Time: {1.0 / rate_hz:.8f}"]
+
+    def motion(frames: slice) -> np.ndarray:
+        """The MOTION rows of some frames: root position, then every joint's channels."""
+        _, rotations = local_poses(track.segment_p[frames], track.segment_q[frames], parent_index)
+        # the same rotations seen in the file's axes, M R M^T: M being a rotation,
+        # that turns each quaternion's axis part (x, y, z) by M
+        xyzw = rotations.as_quat().reshape(-1, len(segs), 4)
+        xyzw[..., :3] = xyzw[..., :3] @ m.T
+        columns = [track.segment_p[frames, index[ROOT_SEGMENT]] @ m.T * scale]
+        for seg in written:
+            local = Rotation.from_quat(xyzw[:, index[seg]])
+            columns.append(euler_deg(local, orders[seg]))
+        return np.hstack(columns)
+
     with output_file(out) as tmp, tmp.open("w") as f:
         f.write("\n".join(lines) + "\n")
-        np.savetxt(f, motion, fmt="%.6f")
-    return n_frames
+        for start in range(0, len(track), CHUNK_FRAMES):
+            np.savetxt(f, motion(slice(start, start + CHUNK_FRAMES)), fmt="%.6f")
+    return len(track)

@@ -68,13 +68,16 @@ def load_track(recording: Path, progress: bool = True) -> PoseTrack:
     skeleton = build_skeleton()
     segments, joints = skeleton.segments, tuple(j.name for j in skeleton.joints)
     angles = skeleton.angle_names()
-    times: list[int] = []
-    seg_p: list[list[tuple[float, ...]]] = []
-    seg_q: list[list[tuple[float, ...]]] = []
-    joint_p: list[list[tuple[float, ...]]] = []
-    angle_rows: list[list[float]] = []
-    nan3 = (np.nan, np.nan, np.nan)
     total = count_messages(recording, keys.pose_key())
+    # arrays filled in place (a Python float per value would take 4 times the memory)
+    cap = max(total, 256)
+    t = np.empty(cap, dtype=np.int64)
+    seg_p = np.empty((cap, len(segments), 3))
+    seg_q = np.empty((cap, len(segments), 4))
+    joint_p = np.empty((cap, len(joints), 3))
+    angle_deg = np.empty((cap, len(angles)))
+    nan3 = (np.nan, np.nan, np.nan)
+    n = 0
     # disable=None: no bar when stderr is not a terminal
     bar = tqdm(total=total or None, unit="pose", desc=recording.name, leave=False,
                disable=None if progress else True)  # fmt: skip
@@ -84,21 +87,27 @@ def load_track(recording: Path, progress: bool = True) -> PoseTrack:
             if missing:
                 raise StoreError(f"{recording}: the pose at {log_time} ns lacks segments "
                                  f"{', '.join(missing)}")  # fmt: skip
-            times.append(log_time)
-            seg_p.append([frame.segments[s][0] for s in segments])
-            seg_q.append([frame.segments[s][1] for s in segments])
-            joint_p.append([frame.joints_m.get(j, nan3) for j in joints])
-            angle_rows.append([frame.angles_deg.get(a, np.nan) for a in angles])
+            if n == len(t):
+                t, seg_p, seg_q, joint_p, angle_deg = (
+                    np.concatenate([a, np.empty_like(a)]) for a in (t, seg_p, seg_q, joint_p,
+                                                                    angle_deg)
+                )  # fmt: skip
+            t[n] = log_time
+            seg_p[n] = [frame.segments[s][0] for s in segments]
+            seg_q[n] = [frame.segments[s][1] for s in segments]
+            joint_p[n] = [frame.joints_m.get(j, nan3) for j in joints]
+            angle_deg[n] = [frame.angles_deg.get(a, np.nan) for a in angles]
+            n += 1
             bar.update()
-    if not times:
+    if not n:
         raise StoreError(f"{recording}: no poses on {keys.pose_key()} to export "
                          "(raw samples only? process the capture first)")  # fmt: skip
-    t = np.array(times, dtype=np.int64)
+    t = t[:n]
     # ticks that carry no newer sample repeat a time: keep the last pose of each
     _, last_first = np.unique(t[::-1], return_index=True)
-    keep = len(t) - 1 - last_first
-    return PoseTrack(t[keep], segments, np.array(seg_p)[keep], np.array(seg_q)[keep], joints,
-                     np.array(joint_p)[keep], angles, np.array(angle_rows)[keep])  # fmt: skip
+    keep = n - 1 - last_first
+    return PoseTrack(t[keep], segments, seg_p[keep], seg_q[keep], joints, joint_p[keep], angles,
+                     angle_deg[keep])  # fmt: skip
 
 
 def resample(track: PoseTrack, rate_hz: float) -> PoseTrack:
