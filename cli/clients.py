@@ -158,13 +158,13 @@ def cmd_record(args: argparse.Namespace) -> int:
     try:
         while not stop.wait(1.0):
             elapsed = time.monotonic() - start
-            print(f"\\rrecording {recorder.files[-1]}: {recorder.messages} messages, "
+            print(f"\rrecording {recorder.files[-1]}: {recorder.messages} messages, "
                   f"{elapsed:.0f} s, {recorder.messages / elapsed:.0f}/s", end="",
                   file=sys.stderr, flush=True)  # fmt: skip
     finally:
         recorder.close()
         session.close()
-    print(f"\\nbodynet record: {recorder.messages} messages in "
+    print(f"\nbodynet record: {recorder.messages} messages in "
           f"{', '.join(map(str, recorder.files))}", file=sys.stderr)  # fmt: skip
     return 0
 
