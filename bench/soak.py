@@ -56,7 +56,9 @@ def run(minutes: float = 10.0, out_dir: Path = Path("bench-results"),
         record = Path(tmp) / "soak.mcap"
         rec = procs.start("record", "-o", str(record), "-e", endpoint)
         inbox.wait(lambda k, v: True, 120, "the gateway's health")  # it has started
-        feeder = ctx.Process(target=gateway_bench._feed, args=(endpoint, seconds, sent, ready))
+        feeder = ctx.Process(
+            target=gateway_bench._feed, args=(endpoint, seconds, sent, ready, range(1), 1)
+        )
         feeder.start()
         watched = {"gateway": psutil.Process(gw.pid), "recorder": psutil.Process(rec.pid)}
         rss: dict[str, list[int]] = {name: [] for name in watched}

@@ -10,6 +10,10 @@ MCAP tools (Foxglove, the ``mcap`` CLI) can open and plot them:
 - ``body/<limb>/<side>/<site>/truth``: schema ``bodynet.Truth``, an emulator's
   ground truth as it publishes it (``t_ns``, ``angles_deg``, ``segment``,
   ``segment_quat_wxyz``), when the recording asked for it.
+- ``body/tf``: schema ``foxglove.FrameTransforms`` (Foxglove's well-known
+  schema, JSON), one message per ``body/pose``: the pelvis in frame ``world``,
+  every other segment in its parent segment (``body_tree``), so Foxglove's 3D
+  panel shows the skeleton's frames without any setup.
 
 Log time is the sample's source time in ns (for a processed capture, the
 capture's own time base). Files are created readable by the owner only: this
@@ -30,7 +34,10 @@ from mcap.exceptions import McapError
 from mcap.reader import make_reader
 from mcap.writer import CompressionType, Writer
 
+from bodynet.clients.body_tree import frame_transforms_json, segment_parents
+from bodynet.core import keys
 from bodynet.core.codecs import pose
+from bodynet.core.errors import DecodeError
 from bodynet.core.messages import OleAccel, RawSample
 
 POSE_SCHEMA = {
@@ -73,6 +80,54 @@ TRUTH_SCHEMA = {
     },
 }
 
+_VECTOR3 = {
+    "title": "foxglove.Vector3",
+    "type": "object",
+    "properties": {a: {"type": "number"} for a in "xyz"},
+    "required": list("xyz"),
+}
+_QUATERNION = {
+    "title": "foxglove.Quaternion",
+    "type": "object",
+    "properties": {a: {"type": "number"} for a in "xyzw"},
+    "required": list("xyzw"),
+}
+#: Foxglove's ``foxglove.FrameTransforms`` in its JSON Schema form (the layout
+#: of Foxglove's published jsonschema; descriptions left out). Foxglove knows
+#: the message by the schema name and reads ``translation`` then ``rotation``
+#: as the child frame's pose in its parent.
+FRAME_TRANSFORMS_SCHEMA = {
+    "title": "foxglove.FrameTransforms",
+    "type": "object",
+    "properties": {
+        "transforms": {
+            "type": "array",
+            "items": {
+                "title": "foxglove.FrameTransform",
+                "type": "object",
+                "properties": {
+                    "timestamp": {
+                        "title": "time",
+                        "type": "object",
+                        "properties": {
+                            "sec": {"type": "integer", "minimum": 0},
+                            "nsec": {"type": "integer", "minimum": 0, "maximum": 999_999_999},
+                        },
+                    },
+                    "parent_frame_id": {"type": "string"},
+                    "child_frame_id": {"type": "string"},
+                    "translation": _VECTOR3,
+                    "rotation": _QUATERNION,
+                },
+                "required": ["timestamp", "parent_frame_id", "child_frame_id", "translation",
+                             "rotation"],
+            },
+        }
+    },
+    "required": ["transforms"],
+}  # fmt: skip
+WORLD_FRAME = "world"
+
 
 class StoreError(RuntimeError):
     """An MCAP file that cannot be read as bodynet data, with the reason."""
@@ -90,9 +145,10 @@ def raw_json(sample: RawSample) -> dict[str, Any]:
 
 
 class McapSink:
-    """Writes poses and raw samples to one MCAP file. A chunk is closed and
-    flushed once it holds ``chunk_size`` bytes or is ``max_chunk_s`` old, so a
-    writer killed mid-file loses at most that much (see :func:`salvage`)."""
+    """Writes poses and raw samples to one MCAP file; each whole-body pose
+    (``body/pose``) also as Foxglove frame transforms on ``body/tf``. A chunk is
+    closed and flushed once it holds ``chunk_size`` bytes or is ``max_chunk_s``
+    old, so a writer killed mid-file loses at most that much (see :func:`salvage`)."""
 
     def __init__(self, path: Path, chunk_size: int = 64 * 1024, max_chunk_s: float = 0.5) -> None:
         fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
@@ -106,7 +162,10 @@ class McapSink:
                                                 json.dumps(RAW_SCHEMA).encode()),
             "truth": self._writer.register_schema("bodynet.Truth", "jsonschema",
                                                   json.dumps(TRUTH_SCHEMA).encode()),
+            "tf": self._writer.register_schema("foxglove.FrameTransforms", "jsonschema",
+                                               json.dumps(FRAME_TRANSFORMS_SCHEMA).encode()),
         }  # fmt: skip
+        self._parents = segment_parents()
         self._channels: dict[str, int] = {}
         self.messages = 0
         self._max_chunk_s = max_chunk_s
@@ -126,6 +185,11 @@ class McapSink:
         pose again costs twice as much as decoding it)."""
         data = pose.encode(frame) if data is None else data
         self._add(self._channel(topic, "pose"), log_time_ns, data)
+        if topic == keys.pose_key():
+            tf = frame_transforms_json(frame.segments, log_time_ns, self._parents,
+                                       WORLD_FRAME)  # fmt: skip
+            self._add(self._channel(keys.TRANSFORMS, "tf"), log_time_ns,
+                      json.dumps(tf, separators=(",", ":")).encode())  # fmt: skip
 
     def write_raw(self, topic: str, sample: RawSample, log_time_ns: int) -> None:
         data = json.dumps(raw_json(sample), separators=(",", ":")).encode()
@@ -141,9 +205,7 @@ class McapSink:
 
     def write_truth(self, topic: str, truth_json: bytes, log_time_ns: int) -> None:
         """An emulator's ground-truth message, as published (JSON bytes)."""
-        self._writer.add_message(self._channel(topic, "truth"), log_time_ns, truth_json,
-                                 log_time_ns)  # fmt: skip
-        self.messages += 1
+        self._add(self._channel(topic, "truth"), log_time_ns, truth_json)
 
     def close(self) -> None:
         self._writer.finish()
@@ -151,14 +213,26 @@ class McapSink:
 
 
 def read_poses(path: Path, topic: str = "body/pose") -> Iterator[tuple[int, pose.PoseFrame]]:
-    """(log time ns, pose) of every message on ``topic``, in log-time order."""
+    """(log time ns, pose) of every message on ``topic``, in log-time order;
+    ``StoreError`` at a message that is not a pose."""
     for _, _, message in _messages(path, [topic]):
-        yield message.log_time, pose.decode(message.data)
+        try:
+            frame = pose.decode(message.data)
+        except DecodeError as exc:
+            raise StoreError(
+                f"{path}: the message on {topic} at {message.log_time} ns is not a bodynet "
+                f"pose ({exc})"
+            ) from None
+        yield message.log_time, frame
 
 
 def _messages(path: Path, topics: Iterable[str] | None) -> Iterator[Any]:
     try:
-        with path.open("rb") as f:
+        f = path.open("rb")
+    except OSError as exc:
+        raise StoreError(f"{path}: cannot read it ({exc.strerror})") from None
+    try:
+        with f:
             yield from make_reader(f).iter_messages(topics=None if topics is None else list(topics))
     # the mcap reader raises struct.error, not an McapError, on some truncated files
     except (McapError, ValueError, EOFError, OSError, struct.error) as exc:
@@ -203,15 +277,24 @@ def read_truth(path: Path) -> Iterator[tuple[str, int, dict[str, float]]]:
             yield channel.topic, message.log_time, values
 
 
-def count_messages(path: Path) -> int:
-    """Messages in a recording, from its summary (0 if it has none)."""
+def count_messages(path: Path, topic: str | None = None) -> int:
+    """Messages in a recording (or on one topic), from its summary (0 if it has none)."""
     try:
-        with path.open("rb") as f:
+        f = path.open("rb")
+    except OSError as exc:
+        raise StoreError(f"{path}: cannot read it ({exc.strerror})") from None
+    try:
+        with f:
             summary = make_reader(f).get_summary()
     except (McapError, ValueError, EOFError, OSError, struct.error) as exc:
         raise StoreError(f"{path}: not a complete MCAP file ({exc})") from None
     stats = summary.statistics if summary is not None else None
-    return int(stats.message_count) if stats is not None else 0
+    if stats is None or summary is None:
+        return 0
+    if topic is None:
+        return int(stats.message_count)
+    return sum(int(stats.channel_message_counts.get(cid, 0))
+               for cid, ch in summary.channels.items() if ch.topic == topic)  # fmt: skip
 
 
 def salvage(src: Path, dst: Path) -> int:

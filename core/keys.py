@@ -151,6 +151,11 @@ def all_poses() -> str:
     return f"{ROOT}/**/{POSE}"
 
 
+#: MCAP topic of the segment transforms derived from ``body/pose`` (Foxglove's
+#: ``foxglove.FrameTransforms``). Written into recordings only, never published.
+TRANSFORMS = f"{ROOT}/tf"
+
+
 #: Admin keys start with a verbatim chunk (``@...``), which Zenoh wildcards never
 #: match: ``body/**`` gets data only, and admin traffic is asked for by name.
 HEALTH = f"{ROOT}/@health"
