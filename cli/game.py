@@ -13,7 +13,7 @@ DEFAULT_HTTP_PORT = 8088
 
 def cmd_game(args: argparse.Namespace) -> int:
     from bodynet.cli.nodes import stop_on_signals
-    from bodynet.clients.game import run_game
+    from bodynet.clients.game import ResultsFile, listen_socket, run_game
     from bodynet.clients.rehab import GameError, RehabGame
 
     try:
@@ -27,18 +27,30 @@ def cmd_game(args: argparse.Namespace) -> int:
     def announce(url: str) -> None:
         print(f"bodynet game: {url}", flush=True)
 
+    # the page's address and the results folder first: a mistake there is told at
+    # once, not after waiting for the router
+    try:
+        sock = listen_socket(args.http_host, args.http_port)
+    except OSError as exc:
+        print(f"bodynet game: cannot serve on {args.http_host}:{args.http_port}: "
+              f"{exc.strerror or exc}", file=sys.stderr)  # fmt: skip
+        return 2
+    try:
+        results = ResultsFile(args.results, game.side)
+    except OSError as exc:
+        sock.close()
+        print(f"bodynet game: cannot write results in {args.results}: {exc.strerror or exc}",
+              file=sys.stderr)  # fmt: skip
+        return 2
     stop = stop_on_signals()
     session = open_session(config_from_args(args))
     try:
-        run_game(session, stop, game, args.results, args.http_host, args.http_port, announce)
-    except OSError as exc:
-        print(
-            f"bodynet game: cannot serve on {args.http_host}:{args.http_port} "
-            f"or write {args.results}: {exc.strerror or exc}",
-            file=sys.stderr,
-        )
+        run_game(session, stop, game, results, sock, args.http_host, announce)
+    except OSError as exc:  # the results folder went away mid-session
+        print(f"bodynet game: {exc}", file=sys.stderr)
         return 2
     finally:
+        sock.close()
         session.close()
     summary = game.summary()
     print(

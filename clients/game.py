@@ -33,6 +33,7 @@ import io
 import json
 import logging
 import os
+import socket
 import threading
 import time
 from collections.abc import Callable
@@ -193,18 +194,16 @@ class GameServer:
                 await ws.send_str(json.dumps(self._results_message(), separators=(",", ":")))
             await ws.send_str(state)
 
-    async def serve(self, host: str, port: int, stop: threading.Event,
+    async def serve(self, sock: socket.socket, host: str, stop: threading.Event,
                     announce: Callable[[str], None]) -> None:  # fmt: skip
-        """Serve until ``stop`` is set; ``announce(url)`` once listening."""
+        """Serve on ``sock`` until ``stop`` is set; ``announce(url)`` once serving."""
         key = self.subscribe(asyncio.get_running_loop())
         runner = web.AppRunner(self.app, handle_signals=False, access_log=None)
         await runner.setup()
         try:
-            site = web.TCPSite(runner, host, port)
-            await site.start()
-            bound = runner.addresses[0][1] if runner.addresses else port
+            await web.SockSite(runner, sock).start()
             log.info("game: subscribed to %s", key)
-            announce(f"http://{_url_host(host)}:{bound}/")
+            announce(f"http://{_url_host(host)}:{sock.getsockname()[1]}/")
             while not stop.is_set():
                 await self._broadcast()
                 await asyncio.sleep(FRAME_S)
@@ -223,13 +222,17 @@ def _url_host(host: str) -> str:
     return f"[{host}]" if ":" in host else host
 
 
-def run_game(session: zenoh.Session, stop: threading.Event, game: RehabGame, results_dir: Path,
-             host: str, port: int, announce: Callable[[str], None]) -> RehabGame:  # fmt: skip
-    """Serve the game until ``stop`` is set; results go to ``results_dir``.
+def listen_socket(host: str, port: int) -> socket.socket:
+    """The page's listening socket, bound before anything else starts (``OSError``
+    if the address is taken or not this machine's); port 0 picks a free one."""
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    return socket.create_server((host, port), family=family)
 
-    Raises ``OSError`` if the HTTP address cannot be bound (nothing is written then
-    but the results folder)."""
-    results = ResultsFile(results_dir, game.side)
+
+def run_game(session: zenoh.Session, stop: threading.Event, game: RehabGame,
+             results: ResultsFile, sock: socket.socket, host: str,
+             announce: Callable[[str], None]) -> RehabGame:  # fmt: skip
+    """Serve the game on ``sock`` until ``stop`` is set, saving to ``results``."""
     server = GameServer(session, game, results)
-    asyncio.run(server.serve(host, port, stop, announce))
+    asyncio.run(server.serve(sock, host, stop, announce))
     return game

@@ -14,6 +14,7 @@ import os
 import queue
 import shutil
 import signal
+import socket
 import subprocess
 import sys
 import threading
@@ -188,6 +189,24 @@ def test_bad_options_are_refused_cleanly() -> None:
     assert out.returncode == 2
     assert "must be above 0" in out.stderr
     assert "Traceback" not in out.stderr
+
+
+def test_a_taken_port_or_unwritable_results_are_told_at_once(tmp_path: Path) -> None:
+    no_router = "tcp/127.0.0.1:1"  # never reached: the mistakes are told before that
+    (tmp_path / "file").write_text("")
+    with socket.create_server(("127.0.0.1", 0)) as taken:
+        port = str(taken.getsockname()[1])
+        for args, told in (
+            (["--http-port", port, "--results", str(tmp_path / "r")], "cannot serve on"),
+            (["--http-port", "0", "--results", str(tmp_path / "file" / "r")],
+             "cannot write results"),
+        ):  # fmt: skip
+            out = subprocess.run([*BODYNET, "game", "-e", no_router, *args], capture_output=True,
+                                 text=True, timeout=60, check=False)  # fmt: skip
+            assert out.returncode == 2
+            assert told in out.stderr
+            assert "Traceback" not in out.stderr
+            assert out.stdout == ""
 
 
 # --- the whole chain in a real browser ---------------------------------------------------
