@@ -178,9 +178,16 @@ class _Body:
         self.first_new, self.force = None, False
         return latest, stale, self.solver
 
-    def publish(self, frame: pose.PoseFrame) -> None:
-        self.body_pub.put(pose.encode(frame))
-        for branch, view in branch_views(frame, self.branch_pubs).items():
+    def listened(self) -> tuple[bool, list[Branch]]:
+        """Whether anyone subscribes to the whole body, and to which branch views:
+        a message nobody matches is not built (Zenoh's matching status)."""
+        wanted = [b for b, pub in self.branch_pubs.items() if pub.matching_status.matching]
+        return self.body_pub.matching_status.matching, wanted
+
+    def publish(self, frame: pose.PoseFrame, body: bool, branches: list[Branch]) -> None:
+        if body:
+            self.body_pub.put(pose.encode(frame))
+        for branch, view in branch_views(frame, branches).items():
             self.branch_pubs[branch].put(pose.encode(view))
 
     def topology(self, now: float) -> dict[str, object]:
@@ -465,7 +472,9 @@ class Gateway:
                 log.exception("gateway: a tick failed (%d so far)", self.solver_errors)
             return
         body.ticks += 1
-        body.publish(pose_frame(output, body.ticks, stale))
+        whole, branches = body.listened()
+        if whole or branches:
+            body.publish(pose_frame(output, body.ticks, stale), whole, branches)
 
     def health(self, body: _Body | None = None) -> dict[str, object]:
         """Counters of the gateway (and of one body's share of it)."""
