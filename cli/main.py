@@ -15,6 +15,7 @@ from pathlib import Path
 from bodynet.cli import clients as clients_cli
 from bodynet.cli import gateway as gateway_cli
 from bodynet.cli import nodes as nodes_cli
+from bodynet.cli import security as security_cli
 from bodynet.nodes.captures import CaptureStats, Format, read_capture, sample_json
 from bodynet.nodes.motion import ROUTINES
 from bodynet.session import DEFAULT_ROUTER, add_session_args, config_from_args, open_session
@@ -113,6 +114,7 @@ def build_parser() -> argparse.ArgumentParser:
     gateway_cli.add_process_parser(sub)
     clients_cli.add_parsers(sub)
     clients_cli.add_record_parsers(sub)
+    security_cli.add_parsers(sub)
 
     p = sub.add_parser("router", help="a Zenoh router for the body network (no zenohd needed)")
     add_session_args(p, default_mode="router")
