@@ -191,9 +191,11 @@ def test_certs_on_a_file_is_a_clear_error(tmp_path: Path) -> None:
         make_certs(tmp_path / "f", ["alice"])
 
 
-def test_the_documented_router_config_is_what_certs_writes() -> None:
+def test_the_documented_router_config_is_what_certs_writes(tmp_path: Path) -> None:
     text = (DEPLOY / "router-secure.json5").read_text()
     assert text == router_text(Path("/etc/bodynet/certs"), ["alice"], users=False)
+    make_certs(tmp_path / "certs", ["alice"], router_path=Path("/etc/bodynet/certs"))
+    assert Layout(tmp_path / "certs").config("router").read_text() == text
     conf = zenoh.Config.from_file(str(DEPLOY / "router-secure.json5"))  # Zenoh reads it
     assert json.loads(conf.get_json("access_control/default_permission")) == "deny"
     assert json.loads(conf.get_json("listen/endpoints")) == ["tls/0.0.0.0:7447"]
