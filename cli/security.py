@@ -9,6 +9,23 @@ from pathlib import Path
 from bodynet.core.keys import KeySpaceError
 
 
+def _positive(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a positive whole number")
+    return value
+
+
+def _port(text: str) -> int:
+    value = _positive(text)
+    if value > 65535:
+        raise argparse.ArgumentTypeError(f"{value} is not a port (1-65535)")
+    return value
+
+
 def cmd_certs(args: argparse.Namespace) -> int:
     from bodynet.session.certs import CertError
     from bodynet.session.security import Layout, SecurityError, make_certs
@@ -55,9 +72,9 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
                         "client configs)")  # fmt: skip
     p.add_argument("--users", action="store_true",
                    help="also require a user name and password (one per identity)")  # fmt: skip
-    p.add_argument("--port", type=int, default=7447, help="router port (default 7447)")
+    p.add_argument("--port", type=_port, default=7447, help="router port (default 7447)")
     p.add_argument("--router-path", type=Path, default=None, metavar="PATH",
                    help="where DIR will be on the router's machine, for the paths in its config "
                         "(default: DIR)")  # fmt: skip
-    p.add_argument("--days", type=int, default=825, help="validity of the certificates")
+    p.add_argument("--days", type=_positive, default=825, help="validity of the certificates")
     p.set_defaults(func=cmd_certs)
