@@ -19,6 +19,13 @@ def _positive(text: str) -> int:
     return value
 
 
+def _days(text: str) -> int:
+    value = _positive(text)
+    if value > 36500:
+        raise argparse.ArgumentTypeError(f"{value} days is more than a hundred years")
+    return value
+
+
 def _port(text: str) -> int:
     value = _positive(text)
     if value > 65535:
@@ -76,5 +83,5 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
     p.add_argument("--router-path", type=Path, default=None, metavar="PATH",
                    help="where DIR will be on the router's machine, for the paths in its config "
                         "(default: DIR)")  # fmt: skip
-    p.add_argument("--days", type=_positive, default=825, help="validity of the certificates")
+    p.add_argument("--days", type=_days, default=825, help="validity of the certificates")
     p.set_defaults(func=cmd_certs)

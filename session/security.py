@@ -21,6 +21,8 @@ from __future__ import annotations
 
 import json
 import secrets
+import shutil
+import tempfile
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from enum import StrEnum
@@ -390,17 +392,45 @@ def make_certs(
     for host in all_hosts:
         certs.general_name(host)  # a bad name fails here, before anything is written
     made = Made(subjects=subjects)
-    root.mkdir(mode=0o700, parents=True, exist_ok=True)
+    if manifest is not None:
+        _fill(layout, root, made, hosts, all_hosts, users, port, router_path, days)
+        return made
+    # a new directory is made beside its place and renamed into it when whole
+    root.parent.mkdir(parents=True, exist_ok=True)
+    work = Path(tempfile.mkdtemp(dir=root.parent, prefix=f".{root.name}."))  # 0700
+    try:
+        _fill(Layout(work), root, made, hosts, all_hosts, users, port, router_path, days)
+        if root.exists():
+            root.rmdir()  # empty, as _read_manifest checked
+        work.rename(root)
+    except BaseException:
+        shutil.rmtree(work, ignore_errors=True)
+        raise
+    return made
 
+
+def _fill(
+    layout: Layout,
+    root: Path,
+    made: Made,
+    hosts: Sequence[str],
+    all_hosts: tuple[str, ...],
+    users: bool,
+    port: int,
+    router_path: Path | None,
+    days: int,
+) -> None:
+    """Write what is missing into ``layout``, a directory that will be at ``root``."""
+    subjects = made.subjects
     ca = _ca(layout, made, days * 4)
     router = _pair(layout, ROUTER, made, lambda: certs.issue(ca, ROUTER, hosts=all_hosts,
                                                              server=True, days=days))  # fmt: skip
     missing = [h for h in all_hosts if h not in certs.cert_hosts(router.cert)]
     if missing:
         raise SecurityError(
-            f"{layout.cert(ROUTER)} is not valid for {', '.join(missing)} "
+            f"{Layout(root).cert(ROUTER)} is not valid for {', '.join(missing)} "
             f"(it names {', '.join(certs.cert_hosts(router.cert))}); remove "
-            f"{layout.folder(ROUTER)} and run again to reissue it"
+            f"{Layout(root).folder(ROUTER)} and run again to reissue it"
         )
     passwords = _read_users(layout) if users else {}
     ca_pem = ca.cert_pem()
@@ -410,7 +440,7 @@ def make_certs(
         if users and ident.name not in passwords:
             passwords[ident.name] = secrets.token_urlsafe(18)
         conf = client_config(pair, ca_pem, ident, endpoint, passwords.get(ident.name))
-        header = f"bodynet identity {ident}: use with -c {layout.config(ident.name)}"
+        header = f"bodynet identity {ident}: use with -c {Layout(root).config(ident.name)}"
         certs.write_private(layout.config(ident.name), render(conf, header).encode())
     if users:
         text = "".join(f"{name}:{pw}\n" for name, pw in sorted(passwords.items()))
@@ -418,8 +448,8 @@ def make_certs(
     text = router_text(router_path or root.resolve(), subjects, users, port)
     certs.write_private(layout.config(ROUTER), text.encode())
     info = {"subjects": subjects, "hosts": list(hosts), "users": users, "port": port}
+    # the manifest last: a directory without one was never finished
     certs.write_private(layout.manifest, (json.dumps(info, indent=2) + "\n").encode())
-    return made
 
 
 def _read_manifest(layout: Layout) -> dict[str, Any] | None:

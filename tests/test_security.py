@@ -185,6 +185,12 @@ def test_certs_refuses_clearly_and_leaves_the_directory_as_it_was(
     assert {p: p.read_bytes() for p in root.rglob("*") if p.is_file()} == before
 
 
+def test_a_new_directory_appears_whole_or_not_at_all(tmp_path: Path) -> None:
+    with pytest.raises(OverflowError):  # the CA's end date is past the year 9999
+        make_certs(tmp_path / "certs", ["alice"], days=10**6)
+    assert list(tmp_path.iterdir()) == []  # no half-made directory, no temporary one
+
+
 def test_certs_on_a_file_is_a_clear_error(tmp_path: Path) -> None:
     (tmp_path / "f").write_text("x")
     with pytest.raises(SecurityError, match="not a directory"):
