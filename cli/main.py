@@ -17,6 +17,7 @@ from bodynet.cli import clients as clients_cli
 from bodynet.cli import game as game_cli
 from bodynet.cli import gateway as gateway_cli
 from bodynet.cli import nodes as nodes_cli
+from bodynet.cli import security as security_cli
 from bodynet.nodes.captures import CaptureStats, Format, read_capture, sample_json
 from bodynet.nodes.motion import ROUTINES
 from bodynet.session import DEFAULT_ROUTER, add_session_args, config_from_args, open_session
@@ -136,6 +137,7 @@ def build_parser() -> argparse.ArgumentParser:
     clients_cli.add_record_parsers(sub)
     analysis_cli.add_parsers(sub)
     game_cli.add_parsers(sub)
+    security_cli.add_parsers(sub)
 
     p = sub.add_parser("router", help="a Zenoh router for the body network (no zenohd needed)")
     add_session_args(p, default_mode="router")

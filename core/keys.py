@@ -217,3 +217,18 @@ def split_subject(key: str) -> tuple[str | None, str]:
     if not sep or not rest.startswith(ROOT + "/"):
         raise KeySpaceError(f"not a bodynet key: {key!r}")
     return subject, rest
+
+
+def all_sites(stream: Stream) -> str:
+    """Key expression matching one stream of every site of a body, e.g. all truths."""
+    return f"{ROOT}/*/*/*/{stream}"
+
+
+def all_data() -> str:
+    """Every data key of a body (raw samples, truths, poses); never the ``@`` admin keys."""
+    return f"{ROOT}/**"
+
+
+def all_health() -> str:
+    """Every health key of a body: the bridges' and the gateway's."""
+    return f"{HEALTH}/**"
