@@ -20,7 +20,13 @@ from bodynet.cli import nodes as nodes_cli
 from bodynet.cli import security as security_cli
 from bodynet.nodes.captures import CaptureStats, Format, read_capture, sample_json
 from bodynet.nodes.motion import ROUTINES
-from bodynet.session import DEFAULT_ROUTER, add_session_args, config_from_args, open_session
+from bodynet.session import (
+    DEFAULT_ROUTER,
+    SessionError,
+    add_session_args,
+    config_from_args,
+    open_session,
+)
 
 log = logging.getLogger("bodynet")
 
@@ -56,7 +62,8 @@ def cmd_router(args: argparse.Namespace) -> int:
         args.listen = [DEFAULT_ROUTER]
     stop = stop_on_signals()
     session = open_session(config_from_args(args))
-    print(f"bodynet router listening on {', '.join(args.listen)}", flush=True)
+    where = ", ".join(args.listen) if args.listen else f"the endpoints of {args.config}"
+    print(f"bodynet router listening on {where}", flush=True)
     stop.wait()
     session.close()
     return 0
@@ -165,7 +172,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         level=(logging.WARNING, logging.INFO, logging.DEBUG)[min(args.verbose, 2)],
         format="%(asctime)s %(name)s %(levelname)s %(message)s",
     )
-    code: int = args.func(args)
+    try:
+        code: int = args.func(args)
+    except SessionError as exc:
+        print(f"bodynet {args.command}: {exc}", file=sys.stderr)
+        return 2
     return code
 
 
