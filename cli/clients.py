@@ -63,6 +63,8 @@ def cmd_view(args: argparse.Namespace) -> int:
     from bodynet.clients.mcap_store import StoreError
     from bodynet.clients.view import Viewer, view_live, view_recording
 
+    if args.connect_viewer is not None:
+        args.viewer, args.url = "connect", args.connect_viewer or args.url
     mode = args.viewer
     if mode == "auto":
         mode = (
@@ -104,6 +106,19 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
                         "viewer (--url); 'none' with --save writes the .rrd only")  # fmt: skip
     p.add_argument("--save", type=Path, help="also write the recording to this .rrd")
     p.add_argument("--url", help="with --viewer connect: the viewer's gRPC url")
+    # Rerun's usual script flags; its --connect is --connect-viewer here, because
+    # -e/--connect is Zenoh's, as on every bodynet command
+    p.add_argument("--serve-web", dest="viewer", action="store_const", const="web",
+                   help="same as --viewer web")  # fmt: skip
+    p.add_argument("--headless", dest="viewer", action="store_const", const="none",
+                   help="same as --viewer none (with --save: the .rrd only)")  # fmt: skip
+    p.add_argument(
+        "--connect-viewer",
+        metavar="URL",
+        nargs="?",
+        const="",
+        help="same as --viewer connect --url URL (default: Rerun's local viewer)",
+    )
     p.add_argument("--web-port", type=int, default=None, help="with --viewer web (default 9090)")
     p.add_argument("--grpc-port", type=int, default=None, help="with --viewer web (default 9876)")
     add_session_args(p)
