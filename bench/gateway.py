@@ -35,7 +35,8 @@ def subject(i: int, bodies: int) -> str:
     return "" if bodies == 1 else f"s{i:02d}/"
 
 
-def _feed(endpoint: str, seconds: float, sent: Any, ready: Any, bodies: range, total: int) -> None:
+def _feed(endpoint: str, seconds: float, sent: Any, ready: Any, bodies: range, total: int,
+          rate_hz: float = RATE_HZ) -> None:  # fmt: skip
     import zenoh
 
     from bodynet.core.codecs import raw_sample
@@ -47,7 +48,7 @@ def _feed(endpoint: str, seconds: float, sent: Any, ready: Any, bodies: range, t
     tags = imu_tags()
     body = BodyEmulator(ROUTINES["walk"], tags)
     frames = [
-        body.sample(k / RATE_HZ)[0] for k in range(int(RATE_HZ))
+        body.sample(k / rate_hz)[0] for k in range(int(rate_hz))
     ]  # a second of motion, looped
     block = zenoh.CongestionControl.BLOCK
     pubs = [
@@ -67,7 +68,7 @@ def _feed(endpoint: str, seconds: float, sent: Any, ready: Any, bodies: range, t
             with sent.get_lock():
                 sent.value += len(body_pubs)
         tick += 1
-        time.sleep(max(0.0, start + tick / RATE_HZ - time.monotonic()))
+        time.sleep(max(0.0, start + tick / rate_hz - time.monotonic()))
     session.close()
 
 
@@ -119,8 +120,9 @@ def _stats(lat: list[int]) -> dict[str, float]:
             "p99_ms": float(np.percentile(arr, 99))}  # fmt: skip
 
 
-def run_once(bodies: int, seconds: float) -> dict[str, Any]:
-    """One side-by-side run of relay and gateway fed ``bodies`` bodies."""
+def run_once(bodies: int, seconds: float, rate_hz: float = RATE_HZ) -> dict[str, Any]:
+    """One side-by-side run of relay and gateway fed ``bodies`` bodies, each
+    node sending ``rate_hz``."""
     import socket
 
     from bodynet.core.codecs import pose, raw_sample
@@ -140,7 +142,7 @@ def run_once(bodies: int, seconds: float) -> dict[str, Any]:
     # one feeder process per 10 bodies, so the feed keeps its rate
     feeders = [
         ctx.Process(target=_feed, args=(endpoint, seconds, sent, ready,
-                                        range(i, min(i + 10, bodies)), bodies))
+                                        range(i, min(i + 10, bodies)), bodies, rate_hz))
         for i in range(0, bodies, 10)
     ]  # fmt: skip
     for p in (relay, gateway, *feeders):
@@ -168,7 +170,7 @@ def run_once(bodies: int, seconds: float) -> dict[str, Any]:
     probe.close()
     router.close()
     r, g = _stats(relay_lat), _stats(pose_lat)
-    expected_poses = seconds * RATE_HZ * bodies
+    expected_poses = seconds * RATE_HZ * bodies  # the gateway ticks at 100 Hz at most
     return {
         "bodies": bodies, "sent": sent.value,
         "relay": {**r, "received": len(relay_lat), "lost": sent.value - len(relay_lat),
@@ -198,10 +200,13 @@ def run(
     seconds: float = 5.0,
     out_dir: Path = Path("bench-results"),
     bodies: tuple[int, ...] = (1, 5, 20, 50),
+    rate_hz: float = RATE_HZ,
+    name: str = "gateway",
 ) -> dict[str, Any]:
-    """Run the comparison for each number of bodies; print a table; write
-    ``gateway.json`` and ``gateway.md``."""
-    rows = [run_once(n, seconds) for n in bodies]
+    """Run the comparison for each number of bodies, each node sending
+    ``rate_hz``; print a table; write ``<name>.json`` and ``<name>.md``. The
+    first run's figures are also at the top level of the result."""
+    rows = [run_once(n, seconds, rate_hz) for n in bodies]
     best = {
         path: max((r["bodies"] for r in rows if sustained(r, path)), default=0)
         for path in ("relay", "gateway")
@@ -209,7 +214,8 @@ def run(
     result = {
         "machine": f"{platform.machine()}, {mp.cpu_count()} cores, "
         f"Python {platform.python_version()}",
-        "seconds": seconds, "rate_hz_per_node": RATE_HZ, "nodes_per_body": 15,
+        "seconds": seconds, "rate_hz_per_node": rate_hz, "nodes_per_body": 15,
+        **{k: rows[0][k] for k in ("sent", "relay", "gateway", "p50_ratio", "p99_ratio")},
         "runs": rows, "sustained_bodies": best,
         "sustained_ratio": best["gateway"] / best["relay"] if best["relay"] else None,
     }  # fmt: skip
@@ -232,9 +238,9 @@ def run(
         f"\n\nSustained with zero loss: relay {best['relay']} bodies, "
         f"gateway {best['gateway']} bodies (at least 90% of ticks delivered).\n"
     )
-    print(f"Gateway vs bare relay (15 nodes x {RATE_HZ:g} Hz per body), {seconds:g} s each, "
+    print(f"Gateway vs bare relay (15 nodes x {rate_hz:g} Hz per body), {seconds:g} s each, "
           f"{result['machine']}\n\n{table}")  # fmt: skip
     out_dir.mkdir(parents=True, exist_ok=True)
-    (out_dir / "gateway.json").write_text(json.dumps(result, indent=2))
-    (out_dir / "gateway.md").write_text(table)
+    (out_dir / f"{name}.json").write_text(json.dumps(result, indent=2))
+    (out_dir / f"{name}.md").write_text(table)
     return result

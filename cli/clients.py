@@ -22,12 +22,49 @@ def cmd_export(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_export_frames(args: argparse.Namespace) -> int:
+    """``export bvh`` and ``export c3d``: poses on a regular frame grid."""
+    from bodynet.clients.export import load_track, resample
+    from bodynet.clients.mcap_store import StoreError
+    from bodynet.core.skeleton import build_skeleton
+    from bodynet.core.subject import ProfileError
+
+    if args.rate_hz is not None and not args.rate_hz > 0:
+        print(f"bodynet export: --rate-hz must be positive, not {args.rate_hz}", file=sys.stderr)
+        return 2
+    try:
+        track = load_track(args.recording, progress=not args.quiet)
+        rate = args.rate_hz or track.measured_rate_hz()
+        track = resample(track, rate)
+        if args.kind == "bvh":
+            from bodynet.clients.bvh import write_bvh
+
+            lengths = None
+            if args.profile:
+                from bodynet.gateway import profile_file
+
+                lengths = profile_file.load(args.profile).lengths
+            frames = write_bvh(track, rate, args.output, build_skeleton(lengths), args.up,
+                               args.units)  # fmt: skip
+        else:
+            from bodynet.clients.c3d_export import write_c3d
+
+            frames = write_c3d(track, rate, args.output)
+    except (StoreError, ProfileError, OSError) as exc:
+        print(f"bodynet export: {exc}", file=sys.stderr)
+        return 2
+    print(f"{frames} frames at {rate:g} Hz -> {args.output}", file=sys.stderr)
+    return 0
+
+
 def cmd_view(args: argparse.Namespace) -> int:
     import os
 
     from bodynet.clients.mcap_store import StoreError
     from bodynet.clients.view import Viewer, view_live, view_recording
 
+    if args.connect_viewer is not None:
+        args.viewer, args.url = "connect", args.connect_viewer or args.url
     mode = args.viewer
     if mode == "auto":
         mode = (
@@ -69,6 +106,19 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
                         "viewer (--url); 'none' with --save writes the .rrd only")  # fmt: skip
     p.add_argument("--save", type=Path, help="also write the recording to this .rrd")
     p.add_argument("--url", help="with --viewer connect: the viewer's gRPC url")
+    # Rerun's usual script flags; its --connect is --connect-viewer here, because
+    # -e/--connect is Zenoh's, as on every bodynet command
+    p.add_argument("--serve-web", dest="viewer", action="store_const", const="web",
+                   help="same as --viewer web")  # fmt: skip
+    p.add_argument("--headless", dest="viewer", action="store_const", const="none",
+                   help="same as --viewer none (with --save: the .rrd only)")  # fmt: skip
+    p.add_argument(
+        "--connect-viewer",
+        metavar="URL",
+        nargs="?",
+        const="",
+        help="same as --viewer connect --url URL (default: Rerun's local viewer)",
+    )
     p.add_argument("--web-port", type=int, default=None, help="with --viewer web (default 9090)")
     p.add_argument("--grpc-port", type=int, default=None, help="with --viewer web (default 9876)")
     add_session_args(p)
@@ -80,6 +130,24 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
     c.add_argument("recording", type=Path, help="an MCAP file with poses")
     c.add_argument("-o", "--output", type=Path, required=True)
     c.set_defaults(func=cmd_export)
+    b = esub.add_parser("bvh", help="BVH motion (Blender, MotionBuilder...): the body model's "
+                                    "hierarchy, segment rotations per frame")  # fmt: skip
+    c = esub.add_parser("c3d", help="C3D (biomechanics): joint centres in mm and joint angles "
+                                    "as angle points")  # fmt: skip
+    for e in (b, c):
+        e.add_argument("recording", type=Path, help="an MCAP file with poses")
+        e.add_argument("-o", "--output", type=Path, required=True)
+        e.add_argument("--rate-hz", type=float, default=None,
+                       help="frame rate (default: the recording's own tick rate)")  # fmt: skip
+        e.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+        e.set_defaults(func=cmd_export_frames)
+    b.add_argument("--up", choices=("y", "z"), default="y",
+                   help="y: the Biovision convention (Y up, facing +Z); z: bodynet's axes "
+                        "(X forward, Z up)")  # fmt: skip
+    b.add_argument("--units", choices=("m", "cm"), default="m")
+    b.add_argument(
+        "--profile", type=Path, help="subject profile: lengths of hands, feet, head (End Sites)"
+    )
 
 
 def cmd_record(args: argparse.Namespace) -> int:
@@ -105,13 +173,13 @@ def cmd_record(args: argparse.Namespace) -> int:
     try:
         while not stop.wait(1.0):
             elapsed = time.monotonic() - start
-            print(f"\\rrecording {recorder.files[-1]}: {recorder.messages} messages, "
+            print(f"\rrecording {recorder.files[-1]}: {recorder.messages} messages, "
                   f"{elapsed:.0f} s, {recorder.messages / elapsed:.0f}/s", end="",
                   file=sys.stderr, flush=True)  # fmt: skip
     finally:
         recorder.close()
         session.close()
-    print(f"\\nbodynet record: {recorder.messages} messages in "
+    print(f"\nbodynet record: {recorder.messages} messages in "
           f"{', '.join(map(str, recorder.files))}", file=sys.stderr)  # fmt: skip
     return 0
 

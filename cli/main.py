@@ -12,12 +12,21 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
+from bodynet.cli import analysis as analysis_cli
 from bodynet.cli import clients as clients_cli
+from bodynet.cli import game as game_cli
 from bodynet.cli import gateway as gateway_cli
 from bodynet.cli import nodes as nodes_cli
+from bodynet.cli import security as security_cli
 from bodynet.nodes.captures import CaptureStats, Format, read_capture, sample_json
 from bodynet.nodes.motion import ROUTINES
-from bodynet.session import DEFAULT_ROUTER, add_session_args, config_from_args, open_session
+from bodynet.session import (
+    DEFAULT_ROUTER,
+    SessionError,
+    add_session_args,
+    config_from_args,
+    open_session,
+)
 
 log = logging.getLogger("bodynet")
 
@@ -53,19 +62,39 @@ def cmd_router(args: argparse.Namespace) -> int:
         args.listen = [DEFAULT_ROUTER]
     stop = stop_on_signals()
     session = open_session(config_from_args(args))
-    print(f"bodynet router listening on {', '.join(args.listen)}", flush=True)
+    where = ", ".join(args.listen) if args.listen else f"the endpoints of {args.config}"
+    print(f"bodynet router listening on {where}", flush=True)
     stop.wait()
     session.close()
     return 0
 
 
-def cmd_bench(args: argparse.Namespace) -> int:
-    from bodynet.bench import decode, gateway
+BENCHMARKS = ("decode", "gateway", "peer", "rate", "recorder", "faults", "soak")
 
-    if args.only in (None, "decode"):
+
+def cmd_bench(args: argparse.Namespace) -> int:
+    from bodynet.bench import decode, faults, gateway, peer, recorder, report, soak
+
+    only = args.only or [b for b in BENCHMARKS if b != "soak"]  # the soak on demand
+    if "decode" in only:
         decode.run(seconds=args.seconds, out_dir=args.out)
-    if args.only in (None, "gateway"):
-        gateway.run(seconds=args.gateway_seconds, out_dir=args.out)
+    if "gateway" in only:
+        gateway.run(seconds=args.gateway_seconds, out_dir=args.out, bodies=tuple(args.bodies))
+    if "peer" in only:
+        peer.run(seconds=args.gateway_seconds, out_dir=args.out)
+    if "rate" in only:
+        gateway.run(seconds=args.gateway_seconds, out_dir=args.out, bodies=(1,),
+                    rate_hz=args.rate_hz, name="rate")  # fmt: skip
+    if "recorder" in only:
+        recorder.run(seconds=args.seconds, out_dir=args.out)
+    if "faults" in only:
+        faults.run(out_dir=args.out, repeat=args.repeat)
+    if "soak" in only:
+        result = soak.run(minutes=args.minutes, out_dir=args.out)
+        if not result["pass"]:
+            print("bodynet bench: the soak failed (loss or memory growth)", file=sys.stderr)
+            return 1
+    report.write(args.out)
     return 0
 
 
@@ -113,6 +142,9 @@ def build_parser() -> argparse.ArgumentParser:
     gateway_cli.add_process_parser(sub)
     clients_cli.add_parsers(sub)
     clients_cli.add_record_parsers(sub)
+    analysis_cli.add_parsers(sub)
+    game_cli.add_parsers(sub)
+    security_cli.add_parsers(sub)
 
     p = sub.add_parser("router", help="a Zenoh router for the body network (no zenohd needed)")
     add_session_args(p, default_mode="router")
@@ -121,7 +153,14 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("bench", help="benchmarks, side by side with their baselines")
     p.add_argument("--seconds", type=float, default=1.0, help="time per decode measurement")
     p.add_argument("--gateway-seconds", type=float, default=10.0, help="time of the gateway run")
-    p.add_argument("--only", choices=("decode", "gateway"), help="run one benchmark only")
+    p.add_argument("--bodies", type=int, nargs="+", default=[1, 5, 20, 50],
+                   help="numbers of bodies the gateway run is fed (default 1 5 20 50)")  # fmt: skip
+    p.add_argument("--only", action="append", choices=BENCHMARKS,
+                   help="run only this benchmark (repeatable; default all but soak)")  # fmt: skip
+    p.add_argument("--rate-hz", type=float, default=1000.0,
+                   help="per-node rate of the `rate` benchmark (default 1000)")  # fmt: skip
+    p.add_argument("--repeat", type=int, default=3, help="runs of each fault (worst reported)")
+    p.add_argument("--minutes", type=float, default=10.0, help="length of the soak")
     p.add_argument("--out", type=Path, default=Path("bench-results"))
     p.set_defaults(func=cmd_bench)
     return parser
@@ -133,7 +172,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         level=(logging.WARNING, logging.INFO, logging.DEBUG)[min(args.verbose, 2)],
         format="%(asctime)s %(name)s %(levelname)s %(message)s",
     )
-    code: int = args.func(args)
+    try:
+        code: int = args.func(args)
+    except SessionError as exc:
+        print(f"bodynet {args.command}: {exc}", file=sys.stderr)
+        return 2
     return code
 
 

@@ -19,9 +19,17 @@ log = logging.getLogger("bodynet")
 
 def stop_on_signals() -> threading.Event:
     """An event set by Ctrl-C or SIGTERM, for a service's main loop to wait on."""
+    from bodynet.session import is_opening
+
     stop = threading.Event()
+
+    def handler(*_: object) -> None:
+        stop.set()
+        if is_opening():  # still waiting for the router: nothing to close yet
+            raise SystemExit(0)
+
     for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
+        signal.signal(sig, handler)
     return stop
 
 

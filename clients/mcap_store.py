@@ -6,7 +6,14 @@ MCAP tools (Foxglove, the ``mcap`` CLI) can open and plot them:
 - ``body/pose`` and ``body/<limb>/<side>/pose``: schema ``bodynet.PoseFrame``,
   the gateway's pose message as it is;
 - ``body/<limb>/<side>/<site>/raw``: schema ``bodynet.RawSample``,
-  ``{node, seq, t_ns, source, encoder, accel}`` or ``{..., quat_wxyz}``.
+  ``{node, seq, t_ns, source, encoder, accel}`` or ``{..., quat_wxyz}``;
+- ``body/<limb>/<side>/<site>/truth``: schema ``bodynet.Truth``, an emulator's
+  ground truth as it publishes it (``t_ns``, ``angles_deg``, ``segment``,
+  ``segment_quat_wxyz``), when the recording asked for it.
+- ``body/tf``: schema ``foxglove.FrameTransforms`` (Foxglove's well-known
+  schema, JSON), one message per ``body/pose``: the pelvis in frame ``world``,
+  every other segment in its parent segment (``body_tree``), so Foxglove's 3D
+  panel shows the skeleton's frames without any setup.
 
 - ``@gaps``: schema ``bodynet.Gap``, one record per jump in a topic's
   sequence numbers the recorder saw (``topic``, ``after_seq``, ``missing``,
@@ -22,6 +29,7 @@ from __future__ import annotations
 import json
 import os
 import struct
+import time
 from collections.abc import Iterable, Iterator
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -31,7 +39,10 @@ from mcap.exceptions import McapError
 from mcap.reader import make_reader
 from mcap.writer import CompressionType, Writer
 
+from bodynet.clients.body_tree import frame_transforms_json, segment_parents
+from bodynet.core import keys
 from bodynet.core.codecs import pose
+from bodynet.core.errors import DecodeError
 from bodynet.core.messages import OleAccel, RawSample
 
 POSE_SCHEMA = {
@@ -63,6 +74,64 @@ RAW_SCHEMA = {
         "quat_wxyz": {"type": "array", "items": {"type": "number"}},
     },
 }
+TRUTH_SCHEMA = {
+    "title": "bodynet.Truth",
+    "type": "object",
+    "properties": {
+        "t_ns": {"type": "integer"},
+        "angles_deg": {"type": "object", "additionalProperties": {"type": "number"}},
+        "segment": {"type": "string"},
+        "segment_quat_wxyz": {"type": "array", "items": {"type": "number"}},
+    },
+}
+
+_VECTOR3 = {
+    "title": "foxglove.Vector3",
+    "type": "object",
+    "properties": {a: {"type": "number"} for a in "xyz"},
+    "required": list("xyz"),
+}
+_QUATERNION = {
+    "title": "foxglove.Quaternion",
+    "type": "object",
+    "properties": {a: {"type": "number"} for a in "xyzw"},
+    "required": list("xyzw"),
+}
+#: Foxglove's ``foxglove.FrameTransforms`` in its JSON Schema form (the layout
+#: of Foxglove's published jsonschema; descriptions left out). Foxglove knows
+#: the message by the schema name and reads ``translation`` then ``rotation``
+#: as the child frame's pose in its parent.
+FRAME_TRANSFORMS_SCHEMA = {
+    "title": "foxglove.FrameTransforms",
+    "type": "object",
+    "properties": {
+        "transforms": {
+            "type": "array",
+            "items": {
+                "title": "foxglove.FrameTransform",
+                "type": "object",
+                "properties": {
+                    "timestamp": {
+                        "title": "time",
+                        "type": "object",
+                        "properties": {
+                            "sec": {"type": "integer", "minimum": 0},
+                            "nsec": {"type": "integer", "minimum": 0, "maximum": 999_999_999},
+                        },
+                    },
+                    "parent_frame_id": {"type": "string"},
+                    "child_frame_id": {"type": "string"},
+                    "translation": _VECTOR3,
+                    "rotation": _QUATERNION,
+                },
+                "required": ["timestamp", "parent_frame_id", "child_frame_id", "translation",
+                             "rotation"],
+            },
+        }
+    },
+    "required": ["transforms"],
+}  # fmt: skip
+WORLD_FRAME = "world"
 
 GAP_SCHEMA = {
     "title": "bodynet.Gap",
@@ -107,9 +176,12 @@ def raw_json(sample: RawSample) -> dict[str, Any]:
 
 
 class McapSink:
-    """Writes poses and raw samples to one MCAP file."""
+    """Writes poses and raw samples to one MCAP file; each whole-body pose
+    (``body/pose``) also as Foxglove frame transforms on ``body/tf``. A chunk is
+    closed and flushed once it holds ``chunk_size`` bytes or is ``max_chunk_s``
+    old, so a writer killed mid-file loses at most that much (see :func:`salvage`)."""
 
-    def __init__(self, path: Path, chunk_size: int = 64 * 1024) -> None:
+    def __init__(self, path: Path, chunk_size: int = 64 * 1024, max_chunk_s: float = 0.5) -> None:
         fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
         self._stream = os.fdopen(fd, "wb")
         self._writer = Writer(self._stream, chunk_size=chunk_size, compression=CompressionType.ZSTD)
@@ -121,9 +193,16 @@ class McapSink:
                                                 json.dumps(RAW_SCHEMA).encode()),
             "gap": self._writer.register_schema("bodynet.Gap", "jsonschema",
                                                 json.dumps(GAP_SCHEMA).encode()),
+            "truth": self._writer.register_schema("bodynet.Truth", "jsonschema",
+                                                  json.dumps(TRUTH_SCHEMA).encode()),
+            "tf": self._writer.register_schema("foxglove.FrameTransforms", "jsonschema",
+                                               json.dumps(FRAME_TRANSFORMS_SCHEMA).encode()),
         }  # fmt: skip
+        self._parents = segment_parents()
         self._channels: dict[str, int] = {}
         self.messages = 0
+        self._max_chunk_s = max_chunk_s
+        self._chunk_opened = time.monotonic()
 
     def _channel(self, topic: str, kind: str) -> int:
         channel = self._channels.get(topic)
@@ -133,20 +212,37 @@ class McapSink:
             )
         return channel
 
-    def write_pose(self, topic: str, frame: pose.PoseFrame, log_time_ns: int) -> None:
-        self._writer.add_message(self._channel(topic, "pose"), log_time_ns, pose.encode(frame),
-                                 log_time_ns)  # fmt: skip
-        self.messages += 1
+    def write_pose(self, topic: str, frame: pose.PoseFrame, log_time_ns: int,
+                   data: bytes | None = None) -> None:  # fmt: skip
+        """``data``: the frame's message as received, stored as it is (encoding a
+        pose again costs twice as much as decoding it)."""
+        data = pose.encode(frame) if data is None else data
+        self._add(self._channel(topic, "pose"), log_time_ns, data)
+        if topic == keys.pose_key():
+            tf = frame_transforms_json(frame.segments, log_time_ns, self._parents,
+                                       WORLD_FRAME)  # fmt: skip
+            self._add(self._channel(keys.TRANSFORMS, "tf"), log_time_ns,
+                      json.dumps(tf, separators=(",", ":")).encode())  # fmt: skip
 
     def write_raw(self, topic: str, sample: RawSample, log_time_ns: int) -> None:
         data = json.dumps(raw_json(sample), separators=(",", ":")).encode()
-        self._writer.add_message(self._channel(topic, "raw"), log_time_ns, data, log_time_ns)
+        self._add(self._channel(topic, "raw"), log_time_ns, data)
+
+    def _add(self, channel: int, log_time_ns: int, data: bytes) -> None:
+        self._writer.add_message(channel, log_time_ns, data, log_time_ns)
         self.messages += 1
+        now = time.monotonic()
+        if now - self._chunk_opened >= self._max_chunk_s:
+            self._writer.flush()  # closes the open chunk: on disk, salvageable
+            self._chunk_opened = now
+
+    def write_truth(self, topic: str, truth_json: bytes, log_time_ns: int) -> None:
+        """An emulator's ground-truth message, as published (JSON bytes)."""
+        self._add(self._channel(topic, "truth"), log_time_ns, truth_json)
 
     def write_gap(self, gap: Gap) -> None:
         data = json.dumps(asdict(gap), separators=(",", ":")).encode()
-        self._writer.add_message(self._channel(GAPS_TOPIC, "gap"), gap.to_t_ns, data, gap.to_t_ns)
-        self.messages += 1
+        self._add(self._channel(GAPS_TOPIC, "gap"), gap.to_t_ns, data)
 
     def close(self) -> None:
         self._writer.finish()
@@ -154,14 +250,26 @@ class McapSink:
 
 
 def read_poses(path: Path, topic: str = "body/pose") -> Iterator[tuple[int, pose.PoseFrame]]:
-    """(log time ns, pose) of every message on ``topic``, in log-time order."""
+    """(log time ns, pose) of every message on ``topic``, in log-time order;
+    ``StoreError`` at a message that is not a pose."""
     for _, _, message in _messages(path, [topic]):
-        yield message.log_time, pose.decode(message.data)
+        try:
+            frame = pose.decode(message.data)
+        except DecodeError as exc:
+            raise StoreError(
+                f"{path}: the message on {topic} at {message.log_time} ns is not a bodynet "
+                f"pose ({exc})"
+            ) from None
+        yield message.log_time, frame
 
 
 def _messages(path: Path, topics: Iterable[str] | None) -> Iterator[Any]:
     try:
-        with path.open("rb") as f:
+        f = path.open("rb")
+    except OSError as exc:
+        raise StoreError(f"{path}: cannot read it ({exc.strerror})") from None
+    try:
+        with f:
             yield from make_reader(f).iter_messages(topics=None if topics is None else list(topics))
     # the mcap reader raises struct.error, not an McapError, on some truncated files
     except (McapError, ValueError, EOFError, OSError, struct.error) as exc:
@@ -202,15 +310,36 @@ def read_gaps(path: Path) -> list[Gap]:
         raise StoreError(f"{path}: a gap record that is not one ({exc})") from None
 
 
-def count_messages(path: Path) -> int:
-    """Messages in a recording, from its summary (0 if it has none)."""
+def read_truth(path: Path) -> Iterator[tuple[str, int, dict[str, float]]]:
+    """(topic, log time ns, true joint angles) of the ground truth a recording holds."""
+    for schema, channel, message in _messages(path, None):
+        if schema is not None and schema.name == "bodynet.Truth":
+            try:
+                angles = json.loads(message.data)["angles_deg"]
+                values = {str(k): float(v) for k, v in angles.items()}
+            except (ValueError, KeyError, TypeError, AttributeError) as exc:
+                raise StoreError(f"{path}: not a ground-truth message: {exc}") from None
+            yield channel.topic, message.log_time, values
+
+
+def count_messages(path: Path, topic: str | None = None) -> int:
+    """Messages in a recording (or on one topic), from its summary (0 if it has none)."""
     try:
-        with path.open("rb") as f:
+        f = path.open("rb")
+    except OSError as exc:
+        raise StoreError(f"{path}: cannot read it ({exc.strerror})") from None
+    try:
+        with f:
             summary = make_reader(f).get_summary()
     except (McapError, ValueError, EOFError, OSError, struct.error) as exc:
         raise StoreError(f"{path}: not a complete MCAP file ({exc})") from None
     stats = summary.statistics if summary is not None else None
-    return int(stats.message_count) if stats is not None else 0
+    if stats is None or summary is None:
+        return 0
+    if topic is None:
+        return int(stats.message_count)
+    return sum(int(stats.channel_message_counts.get(cid, 0))
+               for cid, ch in summary.channels.items() if ch.topic == topic)  # fmt: skip
 
 
 def salvage(src: Path, dst: Path) -> int:

@@ -14,6 +14,7 @@ recording says where it is incomplete.
 
 from __future__ import annotations
 
+import json
 import logging
 import threading
 import time
@@ -26,7 +27,7 @@ import zenoh.ext
 from bodynet.clients.mcap_store import Gap, McapSink
 from bodynet.core import keys
 from bodynet.core.codecs import pose, raw_sample
-from bodynet.core.errors import DecodeError, RejectCounts
+from bodynet.core.errors import DecodeError, Reason, RejectCounts
 
 log = logging.getLogger(__name__)
 
@@ -90,7 +91,9 @@ class Recorder:
                     frame = pose.decode(data)
                     t_ns = frame.t_ns or time.time_ns()
                     self._note_seq(key, frame.seq, t_ns)
-                    self._sink.write_pose(key, frame, t_ns)
+                    self._sink.write_pose(key, frame, t_ns, data)
+                elif key.endswith(f"/{keys.Stream.TRUTH}"):
+                    self._sink.write_truth(key, data, _truth_time(data))
                 else:
                     raw = raw_sample.decode(data)
                     self._note_seq(key, raw.seq, raw.t_ns)
@@ -115,3 +118,11 @@ class Recorder:
         with self._lock:
             self._closed = True
             self._sink.close()
+
+
+def _truth_time(data: bytes) -> int:
+    """The source time of a ground-truth message (JSON with ``t_ns``)."""
+    try:
+        return int(json.loads(data)["t_ns"])
+    except (ValueError, KeyError, TypeError) as exc:
+        raise DecodeError(Reason.GARBAGE, f"not a ground-truth message: {exc}") from None

@@ -13,7 +13,7 @@ import json
 import queue
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -77,17 +77,26 @@ def figure(frame: pose.PoseFrame, skeleton: Skeleton) -> tuple[list[np.ndarray],
     return strips, joints
 
 
-def status_text(topology: dict[str, object] | None, health: dict[str, dict[str, object]]) -> str:
+def status_text(topology: object, health: Mapping[str, object]) -> str:
+    """The status panel from the latest topology and health JSON, whatever their
+    shape: what is not as documented shows as ``?`` rather than stopping the view."""
+
+    def field(d: object, key: str) -> object:
+        return d.get(key) if isinstance(d, dict) else None
+
     lines = ["## Topology"]
-    branches = (topology or {}).get("branches", {})
-    assert isinstance(branches, dict)
-    for branch, info in sorted(branches.items()):
-        nodes = info.get("nodes", {}) if isinstance(info, dict) else {}
-        states = ", ".join(f"{k.split('/')[3]} {v.get('state')}" for k, v in sorted(nodes.items()))
+    branches = field(topology, "branches")
+    for branch, info in sorted(branches.items() if isinstance(branches, dict) else ()):
+        nodes = field(info, "nodes")
+        states = ", ".join(
+            f"{k.split('/')[-2] if k.count('/') >= 2 else k} {field(v, 'state') or '?'}"
+            for k, v in sorted(nodes.items() if isinstance(nodes, dict) else ())
+        )
         lines.append(f"- **{branch}**: {states}")
     lines.append("\n## Health")
     for source, h in sorted(health.items()):
-        lines.append(f"- {source}: device {h.get('device', '-')}, rejected {h.get('rejected', {})}")
+        rejected = field(h, "rejected") or {}
+        lines.append(f"- {source}: device {field(h, 'device') or '-'}, rejected {rejected}")
     return "\n".join(lines)
 
 
@@ -183,8 +192,8 @@ def view_live(session: zenoh.Session, viewer: Viewer, stop: threading.Event) -> 
         session.declare_subscriber(k, put)
         for k in (keys.pose_key(), keys.TOPOLOGY, f"{keys.HEALTH}/**")
     ]
-    topology: dict[str, object] | None = None
-    health: dict[str, dict[str, object]] = {}
+    topology: object = None
+    health: dict[str, object] = {}
     count = 0
     try:
         while not stop.wait(BATCH_S):

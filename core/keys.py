@@ -21,6 +21,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from enum import StrEnum
+from functools import lru_cache
 
 ROOT = "body"
 
@@ -132,6 +133,11 @@ def all_raw() -> str:
     return f"{ROOT}/*/*/*/{Stream.RAW}"
 
 
+def all_truth() -> str:
+    """Key expression matching every emulator's ground truth."""
+    return f"{ROOT}/*/*/*/{Stream.TRUTH}"
+
+
 POSE = "pose"
 
 
@@ -143,6 +149,11 @@ def pose_key(branch: Branch | None = None) -> str:
 def all_poses() -> str:
     """Every pose message of a body: the whole body and each branch view."""
     return f"{ROOT}/**/{POSE}"
+
+
+#: MCAP topic of the segment transforms derived from ``body/pose`` (Foxglove's
+#: ``foxglove.FrameTransforms``). Written into recordings only, never published.
+TRANSFORMS = f"{ROOT}/tf"
 
 
 #: Admin keys start with a verbatim chunk (``@...``), which Zenoh wildcards never
@@ -165,6 +176,7 @@ def chunk(text: str) -> str:
     return safe or "unnamed"
 
 
+@lru_cache(maxsize=4096)  # on every sample's path; the key space is small
 def parse(key: str) -> tuple[Site, Stream]:
     """Split a concrete key into its site and stream; raise ``KeySpaceError`` if foreign."""
     parts = key.split("/")
@@ -196,6 +208,7 @@ def subject_prefix(subject: str | None) -> str:
     return "" if subject is None else f"{subject}/"
 
 
+@lru_cache(maxsize=4096)
 def split_subject(key: str) -> tuple[str | None, str]:
     """``("alice", "body/...")`` for ``alice/body/...``; ``(None, key)`` for ``body/...``."""
     if key.startswith(ROOT + "/"):
@@ -204,3 +217,18 @@ def split_subject(key: str) -> tuple[str | None, str]:
     if not sep or not rest.startswith(ROOT + "/"):
         raise KeySpaceError(f"not a bodynet key: {key!r}")
     return subject, rest
+
+
+def all_sites(stream: Stream) -> str:
+    """Key expression matching one stream of every site of a body, e.g. all truths."""
+    return f"{ROOT}/*/*/*/{stream}"
+
+
+def all_data() -> str:
+    """Every data key of a body (raw samples, truths, poses); never the ``@`` admin keys."""
+    return f"{ROOT}/**"
+
+
+def all_health() -> str:
+    """Every health key of a body: the bridges' and the gateway's."""
+    return f"{HEALTH}/**"

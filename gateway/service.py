@@ -127,6 +127,7 @@ class _Body:
         self.topology_text = ""
         self.samples = 0
         self.ticks = 0
+        self.unsolved_sites = 0  # sites whose latest sample is not in a solved tick yet
         self.first_new: float | None = None  # when the oldest unsolved sample came
         self.force = False  # solve at once (the topology changed)
         cc = zenoh.CongestionControl.BLOCK
@@ -141,6 +142,9 @@ class _Body:
     def take(self, site: Site, sample: RawSample, now: float) -> None:
         """Keep a sample as its site's latest (and, for T-pose, its recent history)."""
         self.samples += 1
+        previous = self.latest.get(site)
+        if previous is None or not previous.fresh:
+            self.unsolved_sites += 1
         self.latest[site] = _Site(sample, now)
         if isinstance(sample.reading, Quat):
             hist = self.history.setdefault(site, deque())
@@ -152,6 +156,8 @@ class _Body:
 
     def frame_complete(self, now: float) -> bool:
         """Has every site that is not stale delivered since the last solve?"""
+        if self.unsolved_sites < len(self.latest) - len(self.published_stale):
+            return False  # some live site has not delivered yet: the common, cheap answer
         return all(v.fresh or now - v.arrived > STALE_S for v in self.latest.values())
 
     def newly_stale(self, now: float) -> bool:
@@ -163,6 +169,7 @@ class _Body:
         latest = {site: s.sample for site, s in self.latest.items()}
         for s in self.latest.values():
             s.fresh = False
+        self.unsolved_sites = 0
         stale = sorted(
             s.raw_key for s, v in self.latest.items()
             if now - v.arrived > STALE_S or s.raw_key in self.gone
@@ -171,9 +178,16 @@ class _Body:
         self.first_new, self.force = None, False
         return latest, stale, self.solver
 
-    def publish(self, frame: pose.PoseFrame) -> None:
-        self.body_pub.put(pose.encode(frame))
-        for branch, view in branch_views(frame, self.branch_pubs).items():
+    def listened(self) -> tuple[bool, list[Branch]]:
+        """Whether anyone subscribes to the whole body, and to which branch views:
+        a message nobody matches is not built (Zenoh's matching status)."""
+        wanted = [b for b, pub in self.branch_pubs.items() if pub.matching_status.matching]
+        return self.body_pub.matching_status.matching, wanted
+
+    def publish(self, frame: pose.PoseFrame, body: bool, branches: list[Branch]) -> None:
+        if body:
+            self.body_pub.put(pose.encode(frame))
+        for branch, view in branch_views(frame, branches).items():
             self.branch_pubs[branch].put(pose.encode(view))
 
     def topology(self, now: float) -> dict[str, object]:
@@ -400,33 +414,34 @@ class Gateway:
         while not stop.is_set():
             firsts = [b.first_new for b in list(self._bodies.values()) if b.first_new is not None]
             wait = 0.1 if not firsts else min(firsts) + self.period_s - time.monotonic()
+            touched: set[_Body] = set()
             try:
                 item = self._queue.get(timeout=max(0.0, wait))
                 while True:  # take what else has come: one solve per body for the lot
-                    self._take(item)
+                    if (body := self._take(item)) is not None:
+                        touched.add(body)
                     item = self._queue.get_nowait()
             except queue.Empty:
                 pass
             now = time.monotonic()
             for body in list(self._bodies.values()):
+                if body.first_new is None and not body.force:
+                    continue
                 with self._lock:
-                    due = body.force or self._due(body, now)
+                    due = body.force or now - body.first_new >= self.period_s  # type: ignore[operator]
+                    due = due or (body in touched and body.frame_complete(now))
                 if due:
                     self._solve_and_publish(body, now)
             if now - last_health >= 1.0:
                 last_health = now
                 self._housekeeping(now)
 
-    def _due(self, body: _Body, now: float) -> bool:
-        if body.first_new is None:
-            return False
-        return now - body.first_new >= self.period_s or body.frame_complete(now)
-
-    def _take(self, item: _Input) -> None:
+    def _take(self, item: _Input) -> _Body | None:
+        """Apply one input to its subject's body; that body, if there is one."""
         subject, what, sample = item
         body = self._body(subject)
         if body is None:
-            return
+            return None
         if isinstance(what, _Token):
             with self._lock:
                 (body.alive.add if what.alive else body.alive.discard)(what.key)
@@ -436,6 +451,7 @@ class Gateway:
         elif sample is not None:
             with self._lock:
                 body.take(what, sample, time.monotonic())
+        return body
 
     def _housekeeping(self, now: float) -> None:
         """Once a second: stale sites get a tick of their own, topology and health go out."""
@@ -456,7 +472,9 @@ class Gateway:
                 log.exception("gateway: a tick failed (%d so far)", self.solver_errors)
             return
         body.ticks += 1
-        body.publish(pose_frame(output, body.ticks, stale))
+        whole, branches = body.listened()
+        if whole or branches:
+            body.publish(pose_frame(output, body.ticks, stale), whole, branches)
 
     def health(self, body: _Body | None = None) -> dict[str, object]:
         """Counters of the gateway (and of one body's share of it)."""

@@ -19,6 +19,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import threading
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -82,7 +83,10 @@ def session_config(
     """A Zenoh config from explicit arguments (see the module docstring)."""
     env_file = os.environ.get("BODYNET_ZENOH_CONFIG")
     path = config_file or (Path(env_file) if env_file else None)
-    conf = zenoh.Config.from_file(str(path)) if path else zenoh.Config()
+    try:
+        conf = zenoh.Config.from_file(str(path)) if path else zenoh.Config()
+    except zenoh.ZError as exc:
+        raise SessionError(f"cannot use Zenoh config {path}: {exc}") from None
     if not connect and (env_connect := os.environ.get("BODYNET_ZENOH_CONNECT")):
         connect = [e.strip() for e in env_connect.split(",") if e.strip()]
     if not connect and not path and mode == "client":
@@ -106,8 +110,11 @@ def session_config(
     for entry in entries:
         key, sep, value = entry.partition(":")
         if not sep:
-            raise ValueError(f"--cfg wants KEY:VALUE, not {entry!r}")
-        conf.insert_json5(key, value)
+            raise SessionError(f"--cfg wants KEY:VALUE, not {entry!r}")
+        try:
+            conf.insert_json5(key, value)
+        except zenoh.ZError as exc:
+            raise SessionError(f"--cfg {entry!r}: {exc}") from None
     return conf
 
 
@@ -117,7 +124,41 @@ def config_from_args(args: argparse.Namespace) -> zenoh.Config:
     return session_config(mode, args.connect, args.listen, args.config, args.cfg, subject)
 
 
+class SessionError(RuntimeError):
+    """A session that cannot be configured or opened (bad config file, port in use...)."""
+
+
+_opening = threading.Event()
+
+
+def is_opening() -> bool:
+    """Is the main thread waiting for a session to open (a router to come up)?"""
+    return _opening.is_set()
+
+
 def open_session(conf: zenoh.Config) -> zenoh.Session:
-    """Open a session; Zenoh's own logging follows ``RUST_LOG`` if set."""
+    """Open a session; Zenoh's own logging follows ``RUST_LOG`` if set.
+
+    A client waits for its router as long as it takes; the wait happens in a
+    helper thread so that the main thread still runs signal handlers (see
+    ``cli.nodes.stop_on_signals``: Ctrl-C or SIGTERM while waiting ends the process)."""
     zenoh.try_init_log_from_env()
-    return zenoh.open(conf)
+    box: dict[str, Any] = {}
+
+    def target() -> None:
+        try:
+            box["session"] = zenoh.open(conf)
+        except zenoh.ZError as exc:
+            box["error"] = exc
+
+    thread = threading.Thread(target=target, name="zenoh-open", daemon=True)
+    _opening.set()
+    try:
+        thread.start()
+        while thread.is_alive():
+            thread.join(0.1)
+    finally:
+        _opening.clear()
+    if "error" in box:
+        raise SessionError(f"cannot open the Zenoh session: {box['error']}")
+    return box["session"]  # type: ignore[no-any-return]

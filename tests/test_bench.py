@@ -11,7 +11,7 @@ from pathlib import Path
 def test_tiny_decode_benchmark_writes_its_table(tmp_path: Path) -> None:
     bodynet = Path(sys.executable).with_name("bodynet")
     result = subprocess.run(
-        [str(bodynet), "bench", "--seconds", "0.02", "--out", str(tmp_path)],
+        [str(bodynet), "bench", "--only", "decode", "--seconds", "0.02", "--out", str(tmp_path)],
         capture_output=True,
         text=True,
         timeout=120,
@@ -23,6 +23,7 @@ def test_tiny_decode_benchmark_writes_its_table(tmp_path: Path) -> None:
     assert {"imu-central lines", "CAN frames (frame codec)", "concentrator replies"} <= names
     assert all(r["bodynet_per_s"] > 0 and r["baseline_per_s"] > 0 for r in rows)
     assert "| imu-central lines |" in (tmp_path / "decode.md").read_text()
+    assert "## Decode rates" in (tmp_path / "summary.md").read_text()  # the summary of what ran
 
 
 def test_demo_runs_the_live_body_network(tmp_path: Path) -> None:

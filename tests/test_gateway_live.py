@@ -133,15 +133,35 @@ def test_garbage_on_raw_keys_is_counted_and_never_stops_the_body(
         b"{}",
         bytes(range(256)),
     ]
-    for i in range(2000):  # as fast as it goes, on a live key and on keys outside the key space
-        hostile.put("body/arm/left/elbow/raw", bad[i % len(bad)])
-        hostile.put("body/arm/left/bogus/raw", b"BN")
-    held["left_elbow_flexion_deg"] = 100.0
+    flooding = threading.Event()
+    stop_flood = threading.Event()
+
+    sent = [0]
+    block = zenoh.CongestionControl.BLOCK  # none dropped on the way: all must be counted
+
+    def flood() -> None:  # as fast as it goes, on a live key and on keys outside the key space
+        while not stop_flood.is_set():
+            hostile.put(
+                "body/arm/left/elbow/raw", bad[sent[0] % len(bad)], congestion_control=block
+            )
+            hostile.put("body/arm/left/bogus/raw", b"BN", congestion_control=block)
+            sent[0] += 2
+            if sent[0] == 2000:
+                flooding.set()
+
+    flooder = threading.Thread(target=flood, daemon=True)
+    flooder.start()
+    assert flooding.wait(timeout=30)
+    held["left_elbow_flexion_deg"] = 100.0  # the body moves while the flood goes on
     n = len(poses.seen)
     poses.wait_for(
         lambda s: len(s) > n and abs(s[-1][1].angles_deg["left_elbow_flexion_deg"] - 100) < 0.3
     )
-    assert sum(gateway.rejected.values()) >= 4000
+    assert flooder.is_alive()  # the poses came through during the flood
+    stop_flood.set()
+    flooder.join(timeout=10)
+    health = Collector(zsession, keys.health_key("gateway"), json.loads)
+    health.wait_for(lambda s: bool(s) and sum(s[-1][1]["rejected"].values()) >= sent[0], timeout=30)
     assert gateway.solver_errors == 0
     health = json.loads(next(iter(zsession.get(keys.TOPOLOGY, timeout=5))).ok.payload.to_bytes())
     assert "left-arm" in health["branches"]

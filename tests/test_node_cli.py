@@ -155,3 +155,22 @@ def test_subjects_on_one_router_are_listed_and_served_by_one_gateway(
     assert rows["alice"]["gateway"]
     assert rows["bob"]["branches"] == ["right-arm"]
     assert rows["bob"]["nodes"] == 3
+
+
+def test_a_bad_config_is_a_message_and_sigterm_ends_a_wait_for_the_router(tmp_path: Path) -> None:
+    from zenoh_helpers import free_port
+
+    bad = subprocess.run([str(BODYNET), "router", "-c", str(tmp_path / "missing.json5")],
+                         capture_output=True, text=True, timeout=60, check=False)  # fmt: skip
+    assert bad.returncode == 2
+    assert "cannot use Zenoh config" in bad.stderr
+    assert "Traceback" not in bad.stderr
+    # a client waits for its router as long as it takes, yet SIGTERM ends the wait
+    waiting = subprocess.Popen(
+        [str(BODYNET), "gateway", "--mode", "client", "-e", f"tcp/127.0.0.1:{free_port()}"],
+        stderr=subprocess.PIPE, text=True)  # fmt: skip
+    with pytest.raises(subprocess.TimeoutExpired):
+        waiting.wait(timeout=3)  # still waiting: no router there
+    waiting.send_signal(signal.SIGTERM)
+    assert waiting.wait(timeout=30) == 0
+    assert "Traceback" not in (waiting.stderr.read() if waiting.stderr else "")

@@ -226,28 +226,6 @@ def test_liveliness_follows_the_nodes(
     live.wait_for(lambda alive: not alive)
 
 
-def test_serial_device_unplugged_and_back(
-    zsession: zenoh.Session, tmp_path: Path, run_thread: Callable[..., Running]
-) -> None:
-    central = ImuCentralEmulator(tmp_path / "imu", still_body(imu_tags([1, 2])), tick_s=0.01)
-    central.start()
-    raw, health = raw_collector(zsession), health_collector(zsession)
-    bridge = ImuCentralBridge(zsession, "unplug-test")
-    running = run_thread(bridge.run, str(central.link))
-    raw.wait_for(lambda s: len(s) >= 10)
-    central.port.unplug()
-    health.wait_for(lambda h: bool(h) and h[-1][1]["device"] == "disconnected")
-    n = len(raw.seen) + raw.queue.qsize()
-    central.port.plug()
-    health.wait_for(lambda h: h[-1][1]["device"] == "connected")
-    seen = raw.wait_for(lambda s: len(s) >= n + 10)
-    seqs = [s.seq for _, s in seen if s.reading.node == 1]
-    assert seqs == sorted(seqs)  # sequence numbers keep rising across the reconnect
-    running.stop()
-    central.stop()
-    bridge.close()
-
-
 def test_can_adapter_unplugged_and_back(
     zsession: zenoh.Session, tmp_path: Path, run_thread: Callable[..., Running]
 ) -> None:

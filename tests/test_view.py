@@ -27,7 +27,7 @@ def test_recording_to_rrd_without_a_window(tmp_path: Path, data_dir: Path) -> No
         == 0
     )
     rrd = tmp_path / "s.rrd"
-    result = run("view", mcap, "--save", rrd)
+    result = run("view", mcap, "--headless", "--save", rrd)  # Rerun's flag
     assert result.returncode == 0, result.stderr
     assert "30 poses" in result.stderr
     printed = subprocess.run([str(RERUN), "rrd", "print", str(rrd)], capture_output=True, text=True,
@@ -50,7 +50,7 @@ def test_truncated_recording_is_a_clear_error(tmp_path: Path) -> None:
 def test_web_viewer_is_served(router_endpoint: str) -> None:
     web, grpc = free_port(), free_port()
     proc = subprocess.Popen(
-        [str(BODYNET), "view", "--viewer", "web", "--web-port", str(web), "--grpc-port", str(grpc),
+        [str(BODYNET), "view", "--serve-web", "--web-port", str(web), "--grpc-port", str(grpc),
          "-e", router_endpoint],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
     )  # fmt: skip

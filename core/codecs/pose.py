@@ -89,6 +89,19 @@ def encode(frame: PoseFrame) -> bytes:
     ).encode()
 
 
+def _floats(v: Any, n: int) -> Any:
+    """Exactly ``n`` numbers, as floats (a vector or a quaternion)."""
+    if not isinstance(v, list) or len(v) != n:
+        raise DecodeError(Reason.BAD_LENGTH, f"expected {n} numbers, got {v!r:.60}")
+    return tuple(float(c) for c in v)
+
+
+def _int(v: Any) -> int:
+    if isinstance(v, bool) or not isinstance(v, int | float):
+        raise DecodeError(Reason.GARBAGE, f"expected an integer, got {v!r:.60}")
+    return int(v)  # OverflowError (inf) and ValueError (nan) are caught by decode
+
+
 def decode(payload: bytes | bytearray) -> PoseFrame:
     """One pose message; ``DecodeError`` if it is not one."""
     try:
@@ -96,22 +109,20 @@ def decode(payload: bytes | bytearray) -> PoseFrame:
         if not isinstance(d, dict):
             raise DecodeError(Reason.GARBAGE, "not a JSON object")
         if d.get("v") != VERSION:
-            raise DecodeError(Reason.BAD_VERSION, f"version {d.get('v')!r}")
+            raise DecodeError(Reason.BAD_VERSION, f"version {d.get('v')!r:.60}")
         return PoseFrame(
-            int(d["seq"]),
-            int(d["t_ns"]),
+            _int(d["seq"]),
+            _int(d["t_ns"]),
             {str(k): float(v) for k, v in d["angles_deg"].items()},
             {str(k): float(v) for k, v in d["rel_deg"].items()},
-            {
-                str(s): (tuple(map(float, v["p"])), tuple(map(float, v["q"])))  # type: ignore[misc]
-                for s, v in d["segments"].items()
-            },
-            {str(j): tuple(map(float, p)) for j, p in d["joints_m"].items()},  # type: ignore[misc]
+            {str(s): (_floats(v["p"], 3), _floats(v["q"], 4)) for s, v in d["segments"].items()},
+            {str(j): _floats(p, 3) for j, p in d["joints_m"].items()},
             {str(k): str(v) for k, v in d.get("flags", {}).items()},
-            {str(k): int(v) for k, v in d.get("sources", {}).items()},
+            {str(k): _int(v) for k, v in d.get("sources", {}).items()},
             [str(k) for k in d.get("stale", [])],
         )
     except DecodeError:
         raise
-    except (ValueError, TypeError, KeyError, AttributeError) as exc:
-        raise DecodeError(Reason.GARBAGE, f"not a pose message: {exc}") from None
+    # RecursionError: JSON nested deeper than the parser goes; OverflowError: int(1e999)
+    except (ValueError, TypeError, KeyError, AttributeError, OverflowError, RecursionError) as exc:
+        raise DecodeError(Reason.GARBAGE, f"not a pose message: {exc!s:.200}") from None

@@ -1,0 +1,122 @@
+"""Soak: one full body (15 nodes x 100 Hz) through the gateway and the recorder for minutes.
+
+The parts run as the user runs them: a router, ``bodynet gateway`` and
+``bodynet record`` as processes, fed by the gateway benchmark's feeder
+process (congestion control BLOCK, as the bridges). Passing means zero
+loss (every sample sent is counted by the gateway, ``body/@health/gateway``,
+and is in the recording) and memory growth under 5%: the resident set size of
+the gateway and of the recorder, sampled each second, at the end (median of
+the last 10 samples) against the end of the warm-up (median of its last 10).
+
+    .venv/bin/bodynet bench --only soak --minutes 10
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import multiprocessing as mp
+import signal
+import statistics
+import tempfile
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import psutil
+
+from bodynet.bench import gateway as gateway_bench
+from bodynet.bench import machine
+from bodynet.bench.faults import FaultError, Inbox, _subscribe, loopback
+from bodynet.core import keys
+
+GROWTH_LIMIT = 0.05
+
+
+def _growth(rss: list[int], warmup: int) -> dict[str, float]:
+    base = statistics.median(rss[max(0, warmup - 10) : warmup] or rss[:1])
+    end = statistics.median(rss[-10:])
+    return {"baseline_mb": base / 2**20, "end_mb": end / 2**20, "max_mb": max(rss) / 2**20,
+            "growth": (end - base) / base}  # fmt: skip
+
+
+def run(minutes: float = 10.0, out_dir: Path = Path("bench-results"),
+        warmup_s: float = 20.0) -> dict[str, Any]:  # fmt: skip
+    """Soak for ``minutes``; print the verdict; write ``soak.json`` and ``soak.md``."""
+    from bodynet.clients.mcap_store import read_raw
+
+    seconds = minutes * 60.0
+    ctx = mp.get_context("spawn")
+    sent, ready = ctx.Value("q", 0), ctx.Event()
+    with tempfile.TemporaryDirectory() as tmp, loopback(Path(tmp)) as (endpoint, probe, procs, _):
+        inbox = Inbox()
+        health = _subscribe(probe, inbox, keys.health_key("gateway"), json.loads)
+        gw = procs.start("gateway", "--mode", "client", "-e", endpoint)
+        record = Path(tmp) / "soak.mcap"
+        rec = procs.start("record", "-o", str(record), "-e", endpoint)
+        inbox.wait(lambda k, v: True, 120, "the gateway's health")  # it has started
+        feeder = ctx.Process(
+            target=gateway_bench._feed, args=(endpoint, seconds, sent, ready, range(1), 1)
+        )
+        feeder.start()
+        watched = {"gateway": psutil.Process(gw.pid), "recorder": psutil.Process(rec.pid)}
+        rss: dict[str, list[int]] = {name: [] for name in watched}
+        tick = threading.Event()
+        threading.Event().wait(2.0)  # the feeder has imported and declared its publishers
+        ready.set()
+        start = time.monotonic()
+        while feeder.is_alive():
+            for name, p in watched.items():
+                rss[name].append(p.memory_info().rss)
+            tick.wait(max(0.0, start + len(rss["gateway"]) - time.monotonic()))
+        feeder.join()
+        counted = 0
+
+        def all_counted(key: str, value: Any) -> bool:
+            nonlocal counted
+            counted = int(value.get("samples", 0))
+            return counted >= sent.value
+
+        with contextlib.suppress(FaultError):  # loss: reported below
+            inbox.wait(all_counted, 30, "the gateway counting every sample")
+        health.undeclare()
+        for p in (rec, gw):
+            p.send_signal(signal.SIGINT)
+            p.wait(timeout=60)
+        recorded = sum(1 for _ in read_raw(record))
+    warmup = int(warmup_s)
+    result = {
+        "machine": machine.describe(),
+        "minutes": minutes,
+        "warmup_s": warmup_s,
+        "sent": sent.value,
+        "gateway_counted": counted,
+        "recorded": recorded,
+        "lost_gateway": sent.value - counted,
+        "lost_recorder": sent.value - recorded,
+        "memory": {name: _growth(v, warmup) for name, v in rss.items()},
+        "rss_mb": {name: [round(x / 2**20, 2) for x in v] for name, v in rss.items()},
+    }
+    result["pass"] = (
+        result["lost_gateway"] == 0
+        and result["lost_recorder"] == 0
+        and all(m["growth"] < GROWTH_LIMIT for m in result["memory"].values())
+    )
+    mem = result["memory"]
+    table = (
+        "| minutes | samples sent | lost at gateway | lost in recording | gateway RSS MB "
+        "(warm -> end) | recorder RSS MB (warm -> end) | pass |\n"
+        "|---:|---:|---:|---:|---|---|---|\n"
+        f"| {minutes:g} | {sent.value} | {result['lost_gateway']} | {result['lost_recorder']} | "
+        f"{mem['gateway']['baseline_mb']:.1f} -> {mem['gateway']['end_mb']:.1f} "
+        f"({100 * mem['gateway']['growth']:+.1f}%) | "
+        f"{mem['recorder']['baseline_mb']:.1f} -> {mem['recorder']['end_mb']:.1f} "
+        f"({100 * mem['recorder']['growth']:+.1f}%) | {'yes' if result['pass'] else 'NO'} |\n"
+    )
+    print(f"\nSoak, one body (15 nodes x 100 Hz) through gateway and recorder "
+          f"({machine.line(result['machine'])})\n\n{table}")  # fmt: skip
+    out_dir.mkdir(parents=True, exist_ok=True)
+    (out_dir / "soak.json").write_text(json.dumps(result, indent=2))
+    (out_dir / "soak.md").write_text(table)
+    return result

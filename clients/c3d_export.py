@@ -1,0 +1,84 @@
+"""``bodynet export c3d``: a recording as a C3D file, through ezc3d.
+
+ezc3d (pyomeca) is the maintained C++ C3D library with Python wheels, read and
+written by the biomechanics tools (Vicon Nexus, Mokka, OpenSim's converters,
+biorbd); it keeps every parameter group as given, so the file can declare its
+angle points the way Vicon does. (The pure-Python ``c3d`` package would do as
+well; ezc3d was chosen for its wider use and its strict writer.)
+
+Content, all as 3D points at the recording's frame rate (``POINT:RATE``),
+stored as floats (``POINT:SCALE`` -1), in bodynet's world frame (+X forward,
++Y left, +Z up, the usual lab frame of C3D):
+
+- one point per joint centre, labelled with the joint's name (``left_elbow``),
+  plus ``pelvis``, the root midway between the hip centres; millimetres
+  (``POINT:UNITS`` = ``mm``);
+- one point per joint labelled ``<joint>_angles`` holding its joint angles in
+  degrees, x, y, z = the joint's dofs in order (``left_shoulder_angles``: x
+  flexion, y abduction, z rotation; unused components 0). This is the
+  "angles as points" convention of Vicon's Plug-in Gait: their labels are
+  listed in ``POINT:ANGLES`` and their unit in ``POINT:ANGLE_UNITS`` (``deg``),
+  so readers that know it plot them as angles, and ``POINT:DESCRIPTIONS``
+  names each component.
+
+A value the recording lacks is NaN (ezc3d writes it as an invalid point).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import ezc3d
+import numpy as np
+
+from bodynet.clients.body_tree import ROOT_SEGMENT
+from bodynet.clients.export import PoseTrack, output_file
+from bodynet.core.skeleton import build_skeleton
+
+ANGLE_SUFFIX = "_angles"
+
+
+def c3d_points(track: PoseTrack) -> tuple[list[str], list[str], np.ndarray]:
+    """Labels, descriptions and the (4, points, frames) array of the file."""
+    skeleton = build_skeleton()
+    labels = [*track.joints, ROOT_SEGMENT]
+    descriptions = [f"{j} joint centre (mm)" for j in track.joints]
+    descriptions.append("pelvis: root, midway between the hip centres (mm)")
+    mm = (
+        np.concatenate(
+            [track.joint_p, track.segment_p[:, [track.segments.index(ROOT_SEGMENT)]]], axis=1
+        )
+        * 1000.0
+    )  # (F, P, 3)
+    angle_index = {name: i for i, name in enumerate(track.angles)}
+    angle_points = np.zeros((len(track), len(skeleton.joints), 3))
+    for k, joint in enumerate(skeleton.joints):
+        names = joint.angle_names()
+        for c, name in enumerate(names):
+            angle_points[:, k, c] = track.angle_deg[:, angle_index[name]]
+        labels.append(joint.name + ANGLE_SUFFIX)
+        parts = [f"{axis} {dof.name}" for axis, dof in zip("xyz", joint.dofs, strict=False)]
+        descriptions.append(f"{joint.name} angles (deg): " + ", ".join(parts))
+    xyz = np.concatenate([mm, angle_points], axis=1)  # (F, P, 3)
+    points = np.ones((4, xyz.shape[1], len(track)))
+    points[:3] = xyz.transpose(2, 1, 0)
+    return labels, descriptions, points
+
+
+def write_c3d(track: PoseTrack, rate_hz: float, out: Path) -> int:
+    """Write ``track`` (frames at ``rate_hz``, see ``export.resample``) as C3D;
+    returns the number of frames."""
+    labels, descriptions, points = c3d_points(track)
+    c3d = ezc3d.c3d()
+    point = c3d["parameters"]["POINT"]
+    point["RATE"]["value"] = [float(rate_hz)]
+    point["UNITS"]["value"] = ["mm"]
+    point["LABELS"]["value"] = labels
+    point["DESCRIPTIONS"]["value"] = descriptions
+    c3d["data"]["points"] = points
+    c3d.add_parameter("POINT", "ANGLES", [lab for lab in labels if lab.endswith(ANGLE_SUFFIX)])
+    c3d.add_parameter("POINT", "ANGLE_UNITS", ["deg"])
+    # ezc3d adds ".c3d" to a name without it: the temporary file has it already
+    with output_file(out, ".part.c3d") as tmp:
+        c3d.write(str(tmp))
+    return len(track)

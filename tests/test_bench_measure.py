@@ -1,0 +1,56 @@
+"""Tiny runs of the measuring benchmarks, only to prove they work: no timing is asserted."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import pytest
+
+from bodynet.bench import gateway, peer, recorder, report, soak
+
+
+def test_lsl_peer_runs_beside_the_gateway(tmp_path: Path) -> None:
+    result = peer.run(seconds=1.0, out_dir=tmp_path)
+    lsl = result["lsl_one_hop"]
+    assert lsl["sent"] > 0
+    assert lsl["received"] > 0  # the stream really went through liblsl
+    assert result["gateway_two_hops"]["poses"] > 0
+    assert "| LSL outlet -> inlet (raw -> raw) | 1 |" in (tmp_path / "peer.md").read_text()
+
+
+def test_rate_parameter_feeds_faster(tmp_path: Path) -> None:
+    result = gateway.run(seconds=0.5, out_dir=tmp_path, bodies=(1,), rate_hz=1000.0, name="rate")
+    assert result["rate_hz_per_node"] == 1000.0
+    assert result["sent"] > 1500  # more than 100 Hz could send in 0.5 s x 15 nodes x 2
+    assert result["gateway"]["poses"] > 0
+    assert json.loads((tmp_path / "rate.json").read_text())["sent"] == result["sent"]
+
+
+def test_recorder_benchmark_against_the_bare_writer(tmp_path: Path) -> None:
+    result = recorder.run(seconds=0.05, out_dir=tmp_path)
+    assert [r["bodynet_per_s"] > 0 and r["baseline_per_s"] > 0 for r in result["rows"]] == [
+        True,
+        True,
+    ]
+    assert result["recorder_live"]["messages"] > 0
+    report.write(tmp_path)  # the summary and the plot from what is there
+    summary = (tmp_path / "summary.md").read_text()
+    assert "## Recorder against the bare mcap writer" in summary
+    assert "Machine: " in summary
+    assert "zenoh " in summary
+    assert (tmp_path / "bench.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+@pytest.mark.soak
+@pytest.mark.timeout(300)
+def test_one_minute_soak_loses_nothing(tmp_path: Path) -> None:
+    """The CI version of the 10-minute soak: one body through gateway and recorder."""
+    result = soak.run(minutes=1.0, out_dir=tmp_path)
+    assert result["sent"] > 0
+    assert result["lost_gateway"] == 0
+    assert result["lost_recorder"] == 0
+    for name, memory in result["memory"].items():
+        assert not math.isnan(memory["growth"]), name
+        assert memory["growth"] < soak.GROWTH_LIMIT, (name, memory)
