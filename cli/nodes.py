@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import signal
+import sys
 import threading
 from collections.abc import Callable
 from pathlib import Path
@@ -25,8 +27,10 @@ def stop_on_signals() -> threading.Event:
 
     def handler(*_: object) -> None:
         stop.set()
-        if is_opening():  # still waiting for the router: nothing to close yet
-            raise SystemExit(0)
+        if is_opening():  # still waiting for the router: nothing to close yet, and
+            sys.stdout.flush()  # unwinding while Zenoh's opener thread runs would abort
+            sys.stderr.flush()
+            os._exit(0)
 
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, handler)
