@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import json
 import signal
+import urllib.request
 import warnings
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -141,6 +142,11 @@ def test_compose_services_as_local_processes(services: Services, tmp_path: Path)
     poses = Collector(observer, keys.pose_key(), lambda b: None)
     poses.wait_for(lambda s: len(s) >= 100, timeout=60)
     started["viewer"].wait_line("web viewer at", timeout=60)
+    if "game" in started:  # its page is served on the published port
+        started["game"].wait_line("bodynet game: http", timeout=60)
+        port = local["game"].argv[local["game"].argv.index("--http-port") + 1]
+        with urllib.request.urlopen(f"http://127.0.0.1:{port}/", timeout=30) as page:
+            assert page.status == 200
 
     def alive_branches(seen: list[tuple[str, dict]]) -> set[str]:  # type: ignore[type-arg]
         """Branches with a live node in the latest topology."""
