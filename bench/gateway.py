@@ -199,7 +199,7 @@ def sustained(row: dict[str, Any], path: str) -> bool:
 def run(
     seconds: float = 5.0,
     out_dir: Path = Path("bench-results"),
-    bodies: tuple[int, ...] = (1, 5, 20, 50),
+    bodies: tuple[int, ...] = (1, 5, 10, 20, 50),
     rate_hz: float = RATE_HZ,
     name: str = "gateway",
 ) -> dict[str, Any]:

@@ -35,6 +35,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
+import orjson
 from mcap.exceptions import McapError
 from mcap.reader import make_reader
 from mcap.writer import CompressionType, Writer
@@ -222,10 +223,10 @@ class McapSink:
             tf = frame_transforms_json(frame.segments, log_time_ns, self._parents,
                                        WORLD_FRAME)  # fmt: skip
             self._add(self._channel(keys.TRANSFORMS, "tf"), log_time_ns,
-                      json.dumps(tf, separators=(",", ":")).encode())  # fmt: skip
+                      orjson.dumps(tf))  # fmt: skip
 
     def write_raw(self, topic: str, sample: RawSample, log_time_ns: int) -> None:
-        data = json.dumps(raw_json(sample), separators=(",", ":")).encode()
+        data = orjson.dumps(raw_json(sample))  # the recorder's hot path: orjson is ~5x json
         self._add(self._channel(topic, "raw"), log_time_ns, data)
 
     def _add(self, channel: int, log_time_ns: int, data: bytes) -> None:
@@ -241,7 +242,7 @@ class McapSink:
         self._add(self._channel(topic, "truth"), log_time_ns, truth_json)
 
     def write_gap(self, gap: Gap) -> None:
-        data = json.dumps(asdict(gap), separators=(",", ":")).encode()
+        data = orjson.dumps(asdict(gap))
         self._add(self._channel(GAPS_TOPIC, "gap"), gap.to_t_ns, data)
 
     def close(self) -> None:

@@ -1,9 +1,10 @@
 """The live gateway: raw samples in, poses and joint angles out, on Zenoh.
 
 One process, by default with an embedded Zenoh router. A subscription to
-every raw key (or a chosen subset of branches) feeds a queue; a worker thread
-drains it, keeps each site's latest sample, and solves the body at most once
-per tick (``rate_hz``), publishing the whole body on ``body/pose`` and each
+every raw key (or a chosen subset of branches) keeps each site's latest
+sample, on Zenoh's thread; a worker thread, told when a body has a whole
+frame or has waited a period, solves the body at most once per tick
+(``rate_hz``), publishing the whole body on ``body/pose`` and each
 branch's view on ``body/<limb>/<side>/pose``. Nodes are tracked through
 their liveliness tokens; the topology is published on ``body/@topology``
 when it changes and answered as a query there. A site that stops delivering
@@ -129,7 +130,7 @@ class _Body:
         self.ticks = 0
         self.unsolved_sites = 0  # sites whose latest sample is not in a solved tick yet
         self.first_new: float | None = None  # when the oldest unsolved sample came
-        self.force = False  # solve at once (the topology changed)
+        self.signalled = False  # the worker has been told the frame is complete
         cc = zenoh.CongestionControl.BLOCK
         self.body_pub = session.declare_publisher(prefix + keys.pose_key(), congestion_control=cc)
         self.branch_pubs = {
@@ -138,24 +139,51 @@ class _Body:
         }
         self.topology_pub = session.declare_publisher(prefix + keys.TOPOLOGY)
         self.health_pub = session.declare_publisher(prefix + keys.health_key("gateway"))
+        # who listens, kept current by Zenoh's matching listeners (None: the whole body);
+        # asking each publisher's matching status every tick costs more than a solve's tenth
+        self.matching: dict[Branch | None, bool] = {}
+        self._listeners: list[zenoh.MatchingListener] = []
+        for view, pub in ((None, self.body_pub), *self.branch_pubs.items()):
+            self._listeners.append(
+                pub.declare_matching_listener(
+                    lambda status, view=view: self.matching.__setitem__(view, status.matching)
+                )
+            )
+            self.matching[view] = pub.matching_status.matching
 
-    def take(self, site: Site, sample: RawSample, now: float) -> None:
-        """Keep a sample as its site's latest (and, for T-pose, its recent history)."""
+    def take(self, site: Site, sample: RawSample, now: float) -> bool:
+        """Keep a sample as its site's latest (and, for T-pose, in its recent
+        history, trimmed by :meth:`trim`); whether it is the body's first since a solve."""
         self.samples += 1
-        previous = self.latest.get(site)
-        if previous is None or not previous.fresh:
+        kept = self.latest.get(site)
+        if kept is None:
+            self.latest[site] = _Site(sample, now)
             self.unsolved_sites += 1
-        self.latest[site] = _Site(sample, now)
+        else:
+            if not kept.fresh:
+                self.unsolved_sites += 1
+            kept.sample, kept.arrived, kept.fresh = sample, now, True
         if isinstance(sample.reading, Quat):
-            hist = self.history.setdefault(site, deque())
+            hist = self.history.get(site)
+            if hist is None:
+                hist = self.history[site] = deque()
             hist.append((now, sample))
-            while hist and now - hist[0][0] > HISTORY_S:
-                hist.popleft()
         if self.first_new is None:
             self.first_new = now
+            return True
+        return False
+
+    def trim(self, now: float) -> None:
+        """Forget history older than ``HISTORY_S``."""
+        for hist in self.history.values():
+            while hist and now - hist[0][0] > HISTORY_S:
+                hist.popleft()
 
     def frame_complete(self, now: float) -> bool:
-        """Has every site that is not stale delivered since the last solve?"""
+        """Has every site that is not stale delivered since the last solve (and
+        every node whose token is up delivered at all)?"""
+        if len(self.alive) > len(self.latest) or not self.ticks:
+            return False  # a node's first sample is on its way; a new body waits a period
         if self.unsolved_sites < len(self.latest) - len(self.published_stale):
             return False  # some live site has not delivered yet: the common, cheap answer
         return all(v.fresh or now - v.arrived > STALE_S for v in self.latest.values())
@@ -175,14 +203,14 @@ class _Body:
             if now - v.arrived > STALE_S or s.raw_key in self.gone
         )  # fmt: skip
         self.published_stale = set(stale)
-        self.first_new, self.force = None, False
+        self.first_new, self.signalled = None, False
         return latest, stale, self.solver
 
     def listened(self) -> tuple[bool, list[Branch]]:
         """Whether anyone subscribes to the whole body, and to which branch views:
         a message nobody matches is not built (Zenoh's matching status)."""
-        wanted = [b for b, pub in self.branch_pubs.items() if pub.matching_status.matching]
-        return self.body_pub.matching_status.matching, wanted
+        matching = self.matching
+        return matching[None], [b for b in self.branch_pubs if matching[b]]
 
     def publish(self, frame: pose.PoseFrame, body: bool, branches: list[Branch]) -> None:
         if body:
@@ -216,6 +244,8 @@ class _Body:
         }  # fmt: skip
 
     def close(self) -> None:
+        for listener in self._listeners:
+            listener.undeclare()
         for pub in (self.body_pub, self.topology_pub, self.health_pub,
                     *self.branch_pubs.values()):  # fmt: skip
             pub.undeclare()
@@ -229,7 +259,16 @@ class _Token:
     alive: bool
 
 
-_Input = tuple[str | None, Site, RawSample] | tuple[str | None, _Token, None]
+@dataclass(frozen=True, slots=True)
+class _Ready:
+    """A body has a whole frame of its sources (``complete``), or its first
+    sample since its last solve, which makes it due a period later."""
+
+    body: _Body
+    complete: bool
+
+
+_Event = _Ready | tuple[str | None, _Token]
 
 
 class Gateway:
@@ -252,8 +291,9 @@ class Gateway:
         self.rejected = RejectCounts()
         self.solver_errors = 0
         self.refused_subjects = 0
-        # (subject, site, sample), or (subject, token change, None)
-        self._queue: queue.SimpleQueue[_Input] = queue.SimpleQueue()
+        # what the worker must act on; samples themselves are kept on Zenoh's threads,
+        # so the worker wakes about once per body per tick, not once per sample
+        self._events: queue.SimpleQueue[_Event] = queue.SimpleQueue()
         self._lock = threading.Lock()
         self._bodies: dict[str | None, _Body] = {}
         if not all_subjects:
@@ -308,14 +348,23 @@ class Gateway:
         except keys.KeySpaceError:
             self.rejected[Reason.UNKNOWN_NODE] += 1
             return
-        self._queue.put((subject, site, raw))
+        body = self._body(subject)
+        if body is None:
+            return
+        now = time.monotonic()
+        with self._lock:
+            first = body.take(site, raw, now)
+            complete = not body.signalled and body.frame_complete(now)
+            body.signalled = body.signalled or complete
+        if complete or first:
+            self._events.put(_Ready(body, complete))
 
     def _on_token(self, sample: zenoh.Sample) -> None:
         try:
             subject, key = keys.split_subject(str(sample.key_expr))
         except keys.KeySpaceError:
             return
-        self._queue.put((subject, _Token(key, sample.kind == zenoh.SampleKind.PUT), None))
+        self._events.put((subject, _Token(key, sample.kind == zenoh.SampleKind.PUT)))
 
     def _body(self, subject: str | None) -> _Body | None:
         """The subject's body, made on first sight (a refusal is counted)."""
@@ -407,62 +456,75 @@ class Gateway:
         """Solve a body when every live site of it has delivered since its last
         solve (a whole frame of the sources is in: the lowest latency), or else
         ``period_s`` after its first new sample (sources of different rates).
-        Samples that come while the worker is busy are taken together: under
+        Samples that come while the worker is busy are kept as they come: under
         load a body is solved less often, with its newest samples, and no
         sample waits behind a backlog."""
         last_health = time.monotonic()
+        next_due = float("inf")  # no body can be due before this (its oldest unsolved sample)
         while not stop.is_set():
-            firsts = [b.first_new for b in list(self._bodies.values()) if b.first_new is not None]
-            wait = 0.1 if not firsts else min(firsts) + self.period_s - time.monotonic()
-            touched: set[_Body] = set()
+            events = []
             try:
-                item = self._queue.get(timeout=max(0.0, wait))
+                events.append(self._events.get(timeout=max(0.0, min(next_due - time.monotonic(),
+                                                                    0.1))))  # fmt: skip
                 while True:  # take what else has come: one solve per body for the lot
-                    if (body := self._take(item)) is not None:
-                        touched.add(body)
-                    item = self._queue.get_nowait()
+                    events.append(self._events.get_nowait())
             except queue.Empty:
                 pass
             now = time.monotonic()
-            for body in list(self._bodies.values()):
-                if body.first_new is None and not body.force:
-                    continue
-                with self._lock:
-                    due = body.force or now - body.first_new >= self.period_s  # type: ignore[operator]
-                    due = due or (body in touched and body.frame_complete(now))
-                if due:
-                    self._solve_and_publish(body, now)
+            complete: dict[_Body, bool] = {}  # body -> solve even with nothing new
+            for event in events:
+                if isinstance(event, _Ready):
+                    if event.complete:
+                        complete.setdefault(event.body, False)
+                    else:
+                        next_due = min(next_due, now + self.period_s)
+                elif (body := self._token(*event)) is not None and body.latest:
+                    complete[body] = True  # the topology changed: a tick that says so
+            for body, force in complete.items():  # a whole frame of the sources is in
+                self._solve_and_publish(body, now, force)
+            if now >= next_due:  # bodies whose slowest source has kept them waiting a period
+                for body in list(self._bodies.values()):
+                    if body.first_new is not None and now - body.first_new >= self.period_s:
+                        self._solve_and_publish(body, now)
+                firsts = [b.first_new for b in self._bodies.values() if b.first_new is not None]
+                next_due = min(firsts, default=float("inf")) + self.period_s
             if now - last_health >= 1.0:
                 last_health = now
                 self._housekeeping(now)
 
-    def _take(self, item: _Input) -> _Body | None:
-        """Apply one input to its subject's body; that body, if there is one."""
-        subject, what, sample = item
+    def _token(self, subject: str | None, token: _Token) -> _Body | None:
+        """Apply a token's coming or going to its subject's body; that body (to
+        be solved at once, its topology having changed), if there is one."""
+        try:
+            site, _ = keys.parse(token.key)
+        except keys.KeySpaceError:
+            return None
+        if site.branch not in self.branches:
+            return None  # a node this gateway does not serve (it subscribes to a subset)
         body = self._body(subject)
         if body is None:
             return None
-        if isinstance(what, _Token):
-            with self._lock:
-                (body.alive.add if what.alive else body.alive.discard)(what.key)
-                (body.gone.discard if what.alive else body.gone.add)(what.key)
-                body.force = True
-            self._publish_topology(body)
-        elif sample is not None:
-            with self._lock:
-                body.take(what, sample, time.monotonic())
+        with self._lock:
+            (body.alive.add if token.alive else body.alive.discard)(token.key)
+            (body.gone.discard if token.alive else body.gone.add)(token.key)
+        self._publish_topology(body)
         return body
 
     def _housekeeping(self, now: float) -> None:
         """Once a second: stale sites get a tick of their own, topology and health go out."""
         for body in list(self._bodies.values()):
             with self._lock:
-                body.force = body.force or body.newly_stale(now)
+                body.trim(now)
+                stale = body.newly_stale(now)
+            if stale:
+                self._solve_and_publish(body, now, force=True)
             self._publish_topology(body)
             body.health_pub.put(json.dumps(self.health(body)).encode())
 
-    def _solve_and_publish(self, body: _Body, now: float) -> None:
+    def _solve_and_publish(self, body: _Body, now: float, force: bool = False) -> None:
         with self._lock:
+            if not force and not body.unsolved_sites:
+                return  # solved already, nothing new since
             latest, stale, solver = body.snapshot(now)
         try:
             output = solver.solve(latest)

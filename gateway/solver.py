@@ -54,6 +54,27 @@ def _angle_deg(rot: np.ndarray) -> float:
     return math.degrees(float(np.linalg.norm(pin.log3(rot))))
 
 
+# Batches of rotations, in array form: a scipy Rotation call costs some 30-90 us
+# whatever the batch (its array-API layer), more than these whole formulas.
+def _axis_rotations(axes: np.ndarray, angles_rad: np.ndarray) -> np.ndarray:
+    """Rotations (n, 3, 3) about unit ``axes`` (n, 3) by ``angles_rad`` (n,), by
+    Rodrigues' formula; a zero axis gives the identity."""
+    k = np.zeros((len(axes), 3, 3))
+    k[:, 0, 1], k[:, 0, 2], k[:, 1, 2] = -axes[:, 2], axes[:, 1], -axes[:, 0]
+    k -= k.transpose(0, 2, 1)
+    s, c = np.sin(angles_rad)[:, None, None], np.cos(angles_rad)[:, None, None]
+    return np.eye(3) + s * k + (1.0 - c) * (k @ k)  # type: ignore[no-any-return]
+
+
+def _angles_deg(rot: np.ndarray) -> np.ndarray:
+    """Rotation angles (deg) of rotations (n, 3, 3): atan2 of sine and cosine,
+    accurate near 0 (what ``_angle_deg`` gives for one)."""
+    vee = np.stack([rot[:, 2, 1] - rot[:, 1, 2], rot[:, 0, 2] - rot[:, 2, 0],
+                    rot[:, 1, 0] - rot[:, 0, 1]], axis=1)  # fmt: skip
+    cos = (np.trace(rot, axis1=1, axis2=2) - 1.0) / 2.0
+    return np.degrees(np.arctan2(np.linalg.norm(vee, axis=1) / 2.0, cos))  # type: ignore[no-any-return]
+
+
 def _quat_wxyz(rot: np.ndarray) -> QuatWxyz:
     q = pin.Quaternion(rot)
     q.normalize()
@@ -88,6 +109,8 @@ class JointAxes:
     seq: str
     signs: np.ndarray
     axes: tuple[np.ndarray, ...]
+    names: tuple[str, ...]  # the dofs' angle names
+    limits: tuple[tuple[float, float], ...]  # their ranges of motion
 
     @classmethod
     def of(cls, joint: Joint) -> JointAxes:
@@ -97,7 +120,9 @@ class JointAxes:
             letters.append("XYZ"[k])
             signs.append(float(np.sign(dof.axis[k])))
         seq = "".join(letters) + "".join(c for c in "XYZ" if c not in letters)
-        return cls(joint, seq[:3], np.array(signs), tuple(np.array(d.axis) for d in joint.dofs))
+        names = joint.angle_names()
+        return cls(joint, seq[:3], np.array(signs), tuple(np.array(d.axis) for d in joint.dofs),
+                   names, tuple(map(rom, names)))  # fmt: skip
 
     def matrix(self, angles_deg: np.ndarray) -> np.ndarray:
         out = _rot(self.axes[0], math.radians(angles_deg[0]))
@@ -132,7 +157,7 @@ class JointAxes:
         if n < 3:  # the unused angles must vanish: only one candidate can be exact
             best = min(candidates, key=lambda c: float(np.abs(c[n:]).sum()))
             return best[:n]  # type: ignore[no-any-return]
-        return _nearest([c[:n] for c in candidates], previous, self.joint.angle_names())
+        return _nearest([c[:n] for c in candidates], previous, self.names)
 
 
 def _nearest(
@@ -169,6 +194,9 @@ class _SplitBatch:
             for d, name in enumerate(ax.joint.angle_names()):
                 self.lo[r, d], self.hi[r, d] = rom(name)
         self.unused = np.arange(3)[None, :] >= self.n[:, None]
+        self.axis = np.zeros((len(axes), 3, 3))  # per joint, each dof's axis (0: no dof)
+        for r, ax in enumerate(axes):
+            self.axis[r, : self.n[r]] = ax.axes
 
     def split(
         self, rows: np.ndarray, rel: np.ndarray, previous: list[np.ndarray | None]
@@ -245,15 +273,20 @@ class BodySolver:
         }
         self._frames = [self.model.segment_frames[s] for s in self.skeleton.segments]
         self._batch = _SplitBatch([self.axes[j.name] for j in self.skeleton.joints])
+        self._calibration_inv = np.array(
+            [self._calibration[j.name].T for j in self.skeleton.joints]
+        )
+        self._angle_order = self.skeleton.angle_names()
         self._memory = _Memory()
-        self._mount_cache: dict[str, np.ndarray] = {}
+        self._sites: dict[Site, tuple[str, np.ndarray]] = {}
 
-    def _mount(self, key: str) -> np.ndarray:
-        m = self._mount_cache.get(key)
-        if m is None:
-            w, x, y, z = self.profile.imu_mounts.get(key, (1.0, 0.0, 0.0, 0.0))
-            m = self._mount_cache[key] = _matrix((w, x, y, z))
-        return m
+    def _site(self, site: Site) -> tuple[str, np.ndarray]:
+        """The segment a sensor rides on, and its mount's inverse (for orientation sensors)."""
+        known = self._sites.get(site)
+        if known is None:
+            w, x, y, z = self.profile.imu_mounts.get(site.raw_key, (1.0, 0.0, 0.0, 0.0))
+            known = self._sites[site] = (mount(site).segment, _matrix((w, x, y, z)).T)
+        return known
 
     def solve(self, samples: Mapping[Site, RawSample]) -> BodyOutput:
         """Angles and poses from the latest sample of each site."""
@@ -266,8 +299,7 @@ class BodySolver:
         def commit(joint: Joint, values: np.ndarray) -> None:
             """Clamp to the range of motion, record, and carry the chain on."""
             ax = self.axes[joint.name]
-            for i, name in enumerate(joint.angle_names()):
-                lo, hi = rom(name)
+            for i, (name, (lo, hi)) in enumerate(zip(ax.names, ax.limits, strict=True)):
                 if not lo <= values[i] <= hi:
                     values[i] = min(max(values[i], lo), hi)
                     flags[name] = "clamped"
@@ -278,15 +310,17 @@ class BodySolver:
             rel[joint.name] = _angle_deg(self._calibration[joint.name].T @ joint_rot)
 
         by_child = {j.child: j for j in self.skeleton.joints}
-        split = self._split_direct(measured, world["pelvis"])
+        direct = self._commit_direct(self._split_direct(measured, world["pelvis"]),
+                                     angles, flags, rel)  # fmt: skip
         for joint in self.skeleton.joints:
+            if joint.name in direct:
+                world[joint.child] = world[joint.parent] @ direct[joint.name]
+                continue
             ax = self.axes[joint.name]
             parent = world[joint.parent]
             previous = self._memory.angles.get(joint.name)
-            names = joint.angle_names()
-            if joint.name in split:
-                values = split[joint.name]
-            elif joint.child in measured:
+            names = ax.names
+            if joint.child in measured:
                 values = ax.split(parent.T @ measured[joint.child], previous)
             elif joint.child in modules:
                 site, reading = modules[joint.child]
@@ -304,12 +338,16 @@ class BodySolver:
                 values = np.zeros(len(names))
                 flags.update(dict.fromkeys(names, "unobserved"))
             commit(joint, values)
+        angles = {n: angles[n] for n in self._angle_order}  # the skeleton's order, always
+        rel = {j.name: rel[j.name] for j in self.skeleton.joints}
         w, x, y, z = _quat_wxyz(world["pelvis"])
         root = (x, y, z, w)
         rotations, positions = self.model.frame_placements(
             self.model.q(angles, None, root), self._frames
         )
-        xyzw = Rotation.from_matrix(rotations).as_quat(canonical=True)
+        xyzw = np.array([pin.Quaternion(r).coeffs() for r in rotations])
+        xyzw /= np.linalg.norm(xyzw, axis=1, keepdims=True)
+        xyzw *= np.where(xyzw[:, 3:] < 0, -1.0, 1.0)  # canonical: w >= 0
         segments = {
             s: (tuple(p), (q[3], q[0], q[1], q[2]))
             for s, p, q in zip(self.skeleton.segments, positions.tolist(), xyzw.tolist(),
@@ -331,17 +369,59 @@ class BodySolver:
     ) -> tuple[dict[str, np.ndarray], dict[str, tuple[Site, OleAccel]]]:
         """Segment orientations of the orientation sensors, and the SmartSuit
         modules by the segment they ride on."""
-        measured: dict[str, np.ndarray] = {}
+        quats: dict[str, tuple[QuatWxyz, np.ndarray]] = {}  # the first sensor of a segment
         modules: dict[str, tuple[Site, OleAccel]] = {}
         for site, sample in samples.items():
-            seg = mount(site).segment
+            seg, mount_inv = self._site(site)
             r = sample.reading
             if isinstance(r, Quat):
-                if seg not in measured:
-                    measured[seg] = _matrix(r.wxyz) @ self._mount(site.raw_key).T
+                if seg not in quats:
+                    quats[seg] = (r.wxyz, mount_inv)
             elif site.name in OLE_DOF:
                 modules[seg] = (site, r)
-        return measured, modules
+        if not quats:
+            return {}, modules
+        sensor = Rotation.from_quat([q for q, _ in quats.values()], scalar_first=True)
+        segment = sensor.as_matrix() @ np.array([m for _, m in quats.values()])
+        return dict(zip(quats, segment, strict=True)), modules
+
+    def _commit_direct(
+        self,
+        split: Mapping[str, np.ndarray],
+        angles: dict[str, float],
+        flags: dict[str, str],
+        rel: dict[str, float],
+    ) -> dict[str, np.ndarray]:
+        """What ``commit`` does for one joint, for the joints split from two
+        orientation sensors, all at once: clamp to the range of motion, record
+        angles, flags and total rotation; their joint rotations."""
+        if not split:
+            return {}
+        batch = self._batch
+        rows = np.array([batch.index[name] for name in split])
+        values = np.zeros((len(rows), 3))
+        for r, v in enumerate(split.values()):
+            values[r, : len(v)] = v
+        lo, hi = batch.lo[rows], batch.hi[rows]
+        clamped = (values < lo) | (values > hi)
+        values = np.clip(values, lo, hi)
+        radians = np.radians(values)
+        matrices = _axis_rotations(batch.axis[rows, 0], radians[:, 0])
+        for d in (1, 2):  # R = R_dof0 R_dof1 R_dof2, an absent dof adding nothing
+            matrices = matrices @ _axis_rotations(batch.axis[rows, d], radians[:, d])
+        total = _angles_deg(self._calibration_inv[rows] @ matrices).tolist()
+        out = {}
+        for r, (name, row) in enumerate(zip(split, rows.tolist(), strict=True)):
+            ax = batch.axes[row]
+            n = len(ax.names)
+            v = values[r, :n]
+            self._memory.angles[name] = v
+            angles.update(zip(ax.names, v.tolist(), strict=True))
+            if clamped[r, :n].any():
+                flags.update((ax.names[i], "clamped") for i in np.flatnonzero(clamped[r, :n]))
+            rel[name] = total[r]
+            out[name] = matrices[r]
+        return out
 
     def _split_direct(
         self, measured: Mapping[str, np.ndarray], pelvis: np.ndarray
@@ -374,7 +454,7 @@ class BodySolver:
         previous: np.ndarray | None,
         flags: dict[str, str],
     ) -> np.ndarray:
-        names = joint.angle_names()
+        names = self.axes[joint.name].names
         values = previous.copy() if previous is not None else np.zeros(len(names))
         ole_name = f"{site.branch.side}_{site.name}_{OLE_DOF[site.name]}_deg"
         ole_index = names.index(ole_name)
@@ -427,7 +507,7 @@ class BodySolver:
                 return (fixed @ ax.dof(1, x[0])).T @ up_world  # type: ignore[no-any-return]
 
             (values[1],) = _gauss_newton(predict, np.array([values[1]]), target)
-            flags.pop(joint.angle_names()[1], None)
+            flags.pop(self.axes[joint.name].names[1], None)
             return values
         up_ax = self.axes[upstream.name]
         up_values = self._memory.angles[upstream.name].copy()
@@ -439,7 +519,7 @@ class BodySolver:
             return chain.T @ up_world  # type: ignore[no-any-return]
 
         prev = self._memory.tilt.get(joint.name, np.zeros(2))
-        names = (upstream.angle_names()[1], joint.angle_names()[1])
+        names = (self.axes[upstream.name].names[1], self.axes[joint.name].names[1])
 
         def rank(x: np.ndarray) -> tuple[bool, float, float]:
             miss = float(np.linalg.norm(predict2(x) - target)) > MISS
@@ -455,8 +535,8 @@ class BodySolver:
         solution = min(fits, key=rank)
         self._memory.tilt[joint.name] = solution
         up_values[1], values[1] = solution
-        flags.pop(upstream.angle_names()[1], None)
-        flags.pop(joint.angle_names()[1], None)
+        flags.pop(self.axes[upstream.name].names[1], None)
+        flags.pop(self.axes[joint.name].names[1], None)
         commit(upstream, up_values)
         return values
 
@@ -508,7 +588,7 @@ class BodySolver:
             candidates.append(
                 np.array([_wrap(math.degrees(phi1)) * s1, _wrap(math.degrees(phi2)) * s2])
             )
-        return _nearest(candidates, prev, joint.angle_names()[:2])
+        return _nearest(candidates, prev, self.axes[joint.name].names[:2])
 
 
 def _gauss_newton(predict: Any, x0: np.ndarray, target: np.ndarray, iters: int = 5) -> np.ndarray:

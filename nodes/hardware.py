@@ -17,7 +17,6 @@ emulate pulling the USB cable and putting it back.
 
 from __future__ import annotations
 
-import contextlib
 import logging
 import os
 import select
@@ -123,7 +122,16 @@ class CanNodes(_Loop):
 
 
 class PtyPort:
-    """A pseudo-terminal whose far end is reached through a stable symlink."""
+    """A pseudo-terminal whose far end is reached through a stable symlink.
+
+    ``read``, ``write`` and ``unplug`` take one lock: a descriptor is never
+    closed while another thread is using it, since the number could otherwise be
+    handed to a new socket or file and that thread read or write someone else's data.
+    """
+
+    #: Longest a write waits for the far end to make room before the rest is dropped
+    #: (a UART's buffer overflowing); bounds how long ``unplug`` can wait.
+    WRITE_TIMEOUT_S = 0.5
 
     def __init__(self, link: Path, baud: int) -> None:
         self.link = Path(link)
@@ -131,10 +139,13 @@ class PtyPort:
         self.master: int | None = None
         self._slave: int | None = None
         self.plugged = threading.Event()
+        self.dropped = 0  # bytes the far end did not make room for
+        self._lock = threading.Lock()
 
     def plug(self) -> None:
         """Create the device (again) and point the symlink at it."""
         master, slave = os.openpty()
+        os.set_blocking(master, False)
         tty.setraw(slave)
         attrs = termios.tcgetattr(slave)
         attrs[4] = attrs[5] = _BAUD.get(self.baud, termios.B115200)
@@ -143,36 +154,52 @@ class PtyPort:
         tmp.unlink(missing_ok=True)
         tmp.symlink_to(os.ttyname(slave))
         tmp.replace(self.link)
-        self.master, self._slave = master, slave
+        with self._lock:
+            self.master, self._slave = master, slave
         self.plugged.set()
 
     def unplug(self) -> None:
         """Remove the device: its users' reads and writes fail, as on a USB unplug."""
         self.plugged.clear()
         self.link.unlink(missing_ok=True)
-        for fd in (self.master, self._slave):
-            if fd is not None:
-                os.close(fd)
-        self.master = self._slave = None
+        with self._lock:
+            for fd in (self.master, self._slave):
+                if fd is not None:
+                    os.close(fd)
+            self.master = self._slave = None
 
     def read(self, timeout: float) -> bytes:
         """What the far end wrote, waiting up to ``timeout``; b"" if nothing."""
-        master = self.master
-        if master is None:
-            self.plugged.wait(timeout)
-            return b""
-        try:
-            ready, _, _ = select.select([master], [], [], timeout)
-            return os.read(master, 4096) if ready else b""
-        except OSError:
-            return b""
+        with self._lock:
+            master = self.master
+            if master is not None:
+                try:
+                    ready, _, _ = select.select([master], [], [], timeout)
+                    return os.read(master, 4096) if ready else b""
+                except OSError:  # the far end hung up
+                    return b""
+        self.plugged.wait(timeout)
+        return b""
 
     def write(self, data: bytes) -> None:
-        master = self.master
-        if master is None:
-            return
-        with contextlib.suppress(OSError):  # unplugged meanwhile
-            os.write(master, data)
+        """Send ``data`` to the far end; dropped if unplugged or not read in time."""
+        view = memoryview(data)
+        deadline = time.monotonic() + self.WRITE_TIMEOUT_S
+        with self._lock:
+            master = self.master
+            while master is not None and view:
+                try:
+                    _, ready, _ = select.select(
+                        [], [master], [], max(0.0, deadline - time.monotonic())
+                    )
+                    if not ready:
+                        break
+                    view = view[os.write(master, view) :]
+                except BlockingIOError:
+                    continue
+                except OSError:  # the far end hung up
+                    break
+            self.dropped += len(view)
 
 
 class _PtyEmulator(_Loop):

@@ -21,11 +21,12 @@ has the same shape, limited to that branch's joints and segments.
 
 from __future__ import annotations
 
-import json
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from functools import lru_cache
 from typing import Any
+
+import orjson
 
 from ..errors import DecodeError, Reason
 
@@ -71,22 +72,23 @@ def _joint_of(angle_name: str) -> str:
 
 def encode(frame: PoseFrame) -> bytes:
     """The message, numbers as given (the gateway rounds them to 1e-6 when it
-    builds the frame, once for the body and all its branch views)."""
-    return json.dumps(
+    builds the frame, once for the body and all its branch views). orjson, not
+    the standard library: at 100 Hz per body the encoder is on the hot path."""
+    return orjson.dumps(
         {
             "v": VERSION,
             "seq": frame.seq,
             "t_ns": frame.t_ns,
-            "angles_deg": dict(frame.angles_deg),
-            "rel_deg": dict(frame.rel_deg),
-            "flags": dict(frame.flags),
+            "angles_deg": frame.angles_deg,
+            "rel_deg": frame.rel_deg,
+            "flags": frame.flags,
             "segments": {s: {"p": p, "q": q} for s, (p, q) in frame.segments.items()},
-            "joints_m": dict(frame.joints_m),
-            "sources": dict(frame.sources),
+            "joints_m": frame.joints_m,
+            "sources": frame.sources,
             "stale": list(frame.stale),
         },
-        separators=(",", ":"),
-    ).encode()
+        option=orjson.OPT_SERIALIZE_NUMPY,
+    )
 
 
 def _floats(v: Any, n: int) -> Any:
@@ -99,13 +101,16 @@ def _floats(v: Any, n: int) -> Any:
 def _int(v: Any) -> int:
     if isinstance(v, bool) or not isinstance(v, int | float):
         raise DecodeError(Reason.GARBAGE, f"expected an integer, got {v!r:.60}")
-    return int(v)  # OverflowError (inf) and ValueError (nan) are caught by decode
+    n = int(v)  # OverflowError (inf) and ValueError (nan) are caught by decode
+    if not -(2**63) <= n < 2**64:  # what a 64-bit field (and orjson) can carry
+        raise DecodeError(Reason.GARBAGE, f"integer out of 64-bit range: {v!r:.60}")
+    return n
 
 
 def decode(payload: bytes | bytearray) -> PoseFrame:
     """One pose message; ``DecodeError`` if it is not one."""
     try:
-        d: dict[str, Any] = json.loads(payload)
+        d: dict[str, Any] = orjson.loads(payload)
         if not isinstance(d, dict):
             raise DecodeError(Reason.GARBAGE, "not a JSON object")
         if d.get("v") != VERSION:
