@@ -1,6 +1,6 @@
 """Recorder messages/s beside the bare ``mcap`` writer, in one run.
 
-Baseline: the ``mcap`` library's own ``Writer`` (same 64 KiB zstd chunks)
+Baseline: the ``mcap`` library's own ``Writer`` (same 1 MiB zstd chunks)
 storing each message's bytes as they came off the wire, no decoding. bodynet's
 ``McapSink`` does what the recorder does per message: decode the payload and
 store it as JSON with a schema (so generic MCAP tools can plot it). A third
@@ -24,11 +24,11 @@ from mcap.writer import CompressionType, Writer
 
 from bodynet.bench import machine
 from bodynet.bench.decode import _rate
-from bodynet.clients.mcap_store import McapSink
+from bodynet.clients.mcap_store import CHUNK_BYTES, McapSink
 from bodynet.core.codecs import pose, raw_sample
 from bodynet.core.messages import RawSample, Source
 
-CHUNK = 64 * 1024
+CHUNK = CHUNK_BYTES
 
 
 def _body_samples(ticks: int) -> tuple[list[str], list[bytes]]:

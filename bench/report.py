@@ -13,6 +13,7 @@ from bodynet.bench import machine
 
 SECTIONS = (
     ("decode", "Decode rates, each beside a bare baseline"),
+    ("solver", "Gateway tick work per body, bodies solved together against one at a time"),
     ("gateway", "Gateway beside a bare Zenoh relay, 15 nodes x 100 Hz per body"),
     ("peer", "Against Lab Streaming Layer, same stream, same run"),
     ("rate", "One body at the rate of `--rate-hz` per node"),

@@ -14,7 +14,7 @@ def cmd_export(args: argparse.Namespace) -> int:
     from bodynet.clients.mcap_store import StoreError
 
     try:
-        rows = export_csv(args.recording, args.output)
+        rows = export_csv(args.recording, args.output, progress=not args.quiet)
     except (StoreError, OSError) as exc:
         print(f"bodynet export: {exc}", file=sys.stderr)
         return 2
@@ -72,9 +72,15 @@ def cmd_view(args: argparse.Namespace) -> int:
             if args.recording and args.save
             else ("native" if os.environ.get("DISPLAY") else "web")
         )
-    viewer = Viewer.start(mode, args.save, args.url, args.web_port, args.grpc_port)
+    try:
+        viewer = Viewer.start(mode, args.save, args.url, args.web_port, args.grpc_port)
+    except OSError as exc:  # e.g. --save in a folder that is not there
+        why = f"cannot write {args.save} ({exc.strerror})" if exc.filename else str(exc)
+        print(f"bodynet view: {why}", file=sys.stderr)
+        return 2
     if viewer.address:
         print(f"bodynet view: web viewer at {viewer.address}", flush=True)
+    complete = False  # the .rrd is kept only if complete; else nothing is left
     try:
         if args.recording:
             try:
@@ -91,9 +97,11 @@ def cmd_view(args: argparse.Namespace) -> int:
                 n = view_live(session, viewer, stop)
             finally:
                 session.close()
+        complete = True
     finally:
-        viewer.close()
-    print(f"bodynet view: {n} poses" + (f", saved to {args.save}" if args.save else ""),
+        viewer.close(keep=complete)
+    bad = f", {viewer.bad} bad messages not shown" if viewer.bad else ""
+    print(f"bodynet view: {n} poses{bad}" + (f", saved to {args.save}" if args.save else ""),
           file=sys.stderr)  # fmt: skip
     return 0
 
@@ -129,6 +137,7 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
     c = esub.add_parser("csv", help="joint angles, rotations and joint centres, one row per tick")
     c.add_argument("recording", type=Path, help="an MCAP file with poses")
     c.add_argument("-o", "--output", type=Path, required=True)
+    c.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     c.set_defaults(func=cmd_export)
     b = esub.add_parser("bvh", help="BVH motion (Blender, MotionBuilder...): the body model's "
                                     "hierarchy, segment rotations per frame")  # fmt: skip
@@ -181,14 +190,24 @@ def cmd_record(args: argparse.Namespace) -> int:
         session.close()
     print(f"\nbodynet record: {recorder.messages} messages in "
           f"{', '.join(map(str, recorder.files))}", file=sys.stderr)  # fmt: skip
+    if recorder.rejected:
+        print(f"bodynet record: {sum(recorder.rejected.values())} messages refused "
+              f"({recorder.rejected.summary()})", file=sys.stderr)  # fmt: skip
     return 0
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
     from bodynet.cli.nodes import stop_on_signals
     from bodynet.clients.mcap_store import StoreError
-    from bodynet.clients.replay import replay
+    from bodynet.clients.replay import replay, topic_filter
 
+    try:
+        topic_filter(args.keys or None)
+        if not args.speed > 0:
+            raise ValueError(f"--speed must be positive, not {args.speed}")
+    except ValueError as exc:
+        print(f"bodynet replay: {exc}", file=sys.stderr)
+        return 2
     stop = stop_on_signals()
     session = open_session(config_from_args(args))
     try:
@@ -204,8 +223,9 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
 
 def add_record_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
-    p = sub.add_parser("record", help="record raw samples and poses to MCAP")
-    p.add_argument("keys", nargs="*", help="key expressions (default: every raw sample and pose)")
+    p = sub.add_parser("record", help="record raw samples, poses, topology and health to MCAP")
+    p.add_argument("keys", nargs="*", help="key expressions (default: every raw sample and pose, "
+                                           "the topology and every health)")  # fmt: skip
     p.add_argument("-o", "--output", type=Path, required=True, help="the MCAP file")
     p.add_argument("--rotate-mb", type=float, default=0.0, help="start a new file past this size")
     p.add_argument("--rotate-s", type=float, default=0.0, help="start a new file past this age")
@@ -215,7 +235,9 @@ def add_record_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore
 
     p = sub.add_parser("replay", help="publish a recording's raw samples again")
     p.add_argument("recording", type=Path)
-    p.add_argument("--keys", nargs="*", help="topics to replay (default: every raw sample)")
+    p.add_argument("--keys", nargs="*",
+                   help="key expressions of the topics to replay, such as 'body/arm/left/**' "
+                        "(default: every raw sample)")  # fmt: skip
     p.add_argument("--speed", type=float, default=1.0, help="2 plays twice as fast")
     p.add_argument("--loop", action="store_true")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")

@@ -69,15 +69,17 @@ def cmd_router(args: argparse.Namespace) -> int:
     return 0
 
 
-BENCHMARKS = ("decode", "gateway", "peer", "rate", "recorder", "faults", "soak")
+BENCHMARKS = ("decode", "solver", "gateway", "peer", "rate", "recorder", "faults", "soak")
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
-    from bodynet.bench import decode, faults, gateway, peer, recorder, report, soak
+    from bodynet.bench import decode, faults, gateway, peer, recorder, report, soak, solver
 
     only = args.only or [b for b in BENCHMARKS if b != "soak"]  # the soak on demand
     if "decode" in only:
         decode.run(seconds=args.seconds, out_dir=args.out)
+    if "solver" in only:
+        solver.run(seconds=args.seconds, out_dir=args.out, bodies=(1, 5, 20))
     if "gateway" in only:
         gateway.run(seconds=args.gateway_seconds, out_dir=args.out, bodies=tuple(args.bodies))
     if "peer" in only:

@@ -166,16 +166,20 @@ def csv_columns() -> list[str]:
             + [f"{j}_{axis}_m" for j in joints for axis in "xyz"])  # fmt: skip
 
 
-def export_csv(recording: Path, out: Path) -> int:
+def export_csv(recording: Path, out: Path, progress: bool = True) -> int:
     """Write the CSV of a recording's poses; returns the number of rows.
 
     The file appears complete or not at all (written aside, then renamed).
+    ``progress``: a progress bar on a terminal, as :func:`load_track` shows.
     """
     columns = csv_columns()
+    total = count_messages(recording, keys.pose_key())
     tmp = out.with_name(out.name + ".part")
     rows = 0
+    bar = tqdm(total=total or None, unit="pose", desc=recording.name, leave=False,
+               disable=None if progress else True)  # fmt: skip
     try:
-        with tmp.open("w", newline="") as f:
+        with bar, tmp.open("w", newline="") as f:
             writer = csv.writer(f)
             writer.writerow(columns)
             for log_time, frame in read_poses(recording):
@@ -186,6 +190,7 @@ def export_csv(recording: Path, out: Path) -> int:
                     row.update({f"{j}_x_m": x, f"{j}_y_m": y, f"{j}_z_m": z})
                 writer.writerow([str(row["t_s"]), *(_fmt(row.get(c)) for c in columns[1:])])
                 rows += 1
+                bar.update()
         if not rows:
             raise StoreError(f"{recording}: no poses to export (process the capture first?)")
         os.replace(tmp, out)

@@ -1,4 +1,5 @@
-"""MCAP files of the body network: poses and raw samples, readable by any tool.
+"""MCAP files of the body network: poses, raw samples, topology and health,
+readable by any tool.
 
 Topics are the Zenoh keys. Messages are JSON with a JSON Schema, so generic
 MCAP tools (Foxglove, the ``mcap`` CLI) can open and plot them:
@@ -14,36 +15,51 @@ MCAP tools (Foxglove, the ``mcap`` CLI) can open and plot them:
   schema, JSON), one message per ``body/pose``: the pelvis in frame ``world``,
   every other segment in its parent segment (``body_tree``), so Foxglove's 3D
   panel shows the skeleton's frames without any setup.
+- ``body/@topology``: schema ``bodynet.Topology``, the gateway's topology as it
+  publishes it or answers it (``t_ns``, ``branches`` -> ``nodes`` ->
+  ``state``, ``node``, ``last_t_ns``);
+- ``body/@health/<source>``: schema ``bodynet.Health``, a bridge's or the
+  gateway's health as published (``source``, ``t_ns``, then ``device``,
+  ``rejected``, ``nodes``... or ``samples``, ``ticks``...). Log time: the
+  message's ``t_ns`` (when it has none, when it was received). Another
+  subject's (``alice/body/@topology``, ``alice/body/@health/...``) alike,
+  when the recording asked for it.
 
 - ``@gaps``: schema ``bodynet.Gap``, one record per jump in a topic's
   sequence numbers the recorder saw (``topic``, ``after_seq``, ``missing``,
   ``from_t_ns``, ``to_t_ns``): where the recording is incomplete.
 
 Log time is the sample's source time in ns (for a processed capture, the
-capture's own time base). Files are created readable by the owner only: this
-is health data.
+capture's own time base); MCAP stores it as an unsigned 64-bit number, so a
+message whose time is negative or past ``2**64 - 1`` is refused
+(``DecodeError``, ``out_of_range``) before it reaches the writer. Files are
+created readable by the owner only: this is health data.
 """
 
 from __future__ import annotations
 
 import json
+import operator
 import os
 import struct
 import time
 from collections.abc import Iterable, Iterator
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any
+from typing import IO, Any
 
 import orjson
+import zstandard
 from mcap.exceptions import McapError
 from mcap.reader import make_reader
+from mcap.records import Channel, Message, Schema
+from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
 from bodynet.clients.body_tree import frame_transforms_json, segment_parents
 from bodynet.core import keys
 from bodynet.core.codecs import pose
-from bodynet.core.errors import DecodeError
+from bodynet.core.errors import DecodeError, Reason
 from bodynet.core.messages import OleAccel, RawSample
 
 POSE_SCHEMA = {
@@ -85,6 +101,68 @@ TRUTH_SCHEMA = {
         "segment_quat_wxyz": {"type": "array", "items": {"type": "number"}},
     },
 }
+
+_COUNTS = {"type": "object", "additionalProperties": {"type": "integer"}}
+TOPOLOGY_SCHEMA = {
+    "title": "bodynet.Topology",
+    "type": "object",
+    "properties": {
+        "t_ns": {"type": "integer"},
+        "branches": {
+            "type": "object",
+            "additionalProperties": {
+                "type": "object",
+                "properties": {
+                    "nodes": {
+                        "type": "object",
+                        "additionalProperties": {
+                            "type": "object",
+                            "properties": {
+                                "state": {"type": "string", "enum": ["alive", "stale", "gone"]},
+                                "node": {"type": ["integer", "null"]},
+                                "last_t_ns": {"type": ["integer", "null"]},
+                            },
+                        },
+                    }
+                },
+            },
+        },
+    },
+}
+HEALTH_SCHEMA = {
+    "title": "bodynet.Health",
+    "type": "object",
+    "properties": {
+        "source": {"type": "string"},
+        "t_ns": {"type": "integer"},
+        # a bridge's
+        "kind": {"type": "string"},
+        "device": {"type": "string"},
+        "rejected": _COUNTS,
+        "nodes": {
+            "type": "object",
+            "additionalProperties": {
+                "type": "object",
+                "properties": {
+                    "key": {"type": "string"},
+                    "alive": {"type": "boolean"},
+                    "rate_hz": {"type": "number"},
+                    "samples": {"type": "integer"},
+                    "gaps": {"type": "integer"},
+                    "rejected": _COUNTS,
+                },
+            },
+        },
+        # the gateway's
+        "samples": {"type": "integer"},
+        "ticks": {"type": "integer"},
+        "solver_errors": {"type": "integer"},
+        "subjects": {"type": "integer"},
+        "refused_subjects": {"type": "integer"},
+        "body": {"type": "object", "properties": {"samples": {"type": "integer"},
+                                                  "ticks": {"type": "integer"}}},
+    },
+}  # fmt: skip
 
 _VECTOR3 = {
     "title": "foxglove.Vector3",
@@ -165,6 +243,24 @@ class StoreError(RuntimeError):
     """An MCAP file that cannot be read as bodynet data, with the reason."""
 
 
+#: The latest time an MCAP log or publish time can hold (an unsigned 64-bit ns count).
+MAX_TIME_NS = 2**64 - 1
+
+
+def check_time(t_ns: int) -> int:
+    """``t_ns`` if MCAP can store it as a message time (an integer from 0 to
+    ``MAX_TIME_NS``), else ``DecodeError``: refused before it reaches the
+    writer, which would fail half-way through the message and spoil its chunk."""
+    try:
+        t = operator.index(t_ns)
+    except TypeError:
+        raise DecodeError(Reason.GARBAGE, f"time {t_ns!r} is not an integer") from None
+    if not 0 <= t <= MAX_TIME_NS:
+        raise DecodeError(Reason.OUT_OF_RANGE,
+                          f"time {t} ns is outside what MCAP stores (0 to 2**64 - 1)")  # fmt: skip
+    return t
+
+
 def raw_json(sample: RawSample) -> dict[str, Any]:
     r = sample.reading
     out: dict[str, Any] = {"node": r.node, "seq": sample.seq, "t_ns": sample.t_ns,
@@ -176,13 +272,25 @@ def raw_json(sample: RawSample) -> dict[str, Any]:
     return out
 
 
+#: A chunk's size past which it is closed. The loss bound of a killed recorder is
+#: the chunk's age (``max_chunk_s``), not this: the writer keeps an index entry per
+#: chunk for the file's summary, so small chunks cost memory for as long as the
+#: file grows (64 KiB chunks of one body's raw samples and poses: some 25,000
+#: entries and tens of MB in ten minutes; 1 MiB: a chunk per 0.5 s).
+CHUNK_BYTES = 1 << 20
+
+
 class McapSink:
     """Writes poses and raw samples to one MCAP file; each whole-body pose
     (``body/pose``) also as Foxglove frame transforms on ``body/tf``. A chunk is
     closed and flushed once it holds ``chunk_size`` bytes or is ``max_chunk_s``
-    old, so a writer killed mid-file loses at most that much (see :func:`salvage`)."""
+    old, so a writer killed mid-file loses at most that much (see :func:`salvage`).
 
-    def __init__(self, path: Path, chunk_size: int = 64 * 1024, max_chunk_s: float = 0.5) -> None:
+    A message it cannot store (a time MCAP cannot hold, see :func:`check_time`)
+    raises ``DecodeError`` before anything of it is written: the file goes on
+    and closes complete."""
+
+    def __init__(self, path: Path, chunk_size: int = CHUNK_BYTES, max_chunk_s: float = 0.5) -> None:
         fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
         self._stream = os.fdopen(fd, "wb")
         self._writer = Writer(self._stream, chunk_size=chunk_size, compression=CompressionType.ZSTD)
@@ -198,6 +306,10 @@ class McapSink:
                                                   json.dumps(TRUTH_SCHEMA).encode()),
             "tf": self._writer.register_schema("foxglove.FrameTransforms", "jsonschema",
                                                json.dumps(FRAME_TRANSFORMS_SCHEMA).encode()),
+            "topology": self._writer.register_schema("bodynet.Topology", "jsonschema",
+                                                     json.dumps(TOPOLOGY_SCHEMA).encode()),
+            "health": self._writer.register_schema("bodynet.Health", "jsonschema",
+                                                   json.dumps(HEALTH_SCHEMA).encode()),
         }  # fmt: skip
         self._parents = segment_parents()
         self._channels: dict[str, int] = {}
@@ -217,6 +329,7 @@ class McapSink:
                    data: bytes | None = None) -> None:  # fmt: skip
         """``data``: the frame's message as received, stored as it is (encoding a
         pose again costs twice as much as decoding it)."""
+        check_time(log_time_ns)  # before the pose: its transforms share its time
         data = pose.encode(frame) if data is None else data
         self._add(self._channel(topic, "pose"), log_time_ns, data)
         if topic == keys.pose_key():
@@ -226,11 +339,15 @@ class McapSink:
                       orjson.dumps(tf))  # fmt: skip
 
     def write_raw(self, topic: str, sample: RawSample, log_time_ns: int) -> None:
-        data = orjson.dumps(raw_json(sample))  # the recorder's hot path: orjson is ~5x json
+        try:
+            data = orjson.dumps(raw_json(sample))  # the recorder's hot path: orjson is ~5x json
+        except orjson.JSONEncodeError as exc:  # a number past 64 bits
+            raise DecodeError(Reason.OUT_OF_RANGE, f"raw sample not storable: {exc}") from None
         self._add(self._channel(topic, "raw"), log_time_ns, data)
 
     def _add(self, channel: int, log_time_ns: int, data: bytes) -> None:
-        self._writer.add_message(channel, log_time_ns, data, log_time_ns)
+        t = check_time(log_time_ns)  # log and publish time: the writer's uint64 fields
+        self._writer.add_message(channel, t, data, t)
         self.messages += 1
         now = time.monotonic()
         if now - self._chunk_opened >= self._max_chunk_s:
@@ -240,6 +357,14 @@ class McapSink:
     def write_truth(self, topic: str, truth_json: bytes, log_time_ns: int) -> None:
         """An emulator's ground-truth message, as published (JSON bytes)."""
         self._add(self._channel(topic, "truth"), log_time_ns, truth_json)
+
+    def write_topology(self, topic: str, data: bytes, log_time_ns: int) -> None:
+        """A topology message (``body/@topology``), as published (JSON bytes)."""
+        self._add(self._channel(topic, "topology"), log_time_ns, data)
+
+    def write_health(self, topic: str, data: bytes, log_time_ns: int) -> None:
+        """A health message (``body/@health/<source>``), as published (JSON bytes)."""
+        self._add(self._channel(topic, "health"), log_time_ns, data)
 
     def write_gap(self, gap: Gap) -> None:
         data = orjson.dumps(asdict(gap))
@@ -323,8 +448,42 @@ def read_truth(path: Path) -> Iterator[tuple[str, int, dict[str, float]]]:
             yield channel.topic, message.log_time, values
 
 
-def count_messages(path: Path, topic: str | None = None) -> int:
-    """Messages in a recording (or on one topic), from its summary (0 if it has none)."""
+def read_topology(path: Path) -> Iterator[tuple[str, int, dict[str, Any]]]:
+    """(topic, log time ns, message) of the topology messages of a recording."""
+    return _read_json(path, "bodynet.Topology")
+
+
+def read_health(path: Path) -> Iterator[tuple[str, int, dict[str, Any]]]:
+    """(topic, log time ns, message) of the health messages of a recording
+    (every source's: ``body/@health/<source>``)."""
+    return _read_json(path, "bodynet.Health")
+
+
+def _read_json(path: Path, schema_name: str) -> Iterator[tuple[str, int, dict[str, Any]]]:
+    for schema, channel, message in _messages(path, None):
+        if schema is not None and schema.name == schema_name:
+            try:
+                d = json.loads(message.data)
+            except ValueError as exc:
+                raise StoreError(f"{path}: a {schema_name} message that is not JSON "
+                                 f"({exc})") from None  # fmt: skip
+            if not isinstance(d, dict):
+                raise StoreError(f"{path}: a {schema_name} message that is not a JSON object")
+            yield channel.topic, message.log_time, d
+
+
+@dataclass(frozen=True)
+class ChannelCount:
+    """One channel of a recording's summary: its topic, schema and message count."""
+
+    topic: str
+    schema: str | None
+    messages: int
+
+
+def channel_counts(path: Path) -> list[ChannelCount] | None:
+    """The channels of a recording with their message counts, from its summary
+    (``None`` if it has none, or no statistics)."""
     try:
         f = path.open("rb")
     except OSError as exc:
@@ -336,44 +495,88 @@ def count_messages(path: Path, topic: str | None = None) -> int:
         raise StoreError(f"{path}: not a complete MCAP file ({exc})") from None
     stats = summary.statistics if summary is not None else None
     if stats is None or summary is None:
+        return None
+    out = []
+    for cid, ch in summary.channels.items():
+        schema = summary.schemas.get(ch.schema_id)
+        out.append(ChannelCount(ch.topic, schema.name if schema is not None else None,
+                                int(stats.channel_message_counts.get(cid, 0))))  # fmt: skip
+    return out
+
+
+def count_messages(path: Path, topic: str | None = None) -> int:
+    """Messages in a recording (or on one topic), from its summary (0 if it has none)."""
+    counts = channel_counts(path)
+    if counts is None:
         return 0
-    if topic is None:
-        return int(stats.message_count)
-    return sum(int(stats.channel_message_counts.get(cid, 0))
-               for cid, ch in summary.channels.items() if ch.topic == topic)  # fmt: skip
+    return sum(c.messages for c in counts if topic is None or c.topic == topic)
+
+
+#: The first bytes of every MCAP file.
+MCAP_MAGIC = b"\x89MCAP0\r\n"
 
 
 def salvage(src: Path, dst: Path) -> int:
     """Copy every message of an unfinished file (a recorder killed mid-write)
-    up to its last complete chunk into a complete file; returns how many."""
-    from mcap.records import Channel, Message, Schema
-    from mcap.stream_reader import StreamReader
+    up to its last complete chunk into a complete file; returns how many.
 
-    tmp = dst.with_name(dst.name + ".part")
-    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
-    count = 0
-    with open(src, "rb") as f, os.fdopen(fd, "wb") as out:
-        writer = Writer(out, chunk_size=64 * 1024, compression=CompressionType.ZSTD)
-        writer.start(profile="", library="bodynet salvage")
-        schemas: dict[int, int] = {}
-        channels: dict[int, int] = {}
+    ``StoreError`` if ``src`` cannot be read or is no MCAP file at all; then,
+    as on any other failure, nothing is left at ``dst`` (written aside and
+    renamed into place last)."""
+    try:
+        f = src.open("rb")
+    except OSError as exc:
+        raise StoreError(f"{src}: cannot read it ({exc.strerror})") from None
+    with f:
         try:
-            for record in StreamReader(f).records:
-                if isinstance(record, Schema):
-                    schemas[record.id] = writer.register_schema(
-                        record.name, record.encoding, record.data
-                    )
-                elif isinstance(record, Channel):
-                    channels[record.id] = writer.register_channel(
-                        record.topic, record.message_encoding, schemas.get(record.schema_id, 0),
-                        dict(record.metadata),
-                    )  # fmt: skip
-                elif isinstance(record, Message) and record.channel_id in channels:
-                    writer.add_message(channels[record.channel_id], record.log_time, record.data,
-                                       record.publish_time)  # fmt: skip
-                    count += 1
-        except (McapError, ValueError, EOFError, struct.error):
-            pass  # the end of what was written: everything before it is kept
-        writer.finish()
-    os.replace(tmp, dst)
+            head = f.read(len(MCAP_MAGIC))
+        except OSError as exc:
+            raise StoreError(f"{src}: cannot read it ({exc.strerror})") from None
+        if head != MCAP_MAGIC:
+            if MCAP_MAGIC.startswith(head):
+                raise StoreError(f"{src}: ends before its MCAP header ({len(head)} bytes): "
+                                 "nothing to salvage")  # fmt: skip
+            raise StoreError(f"{src}: not an MCAP recording (it does not start as MCAP files "
+                             "do): nothing to salvage")  # fmt: skip
+        f.seek(0)
+        tmp = dst.with_name(dst.name + ".part")
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+        try:
+            with os.fdopen(fd, "wb") as out:
+                count = _copy_complete(StreamReader(f).records, out)
+            os.replace(tmp, dst)
+        finally:
+            tmp.unlink(missing_ok=True)
+    return count
+
+
+def _copy_complete(records: Iterator[Any], out: IO[bytes]) -> int:
+    """Schemas, channels and messages of ``records`` into a new file on ``out``
+    until the records end or break off; returns how many messages."""
+    count = 0
+    writer = Writer(out, chunk_size=CHUNK_BYTES, compression=CompressionType.ZSTD)
+    writer.start(profile="", library="bodynet salvage")
+    schemas: dict[int, int] = {}
+    channels: dict[int, int] = {}
+    try:
+        for record in records:
+            # the summary section repeats schemas and channels: once each is enough
+            if isinstance(record, Schema) and record.id not in schemas:
+                schemas[record.id] = writer.register_schema(
+                    record.name, record.encoding, record.data
+                )
+            elif isinstance(record, Channel) and record.id not in channels:
+                channels[record.id] = writer.register_channel(
+                    record.topic, record.message_encoding, schemas.get(record.schema_id, 0),
+                    dict(record.metadata),
+                )  # fmt: skip
+            elif isinstance(record, Message) and record.channel_id in channels:
+                writer.add_message(channels[record.channel_id], record.log_time, record.data,
+                                   record.publish_time)  # fmt: skip
+                count += 1
+    # the end of what was written (or a chunk that does not decompress): everything
+    # before it is kept
+    except (McapError, ValueError, EOFError, struct.error, zstandard.ZstdError):
+        pass
+    writer.finish()
     return count

@@ -1,7 +1,15 @@
 """Recording what the body network carries into MCAP (see ``mcap_store``).
 
-Subscribes to the chosen key expressions (raw samples, poses) and writes each
-message with its source time; the file is complete once :meth:`close` runs.
+Subscribes to the chosen key expressions (by default raw samples, poses,
+topology and health) and writes each message with its source time; the file
+is complete once :meth:`close` runs. The topology is also asked for once at
+the start (the gateway publishes it on change), so a recording begins with it.
+
+A message that cannot be stored is refused and counted by reason
+(:attr:`Recorder.rejected`), and the recording goes on: one that does not
+decode (``raw_sample``, ``pose``; topology and health must be JSON objects),
+or whose time MCAP cannot hold (a negative ``t_ns``, or past ``2**64 - 1``:
+``out_of_range``).
 
 Nothing is lost to a router restart where it can be fetched again: the
 subscriptions are Zenoh advanced subscribers with recovery, so raw samples
@@ -19,19 +27,22 @@ import logging
 import threading
 import time
 from collections.abc import Sequence
+from functools import lru_cache
 from pathlib import Path
 
 import zenoh
 import zenoh.ext
 
-from bodynet.clients.mcap_store import Gap, McapSink
+from bodynet.clients.mcap_store import Gap, McapSink, check_time
 from bodynet.core import keys
 from bodynet.core.codecs import pose, raw_sample
 from bodynet.core.errors import DecodeError, Reason, RejectCounts
 
 log = logging.getLogger(__name__)
 
-DEFAULT_KEYS = (keys.all_raw(), keys.all_poses())
+#: Raw samples, poses, topology and health. ``@`` chunks are verbatim (no
+#: wildcard matches them): the admin keys are named.
+DEFAULT_KEYS = (keys.all_raw(), keys.all_poses(), keys.TOPOLOGY, keys.all_health())
 
 
 class Recorder:
@@ -63,6 +74,14 @@ class Recorder:
             zenoh.ext.declare_advanced_subscriber(session, k, self._on_sample, recovery=recovery)
             for k in key_exprs
         ]
+        # the topology as it is now: published on change only, answered as a query
+        for k in key_exprs:
+            if _kind(k) == _TOPOLOGY:
+                session.get(k, self._on_reply)
+
+    def _on_reply(self, reply: zenoh.Reply) -> None:
+        if reply.ok is not None:
+            self._on_sample(reply.ok)
 
     @property
     def messages(self) -> int:
@@ -87,19 +106,25 @@ class Recorder:
                 if self._closed:
                     return
                 self._rotate_if_due()
-                if key.endswith(f"/{keys.POSE}"):
+                kind = _kind(key)
+                if kind == _POSE:
                     frame = pose.decode(data)
-                    t_ns = frame.t_ns or time.time_ns()
+                    t_ns = check_time(frame.t_ns or time.time_ns())
                     self._note_seq(key, frame.seq, t_ns)
                     self._sink.write_pose(key, frame, t_ns, data)
-                elif key.endswith(f"/{keys.Stream.TRUTH}"):
+                elif kind == _TRUTH:
                     self._sink.write_truth(key, data, _truth_time(data))
+                elif kind == _TOPOLOGY:
+                    self._sink.write_topology(key, data, _admin_time(data))
+                elif kind == _HEALTH:
+                    self._sink.write_health(key, data, _admin_time(data))
                 else:
                     raw = raw_sample.decode(data)
-                    self._note_seq(key, raw.seq, raw.t_ns)
+                    self._note_seq(key, raw.seq, check_time(raw.t_ns))
                     self._sink.write_raw(key, raw, raw.t_ns)
         except DecodeError as exc:
             self.rejected[exc.reason] += 1
+            log.debug("recorder: refused a message on %s: %s", key, exc)
 
     def _note_seq(self, topic: str, seq: int, t_ns: int) -> None:
         """Write a gap record if ``seq`` skips numbers after the topic's last one.
@@ -120,9 +145,54 @@ class Recorder:
             self._sink.close()
 
 
+_POSE, _TRUTH, _TOPOLOGY, _HEALTH, _RAW = "pose", "truth", "topology", "health", "raw"
+
+
+@lru_cache(maxsize=4096)  # on every sample's path; the key space is small
+def _kind(key: str) -> str:
+    """What a key (or key expression) of the recording carries, with or
+    without a subject before it (``alice/body/@topology``)."""
+    try:
+        _, rest = keys.split_subject(key)
+    except keys.KeySpaceError:
+        rest = key
+    # admin keys first: a bridge may be called "pose" (body/@health/pose)
+    if rest == keys.TOPOLOGY:
+        return _TOPOLOGY
+    if rest.startswith(f"{keys.HEALTH}/"):
+        return _HEALTH
+    if key.endswith(f"/{keys.POSE}"):
+        return _POSE
+    if key.endswith(f"/{keys.Stream.TRUTH}"):
+        return _TRUTH
+    return _RAW
+
+
+def _admin_time(data: bytes) -> int:
+    """The log time of a topology or health message: its ``t_ns``, or the
+    time it came if it has none; ``DecodeError`` unless it is a JSON object."""
+    try:
+        d = json.loads(data, parse_constant=_no_constant)
+    except (ValueError, RecursionError) as exc:
+        raise DecodeError(Reason.GARBAGE, f"not JSON: {exc}") from None
+    if not isinstance(d, dict):
+        raise DecodeError(Reason.GARBAGE, f"not a JSON object but {type(d).__name__}")
+    t_ns = d.get("t_ns")
+    if t_ns is None:
+        return time.time_ns()
+    if type(t_ns) is not int:
+        raise DecodeError(Reason.GARBAGE, f"t_ns {t_ns!r} is not an integer")
+    return check_time(t_ns)
+
+
+def _no_constant(name: str) -> None:
+    raise ValueError(f"{name} is not JSON")
+
+
 def _truth_time(data: bytes) -> int:
     """The source time of a ground-truth message (JSON with ``t_ns``)."""
     try:
-        return int(json.loads(data)["t_ns"])
-    except (ValueError, KeyError, TypeError) as exc:
+        t_ns = int(json.loads(data)["t_ns"])
+    except (ValueError, KeyError, TypeError, OverflowError, RecursionError) as exc:
         raise DecodeError(Reason.GARBAGE, f"not a ground-truth message: {exc}") from None
+    return check_time(t_ns)

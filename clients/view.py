@@ -10,7 +10,11 @@ of angles, the latest figure per batch), never one ``rr.log`` per sample.
 from __future__ import annotations
 
 import json
+import logging
+import math
+import os
 import queue
+import tempfile
 import threading
 import time
 from collections.abc import Mapping, Sequence
@@ -34,6 +38,8 @@ GAUGES = (
 )  # fmt: skip
 BATCH_S = 0.1
 
+log = logging.getLogger(__name__)
+
 
 def blueprint() -> rrb.Blueprint:
     return rrb.Blueprint(
@@ -50,12 +56,56 @@ def blueprint() -> rrb.Blueprint:
     )  # fmt: skip
 
 
-def figure(frame: pose.PoseFrame, skeleton: Skeleton) -> tuple[list[np.ndarray], np.ndarray]:
-    """Line strips of the stick figure, and the joint centres, from one pose."""
-    seg = {name: (np.array(p), np.array(q)) for name, (p, q) in frame.segments.items()}
+#: Positions further than this from the origin (m), or not numbers, are not drawn.
+MAX_M = 1e6
 
-    def end(segment: str) -> np.ndarray:
-        p, (w, x, y, z) = seg[segment]
+
+def _limb(start: str, side: str, parts: tuple[str, ...]) -> tuple[tuple[str, bool], ...]:
+    return ((start, False), *((f"{side}_{p}", False) for p in parts), (f"{side}_{parts[-1]}", True))
+
+
+#: The stick figure's chains: (segment, its far end rather than its origin) in
+#: order; a bone is drawn between neighbours that are both there.
+CHAINS: tuple[tuple[tuple[str, bool], ...], ...] = (
+    (("pelvis", False), ("thorax", False), ("head", False), ("head", True)),
+    *(
+        chain
+        for side in ("left", "right")
+        for chain in (_limb("head", side, ("upperarm", "forearm", "hand")),
+                      _limb("pelvis", side, ("thigh", "shank", "foot")))
+    ),
+)  # fmt: skip
+
+
+def _point(v: object) -> np.ndarray | None:
+    """A drawable position: three numbers within ``MAX_M``, else ``None``."""
+    try:
+        a = np.asarray(v, dtype=float)
+    except (TypeError, ValueError):
+        return None
+    return a if a.shape == (3,) and bool(np.all(np.abs(a) <= MAX_M)) else None
+
+
+def figure(frame: pose.PoseFrame, skeleton: Skeleton) -> tuple[list[np.ndarray], np.ndarray]:
+    """Line strips of the stick figure, and the joint centres, from one pose.
+
+    Whatever the pose holds: a bone whose segment is missing (a branch view, a
+    partial pose) or not drawable (a position not a number or absurdly far, a
+    quaternion of no direction) is left out, and the rest is drawn."""
+
+    def origin(segment: str) -> np.ndarray | None:
+        pq = frame.segments.get(segment)
+        return None if pq is None else _point(pq[0])
+
+    def end(segment: str) -> np.ndarray | None:
+        p = origin(segment)
+        q = frame.segments[segment][1] if p is not None else ()
+        if p is None or len(q) != 4:
+            return None
+        n = math.hypot(*q)  # no overflow, unlike a sum of squares
+        if not 0.0 < n < math.inf:
+            return None
+        w, x, y, z = (c / n for c in q)
         rot = np.array(
             [
                 [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
@@ -63,23 +113,84 @@ def figure(frame: pose.PoseFrame, skeleton: Skeleton) -> tuple[list[np.ndarray],
                 [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
             ]
         )
-        return p + rot @ (np.array(skeleton.directions[segment]) * skeleton.segment_length(segment))  # type: ignore[no-any-return]
+        direction = np.array(skeleton.directions.get(segment, (0.0, 0.0, 0.0)))
+        return _point(p + rot @ (direction * skeleton.segment_length(segment)))
 
-    if not seg:
-        return [], np.zeros((0, 3))
-    strips = [np.array([seg["pelvis"][0], seg["thorax"][0], seg["head"][0], end("head")])]
-    for side in ("left", "right"):
-        arm = [seg["head"][0]] + [seg[f"{side}_{s}"][0] for s in ("upperarm", "forearm", "hand")]
-        strips.append(np.array([*arm, end(f"{side}_hand")]))
-        leg = [seg["pelvis"][0]] + [seg[f"{side}_{s}"][0] for s in ("thigh", "shank", "foot")]
-        strips.append(np.array([*leg, end(f"{side}_foot")]))
-    joints = np.array([p for p, _ in (seg[s] for s in skeleton.segments)])
-    return strips, joints
+    strips: list[np.ndarray] = []
+    for chain in CHAINS:
+        run: list[np.ndarray] = []
+        for segment, far in (*chain, ("", False)):  # a sentinel ends the last run
+            point = (end if far else origin)(segment) if segment else None
+            if point is not None:
+                run.append(point)
+                continue
+            if len(run) >= 2:
+                strips.append(np.array(run))
+            run = []
+    points = [p for p in (origin(s) for s in skeleton.segments) if p is not None]
+    return strips, np.array(points, dtype=float).reshape(-1, 3)
 
 
-def status_text(topology: object, health: Mapping[str, object]) -> str:
+def angle_path(name: str) -> str | None:
+    """The entity of one joint angle's time series, ``None`` for a nameless one."""
+    part = name.removesuffix("_deg")
+    return f"angles/{rr.escape_entity_path_part(part)}" if part else None
+
+
+def _number(v: float) -> float:
+    return float(v) if math.isfinite(v) else math.nan
+
+
+@dataclass(frozen=True)
+class Drawing:
+    """What the view logs of one pose."""
+
+    t_ns: int  # within int64, as Rerun's timestamps are
+    strips: list[np.ndarray]  # each (n >= 2, 3), finite
+    joints: np.ndarray  # (n, 3), finite
+    angles: dict[str, float]  # entity path -> degrees (NaN: not a number)
+    gauges: list[float]  # one per ``GAUGES``, finite (0: absent or not a number)
+
+
+def drawing(frame: pose.PoseFrame, skeleton: Skeleton) -> Drawing | None:
+    """The view of one decoded pose, ``None`` if it cannot be shown at all (a
+    time Rerun cannot hold): counted as a bad message, never an exception."""
+    if not -(2**63) < frame.t_ns < 2**63:  # int64, and -2**63 is NaT
+        return None
+    strips, joints = figure(frame, skeleton)
+    angles = {}
+    for name, value in frame.angles_deg.items():
+        path = angle_path(name)
+        if path is not None:
+            angles[path] = _number(value)
+    gauges = [frame.angles_deg.get(g, 0.0) for g in GAUGES]
+    return Drawing(frame.t_ns, strips, joints, angles,
+                   [g if math.isfinite(g) else 0.0 for g in gauges])  # fmt: skip
+
+
+def _show(v: object) -> str:
+    """One value of the health JSON as text; ``?`` for what is not a number or a word."""
+    if isinstance(v, float):
+        return f"{v:g}"
+    if isinstance(v, bool | int | str):
+        return str(v)[:40]
+    return "?"
+
+
+def _counts(d: object) -> str:
+    """Rejections by reason, ``0`` for none."""
+    if d is None or d == {}:
+        return "0"
+    if isinstance(d, dict):
+        return ", ".join(f"{k} {_show(v)}" for k, v in sorted(d.items()))
+    return _show(d)
+
+
+def status_text(topology: object, health: Mapping[str, object], bad: int = 0) -> str:
     """The status panel from the latest topology and health JSON, whatever their
-    shape: what is not as documented shows as ``?`` rather than stopping the view."""
+    shape: what is not as documented shows as ``?`` rather than stopping the view.
+    Per bridge its device and rejections, and per node whether it is alive, its
+    rate, samples, gaps and rejections; ``bad``: messages the view could not show."""
 
     def field(d: object, key: str) -> object:
         return d.get(key) if isinstance(d, dict) else None
@@ -95,8 +206,26 @@ def status_text(topology: object, health: Mapping[str, object]) -> str:
         lines.append(f"- **{branch}**: {states}")
     lines.append("\n## Health")
     for source, h in sorted(health.items()):
-        rejected = field(h, "rejected") or {}
-        lines.append(f"- {source}: device {field(h, 'device') or '-'}, rejected {rejected}")
+        parts = [f"device {_show(field(h, 'device'))}"] if field(h, "device") is not None else []
+        parts += [f"{k} {_show(field(h, k))}" for k in ("samples", "ticks")
+                  if field(h, k) is not None]  # fmt: skip
+        parts.append(f"rejected {_counts(field(h, 'rejected'))}")
+        lines.append(f"- **{source}**: " + ", ".join(parts))
+        nodes = field(h, "nodes")
+        # node numbers in numeric order: "2" before "10"
+        for node, n in sorted(nodes.items() if isinstance(nodes, dict) else (),
+                              key=lambda kv: (len(kv[0]), kv[0])):  # fmt: skip
+            alive = field(n, "alive")
+            state = "alive" if alive is True else "not alive" if alive is False else "alive ?"
+            key = field(n, "key")
+            where = f" `{_show(key)}`" if key is not None else ""
+            lines.append(
+                f"  - node {node}{where}: {state}, {_show(field(n, 'rate_hz'))} Hz,"
+                f" {_show(field(n, 'samples'))} samples, {_show(field(n, 'gaps'))} gaps,"
+                f" rejected {_counts(field(n, 'rejected'))}"
+            )
+    if bad:
+        lines.append(f"- **viewer**: {bad} bad messages, not shown")
     return "\n".join(lines)
 
 
@@ -108,65 +237,96 @@ class Viewer:
     recs: list[rr.RecordingStream]
     skeleton: Skeleton
     address: str = ""  # the web viewer's address, in web mode
+    save: Path | None = None  # the .rrd, there once complete
+    part: Path | None = None  # where the .rrd is written meanwhile
+    bad: int = 0  # messages not shown: not a pose, or a pose that cannot be drawn
+    shown: int = 0  # poses logged
 
     @classmethod
     def start(cls, mode: str, save: Path | None = None, url: str | None = None,
               web_port: int | None = None, grpc_port: int | None = None) -> Viewer:  # fmt: skip
         """``mode``: ``native`` (a window), ``web`` (serve the web viewer),
         ``connect`` (to a running viewer at ``url``) or ``none``; with ``save``
-        the ``.rrd`` is written as well."""
+        the ``.rrd`` is written as well: aside (owner-only, as health data is),
+        renamed into place by :meth:`close`. ``OSError`` if it cannot be."""
         bp = blueprint()
         recording_id = f"bodynet-{time.time_ns()}"
         recs: list[rr.RecordingStream] = []
         address = ""
-        if mode != "none":
-            rec = rr.RecordingStream("bodynet", recording_id=recording_id)
-            if mode == "native":
-                rec.spawn(default_blueprint=bp)
-            elif mode == "web":
-                uri = rec.serve_grpc(grpc_port=grpc_port, default_blueprint=bp)
-                rr.serve_web_viewer(open_browser=False, connect_to=uri, web_port=web_port)
-                address = f"http://127.0.0.1:{web_port or 9090}/?url={uri}"
-            else:
-                rec.connect_grpc(url, default_blueprint=bp)
-            recs.append(rec)
-        if save is not None:
-            rec = rr.RecordingStream("bodynet", recording_id=recording_id)
-            rec.save(save, default_blueprint=bp)
-            recs.append(rec)
-        for rec in recs:
-            rec.log("body", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
-        return cls(recs, build_skeleton(), address)
+        part = None
+        if save is not None:  # mkstemp: a fresh file, mode 0600, that Rerun then fills
+            fd, name = tempfile.mkstemp(prefix=f".{save.name}.", suffix=".part",
+                                        dir=save.parent)  # fmt: skip
+            os.close(fd)
+            part = Path(name)
+        try:
+            if mode != "none":
+                rec = rr.RecordingStream("bodynet", recording_id=recording_id)
+                if mode == "native":
+                    rec.spawn(default_blueprint=bp)
+                elif mode == "web":
+                    uri = rec.serve_grpc(grpc_port=grpc_port, default_blueprint=bp)
+                    rr.serve_web_viewer(open_browser=False, connect_to=uri, web_port=web_port)
+                    address = f"http://127.0.0.1:{web_port or 9090}/?url={uri}"
+                else:
+                    rec.connect_grpc(url, default_blueprint=bp)
+                recs.append(rec)
+            if part is not None:
+                rec = rr.RecordingStream("bodynet", recording_id=recording_id)
+                rec.save(part, default_blueprint=bp)
+                recs.append(rec)
+            for rec in recs:
+                rec.log("body", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+        except BaseException:
+            if part is not None:
+                part.unlink(missing_ok=True)
+            raise
+        return cls(recs, build_skeleton(), address, save, part)
 
-    def log_poses(self, frames: Sequence[pose.PoseFrame]) -> None:
-        """One batch: angle columns over time, the latest figure and gauges."""
-        if not frames:
-            return
-        times = rr.TimeColumn("time", timestamp=[f.t_ns * 1e-9 for f in frames])
-        last = frames[-1]
-        strips, joints = figure(last, self.skeleton)
+    def log_poses(self, frames: Sequence[pose.PoseFrame]) -> int:
+        """One batch: angle columns over time, the latest figure and gauges.
+        Returns how many poses were shown; the others count as ``bad``."""
+        drawn = [d for d in (drawing(f, self.skeleton) for f in frames) if d is not None]
+        self.bad += len(frames) - len(drawn)
+        if not drawn:
+            return 0
+        t_ns = np.array([d.t_ns for d in drawn], dtype=np.int64).astype("datetime64[ns]")
+        times = rr.TimeColumn("time", timestamp=t_ns)
+        last = drawn[-1]
         for rec in self.recs:
-            for name in last.angles_deg:
-                values = [f.angles_deg.get(name, float("nan")) for f in frames]
-                rec.send_columns(f"angles/{name.removesuffix('_deg')}", indexes=[times],
+            for path in last.angles:
+                values = [d.angles.get(path, math.nan) for d in drawn]
+                rec.send_columns(path, indexes=[times],
                                  columns=rr.Scalars.columns(scalars=values))  # fmt: skip
-            rec.set_time("time", timestamp=last.t_ns * 1e-9)
-            rec.log("body/figure", rr.LineStrips3D(strips, radii=0.01))
-            rec.log("body/joints", rr.Points3D(joints, radii=0.02))
-            rec.log("gauges", rr.BarChart([last.angles_deg.get(g, 0.0) for g in GAUGES]))
+            rec.set_time("time", timestamp=t_ns[-1])
+            rec.log("body/figure", rr.LineStrips3D(last.strips, radii=0.01))
+            rec.log("body/joints", rr.Points3D(last.joints, radii=0.02))
+            rec.log("gauges", rr.BarChart(last.gauges))
+        self.shown += len(drawn)
+        return len(drawn)
 
     def log_status(self, text: str) -> None:
         for rec in self.recs:
             rec.log("status", rr.TextDocument(text, media_type=rr.MediaType.MARKDOWN))
 
-    def close(self) -> None:
-        for rec in self.recs:
-            rec.flush()
-            rec.disconnect()
+    def close(self, keep: bool = True) -> None:
+        """Flush and close every sink; the ``.rrd`` goes into place if ``keep``
+        (and it was all written), else it is removed, leaving an older file of
+        that name as it was."""
+        try:
+            for rec in self.recs:
+                rec.flush()
+                rec.disconnect()
+            if keep and self.part is not None and self.save is not None:
+                os.chmod(self.part, 0o600)
+                os.replace(self.part, self.save)
+        finally:
+            if self.part is not None:
+                self.part.unlink(missing_ok=True)
 
 
 def view_recording(path: Path, viewer: Viewer, batch: int = 100) -> int:
-    """Log every pose of an MCAP recording; returns how many."""
+    """Log every pose of an MCAP recording; returns how many were shown."""
     from bodynet.clients.mcap_store import read_poses
 
     frames: list[pose.PoseFrame] = []
@@ -174,15 +334,15 @@ def view_recording(path: Path, viewer: Viewer, batch: int = 100) -> int:
     for _, frame in read_poses(path):
         frames.append(frame)
         if len(frames) >= batch:
-            viewer.log_poses(frames)
-            count += len(frames)
+            count += viewer.log_poses(frames)
             frames = []
-    viewer.log_poses(frames)
-    return count + len(frames)
+    return count + viewer.log_poses(frames)
 
 
 def view_live(session: zenoh.Session, viewer: Viewer, stop: threading.Event) -> int:
-    """Log the live poses, topology and health until ``stop``; returns how many poses."""
+    """Log the live poses, topology and health until ``stop``; returns how many
+    poses were shown. No message stops it: what cannot be shown is counted in
+    ``viewer.bad`` (and in the status panel) and the view goes on."""
     inbox: queue.SimpleQueue[tuple[str, bytes]] = queue.SimpleQueue()
 
     def put(sample: zenoh.Sample) -> None:
@@ -195,9 +355,11 @@ def view_live(session: zenoh.Session, viewer: Viewer, stop: threading.Event) -> 
     topology: object = None
     health: dict[str, object] = {}
     count = 0
+    failures = 0
     try:
         while not stop.wait(BATCH_S):
             frames: list[pose.PoseFrame] = []
+            bad = viewer.bad
             changed = False
             while True:
                 try:
@@ -211,12 +373,18 @@ def view_live(session: zenoh.Session, viewer: Viewer, stop: threading.Event) -> 
                         topology, changed = json.loads(data), True
                     else:
                         health[key.rsplit("/", 1)[-1]], changed = json.loads(data), True
-                except (DecodeError, ValueError):
-                    continue  # a client shows what it can; the gateway counts garbage
-            viewer.log_poses(frames)
-            count += len(frames)
-            if changed:
-                viewer.log_status(status_text(topology, health))
+                # RecursionError: JSON nested deeper than the parser goes
+                except (DecodeError, ValueError, RecursionError):
+                    viewer.bad += 1  # a client shows what it can; the gateway counts garbage
+            try:
+                count += viewer.log_poses(frames)
+            except Exception:  # a batch Rerun refused: counted, and the view goes on
+                viewer.bad += len(frames)
+                failures += 1
+                if failures <= 3:
+                    log.exception("bodynet view: a batch of %d poses failed", len(frames))
+            if changed or viewer.bad != bad:
+                viewer.log_status(status_text(topology, health, viewer.bad))
     finally:
         for sub in subs:
             sub.undeclare()

@@ -2,11 +2,11 @@
 
 One process, by default with an embedded Zenoh router. A subscription to
 every raw key (or a chosen subset of branches) keeps each site's latest
-sample, on Zenoh's thread; a worker thread, told when a body has a whole
-frame or has waited a period, solves the body at most once per tick
-(``rate_hz``), publishing the whole body on ``body/pose`` and each
-branch's view on ``body/<limb>/<side>/pose``. Nodes are tracked through
-their liveliness tokens; the topology is published on ``body/@topology``
+sample; one worker thread takes the samples from Zenoh's queues and, when
+a body has a whole frame or has waited a period, solves it at most once per
+tick (``rate_hz``), the bodies that are due together, publishing the whole
+body on ``body/pose`` and each branch's view on ``body/<limb>/<side>/pose``.
+Nodes are tracked through their liveliness tokens; the topology is published on ``body/@topology``
 when it changes and answered as a query there. A site that stops delivering
 keeps its last sample, flagged stale; other branches carry on. Garbage on the
 raw keys is counted (``body/@health/gateway``), never fatal.
@@ -43,7 +43,7 @@ from bodynet.core.keys import BRANCHES, Branch, Site
 from bodynet.core.messages import Quat, RawSample
 from bodynet.core.subject import Profile, ProfileError, QuatWxyz
 from bodynet.gateway import profile_file
-from bodynet.gateway.solver import BodyOutput, BodySolver, tpose_mounts
+from bodynet.gateway.solver import BodyOutput, BodySolver, solve_bodies, tpose_mounts
 
 log = logging.getLogger(__name__)
 
@@ -52,6 +52,12 @@ HISTORY_S = 5.0
 #: Bodies one gateway takes on; samples of further subjects are counted, not served
 #: (a publisher inventing subject names must not exhaust the gateway).
 MAX_SUBJECTS = 64
+#: Raw samples Zenoh queues for the gateway's worker (some 2 s of 20 bodies); when
+#: full, Zenoh waits (the publishers' congestion control decides what follows).
+INTAKE_DEPTH = 1 << 16
+#: How long the idle worker sleeps before it looks again: while samples flow, and
+#: after a second without any.
+IDLE_S, IDLE_QUIET_S = 0.0003, 0.005
 
 
 def branch_parts(branch: Branch) -> tuple[tuple[str, ...], tuple[str, ...]]:
@@ -77,28 +83,23 @@ def branch_views(frame: pose.PoseFrame, branches: Iterable[Branch]) -> dict[Bran
     return views
 
 
-def _rounded(values: Iterable[float]) -> list[float]:
-    return np.round(np.fromiter(values, float), 6).tolist()  # type: ignore[no-any-return]
-
-
 def pose_frame(output: BodyOutput, seq: int, stale: Sequence[str]) -> pose.PoseFrame:
     """The message of one tick, numbers rounded to 1e-6 (microdegrees, micrometres)."""
-    segments = list(output.segments.items())
-    flat = _rounded(c for _, (p, q) in segments for c in (*p, *q))
+    names = output.names
+    rows = np.round(np.concatenate([output.positions, output.quats], axis=1), 6).tolist()
+    segments = {s: (tuple(r[:3]), tuple(r[3:])) for s, r in zip(names.segments, rows, strict=True)}
     return pose.PoseFrame(
         seq,
         output.t_ns,
-        dict(zip(output.angles_deg, _rounded(output.angles_deg.values()), strict=True)),
-        dict(zip(output.rel_deg, _rounded(output.rel_deg.values()), strict=True)),
-        {s: (tuple(flat[7 * i : 7 * i + 3]), tuple(flat[7 * i + 3 : 7 * i + 7]))  # type: ignore[misc]
-         for i, (s, _) in enumerate(segments)},
-        {j: tuple(p) for j, p in zip(output.joints_m, np.round(  # type: ignore[misc]
-            np.array(list(output.joints_m.values()), dtype=float).reshape(-1, 3), 6).tolist(),
-            strict=True)},
+        dict(zip(names.angles, np.round(output.angles, 6).tolist(), strict=True)),
+        dict(zip(names.joints, np.round(output.rel, 6).tolist(), strict=True)),
+        segments,  # type: ignore[arg-type]
+        {j: segments[names.segments[i]][0]
+         for j, i in zip(names.joints, names.joint_segment, strict=True)},
         output.flags,
         output.sources,
         list(stale),
-    )  # fmt: skip
+    )
 
 
 @dataclass
@@ -130,7 +131,6 @@ class _Body:
         self.ticks = 0
         self.unsolved_sites = 0  # sites whose latest sample is not in a solved tick yet
         self.first_new: float | None = None  # when the oldest unsolved sample came
-        self.signalled = False  # the worker has been told the frame is complete
         cc = zenoh.CongestionControl.BLOCK
         self.body_pub = session.declare_publisher(prefix + keys.pose_key(), congestion_control=cc)
         self.branch_pubs = {
@@ -151,9 +151,9 @@ class _Body:
             )
             self.matching[view] = pub.matching_status.matching
 
-    def take(self, site: Site, sample: RawSample, now: float) -> bool:
+    def take(self, site: Site, sample: RawSample, now: float) -> None:
         """Keep a sample as its site's latest (and, for T-pose, in its recent
-        history, trimmed by :meth:`trim`); whether it is the body's first since a solve."""
+        history, trimmed by :meth:`trim`)."""
         self.samples += 1
         kept = self.latest.get(site)
         if kept is None:
@@ -170,8 +170,6 @@ class _Body:
             hist.append((now, sample))
         if self.first_new is None:
             self.first_new = now
-            return True
-        return False
 
     def trim(self, now: float) -> None:
         """Forget history older than ``HISTORY_S``."""
@@ -203,7 +201,7 @@ class _Body:
             if now - v.arrived > STALE_S or s.raw_key in self.gone
         )  # fmt: skip
         self.published_stale = set(stale)
-        self.first_new, self.signalled = None, False
+        self.first_new = None
         return latest, stale, self.solver
 
     def listened(self) -> tuple[bool, list[Branch]]:
@@ -259,18 +257,6 @@ class _Token:
     alive: bool
 
 
-@dataclass(frozen=True, slots=True)
-class _Ready:
-    """A body has a whole frame of its sources (``complete``), or its first
-    sample since its last solve, which makes it due a period later."""
-
-    body: _Body
-    complete: bool
-
-
-_Event = _Ready | tuple[str | None, _Token]
-
-
 class Gateway:
     """See the module docstring. ``run(stop)`` serves until ``stop`` is set.
 
@@ -291,17 +277,16 @@ class Gateway:
         self.rejected = RejectCounts()
         self.solver_errors = 0
         self.refused_subjects = 0
-        # what the worker must act on; samples themselves are kept on Zenoh's threads,
-        # so the worker wakes about once per body per tick, not once per sample
-        self._events: queue.SimpleQueue[_Event] = queue.SimpleQueue()
-        self._lock = threading.Lock()
+        # liveliness tokens that came or went (on Zenoh's threads), for the worker
+        self._events: queue.SimpleQueue[tuple[str | None, _Token]] = queue.SimpleQueue()
+        self._lock = threading.RLock()
         self._bodies: dict[str | None, _Body] = {}
         if not all_subjects:
             self._bodies[None] = _Body(session, "", profile or Profile(), profile_path,
                                        self.branches)  # fmt: skip
         prefixes = ("", keys.ANY_SUBJECT + "/") if all_subjects else ("",)
         inner = [keys.all_raw()] if branches is None else [f"{b.key}/*/raw" for b in branches]
-        self._subs = [session.declare_subscriber(p + sel, self._on_raw)
+        self._subs = [session.declare_subscriber(p + sel, zenoh.handlers.FifoChannel(INTAKE_DEPTH))
                       for p in prefixes for sel in inner]  # fmt: skip
         self._live = [
             session.liveliness().declare_subscriber(p + keys.all_raw(), self._on_token,
@@ -336,30 +321,38 @@ class Gateway:
         with self._lock:
             return list(self._bodies)
 
-    # --- input (Zenoh's threads) ---------------------------------------------------
-    def _on_raw(self, sample: zenoh.Sample) -> None:
-        try:
-            subject, key = keys.split_subject(str(sample.key_expr))
-            site, _ = keys.parse(key)
-            raw = raw_sample.decode(sample.payload.to_bytes())
-        except DecodeError as exc:
-            self.rejected[exc.reason] += 1
-            return
-        except keys.KeySpaceError:
-            self.rejected[Reason.UNKNOWN_NODE] += 1
-            return
-        body = self._body(subject)
-        if body is None:
-            return
-        now = time.monotonic()
+    # --- input ------------------------------------------------------------------------
+    def _take_pending(self, now: float) -> tuple[int, set[_Body]]:
+        """Take the raw samples waiting in the subscribers' queues (the worker's
+        thread), for at most a period: each is decoded and kept as its site's
+        latest, or counted as a rejection. Taking comes before solving, so no
+        sample waits behind solves: under load bodies are solved less often.
+        Returns how many were taken and the bodies they went to."""
+        taken, touched = 0, set()
+        until = now + self.period_s  # a flood (of garbage, say) still leaves time to solve
         with self._lock:
-            first = body.take(site, raw, now)
-            complete = not body.signalled and body.frame_complete(now)
-            body.signalled = body.signalled or complete
-        if complete or first:
-            self._events.put(_Ready(body, complete))
+            for sub in self._subs:
+                while (taken % 256 or time.monotonic() < until) and (
+                    (sample := sub.try_recv()) is not None
+                ):
+                    taken += 1
+                    try:
+                        subject, key = keys.split_subject(str(sample.key_expr))
+                        site, _ = keys.parse(key)
+                        raw = raw_sample.decode(sample.payload.to_bytes())
+                    except DecodeError as exc:
+                        self.rejected[exc.reason] += 1
+                        continue
+                    except keys.KeySpaceError:
+                        self.rejected[Reason.UNKNOWN_NODE] += 1
+                        continue
+                    body = self._bodies.get(subject) or self._body(subject)
+                    if body is not None:
+                        body.take(site, raw, now)
+                        touched.add(body)
+        return taken, touched
 
-    def _on_token(self, sample: zenoh.Sample) -> None:
+    def _on_token(self, sample: zenoh.Sample) -> None:  # Zenoh's thread
         try:
             subject, key = keys.split_subject(str(sample.key_expr))
         except keys.KeySpaceError:
@@ -453,44 +446,54 @@ class Gateway:
 
     # --- the work loop -----------------------------------------------------------------
     def run(self, stop: threading.Event) -> None:
-        """Solve a body when every live site of it has delivered since its last
-        solve (a whole frame of the sources is in: the lowest latency), or else
-        ``period_s`` after its first new sample (sources of different rates).
-        Samples that come while the worker is busy are kept as they come: under
-        load a body is solved less often, with its newest samples, and no
-        sample waits behind a backlog."""
-        last_health = time.monotonic()
+        """Take the samples waiting in Zenoh's queues, then solve every body that
+        has a whole frame of its sources (every live site has delivered since its
+        last solve: the lowest latency), or that has waited ``period_s`` since its
+        first new sample (sources of different rates), all together.
+
+        One thread does all the Python work, so it never waits for the GIL
+        behind Zenoh's callbacks: samples queue up in Zenoh (``INTAKE_DEPTH``)
+        while it solves, and the next round takes them all. Under load bodies
+        are solved less often, in larger batches (cheaper per body), each with
+        its newest samples; no sample is lost and none waits behind a backlog
+        of solves."""
+        last_health = last_sample = time.monotonic()
         next_due = float("inf")  # no body can be due before this (its oldest unsolved sample)
         while not stop.is_set():
-            events = []
-            try:
-                events.append(self._events.get(timeout=max(0.0, min(next_due - time.monotonic(),
-                                                                    0.1))))  # fmt: skip
-                while True:  # take what else has come: one solve per body for the lot
-                    events.append(self._events.get_nowait())
-            except queue.Empty:
-                pass
             now = time.monotonic()
-            complete: dict[_Body, bool] = {}  # body -> solve even with nothing new
-            for event in events:
-                if isinstance(event, _Ready):
-                    if event.complete:
-                        complete.setdefault(event.body, False)
-                    else:
-                        next_due = min(next_due, now + self.period_s)
-                elif (body := self._token(*event)) is not None and body.latest:
-                    complete[body] = True  # the topology changed: a tick that says so
-            for body, force in complete.items():  # a whole frame of the sources is in
-                self._solve_and_publish(body, now, force)
+            taken, touched = self._take_pending(now)
+            due: dict[_Body, bool] = {}  # body -> solve even with nothing new
+            with self._lock:
+                for body in touched:
+                    if body.frame_complete(now):
+                        due[body] = False
+                    elif body.first_new is not None:
+                        next_due = min(next_due, body.first_new + self.period_s)
+            events = 0
+            while True:
+                try:
+                    subject, token = self._events.get_nowait()
+                except queue.Empty:
+                    break
+                events += 1
+                if (body := self._token(subject, token)) is not None and body.latest:
+                    due[body] = True  # the topology changed: a tick that says so
             if now >= next_due:  # bodies whose slowest source has kept them waiting a period
                 for body in list(self._bodies.values()):
                     if body.first_new is not None and now - body.first_new >= self.period_s:
-                        self._solve_and_publish(body, now)
-                firsts = [b.first_new for b in self._bodies.values() if b.first_new is not None]
+                        due.setdefault(body, False)
+                firsts = [b.first_new for b in self._bodies.values()
+                          if b.first_new is not None and b not in due]  # fmt: skip
                 next_due = min(firsts, default=float("inf")) + self.period_s
+            self._solve_and_publish(due, now)
             if now - last_health >= 1.0:
                 last_health = now
                 self._housekeeping(now)
+            if taken:
+                last_sample = now
+            elif not due and not events:  # nothing to do: poll again soon (sooner while busy)
+                idle = IDLE_S if now - last_sample < 1.0 else IDLE_QUIET_S
+                time.sleep(max(0.0, min(idle, next_due - now)))
 
     def _token(self, subject: str | None, token: _Token) -> _Body | None:
         """Apply a token's coming or going to its subject's body; that body (to
@@ -517,26 +520,40 @@ class Gateway:
                 body.trim(now)
                 stale = body.newly_stale(now)
             if stale:
-                self._solve_and_publish(body, now, force=True)
+                self._solve_and_publish({body: True}, now)
             self._publish_topology(body)
             body.health_pub.put(json.dumps(self.health(body)).encode())
 
-    def _solve_and_publish(self, body: _Body, now: float, force: bool = False) -> None:
+    def _solve_and_publish(self, due: dict[_Body, bool], now: float) -> None:
+        """Solve the bodies ``due`` (body -> even with nothing new) together, one
+        tick each, and publish what someone listens to."""
+        work = []
         with self._lock:
-            if not force and not body.unsolved_sites:
-                return  # solved already, nothing new since
-            latest, stale, solver = body.snapshot(now)
+            for body, force in due.items():
+                if force or body.unsolved_sites:
+                    work.append((body, *body.snapshot(now)))
+        if not work:
+            return
         try:
-            output = solver.solve(latest)
+            outputs = solve_bodies([(solver, latest) for _, latest, _, solver in work])
+        except Exception:  # one body's bad tick must not cost the others theirs
+            outputs = [self._solve_alone(solver, latest) for _, latest, _, solver in work]
+        for (body, _, stale, _), output in zip(work, outputs, strict=True):
+            if output is None:
+                continue
+            body.ticks += 1
+            whole, branches = body.listened()
+            if whole or branches:
+                body.publish(pose_frame(output, body.ticks, stale), whole, branches)
+
+    def _solve_alone(self, solver: BodySolver, latest: dict[Site, RawSample]) -> BodyOutput | None:
+        try:
+            return solver.solve(latest)
         except Exception:  # one bad tick must not end the service
             self.solver_errors += 1
             if self.solver_errors <= 3:
                 log.exception("gateway: a tick failed (%d so far)", self.solver_errors)
-            return
-        body.ticks += 1
-        whole, branches = body.listened()
-        if whole or branches:
-            body.publish(pose_frame(output, body.ticks, stale), whole, branches)
+            return None
 
     def health(self, body: _Body | None = None) -> dict[str, object]:
         """Counters of the gateway (and of one body's share of it)."""

@@ -23,7 +23,7 @@ fixed at standing height.
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -175,9 +175,12 @@ def _nearest(
 class _SplitBatch:
     """:meth:`JointAxes.split` for many joints at once, in array form.
 
-    An IMU body splits a dozen relative rotations per tick; numpy over the
-    lot costs what one joint costs in scalar code. Rows at a gimbal lock go
-    back to the scalar split, which holds the first angle there."""
+    An IMU body splits a dozen relative rotations per tick, and the gateway
+    solves several bodies at a time; numpy over the lot costs what one joint
+    costs in scalar code. Rows at a gimbal lock go back to the scalar split,
+    which holds the first angle there. The joints' axes and ranges of motion
+    depend on the skeleton's structure only, not on its lengths, so one batch
+    serves every body."""
 
     def __init__(self, axes: list[JointAxes]) -> None:
         self.axes = axes
@@ -197,11 +200,16 @@ class _SplitBatch:
         self.axis = np.zeros((len(axes), 3, 3))  # per joint, each dof's axis (0: no dof)
         for r, ax in enumerate(axes):
             self.axis[r, : self.n[r]] = ax.axes
+        self.names = [ax.names for ax in axes]
+        # where each joint's dofs sit in the skeleton's angle vector; an absent dof
+        # points one past the end, a column that takes what nobody reads
+        starts = np.cumsum([0, *self.n[:-1]])
+        self.angle_index = np.where(self.unused, int(self.n.sum()),
+                                    starts[:, None] + np.arange(3)[None, :])  # fmt: skip
 
-    def split(
-        self, rows: np.ndarray, rel: np.ndarray, previous: list[np.ndarray | None]
-    ) -> list[np.ndarray]:
-        """Angles (deg) of joints ``rows`` for relative rotations ``rel`` (m, 3, 3)."""
+    def split(self, rows: np.ndarray, rel: np.ndarray, previous: np.ndarray) -> np.ndarray:
+        """Angles (deg, (m, 3), absent dofs 0) of joints ``rows`` for relative
+        rotations ``rel`` (m, 3, 3), continuous with ``previous`` (m, 3)."""
         m = np.arange(len(rows))
         i, j, k, e = self.i[rows], self.j[rows], self.k[rows], self.e[rows]
         b = np.arcsin(np.clip(e * rel[m, i, k], -1.0, 1.0))
@@ -217,50 +225,205 @@ class _SplitBatch:
         # fewer than three dofs: the candidate whose unused angles vanish
         pick_two = np.abs(second * unused).sum(1) < np.abs(first * unused).sum(1)
         # three dofs: inside the range of motion, then nearest the previous angles
-        ref = np.array([p if p is not None and len(p) == 3 else np.zeros(3) for p in previous])
         lo, hi = self.lo[rows], self.hi[rows]
 
         def outside(cand: np.ndarray) -> np.ndarray:
             return np.maximum(0.0, np.maximum(lo - cand, cand - hi)).sum(1)  # type: ignore[no-any-return]
 
         out1, out2 = outside(first), outside(second)
-        d1, d2 = np.abs(first - ref).sum(1), np.abs(second - ref).sum(1)
+        d1, d2 = np.abs(first - previous).sum(1), np.abs(second - previous).sum(1)
         pick_three = (out2 < out1) | ((out2 == out1) & (d2 < d1))
         chosen = np.where(np.where(n == 3, pick_three, pick_two)[:, None], second, first)
-        gimbal = (n == 3) & (np.abs(np.cos(b)) < GIMBAL_COS)
-        result = []
-        for r, row in enumerate(rows):
-            if gimbal[r]:
-                result.append(self.axes[row].split(rel[r], previous[r]))
-            else:
-                result.append(chosen[r, : n[r]].copy())
-        return result
+        chosen[unused] = 0.0
+        for r in np.flatnonzero((n == 3) & (np.abs(np.cos(b)) < GIMBAL_COS)).tolist():
+            chosen[r] = self.axes[rows[r]].split(rel[r], previous[r])
+        return chosen  # type: ignore[no-any-return]
+
+    def commit(
+        self, rows: np.ndarray, values: np.ndarray, calibration_inv: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """What committing a joint does, for many at once: angles (m, 3) clamped to
+        the range of motion, which were clamped, the joint rotations (m, 3, 3) and
+        each joint's total rotation (deg) from the calibration pose."""
+        lo, hi = self.lo[rows], self.hi[rows]
+        clamped = (values < lo) | (values > hi)
+        values = np.clip(values, lo, hi)
+        radians = np.radians(values)
+        matrices = _axis_rotations(self.axis[rows, 0], radians[:, 0])
+        for d in (1, 2):  # R = R_dof0 R_dof1 R_dof2, an absent dof adding nothing
+            matrices = matrices @ _axis_rotations(self.axis[rows, d], radians[:, d])
+        total = _angles_deg(calibration_inv[rows] @ matrices)
+        return values, clamped, matrices, total
+
+
+@dataclass(frozen=True)
+class OutputNames:
+    """The names of a body's outputs, in the skeleton's order."""
+
+    angles: tuple[str, ...]
+    joints: tuple[str, ...]
+    segments: tuple[str, ...]
+    joint_segment: tuple[int, ...]  # each joint's child segment: its origin is the joint centre
 
 
 @dataclass(frozen=True)
 class BodyOutput:
-    """One tick of one body: every joint angle and every segment pose."""
+    """One tick of one body: every joint angle and every segment pose, as arrays
+    in the order of ``names``; the mappings are views for readers."""
 
     t_ns: int
-    angles_deg: Mapping[str, float]
-    rel_deg: Mapping[str, float]  # joint -> total rotation from the calibration pose
+    names: OutputNames
+    angles: np.ndarray  # (angles,) degrees
+    rel: np.ndarray  # (joints,) each joint's total rotation (deg) from the calibration pose
     flags: Mapping[str, str]  # angle -> "clamped" or "unobserved"
-    segments: Mapping[str, tuple[tuple[float, float, float], QuatWxyz]]  # position, orientation
-    joints_m: Mapping[str, tuple[float, float, float]]  # joint centres
+    positions: np.ndarray  # (segments, 3) metres
+    quats: np.ndarray  # (segments, 4) unit quaternions w, x, y, z, w >= 0
     sources: Mapping[str, int]  # raw key -> source t_ns of the sample used
+
+    @property
+    def angles_deg(self) -> dict[str, float]:
+        return dict(zip(self.names.angles, self.angles.tolist(), strict=True))
+
+    @property
+    def rel_deg(self) -> dict[str, float]:
+        return dict(zip(self.names.joints, self.rel.tolist(), strict=True))
+
+    @property
+    def segments(self) -> dict[str, tuple[tuple[float, float, float], QuatWxyz]]:
+        return {s: (tuple(p), tuple(q))  # type: ignore[misc]
+                for s, p, q in zip(self.names.segments, self.positions.tolist(),
+                                   self.quats.tolist(), strict=True)}  # fmt: skip
+
+    @property
+    def joints_m(self) -> dict[str, tuple[float, float, float]]:
+        centres = self.positions[list(self.names.joint_segment)].tolist()
+        return {j: tuple(p) for j, p in zip(self.names.joints, centres, strict=True)}  # type: ignore[misc]
 
 
 @dataclass
 class _Memory:
-    angles: dict[str, np.ndarray] = field(default_factory=dict)
-    up: dict[str, np.ndarray] = field(default_factory=dict)
-    tilt: dict[str, np.ndarray] = field(
-        default_factory=dict
-    )  # (pronation, deviation) per wrist  # filtered "up" of each accelerometer
+    last: np.ndarray | None = None  # the angle vector of the last tick (None before one)
+    up: dict[str, np.ndarray] = field(default_factory=dict)  # filtered "up" of each accelerometer
+    tilt: dict[str, np.ndarray] = field(default_factory=dict)  # (pronation, deviation) per wrist
+
+
+class _Tick:
+    """One body's working state during one solve."""
+
+    __slots__ = ("angles", "direct_rot", "direct_rows", "flags", "measured", "modules", "mounts",
+                 "quats", "rel", "samples", "segs", "solver", "sources", "t_ns")  # fmt: skip
+
+    def __init__(self, solver: BodySolver, samples: Mapping[Site, RawSample]) -> None:
+        self.solver, self.samples = solver, samples
+        self.segs: list[str] = []  # segments with an orientation sensor (the first one wins)
+        self.quats: list[QuatWxyz] = []
+        self.mounts: list[np.ndarray] = []
+        self.modules: dict[str, tuple[Site, OleAccel]] = {}  # SmartSuit modules by segment
+        self.sources: dict[str, int] = {}
+        self.t_ns = 0
+        known = solver._sites
+        sources = self.sources
+        seen: set[str] = set()
+        for site, sample in samples.items():
+            seg, mount_inv, key, module = known.get(site) or solver._site(site)
+            sources[key] = t = sample.t_ns
+            self.t_ns = max(self.t_ns, t)
+            r = sample.reading
+            if type(r) is Quat:
+                if seg not in seen:
+                    seen.add(seg)
+                    self.segs.append(seg)
+                    self.quats.append(r.wxyz)
+                    self.mounts.append(mount_inv)
+            elif module:
+                self.modules[seg] = (site, r)  # type: ignore[assignment]
+        self.measured: dict[str, np.ndarray] = {}  # segment -> world orientation
+        # the joints split from two sensors: their rows and rotations
+        self.direct_rows: np.ndarray = np.zeros(0, dtype=int)
+        self.direct_rot: np.ndarray = np.zeros((0, 3, 3))
+        self.angles = np.zeros(0)  # the skeleton's angle vector (+1: see angle_index)
+        self.rel = np.zeros(0)
+        self.flags: dict[str, str] = {}
+
+
+def solve_bodies(work: Sequence[tuple[BodySolver, Mapping[Site, RawSample]]]) -> list[BodyOutput]:
+    """One tick of each of several bodies: angles and poses from the latest
+    sample of each site.
+
+    The array work of every body is done together: sensor orientations, the
+    relative rotations of the joints between two sensors, their split into
+    dofs, clamping and total rotations are each one numpy pass over all the
+    bodies. What is left per body is gathering its samples, the joints that
+    SmartSuit modules measure (scalar code) and Pinocchio's forward kinematics.
+    The solvers must share one skeleton structure (any segment lengths)."""
+    if not work:
+        return []
+    ticks = [_Tick(solver, samples) for solver, samples in work]
+    n_angles = len(ticks[0].solver.names.angles)
+    n_joints = len(ticks[0].solver.names.joints)
+    angles = np.zeros((len(ticks), n_angles + 1))
+    rel = np.zeros((len(ticks), n_joints))
+    for b, tick in enumerate(ticks):
+        tick.angles, tick.rel = angles[b], rel[b]
+    quats = [q for t in ticks for q in t.quats]
+    if quats:
+        sensors = Rotation.from_quat(np.array(quats), scalar_first=True).as_matrix()
+        segments = sensors @ np.array([m for t in ticks for m in t.mounts])
+        start = 0
+        for tick in ticks:
+            tick.measured = dict(zip(tick.segs, segments[start : start + len(tick.segs)],
+                                     strict=True))  # fmt: skip
+            start += len(tick.segs)
+        _solve_direct(ticks, segments, angles, rel)
+    for tick in ticks:
+        tick.solver._solve_rest(tick)
+    return [tick.solver._output(tick) for tick in ticks]
+
+
+def _solve_direct(ticks: Sequence[_Tick], segments: np.ndarray, angles: np.ndarray,
+                  rel: np.ndarray) -> None:  # fmt: skip
+    """The joints between two orientation sensors (or the root and one), of every
+    body at once, into ``angles`` and ``rel`` (one row a body). Each comes from
+    its two segments' measured orientations (``segments``, every body's in
+    turn), so a parent joint clamped to its range of motion does not move its child's."""
+    batch = ticks[0].solver._batch
+    plans = [tick.solver._direct_plan(tuple(tick.segs)) for tick in ticks]
+    counts = [len(p[0]) for p in plans]
+    if not sum(counts):
+        return
+    owner = np.repeat(np.arange(len(ticks)), counts)
+    offsets = np.repeat(np.cumsum([0, *(len(t.segs) for t in ticks[:-1])]), counts)
+    rows = np.concatenate([p[0] for p in plans])
+    parents = np.concatenate([p[1] for p in plans])
+    children = np.concatenate([p[2] for p in plans]) + offsets
+    # an unmeasured pelvis (-1) is the identity, put after every measured segment
+    segments = np.concatenate([segments, np.eye(3)[None]])
+    parents = np.where(parents >= 0, parents + offsets, len(segments) - 1)
+    relative = np.einsum("nji,njk->nik", segments[parents], segments[children])
+    index = batch.angle_index[rows]
+    last = np.stack([t.solver._memory.last if t.solver._memory.last is not None
+                     else angles[0] * 0.0 for t in ticks])  # fmt: skip
+    values, clamped, matrices, total = batch.commit(
+        rows, batch.split(rows, relative, last[owner[:, None], index]),
+        ticks[0].solver._calibration_inv,
+    )
+    angles[owner[:, None], index] = values
+    angles[:, -1] = 0.0  # the absent dofs' column
+    rel[owner, rows] = total
+    start = 0
+    for tick, (mine, _, _) in zip(ticks, plans, strict=True):
+        tick.direct_rows, tick.direct_rot = mine, matrices[start : start + len(mine)]
+        start += len(mine)
+    clamped &= ~batch.unused[rows]
+    for r, d in zip(*np.nonzero(clamped), strict=True):
+        ticks[owner[r]].flags[batch.names[rows[r]][d]] = "clamped"
 
 
 class BodySolver:
-    """Joint angles and poses of one body from its latest raw samples."""
+    """Joint angles and poses of one body from its latest raw samples.
+
+    ``solve`` does one tick of this body; :func:`solve_bodies` does one tick of
+    many, with the array work shared. Both run the same code."""
 
     def __init__(self, profile: Profile | None = None) -> None:
         self.profile = profile or Profile()
@@ -271,60 +434,83 @@ class BodySolver:
             j.name: self.axes[j.name].matrix(np.array([TPOSE.get(n, 0.0) for n in j.angle_names()]))
             for j in self.skeleton.joints
         }
-        self._frames = [self.model.segment_frames[s] for s in self.skeleton.segments]
         self._batch = _SplitBatch([self.axes[j.name] for j in self.skeleton.joints])
         self._calibration_inv = np.array(
             [self._calibration[j.name].T for j in self.skeleton.joints]
         )
-        self._angle_order = self.skeleton.angle_names()
+        segments = self.skeleton.segments
+        self.names = OutputNames(
+            self.skeleton.angle_names(),
+            tuple(j.name for j in self.skeleton.joints),
+            segments,
+            tuple(segments.index(j.child) for j in self.skeleton.joints),
+        )
+        self._slices: dict[str, slice] = {}
+        for joint, start in zip(self.skeleton.joints, self._batch.angle_index[:, 0].tolist(),
+                                strict=True):  # fmt: skip
+            self._slices[joint.name] = slice(start, start + len(joint.dofs))
+        self._root = np.array([0.0, 0.0, self.skeleton.root_height()])
         self._memory = _Memory()
-        self._sites: dict[Site, tuple[str, np.ndarray]] = {}
+        self._sites: dict[Site, tuple[str, np.ndarray, str, bool]] = {}
+        self._plans: dict[tuple[str, ...], tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
 
-    def _site(self, site: Site) -> tuple[str, np.ndarray]:
-        """The segment a sensor rides on, and its mount's inverse (for orientation sensors)."""
+    def _site(self, site: Site) -> tuple[str, np.ndarray, str, bool]:
+        """The segment a sensor rides on, its mount's inverse (for orientation
+        sensors), its raw key, and whether it is a SmartSuit module."""
         known = self._sites.get(site)
         if known is None:
             w, x, y, z = self.profile.imu_mounts.get(site.raw_key, (1.0, 0.0, 0.0, 0.0))
-            known = self._sites[site] = (mount(site).segment, _matrix((w, x, y, z)).T)
+            known = self._sites[site] = (mount(site).segment, _matrix((w, x, y, z)).T,
+                                         site.raw_key, site.name in OLE_DOF)  # fmt: skip
         return known
 
     def solve(self, samples: Mapping[Site, RawSample]) -> BodyOutput:
         """Angles and poses from the latest sample of each site."""
-        measured, modules = self._by_segment(samples)
-        world: dict[str, np.ndarray] = {"pelvis": measured.get("pelvis", np.eye(3))}
-        angles: dict[str, float] = {}
-        flags: dict[str, str] = {}
-        rel: dict[str, float] = {}
+        return solve_bodies([(self, samples)])[0]
 
-        def commit(joint: Joint, values: np.ndarray) -> None:
-            """Clamp to the range of motion, record, and carry the chain on."""
-            ax = self.axes[joint.name]
-            for i, (name, (lo, hi)) in enumerate(zip(ax.names, ax.limits, strict=True)):
-                if not lo <= values[i] <= hi:
-                    values[i] = min(max(values[i], lo), hi)
-                    flags[name] = "clamped"
-                angles[name] = float(values[i])
-            self._memory.angles[joint.name] = values
-            joint_rot = ax.matrix(values)
-            world[joint.child] = world[joint.parent] @ joint_rot
-            rel[joint.name] = _angle_deg(self._calibration[joint.name].T @ joint_rot)
+    def _direct_plan(self, measured: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """For segments ``measured`` (in this order), the joints between two of them
+        (or the root and one): their rows, and the indices in ``measured`` of their
+        parent (-1: the unmeasured pelvis) and child segments."""
+        plan = self._plans.get(measured)
+        if plan is None:
+            at = {s: i for i, s in enumerate(measured)}
+            direct = [
+                (self._batch.index[j.name], at.get(j.parent, -1), at[j.child])
+                for j in self.skeleton.joints
+                if j.child in at and (j.parent in at or j.parent == "pelvis")
+            ]  # fmt: skip
+            plan = tuple(np.array([d[k] for d in direct], dtype=int) for k in range(3))  # type: ignore[assignment]
+            if len(self._plans) >= 64:  # which sensors deliver changes rarely: a small cache
+                self._plans.clear()
+            self._plans[measured] = plan  # type: ignore[assignment]
+        return plan  # type: ignore[return-value]
 
+    def _solve_rest(self, tick: _Tick) -> None:
+        """The joints not split from two orientation sensors: SmartSuit modules
+        (scalar code, in chain order, each from its parent's world orientation),
+        or unobserved."""
+        if len(tick.direct_rows) == len(self.skeleton.joints):
+            return
+        direct = dict(zip([self.names.joints[r] for r in tick.direct_rows.tolist()],
+                          tick.direct_rot, strict=True))  # fmt: skip
+        world: dict[str, np.ndarray] = {"pelvis": tick.measured.get("pelvis", np.eye(3))}
         by_child = {j.child: j for j in self.skeleton.joints}
-        direct = self._commit_direct(self._split_direct(measured, world["pelvis"]),
-                                     angles, flags, rel)  # fmt: skip
+        measured, modules = tick.measured, tick.modules
+        last = self._memory.last
         for joint in self.skeleton.joints:
             if joint.name in direct:
                 world[joint.child] = world[joint.parent] @ direct[joint.name]
                 continue
             ax = self.axes[joint.name]
             parent = world[joint.parent]
-            previous = self._memory.angles.get(joint.name)
+            previous = last[self._slices[joint.name]] if last is not None else None
             names = ax.names
             if joint.child in measured:
                 values = ax.split(parent.T @ measured[joint.child], previous)
             elif joint.child in modules:
                 site, reading = modules[joint.child]
-                values = self._from_module(joint, ax, parent, site, reading, previous, flags)
+                values = self._from_module(joint, ax, parent, site, reading, previous, tick.flags)
                 if len(names) == 2 and reading is not None:  # wrist, ankle: the distal tilt
                     upstream = by_child[joint.parent]
                     chained = (
@@ -333,116 +519,38 @@ class BodySolver:
                         and len(upstream.dofs) == 2  # the elbow: its pronation is unknown too
                     )
                     values = self._distal_tilt(joint, values, upstream if chained else None,
-                                               world, site, reading, flags, commit)  # fmt: skip
+                                               world, site, reading, tick)  # fmt: skip
             else:
                 values = np.zeros(len(names))
-                flags.update(dict.fromkeys(names, "unobserved"))
-            commit(joint, values)
-        angles = {n: angles[n] for n in self._angle_order}  # the skeleton's order, always
-        rel = {j.name: rel[j.name] for j in self.skeleton.joints}
-        w, x, y, z = _quat_wxyz(world["pelvis"])
-        root = (x, y, z, w)
-        rotations, positions = self.model.frame_placements(
-            self.model.q(angles, None, root), self._frames
-        )
-        xyzw = np.array([pin.Quaternion(r).coeffs() for r in rotations])
-        xyzw /= np.linalg.norm(xyzw, axis=1, keepdims=True)
-        xyzw *= np.where(xyzw[:, 3:] < 0, -1.0, 1.0)  # canonical: w >= 0
-        segments = {
-            s: (tuple(p), (q[3], q[0], q[1], q[2]))
-            for s, p, q in zip(self.skeleton.segments, positions.tolist(), xyzw.tolist(),
-                               strict=True)
-        }  # fmt: skip
-        joints = {j.name: segments[j.child][0] for j in self.skeleton.joints}
-        return BodyOutput(
-            t_ns=max((s.t_ns for s in samples.values()), default=0),
-            angles_deg=angles,
-            rel_deg=rel,
-            flags=flags,
-            segments=segments,
-            joints_m=joints,  # type: ignore[arg-type]
-            sources={site.raw_key: s.t_ns for site, s in samples.items()},
+                tick.flags.update(dict.fromkeys(names, "unobserved"))
+            self._commit(tick, world, joint, values)
+
+    def _commit(self, tick: _Tick, world: dict[str, np.ndarray], joint: Joint,
+                values: np.ndarray) -> None:  # fmt: skip
+        """Clamp to the range of motion, record, and carry the chain on."""
+        ax = self.axes[joint.name]
+        for i, (name, (lo, hi)) in enumerate(zip(ax.names, ax.limits, strict=True)):
+            if not lo <= values[i] <= hi:
+                values[i] = min(max(values[i], lo), hi)
+                tick.flags[name] = "clamped"
+        tick.angles[self._slices[joint.name]] = values
+        joint_rot = ax.matrix(values)
+        world[joint.child] = world[joint.parent] @ joint_rot
+        tick.rel[self._batch.index[joint.name]] = _angle_deg(
+            self._calibration[joint.name].T @ joint_rot
         )
 
-    def _by_segment(
-        self, samples: Mapping[Site, RawSample]
-    ) -> tuple[dict[str, np.ndarray], dict[str, tuple[Site, OleAccel]]]:
-        """Segment orientations of the orientation sensors, and the SmartSuit
-        modules by the segment they ride on."""
-        quats: dict[str, tuple[QuatWxyz, np.ndarray]] = {}  # the first sensor of a segment
-        modules: dict[str, tuple[Site, OleAccel]] = {}
-        for site, sample in samples.items():
-            seg, mount_inv = self._site(site)
-            r = sample.reading
-            if isinstance(r, Quat):
-                if seg not in quats:
-                    quats[seg] = (r.wxyz, mount_inv)
-            elif site.name in OLE_DOF:
-                modules[seg] = (site, r)
-        if not quats:
-            return {}, modules
-        sensor = Rotation.from_quat([q for q, _ in quats.values()], scalar_first=True)
-        segment = sensor.as_matrix() @ np.array([m for _, m in quats.values()])
-        return dict(zip(quats, segment, strict=True)), modules
-
-    def _commit_direct(
-        self,
-        split: Mapping[str, np.ndarray],
-        angles: dict[str, float],
-        flags: dict[str, str],
-        rel: dict[str, float],
-    ) -> dict[str, np.ndarray]:
-        """What ``commit`` does for one joint, for the joints split from two
-        orientation sensors, all at once: clamp to the range of motion, record
-        angles, flags and total rotation; their joint rotations."""
-        if not split:
-            return {}
-        batch = self._batch
-        rows = np.array([batch.index[name] for name in split])
-        values = np.zeros((len(rows), 3))
-        for r, v in enumerate(split.values()):
-            values[r, : len(v)] = v
-        lo, hi = batch.lo[rows], batch.hi[rows]
-        clamped = (values < lo) | (values > hi)
-        values = np.clip(values, lo, hi)
-        radians = np.radians(values)
-        matrices = _axis_rotations(batch.axis[rows, 0], radians[:, 0])
-        for d in (1, 2):  # R = R_dof0 R_dof1 R_dof2, an absent dof adding nothing
-            matrices = matrices @ _axis_rotations(batch.axis[rows, d], radians[:, d])
-        total = _angles_deg(self._calibration_inv[rows] @ matrices).tolist()
-        out = {}
-        for r, (name, row) in enumerate(zip(split, rows.tolist(), strict=True)):
-            ax = batch.axes[row]
-            n = len(ax.names)
-            v = values[r, :n]
-            self._memory.angles[name] = v
-            angles.update(zip(ax.names, v.tolist(), strict=True))
-            if clamped[r, :n].any():
-                flags.update((ax.names[i], "clamped") for i in np.flatnonzero(clamped[r, :n]))
-            rel[name] = total[r]
-            out[name] = matrices[r]
-        return out
-
-    def _split_direct(
-        self, measured: Mapping[str, np.ndarray], pelvis: np.ndarray
-    ) -> dict[str, np.ndarray]:
-        """Angles of the joints between two orientation sensors (or the root and
-        one), all at once. Each comes from its two segments' measured orientations,
-        so a parent joint clamped to its range of motion does not move its child's."""
-        direct = [
-            j for j in self.skeleton.joints
-            if j.child in measured and (j.parent in measured or j.parent == "pelvis")
-        ]  # fmt: skip
-        if not direct:
-            return {}
-        parents = [pelvis if j.parent == "pelvis" else measured[j.parent] for j in direct]
-        rel = np.einsum(
-            "nji,njk->nik", np.array(parents), np.array([measured[j.child] for j in direct])
-        )
-        rows = np.array([self._batch.index[j.name] for j in direct])
-        previous = [self._memory.angles.get(j.name) for j in direct]
-        values = self._batch.split(rows, rel, previous)
-        return {j.name: v for j, v in zip(direct, values, strict=True)}
+    def _output(self, tick: _Tick) -> BodyOutput:
+        """Forward kinematics of the tick's angles (Pinocchio): the segments' poses."""
+        self._memory.last = tick.angles
+        w, x, y, z = _quat_wxyz(tick.measured.get("pelvis", np.eye(3)))
+        q = np.concatenate([self._root, (x, y, z, w), np.radians(tick.angles[:-1])])
+        poses = self.model.segment_poses(q)
+        quats = poses[:, [6, 3, 4, 5]]  # x, y, z, w -> w, x, y, z
+        quats /= np.linalg.norm(quats, axis=1, keepdims=True)
+        quats *= np.where(quats[:, :1] < 0, -1.0, 1.0)  # canonical: w >= 0
+        return BodyOutput(tick.t_ns, self.names, tick.angles[:-1], tick.rel, tick.flags,
+                          poses[:, :3], quats, tick.sources)  # fmt: skip
 
     def _from_module(
         self,
@@ -482,8 +590,7 @@ class BodySolver:
         world: dict[str, np.ndarray],
         site: Site,
         reading: OleAccel,
-        flags: dict[str, str],
-        commit: Any,
+        tick: _Tick,
     ) -> np.ndarray:
         """The second dof of a wrist or ankle (deviation, inversion) from the
         accelerometer on the hand or foot, and with ``upstream`` (an elbow
@@ -507,10 +614,10 @@ class BodySolver:
                 return (fixed @ ax.dof(1, x[0])).T @ up_world  # type: ignore[no-any-return]
 
             (values[1],) = _gauss_newton(predict, np.array([values[1]]), target)
-            flags.pop(self.axes[joint.name].names[1], None)
+            tick.flags.pop(self.axes[joint.name].names[1], None)
             return values
         up_ax = self.axes[upstream.name]
-        up_values = self._memory.angles[upstream.name].copy()
+        up_values = tick.angles[self._slices[upstream.name]].copy()  # committed this tick
         fixed = world[upstream.parent] @ up_ax.dof(0, up_values[0])
         wrist_flexion = ax.dof(0, values[0])
 
@@ -535,9 +642,9 @@ class BodySolver:
         solution = min(fits, key=rank)
         self._memory.tilt[joint.name] = solution
         up_values[1], values[1] = solution
-        flags.pop(self.axes[upstream.name].names[1], None)
-        flags.pop(self.axes[joint.name].names[1], None)
-        commit(upstream, up_values)
+        tick.flags.pop(self.axes[upstream.name].names[1], None)
+        tick.flags.pop(self.axes[joint.name].names[1], None)
+        self._commit(tick, world, upstream, up_values)
         return values
 
     def _filtered_up(self, key: str, up: np.ndarray) -> np.ndarray:

@@ -56,6 +56,7 @@ class BodyModel:
         for segment, jid in segment_joint.items():
             frame = pin.Frame(segment, jid, pin.SE3.Identity(), pin.FrameType.OP_FRAME)
             self.segment_frames[segment] = model.addFrame(frame)
+        self._segment_joints = [segment_joint[s] for s in skeleton.segments]
         self.site_frames: dict[str, int] = {}
         for site in sites:
             direction = np.array(skeleton.directions[site.segment])
@@ -102,6 +103,14 @@ class BodyModel:
         rotations = np.array([omf[f].rotation for f in frames])
         positions = np.array([omf[f].translation for f in frames])
         return rotations, positions
+
+    def segment_poses(self, q: np.ndarray) -> np.ndarray:
+        """World pose of every segment (skeleton order) at ``q``, as rows of position
+        x, y, z and quaternion x, y, z, w (Pinocchio's XYZQUAT). A segment's frame
+        sits on its last dof's joint, so plain forward kinematics gives it."""
+        pin.forwardKinematics(self.model, self.data, q)
+        omi = self.data.oMi
+        return np.array([pin.SE3ToXYZQUAT(omi[j]) for j in self._segment_joints])
 
 
 def accel_axes(direction: np.ndarray, flexion_axis: np.ndarray) -> np.ndarray:

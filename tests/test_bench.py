@@ -26,6 +26,15 @@ def test_tiny_decode_benchmark_writes_its_table(tmp_path: Path) -> None:
     assert "## Decode rates" in (tmp_path / "summary.md").read_text()  # the summary of what ran
 
 
+def test_tiny_solver_benchmark_compares_batched_with_alone(tmp_path: Path) -> None:
+    from bodynet.bench import solver
+
+    result = solver.run(seconds=0.01, out_dir=tmp_path, bodies=(1, 3))
+    assert [r["bodies"] for r in result["runs"]] == [1, 3]
+    assert all(r["alone_us"] > 0 and r["batched_us"] > 0 for r in result["runs"])
+    assert "| 3 |" in (tmp_path / "solver.md").read_text()
+
+
 def test_demo_runs_the_live_body_network(tmp_path: Path) -> None:
     from zenoh_helpers import free_port
 

@@ -4,9 +4,17 @@ recording's own poses."""
 
 from __future__ import annotations
 
+import fcntl
 import json
+import os
+import pty
+import re
+import select
+import struct
 import subprocess
 import sys
+import termios
+import time
 import warnings
 from pathlib import Path
 
@@ -20,7 +28,7 @@ from pyglm import glm
 from scipy.spatial.transform import Rotation
 
 from bodynet.cli.main import main
-from bodynet.clients.mcap_store import McapSink, read_poses, read_raw
+from bodynet.clients.mcap_store import McapSink, count_messages, read_poses, read_raw
 from bodynet.core import keys
 from bodynet.core.codecs import imu_matrix, pose
 from bodynet.core.keys import BRANCHES
@@ -363,3 +371,50 @@ def test_export_refuses_bad_input(
     assert "is not a bodynet pose" in result.stderr
     assert "Traceback" not in result.stderr
     assert out.read_text() == "an earlier export\n"
+
+
+def on_a_terminal(*args: object, timeout: float = 120) -> tuple[int, str]:
+    """``bodynet ...`` with its stderr on a pseudo-terminal (where a progress bar
+    shows, as for a user); its exit code and what the terminal got."""
+    master, slave = pty.openpty()
+    fcntl.ioctl(slave, termios.TIOCSWINSZ, struct.pack("HHHH", 24, 120, 0, 0))
+    proc = subprocess.Popen([str(BODYNET), *map(str, args)], stdin=subprocess.DEVNULL,
+                            stdout=subprocess.DEVNULL, stderr=slave)  # fmt: skip
+    os.close(slave)
+    got = bytearray()
+    deadline = time.monotonic() + timeout
+    try:
+        while time.monotonic() < deadline:
+            if not select.select([master], [], [], 0.5)[0]:
+                if proc.poll() is not None:
+                    break
+                continue
+            try:
+                data = os.read(master, 65536)
+            except OSError:  # EIO: the process closed the terminal
+                break
+            if not data:
+                break
+            got += data
+    finally:
+        os.close(master)
+    return proc.wait(timeout=10), got.decode(errors="replace")
+
+
+@pytest.mark.parametrize("kind", ["csv", "bvh", "c3d"])
+def test_export_shows_its_progress_on_a_terminal_unless_quiet(
+    kind: str, arm_mcap: Path, tmp_path: Path
+) -> None:
+    poses_in_file = count_messages(arm_mcap, keys.pose_key())
+    bar = re.compile(rf"\d+/{poses_in_file} \[.*pose/s")
+    out = tmp_path / f"out.{kind}"
+    code, terminal = on_a_terminal("export", kind, arm_mcap, "-o", out)
+    assert code == 0, terminal
+    assert bar.search(terminal), terminal
+    assert out.exists()
+    out.unlink()
+    code, terminal = on_a_terminal("export", kind, arm_mcap, "-o", out, "-q")
+    assert code == 0, terminal
+    assert not bar.search(terminal), terminal
+    assert "pose/s" not in terminal
+    assert out.exists()

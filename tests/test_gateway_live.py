@@ -258,3 +258,153 @@ def test_one_gateway_serves_several_subjects_apart(router_endpoint: str, tmp_pat
         gw.close()
         for s in (*sessions, watcher, bob_inside, session):
             s.close()
+
+
+FLOOD_MAX, FLOOD_MAX_S = 5_000_000, 60.0  # the flood's bounds: messages, seconds
+FLOOD_ROUNDS, ROUND_POSES = 3, 50  # the others' poses waited for, in turn, while it goes on
+
+
+class Flood:
+    """A hostile client publishing garbage as fast as it can (``BLOCK``: nothing is
+    dropped on the way, so all of it must be counted) on ``victim``'s raw keys and,
+    every other message, on random keys under ``*/body/**`` of invented subjects
+    (a real site, a raw-shaped key, anything). It stops when told, or at
+    ``FLOOD_MAX`` messages or ``FLOOD_MAX_S`` seconds."""
+
+    def __init__(self, session: zenoh.Session, victim: str, seed: int = 11) -> None:
+        import random
+        import string
+
+        from bodynet.core.profile import SMARTSUIT_SITES
+
+        rng = random.Random(seed)
+
+        def chunk() -> str:
+            return "".join(rng.choices(string.ascii_lowercase + string.digits,
+                                       k=rng.randint(1, 8)))  # fmt: skip
+
+        sites = [s.raw_key for s in SMARTSUIT_SITES.values()]
+        self.victim = [f"{victim}/{k}" for k in sites] + [f"{victim}/body/arm/left/bogus/raw"]
+
+        def invented() -> str:  # a real site, a raw-shaped key or anything, of nobody
+            rest = rng.choice(
+                [
+                    rng.choice(sites),
+                    f"body/{chunk()}/{chunk()}/{chunk()}/raw",
+                    "body/" + "/".join(chunk() for _ in range(rng.randint(1, 5))),
+                ]
+            )
+            return f"{chunk()}/{rest}"
+
+        self.invented = [invented() for _ in range(1000)]
+        gateway_takes = zenoh.KeyExpr(keys.ANY_SUBJECT + "/" + keys.all_raw())
+        self.to_gateway = {k: gateway_takes.intersects(zenoh.KeyExpr(k))
+                           for k in self.victim + self.invented}  # fmt: skip
+        self.garbage = [b"", b"\x00" * 28, b"BN\x01\x01" + bytes(100), b"BN\x09" + bytes(30),
+                        b"{}"] + [b"\x00" + rng.randbytes(rng.randint(0, 80))  # never the magic
+                                  for _ in range(64)]  # fmt: skip
+        self.session = session
+        self.sent = 0  # messages flooded
+        self.taken = 0  # of them, on keys the gateway subscribes to
+        self.on = threading.Event()
+        self.stop = threading.Event()
+        self.thread = threading.Thread(target=self._run, daemon=True, name="flood")
+
+    def _run(self) -> None:
+        import time
+
+        ends = time.monotonic() + FLOOD_MAX_S
+        block = zenoh.CongestionControl.BLOCK
+        victim, invented, garbage = self.victim, self.invented, self.garbage
+        self.on.set()
+        i = 0
+        while i < FLOOD_MAX and not self.stop.is_set() and time.monotonic() < ends:
+            half = i // 2
+            key = victim[half % len(victim)] if i % 2 == 0 else invented[half % len(invented)]
+            self.session.put(key, garbage[i % len(garbage)], congestion_control=block)
+            self.taken += self.to_gateway[key]
+            i += 1
+            self.sent = i
+        self.on.clear()
+
+    def start(self, at_least: int = 2000) -> None:
+        """Start, and return once ``at_least`` messages are out."""
+        self.thread.start()
+        while self.sent < at_least:
+            assert self.thread.is_alive(), "the flood ended before it began"
+            threading.Event().wait(0.01)
+
+    def close(self) -> None:
+        self.stop.set()
+        if self.thread.is_alive():
+            self.thread.join(timeout=30)
+
+
+def test_flood_on_one_subject_and_random_keys_never_stops_the_other_subjects(
+    router_endpoint: str, tmp_path: Path
+) -> None:
+    """One all-subjects gateway serving three subjects' left arms; a hostile client
+    floods garbage at full speed on carol's raw keys and on random keys under
+    ``*/body/**`` (see ``Flood``). Alice's and Bob's poses keep coming through the
+    flood (waited for in rounds, the flood still on at the end of each); every
+    garbage message the gateway's subscriptions take is counted as a rejection on
+    its health key; garbage makes no body for an invented subject."""
+    import time
+
+    from bodynet.session import open_session, session_config
+
+    session = client(router_endpoint)
+    gw = Gateway(session, all_subjects=True, profile_dir=tmp_path)
+    running = Running(gw.run)
+    subjects = ("alice", "bob", "carol")  # carol's keys are flooded
+    sessions, nodes = [], []
+    for name in subjects:
+        node_session = open_session(session_config("client", [router_endpoint], subject=name))
+        options = EmulationOptions(Routine(name, "", lambda t: {"left_elbow_flexion_deg": 45.0}),
+                                   Realism.ideal())  # fmt: skip
+        sessions.append(node_session)
+        nodes.append(Running(run_node, node_session, [NodePlan("smartsuit", "can", (LEFT_ARM,))],
+                             options, name))  # fmt: skip
+    watcher, hostile = client(router_endpoint), client(router_endpoint)
+    flood = Flood(hostile, "carol")
+    assert all(flood.to_gateway[k] for k in flood.victim)
+    assert not all(flood.to_gateway[k] for k in flood.invented)  # some go to nobody
+    during: dict[str, list[bool]] = {n: [] for n in subjects}  # per pose: was the flood on
+    for name, arrivals in during.items():
+        watcher.declare_subscriber(f"{name}/{keys.pose_key()}",
+                                   lambda _, a=arrivals: a.append(flood.on.is_set()))  # fmt: skip
+
+    def poses_of_others(more: int, timeout: float = 60.0) -> None:
+        """Wait until Alice and Bob each have ``more`` poses more than now."""
+        wanted = {n: len(during[n]) + more for n in ("alice", "bob")}
+        deadline = time.monotonic() + timeout
+        while any(len(during[n]) < k for n, k in wanted.items()):
+            assert time.monotonic() < deadline, f"poses stopped: {wanted}, flood {flood.sent}"
+            threading.Event().wait(0.02)
+
+    try:
+        poses_of_others(ROUND_POSES)  # every body is served before the flood
+        flood.start()
+        for _ in range(FLOOD_ROUNDS):
+            poses_of_others(ROUND_POSES)
+            assert flood.on.is_set(), f"the flood reached its bounds first ({flood.sent} sent)"
+        flood.close()
+        counts = {n: sum(a) for n, a in during.items()}  # poses that came during the flood
+        print(f"\nflood: {flood.sent} messages, {flood.taken} to the gateway; poses {counts}")
+        assert counts["alice"] >= FLOOD_ROUNDS * ROUND_POSES
+        assert counts["bob"] >= FLOOD_ROUNDS * ROUND_POSES
+
+        health = Collector(watcher, "alice/" + keys.health_key("gateway"), json.loads)
+        health.wait_for(lambda s: bool(s) and sum(s[-1][1]["rejected"].values()) >= flood.taken,
+                        timeout=60)  # fmt: skip
+        assert gw.solver_errors == 0
+        assert set(gw.subjects()) == set(subjects)  # no body for an invented subject
+        assert gw.refused_subjects == 0
+    finally:
+        flood.close()
+        for n in nodes:
+            n.stop()
+        running.stop()
+        gw.close()
+        for s in (*sessions, watcher, hostile, session):
+            s.close()

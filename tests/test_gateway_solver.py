@@ -12,7 +12,7 @@ from bodynet.core.keys import LEFT_ARM, Site
 from bodynet.core.messages import OleAccel, RawSample
 from bodynet.core.profile import IMU_SITES, SMARTSUIT_SITES
 from bodynet.core.subject import Profile
-from bodynet.gateway.solver import BodySolver, tpose_mounts
+from bodynet.gateway.solver import BodySolver, solve_bodies, tpose_mounts
 from bodynet.nodes.emulator import (
     BodyEmulator,
     EmulatedSensor,
@@ -234,6 +234,77 @@ def test_batch_split_agrees_with_the_scalar_split_of_every_joint() -> None:
         if len(ax.axes) == 3:
             angles = np.array([rng.uniform(-60, 60), 90.0 * ax.signs[1], rng.uniform(-60, 60)])
             rotations[n] = ax.matrix(angles)
-    got = batch.split(rows, rotations, previous)
+    padded = np.zeros((len(rows), 3))  # the batch's form: no previous is all zeros
+    for m, prev in enumerate(previous):
+        if prev is not None:
+            padded[m, : len(prev)] = prev
+    got = batch.split(rows, rotations, padded)
     for r, rel, prev, values in zip(rows, rotations, previous, got, strict=True):
-        np.testing.assert_allclose(values, axes[r].split(rel, prev), atol=1e-9)
+        n = len(axes[r].axes)
+        np.testing.assert_allclose(values[:n], axes[r].split(rel, prev), atol=1e-9)
+        assert not values[n:].any()  # absent dofs are 0
+
+
+def test_bodies_solved_together_match_each_solved_alone() -> None:
+    """The gateway solves the bodies that are due in one batch: every output of
+    every body (angles, flags, total rotations, poses) must be what that body
+    solved alone gives, tick by tick, whatever else is in the batch. Bodies of
+    every kind at once: IMU (calibrated, random mounts), SmartSuit, hybrid, other
+    segment lengths, and one whose sensors drop out for a while."""
+    tags = imu_tags()
+    hybrid_tags = [t for t in tags if t.site.name in ("upperarm", "chest", "sacrum")]
+    hybrid = hybrid_tags + [s for s in smartsuit_sensors([LEFT_ARM]) if s.site.name != "shoulder"]
+    tall = Profile(lengths={"upperarm": 0.35, "forearm": 0.3, "thigh": 0.5})
+    # into the shoulder's gimbal lock and held there: the split keeps this body's own
+    # last flexion, so a batch that mixed up the bodies' memories would show
+    into_lock = Routine("lock", "", keyframes([
+        (0.0, {"left_shoulder_flexion_deg": 30.0, "left_shoulder_abduction_deg": 70.0}),
+        (1.0, {"left_shoulder_flexion_deg": 30.0, "left_shoulder_abduction_deg": 90.0}),
+        (3.0, {"left_shoulder_flexion_deg": 30.0, "left_shoulder_abduction_deg": 90.0}),
+    ], loop=False))  # fmt: skip
+    kinds: list[tuple[Any, Profile | None, Routine, Realism | None]] = [
+        (tags, calibrated_profile(tags), ROUTINES["walk"], IDEAL_RANDOM_MOUNTS),
+        (smartsuit_sensors(), None, ROUTINES["reach"], None),
+        (hybrid, calibrated_profile(hybrid_tags), ROUTINES["reach"], IDEAL_RANDOM_MOUNTS),
+        (tags, tall, ROUTINES["full-body"], None),
+        (tags, None, ROUTINES["random"], None),
+        (tags, calibrated_profile(tags), into_lock, IDEAL_RANDOM_MOUNTS),
+    ]
+    emulators = [
+        BodyEmulator(routine, sensors, seed=SEED, **({"realism": r} if r else {}))
+        for sensors, _, routine, r in kinds
+    ]
+    together = [BodySolver(profile) for _, profile, _, _ in kinds]
+    alone = [BodySolver(profile) for _, profile, _, _ in kinds]
+    for tick in range(300):
+        work = []
+        for b, body in enumerate(emulators):
+            readings, _ = body.sample(tick / 100)
+            samples = {
+                s.site: RawSample(r, tick, tick * 10_000_000)
+                for s, r in zip(body.sensors, readings, strict=True)
+                if not (b == 4 and 100 <= tick < 150 and s.site.branch == LEFT_ARM)
+            }
+            work.append((together[b], samples))
+        batch = solve_bodies(work) if tick % 7 else solve_bodies(work[::-1])[::-1]
+        for b, ((_, samples), got) in enumerate(zip(work, batch, strict=True)):
+            want = alone[b].solve(samples)
+            assert got.flags == want.flags, (tick, b)
+            assert got.sources == want.sources
+            assert got.t_ns == want.t_ns
+            for name in ("angles", "rel", "positions", "quats"):
+                np.testing.assert_allclose(getattr(got, name), getattr(want, name), atol=1e-12,
+                                           err_msg=f"tick {tick}, body {b}, {name}")  # fmt: skip
+    assert any(f == "clamped" for out in batch for f in out.flags.values())  # the test bites
+
+
+def test_one_body_solve_reads_like_before() -> None:
+    """The mappings a reader uses are views of the arrays, in the skeleton's order."""
+    solver = BodySolver()
+    out = solver.solve({})
+    assert list(out.angles_deg) == list(solver.skeleton.angle_names())
+    assert list(out.rel_deg) == [j.name for j in solver.skeleton.joints]
+    assert list(out.segments) == list(solver.skeleton.segments)
+    assert out.joints_m["left_elbow"] == out.segments["left_forearm"][0]
+    assert all(f == "unobserved" for f in out.flags.values())
+    assert len(out.flags) == 32

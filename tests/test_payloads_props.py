@@ -12,24 +12,30 @@ tests/test_payloads_props.py tests/test_codecs_props.py --timeout=0``.
 from __future__ import annotations
 
 import json
+import math
 import threading
 import time
+from collections import deque
 from collections.abc import Iterator
 from typing import Any
 
+import numpy as np
 import pytest
+import rerun as rr
 import zenoh
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from zenoh_helpers import client, free_port
 
-from bodynet.clients.view import status_text
+from bodynet.clients.view import GAUGES, MAX_M, Viewer, drawing, status_text
 from bodynet.core import keys
 from bodynet.core.codecs import pose, raw_sample
-from bodynet.core.errors import DecodeError
+from bodynet.core.errors import DecodeError, Reason
 from bodynet.core.messages import OleAccel, Quat, RawSample, Source
 from bodynet.core.profile import IMU_SITES, SMARTSUIT_SITES
+from bodynet.core.skeleton import build_skeleton
 from bodynet.gateway.service import Gateway
+from bodynet.nodes.publisher import NodeHealth
 from bodynet.session import open_session, session_config
 
 json_values = st.recursive(
@@ -105,6 +111,118 @@ def test_pose_decode_of_deep_nesting_and_huge_numbers() -> None:
 def test_status_panel_shows_any_topology_and_health(topology: Any, health: Any) -> None:
     text = status_text(topology, health)
     assert text.startswith("## Topology")
+
+
+node_healths = st.fixed_dictionaries({
+    "key": st.sampled_from(sorted(s.raw_key for s in IMU_SITES.values())),
+    "alive": st.booleans(), "rate_hz": st.integers(0, 1000), "samples": st.integers(0, 2**40),
+    "gaps": st.integers(0, 2**32), "rejected": st.dictionaries(st.sampled_from(list(Reason)),
+                                                               st.integers(1, 99), max_size=2),
+})  # fmt: skip
+bridge_healths = st.fixed_dictionaries({
+    "source": st.text(max_size=8), "kind": st.just("imu"),
+    "device": st.sampled_from(["connected", "reconnecting"]), "t_ns": st.integers(0, 2**63 - 1),
+    "rejected": st.dictionaries(st.sampled_from(list(Reason)), st.integers(1, 99), max_size=2),
+    "nodes": st.dictionaries(st.integers(0, 20).map(str), node_healths, max_size=4),
+})  # fmt: skip
+
+
+@given(json_values, st.dictionaries(st.text(max_size=8), json_values, max_size=2),
+       st.dictionaries(st.text(max_size=8), bridge_healths, min_size=1, max_size=3),
+       st.integers(0, 10**6))  # fmt: skip
+def test_status_panel_shows_each_nodes_health(
+    topology: Any, junk: dict[str, Any], bridges: dict[str, Any], bad: int
+) -> None:
+    """Among health of any shape, every bridge's device and every node's
+    liveliness, rate, samples, gaps and rejections are in the panel."""
+    text = status_text(topology, {**junk, **bridges}, bad)
+    for source, h in bridges.items():
+        assert f"- **{source}**: device {h['device']}" in text
+        for node, n in h["nodes"].items():
+            rejected = ", ".join(f"{r} {c}" for r, c in sorted(n["rejected"].items())) or "0"
+            assert (
+                f"  - node {node} `{n['key']}`: {'alive' if n['alive'] else 'not alive'}, "
+                f"{n['rate_hz']} Hz, {n['samples']} samples, {n['gaps']} gaps, "
+                f"rejected {rejected}"
+            ) in text.splitlines()
+    assert (f"{bad} bad messages" in text) == (bad > 0)
+
+
+def test_status_panel_shows_what_a_bridge_publishes() -> None:
+    """The health JSON of ``nodes/publisher.py``, as it is built."""
+    site = next(iter(IMU_SITES.values()))
+    now = time.monotonic()
+    node = NodeHealth(site, samples=4321, gaps=13, alive=True, window=deque([now] * 97))
+    node.rejected[Reason.BAD_LENGTH] += 2
+    health = {"imu-ttyUSB0": {"source": "imu-ttyUSB0", "kind": "imu", "device": "connected",
+                              "t_ns": time.time_ns(), "rejected": {},
+                              "nodes": {"5": node.as_json(now)}}}  # fmt: skip
+    text = status_text(None, json.loads(json.dumps(health)))
+    assert "- **imu-ttyUSB0**: device connected, rejected 0" in text
+    assert (f"  - node 5 `{site.raw_key}`: alive, 97 Hz, 4321 samples, 13 gaps, "
+            "rejected bad_length 2") in text.splitlines()  # fmt: skip
+
+
+SKELETON = build_skeleton()
+# what pose.decode takes for a number: any JSON number, a boolean, or a string
+# float() reads ("nan", "inf", "1e999")
+numbers = (
+    st.floats(width=64).map(lambda x: x if math.isfinite(x) else str(x))
+    | st.integers(-(2**70), 2**70)
+    | st.booleans()
+    | st.sampled_from(["nan", "-inf", "1e999", " 1.5 ", "-0"])
+)
+segment_names = st.sampled_from(SKELETON.segments) | st.text(max_size=6)
+angle_names = st.sampled_from([*SKELETON.angle_names(), *GAUGES]) | st.text(max_size=10)
+decodable_poses = st.fixed_dictionaries({
+    "v": st.just(pose.VERSION), "seq": st.integers(-(2**63), 2**64 - 1),
+    "t_ns": st.integers(-(2**63), 2**64 - 1) | st.integers(0, 2 * 10**18),
+    "angles_deg": st.dictionaries(angle_names, numbers, max_size=12),
+    "rel_deg": st.dictionaries(st.text(max_size=6), numbers, max_size=3),
+    "segments": st.dictionaries(segment_names, st.fixed_dictionaries({
+        "p": st.lists(numbers, min_size=3, max_size=3)
+             | st.lists(st.floats(-2, 2), min_size=3, max_size=3),  # a body's, mostly
+        "q": st.lists(numbers, min_size=4, max_size=4)
+             | st.just([1, 0, 0, 0]) | st.just([0.5, 0.5, 0.5, 0.5]),
+    }), max_size=18),
+    "joints_m": st.dictionaries(st.text(max_size=6), st.lists(numbers, min_size=3, max_size=3),
+                                max_size=3),
+}).map(lambda d: json.dumps(d).encode())  # fmt: skip
+
+
+@given(decodable_poses)
+def test_viewer_draws_any_decodable_pose(data: bytes) -> None:
+    """Any pose pose.decode accepts (any subset of segments and angles, any
+    numbers) becomes what the viewer logs, or ``None`` (not showable, counted):
+    never an exception; and it logs to a real Rerun recording."""
+    frame = pose.decode(data)
+    drawn = drawing(frame, SKELETON)
+    if drawn is None:
+        assert not -(2**63) < frame.t_ns < 2**63
+        return
+    assert drawn.t_ns == frame.t_ns
+    for strip in drawn.strips:
+        assert strip.ndim == 2
+        assert strip.shape[0] >= 2
+        assert strip.shape[1] == 3
+        assert np.all(np.abs(strip) <= MAX_M + 1)
+    assert len(drawn.strips) <= 10
+    present = [s for s in SKELETON.segments if s in frame.segments]
+    assert drawn.joints.shape[1] == 3
+    assert drawn.joints.shape[0] <= len(present)
+    assert np.all(np.abs(drawn.joints) <= MAX_M)
+    assert all(math.isfinite(g) for g in drawn.gauges)
+    assert len(drawn.gauges) == len(GAUGES)
+    for path, value in drawn.angles.items():
+        assert path.startswith("angles/")
+        assert path != "angles/"
+        assert isinstance(value, float)
+        assert math.isfinite(value) or math.isnan(value)
+    rec = rr.RecordingStream("bodynet-test")
+    rec.memory_recording()
+    viewer = Viewer([rec], SKELETON)
+    assert viewer.log_poses([frame, frame]) == 2
+    assert viewer.bad == 0
 
 
 # --- the live gateway --------------------------------------------------------------

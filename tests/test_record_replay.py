@@ -1,22 +1,46 @@
-"""`bodynet record` (with rotation) and `bodynet replay`, as processes (salvage: test_faults)."""
+"""`bodynet record` (with rotation) and `bodynet replay`, as processes; what the
+recorder refuses, topology and health in recordings, salvage of what is no
+recording (a recorder killed mid-write: test_faults)."""
 
 from __future__ import annotations
 
+import json
+import os
 import signal
 import subprocess
 import sys
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import can
+import jsonschema
 import pytest
 import zenoh
-from zenoh_helpers import raw_collector
+from mcap.reader import make_reader
+from zenoh_helpers import Collector, client, raw_collector
 
-from bodynet.clients.mcap_store import read_raw
+from bodynet.cli.main import main
+from bodynet.clients.mcap_store import (
+    MAX_TIME_NS,
+    McapSink,
+    count_messages,
+    read_gaps,
+    read_health,
+    read_poses,
+    read_raw,
+    read_topology,
+    read_truth,
+    salvage,
+)
+from bodynet.clients.recorder import DEFAULT_KEYS, Recorder
+from bodynet.core import keys
+from bodynet.core.codecs import pose, raw_sample
+from bodynet.core.errors import DecodeError, Reason
 from bodynet.core.keys import LEFT_ARM
+from bodynet.core.messages import OleAccel, RawSample, Source
+from bodynet.gateway.service import Gateway
 from bodynet.nodes.can_bridge import CanBridge
 from bodynet.nodes.emulator import BodyEmulator, Realism, smartsuit_sensors
 from bodynet.nodes.hardware import CanNodes
@@ -102,3 +126,363 @@ def test_replay_republishes_a_recording(
     seen = raw.wait_for(lambda s: len(s) >= 400)
     assert len(seen) == 400
     assert seen[0][1].reading == next(read_raw(mcap))[2].reading
+
+
+def test_replay_bar_counts_what_it_replays_and_keys_choose_topics(
+    zsession: zenoh.Session, router_endpoint: str, tmp_path: Path, data_dir: Path
+) -> None:
+    mcap = tmp_path / "arm.mcap"
+    subprocess.run([str(BODYNET), "process", str(data_dir / "smartsuit_arm.log"), "-o", str(mcap)],
+                   check=True, capture_output=True, timeout=60)  # fmt: skip
+    assert count_messages(mcap) > 400  # poses and transforms beside the 400 raw samples
+    # every raw sample: the bar ends at its total (not at 400 of every message in the file)
+    raw = raw_collector(zsession, "body/*/*/*/raw")
+    result = subprocess.run([str(BODYNET), "replay", str(mcap), "--speed", "8", "-e",
+                             router_endpoint], capture_output=True, text=True, timeout=60,
+                            check=False)  # fmt: skip
+    assert result.returncode == 0, result.stderr
+    assert "400/400" in result.stderr, result.stderr  # not 400/1100
+    assert len(raw.wait_for(lambda s: len(s) >= 400)) == 400
+    raw.close()
+    # key expressions: one exact topic and a wildcard one, received over Zenoh
+    raw = raw_collector(zsession, "body/**")
+    result = subprocess.run([str(BODYNET), "replay", str(mcap), "--speed", "8", "-e",
+                             router_endpoint, "--keys", "body/trunk/mid/head/raw",
+                             "body/*/left/elbow/**"], capture_output=True, text=True,
+                            timeout=60, check=False)  # fmt: skip
+    assert result.returncode == 0, result.stderr
+    assert "200/200" in result.stderr, result.stderr
+    assert "200 samples published" in result.stderr
+    raw.wait_for(lambda s: len(s) >= 200)
+    threading.Event().wait(0.5)  # nothing else comes
+    seen = raw.wait_for(lambda s: raw.queue.empty())
+    assert len(seen) == 200
+    assert {k for k, _ in seen} == {"body/trunk/mid/head/raw", "body/arm/left/elbow/raw"}
+    elbow = [s for t, _, s in read_raw(mcap) if t == "body/arm/left/elbow/raw"]
+    assert [s.seq for k, s in seen if k == "body/arm/left/elbow/raw"] == [s.seq for s in elbow]
+    raw.close()
+    # a key expression Zenoh does not take: a message, no traceback
+    result = subprocess.run([str(BODYNET), "replay", str(mcap), "-q", "-e", router_endpoint,
+                             "--keys", "body//raw"], capture_output=True, text=True, timeout=60,
+                            check=False)  # fmt: skip
+    assert result.returncode == 2
+    assert "'body//raw' is not a key expression" in result.stderr
+    assert "Traceback" not in result.stderr
+
+
+# -- what MCAP cannot store is refused, the file goes on --------------------------
+
+
+def _raw(seq: int, t_ns: int) -> RawSample:
+    return RawSample(OleAccel(2, 1000 + seq, (1, 2, 3)), seq, t_ns, Source.CAN)
+
+
+def test_sink_refuses_times_mcap_cannot_hold_before_writing(tmp_path: Path) -> None:
+    out = tmp_path / "times.mcap"
+    sink = McapSink(out)
+    topic = "body/arm/left/elbow/raw"
+    frame = pose.PoseFrame(1, 0, {"left_elbow_flexion_deg": 1.0}, {}, {}, {})
+    for bad, reason in [(-1, Reason.OUT_OF_RANGE), (-(2**63), Reason.OUT_OF_RANGE),
+                        (2**64, Reason.OUT_OF_RANGE), (1.5e18, Reason.GARBAGE)]:  # fmt: skip
+        with pytest.raises(DecodeError) as err:
+            sink.write_raw(topic, _raw(0, 0), bad)  # type: ignore[arg-type]
+        assert err.value.reason is reason
+        with pytest.raises(DecodeError):
+            sink.write_pose(keys.pose_key(), frame, bad)  # type: ignore[arg-type]
+        with pytest.raises(DecodeError):
+            sink.write_health(keys.health_key("x"), b"{}", bad)  # type: ignore[arg-type]
+    for t in (0, 2**63 - 1, MAX_TIME_NS):  # the edges MCAP holds
+        sink.write_raw(topic, _raw(0, 0), t)
+        sink.write_pose(keys.pose_key(), frame, t)
+    sink.close()
+    assert sink.messages == 9  # raw, pose and its transforms, three times
+    assert [t for _, t, _ in read_raw(out)] == [0, 2**63 - 1, MAX_TIME_NS]
+    assert [t for t, _ in read_poses(out)] == [0, 2**63 - 1, MAX_TIME_NS]
+    assert count_messages(out) == 9
+
+
+def _wait(done: Callable[[], bool], timeout: float = 20) -> None:
+    deadline = time.monotonic() + timeout
+    while not done():
+        assert time.monotonic() < deadline, "timed out"
+        threading.Event().wait(0.02)
+
+
+def _subscribed(recorder: Recorder, probe: Callable[[int], None]) -> int:
+    """``probe(n)`` until the recorder has one more message (its subscriptions
+    reach the router); how many messages it holds once the probes in flight are in."""
+    before, n = recorder.messages, 0
+    while recorder.messages == before:
+        probe(n)
+        n += 1
+        assert n < 400, "the recorder never got a probe"
+        threading.Event().wait(0.05)
+    threading.Event().wait(0.3)
+    return recorder.messages
+
+
+def test_recorder_refuses_what_mcap_cannot_store_and_closes_complete(
+    zsession: zenoh.Session, router_endpoint: str, tmp_path: Path
+) -> None:
+    out = tmp_path / "odd.mcap"
+    recorder = Recorder(zsession, out, [*DEFAULT_KEYS, keys.all_truth()])
+    source = client(router_endpoint)
+    elbow, wrist = keys.raw_key("arm", "left", "elbow"), keys.raw_key("arm", "left", "wrist")
+    truth = LEFT_ARM.key + "/elbow/" + keys.Stream.TRUTH
+    t0 = 1_700_000_000_000_000_000
+    try:
+        probes = _subscribed(
+            recorder, lambda n: source.put(wrist, raw_sample.encode(_raw(n, t0 + n)))
+        )
+        raw_times = [t0, -1, t0 + 2, -(2**63), t0 + 4, 2**63 - 1]
+        for seq, t in enumerate(raw_times):
+            source.put(elbow, raw_sample.encode(_raw(seq, t)))
+        pose_times = [t0, -5, MAX_TIME_NS]
+        for seq, t in enumerate(pose_times):
+            frame = pose.PoseFrame(seq, t, {"left_elbow_flexion_deg": 1.0}, {}, {}, {})
+            source.put(keys.pose_key(LEFT_ARM), pose.encode(frame))
+        for t in ("1", str(2**64), "-1", "Infinity"):
+            source.put(truth, f'{{"t_ns": {t}, "angles_deg": {{"a": 1.0}}}}')
+        # stored: 4 raw, 2 poses, 1 truth and 3 gap records (the refused raw and pose
+        # seq); refused: 2 raw, 1 pose, 2 truth out of range, 1 truth garbage
+        _wait(lambda: recorder.messages + sum(recorder.rejected.values()) == probes + 16)
+        source.put(elbow, raw_sample.encode(_raw(6, t0 + 6)))  # and the recording goes on
+        _wait(lambda: recorder.messages == probes + 11)
+    finally:
+        source.close()
+        recorder.close()  # the writer was never handed what it cannot store: this completes
+    assert recorder.rejected == {Reason.OUT_OF_RANGE: 5, Reason.GARBAGE: 1}
+    assert count_messages(out) == probes + 11
+    # in log-time order
+    assert [t for k, t, _ in read_raw(out) if k == elbow] == [t0, t0 + 2, t0 + 4, t0 + 6,
+                                                              2**63 - 1]  # fmt: skip
+    assert [t for t, _ in read_poses(out, keys.pose_key(LEFT_ARM))] == [t0, MAX_TIME_NS]
+    assert [t for _, t, _ in read_truth(out)] == [1]
+    # what was refused shows as missing sequence numbers, at times the file holds
+    gaps = [(g.after_seq, g.missing) for g in read_gaps(out) if g.topic == elbow]
+    assert gaps == [(0, 1), (2, 1)]
+
+
+# -- salvage: only of MCAP recordings; nothing left behind --------------------------
+
+
+def _record(cmdline: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, str]:
+    code = main(["record", *cmdline])
+    return code, capsys.readouterr().err
+
+
+def test_salvage_refuses_what_is_not_a_recording_and_leaves_nothing(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    src = tmp_path / "src"
+    src.mkdir()
+    (src / "random.mcap").write_bytes(os.urandom(4096))
+    (src / "notes.mcap").write_text("not a recording\n" * 100)
+    (src / "empty.mcap").write_bytes(b"")
+    (src / "short.mcap").write_bytes(b"\x89MCA")
+    (src / "folder.mcap").mkdir()
+    out_dir = tmp_path / "out"
+    out_dir.mkdir()
+    out = out_dir / "fixed.mcap"
+    cases = [
+        ("random.mcap", "not an MCAP recording"),
+        ("notes.mcap", "not an MCAP recording"),
+        ("empty.mcap", "ends before its MCAP header (0 bytes): nothing to salvage"),
+        ("short.mcap", "ends before its MCAP header (4 bytes)"),
+        ("missing.mcap", "cannot read it (No such file or directory)"),
+        ("folder.mcap", "cannot read it (Is a directory)"),
+    ]
+    for name, message in cases:
+        code, err = _record(["--salvage", str(src / name), "-o", str(out)], capsys)
+        assert code == 2, (name, err)
+        assert err.startswith("bodynet record: "), err
+        assert message in err, (name, err)
+        assert list(out_dir.iterdir()) == [], name  # no fixed.mcap, no fixed.mcap.part
+    # an -o where nothing can be written: a message, and nothing either
+    good = tmp_path / "good.mcap"
+    sink = McapSink(good)
+    sink.write_raw("body/arm/left/elbow/raw", _raw(0, 1), 1)
+    sink.close()
+    code, err = _record(["--salvage", str(good), "-o", str(tmp_path / "no" / "x.mcap")], capsys)
+    assert code == 2
+    assert "No such file or directory" in err
+    assert not (tmp_path / "no").exists()
+    # an earlier file of that name stays as it was
+    out.write_text("an earlier file\n")
+    assert _record(["--salvage", str(src / "notes.mcap"), "-o", str(out)], capsys)[0] == 2
+    assert out.read_text() == "an earlier file\n"
+    assert sorted(p.name for p in out_dir.iterdir()) == ["fixed.mcap"]
+    # as a user runs it
+    result = subprocess.run([str(BODYNET), "record", "--salvage", str(src / "random.mcap"), "-o",
+                             str(out_dir / "other.mcap")], capture_output=True, text=True,
+                            timeout=60, check=False)  # fmt: skip
+    assert result.returncode == 2
+    assert "not an MCAP recording" in result.stderr
+    assert "Traceback" not in result.stderr
+    assert sorted(p.name for p in out_dir.iterdir()) == ["fixed.mcap"]
+
+
+def test_salvage_keeps_a_cut_recording_up_to_its_last_chunk(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    whole = tmp_path / "whole.mcap"
+    sink = McapSink(whole, chunk_size=4096)
+    for seq in range(3000):
+        sink.write_raw("body/arm/left/elbow/raw", _raw(seq, 1000 + seq), 1000 + seq)
+    sink.close()
+    size = whole.stat().st_size // 2
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(whole.read_bytes()[:size])
+    with whole.open("rb") as f:
+        summary = make_reader(f).get_summary()
+    assert summary is not None
+    # the messages of the chunks that end before the cut (log times 1000 + seq)
+    kept = sum(c.message_end_time - c.message_start_time + 1 for c in summary.chunk_indexes
+               if c.chunk_start_offset + c.chunk_length <= size)  # fmt: skip
+    assert 1000 < kept < 2000
+    fixed = tmp_path / "fixed.mcap"
+    code, err = _record(["--salvage", str(cut), "-o", str(fixed)], capsys)
+    assert code == 0, err
+    seqs = [s.seq for _, _, s in read_raw(fixed)]
+    assert seqs == list(range(kept))  # every message of the complete chunks, in order
+    assert f"{len(seqs)} messages salvaged" in err
+    assert fixed.stat().st_mode & 0o777 == 0o600
+    # a complete file salvages to itself, one channel and schema as before
+    again = tmp_path / "again.mcap"
+    assert salvage(whole, again) == 3000
+    with again.open("rb") as f:
+        copy = make_reader(f).get_summary()
+    assert copy is not None
+    assert len(copy.channels) == len(summary.channels) == 1
+    assert sorted(s.name for s in copy.schemas.values()) == sorted(
+        s.name for s in summary.schemas.values()
+    )
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["again.mcap", "cut.mcap", "fixed.mcap",
+                                                          "whole.mcap"]  # fmt: skip
+
+
+# -- topology and health --------------------------------------------------------------
+
+
+def _schemas(path: Path) -> dict[str, dict[str, object]]:
+    """topic -> the JSON Schema of its channel, as a generic tool finds it."""
+    with path.open("rb") as f:
+        summary = make_reader(f).get_summary()
+    assert summary is not None
+    out = {}
+    for ch in summary.channels.values():
+        schema = summary.schemas[ch.schema_id]
+        assert (schema.encoding, ch.message_encoding) == ("jsonschema", "json")
+        out[ch.topic] = json.loads(schema.data)
+    return out
+
+
+def test_record_keeps_topology_and_health_by_default(
+    live_arm: None, zsession: zenoh.Session, router_endpoint: str, tmp_path: Path
+) -> None:
+    """The left arm through its CAN bridge, a gateway, and `bodynet record` with no
+    keys: raw samples, poses, the topology and every health, each readable with
+    the schema its channel names."""
+    gw_session = client(router_endpoint)
+    gateway = Gateway(gw_session, profile_path=tmp_path / "subject.toml")
+    stop = threading.Event()
+    worker = threading.Thread(target=gateway.run, args=(stop,), daemon=True)
+    worker.start()
+    out = tmp_path / "all.mcap"
+    try:
+        poses = Collector(zsession, keys.pose_key(), pose.decode)
+        poses.wait_for(lambda s: len(s) >= 10, timeout=20)  # the gateway has its topology
+        health = Collector(zsession, keys.all_health(), json.loads)
+        rec = start_recorder(router_endpoint, out)
+        wait_for_size(out, 1)
+        mark = time.time_ns() + 500_000_000  # the recorder subscribes as it creates its file
+
+        def rounds(seen: list[tuple[str, dict[str, int]]], source: str) -> int:
+            return sum(k == keys.health_key(source) and m["t_ns"] > mark for k, m in seen)
+
+        # two rounds of health after the recorder came (each source: every second)
+        health.wait_for(lambda s: rounds(s, "gateway") >= 2 and rounds(s, "rec-test") >= 2,
+                        timeout=20)  # fmt: skip
+        rec.send_signal(signal.SIGINT)
+        assert rec.wait(timeout=20) == 0
+    finally:
+        stop.set()
+        worker.join(timeout=15)
+        gateway.close()
+        gw_session.close()
+    topology = list(read_topology(out))
+    assert topology, "no topology recorded"
+    assert [t for t, _, _ in topology] == [keys.TOPOLOGY] * len(topology)
+    _, log_time, first = topology[0]
+    assert log_time == first["t_ns"]
+    nodes = first["branches"]["left-arm"]["nodes"]
+    assert {k: v["state"] for k, v in nodes.items()} == {
+        f"body/arm/left/{site}/raw": "alive" for site in ("shoulder", "elbow", "wrist")
+    }
+    healths = list(read_health(out))
+    assert {t for t, _, _ in healths} == {keys.health_key("gateway"), keys.health_key("rec-test")}
+    assert all(t == m["t_ns"] for _, t, m in healths)
+    bridge = [m for t, _, m in healths if t == keys.health_key("rec-test")][-1]
+    assert bridge["source"] == "rec-test"
+    assert {n["key"] for n in bridge["nodes"].values()} == set(nodes)
+    assert any(m.get("ticks", 0) > 0 for t, _, m in healths if t == keys.health_key("gateway"))
+    # every message valid against its channel's schema (what Foxglove and co. go by)
+    schemas = _schemas(out)
+    assert schemas[keys.TOPOLOGY]["title"] == "bodynet.Topology"
+    assert schemas[keys.health_key("gateway")]["title"] == "bodynet.Health"
+    for topic, _, message in [*topology, *healths]:
+        jsonschema.validate(message, schemas[topic])
+    # the other readers see what they saw before
+    assert {t for t, _, _ in read_raw(out)} == set(nodes)
+    assert sum(1 for _ in read_poses(out)) > 0
+    assert list(read_truth(out)) == []
+
+
+def test_recorder_refuses_admin_messages_that_are_not_json_objects(
+    zsession: zenoh.Session, router_endpoint: str, tmp_path: Path
+) -> None:
+    """Health and topology, a subject's too; what is not a JSON object on those
+    keys is counted (garbage), never stored, and never taken for a raw sample."""
+    source = client(router_endpoint)
+    topo = {"t_ns": 1_700_000_000_000_000_000, "branches": {}}
+    alice_topology = "alice/" + keys.TOPOLOGY
+    queryable = source.declare_queryable(
+        alice_topology, lambda q: q.reply(alice_topology, json.dumps(topo).encode())
+    )
+    _wait(lambda: any(r.ok for r in zsession.get(alice_topology, timeout=1)))  # it is in place
+    out = tmp_path / "admin.mcap"
+    recorder = Recorder(zsession, out, [*DEFAULT_KEYS, keys.ANY_SUBJECT + "/" + keys.TOPOLOGY,
+                                        keys.ANY_SUBJECT + "/" + keys.all_health()])  # fmt: skip
+    try:
+        _wait(lambda: recorder.messages == 1)  # the subject's topology, asked for at the start
+        probe = json.dumps({"source": "probe"}).encode()
+        base = _subscribed(recorder, lambda n: source.put(keys.health_key("probe"), probe))
+        good = {"source": "pose", "t_ns": 5, "nodes": {}}
+        bad = [b"not json", b"[1, 2]", b'"text"', b"\xff\xfe", b'{"t_ns": NaN}',
+               b'{"t_ns": "soon"}', b'{"t_ns": -1}', b"[" * 100_000]  # fmt: skip
+        for data in bad:
+            source.put(keys.TOPOLOGY, data)
+        # a bridge named "pose": its health is health, not a pose
+        source.put(keys.health_key("pose"), json.dumps(good))
+        source.put("alice/" + keys.health_key("x"), json.dumps({"source": "x"}))
+        source.put(keys.health_key("y"), b"[]")
+        source.put(keys.TOPOLOGY, json.dumps({"branches": {}}))  # no t_ns: when it came
+        _wait(lambda: recorder.messages + sum(recorder.rejected.values()) == base + 3 + len(bad)
+              + 1)  # fmt: skip
+    finally:
+        queryable.undeclare()
+        source.close()
+        recorder.close()
+    assert recorder.rejected == {Reason.GARBAGE: len(bad), Reason.OUT_OF_RANGE: 1}
+    got = {(t, json.dumps(m, sort_keys=True)) for t, _, m in read_topology(out)}
+    assert got == {(alice_topology, json.dumps(topo, sort_keys=True)),
+                   (keys.TOPOLOGY, json.dumps({"branches": {}}))}  # fmt: skip
+    [(_, received, _)] = [m for m in read_topology(out) if m[0] == keys.TOPOLOGY]
+    assert abs(received - time.time_ns()) < 60e9
+    assert [(t, lt) for t, lt, _ in read_health(out) if t == keys.health_key("pose")] == [
+        (keys.health_key("pose"), 5)
+    ]
+    topics = {keys.health_key("pose"), keys.health_key("probe"), "alice/" + keys.health_key("x")}
+    assert {t for t, _, _ in read_health(out)} == topics
+    assert list(read_raw(out)) == []
+    assert _schemas(out)[keys.health_key("pose")]["title"] == "bodynet.Health"

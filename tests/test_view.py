@@ -2,12 +2,26 @@
 
 from __future__ import annotations
 
+import json
+import stat
 import subprocess
 import sys
+import threading
+import time
 import urllib.request
+from collections.abc import Callable
 from pathlib import Path
 
-from zenoh_helpers import free_port
+import numpy as np
+from mcap.writer import Writer
+from rerun.chunk import RrdReader
+from zenoh_helpers import client, free_port
+
+from bodynet.clients.view import Viewer, view_live
+from bodynet.core import keys
+from bodynet.core.codecs import pose
+from bodynet.core.skeleton import build_skeleton
+from bodynet.kinematics.model import BodyModel
 
 BODYNET = Path(sys.executable).with_name("bodynet")
 RERUN = Path(sys.executable).with_name("rerun")
@@ -27,9 +41,13 @@ def test_recording_to_rrd_without_a_window(tmp_path: Path, data_dir: Path) -> No
         == 0
     )
     rrd = tmp_path / "s.rrd"
+    rrd.write_bytes(b"an older file")
+    rrd.chmod(0o644)
     result = run("view", mcap, "--headless", "--save", rrd)  # Rerun's flag
     assert result.returncode == 0, result.stderr
     assert "30 poses" in result.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["s.mcap", "s.rrd"]  # nothing aside
+    assert stat.S_IMODE(rrd.stat().st_mode) == 0o600  # health data: the owner's only
     printed = subprocess.run([str(RERUN), "rrd", "print", str(rrd)], capture_output=True, text=True,
                              timeout=60, check=True).stdout  # fmt: skip
     assert "- /body/figure -" in printed
@@ -38,12 +56,45 @@ def test_recording_to_rrd_without_a_window(tmp_path: Path, data_dir: Path) -> No
                           timeout=60, check=False).returncode == 0  # fmt: skip
 
 
-def test_truncated_recording_is_a_clear_error(tmp_path: Path) -> None:
-    bad = tmp_path / "cut.mcap"
-    bad.write_bytes(b"\x89MCAP0\r\n" + bytes(10))
-    result = run("view", bad, "--save", tmp_path / "x.rrd")
+def foreign_mcap(path: Path) -> Path:
+    """A complete MCAP with two poses on ``body/pose``, then a message that is not one."""
+    with path.open("wb") as f:
+        writer = Writer(f)
+        writer.start()
+        channel = writer.register_channel("body/pose", "json", writer.register_schema("", "", b""))
+        frames = [full_pose(i, 1_700_000_000_000_000_000 + i * 10_000_000) for i in range(2)]
+        for i, data in enumerate([*map(pose.encode, frames), b'{"not": "a pose"}']):
+            writer.add_message(channel, log_time=i + 1, data=data, publish_time=i + 1)
+        writer.finish()
+    return path
+
+
+def test_bad_recording_is_a_clear_error_and_leaves_no_rrd(tmp_path: Path) -> None:
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(b"\x89MCAP0\r\n" + bytes(10))
+    foreign = foreign_mcap(tmp_path / "foreign.mcap")
+    inputs = sorted(p.name for p in tmp_path.iterdir())
+    for bad, message in ((cut, "not a complete MCAP file"), (foreign, "is not a bodynet pose")):
+        result = run("view", bad, "--save", tmp_path / "x.rrd")
+        assert result.returncode == 2
+        assert message in result.stderr
+        assert "Traceback" not in result.stderr
+        assert sorted(p.name for p in tmp_path.iterdir()) == inputs  # no x.rrd, nothing aside
+    # an earlier file of that name is left as it was
+    earlier = tmp_path / "x.rrd"
+    earlier.write_bytes(b"an earlier recording")
+    before = earlier.stat()
+    for bad in (cut, foreign):
+        assert run("view", bad, "--save", earlier).returncode == 2
+        assert earlier.read_bytes() == b"an earlier recording"
+        assert earlier.stat().st_mtime_ns == before.st_mtime_ns
+        assert sorted(p.name for p in tmp_path.iterdir()) == sorted([*inputs, "x.rrd"])
+
+
+def test_save_into_a_missing_folder_is_a_clear_error(tmp_path: Path) -> None:
+    result = run("view", foreign_mcap(tmp_path / "f.mcap"), "--save", tmp_path / "no" / "x.rrd")
     assert result.returncode == 2
-    assert "not a complete MCAP file" in result.stderr
+    assert "cannot write" in result.stderr
     assert "Traceback" not in result.stderr
 
 
@@ -64,3 +115,126 @@ def test_web_viewer_is_served(router_endpoint: str) -> None:
     finally:
         proc.send_signal(subprocess.signal.SIGINT)  # type: ignore[attr-defined]
         assert proc.wait(timeout=30) == 0
+
+
+# --- the live viewer ----------------------------------------------------------------
+
+SKELETON = build_skeleton()
+MODEL = BodyModel(SKELETON)
+
+
+def full_pose(seq: int, t_ns: int) -> pose.PoseFrame:
+    """A whole body standing in neutral, every segment and angle there."""
+    q = MODEL.q({})
+    rows = MODEL.segment_poses(q).tolist()
+    segments = {s: (tuple(r[:3]), (r[6], r[3], r[4], r[5]))
+                for s, r in zip(SKELETON.segments, rows, strict=True)}  # fmt: skip
+    return pose.PoseFrame(seq, t_ns, MODEL.angles_deg(q), {}, segments, {})
+
+
+def wait(done: Callable[[], bool], timeout: float = 15.0) -> None:
+    deadline = time.monotonic() + timeout
+    while not done():
+        assert time.monotonic() < deadline
+        time.sleep(0.02)
+
+
+def rrd_texts(rrd: Path, entity: str) -> list[str]:
+    """Every text logged to ``entity`` in a Rerun file, read back with Rerun's reader."""
+    texts = []
+    for chunk in RrdReader(rrd).stream():
+        if chunk.entity_path == entity:
+            batch = chunk.to_record_batch()
+            texts += [t for row in batch.column("TextDocument:text").to_pylist() for t in row]
+    return texts
+
+
+def test_live_viewer_draws_partial_poses_and_survives_hostile_ones(
+    tmp_path: Path, router_endpoint: str
+) -> None:
+    """A branch view (no pelvis), a pose of a few segments, poses of absurd
+    numbers: drawn as far as they go; what cannot be shown is counted; the
+    viewer never stops."""
+    t0 = 1_700_000_000_000_000_000
+    whole = full_pose(1, t0)
+    arm = whole.subset(["left_shoulder", "left_elbow", "left_wrist"],
+                       ["left_upperarm", "left_forearm", "left_hand"],
+                       "body/arm/left/")  # fmt: skip
+    assert "pelvis" not in arm.segments
+    assert len(arm.segments) == 3
+    few = pose.PoseFrame(3, t0 + 2, {"neck_flexion_deg": 5.0}, {},
+                         {"head": whole.segments["head"], "left_foot": whole.segments["left_foot"],
+                          "nonsense": ((0.0, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0))}, {})  # fmt: skip
+    nothing = pose.PoseFrame(4, t0 + 3, {}, {}, {}, {})
+    absurd = json.dumps({
+        "v": 1, "seq": 5, "t_ns": -(2**63) + 1, "rel_deg": {}, "joints_m": {},
+        "angles_deg": {"left_knee_flexion_deg": "inf", "": 1.0, "a/b c_deg": "nan"},
+        "segments": {"head": {"p": [1e308, "nan", "-inf"], "q": [1, 0, 0, 0]},
+                     "thorax": {"p": [0, 0, 1.2], "q": ["nan", 0, 0, 0]},
+                     "pelvis": {"p": [0, 0, 1], "q": [1e308, 1e308, 0, 0]},
+                     "left_thigh": {"p": [0, 0.1, 1], "q": [0, 0, 0, 0]}},
+    }).encode()  # fmt: skip
+    good = [pose.encode(f) for f in (arm, few, nothing)] + [absurd, pose.encode(whole)]
+    out_of_time = pose.encode(pose.PoseFrame(5, 2**64 - 1, {}, {}, {}, {}))  # past int64 ns
+    bad_pose = [b"\x00garbage", out_of_time]
+    bad_admin = [(keys.TOPOLOGY, b"[" * 100_000), (keys.health_key("imu"), b"{not json")]
+    health = {"source": "imu", "device": "connected", "rejected": {},
+              "nodes": {"7": {"key": "body/arm/left/elbow/raw", "alive": True,
+                              "rate_hz": 97, "samples": 4321, "gaps": 13,
+                              "rejected": {"bad_length": 2}}}}  # fmt: skip
+    for p in good:
+        assert pose.decode(p)  # each of them is a pose the gateway could have sent
+
+    rrd = tmp_path / "live.rrd"
+    viewer = Viewer.start("none", save=rrd)
+    viewer_session, publisher = client(router_endpoint), client(router_endpoint)
+    stop = threading.Event()
+    shown: list[int] = []
+    thread = threading.Thread(target=lambda: shown.append(view_live(viewer_session, viewer, stop)))
+    thread.start()
+    try:
+        time.sleep(0.5)  # the viewer's subscriptions reach the router
+        for key, payload in bad_admin:
+            publisher.put(key, payload)
+        publisher.put(keys.health_key("imu"), json.dumps(health).encode())
+        for payload in [*good[:2], *bad_pose, *good[2:]]:
+            publisher.put(keys.pose_key(), payload)
+        wait(lambda: viewer.shown == len(good) and viewer.bad == len(bad_pose) + len(bad_admin))
+        assert thread.is_alive()  # no message stopped it
+    finally:
+        stop.set()
+        thread.join(timeout=15)
+        for s in (publisher, viewer_session):
+            s.close()
+        viewer.close()
+    assert shown == [len(good)]
+    printed = subprocess.run([str(RERUN), "rrd", "print", str(rrd)], capture_output=True,
+                             text=True, timeout=60, check=True).stdout  # fmt: skip
+    for entity in ("/body/figure", "/body/joints", "/angles/left_elbow_flexion", "/status"):
+        assert f"- {entity} -" in printed
+    status = rrd_texts(rrd, "/status")[-1]
+    # per node health in the status panel, and the messages the view could not show
+    node = "- node 7 `body/arm/left/elbow/raw`: alive, 97 Hz, 4321 samples, 13 gaps"
+    assert f"{node}, rejected bad_length 2" in status
+    assert "- **viewer**: 4 bad messages" in status
+
+
+def test_figure_skips_missing_bones() -> None:
+    from bodynet.clients.view import figure
+
+    whole = full_pose(1, 0)
+    strips, joints = figure(whole, SKELETON)
+    assert [len(s) for s in strips] == [4, 5, 5, 5, 5]
+    assert joints.shape == (15, 3)
+    # no pelvis: the spine starts at the thorax, the legs at the thighs
+    no_pelvis = pose.PoseFrame(1, 0, {}, {}, {k: v for k, v in whole.segments.items()
+                                              if k != "pelvis"}, {})  # fmt: skip
+    strips, joints = figure(no_pelvis, SKELETON)
+    assert [len(s) for s in strips] == [3, 5, 4, 5, 4]
+    assert joints.shape == (14, 3)
+    np.testing.assert_allclose(strips[0][0], whole.segments["thorax"][0])
+    # a forearm missing: the upper arm and the hand stay, apart
+    no_forearm = pose.PoseFrame(1, 0, {}, {}, {k: v for k, v in whole.segments.items()
+                                               if k != "left_forearm"}, {})  # fmt: skip
+    strips, _ = figure(no_forearm, SKELETON)
+    assert [len(s) for s in strips] == [4, 2, 2, 5, 5, 5]

@@ -1,0 +1,90 @@
+"""The gateway's work per body and tick, bodies solved together against one at a time.
+
+No network: the tick work alone (solve, build the pose message, encode it) on
+the same samples, in the same run. ``alone`` solves each body by itself, as a
+gateway does when its bodies come due one by one; ``batched`` solves them in
+one call, as the gateway does when several are due at once (under load, the
+samples of many bodies wait while it solves). The ratio is the figure to read.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+from typing import Any
+
+from bodynet.core.codecs import pose
+from bodynet.core.messages import RawSample, Source
+from bodynet.core.subject import Profile
+from bodynet.gateway.service import pose_frame
+from bodynet.gateway.solver import BodySolver, solve_bodies, tpose_mounts
+from bodynet.nodes.emulator import BodyEmulator, imu_tags
+from bodynet.nodes.motion import ROUTINES
+
+FRAMES = 100  # a second of motion at 100 Hz, looped
+
+
+def _frames() -> tuple[Profile, list[dict[Any, RawSample]]]:
+    """A calibrated IMU body walking: its profile and a second of sample frames."""
+    tags = imu_tags()
+    still = BodyEmulator(ROUTINES["tpose"], tags, seed=3)
+    window: dict[Any, list[Any]] = {}
+    for k in range(10):
+        for tag, r in zip(tags, still.sample(k / 100)[0], strict=True):
+            window.setdefault(tag.site, []).append(r.wxyz)  # type: ignore[union-attr]
+    profile = Profile().with_mounts(tpose_mounts(window))
+    body = BodyEmulator(ROUTINES["walk"], tags, seed=3)
+    frames = []
+    for k in range(FRAMES):
+        readings, _ = body.sample(k / 100)
+        frames.append({tag.site: RawSample(r, k, k * 10_000_000, Source.IMU_CENTRAL)
+                       for tag, r in zip(tags, readings, strict=True)})  # fmt: skip
+    return profile, frames
+
+
+def _tick(work: list[tuple[BodySolver, dict[Any, RawSample]]], seq: int) -> None:
+    for output in solve_bodies(work):
+        pose.encode(pose_frame(output, seq, ()))
+
+
+def _per_body_tick_us(bodies: int, seconds: float, batched: bool,
+                      profile: Profile, frames: list[dict[Any, RawSample]]) -> float:  # fmt: skip
+    solvers = [BodySolver(profile) for _ in range(bodies)]
+    ticks, start = 0, time.perf_counter()
+    while time.perf_counter() - start < seconds or ticks < 3:
+        work = [(s, frames[(ticks + b) % FRAMES]) for b, s in enumerate(solvers)]
+        if batched:
+            _tick(work, ticks)
+        else:
+            for one in work:
+                _tick([one], ticks)
+        ticks += 1
+    return 1e6 * (time.perf_counter() - start) / ticks / bodies
+
+
+def run(seconds: float = 2.0, out_dir: Path = Path("bench-results"),
+        bodies: tuple[int, ...] = (1, 5, 20)) -> dict[str, Any]:  # fmt: skip
+    """Measure each number of bodies both ways; print a table; write solver.{json,md}."""
+    profile, frames = _frames()
+    rows = []
+    for n in bodies:
+        alone = _per_body_tick_us(n, seconds, False, profile, frames)
+        batched = _per_body_tick_us(n, seconds, True, profile, frames)
+        rows.append({"bodies": n, "alone_us": alone, "batched_us": batched,
+                     "speedup": alone / batched,
+                     "body_ticks_per_s_batched": 1e6 / batched})  # fmt: skip
+    lines = ["| bodies due together | one at a time us per body-tick | batched us per body-tick "
+             "| speed-up | body-ticks/s on one core (batched) |",
+             "|---:|---:|---:|---:|---:|"]  # fmt: skip
+    for r in rows:
+        lines.append(f"| {r['bodies']} | {r['alone_us']:.0f} | {r['batched_us']:.0f} "
+                     f"| {r['speedup']:.2f} | {r['body_ticks_per_s_batched']:.0f} |")  # fmt: skip
+    table = "\n".join(lines) + "\n"
+    print(f"Gateway tick work per body (solve, pose message, encode), IMU body of 15 tags, "
+          f"{seconds:g} s each\n\n{table}")  # fmt: skip
+    result = {"seconds": seconds, "runs": rows}
+    out_dir.mkdir(parents=True, exist_ok=True)
+    (out_dir / "solver.json").write_text(json.dumps(result, indent=2))
+    (out_dir / "solver.md").write_text(table)
+    return result
