@@ -16,8 +16,9 @@ Angles are split with continuity: at a gimbal lock (the middle dof at +/-90
 degrees) or where the tilt has no unique answer (the segment along the
 vertical), the ambiguous dof holds its last value instead of jumping. Angles
 outside the range of motion are clamped and flagged. Positions come from
-Pinocchio's forward kinematics of the assembled configuration, the pelvis
-fixed at standing height.
+Pinocchio's forward kinematics of the assembled configuration, the body set
+on the floor: the pelvis above the origin, at the height that puts the
+body's lowest point (a heel or a toe, standing) at z = 0.
 """
 
 from __future__ import annotations
@@ -546,6 +547,7 @@ class BodySolver:
         w, x, y, z = _quat_wxyz(tick.measured.get("pelvis", np.eye(3)))
         q = np.concatenate([self._root, (x, y, z, w), np.radians(tick.angles[:-1])])
         poses = self.model.segment_poses(q)
+        poses[:, 2] -= self.model.lowest()  # the body stands on the floor, z = 0
         quats = poses[:, [6, 3, 4, 5]]  # x, y, z, w -> w, x, y, z
         quats /= np.linalg.norm(quats, axis=1, keepdims=True)
         quats *= np.where(quats[:, :1] < 0, -1.0, 1.0)  # canonical: w >= 0

@@ -57,6 +57,18 @@ class BodyModel:
             frame = pin.Frame(segment, jid, pin.SE3.Identity(), pin.FrameType.OP_FRAME)
             self.segment_frames[segment] = model.addFrame(frame)
         self._segment_joints = [segment_joint[s] for s in skeleton.segments]
+        # what can touch the floor: every joint centre, the far end of each end segment
+        # (top of the head, finger tips, toes) and each toe and heel at the sole, an
+        # ankle height below the ankle's line (points in their segment's frame)
+        sole = np.array([0.0, 0.0, -skeleton.lengths["ankle_height"]])
+        self._floor_points = [(segment_joint[s], np.zeros(3)) for s in skeleton.segments]
+        for segment in ("head", "left_hand", "right_hand", "left_foot", "right_foot"):
+            tip = np.array(skeleton.directions[segment]) * skeleton.segment_length(segment)
+            self._floor_points.append((segment_joint[segment], tip))
+        for side in ("left", "right"):
+            foot = segment_joint[f"{side}_foot"]
+            tip = np.array(skeleton.directions[f"{side}_foot"]) * skeleton.segment_length("foot")
+            self._floor_points += [(foot, sole), (foot, tip + sole)]
         self.site_frames: dict[str, int] = {}
         for site in sites:
             direction = np.array(skeleton.directions[site.segment])
@@ -103,6 +115,12 @@ class BodyModel:
         rotations = np.array([omf[f].rotation for f in frames])
         positions = np.array([omf[f].translation for f in frames])
         return rotations, positions
+
+    def lowest(self) -> float:
+        """Height (m) of the body's lowest point (a heel, a toe, a joint centre, the
+        top of the head, a finger tip) at the last :meth:`segment_poses`."""
+        omi = self.data.oMi
+        return min(float(omi[j].act(p)[2]) for j, p in self._floor_points)
 
     def segment_poses(self, q: np.ndarray) -> np.ndarray:
         """World pose of every segment (skeleton order) at ``q``, as rows of position

@@ -308,3 +308,31 @@ def test_one_body_solve_reads_like_before() -> None:
     assert out.joints_m["left_elbow"] == out.segments["left_forearm"][0]
     assert all(f == "unobserved" for f in out.flags.values())
     assert len(out.flags) == 32
+
+
+def test_the_body_stands_on_the_floor() -> None:
+    """The pelvis is set at the height that puts the body's lowest point on the
+    floor (z = 0): at leg length standing, a shank and an ankle height above the
+    floor in a squat with the thighs level, on the toes kneeling upright."""
+    tags = imu_tags()
+    solver = BodySolver(calibrated_profile(tags))
+    lengths = solver.skeleton.lengths
+    squat = {f"{s}_{j}_flexion_deg": 90.0 for s in ("left", "right") for j in ("hip", "knee")}
+    kneel = {**squat, "left_hip_flexion_deg": 0.0, "right_hip_flexion_deg": 0.0}
+    routine = Routine("down", "", keyframes(
+        [(0.0, {}), (1.0, {}), (2.0, squat), (3.0, squat), (4.0, kneel), (5.0, kneel)],
+        loop=False))  # fmt: skip
+    body = BodyEmulator(routine, tags, realism=IDEAL_RANDOM_MOUNTS, seed=SEED)
+    heights = {}
+    for t in (0.5, 2.5, 4.5):
+        readings, _ = body.sample(t)
+        out = solver.solve({s.site: RawSample(r, 0, 0) for s, r in zip(tags, readings,
+                                                                      strict=True)})  # fmt: skip
+        heights[t] = out.segments["pelvis"][0]
+        assert heights[t][:2] == pytest.approx((0.0, 0.0), abs=1e-9)  # above the origin
+        assert min(p[2] for p in out.joints_m.values()) >= -1e-9  # nothing below the floor
+    standing = lengths["thigh"] + lengths["shank"] + lengths["ankle_height"]
+    assert heights[0.5][2] == pytest.approx(standing, abs=1e-6)
+    assert heights[2.5][2] == pytest.approx(lengths["shank"] + lengths["ankle_height"], abs=1e-6)
+    # kneeling upright, shanks level behind, ankles neutral: the feet point down, toes lowest
+    assert heights[4.5][2] == pytest.approx(lengths["thigh"] + lengths["foot"], abs=1e-6)
