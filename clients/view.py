@@ -2,7 +2,7 @@
 
 A 3D stick figure (the segments of the 000 seed's stick figure, joints as
 points), every joint angle as a time series, a gauge panel of chosen joints
-(the seed's 3x3 gauge matrix, as a bar chart) and the topology and health as
+(the seed's 3x3 gauge matrix: dials over each dof's range of motion) and the topology and health as
 text, laid out by a default blueprint. Poses are logged in batches (columns
 of angles, the latest figure per batch), never one ``rr.log`` per sample.
 """
@@ -29,7 +29,7 @@ import zenoh
 from bodynet.core import keys
 from bodynet.core.codecs import pose
 from bodynet.core.errors import DecodeError
-from bodynet.core.skeleton import Skeleton, build_skeleton
+from bodynet.core.skeleton import Skeleton, build_skeleton, rom
 
 GAUGES = (
     "left_shoulder_flexion_deg", "left_elbow_flexion_deg", "left_wrist_flexion_deg",
@@ -37,6 +37,44 @@ GAUGES = (
     "left_knee_flexion_deg", "right_knee_flexion_deg", "lumbar_flexion_deg",
 )  # fmt: skip
 BATCH_S = 0.1
+#: The gauge panel: ``GAUGES`` in three rows of three dials, each sweeping its dof's
+#: range of motion over 240 degrees, from lower left (the minimum) to lower right.
+GAUGE_SWEEP_DEG, GAUGE_PITCH = 240.0, 2.6
+
+
+def _dial_point(i: int, fraction: float, radius: float) -> tuple[float, float]:
+    """A point of gauge ``i``'s dial, ``fraction`` of the way along its range (2D, y down)."""
+    cx, cy = GAUGE_PITCH * (i % 3), GAUGE_PITCH * (i // 3)
+    theta = math.radians(90.0 + GAUGE_SWEEP_DEG / 2 - GAUGE_SWEEP_DEG * fraction)
+    return cx + radius * math.cos(theta), cy - radius * math.sin(theta)
+
+
+def gauge_faces() -> tuple[list[np.ndarray], list[np.ndarray], np.ndarray, list[str]]:
+    """The still part of the gauge panel: each dial's arc, its ticks at the ends of
+    the range of motion and at 0, and where its name goes."""
+    arcs, ticks, names = [], [], []
+    for i, angle in enumerate(GAUGES):
+        arcs.append(np.array([_dial_point(i, f, 1.0) for f in np.linspace(0.0, 1.0, 49)]))
+        lo, hi = rom(angle)
+        for f in {0.0, 1.0, (0.0 - lo) / (hi - lo)}:
+            ticks.append(np.array([_dial_point(i, f, 0.85), _dial_point(i, f, 1.0)]))
+        names.append(angle.removesuffix("_deg"))
+    where = np.array([(GAUGE_PITCH * (i % 3), GAUGE_PITCH * (i // 3) + 1.15)
+                      for i in range(len(GAUGES))])  # fmt: skip
+    return arcs, ticks, where, names
+
+
+def gauge_needles(values: Sequence[float]) -> tuple[list[np.ndarray], list[str]]:
+    """Each gauge's needle at its value (held at the end of the range outside it)
+    and its reading, from the values of ``GAUGES``."""
+    needles, readings = [], []
+    for i, (angle, value) in enumerate(zip(GAUGES, values, strict=True)):
+        lo, hi = rom(angle)
+        fraction = min(max((value - lo) / (hi - lo), 0.0), 1.0)
+        centre = (GAUGE_PITCH * (i % 3), GAUGE_PITCH * (i // 3))
+        needles.append(np.array([centre, _dial_point(i, fraction, 0.8)]))
+        readings.append(f"{value:.0f}°")
+    return needles, readings
 
 log = logging.getLogger(__name__)
 
@@ -47,8 +85,7 @@ def blueprint() -> rrb.Blueprint:
             rrb.Spatial3DView(origin="body", name="Body"),
             rrb.Vertical(
                 rrb.TimeSeriesView(origin="angles", name="Joint angles (deg)"),
-                rrb.BarChartView(origin="gauges", name="Gauges: " + ", ".join(
-                    g.removesuffix("_deg") for g in GAUGES)),
+                rrb.Spatial2DView(origin="gauges", name="Gauges (degrees)"),
                 rrb.TextDocumentView(origin="status", name="Topology and health"),
             ),
         ),
@@ -275,8 +312,13 @@ class Viewer:
                 rec = rr.RecordingStream("bodynet", recording_id=recording_id)
                 rec.save(part, default_blueprint=bp)
                 recs.append(rec)
+            arcs, ticks, where, names = gauge_faces()
             for rec in recs:
                 rec.log("body", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+                rec.log("gauges/faces", rr.LineStrips2D([*arcs, *ticks], radii=0.03,
+                                                        colors=(150, 150, 150)), static=True)
+                rec.log("gauges/names", rr.Points2D(where, radii=0.01, labels=names,
+                                                    show_labels=True), static=True)  # fmt: skip
         except BaseException:
             if part is not None:
                 part.unlink(missing_ok=True)
@@ -301,7 +343,9 @@ class Viewer:
             rec.set_time("time", timestamp=t_ns[-1])
             rec.log("body/figure", rr.LineStrips3D(last.strips, radii=0.01))
             rec.log("body/joints", rr.Points3D(last.joints, radii=0.02))
-            rec.log("gauges", rr.BarChart(last.gauges))
+            needles, readings = gauge_needles(last.gauges)
+            rec.log("gauges/needles", rr.LineStrips2D(
+                needles, radii=0.05, colors=(230, 90, 40), labels=readings, show_labels=True))
         self.shown += len(drawn)
         return len(drawn)
 

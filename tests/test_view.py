@@ -238,3 +238,31 @@ def test_figure_skips_missing_bones() -> None:
                                                if k != "left_forearm"}, {})  # fmt: skip
     strips, _ = figure(no_forearm, SKELETON)
     assert [len(s) for s in strips] == [4, 2, 2, 5, 5, 5]
+
+
+def test_gauge_panel_is_a_three_by_three_matrix_of_dials() -> None:
+    """Nine dials in three rows; a needle points along its dof's range of motion:
+    at the minimum to the dial's lower left, at the maximum to its lower right,
+    held at the end outside the range, and never off its dial."""
+    from bodynet.clients.view import GAUGE_PITCH, GAUGES, gauge_faces, gauge_needles
+    from bodynet.core.skeleton import rom
+
+    arcs, _, where, names = gauge_faces()
+    assert len(arcs) == len(names) == 9
+    centres = {(round(x / GAUGE_PITCH), round((y - 1.15) / GAUGE_PITCH)) for x, y in where}
+    assert centres == {(c, r) for c in range(3) for r in range(3)}
+    lows = [rom(g)[0] for g in GAUGES]
+    highs = [rom(g)[1] for g in GAUGES]
+    (at_low, _), (at_high, _) = gauge_needles(lows), gauge_needles(highs)
+    for (c0, lo), (c1, hi) in zip(at_low, at_high, strict=True):
+        assert (c0 == c1).all()  # one centre per dial
+        assert lo[0] < c0[0]  # lower left (2D: y grows downwards)
+        assert lo[1] > c0[1]
+        assert hi[0] > c0[0]  # lower right
+        assert hi[1] > c0[1]
+    beyond, readings = gauge_needles([h + 500.0 for h in highs])
+    assert all(np.allclose(b, a) for b, a in zip(beyond, at_high, strict=True))
+    assert readings[0] == f"{highs[0] + 500.0:.0f}°"  # the reading tells the real value
+    mid = gauge_needles([(lo + hi) / 2 for lo, hi in zip(lows, highs, strict=True)])[0]
+    assert all(abs(n[1][0] - n[0][0]) < 1e-9 for n in mid)  # halfway: straight up
+    assert all(n[1][1] < n[0][1] for n in mid)
