@@ -12,7 +12,8 @@ or whose time MCAP cannot hold (a negative ``t_ns``, or past ``2**64 - 1``:
 ``out_of_range``).
 
 Nothing is lost to a router restart where it can be fetched again: the
-subscriptions are Zenoh advanced subscribers with recovery, so raw samples
+subscriptions that can carry raw samples are Zenoh advanced subscribers with
+recovery (those of poses, topology and health are plain), so raw samples
 missed while the router was away come back from the node publishers' caches
 (see ``bodynet.nodes.publisher``), in order. What cannot come back is written
 down: every jump in a topic's sequence numbers (raw ``seq``, pose ``seq``) is a
@@ -69,11 +70,18 @@ class Recorder:
         self._closed = False
         self._last_seq: dict[str, tuple[int, int]] = {}  # topic -> (seq, t_ns) last written
         self.gaps: list[Gap] = []
+        # Raw samples come from the bridges' advanced publishers: an advanced subscriber
+        # fetches what a router restart made it miss. Poses, topology and health come from
+        # plain publishers, with nothing to recover: a plain subscriber (the advanced one
+        # also costs memory that grows with what passes through it, about 0.6 MB a minute
+        # for one body's poses).
         recovery = zenoh.ext.RecoveryConfig(heartbeat=True)
         self._subs = [
-            zenoh.ext.declare_advanced_subscriber(session, k, self._on_sample, recovery=recovery)
+            session.declare_subscriber(k, self._on_sample) if _kind(k) in _PLAIN
+            else zenoh.ext.declare_advanced_subscriber(session, k, self._on_sample,
+                                                       recovery=recovery)
             for k in key_exprs
-        ]
+        ]  # fmt: skip
         # the topology as it is now: published on change only, answered as a query
         for k in key_exprs:
             if _kind(k) == _TOPOLOGY:
@@ -146,6 +154,7 @@ class Recorder:
 
 
 _POSE, _TRUTH, _TOPOLOGY, _HEALTH, _RAW = "pose", "truth", "topology", "health", "raw"
+_PLAIN = (_POSE, _TOPOLOGY, _HEALTH)  # what only plain publishers send
 
 
 @lru_cache(maxsize=4096)  # on every sample's path; the key space is small

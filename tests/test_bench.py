@@ -84,7 +84,8 @@ def test_demo_runs_the_live_body_network(tmp_path: Path) -> None:
         "/body/figure",
         "/body/joints",
         "/angles/left_elbow_flexion",
-        "/gauges",
+        "/gauges/faces",
+        "/gauges/needles",
         "/status",
     ):
         assert f"- {entity} -" in printed, entity
