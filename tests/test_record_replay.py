@@ -111,12 +111,19 @@ def test_rotation_by_time(live_arm: None, router_endpoint: str, tmp_path: Path) 
     assert len(list(read_raw(tmp_path / "rot-001.mcap"))) > 0
 
 
-def test_replay_republishes_a_recording(
-    zsession: zenoh.Session, router_endpoint: str, tmp_path: Path, data_dir: Path
-) -> None:
+def processed_arm(tmp_path: Path, data_dir: Path) -> Path:
+    """The golden SmartSuit arm capture through ``bodynet process``: 400 raw samples
+    with their poses and transforms."""
     mcap = tmp_path / "arm.mcap"
     subprocess.run([str(BODYNET), "process", str(data_dir / "smartsuit_arm.log"), "-o", str(mcap)],
                    check=True, capture_output=True, timeout=60)  # fmt: skip
+    return mcap
+
+
+def test_replay_republishes_a_recording(
+    zsession: zenoh.Session, router_endpoint: str, tmp_path: Path, data_dir: Path
+) -> None:
+    mcap = processed_arm(tmp_path, data_dir)
     raw = raw_collector(zsession, "body/*/*/*/raw")
     result = subprocess.run([str(BODYNET), "replay", str(mcap), "--speed", "4", "-q",
                              "-e", router_endpoint], capture_output=True, text=True, timeout=60,
@@ -131,9 +138,7 @@ def test_replay_republishes_a_recording(
 def test_replay_bar_counts_what_it_replays_and_keys_choose_topics(
     zsession: zenoh.Session, router_endpoint: str, tmp_path: Path, data_dir: Path
 ) -> None:
-    mcap = tmp_path / "arm.mcap"
-    subprocess.run([str(BODYNET), "process", str(data_dir / "smartsuit_arm.log"), "-o", str(mcap)],
-                   check=True, capture_output=True, timeout=60)  # fmt: skip
+    mcap = processed_arm(tmp_path, data_dir)
     assert count_messages(mcap) > 400  # poses and transforms beside the 400 raw samples
     # every raw sample: the bar ends at its total (not at 400 of every message in the file)
     raw = raw_collector(zsession, "body/*/*/*/raw")
