@@ -246,7 +246,7 @@ def live() -> Iterator[tuple[Gateway, zenoh.Session]]:
 
 
 def counted(gateway: Gateway) -> int:
-    # samples are taken (or rejected) on Zenoh's callback thread, before any queueing
+    # every sample the worker takes from Zenoh's queue is counted: kept, rejected or refused
     return gateway.samples + sum(gateway.rejected.values()) + gateway.refused_subjects
 
 
