@@ -312,10 +312,10 @@ class _Tick:
     """One body's working state during one solve."""
 
     __slots__ = ("angles", "direct_rot", "direct_rows", "flags", "measured", "modules", "mounts",
-                 "quats", "rel", "samples", "segs", "solver", "sources", "t_ns")  # fmt: skip
+                 "quats", "rel", "segs", "solver", "sources", "t_ns")  # fmt: skip
 
     def __init__(self, solver: BodySolver, samples: Mapping[Site, RawSample]) -> None:
-        self.solver, self.samples = solver, samples
+        self.solver = solver
         self.segs: list[str] = []  # segments with an orientation sensor (the first one wins)
         self.quats: list[QuatWxyz] = []
         self.mounts: list[np.ndarray] = []
