@@ -6,8 +6,8 @@ sample; one worker thread takes the samples from Zenoh's queues and, when
 a body has a whole frame or has waited a period, solves it at most once per
 tick (``rate_hz``), the bodies that are due together, publishing the whole
 body on ``body/pose`` and each branch's view on ``body/<limb>/<side>/pose``.
-Nodes are tracked through their liveliness tokens; the topology is published on ``body/@topology``
-when it changes and answered as a query there. A site that stops delivering
+Nodes are tracked through their liveliness tokens; the topology is published
+on ``body/@topology`` when it changes and answered as a query there. A site that stops delivering
 keeps its last sample, flagged stale; other branches carry on. Garbage on the
 raw keys is counted (``body/@health/gateway``), never fatal.
 ``body/@calibrate/tpose`` answers a query by calibrating the IMU mounts from
@@ -346,7 +346,7 @@ class Gateway:
                     except keys.KeySpaceError:
                         self.rejected[Reason.UNKNOWN_NODE] += 1
                         continue
-                    body = self._bodies.get(subject) or self._body(subject)
+                    body = self._body(subject)
                     if body is not None:
                         body.take(site, raw, now)
                         touched.add(body)

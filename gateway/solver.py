@@ -322,11 +322,10 @@ class _Tick:
         self.modules: dict[str, tuple[Site, OleAccel]] = {}  # SmartSuit modules by segment
         self.sources: dict[str, int] = {}
         self.t_ns = 0
-        known = solver._sites
         sources = self.sources
         seen: set[str] = set()
         for site, sample in samples.items():
-            seg, mount_inv, key, module = known.get(site) or solver._site(site)
+            seg, mount_inv, key, module = solver._site(site)
             sources[key] = t = sample.t_ns
             self.t_ns = max(self.t_ns, t)
             r = sample.reading
@@ -402,8 +401,9 @@ def _solve_direct(ticks: Sequence[_Tick], segments: np.ndarray, angles: np.ndarr
     parents = np.where(parents >= 0, parents + offsets, len(segments) - 1)
     relative = np.einsum("nji,njk->nik", segments[parents], segments[children])
     index = batch.angle_index[rows]
-    last = np.stack([t.solver._memory.last if t.solver._memory.last is not None
-                     else angles[0] * 0.0 for t in ticks])  # fmt: skip
+    nothing = np.zeros(angles.shape[1])  # a body's first tick: no previous angles
+    last = np.stack([t.solver._memory.last if t.solver._memory.last is not None else nothing
+                     for t in ticks])  # fmt: skip
     values, clamped, matrices, total = batch.commit(
         rows, batch.split(rows, relative, last[owner[:, None], index]),
         ticks[0].solver._calibration_inv,
@@ -450,7 +450,6 @@ class BodySolver:
         for joint, start in zip(self.skeleton.joints, self._batch.angle_index[:, 0].tolist(),
                                 strict=True):  # fmt: skip
             self._slices[joint.name] = slice(start, start + len(joint.dofs))
-        self._root = np.array([0.0, 0.0, self.skeleton.root_height()])
         self._memory = _Memory()
         self._sites: dict[Site, tuple[str, np.ndarray, str, bool]] = {}
         self._plans: dict[tuple[str, ...], tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
@@ -545,9 +544,8 @@ class BodySolver:
         """Forward kinematics of the tick's angles (Pinocchio): the segments' poses."""
         self._memory.last = tick.angles
         w, x, y, z = _quat_wxyz(tick.measured.get("pelvis", np.eye(3)))
-        q = np.concatenate([self._root, (x, y, z, w), np.radians(tick.angles[:-1])])
-        poses = self.model.segment_poses(q)
-        poses[:, 2] -= self.model.lowest()  # the body stands on the floor, z = 0
+        poses = self.model.segment_poses(self.model.q_of(tick.angles[:-1], (x, y, z, w)))
+        poses[:, 2] -= self.model.lowest(poses)  # the body stands on the floor, z = 0
         quats = poses[:, [6, 3, 4, 5]]  # x, y, z, w -> w, x, y, z
         quats /= np.linalg.norm(quats, axis=1, keepdims=True)
         quats *= np.where(quats[:, :1] < 0, -1.0, 1.0)  # canonical: w >= 0

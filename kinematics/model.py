@@ -57,11 +57,12 @@ class BodyModel:
             frame = pin.Frame(segment, jid, pin.SE3.Identity(), pin.FrameType.OP_FRAME)
             self.segment_frames[segment] = model.addFrame(frame)
         self._segment_joints = [segment_joint[s] for s in skeleton.segments]
-        # what can touch the floor: every joint centre, the far end of each end segment
-        # (top of the head, finger tips, toes) and each toe and heel at the sole, an
-        # ankle height below the ankle's line (points in their segment's frame)
+        # what can touch the floor besides the joint centres (the segments' origins):
+        # the far end of each end segment (top of the head, finger tips, toes) and each
+        # toe and heel at the sole, an ankle height below the ankle's line (points in
+        # their segment's frame)
         sole = np.array([0.0, 0.0, -skeleton.lengths["ankle_height"]])
-        self._floor_points = [(segment_joint[s], np.zeros(3)) for s in skeleton.segments]
+        self._floor_points: list[tuple[int, np.ndarray]] = []
         for segment in ("head", "left_hand", "right_hand", "left_foot", "right_foot"):
             tip = np.array(skeleton.directions[segment]) * skeleton.segment_length(segment)
             self._floor_points.append((segment_joint[segment], tip))
@@ -116,11 +117,18 @@ class BodyModel:
         positions = np.array([omf[f].translation for f in frames])
         return rotations, positions
 
-    def lowest(self) -> float:
+    def lowest(self, poses: np.ndarray) -> float:
         """Height (m) of the body's lowest point (a heel, a toe, a joint centre, the
-        top of the head, a finger tip) at the last :meth:`segment_poses`."""
+        top of the head, a finger tip) for ``poses``, the last :meth:`segment_poses`."""
         omi = self.data.oMi
-        return min(float(omi[j].act(p)[2]) for j, p in self._floor_points)
+        tips = min(float(omi[j].act(p)[2]) for j, p in self._floor_points)
+        return min(tips, float(poses[:, 2].min()))
+
+    def q_of(self, angles_deg: np.ndarray, root_quat_xyzw: Sequence[float]) -> np.ndarray:
+        """Configuration vector from every joint angle in skeleton order (deg), the
+        root at standing height with orientation ``root_quat_xyzw``."""
+        root = (0.0, 0.0, self.skeleton.root_height())
+        return np.concatenate([root, root_quat_xyzw, np.radians(angles_deg)])
 
     def segment_poses(self, q: np.ndarray) -> np.ndarray:
         """World pose of every segment (skeleton order) at ``q``, as rows of position
