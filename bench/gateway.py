@@ -153,7 +153,7 @@ def run_once(bodies: int, seconds: float, rate_hz: float = RATE_HZ) -> dict[str,
     pose_selector = keys_pose(bodies)
     subs = [
         probe.declare_subscriber("bench/relay/**", lambda s: relay_lat.append(
-            time.time_ns() - raw_sample.decode(s.payload.to_bytes()).t_ns)),
+            time.time_ns() - raw_sample.source_time(s.payload.to_bytes()))),
         probe.declare_subscriber(pose_selector, lambda s: pose_lat.append(
             time.time_ns() - pose.decode(s.payload.to_bytes()).t_ns)),
     ]  # fmt: skip
@@ -199,7 +199,7 @@ def sustained(row: dict[str, Any], path: str) -> bool:
 def run(
     seconds: float = 5.0,
     out_dir: Path = Path("bench-results"),
-    bodies: tuple[int, ...] = (1, 5, 10, 20, 50),
+    bodies: tuple[int, ...] = (1, 5, 10, 15, 20, 50),
     rate_hz: float = RATE_HZ,
     name: str = "gateway",
 ) -> dict[str, Any]:

@@ -1,8 +1,11 @@
 """Soak: one full body (15 nodes x 100 Hz) through the gateway and the recorder for minutes.
 
 The parts run as the user runs them: a router, ``bodynet gateway`` and
-``bodynet record`` as processes, fed by the gateway benchmark's feeder
-process (congestion control BLOCK, as the bridges). Passing means zero
+``bodynet record`` as processes, fed by a feeder process that publishes as
+the bridges do (:func:`_feed`: one ``SitePublisher``, so Zenoh advanced
+publishers with their cache and heartbeat, congestion control BLOCK,
+liveliness tokens and the bridge's health each second; the recorder's
+advanced subscribers then run their recovery as in use). Passing means zero
 loss (every sample sent is counted by the gateway, ``body/@health/gateway``,
 and is in the recording) and memory growth under 5%: the resident set size of
 the gateway and of the recorder, sampled each second, at the end (median of
@@ -26,12 +29,42 @@ from typing import Any
 
 import psutil
 
-from bodynet.bench import gateway as gateway_bench
 from bodynet.bench import machine
 from bodynet.bench.faults import FaultError, Inbox, _subscribe, loopback
 from bodynet.core import keys
 
 GROWTH_LIMIT = 0.05
+RATE_HZ = 100.0
+
+
+def _feed(endpoint: str, seconds: float, sent: Any, ready: Any, rate_hz: float = RATE_HZ) -> None:
+    """One emulated body's 15 IMU tags at ``rate_hz`` through a bridge's
+    ``SitePublisher`` (as ``bodynet node imu``), for ``seconds`` once ``ready``
+    is set; ``sent`` counts the samples published."""
+    from bodynet.core.messages import Source
+    from bodynet.nodes.emulator import BodyEmulator, imu_tags
+    from bodynet.nodes.motion import ROUTINES
+    from bodynet.nodes.publisher import SitePublisher
+    from bodynet.session import open_session, session_config
+
+    session = open_session(session_config("client", connect=[endpoint]))
+    tags = imu_tags()
+    body = BodyEmulator(ROUTINES["walk"], tags)
+    frames = [body.sample(k / rate_hz)[0] for k in range(int(rate_hz))]  # a second, looped
+    publisher = SitePublisher(session, {t.node: t.site for t in tags}, Source.IMU_CENTRAL,
+                              "soak", 1.0 / rate_hz)  # fmt: skip
+    ready.wait()
+    start = time.monotonic()
+    tick = 0
+    while time.monotonic() - start < seconds:
+        for reading in frames[tick % len(frames)]:
+            publisher.publish(reading, tick)
+        with sent.get_lock():
+            sent.value += len(frames[0])
+        tick += 1
+        time.sleep(max(0.0, start + tick / rate_hz - time.monotonic()))
+    publisher.close()
+    session.close()
 
 
 def _growth(rss: list[int], warmup: int) -> dict[str, float]:
@@ -56,9 +89,7 @@ def run(minutes: float = 10.0, out_dir: Path = Path("bench-results"),
         record = Path(tmp) / "soak.mcap"
         rec = procs.start("record", "-o", str(record), "-e", endpoint)
         inbox.wait(lambda k, v: True, 120, "the gateway's health")  # it has started
-        feeder = ctx.Process(
-            target=gateway_bench._feed, args=(endpoint, seconds, sent, ready, range(1), 1)
-        )
+        feeder = ctx.Process(target=_feed, args=(endpoint, seconds, sent, ready))
         feeder.start()
         watched = {"gateway": psutil.Process(gw.pid), "recorder": psutil.Process(rec.pid)}
         rss: dict[str, list[int]] = {name: [] for name in watched}

@@ -155,8 +155,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("bench", help="benchmarks, side by side with their baselines")
     p.add_argument("--seconds", type=float, default=1.0, help="time per decode measurement")
     p.add_argument("--gateway-seconds", type=float, default=10.0, help="time of the gateway run")
-    p.add_argument("--bodies", type=int, nargs="+", default=[1, 5, 10, 20, 50],
-                   help="numbers of bodies fed to the gateway (default 1 5 10 20 50)")  # fmt: skip
+    p.add_argument("--bodies", type=int, nargs="+", default=[1, 5, 10, 15, 20, 50],
+                   help="numbers of bodies fed to the gateway")  # fmt: skip
     p.add_argument("--only", action="append", choices=BENCHMARKS,
                    help="run only this benchmark (repeatable; default all but soak)")  # fmt: skip
     p.add_argument("--rate-hz", type=float, default=1000.0,

@@ -43,10 +43,11 @@ from typing import Any
 import zenoh
 from aiohttp import WSMsgType, web
 
-from bodynet.clients.rehab import ARM_DOFS, GameError, RehabGame, arm_pose
+from bodynet.clients.rehab import GameError, RehabGame, arm_pose
 from bodynet.core import keys
 from bodynet.core.codecs import pose
 from bodynet.core.errors import DecodeError
+from bodynet.core.skeleton import ARM_DOFS
 
 log = logging.getLogger(__name__)
 

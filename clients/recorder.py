@@ -18,7 +18,13 @@ missed while the router was away come back from the node publishers' caches
 (see ``bodynet.nodes.publisher``), in order. What cannot come back is written
 down: every jump in a topic's sequence numbers (raw ``seq``, pose ``seq``) is a
 gap record on the ``@gaps`` channel (see ``mcap_store.GAPS_TOPIC``), so a
-recording says where it is incomplete.
+recording says where it is incomplete; the recorder itself only counts them
+(:attr:`Recorder.gaps`, :attr:`Recorder.missing`), so what it holds in memory
+does not grow with a lossy network.
+
+A recording runs for hours: the recorder fixes the C library's mmap threshold
+(``mcap_store.keep_large_buffers_off_heap``), without which the writer's
+per-chunk buffers made its resident memory grow steadily.
 """
 
 from __future__ import annotations
@@ -34,7 +40,7 @@ from pathlib import Path
 import zenoh
 import zenoh.ext
 
-from bodynet.clients.mcap_store import Gap, McapSink, check_time
+from bodynet.clients.mcap_store import Gap, McapSink, check_time, keep_large_buffers_off_heap
 from bodynet.core import keys
 from bodynet.core.codecs import pose, raw_sample
 from bodynet.core.errors import DecodeError, Reason, RejectCounts
@@ -62,6 +68,7 @@ class Recorder:
         self.path = path
         self.files = [path]
         self.rejected = RejectCounts()
+        keep_large_buffers_off_heap()  # before the first chunk's buffers
         self.rotate_bytes, self.rotate_s = rotate_bytes, rotate_s
         self._sink = McapSink(path)
         self._opened = time.monotonic()
@@ -69,12 +76,11 @@ class Recorder:
         self._lock = threading.Lock()
         self._closed = False
         self._last_seq: dict[str, tuple[int, int]] = {}  # topic -> (seq, t_ns) last written
-        self.gaps: list[Gap] = []
+        self.gaps = 0  # gap records written (each is in the file, not kept here)
+        self.missing = 0  # messages they say are missing
         # Raw samples come from the bridges' advanced publishers: an advanced subscriber
         # fetches what a router restart made it miss. Poses, topology and health come from
-        # plain publishers, with nothing to recover: a plain subscriber (the advanced one
-        # also costs memory that grows with what passes through it, about 0.6 MB a minute
-        # for one body's poses).
+        # plain publishers, with nothing to recover: a plain subscriber.
         recovery = zenoh.ext.RecoveryConfig(heartbeat=True)
         self._subs = [
             session.declare_subscriber(k, self._on_sample) if _kind(k) in _PLAIN
@@ -141,8 +147,9 @@ class Recorder:
         self._last_seq[topic] = (seq, t_ns)
         if last is not None and seq > last[0] + 1:
             gap = Gap(topic, last[0], seq - last[0] - 1, last[1], t_ns)
-            self.gaps.append(gap)
             self._sink.write_gap(gap)
+            self.gaps += 1
+            self.missing += gap.missing
             log.info("recorder: %d missing on %s after seq %d", gap.missing, topic, last[0])
 
     def close(self) -> None:

@@ -66,18 +66,9 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from bodynet.core.codecs.pose import PoseFrame
-from bodynet.core.skeleton import DEFAULT_LENGTHS, build_skeleton
+from bodynet.core.skeleton import ARM_DOFS, DEFAULT_LENGTHS, build_skeleton
 
 STALE_S = 1.0
-ARM_DOFS = (
-    "shoulder_flexion",
-    "shoulder_abduction",
-    "shoulder_rotation",
-    "elbow_flexion",
-    "elbow_pronation",
-    "wrist_flexion",
-    "wrist_deviation",
-)
 
 
 class GameError(ValueError):

@@ -19,7 +19,7 @@ Nothing else in the code base writes a key as a string literal.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from enum import StrEnum
 from functools import lru_cache
 
@@ -57,10 +57,20 @@ class Branch:
 
     limb: Limb
     side: Side
+    # computed once (an enum's hash is Python code): branches and sites key the
+    # dictionaries on every sample's path
+    _hash: int = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         if (self.limb is Limb.TRUNK) != (self.side is Side.MID):
             raise KeySpaceError(f"no branch {self.limb}/{self.side}: only the trunk is 'mid'")
+        object.__setattr__(self, "_hash", hash((self.limb, self.side)))
+
+    def __hash__(self) -> int:
+        return self._hash
+
+    def __reduce__(self) -> tuple[type[Branch], tuple[Limb, Side]]:
+        return Branch, (self.limb, self.side)  # the hash is this process's: not pickled
 
     @property
     def key(self) -> str:
@@ -107,10 +117,18 @@ class Site:
 
     branch: Branch
     name: str
+    _hash: int = field(init=False, repr=False, compare=False)  # as Branch's
 
     def __post_init__(self) -> None:
         if self.name not in SITES[self.branch.limb]:
             raise KeySpaceError(f"site {self.name!r} is not on limb {self.branch.limb}")
+        object.__setattr__(self, "_hash", hash((self.branch, self.name)))
+
+    def __hash__(self) -> int:
+        return self._hash
+
+    def __reduce__(self) -> tuple[type[Site], tuple[Branch, str]]:
+        return Site, (self.branch, self.name)  # the hash is this process's: not pickled
 
     def key(self, stream: Stream = Stream.RAW) -> str:
         return f"{self.branch.key}/{self.name}/{stream}"

@@ -152,6 +152,17 @@ def build_skeleton(lengths: Mapping[str, float] | None = None) -> Skeleton:
     return Skeleton(MappingProxyType(L), tuple(joints), MappingProxyType(directions))
 
 
+#: The seven dofs of an arm, shoulder to hand (``<joint>_<dof>``, either side).
+ARM_DOFS = (
+    "shoulder_flexion",
+    "shoulder_abduction",
+    "shoulder_rotation",
+    "elbow_flexion",
+    "elbow_pronation",
+    "wrist_flexion",
+    "wrist_deviation",
+)
+
 #: Joint angles (deg) of the T-pose, the IMU calibration pose.
 TPOSE: Mapping[str, float] = MappingProxyType(
     {"left_shoulder_abduction_deg": 90.0, "right_shoulder_abduction_deg": 90.0}

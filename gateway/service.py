@@ -23,6 +23,7 @@ Nothing one subject sends reaches another's output.
 
 from __future__ import annotations
 
+import gc
 import json
 import logging
 import queue
@@ -43,12 +44,16 @@ from bodynet.core.keys import BRANCHES, Branch, Site
 from bodynet.core.messages import Quat, RawSample
 from bodynet.core.subject import Profile, ProfileError, QuatWxyz
 from bodynet.gateway import profile_file
-from bodynet.gateway.solver import BodyOutput, BodySolver, solve_bodies, tpose_mounts
+from bodynet.gateway.solver import BodyOutput, BodySolver, iter_solve, tpose_mounts
 
 log = logging.getLogger(__name__)
 
 STALE_S = 0.5
 HISTORY_S = 5.0
+#: The T-pose history keeps a site's orientation at most this often: fifty a second
+#: average a still pose as well as a thousand, and a short history is a short walk
+#: for Python's cyclic collector.
+HISTORY_STEP_S = 0.02
 #: Bodies one gateway takes on; samples of further subjects are counted, not served
 #: (a publisher inventing subject names must not exhaust the gateway).
 MAX_SUBJECTS = 64
@@ -122,7 +127,9 @@ class _Body:
         self.profile_path = profile_path
         self.solver = BodySolver(profile)
         self.latest: dict[Site, _Site] = {}
-        self.history: dict[Site, deque[tuple[float, RawSample]]] = {}
+        # (arrival, w, x, y, z): tuples of floats only, which Python's cyclic collector
+        # stops tracking, so seconds of history do not lengthen its full passes
+        self.history: dict[Site, deque[tuple[float, float, float, float, float]]] = {}
         self.alive: set[str] = set()
         self.gone: set[str] = set()  # keys whose token went away
         self.published_stale: set[str] = set()
@@ -167,7 +174,8 @@ class _Body:
             hist = self.history.get(site)
             if hist is None:
                 hist = self.history[site] = deque()
-            hist.append((now, sample))
+            if not hist or now - hist[-1][0] >= HISTORY_STEP_S:
+                hist.append((now, *sample.reading.wxyz))
         if self.first_new is None:
             self.first_new = now
 
@@ -236,8 +244,7 @@ class _Body:
 
     def tpose_window(self, now: float, seconds: float) -> dict[Site, list[QuatWxyz]]:
         return {
-            site: [s.reading.wxyz for t, s in hist
-                   if now - t <= seconds and isinstance(s.reading, Quat)]
+            site: [(w, x, y, z) for t, w, x, y, z in hist if now - t <= seconds]
             for site, hist in self.history.items()
         }  # fmt: skip
 
@@ -457,6 +464,9 @@ class Gateway:
         are solved less often, in larger batches (cheaper per body), each with
         its newest samples; no sample is lost and none waits behind a backlog
         of solves."""
+        # What exists before serving (modules, models) is left out of the cyclic
+        # collector's full passes, which otherwise paused this loop for tens of ms.
+        gc.freeze()
         last_health = last_sample = time.monotonic()
         next_due = float("inf")  # no body can be due before this (its oldest unsolved sample)
         while not stop.is_set():
@@ -534,17 +544,23 @@ class Gateway:
                     work.append((body, *body.snapshot(now)))
         if not work:
             return
-        try:
-            outputs = solve_bodies([(solver, latest) for _, latest, _, solver in work])
-        except Exception:  # one body's bad tick must not cost the others theirs
-            outputs = [self._solve_alone(solver, latest) for _, latest, _, solver in work]
-        for (body, _, stale, _), output in zip(work, outputs, strict=True):
-            if output is None:
-                continue
-            body.ticks += 1
-            whole, branches = body.listened()
-            if whole or branches:
-                body.publish(pose_frame(output, body.ticks, stale), whole, branches)
+        # each body's pose goes out as soon as it is solved
+        outputs = iter_solve([(solver, latest) for _, latest, _, solver in work])
+        for i, (body, _, stale, _) in enumerate(work):
+            try:
+                output = next(outputs)
+            except Exception:  # one body's bad tick must not cost the others theirs
+                for rest, latest, rest_stale, solver in work[i:]:
+                    if (alone := self._solve_alone(solver, latest)) is not None:
+                        self._publish_tick(rest, alone, rest_stale)
+                return
+            self._publish_tick(body, output, stale)
+
+    def _publish_tick(self, body: _Body, output: BodyOutput, stale: list[str]) -> None:
+        body.ticks += 1
+        whole, branches = body.listened()
+        if whole or branches:
+            body.publish(pose_frame(output, body.ticks, stale), whole, branches)
 
     def _solve_alone(self, solver: BodySolver, latest: dict[Site, RawSample]) -> BodyOutput | None:
         try:

@@ -24,7 +24,7 @@ body's lowest point (a heel or a toe, standing) at z = 0.
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -346,7 +346,7 @@ class _Tick:
         self.flags: dict[str, str] = {}
 
 
-def solve_bodies(work: Sequence[tuple[BodySolver, Mapping[Site, RawSample]]]) -> list[BodyOutput]:
+def iter_solve(work: Sequence[tuple[BodySolver, Mapping[Site, RawSample]]]) -> Iterator[BodyOutput]:
     """One tick of each of several bodies: angles and poses from the latest
     sample of each site.
 
@@ -355,9 +355,12 @@ def solve_bodies(work: Sequence[tuple[BodySolver, Mapping[Site, RawSample]]]) ->
     dofs, clamping and total rotations are each one numpy pass over all the
     bodies. What is left per body is gathering its samples, the joints that
     SmartSuit modules measure (scalar code) and Pinocchio's forward kinematics.
-    The solvers must share one skeleton structure (any segment lengths)."""
+    The solvers must share one skeleton structure (any segment lengths).
+
+    Each body's output is yielded as soon as its forward kinematics is done, so
+    it can go out while the next is computed."""
     if not work:
-        return []
+        return
     ticks = [_Tick(solver, samples) for solver, samples in work]
     n_angles = len(ticks[0].solver.names.angles)
     n_joints = len(ticks[0].solver.names.joints)
@@ -377,7 +380,13 @@ def solve_bodies(work: Sequence[tuple[BodySolver, Mapping[Site, RawSample]]]) ->
         _solve_direct(ticks, segments, angles, rel)
     for tick in ticks:
         tick.solver._solve_rest(tick)
-    return [tick.solver._output(tick) for tick in ticks]
+    for tick in ticks:
+        yield tick.solver._output(tick)
+
+
+def solve_bodies(work: Sequence[tuple[BodySolver, Mapping[Site, RawSample]]]) -> list[BodyOutput]:
+    """:func:`iter_solve`, all at once."""
+    return list(iter_solve(work))
 
 
 def _solve_direct(ticks: Sequence[_Tick], segments: np.ndarray, angles: np.ndarray,

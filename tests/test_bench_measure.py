@@ -43,6 +43,43 @@ def test_recorder_benchmark_against_the_bare_writer(tmp_path: Path) -> None:
     assert (tmp_path / "bench.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
+def test_soak_feeds_as_the_bridges_do(router_endpoint: str) -> None:
+    """The soak's feeder publishes through a bridge's SitePublisher: advanced
+    publishers (their samples carry a source sequence number, which plain ones
+    do not), the bridge's health, every sample it counts."""
+    import multiprocessing as mp
+    import queue
+    import threading
+
+    import zenoh.ext
+    from zenoh_helpers import client
+
+    from bodynet.core import keys
+
+    session = client(router_endpoint)
+    raw: queue.SimpleQueue[int | None] = queue.SimpleQueue()
+    health: queue.SimpleQueue[str] = queue.SimpleQueue()
+    subs = [
+        zenoh.ext.declare_advanced_subscriber(
+            session, keys.all_raw(), lambda s: raw.put(getattr(s.source_info, "source_sn", None)),
+            recovery=zenoh.ext.RecoveryConfig(heartbeat=True)),
+        session.declare_subscriber(keys.health_key("soak"), lambda s: health.put(str(s.key_expr))),
+    ]  # fmt: skip
+    sent, ready = mp.Value("q", 0), threading.Event()
+    ready.set()
+    try:
+        soak._feed(router_endpoint, 0.2, sent, ready)
+        assert sent.value > 0
+        assert sent.value % 15 == 0  # whole ticks of the 15 tags
+        received = [raw.get(timeout=10) for _ in range(sent.value)]
+        assert None not in received  # each from an advanced publisher
+        assert health.get(timeout=10) == keys.health_key("soak")
+    finally:
+        for sub in subs:
+            sub.undeclare()
+        session.close()
+
+
 @pytest.mark.soak
 @pytest.mark.timeout(300)
 def test_one_minute_soak_loses_nothing(tmp_path: Path) -> None:

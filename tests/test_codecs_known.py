@@ -213,3 +213,11 @@ def test_raw_sample_rejects_nan_quaternion() -> None:
     with pytest.raises(DecodeError) as err:
         raw_sample.decode(bytes(bad))
     assert err.value.reason is Reason.NOT_FINITE
+
+
+def test_raw_sample_source_time_is_the_t_ns_field() -> None:
+    """The latency probe's shortcut reads the same timestamp the full decoder does."""
+    for reading in (OleAccel(3, -120, (5, -6, 1000)), Quat(7, (0.5, 0.5, -0.5, 0.5), b"xy")):
+        t_ns = -(2**62) + 12345
+        payload = raw_sample.encode(RawSample(reading, 9, t_ns, Source.CAN))
+        assert raw_sample.source_time(payload) == raw_sample.decode(payload).t_ns == t_ns

@@ -75,3 +75,24 @@ def test_subject_names_and_split() -> None:
     assert keys.subject_prefix("bob") + keys.pose_key() == "bob/body/pose"
     with pytest.raises(keys.KeySpaceError):
         keys.split_subject("alice/other/x")
+
+
+def test_sites_keep_their_dictionary_identity_across_processes() -> None:
+    """A site's hash is computed once per process (it keys the hot path's
+    dictionaries); one pickled in a process of another hash seed still finds
+    its entry here, and equal sites hash alike."""
+    import os
+    import pickle
+    import subprocess
+    import sys
+
+    made_there = subprocess.run(
+        [sys.executable, "-c", "import pickle, sys; from bodynet.core import keys; "
+         "sys.stdout.buffer.write(pickle.dumps({keys.parse('body/arm/left/elbow/raw')[0]: 1}))"],
+        env={**os.environ, "PYTHONHASHSEED": "1"}, capture_output=True, check=True,
+    ).stdout  # fmt: skip
+    here = keys.Site(keys.Branch(keys.Limb.ARM, keys.Side.LEFT), "elbow")
+    assert pickle.loads(made_there)[here] == 1
+    assert hash(here) == hash(keys.parse("body/arm/left/elbow/raw")[0])
+    assert {keys.LEFT_ARM: 1}[keys.Branch(keys.Limb.ARM, keys.Side.LEFT)] == 1
+    assert here != keys.Site(keys.LEFT_ARM, "wrist")

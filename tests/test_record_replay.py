@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import os
+import platform
 import signal
 import subprocess
 import sys
@@ -266,6 +267,26 @@ def test_recorder_refuses_what_mcap_cannot_store_and_closes_complete(
     # what was refused shows as missing sequence numbers, at times the file holds
     gaps = [(g.after_seq, g.missing) for g in read_gaps(out) if g.topic == elbow]
     assert gaps == [(0, 1), (2, 1)]
+    # the recorder counts them; the records themselves are only in the file
+    assert (recorder.gaps, recorder.missing) == (3, 3) == (len(read_gaps(out)), 3)
+
+
+def test_recorder_fixes_the_mmap_threshold_for_the_writers_buffers(
+    zsession: zenoh.Session, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A recorder keeps the writer's per-chunk buffers off the heap (see
+    ``mcap_store.keep_large_buffers_off_heap``), where the C library allows it."""
+    from bodynet.clients import mcap_store
+    from bodynet.clients import recorder as recorder_module
+
+    calls: list[bool] = []
+    monkeypatch.setattr(recorder_module, "keep_large_buffers_off_heap",
+                        lambda: calls.append(True) or True)  # fmt: skip
+    Recorder(zsession, tmp_path / "a.mcap").close()
+    assert calls == [True]
+    glibc = sys.platform == "linux" and platform.libc_ver()[0] == "glibc"
+    assert mcap_store.keep_large_buffers_off_heap() is glibc
+    assert mcap_store.keep_large_buffers_off_heap() is glibc  # again: the same, once
 
 
 # -- salvage: only of MCAP recordings; nothing left behind --------------------------

@@ -116,6 +116,15 @@ def decode(payload: bytes | bytearray) -> RawSample:
     return _decode_at(payload, 0, length)
 
 
+_T_NS = struct.Struct("<q")
+
+
+def source_time(payload: bytes | bytearray) -> int:
+    """The source timestamp ``t_ns`` of one message, nothing else checked: for a
+    latency probe that must cost less than what it measures."""
+    return int(_T_NS.unpack_from(payload, 12)[0])
+
+
 def decode_batch(payload: bytes | bytearray) -> list[StreamEvent]:
     """Every message of one payload, with rejections in place of bad ones."""
     decoder = RawSampleDecoder()
