@@ -155,7 +155,7 @@ def run_once(bodies: int, seconds: float, rate_hz: float = RATE_HZ) -> dict[str,
         probe.declare_subscriber("bench/relay/**", lambda s: relay_lat.append(
             time.time_ns() - raw_sample.source_time(s.payload.to_bytes()))),
         probe.declare_subscriber(pose_selector, lambda s: pose_lat.append(
-            time.time_ns() - pose.decode(s.payload.to_bytes()).t_ns)),
+            time.time_ns() - pose.source_time(s.payload.to_bytes()))),
     ]  # fmt: skip
     time.sleep(2.0)  # subscriptions propagate; the gateway process has imported Pinocchio
     ready.set()

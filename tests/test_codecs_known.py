@@ -7,7 +7,7 @@ import struct
 
 import pytest
 
-from bodynet.core.codecs import concentrator, imu_matrix, raw_sample, smartsuit_can
+from bodynet.core.codecs import concentrator, imu_matrix, pose, raw_sample, smartsuit_can
 from bodynet.core.codecs.smartsuit_can import CanFrame
 from bodynet.core.errors import DecodeError, Reason, Rejected
 from bodynet.core.messages import NoNewData, OleAccel, Quat, RawSample, SensorAbsent, Source, Tick
@@ -221,3 +221,12 @@ def test_raw_sample_source_time_is_the_t_ns_field() -> None:
         t_ns = -(2**62) + 12345
         payload = raw_sample.encode(RawSample(reading, 9, t_ns, Source.CAN))
         assert raw_sample.source_time(payload) == raw_sample.decode(payload).t_ns == t_ns
+
+
+def test_pose_source_time_is_the_t_ns_field() -> None:
+    pelvis = ((0.0, 0.0, 0.95), (1.0, 0.0, 0.0, 0.0))
+    frame = pose.PoseFrame(7, 1_700_000_000_123_456_789, {"left_elbow_flexion_deg": 42.0},
+                           {"left_elbow": 42.0}, {"pelvis": pelvis},
+                           {"left_elbow": (0.0, 0.2, 1.2)})  # fmt: skip
+    payload = pose.encode(frame)
+    assert pose.source_time(payload) == pose.decode(payload).t_ns == 1_700_000_000_123_456_789
