@@ -118,11 +118,13 @@ class Site:
     branch: Branch
     name: str
     _hash: int = field(init=False, repr=False, compare=False)  # as Branch's
+    _raw_key: str = field(init=False, repr=False, compare=False)  # asked every tick
 
     def __post_init__(self) -> None:
         if self.name not in SITES[self.branch.limb]:
             raise KeySpaceError(f"site {self.name!r} is not on limb {self.branch.limb}")
         object.__setattr__(self, "_hash", hash((self.branch, self.name)))
+        object.__setattr__(self, "_raw_key", self.key(Stream.RAW))
 
     def __hash__(self) -> int:
         return self._hash
@@ -135,7 +137,7 @@ class Site:
 
     @property
     def raw_key(self) -> str:
-        return self.key(Stream.RAW)
+        return self._raw_key
 
     def __str__(self) -> str:
         return f"{self.branch.side}/{self.branch.limb}/{self.name}"

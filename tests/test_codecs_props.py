@@ -8,7 +8,7 @@ import math
 from collections.abc import Callable, Sequence
 from typing import Any, Protocol
 
-from hypothesis import given
+from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from bodynet.core.codecs import concentrator, imu_matrix, raw_sample, smartsuit_can
@@ -158,6 +158,44 @@ raw_samples = st.builds(
 @given(raw_samples)
 def test_raw_sample_roundtrip_exact(sample: RawSample) -> None:
     assert raw_sample.decode(raw_sample.encode(sample)) == sample
+
+
+def _checked_decode(payload: bytes) -> Any:
+    """What the field-by-field checks make of one message (outcome or error reason)."""
+    from bodynet.core.errors import DecodeError
+
+    try:
+        length = raw_sample._length(payload, 0)
+        if length != len(payload):
+            return "length"
+        return raw_sample._decode_at(payload, 0, length)
+    except DecodeError as exc:
+        return exc.reason
+
+
+@settings(max_examples=400)  # mostly well-formed, so that each field's check is reached
+@given(st.sampled_from([b"BN", b"BN", b"BM"]), st.sampled_from([1, 1, 2]),
+       st.sampled_from([2, 2, 1, 3]), st.integers(0, 5), st.integers(0, 2),
+       st.integers(0, 2**32 - 1), st.integers(-(2**63), 2**63 - 1),
+       st.one_of(st.just([0.5, 0.5, -0.5, 0.5]), st.lists(st.floats(), min_size=4, max_size=4)),
+       st.sampled_from([0, 0, 1]))  # fmt: skip
+def test_raw_sample_quaternion_shortcut_agrees_with_the_checks(
+    magic: bytes, version: int, kind: int, source: int, node: int, seq: int, t_ns: int,
+    q: list[float], extra: int,
+) -> None:  # fmt: skip
+    """53-byte messages take a one-unpack path; it accepts exactly what the
+    field-by-field checks accept, with the same result, and leaves the rest to them."""
+    import struct
+
+    from bodynet.core.errors import DecodeError
+
+    payload = struct.pack("<2sBBBBHIq4dB", magic, version, kind, source, 0, node, seq, t_ns,
+                          *q, extra)  # fmt: skip
+    try:
+        got: Any = raw_sample.decode(payload)
+    except DecodeError as exc:
+        got = "length" if exc.reason.name in ("TRUNCATED", "BAD_LENGTH") else exc.reason
+    assert got == _checked_decode(payload)
 
 
 @given(st.lists(raw_samples, max_size=20), cuts)
