@@ -8,12 +8,13 @@ import queue
 import threading
 import time
 from collections.abc import Iterator
+from functools import partial
 from pathlib import Path
 from typing import Any
 
 import pytest
 import zenoh
-from zenoh_helpers import Collector, client
+from zenoh_helpers import Collector, Running, client
 
 from bodynet.core import keys
 from bodynet.core.codecs import pose
@@ -37,22 +38,6 @@ TARGET = {
     "right_elbow_flexion_deg": 90.0,
     "left_knee_flexion_deg": 45.0,
 }
-
-
-class Running:
-    """``target(*head, stop, *tail)`` in a thread: services take ``stop`` after the session."""
-
-    def __init__(self, target: Any, *args: Any) -> None:
-        self.stop_event = threading.Event()
-        head, tail = args[:1], args[1:]
-        self.thread = threading.Thread(
-            target=target, args=(*head, self.stop_event, *tail), daemon=True
-        )
-        self.thread.start()
-
-    def stop(self) -> None:
-        self.stop_event.set()
-        self.thread.join(timeout=15)
 
 
 @pytest.fixture
@@ -82,7 +67,7 @@ def test_gateway_calibrates_tracks_and_flags_stale(
     ]  # fmt: skip
     node_session = client(router_endpoint)
     options = EmulationOptions(routine, IDEAL_RANDOM_MOUNTS, seed=3)
-    nodes = Running(run_node, node_session, plans, options, "live")
+    nodes = Running(partial(run_node, node_session, plans=plans, options=options, name="live"))
     poses = Collector(zsession, keys.pose_key(), pose.decode)
     left = Collector(zsession, keys.pose_key(LEFT_ARM), pose.decode)
     poses.wait_for(lambda s: bool(s) and len(s[-1][1].sources) == 15, timeout=20)  # all delivering
@@ -130,7 +115,7 @@ def test_garbage_on_raw_keys_is_counted_and_never_stops_the_body(
     plans = [NodePlan("smartsuit", "can", (LEFT_ARM,))]
     node_session = client(router_endpoint)
     options = EmulationOptions(Routine("held", "", lambda t: dict(held)), Realism.ideal())
-    nodes = Running(run_node, node_session, plans, options, "victim")
+    nodes = Running(partial(run_node, node_session, plans=plans, options=options, name="victim"))
     poses = Collector(zsession, keys.pose_key(), pose.decode)
     poses.wait_for(
         lambda s: bool(s) and abs(s[-1][1].angles_deg["left_elbow_flexion_deg"] - 60) < 0.3
@@ -235,7 +220,8 @@ def test_one_gateway_serves_several_subjects_apart(router_endpoint: str, tmp_pat
         plan = [NodePlan("smartsuit", "can", (LEFT_ARM,))]
         options = EmulationOptions(routine, Realism.ideal())
         sessions.append(node_session)
-        nodes.append(Running(run_node, node_session, plan, options, name))
+        service = partial(run_node, node_session, plans=plan, options=options, name=name)
+        nodes.append(Running(service))
     watcher = client(router_endpoint)
     bob_inside = open_session(session_config("client", [router_endpoint], subject="bob"))
     try:
@@ -374,8 +360,9 @@ def test_flood_on_one_subject_and_random_keys_never_stops_the_other_subjects(
         options = EmulationOptions(Routine(name, "", lambda t: {"left_elbow_flexion_deg": 45.0}),
                                    Realism.ideal())  # fmt: skip
         sessions.append(node_session)
-        nodes.append(Running(run_node, node_session, [NodePlan("smartsuit", "can", (LEFT_ARM,))],
-                             options, name))  # fmt: skip
+        plans = [NodePlan("smartsuit", "can", (LEFT_ARM,))]
+        nodes.append(Running(partial(run_node, node_session, plans=plans, options=options,
+                                     name=name)))  # fmt: skip
     watcher, hostile = client(router_endpoint), client(router_endpoint)
     flood = Flood(hostile, "carol")
     assert all(flood.to_gateway[k] for k in flood.victim)

@@ -19,7 +19,7 @@ from typing import Any
 import can
 import pytest
 import zenoh
-from zenoh_helpers import Liveliness, health_collector, raw_collector
+from zenoh_helpers import Liveliness, Running, health_collector, raw_collector
 
 from bodynet.core.keys import LEFT_ARM
 from bodynet.core.messages import OleAccel, Quat, RawSample, Source
@@ -46,29 +46,13 @@ def expected(sensors: list[Any]) -> dict[int, Any]:
     return {r.node: r for r in readings}
 
 
-class Running:
-    """A bridge's blocking ``run`` in a thread."""
-
-    def __init__(self, target: Callable[..., None], args: tuple[Any, ...], kwargs: Any) -> None:
-        self.stop_event = threading.Event()
-        self.thread = threading.Thread(
-            target=target, args=(*args, self.stop_event), kwargs=kwargs, daemon=True
-        )
-        self.thread.start()
-
-    def stop(self) -> None:
-        self.stop_event.set()
-        self.thread.join(timeout=10)
-        assert not self.thread.is_alive()
-
-
 @pytest.fixture
 def run_thread() -> Iterator[Callable[..., Running]]:
     """Start a bridge's ``run`` in a thread; every one is stopped at teardown."""
     started: list[Running] = []
 
     def start(target: Callable[..., None], *args: Any, **kwargs: Any) -> Running:
-        started.append(Running(target, args, kwargs))
+        started.append(Running(lambda stop: target(*args, stop, **kwargs), timeout=10))
         return started[-1]
 
     yield start

@@ -25,7 +25,7 @@ import rerun as rr
 import zenoh
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from zenoh_helpers import client, free_port
+from zenoh_helpers import Running, client, free_port
 
 from bodynet.clients.view import GAUGES, MAX_M, Viewer, drawing, status_text
 from bodynet.core import keys
@@ -234,12 +234,9 @@ def live() -> Iterator[tuple[Gateway, zenoh.Session]]:
     router = open_session(session_config("router", listen=[endpoint]))
     gw_session, hostile = client(endpoint), client(endpoint)
     gateway = Gateway(gw_session)
-    stop = threading.Event()
-    thread = threading.Thread(target=gateway.run, args=(stop,), daemon=True)
-    thread.start()
+    running = Running(gateway.run)
     yield gateway, hostile
-    stop.set()
-    thread.join(timeout=15)
+    running.stop()
     gateway.close()
     for s in (hostile, gw_session, router):
         s.close()

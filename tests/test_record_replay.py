@@ -13,6 +13,7 @@ import sys
 import threading
 import time
 from collections.abc import Callable, Iterator
+from functools import partial
 from pathlib import Path
 
 import can
@@ -20,7 +21,7 @@ import jsonschema
 import pytest
 import zenoh
 from mcap.reader import make_reader
-from zenoh_helpers import Collector, client, raw_collector
+from zenoh_helpers import Collector, Running, client, raw_collector
 
 from bodynet.cli.main import main
 from bodynet.clients.mcap_store import (
@@ -54,19 +55,15 @@ BODYNET = Path(sys.executable).with_name("bodynet")
 def live_arm(zsession: zenoh.Session) -> Iterator[None]:
     """A SmartSuit left arm on a virtual bus, bridged onto the test router."""
     channel = f"rec-{time.monotonic_ns()}"
-    stop = threading.Event()
     bridge = CanBridge(zsession, "rec-test")
-    bus_args = {"interface": "virtual", "channel": channel}
-    thread = threading.Thread(target=bridge.run_bus, args=(stop,), kwargs=bus_args, daemon=True)
-    thread.start()
+    running = Running(partial(bridge.run_bus, interface="virtual", channel=channel), timeout=10)
     with can.Bus(interface="virtual", channel=channel) as bus:
         nodes = CanNodes(bus, BodyEmulator(ROUTINES["elbow-slow"], smartsuit_sensors([LEFT_ARM]),
                                            realism=Realism.ideal()))  # fmt: skip
         nodes.start()
         yield
         nodes.stop()
-    stop.set()
-    thread.join(timeout=10)
+    running.stop()
     bridge.close()
 
 
@@ -411,9 +408,7 @@ def test_record_keeps_topology_and_health_by_default(
     the schema its channel names."""
     gw_session = client(router_endpoint)
     gateway = Gateway(gw_session, profile_path=tmp_path / "subject.toml")
-    stop = threading.Event()
-    worker = threading.Thread(target=gateway.run, args=(stop,), daemon=True)
-    worker.start()
+    worker = Running(gateway.run)
     out = tmp_path / "all.mcap"
     try:
         poses = Collector(zsession, keys.pose_key(), pose.decode)
@@ -432,8 +427,7 @@ def test_record_keeps_topology_and_health_by_default(
         rec.send_signal(signal.SIGINT)
         assert rec.wait(timeout=20) == 0
     finally:
-        stop.set()
-        worker.join(timeout=15)
+        worker.stop()
         gateway.close()
         gw_session.close()
     topology = list(read_topology(out))

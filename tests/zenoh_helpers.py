@@ -1,4 +1,5 @@
-"""Loopback Zenoh for tests: a router on a free port, clients, and collectors."""
+"""Loopback Zenoh for tests: a router on a free port, clients, collectors, and
+services running in threads."""
 
 from __future__ import annotations
 
@@ -6,6 +7,7 @@ import contextlib
 import json
 import queue
 import socket
+import threading
 import time
 from collections.abc import Callable
 from typing import Any
@@ -14,6 +16,22 @@ import zenoh
 
 from bodynet.core.codecs import raw_sample
 from bodynet.session import open_session, session_config
+
+
+class Running:
+    """``service(stop)`` in a thread, ``stop`` a :class:`threading.Event`, as every
+    bodynet service takes it; :meth:`stop` sets it and waits for the service to end."""
+
+    def __init__(self, service: Callable[[threading.Event], object], timeout: float = 15.0) -> None:
+        self.stop_event = threading.Event()
+        self.timeout = timeout
+        self.thread = threading.Thread(target=service, args=(self.stop_event,), daemon=True)
+        self.thread.start()
+
+    def stop(self) -> None:
+        self.stop_event.set()
+        self.thread.join(timeout=self.timeout)
+        assert not self.thread.is_alive(), "the service did not stop"
 
 
 def free_port() -> int:
