@@ -69,13 +69,12 @@ from collections.abc import Mapping, Sequence
 from types import MappingProxyType
 
 import numpy as np
-import pinocchio as pin
 from scipy.spatial.transform import Rotation
 
-from bodynet.core.skeleton import ROM_DEG, Dof, Joint, Skeleton, Vec3, build_skeleton
+from bodynet.core.skeleton import Dof, Joint, Skeleton, Vec3, build_skeleton, rom
 from bodynet.core.subject import Profile
+from bodynet.kinematics.model import ROOT_NQ, BodyModel
 
-ROOT_NQ = 7
 SIDES = ("left", "right")
 
 #: Share of our thorax length (lumbar joint to neck) given to the seed's
@@ -196,39 +195,20 @@ class SeedBody:
     ) -> None:
         self.skeleton = skeleton or build_skeleton()
         self.joints = seed_joints(self.skeleton, lower_trunk_fraction, neck_fraction)
-        model = pin.Model()
-        model.name = "seed_body"
-        root = model.addJoint(0, pin.JointModelFreeFlyer(), pin.SE3.Identity(), "root")
-        segment_joint = {"pelvis": root}
-        for joint in self.joints:
-            parent = segment_joint[joint.parent]
-            placement = pin.SE3(np.eye(3), np.array(joint.offset, dtype=float))
-            for dof in joint.dofs:
-                parent = model.addJoint(
-                    parent,
-                    pin.JointModelRevoluteUnaligned(np.array(dof.axis, dtype=float)),
-                    placement,
-                    f"{joint.name}_{dof.name}",
-                )
-                placement = pin.SE3.Identity()
-            segment_joint[joint.child] = parent
-        self.segments: tuple[str, ...] = tuple(segment_joint)
-        self.segment_frames: dict[str, int] = {
-            s: model.addFrame(pin.Frame(s, j, pin.SE3.Identity(), pin.FrameType.OP_FRAME))
-            for s, j in segment_joint.items()
-        }
-        self._segment_joints = list(segment_joint.values())
-        self.dof_names: tuple[str, ...] = tuple(n for j in self.joints for n in j.angle_names())
-        self._index = {name: ROOT_NQ + i for i, name in enumerate(self.dof_names)}
-        for name, i in self._index.items():
+        # the same Pinocchio chain as ours (free root, one revolute joint per dof, a
+        # frame per segment), built from the seed's joints
+        self.chain = BodyModel(Skeleton(self.skeleton.lengths, self.joints,
+                                        self.skeleton.directions))  # fmt: skip
+        self.model, self.data = self.chain.model, self.chain.data
+        self.segments: tuple[str, ...] = self.chain.skeleton.segments
+        self.segment_frames: dict[str, int] = self.chain.segment_frames
+        self.dof_names: tuple[str, ...] = self.chain.angle_names
+        for i, name in enumerate(self.dof_names, start=ROOT_NQ):
             ours = _our_name(name)
             if ours is not None:
-                stem = ours.removesuffix("_deg").removeprefix("left_").removeprefix("right_")
-                lo, hi = ROM_DEG[stem]
-                model.lowerPositionLimit[i] = math.radians(lo)
-                model.upperPositionLimit[i] = math.radians(hi)
-        self.model = model
-        self.data = model.createData()
+                lo, hi = rom(ours)
+                self.model.lowerPositionLimit[i] = math.radians(lo)
+                self.model.upperPositionLimit[i] = math.radians(hi)
         self._ours = self.skeleton.angle_names()
         self._joint = {j.name: j for j in self.joints}
 
@@ -239,7 +219,7 @@ class SeedBody:
 
     @property
     def nq(self) -> int:
-        return int(self.model.nq)
+        return self.chain.nq
 
     def q(
         self,
@@ -249,16 +229,11 @@ class SeedBody:
     ) -> np.ndarray:
         """Configuration from the seed's own angles (by :attr:`dof_names`; others 0),
         the root at standing height unless ``root_position`` is given."""
-        q = np.zeros(self.nq)
-        q[:3] = root_position if root_position is not None else (0, 0, self.skeleton.root_height())
-        q[3:7] = root_xyzw
-        for name, value in seed_angles_deg.items():
-            q[self._index[name]] = math.radians(value)
-        return q
+        return self.chain.q(seed_angles_deg, root_position, root_xyzw)
 
     def angles_deg(self, q: np.ndarray) -> dict[str, float]:
         """The seed's 40 angles (deg) at ``q``."""
-        return {n: math.degrees(q[i]) for n, i in self._index.items()}
+        return self.chain.angles_deg(q)
 
     def q_from_ours(
         self,
@@ -309,6 +284,4 @@ class SeedBody:
     def segment_poses(self, q: np.ndarray) -> np.ndarray:
         """World pose of every segment (:attr:`segments` order) at ``q``, as rows of
         position x, y, z and quaternion x, y, z, w (Pinocchio's XYZQUAT)."""
-        pin.forwardKinematics(self.model, self.data, q)
-        omi = self.data.oMi
-        return np.array([pin.SE3ToXYZQUAT(omi[j]) for j in self._segment_joints])
+        return self.chain.segment_poses(q)
