@@ -44,7 +44,7 @@ from bodynet.core.keys import BRANCHES, Branch, Site
 from bodynet.core.messages import Quat, RawSample
 from bodynet.core.subject import Profile, ProfileError, QuatWxyz
 from bodynet.gateway import profile_file
-from bodynet.gateway.solver import BodyOutput, BodySolver, iter_solve, tpose_mounts
+from bodynet.gateway.solver import BodyOutput, BodySolver, solve_bodies, tpose_mounts
 
 log = logging.getLogger(__name__)
 
@@ -91,16 +91,21 @@ def branch_views(frame: pose.PoseFrame, branches: Iterable[Branch]) -> dict[Bran
 def pose_frame(output: BodyOutput, seq: int, stale: Sequence[str]) -> pose.PoseFrame:
     """The message of one tick, numbers rounded to 1e-6 (microdegrees, micrometres)."""
     names = output.names
-    rows = np.round(np.concatenate([output.positions, output.quats], axis=1), 6).tolist()
-    segments = {s: (tuple(r[:3]), tuple(r[3:])) for s, r in zip(names.segments, rows, strict=True)}
+    # one rounding and one conversion to Python floats for every number of the tick,
+    # cut back into vectors by zip (a body's message is built 100 times a second)
+    n_p, n_q = output.positions.size, output.quats.size
+    flat = np.round(np.concatenate([output.positions.ravel(), output.quats.ravel(),
+                                    output.angles, output.rel]), 6).tolist()  # fmt: skip
+    p, q = iter(flat[:n_p]), iter(flat[n_p : n_p + n_q])
+    positions = list(zip(p, p, p, strict=True))
     return pose.PoseFrame(
         seq,
         output.t_ns,
-        dict(zip(names.angles, np.round(output.angles, 6).tolist(), strict=True)),
-        dict(zip(names.joints, np.round(output.rel, 6).tolist(), strict=True)),
-        segments,  # type: ignore[arg-type]
-        {j: segments[names.segments[i]][0]
-         for j, i in zip(names.joints, names.joint_segment, strict=True)},
+        dict(zip(names.angles, flat[n_p + n_q : n_p + n_q + len(names.angles)], strict=True)),
+        dict(zip(names.joints, flat[n_p + n_q + len(names.angles) :], strict=True)),
+        dict(zip(names.segments, zip(positions, zip(q, q, q, q, strict=True), strict=True),
+                 strict=True)),  # fmt: skip
+        dict(zip(names.joints, map(positions.__getitem__, names.joint_segment), strict=True)),
         output.flags,
         output.sources,
         list(stale),
@@ -138,6 +143,7 @@ class _Body:
         self.ticks = 0
         self.unsolved_sites = 0  # sites whose latest sample is not in a solved tick yet
         self.first_new: float | None = None  # when the oldest unsolved sample came
+        self.next_housekeeping = 0.0  # monotonic: when its topology and health go out next
         cc = zenoh.CongestionControl.BLOCK
         self.body_pub = session.declare_publisher(prefix + keys.pose_key(), congestion_control=cc)
         self.branch_pubs = {
@@ -160,7 +166,9 @@ class _Body:
 
     def take(self, site: Site, sample: RawSample, now: float) -> None:
         """Keep a sample as its site's latest (and, for T-pose, in its recent
-        history, trimmed by :meth:`trim`)."""
+        history of ``HISTORY_S``, trimmed as it grows: a second's trim of every
+        site at once took milliseconds at twenty bodies, a stall every pose
+        behind it felt)."""
         self.samples += 1
         kept = self.latest.get(site)
         if kept is None:
@@ -176,14 +184,10 @@ class _Body:
                 hist = self.history[site] = deque()
             if not hist or now - hist[-1][0] >= HISTORY_STEP_S:
                 hist.append((now, *sample.reading.wxyz))
+                while now - hist[0][0] > HISTORY_S:
+                    hist.popleft()
         if self.first_new is None:
             self.first_new = now
-
-    def trim(self, now: float) -> None:
-        """Forget history older than ``HISTORY_S``."""
-        for hist in self.history.values():
-            while hist and now - hist[0][0] > HISTORY_S:
-                hist.popleft()
 
     def frame_complete(self, now: float) -> bool:
         """Has every site that is not stale delivered since the last solve (and
@@ -288,6 +292,7 @@ class Gateway:
         self._events: queue.SimpleQueue[tuple[str | None, _Token]] = queue.SimpleQueue()
         self._lock = threading.RLock()
         self._bodies: dict[str | None, _Body] = {}
+        self._routes: dict[str, tuple[_Body, Site]] = {}  # raw key -> where its samples go
         if not all_subjects:
             self._bodies[None] = _Body(session, "", profile or Profile(), profile_path,
                                        self.branches)  # fmt: skip
@@ -337,15 +342,19 @@ class Gateway:
         Returns how many were taken and the bodies they went to."""
         taken, touched = 0, set()
         until = now + self.period_s  # a flood (of garbage, say) still leaves time to solve
+        routes = self._routes
         with self._lock:
             for sub in self._subs:
                 while (taken % 256 or time.monotonic() < until) and (
                     (sample := sub.try_recv()) is not None
                 ):
                     taken += 1
+                    key = str(sample.key_expr)
                     try:
-                        subject, key = keys.split_subject(str(sample.key_expr))
-                        site, _ = keys.parse(key)
+                        route = routes.get(key)
+                        if route is None:
+                            subject, body_key = keys.split_subject(key)
+                            site, _ = keys.parse(body_key)
                         raw = raw_sample.decode(sample.payload.to_bytes())
                     except DecodeError as exc:
                         self.rejected[exc.reason] += 1
@@ -353,10 +362,13 @@ class Gateway:
                     except keys.KeySpaceError:
                         self.rejected[Reason.UNKNOWN_NODE] += 1
                         continue
-                    body = self._body(subject)
-                    if body is not None:
-                        body.take(site, raw, now)
-                        touched.add(body)
+                    if route is None:  # a key's first good sample: its body is made now
+                        if (body := self._body(subject)) is None:
+                            continue
+                        # at most MAX_SUBJECTS times the key space's sites
+                        route = routes[key] = (body, site)
+                    route[0].take(route[1], raw, now)
+                    touched.add(route[0])
         return taken, touched
 
     def _on_token(self, sample: zenoh.Sample) -> None:  # Zenoh's thread
@@ -467,7 +479,7 @@ class Gateway:
         # What exists before serving (modules, models) is left out of the cyclic
         # collector's full passes, which otherwise paused this loop for tens of ms.
         gc.freeze()
-        last_health = last_sample = time.monotonic()
+        last_sample = time.monotonic()
         next_due = float("inf")  # no body can be due before this (its oldest unsolved sample)
         while not stop.is_set():
             now = time.monotonic()
@@ -496,9 +508,7 @@ class Gateway:
                           if b.first_new is not None and b not in due]  # fmt: skip
                 next_due = min(firsts, default=float("inf")) + self.period_s
             self._solve_and_publish(due, now)
-            if now - last_health >= 1.0:
-                last_health = now
-                self._housekeeping(now)
+            self._housekeeping(now)
             if taken:
                 last_sample = now
             elif not due and not events:  # nothing to do: poll again soon (sooner while busy)
@@ -524,15 +534,21 @@ class Gateway:
         return body
 
     def _housekeeping(self, now: float) -> None:
-        """Once a second: stale sites get a tick of their own, topology and health go out."""
-        for body in list(self._bodies.values()):
-            with self._lock:
-                body.trim(now)
-                stale = body.newly_stale(now)
-            if stale:
-                self._solve_and_publish({body: True}, now)
-            self._publish_topology(body)
-            body.health_pub.put(json.dumps(self.health(body)).encode())
+        """Once a second for each body, one body a round (twenty bodies' topology
+        and health at once stalled a tick by a millisecond and more): stale
+        sites get a tick of their own, topology and health go out."""
+        for body in self._bodies.values():  # only this thread adds bodies
+            if now >= body.next_housekeeping:
+                break
+        else:
+            return
+        body.next_housekeeping = now + 1.0
+        with self._lock:
+            stale = body.newly_stale(now)
+        if stale:
+            self._solve_and_publish({body: True}, now)
+        self._publish_topology(body)
+        body.health_pub.put(json.dumps(self.health(body)).encode())
 
     def _solve_and_publish(self, due: dict[_Body, bool], now: float) -> None:
         """Solve the bodies ``due`` (body -> even with nothing new) together, one
@@ -544,16 +560,14 @@ class Gateway:
                     work.append((body, *body.snapshot(now)))
         if not work:
             return
-        # each body's pose goes out as soon as it is solved
-        outputs = iter_solve([(solver, latest) for _, latest, _, solver in work])
-        for i, (body, _, stale, _) in enumerate(work):
-            try:
-                output = next(outputs)
-            except Exception:  # one body's bad tick must not cost the others theirs
-                for rest, latest, rest_stale, solver in work[i:]:
-                    if (alone := self._solve_alone(solver, latest)) is not None:
-                        self._publish_tick(rest, alone, rest_stale)
-                return
+        try:
+            outputs = solve_bodies([(solver, latest) for _, latest, _, solver in work])
+        except Exception:  # one body's bad tick must not cost the others theirs
+            for body, latest, stale, solver in work:
+                if (alone := self._solve_alone(solver, latest)) is not None:
+                    self._publish_tick(body, alone, stale)
+            return
+        for (body, _, stale, _), output in zip(work, outputs, strict=True):
             self._publish_tick(body, output, stale)
 
     def _publish_tick(self, body: _Body, output: BodyOutput, stale: list[str]) -> None:

@@ -24,7 +24,7 @@ body's lowest point (a heel or a toe, standing) at z = 0.
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -249,10 +249,11 @@ class _SplitBatch:
         lo, hi = self.lo[rows], self.hi[rows]
         clamped = (values < lo) | (values > hi)
         values = np.clip(values, lo, hi)
-        radians = np.radians(values)
-        matrices = _axis_rotations(self.axis[rows, 0], radians[:, 0])
-        for d in (1, 2):  # R = R_dof0 R_dof1 R_dof2, an absent dof adding nothing
-            matrices = matrices @ _axis_rotations(self.axis[rows, d], radians[:, d])
+        # every dof's rotation in one call, then R = R_dof0 R_dof1 R_dof2 (an absent
+        # dof adds nothing)
+        dofs = _axis_rotations(self.axis[rows].reshape(-1, 3),
+                               np.radians(values).ravel()).reshape(-1, 3, 3, 3)  # fmt: skip
+        matrices = dofs[:, 0] @ dofs[:, 1] @ dofs[:, 2]
         total = _angles_deg(calibration_inv[rows] @ matrices)
         return values, clamped, matrices, total
 
@@ -321,13 +322,13 @@ class _Tick:
         self.mounts: list[np.ndarray] = []
         self.modules: dict[str, tuple[Site, OleAccel]] = {}  # SmartSuit modules by segment
         self.sources: dict[str, int] = {}
-        self.t_ns = 0
         sources = self.sources
         seen: set[str] = set()
+        known, t_ns = solver._sites, 0
         for site, sample in samples.items():
-            seg, mount_inv, key, module = solver._site(site)
+            seg, mount_inv, key, module = known.get(site) or solver._site(site)
             sources[key] = t = sample.t_ns
-            self.t_ns = max(self.t_ns, t)
+            t_ns = max(t_ns, t)
             r = sample.reading
             if type(r) is Quat:
                 if seg not in seen:
@@ -337,6 +338,7 @@ class _Tick:
                     self.mounts.append(mount_inv)
             elif module:
                 self.modules[seg] = (site, r)  # type: ignore[assignment]
+        self.t_ns = t_ns
         self.measured: dict[str, np.ndarray] = {}  # segment -> world orientation
         # the joints split from two sensors: their rows and rotations
         self.direct_rows: np.ndarray = np.zeros(0, dtype=int)
@@ -346,21 +348,19 @@ class _Tick:
         self.flags: dict[str, str] = {}
 
 
-def iter_solve(work: Sequence[tuple[BodySolver, Mapping[Site, RawSample]]]) -> Iterator[BodyOutput]:
+def solve_bodies(work: Sequence[tuple[BodySolver, Mapping[Site, RawSample]]]) -> list[BodyOutput]:
     """One tick of each of several bodies: angles and poses from the latest
     sample of each site.
 
     The array work of every body is done together: sensor orientations, the
     relative rotations of the joints between two sensors, their split into
-    dofs, clamping and total rotations are each one numpy pass over all the
-    bodies. What is left per body is gathering its samples, the joints that
-    SmartSuit modules measure (scalar code) and Pinocchio's forward kinematics.
-    The solvers must share one skeleton structure (any segment lengths).
-
-    Each body's output is yielded as soon as its forward kinematics is done, so
-    it can go out while the next is computed."""
+    dofs, clamping and total rotations, and after forward kinematics the floor
+    and the canonical quaternions are each one numpy pass over all the bodies.
+    What is left per body is gathering its samples, the joints that SmartSuit
+    modules measure (scalar code) and Pinocchio's forward kinematics. The
+    solvers must share one skeleton structure (any segment lengths)."""
     if not work:
-        return
+        return []
     ticks = [_Tick(solver, samples) for solver, samples in work]
     n_angles = len(ticks[0].solver.names.angles)
     n_joints = len(ticks[0].solver.names.joints)
@@ -380,13 +380,25 @@ def iter_solve(work: Sequence[tuple[BodySolver, Mapping[Site, RawSample]]]) -> I
         _solve_direct(ticks, segments, angles, rel)
     for tick in ticks:
         tick.solver._solve_rest(tick)
-    for tick in ticks:
-        yield tick.solver._output(tick)
+    return _outputs(ticks)
 
 
-def solve_bodies(work: Sequence[tuple[BodySolver, Mapping[Site, RawSample]]]) -> list[BodyOutput]:
-    """:func:`iter_solve`, all at once."""
-    return list(iter_solve(work))
+def _outputs(ticks: Sequence[_Tick]) -> list[BodyOutput]:
+    """Forward kinematics of each body's angles (Pinocchio), then, for every body
+    at once, the pelvis height that puts the lowest point on the floor (z = 0)
+    and the segments' quaternions, canonical (w >= 0)."""
+    poses, floor = zip(*(tick.solver._forward(tick) for tick in ticks), strict=True)
+    for tick in ticks:  # what the next tick's angles are continuous with
+        tick.solver._memory.last = tick.angles
+    model = ticks[0].solver.model
+    poses = np.array(poses)  # (bodies, segments, xyz + quaternion x, y, z, w)
+    lowest = np.minimum(model.floor_heights(np.array(floor)).min(axis=1), poses[:, :, 2].min(axis=1))
+    poses[:, :, 2] -= lowest[:, None]
+    quats = poses[:, :, [6, 3, 4, 5]]  # x, y, z, w -> w, x, y, z
+    quats /= np.linalg.norm(quats, axis=2, keepdims=True)
+    quats *= np.where(quats[:, :, :1] < 0, -1.0, 1.0)
+    return [BodyOutput(t.t_ns, t.solver.names, t.angles[:-1], t.rel, t.flags, p[:, :3], q,
+                       t.sources) for t, p, q in zip(ticks, poses, quats, strict=True)]  # fmt: skip
 
 
 def _solve_direct(ticks: Sequence[_Tick], segments: np.ndarray, angles: np.ndarray,
@@ -549,17 +561,12 @@ class BodySolver:
             self._calibration[joint.name].T @ joint_rot
         )
 
-    def _output(self, tick: _Tick) -> BodyOutput:
-        """Forward kinematics of the tick's angles (Pinocchio): the segments' poses."""
-        self._memory.last = tick.angles
+    def _forward(self, tick: _Tick) -> tuple[np.ndarray, np.ndarray]:
+        """Forward kinematics of the tick's angles (Pinocchio): the segments' poses
+        with the pelvis at standing height, and the model's floor rows."""
         w, x, y, z = _quat_wxyz(tick.measured.get("pelvis", np.eye(3)))
         poses = self.model.segment_poses(self.model.q_of(tick.angles[:-1], (x, y, z, w)))
-        poses[:, 2] -= self.model.lowest(poses)  # the body stands on the floor, z = 0
-        quats = poses[:, [6, 3, 4, 5]]  # x, y, z, w -> w, x, y, z
-        quats /= np.linalg.norm(quats, axis=1, keepdims=True)
-        quats *= np.where(quats[:, :1] < 0, -1.0, 1.0)  # canonical: w >= 0
-        return BodyOutput(tick.t_ns, self.names, tick.angles[:-1], tick.rel, tick.flags,
-                          poses[:, :3], quats, tick.sources)  # fmt: skip
+        return poses, self.model.floor_rows()
 
     def _from_module(
         self,

@@ -62,14 +62,18 @@ class BodyModel:
         # toe and heel at the sole, an ankle height below the ankle's line (points in
         # their segment's frame)
         sole = np.array([0.0, 0.0, -skeleton.lengths["ankle_height"]])
-        self._floor_points: list[tuple[int, np.ndarray]] = []
-        for segment in ("head", "left_hand", "right_hand", "left_foot", "right_foot"):
-            tip = np.array(skeleton.directions[segment]) * skeleton.segment_length(segment)
-            self._floor_points.append((segment_joint[segment], tip))
+        ends = ("head", "left_hand", "right_hand", "left_foot", "right_foot")
+        self._floor_joints = [segment_joint[segment] for segment in ends]
+        points: list[tuple[int, np.ndarray]] = []  # (index in ends, point)
+        for i, segment in enumerate(ends):
+            points.append((i, np.array(skeleton.directions[segment])
+                           * skeleton.segment_length(segment)))  # fmt: skip
         for side in ("left", "right"):
-            foot = segment_joint[f"{side}_foot"]
+            foot = ends.index(f"{side}_foot")
             tip = np.array(skeleton.directions[f"{side}_foot"]) * skeleton.segment_length("foot")
-            self._floor_points += [(foot, sole), (foot, tip + sole)]
+            points += [(foot, sole), (foot, tip + sole)]
+        self._floor_index = np.array([i for i, _ in points])
+        self._floor_xyz = np.array([p for _, p in points])
         self.site_frames: dict[str, int] = {}
         for site in sites:
             direction = np.array(skeleton.directions[site.segment])
@@ -120,9 +124,20 @@ class BodyModel:
     def lowest(self, poses: np.ndarray) -> float:
         """Height (m) of the body's lowest point (a heel, a toe, a joint centre, the
         top of the head, a finger tip) for ``poses``, the last :meth:`segment_poses`."""
+        return min(float(self.floor_heights(self.floor_rows()).min()), float(poses[:, 2].min()))
+
+    def floor_rows(self) -> np.ndarray:
+        """After :meth:`segment_poses`: the height row (the third row of the world
+        placement) of each end segment (head, hands, feet), for :meth:`floor_heights`."""
         omi = self.data.oMi
-        tips = min(float(omi[j].act(p)[2]) for j, p in self._floor_points)
-        return min(tips, float(poses[:, 2].min()))
+        return np.array([omi[j].homogeneous[2] for j in self._floor_joints])
+
+    def floor_heights(self, rows: np.ndarray) -> np.ndarray:
+        """Heights (..., points) of the end segments' points that can touch the
+        floor (top of the head, finger tips, heels, toes) from :meth:`floor_rows`
+        of one body or a stack of bodies of this structure (..., 5, 4)."""
+        r = rows[..., self._floor_index, :]
+        return (r[..., :3] * self._floor_xyz).sum(axis=-1) + r[..., 3]  # type: ignore[no-any-return]
 
     def q_of(self, angles_deg: np.ndarray, root_quat_xyzw: Sequence[float]) -> np.ndarray:
         """Configuration vector from every joint angle in skeleton order (deg), the

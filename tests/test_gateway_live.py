@@ -411,17 +411,16 @@ def test_flood_on_one_subject_and_random_keys_never_stops_the_other_subjects(
 class _FailingSolver(BodySolver):
     """A solver whose forward kinematics fails: a bug hit by one body's tick."""
 
-    def _output(self, tick: Any) -> Any:
+    def _forward(self, tick: Any) -> Any:
         raise RuntimeError("injected fault in one body's tick")
 
 
 def test_a_body_whose_tick_fails_costs_no_other_body_its_pose(
     router_endpoint: str, zsession: zenoh.Session
 ) -> None:
-    """Bodies are solved together and each pose goes out as soon as it is
-    solved; when one body's tick raises, the bodies before it are already out and
-    the ones after it are solved one by one: only the failing one misses its tick
-    (counted), and the worker carries on."""
+    """Bodies are solved together; when one body's tick raises, the batch is
+    solved again one body at a time: only the failing one misses its tick
+    (counted), the bodies before and after it go out, and the worker carries on."""
     tags = imu_tags()
     readings, _ = BodyEmulator(ROUTINES["walk"], tags, seed=1).sample(0.1)
     frame = {t.site: RawSample(r, 1, time.time_ns(), Source.IMU_CENTRAL)
