@@ -392,7 +392,8 @@ def _outputs(ticks: Sequence[_Tick]) -> list[BodyOutput]:
         tick.solver._memory.last = tick.angles
     model = ticks[0].solver.model
     poses = np.array(poses)  # (bodies, segments, xyz + quaternion x, y, z, w)
-    lowest = np.minimum(model.floor_heights(np.array(floor)).min(axis=1), poses[:, :, 2].min(axis=1))
+    floor_z = model.floor_heights(np.array(floor)).min(axis=1)
+    lowest = np.minimum(floor_z, poses[:, :, 2].min(axis=1))  # or a joint centre
     poses[:, :, 2] -= lowest[:, None]
     quats = poses[:, :, [6, 3, 4, 5]]  # x, y, z, w -> w, x, y, z
     quats /= np.linalg.norm(quats, axis=2, keepdims=True)
