@@ -450,3 +450,56 @@ def test_a_body_whose_tick_fails_costs_no_other_body_its_pose(
         poses.close()
         gw.close()
         session.close()
+
+
+def test_the_tpose_history_is_trimmed_as_samples_come(router_endpoint: str) -> None:
+    """A site's history keeps the last ``HISTORY_S`` at ``HISTORY_STEP_S``, trimmed
+    by the samples themselves (nothing else trims it any more), and the window
+    T-pose calibration reads is the newest part of it."""
+    from bodynet.gateway.service import HISTORY_S, HISTORY_STEP_S
+
+    tags = imu_tags()
+    readings, _ = BodyEmulator(ROUTINES["tpose"], tags, seed=2).sample(0.0)
+    session = client(router_endpoint)
+    gw = Gateway(session)
+    try:
+        body = gw._bodies[None]
+        site, reading = tags[0].site, readings[0]
+        step = 1 / 64  # a 64 Hz sensor (times exact in binary): every other sample is kept
+        assert step < HISTORY_STEP_S <= 2 * step
+        for k in range(64 * 30):  # 30 s of it
+            body.take(site, RawSample(reading, k, k * 15_625_000, Source.IMU_CENTRAL), k * step)
+        times = [t for t, *_ in body.history[site]]
+        now = times[-1]
+        assert now >= 30 - 2 * step
+        assert times == [now - 2 * step * i for i in range(len(times))][::-1]
+        assert HISTORY_S - 2 * step < now - times[0] <= HISTORY_S
+        assert len(body.tpose_window(now, 1.0)[site]) == 33  # 1 s at 32 a second, both ends
+    finally:
+        gw.close()
+        session.close()
+
+
+def test_housekeeping_takes_one_body_a_round(router_endpoint: str) -> None:
+    """Topology and health go out once a second for each body, one body per round
+    of the worker: many bodies' housekeeping at once stalled their poses."""
+    session = client(router_endpoint)
+    gw = Gateway(session, all_subjects=True)
+    try:
+        bodies = [gw._body(s) for s in ("a", "b", "c")]
+        now = time.monotonic()
+        done = []
+        for _ in range(3):
+            before = {id(b): b.next_housekeeping for b in bodies if b is not None}
+            gw._housekeeping(now)
+            done.append([b for b in bodies if b is not None
+                         and b.next_housekeeping != before[id(b)]])  # fmt: skip
+        assert [len(d) for d in done] == [1, 1, 1]
+        assert {id(d[0]) for d in done} == {id(b) for b in bodies}
+        gw._housekeeping(now + 0.5)  # every body was done less than a second ago
+        assert all(b is not None and b.next_housekeeping == now + 1.0 for b in bodies)
+        gw._housekeeping(now + 1.0)
+        assert sum(b is not None and b.next_housekeeping == now + 2.0 for b in bodies) == 1
+    finally:
+        gw.close()
+        session.close()
