@@ -4,6 +4,12 @@ Readings are what a wire format says about one node at one instant, with no
 time attached (codecs read no clock). A :class:`RawSample` is a reading stamped
 by the process that received it: source time in integer nanoseconds and a
 per-node sequence number. That is what travels on Zenoh.
+
+The readings and the raw sample are values that nothing changes once made, but
+they are not ``frozen`` dataclasses: a frozen dataclass is built through
+``object.__setattr__`` field by field, three times the cost, and the gateway
+makes a reading and a sample for every one of its 30,000 samples a second at
+twenty bodies (frozen, their building was 7% of its worker's time).
 """
 
 from __future__ import annotations
@@ -21,7 +27,7 @@ class Source(IntEnum):
     IMU_CENTRAL = 3
 
 
-@dataclass(frozen=True, slots=True)
+@dataclass(slots=True)
 class OleAccel:
     """A SmartSuit sensing module: optical linear encoder plus accelerometer.
 
@@ -34,7 +40,7 @@ class OleAccel:
     accel: tuple[int, int, int]
 
 
-@dataclass(frozen=True, slots=True)
+@dataclass(slots=True)
 class Quat:
     """An orientation sensor: unit quaternion w, x, y, z.
 
@@ -50,7 +56,7 @@ class Quat:
 Reading = OleAccel | Quat
 
 
-@dataclass(frozen=True, slots=True)
+@dataclass(slots=True)
 class RawSample:
     """A reading as published on ``body/<limb>/<side>/<site>/raw``.
 

@@ -268,10 +268,11 @@ class OutputNames:
     joint_segment: tuple[int, ...]  # each joint's child segment: its origin is the joint centre
 
 
-@dataclass(frozen=True)
+@dataclass(slots=True)
 class BodyOutput:
     """One tick of one body: every joint angle and every segment pose, as arrays
-    in the order of ``names``; the mappings are views for readers."""
+    in the order of ``names``; the mappings are views for readers. (Not frozen,
+    as the raw samples are not: one is made per body and tick.)"""
 
     t_ns: int
     names: OutputNames
