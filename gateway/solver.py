@@ -393,7 +393,8 @@ def _outputs(ticks: Sequence[_Tick]) -> list[BodyOutput]:
         tick.solver._memory.last = tick.angles
     model = ticks[0].solver.model
     poses = np.array(poses)  # (bodies, segments, xyz + quaternion x, y, z, w)
-    floor_z = model.floor_heights(np.array(floor)).min(axis=1)
+    points = np.array([tick.solver.model.floor_points for tick in ticks])  # lengths differ
+    floor_z = model.floor_heights(np.array(floor), points).min(axis=1)
     lowest = np.minimum(floor_z, poses[:, :, 2].min(axis=1))  # or a joint centre
     poses[:, :, 2] -= lowest[:, None]
     quats = poses[:, :, [6, 3, 4, 5]]  # x, y, z, w -> w, x, y, z

@@ -132,12 +132,20 @@ class BodyModel:
         omi = self.data.oMi
         return np.array([omi[j].homogeneous[2] for j in self._floor_joints])
 
-    def floor_heights(self, rows: np.ndarray) -> np.ndarray:
-        """Heights (..., points) of the end segments' points that can touch the
-        floor (top of the head, finger tips, heels, toes) from :meth:`floor_rows`
-        of one body or a stack of bodies of this structure (..., 5, 4)."""
+    @property
+    def floor_points(self) -> np.ndarray:
+        """The points that can touch the floor (top of the head, finger tips, heels,
+        toes), each in its end segment's frame, (points, 3): they depend on the
+        segments' lengths."""
+        return self._floor_xyz
+
+    def floor_heights(self, rows: np.ndarray, points: np.ndarray | None = None) -> np.ndarray:
+        """Heights (..., points) of the floor points from :meth:`floor_rows`, of
+        one body or of a stack of bodies of this structure (..., 5, 4) with each
+        one's :attr:`floor_points` (..., points, 3; by default this model's)."""
         r = rows[..., self._floor_index, :]
-        return (r[..., :3] * self._floor_xyz).sum(axis=-1) + r[..., 3]  # type: ignore[no-any-return]
+        xyz = self._floor_xyz if points is None else points
+        return (r[..., :3] * xyz).sum(axis=-1) + r[..., 3]  # type: ignore[no-any-return]
 
     def q_of(self, angles_deg: np.ndarray, root_quat_xyzw: Sequence[float]) -> np.ndarray:
         """Configuration vector from every joint angle in skeleton order (deg), the

@@ -254,7 +254,9 @@ def test_bodies_solved_together_match_each_solved_alone() -> None:
     tags = imu_tags()
     hybrid_tags = [t for t in tags if t.site.name in ("upperarm", "chest", "sacrum")]
     hybrid = hybrid_tags + [s for s in smartsuit_sensors([LEFT_ARM]) if s.site.name != "shoulder"]
-    tall = Profile(lengths={"upperarm": 0.35, "forearm": 0.3, "thigh": 0.5})
+    # other lengths, the feet and the ankle height among them: their floor points differ
+    tall = Profile(lengths={"upperarm": 0.35, "forearm": 0.3, "thigh": 0.5, "foot": 0.3,
+                            "ankle_height": 0.09})  # fmt: skip
     # into the shoulder's gimbal lock and held there: the split keeps this body's own
     # last flexion, so a batch that mixed up the bodies' memories would show
     into_lock = Routine("lock", "", keyframes([
