@@ -116,13 +116,14 @@ class _Site:
     """What the gateway keeps of one site: its latest sample, and for orientation
     sensors the recent history (T-pose calibration)."""
 
-    __slots__ = ("arrived", "fresh", "history", "sample", "site")
+    __slots__ = ("arrived", "fresh", "history", "sample")
 
-    def __init__(self, site: Site, sample: RawSample, arrived: float) -> None:
-        self.site = site
+    def __init__(self, sample: RawSample, arrived: float) -> None:
         self.sample = sample
         self.arrived = arrived  # monotonic
         self.fresh = False  # not yet in a solved tick
+        # (arrival, w, x, y, z): tuples of floats only, which Python's cyclic collector
+        # stops tracking, so seconds of history do not lengthen its full passes
         self.history: deque[tuple[float, float, float, float, float]] | None = None
 
 
@@ -139,9 +140,6 @@ class _Body:
         self.profile_path = profile_path
         self.solver = BodySolver(profile)
         self.latest: dict[Site, _Site] = {}
-        # (arrival, w, x, y, z): tuples of floats only, which Python's cyclic collector
-        # stops tracking, so seconds of history do not lengthen its full passes
-        self.history: dict[Site, deque[tuple[float, float, float, float, float]]] = {}
         self.alive: set[str] = set()
         self.gone: set[str] = set()  # keys whose token went away
         self.published_stale: set[str] = set()
@@ -178,7 +176,7 @@ class _Body:
         behind it felt). Returns the site's record, for :meth:`take_into`."""
         kept = self.latest.get(site)
         if kept is None:
-            kept = self.latest[site] = _Site(site, sample, now)
+            kept = self.latest[site] = _Site(sample, now)
         self.take_into(kept, sample, now)
         return kept
 
@@ -193,7 +191,7 @@ class _Body:
         if type(reading) is Quat:
             hist = kept.history
             if hist is None:
-                hist = kept.history = self.history[kept.site] = deque()
+                hist = kept.history = deque()
             if not hist or now - hist[-1][0] >= HISTORY_STEP_S:
                 hist.append((now, *reading.wxyz))
                 while now - hist[0][0] > HISTORY_S:
@@ -262,8 +260,9 @@ class _Body:
 
     def tpose_window(self, now: float, seconds: float) -> dict[Site, list[QuatWxyz]]:
         return {
-            site: [(w, x, y, z) for t, w, x, y, z in hist if now - t <= seconds]
-            for site, hist in self.history.items()
+            site: [(w, x, y, z) for t, w, x, y, z in kept.history if now - t <= seconds]
+            for site, kept in self.latest.items()
+            if kept.history is not None
         }  # fmt: skip
 
     def close(self) -> None:

@@ -121,11 +121,6 @@ class BodyModel:
         positions = np.array([omf[f].translation for f in frames])
         return rotations, positions
 
-    def lowest(self, poses: np.ndarray) -> float:
-        """Height (m) of the body's lowest point (a heel, a toe, a joint centre, the
-        top of the head, a finger tip) for ``poses``, the last :meth:`segment_poses`."""
-        return min(float(self.floor_heights(self.floor_rows()).min()), float(poses[:, 2].min()))
-
     def floor_rows(self) -> np.ndarray:
         """After :meth:`segment_poses`: the height row (the third row of the world
         placement) of each end segment (head, hands, feet), for :meth:`floor_heights`."""
@@ -139,13 +134,12 @@ class BodyModel:
         segments' lengths."""
         return self._floor_xyz
 
-    def floor_heights(self, rows: np.ndarray, points: np.ndarray | None = None) -> np.ndarray:
+    def floor_heights(self, rows: np.ndarray, points: np.ndarray) -> np.ndarray:
         """Heights (..., points) of the floor points from :meth:`floor_rows`, of
         one body or of a stack of bodies of this structure (..., 5, 4) with each
-        one's :attr:`floor_points` (..., points, 3; by default this model's)."""
+        one's :attr:`floor_points` (..., points, 3)."""
         r = rows[..., self._floor_index, :]
-        xyz = self._floor_xyz if points is None else points
-        return (r[..., :3] * xyz).sum(axis=-1) + r[..., 3]  # type: ignore[no-any-return]
+        return (r[..., :3] * points).sum(axis=-1) + r[..., 3]  # type: ignore[no-any-return]
 
     def q_of(self, angles_deg: np.ndarray, root_quat_xyzw: Sequence[float]) -> np.ndarray:
         """Configuration vector from every joint angle in skeleton order (deg), the

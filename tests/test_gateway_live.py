@@ -81,7 +81,7 @@ def test_gateway_calibrates_tracks_and_flags_stale(
         # the T-pose history holds nothing the cyclic collector has to walk (its full
         # passes over seconds of samples objects paused the worker for tens of ms)
         gc.collect()
-        history = [e for h in gateway._bodies[None].history.values() for e in h]
+        history = [e for s in gateway._bodies[None].latest.values() for e in s.history or ()]
     assert history
     assert not any(gc.is_tracked(e) for e in history)
 
@@ -469,7 +469,7 @@ def test_the_tpose_history_is_trimmed_as_samples_come(router_endpoint: str) -> N
         assert step < HISTORY_STEP_S <= 2 * step
         for k in range(64 * 30):  # 30 s of it
             body.take(site, RawSample(reading, k, k * 15_625_000, Source.IMU_CENTRAL), k * step)
-        times = [t for t, *_ in body.history[site]]
+        times = [t for t, *_ in body.latest[site].history or ()]
         now = times[-1]
         assert now >= 30 - 2 * step
         assert times == [now - 2 * step * i for i in range(len(times))][::-1]
