@@ -62,10 +62,15 @@ MISS = 0.05  # a gravity fit further off than this (about 3 degrees) is no fit
 #: Stated uncertainties (deg, about two standard deviations) of each kind of source.
 UNC_TAG_DEG = 2.0  # a dof split from orientation sensors (what good IMUs claim; not per tick)
 UNC_OLE_DEG = 0.5  # an encoder's dof: 0.1 mm of travel is at most 0.23 deg, plus slack
-UP_UNC_RAD = 0.04  # a module's filtered "up" at rest: the accelerometer's bias and noise
+#: a module's filtered "up": the accelerometer's bias and noise (about 0.03), and the
+#: body's own acceleration up to about 0.07 g (a 90 degree lift of the arm in 3 s, at the
+#: hand); faster movement errs by more where its acceleration is across gravity, which an
+#: accelerometer cannot tell from tilt (see docs/observability.md)
+UP_UNC_RAD = 0.1
 DYN_FREE, DYN_GAIN = 0.05, 2.0  # beyond 5 % off 1 g, the body's own acceleration adds this much
-UNC_MAX_DEG = 15.0  # a tilt dof gravity determines less well than this is not measured
+UNC_MAX_DEG = 20.0  # a tilt dof gravity determines less well than this is not measured
 SLEW_DEG = 5.0  # a held dof goes back to its measurement at most this far a tick
+HARM_FLOOR_RAD = 0.02  # a held dof's pull below this (the sensors' noise) tilts nothing below
 #: Gauss-Newton's damping, (rad^-1)^2 in degree units: a dof whose "up" moves less
 #: than about 0.1 per radian barely steps.
 DAMPING = 0.01 * (math.pi / 180.0) ** 2
@@ -350,9 +355,28 @@ class _Tick:
     """One body's working state during one solve: plain data that its
     :class:`BodySolver` fills (:meth:`BodySolver._gather`) and reads."""
 
-    __slots__ = ("angles", "direct_rot", "direct_rows", "last", "measured", "modules", "mounts",
-                 "plan", "quats", "reasons", "rel", "rests", "segs", "solver", "sources", "t_ns",
-                 "unc", "uncal")  # fmt: skip
+    __slots__ = (
+        "angles",
+        "direct_rot",
+        "direct_rows",
+        "harm",
+        "held_tilt",
+        "last",
+        "measured",
+        "modules",
+        "mounts",
+        "plan",
+        "quats",
+        "reasons",
+        "rel",
+        "rests",
+        "segs",
+        "solver",
+        "sources",
+        "t_ns",
+        "unc",
+        "uncal",
+    )  # fmt: skip
 
     def __init__(self, solver: BodySolver, last: np.ndarray | None) -> None:
         self.solver = solver
@@ -375,6 +399,9 @@ class _Tick:
         self.unc = np.zeros(0)  # each angle's uncertainty (deg), NaN: none
         self.reasons: dict[str, set[str]] = {}  # angle -> why it is no plain measurement
         self.rests: dict[str, frozenset[str]] = {}  # segment -> what its orientation rests on
+        # segment -> how far (rad) held dofs above it may tilt it from what gravity says
+        self.harm: dict[str, float] = {}
+        self.held_tilt = 0.0  # the harm of the dofs held in the joint being solved
 
 
 def solve_bodies(work: Sequence[tuple[BodySolver, Mapping[Site, RawSample]]]) -> list[BodyOutput]:
@@ -631,6 +658,8 @@ class BodySolver:
         world: dict[str, np.ndarray] = {"pelvis": measured.get("pelvis", np.eye(3))}
         rests = tick.rests
         rests["pelvis"] = self._rests("pelvis", tick)
+        harm = tick.harm
+        harm["pelvis"] = 0.0
         last = tick.last
         for joint in self.skeleton.joints:
             child = joint.child
@@ -639,6 +668,7 @@ class BodySolver:
             parent = world[joint.parent]
             previous = last[self._slices[joint.name]] if last is not None else None
             inherited = rests[joint.parent]
+            harm[child] = 0.0 if child in measured else harm[joint.parent]
             if joint.name in direct:
                 world[child] = parent @ direct[joint.name]
                 rests[child] = self._rests(child, tick)
@@ -657,11 +687,14 @@ class BodySolver:
                 continue
             if child in modules:
                 site, reading = modules[child]
+                tick.held_tilt = 0.0
                 values, unc, why = self._from_module(joint, parent, site, reading, previous,
                                                      inherited, tick)  # fmt: skip
                 rests[child] = inherited
                 if len(names) == 2:  # elbow, wrist, ankle: the second dof from gravity
                     self._distal_tilt(joint, values, unc, why, world, site, reading, tick)
+                harm[child] += tick.held_tilt
+                if len(names) == 2:
                     continue
             else:
                 values = np.zeros(len(names))
@@ -783,8 +816,11 @@ class BodySolver:
                     return (parent @ ax.matrix(np.array([x[0], x[1], rot]))).T @ _UP  # type: ignore[no-any-return]
 
                 strength = _strengths(predict, fit[:2])
+                noise = up[1] + tick.harm[joint.parent]
                 values[:2], unc[:2], why[:2] = self._settle(names[:2], fit[:2], strength, prev,
-                                                            up[1])  # fmt: skip
+                                                            noise, tick)  # fmt: skip
+                seg_axes = accel_axes(np.array(self.skeleton.directions[joint.child]), ax.axes[0])
+                values[:2] = _refit(predict, values[:2], why[:2], seg_axes @ up[0])
             for i in (0, 1):
                 why[i] |= inherited
         else:
@@ -903,10 +939,13 @@ class BodySolver:
             def predict(x: np.ndarray) -> np.ndarray:
                 return np.concatenate([p(x) for p in preds])
 
-            fit, strength = _gravity_fit(predict, prev, np.concatenate(targets), names)
+            target = np.concatenate(targets)
+            fit, strength = _gravity_fit(predict, prev, target, names)
             sol, sol_unc, sol_why = self._settle(names, fit, strength,
                                                  prev if tick.last is not None else None,
-                                                 max(noise))  # fmt: skip
+                                                 max(noise) + tick.harm[upstream.parent],
+                                                 tick)  # fmt: skip
+            sol = _refit(predict, sol, sol_why, target)
         else:
             sol, sol_unc, sol_why = self._settle(names, prev, np.zeros(2), prev, 1.0)
         inherited_up = self._inherited(upstream.parent, tick)
@@ -939,12 +978,19 @@ class BodySolver:
 
         start = prev if prev is not None else np.zeros(1)
         fit, strength = _gravity_fit(predict, start, target, (name,))
-        v, u, w = self._settle((name,), fit, strength, prev, up[1])
+        noise = up[1] + tick.harm[joint.parent]
+        v, u, w = self._settle((name,), fit, strength, prev, noise, tick)
         return float(v[0]), float(u[0]), w[0]
 
-    def _settle(self, names: Sequence[str], fit: np.ndarray, strength: np.ndarray,
-                previous: np.ndarray | None,
-                up_unc_rad: float) -> tuple[np.ndarray, np.ndarray, list[set[str]]]:  # fmt: skip
+    def _settle(
+        self,
+        names: Sequence[str],
+        fit: np.ndarray,
+        strength: np.ndarray,
+        previous: np.ndarray | None,
+        up_unc_rad: float,
+        tick: _Tick | None = None,
+    ) -> tuple[np.ndarray, np.ndarray, list[set[str]]]:
         """Tilt dofs from a gravity fit and how strongly gravity determines each
         (``strength``: how far the sensors' "up" moves per radian of the dof, the
         others free). Uncertainty = the "up"'s uncertainty / strength. A dof
@@ -965,16 +1011,25 @@ class BodySolver:
                     step = min(max(fit[i] - previous[i], -SLEW_DEG), SLEW_DEG)
                     out[i] = previous[i] + step
                     why[i].add(HELD)
+                    if tick is not None:  # how far this may tilt what lies below
+                        tick.held_tilt += self._harm(fit[i], out[i], s)
                     continue
                 memory.held.discard(name)
                 memory.seen.add(name)
                 unc[i] = u
-            else:
-                if previous is not None:
-                    out[i] = previous[i]
+            else:  # its last value, or the model's rest value if it never had one
+                out[i] = previous[i] if previous is not None else 0.0
                 why[i].add(HELD if name in memory.seen else UNOBSERVED)
+                if tick is not None:
+                    tick.held_tilt += self._harm(fit[i], out[i], s)
                 memory.held.add(name)
         return out, unc, why
+
+    @staticmethod
+    def _harm(fit: float, held: float, strength: float) -> float:
+        """How far (rad) a dof held at ``held`` while gravity, with ``strength``,
+        puts it at ``fit`` may tilt the segments below it (beyond the noise)."""
+        return max(0.0, math.radians(abs(fit - held)) * strength - HARM_FLOOR_RAD)
 
     def _filtered_up(self, key: str, up: np.ndarray) -> np.ndarray:
         """Light low-pass filtering of an accelerometer's direction (exponential,
@@ -1088,6 +1143,25 @@ def _gravity_fit(predict: Any, x0: np.ndarray, target: np.ndarray,
         fits.append(_gauss_newton(predict, np.zeros(len(x0)), target))
     best = min(fits, key=rank)
     return best, _strengths(predict, best)
+
+
+def _refit(predict: Any, values: np.ndarray, why: Sequence[set[str]],
+           target: np.ndarray) -> np.ndarray:  # fmt: skip
+    """With some of a fit's dofs held, the others fitted again around them (a
+    held dof's value is not the fit's, and the others must agree with it)."""
+    held = np.array([bool(w & {HELD, UNOBSERVED}) for w in why])
+    if not held.any() or held.all():
+        return values
+    free = np.flatnonzero(~held)
+    base = values.astype(float).copy()
+
+    def partial(x: np.ndarray) -> np.ndarray:
+        full = base.copy()
+        full[free] = x
+        return predict(full)  # type: ignore[no-any-return]
+
+    base[free] = _gauss_newton(partial, base[free], target)
+    return base
 
 
 def _wrap(deg: float) -> float:
