@@ -70,6 +70,9 @@ UP_UNC_RAD = 0.1
 DYN_FREE, DYN_GAIN = 0.05, 2.0  # beyond 5 % off 1 g, the body's own acceleration adds this much
 UNC_MAX_DEG = 20.0  # a tilt dof gravity determines less well than this is not measured
 SLEW_DEG = 5.0  # a held dof goes back to its measurement at most this far a tick
+#: A body with no trunk sensor known is measured against the upright model only
+#: after this long (source time): its other nodes announce themselves first.
+SETTLE_NS = 1_000_000_000
 HARM_FLOOR_RAD = 0.02  # a held dof's pull below this (the sensors' noise) tilts nothing below
 #: Gauss-Newton's damping, (rad^-1)^2 in degree units: a dof whose "up" moves less
 #: than about 0.1 per radian barely steps.
@@ -349,6 +352,7 @@ class _Memory:
     held: set[str] = field(default_factory=set)  # tilt dofs held (or unobserved) last tick
     seen: set[str] = field(default_factory=set)  # tilt dofs gravity has determined at least once
     expected: set[str] = field(default_factory=set)  # segments an orientation sensor is on
+    first_t_ns: int = -1  # the body's first tick (source time)
 
 
 class _Tick:
@@ -522,6 +526,8 @@ class BodySolver:
             elif module:
                 tick.modules[seg] = (site, r)  # type: ignore[assignment]
         tick.t_ns = t_ns
+        if self._memory.first_t_ns < 0:
+            self._memory.first_t_ns = t_ns
         if tick.segs:
             tick.plan = self._direct_plan(tuple(tick.segs))
             self._memory.expected.update(tick.segs)
@@ -710,8 +716,14 @@ class BodySolver:
         sensor uncalibrated, or (the pelvis) expected but not delivering."""
         if segment in tick.measured:
             return _UNCAL if segment in tick.uncal else _NOTHING
-        if segment == "pelvis" and segment in self._memory.expected:
-            return _UNOBS
+        if segment == "pelvis":
+            memory = self._memory
+            if segment in memory.expected:
+                return _UNOBS
+            # no trunk sensor known: the upright model, once the topology has had
+            # time to show one (the nodes of a suit announce themselves within it)
+            if not memory.expected and tick.t_ns - memory.first_t_ns < SETTLE_NS:
+                return _UNOBS
         return _NOTHING
 
     def _merge_module(self, tick: _Tick, world: dict[str, np.ndarray], joint: Joint,
