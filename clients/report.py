@@ -442,6 +442,12 @@ def _blocks(an: Analysis, images: dict[str, str]) -> list[Block]:
         out.append(("p", "Left out (--no-trials)."))
     else:
         tr = an.trials
+        gaps = [c for c in first.observed if c not in tr.channel_trials
+                and float(np.nanmax(first.angles[c]) - np.nanmin(first.angles[c]))
+                >= stats.REP_MIN_PROMINENCE_DEG]  # fmt: skip
+        if gaps:
+            out.append(("p", "Moving joint angles not measured throughout after calibration, "
+                             f"left out of the trials: {', '.join(gaps)}."))  # fmt: skip
         out += [("p", f"Trials: {tr.how}; each time-normalised to {stats.TRIAL_POINTS} points. "
                       "Range and SD (n - 1) of the trial means (eq. 28-31); the last row "
                       "averages the channels, as the seed's average range and SD."),

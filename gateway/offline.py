@@ -54,15 +54,18 @@ def process(path: Path, fmt: Format | str, out: Path, profile: Profile | None = 
     fmt = Format(fmt)
     profile = profile or Profile()
     window: dict[Site, list[tuple[float, float, float, float]]] = {}
+    sites: set[str] = set()  # the capture's topology: every site of its first seconds
     start: float | None = None
     for s in read_capture(path, fmt, CaptureStats(), rate_hz):
         start = s.t_s if start is None else start
         if s.t_s - start >= tpose_s:
             break
+        sites.add(s.site.raw_key)
         if isinstance(s.reading, Quat) and s.site.raw_key not in profile.imu_mounts:
             window.setdefault(s.site, []).append(s.reading.wxyz)
     mounts = tpose_mounts(window, profile) if window else {}
     solver = BodySolver(profile.with_mounts(mounts))
+    solver.expect(sites, complete=True)
     stats = CaptureStats()
     sink = McapSink(out)
     latest: dict[Site, RawSample] = {}

@@ -448,6 +448,10 @@ class BodySolver:
             self._slices[joint.name] = slice(start, start + len(joint.dofs))
         self._angle_at = {n: i for i, n in enumerate(self.names.angles)}
         self._by_child = {j.child: j for j in self.skeleton.joints}
+        # a SmartSuit accelerometer's axes on each segment (its joint's flexion axis)
+        self._accel_axes = {j.child: accel_axes(np.array(self.skeleton.directions[j.child]),
+                                                self.axes[j.name].axes[0])
+                            for j in self.skeleton.joints}  # fmt: skip
         self._memory = _Memory()
         self._sites: dict[Site, tuple[str, np.ndarray, str, bool, bool]] = {}
         self._plans: dict[tuple[str, ...], tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
@@ -526,17 +530,21 @@ class BodySolver:
             elif module:
                 tick.modules[seg] = (site, r)  # type: ignore[assignment]
         tick.t_ns = t_ns
-        if self._memory.first_t_ns < 0:
+        if self._memory.first_t_ns == -1:
             self._memory.first_t_ns = t_ns
         if tick.segs:
             tick.plan = self._direct_plan(tuple(tick.segs))
             self._memory.expected.update(tick.segs)
         return tick
 
-    def expect(self, raw_keys: Iterable[str]) -> None:
+    def expect(self, raw_keys: Iterable[str], complete: bool = False) -> None:
         """Orientation sensors this body has (the gateway's topology: nodes whose
         liveliness token is up), delivering or not. Until one delivers, what rests
-        on its segment is flagged rather than taken from an assumed upright pose."""
+        on its segment is flagged rather than taken from an assumed upright pose.
+        ``complete``: these are all the body's sensors (a capture's), so a body
+        with no trunk sensor is measured against the upright model at once."""
+        if complete:
+            self._memory.first_t_ns = -(2**62)
         for key in raw_keys:
             try:
                 site, _ = keys.parse(key)
@@ -831,7 +839,7 @@ class BodySolver:
                 noise = up[1] + tick.harm[joint.parent]
                 values[:2], unc[:2], why[:2] = self._settle(names[:2], fit[:2], strength, prev,
                                                             noise, tick)  # fmt: skip
-                seg_axes = accel_axes(np.array(self.skeleton.directions[joint.child]), ax.axes[0])
+                seg_axes = self._accel_axes[joint.child]
                 values[:2] = _refit(predict, values[:2], why[:2], seg_axes @ up[0])
             for i in (0, 1):
                 why[i] |= inherited
@@ -924,7 +932,7 @@ class BodySolver:
         fore_up = self._up(fore_site, fore_reading)
         preds, targets, noise = [], [], []
         if hand_up is not None:
-            hand_axes = accel_axes(np.array(self.skeleton.directions[joint.child]), ax.axes[0])
+            hand_axes = self._accel_axes[joint.child]
 
             def hand_pred(x: np.ndarray) -> np.ndarray:
                 chain = fixed @ up_ax.dof(1, x[0]) @ wrist_flexion @ ax.dof(1, x[1])
@@ -934,8 +942,7 @@ class BodySolver:
             targets.append(hand_axes @ hand_up[0])
             noise.append(hand_up[1])
         if fore_up is not None:
-            fore_axes = accel_axes(np.array(self.skeleton.directions[joint.parent]),
-                                   up_ax.axes[0])  # fmt: skip
+            fore_axes = self._accel_axes[joint.parent]
 
             def fore_pred(x: np.ndarray) -> np.ndarray:
                 return (fixed @ up_ax.dof(1, x[0])).T @ _UP  # type: ignore[no-any-return]
@@ -981,7 +988,7 @@ class BodySolver:
         if up is None:
             v, u, w = self._settle((name,), np.array([values[1]]), np.zeros(1), prev, 1.0)
             return float(v[0]), float(u[0]), w[0]
-        seg_axes = accel_axes(np.array(self.skeleton.directions[joint.child]), ax.axes[0])
+        seg_axes = self._accel_axes[joint.child]
         target = seg_axes @ up[0]
         fixed = world[joint.parent] @ ax.dof(0, values[0])
 
@@ -1068,7 +1075,7 @@ class BodySolver:
         last value wins), then the Y-Z plane gives a.
         """
         seg = joint.child
-        m = accel_axes(np.array(self.skeleton.directions[seg]), ax.axes[0])
+        m = self._accel_axes[seg]
         u_seg = m @ up_sensor
         v = _rot(ax.axes[2], math.radians(values[2])) @ u_seg
         u_p = parent.T @ np.array([0.0, 0.0, 1.0])
