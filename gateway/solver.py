@@ -581,8 +581,8 @@ class BodySolver:
             rows, batch.split(rows, relative, last[owner[:, None], index]), self._calibration_inv
         )
         angles[owner[:, None], index] = values
-        for tick in ticks:
-            tick.unc[index[owner == ticks.index(tick)]] = UNC_TAG_DEG
+        for b, tick in enumerate(ticks):
+            tick.unc[index[owner == b]] = UNC_TAG_DEG
         angles[:, -1] = 0.0  # the absent dofs' column
         rel[owner, rows] = total
         start = 0
