@@ -114,6 +114,7 @@ function onState(msg) {
       cue.className = "lost";
     }
     countdown.textContent = "";
+    $("trial").textContent = "–";
     $("target").textContent = "–";
     $("score").textContent = msg.score;
   }
