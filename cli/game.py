@@ -17,8 +17,8 @@ def cmd_game(args: argparse.Namespace) -> int:
     import zenoh
 
     from bodynet.cli.nodes import stop_on_signals
-    from bodynet.clients.game import GameOptions, check_patient, listen_socket, run_game
-    from bodynet.clients.rehab import GameError, plural
+    from bodynet.clients.game import GameOptions, listen_socket, run_game
+    from bodynet.clients.rehab import GameError, check_patient, plural
 
     def fail(message: str) -> int:
         print(f"bodynet game: {message}", file=sys.stderr)
@@ -103,8 +103,7 @@ def _positive(kind: type) -> object:
 
 
 def _patient(text: str) -> str:
-    from bodynet.clients.game import check_patient
-    from bodynet.clients.rehab import GameError
+    from bodynet.clients.rehab import GameError, check_patient
 
     try:
         return check_patient(text)
@@ -112,8 +111,8 @@ def _patient(text: str) -> str:
         raise argparse.ArgumentTypeError(str(exc)) from None
 
 
-def add_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
-    p = sub.add_parser("game", help="the arm-reaching rehabilitation game, in a browser")
+def add_game_args(p: argparse.ArgumentParser) -> None:
+    """``bodynet game``'s arguments (its entry in ``cli.main.COMMANDS``)."""
     p.add_argument(
         "--arm",
         choices=("left", "right"),
@@ -172,4 +171,3 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
         help="seconds a waiting ball gives the player before moving on (default 20)",
     )
     add_session_args(p)
-    p.set_defaults(func=cmd_game)

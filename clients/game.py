@@ -40,7 +40,6 @@ import io
 import json
 import logging
 import os
-import re
 import socket
 import threading
 import time
@@ -53,7 +52,7 @@ from typing import Any
 import zenoh
 from aiohttp import WSMsgType, web
 
-from bodynet.clients.rehab import GameError, RehabGame, arm_pose
+from bodynet.clients.rehab import GameError, RehabGame, arm_pose, check_patient
 from bodynet.core import keys
 from bodynet.core.codecs import pose
 from bodynet.core.errors import DecodeError
@@ -64,21 +63,6 @@ log = logging.getLogger(__name__)
 
 WEB_DIR = Path(__file__).parent / "game_web"
 FRAME_S = 0.04  # state to the browsers at 25 Hz
-PATIENT_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9_-]{0,39}")
-
-
-def check_patient(text: str) -> str:
-    """A patient's id as it goes into file names: 1-40 letters, digits, ``-``, ``_``
-    (empty: none). ``GameError`` otherwise."""
-    text = text.strip()
-    if text and not PATIENT_RE.fullmatch(text):
-        raise GameError(
-            f"a patient id is 1-40 letters, digits, '-' or '_' (no spaces), not {text[:60]!r}",
-            "patient",
-        )
-    return text
-
-
 def write_private(path: Path, text: str) -> None:
     """Write ``text`` to ``path`` atomically, readable by the owner only."""
     tmp = path.with_name(path.name + ".part")

@@ -70,6 +70,7 @@ so does a rest that ends without an arm signal. The session ends after
 from __future__ import annotations
 
 import math
+import re
 import time
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field
@@ -98,6 +99,21 @@ class GameError(ValueError):
     def __init__(self, message: str, cause: str = "") -> None:
         super().__init__(message)
         self.cause = cause
+
+
+PATIENT_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9_-]{0,39}")
+
+
+def check_patient(text: str) -> str:
+    """A patient's id as it goes into file names: 1-40 letters, digits, ``-``, ``_``
+    (empty: none). ``GameError`` otherwise."""
+    text = text.strip()
+    if text and not PATIENT_RE.fullmatch(text):
+        raise GameError(
+            f"a patient id is 1-40 letters, digits, '-' or '_' (no spaces), not {text[:60]!r}",
+            "patient",
+        )
+    return text
 
 
 def is_measured(frame: PoseFrame, angle: str) -> bool:
