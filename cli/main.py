@@ -18,7 +18,6 @@ from bodynet.cli import game as game_cli
 from bodynet.cli import gateway as gateway_cli
 from bodynet.cli import nodes as nodes_cli
 from bodynet.cli import security as security_cli
-from bodynet.nodes.captures import CaptureStats, Format, read_capture, sample_json
 from bodynet.nodes.motion import ROUTINES
 from bodynet.session import (
     DEFAULT_ROUTER,
@@ -33,6 +32,8 @@ log = logging.getLogger("bodynet")
 
 def cmd_decode(args: argparse.Namespace) -> int:
     """Decode a capture: one JSON object per sample on stdout, a summary on stderr."""
+    from bodynet.nodes.captures import CaptureStats, read_capture, sample_json
+
     stats = CaptureStats()
     out = sys.stdout
     try:
@@ -109,7 +110,9 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     p = sub.add_parser("decode", help="decode a capture file to JSON lines")
-    p.add_argument("--format", required=True, choices=[f.value for f in Format])
+    from bodynet.nodes.captures import formats
+
+    p.add_argument("--format", required=True, choices=formats())
     p.add_argument("--rate-hz", type=float, default=None,
                    help="samples' time base where the capture has none "
                         "(concentrator: 1/22 ms; imu-central: 25 Hz)")  # fmt: skip
