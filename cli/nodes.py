@@ -11,7 +11,6 @@ import threading
 from collections.abc import Callable
 
 from bodynet.core.keys import branch_named
-from bodynet.nodes.emulator import Realism
 from bodynet.nodes.motion import ROUTINES
 from bodynet.session import add_session_args, config_from_args, open_session
 
@@ -48,6 +47,7 @@ def _branches(args: argparse.Namespace) -> tuple | None:  # type: ignore[type-ar
 
 
 def _options(args: argparse.Namespace):  # type: ignore[no-untyped-def]
+    from bodynet.nodes.emulator import Realism
     from bodynet.nodes.services import EmulationOptions
 
     realism = (
@@ -139,10 +139,9 @@ def _emulation_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, default=0)
 
 
-def add_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+def add_bridge_args(bridge: argparse.ArgumentParser) -> None:
     from bodynet.nodes import sources
 
-    bridge = sub.add_parser("bridge", help="bridge a device (CAN bus, serial port, UDP) onto Zenoh")
     bsub = bridge.add_subparsers(dest="device", required=True, metavar="DEVICE")
     for cls in sources.all_sources():
         if not cls.has_bridge():
@@ -153,7 +152,10 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
         add_session_args(p)
         p.set_defaults(func=cmd_bridge)
 
-    emulate = sub.add_parser("emulate", help="emulated hardware only, for a bridge to open")
+
+def add_emulate_args(emulate: argparse.ArgumentParser) -> None:
+    from bodynet.nodes import sources
+
     esub = emulate.add_subparsers(dest="device", required=True, metavar="DEVICE")
     for device, cls in sources.emulated_devices().items():
         p = esub.add_parser(device, help=cls.emulators[device])
@@ -167,7 +169,9 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
         )
         add_session_args(p)
         p.set_defaults(func=cmd_emulate)
-    node = sub.add_parser("node", help="emulated sensors with their bridge, live on Zenoh")
+
+
+def add_node_args(node: argparse.ArgumentParser) -> None:
     nsub = node.add_subparsers(dest="system", required=True, metavar="SYSTEM")
     for system, text in (
         ("smartsuit", "SmartSuit branches"),
