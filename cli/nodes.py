@@ -12,7 +12,6 @@ from collections.abc import Callable
 from pathlib import Path
 
 from bodynet.core.keys import branch_named
-from bodynet.nodes.emulator import Realism
 from bodynet.nodes.motion import ROUTINES
 from bodynet.session import add_session_args, config_from_args, open_session
 
@@ -51,6 +50,7 @@ def _branches(args: argparse.Namespace) -> tuple | None:  # type: ignore[type-ar
 
 
 def _options(args: argparse.Namespace):  # type: ignore[no-untyped-def]
+    from bodynet.nodes.emulator import Realism
     from bodynet.nodes.services import EmulationOptions
 
     realism = (
@@ -151,8 +151,7 @@ def _emulation_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, default=0)
 
 
-def add_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
-    bridge = sub.add_parser("bridge", help="bridge a CAN bus or serial receiver onto Zenoh")
+def add_bridge_args(bridge: argparse.ArgumentParser) -> None:
     bsub = bridge.add_subparsers(dest="device", required=True, metavar="DEVICE")
     p = bsub.add_parser("can", help="SmartSuit nodes on any python-can interface, or a log")
     p.add_argument(
@@ -175,7 +174,8 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
         add_session_args(p)
         p.set_defaults(func=cmd_bridge)
 
-    emulate = sub.add_parser("emulate", help="emulated hardware only, for a bridge to open")
+
+def add_emulate_args(emulate: argparse.ArgumentParser) -> None:
     esub = emulate.add_subparsers(dest="device", required=True, metavar="DEVICE")
     for device, text in (
         ("slcan", "a slcan USB-CAN adapter with SmartSuit nodes"),
@@ -205,7 +205,8 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
         add_session_args(p)
         p.set_defaults(func=cmd_emulate)
 
-    node = sub.add_parser("node", help="emulated sensors with their bridge, live on Zenoh")
+
+def add_node_args(node: argparse.ArgumentParser) -> None:
     nsub = node.add_subparsers(dest="system", required=True, metavar="SYSTEM")
     for system, text in (
         ("smartsuit", "SmartSuit branches"),
