@@ -63,7 +63,7 @@ from bodynet.clients.body_tree import frame_transforms, segment_parents
 from bodynet.core import keys
 from bodynet.core.codecs import pose
 from bodynet.core.errors import DecodeError, Reason
-from bodynet.core.messages import OleAccel, RawSample
+from bodynet.core.messages import OleAccel, RawSample, source_name
 
 POSE_SCHEMA = {
     "title": "bodynet.PoseFrame",
@@ -267,7 +267,7 @@ def check_time(t_ns: int) -> int:
 def raw_json(sample: RawSample) -> dict[str, Any]:
     r = sample.reading
     out: dict[str, Any] = {"node": r.node, "seq": sample.seq, "t_ns": sample.t_ns,
-                           "source": sample.source.name.lower()}  # fmt: skip
+                           "source": source_name(sample.source)}  # fmt: skip
     if isinstance(r, OleAccel):
         out.update(encoder=r.encoder, accel=list(r.accel))
     else:
@@ -459,7 +459,7 @@ def _messages(path: Path, topics: Iterable[str] | None) -> Iterator[Any]:
 
 def raw_from_json(data: bytes) -> RawSample:
     """The raw sample a ``bodynet.RawSample`` message holds (see :func:`raw_json`)."""
-    from bodynet.core.messages import Quat, Source
+    from bodynet.core.messages import Quat, source_of
 
     try:
         d = json.loads(data)
@@ -469,7 +469,7 @@ def raw_from_json(data: bytes) -> RawSample:
         else:
             ax, ay, az = (int(c) for c in d["accel"])
             reading = OleAccel(int(d["node"]), int(d["encoder"]), (ax, ay, az))
-        return RawSample(reading, int(d["seq"]), int(d["t_ns"]), Source[str(d["source"]).upper()])
+        return RawSample(reading, int(d["seq"]), int(d["t_ns"]), source_of(str(d["source"])))
     except (ValueError, KeyError, TypeError) as exc:
         raise StoreError(f"not a raw-sample message: {exc}") from None
 
