@@ -106,6 +106,20 @@ WRITERS: Mapping[str, Writer] = {
             "C3D (biomechanics): joint centres in mm and joint angles as angle points",
             "c3d",
         ),
+        Writer(
+            "mot",
+            ".mot",
+            "OpenSim motion: joint angles as the coordinates of OpenSim's full-body models, "
+            "degrees",
+            "mot",
+        ),
+        Writer(
+            "sto",
+            ".sto",
+            "OpenSense IMU orientations: one <body>_imu quaternion column per segment, for "
+            "OpenSim's IMU inverse kinematics",
+            "sto",
+        ),
     )
 }
 
