@@ -505,18 +505,17 @@ class PosePublisher:
 
 
 def still_arm_trial(page: Any, publisher: PosePublisher, tmp_path: Path) -> None:
-    """A still arm: countdown, misses, a lost signal, an unobserved dof, the
-    therapist's Stop; nothing reached, nothing saved before the trial ends."""
+    """A still arm whose wrist flexion is held (not measured): countdowns, misses (the
+    rest stop too), a lost signal, the wrist stop "not measured", the therapist's
+    Stop; nothing reached, nothing saved before the trial ends."""
     assert text(page, "#file").startswith("not saved yet")
     assert saved(tmp_path) == []
     page.click("#start")
     # "1 / 9: Lift your arm forward" and the instruction: the label says what the cue says
     wait_text(page, "#target", "t.includes(' / 9: ') && "
                                "t.endsWith(': ' + document.getElementById('cue').textContent)")
-    wait_js(page, "document.getElementById('countdown').dataset.left !== ''")
-    assert text(page, "#countdown").endswith(" s")
-    page.wait_for_selector("#flash[data-outcome='missed']")
-    assert text(page, "#flash") == "Missed"
+    wait_text(page, "#countdown", "/^[0-9]+ s$/.test(t)")  # the countdown, in seconds
+    wait_text(page, "#flash", "t === 'Missed'")
     page.screenshot(path=str(tmp_path / "missed.png"))
     # the signal is lost: the instruction gives way, the target waits
     publisher.sending.clear()
@@ -529,15 +528,12 @@ def still_arm_trial(page: Any, publisher: PosePublisher, tmp_path: Path) -> None
     publisher.sending.set()
     page.wait_for_selector("#arm-state.ok")
     page.wait_for_selector("#cue:not(.lost)")
-    # the abduction sensor goes blind: the game waits for a measurement, then moves on
-    publisher.flags = {"shoulder_abduction": "unobserved"}
-    page.wait_for_selector("#cue.waiting")
-    assert "shoulder abduction" in text(page, "#cue")
-    page.wait_for_selector("#flash[data-outcome='not measured']")
-    publisher.flags = {}
     # the still arm at a rest stop it is already at: not reached, missed
-    wait_text(page, "#target", "t === '4 / 9: Lower your arm'")
-    page.wait_for_selector("#flash[data-outcome='missed'][data-i='4']")
+    wait_text(page, "#flash", "t === 'Missed' && "
+                              "document.getElementById('flash').dataset.i === '4'")
+    # the wrist's measurement is held: the game waits for one, then moves on
+    wait_text(page, "#cue", "t === 'Waiting for a measurement of wrist flexion'")
+    wait_text(page, "#flash", "t === 'Not measured (wrist flexion)'")
     assert text(page, "#file").startswith("not saved yet")
     page.click("#stop")
     row = page.wait_for_selector("#trials tr[data-complete='false']")
@@ -548,16 +544,14 @@ def still_arm_trial(page: Any, publisher: PosePublisher, tmp_path: Path) -> None
     trial = first["trials"][0]  # type: ignore[index]
     assert (trial["complete"], trial["reason"], trial["score"]) == (
         False, "stopped by the therapist", 0)  # fmt: skip
-    outcomes = [x["outcome"] for x in trial["targets"]]
-    assert outcomes[0] == outcomes[3] == "missed", outcomes
-    assert sorted(outcomes[:4]) == ["missed", "missed", "missed", "not measured"], outcomes
     assert not any(x["reached"] for x in trial["targets"])
-    for x in trial["targets"][:4]:
-        assert x["waited_for"] == (["shoulder_abduction"] if x["outcome"] != "missed" else [])
+    assert [(x["outcome"], x["waited_for"]) for x in trial["targets"][:5]] == [
+        *[("missed", [])] * 4, ("not measured", ["wrist_flexion"])]  # fmt: skip
     lost = int(lost_at.split(" / ")[0]) - 1  # the target whose signal was lost
     assert trial["targets"][lost]["paused_s"] > 1.5  # 2 s without a pose, less GAP_S
     assert trial["stale_s"] > 0.8  # the same, less STALE_S (and a tick)
     assert trial["rom_deg"]["shoulder_flexion"]["range"] == 0.0
+    assert "wrist_flexion" not in trial["rom_deg"]  # never measured
 
 
 def second_session(page: Any, publisher: PosePublisher) -> None:
@@ -607,9 +601,9 @@ def test_browser_still_arm_countdown_miss_signal_loss_and_a_second_session(
 ) -> None:
     """Poses published here: the game waits for its router (and says so), a still arm
     sees every countdown run out (missed, score 0), a lost signal pauses the target and
-    replaces the instruction, an unobserved dof ends targets "not measured"; then a
-    second session without a restart, its trial stopped by the therapist, and the
-    therapist's view of both sessions."""
+    replaces the instruction, a held dof ends its target "not measured"; then a second
+    session without a restart, its trial stopped by the therapist, and the therapist's
+    view of both sessions."""
     from zenoh_helpers import free_port
 
     endpoint = f"tcp/127.0.0.1:{free_port()}"
@@ -622,6 +616,7 @@ def test_browser_still_arm_countdown_miss_signal_loss_and_a_second_session(
     wait_text(page, "#arm-state", "t.startsWith('waiting for the Zenoh router')")
     assert text(page, "#cue").startswith("Waiting for the Zenoh router")
     publisher = PosePublisher(endpoint)  # the router comes up, with a still arm
+    publisher.flags = {"wrist_flexion": "held"}
     try:
         page.wait_for_selector("#arm-state.ok", timeout=30_000)
         still_arm_trial(page, publisher, tmp_path)
