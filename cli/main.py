@@ -16,6 +16,7 @@ from bodynet.cli import analysis as analysis_cli
 from bodynet.cli import clients as clients_cli
 from bodynet.cli import game as game_cli
 from bodynet.cli import gateway as gateway_cli
+from bodynet.cli import live as live_cli
 from bodynet.cli import nodes as nodes_cli
 from bodynet.cli import security as security_cli
 from bodynet.nodes.captures import CaptureStats, Format, read_capture, sample_json
@@ -146,6 +147,7 @@ def build_parser() -> argparse.ArgumentParser:
     clients_cli.add_record_parsers(sub)
     analysis_cli.add_parsers(sub)
     game_cli.add_parsers(sub)
+    live_cli.add_parsers(sub)
     security_cli.add_parsers(sub)
 
     p = sub.add_parser("router", help="a Zenoh router for the body network (no zenohd needed)")
