@@ -71,8 +71,7 @@ def _positive(kind: type) -> object:
     return parse
 
 
-def add_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
-    p = sub.add_parser("game", help="the arm-reaching rehabilitation game, in a browser")
+def add_game_args(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--arm",
         choices=("left", "right"),
@@ -125,4 +124,3 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
         help="seconds a waiting ball gives the player before moving on (default 20)",
     )
     add_session_args(p)
-    p.set_defaults(func=cmd_game)

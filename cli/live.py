@@ -73,26 +73,19 @@ def _host(text: str) -> str:
     return text
 
 
-def _add_subject_choice(p: argparse.ArgumentParser) -> None:
+def add_lsl_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--raw", action="store_true",
+                   help="also one stream per sensor site with its raw samples")  # fmt: skip
     p.add_argument("--all-subjects", action="store_true",
                    help="every subject on the network (<subject>/body/...), each its own "
                         "streams; else the session's --subject (or none)")  # fmt: skip
-
-
-def add_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
-    p = sub.add_parser("lsl", help="the live body as Lab Streaming Layer streams (LabRecorder)")
-    p.add_argument("--raw", action="store_true",
-                   help="also one stream per sensor site with its raw samples")  # fmt: skip
-    _add_subject_choice(p)
     add_session_args(p)
-    p.set_defaults(func=cmd_lsl)
 
-    p = sub.add_parser("vmc", help="the live body over the VMC protocol (Unity, VSeeFace, "
-                                   "Blender add-ons)")  # fmt: skip
+
+def add_vmc_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--host", type=_host, default="127.0.0.1",
                    help="where the VMC receiver (marionette) runs (default 127.0.0.1)")  # fmt: skip
     p.add_argument("--port", type=_port, default=39539, help="its UDP port (default 39539)")
     p.add_argument("--rate-hz", type=_rate, default=60.0,
                    help="bundles per second, each the newest pose (default 60)")  # fmt: skip
     add_session_args(p)
-    p.set_defaults(func=cmd_vmc)
