@@ -134,6 +134,76 @@ def add_calibrate_args(cal: argparse.ArgumentParser) -> None:
     add_session_args(p)
     p.set_defaults(func=cmd_calibrate_tpose)
     add_calibrate_ole_parser(csub)
+    add_calibrate_assign_parser(csub)
+
+
+def _tracker_arg(text: str) -> str:
+    from bodynet.core.codecs.slimevr import normalise_tracker_id
+
+    try:
+        return normalise_tracker_id(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def _site_arg(text: str) -> keys.Site:
+    try:
+        return keys.site_named(text)
+    except keys.KeySpaceError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def add_calibrate_assign_parser(csub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    p = csub.add_parser("assign", help="put a tracker (SlimeVR: MAC-sensor) on a site")
+    p.add_argument("tracker", type=_tracker_arg,
+                   help="the tracker's id, e.g. aabbccddeeff-0 (body/@topology lists "
+                        "unassigned ones)")  # fmt: skip
+    p.add_argument("site", type=_site_arg, help="where it sits, e.g. left-arm/upperarm")
+    p.add_argument("--profile", type=Path, help="also keep it in this profile (TOML)")
+    p.add_argument("--offline", action="store_true",
+                   help="only write the profile; tell no running bridge")  # fmt: skip
+    p.add_argument("--timeout", type=float, default=3.0,
+                   help="seconds to wait for a bridge to publish the site")  # fmt: skip
+    add_session_args(p)
+    p.set_defaults(func=cmd_calibrate_assign)
+
+
+def cmd_calibrate_assign(args: argparse.Namespace) -> int:
+    """Save the assignment in the profile, and tell the running bridges: the
+    tracker's samples then come on the site's key."""
+    import time
+
+    name = keys.site_name(args.site)
+    if args.profile is not None:
+        from bodynet.gateway import profile_file
+
+        try:
+            profile = _profile(args.profile).with_tracker(args.tracker, name)
+            profile_file.save(profile, args.profile)
+        except (ProfileError, OSError) as exc:
+            print(f"bodynet calibrate assign: {exc}", file=sys.stderr)
+            return 2
+        print(f"{args.tracker} -> {name}: saved in {args.profile}", file=sys.stderr)
+    elif args.offline:
+        print("bodynet calibrate assign: --offline needs --profile", file=sys.stderr)
+        return 2
+    if args.offline:
+        return 0
+    session = open_session(config_from_args(args))
+    try:
+        session.put(keys.ASSIGN, json.dumps({"tracker": args.tracker, "site": name}))
+        deadline = time.monotonic() + args.timeout
+        while time.monotonic() < deadline:
+            if any(r.ok is not None for r in session.liveliness().get(args.site.raw_key,
+                                                                       timeout=0.5)):  # fmt: skip
+                print(f"{args.tracker} -> {name}: live on {args.site.raw_key}", file=sys.stderr)
+                return 0
+            time.sleep(0.1)
+    finally:
+        session.close()
+    print(f"bodynet calibrate assign: no bridge published {args.site.raw_key} within "
+          f"{args.timeout:g} s (is the tracker streaming?)", file=sys.stderr)  # fmt: skip
+    return 0 if args.profile is not None else 1
 
 
 def cmd_process(args: argparse.Namespace) -> int:

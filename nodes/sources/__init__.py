@@ -21,6 +21,7 @@ REGISTRY: dict[str, str] = {
     "can": "bodynet.nodes.sources.smartsuit_can:SmartSuitCan",
     "concentrator": "bodynet.nodes.sources.concentrator:Concentrator",
     "imu-central": "bodynet.nodes.sources.imu_central:ImuCentral",
+    "slimevr": "bodynet.nodes.sources.slimevr:SlimeVR",
 }
 
 _loaded: dict[str, type[Source]] = {}
