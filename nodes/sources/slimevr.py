@@ -298,6 +298,7 @@ class EmulatedTrackers:
         self.body = body
         self.truth = truth
         self.link = f"{server[0]}:{server[1]}"
+        self.tolerance_s = 0.5 / rate_hz  # trackers a period's half apart share a sample
         self._lock = threading.Lock()
         self._cache: tuple[float, dict[int, tuple[float, float, float, float]]] = (-1.0, {})
         nodes = [s.node for s in body.sensors]
@@ -315,7 +316,7 @@ class EmulatedTrackers:
     def _quat(self, node: int, t: float) -> tuple[float, float, float, float]:
         with self._lock:  # one body sample a period for every tracker
             at, quats = self._cache
-            if abs(t - at) > 0.002:
+            if abs(t - at) > self.tolerance_s:
                 readings, truths = self.body.sample(t)
                 quats = {r.node: r.wxyz for r in readings}
                 self._cache = (t, quats)
