@@ -59,7 +59,7 @@ from mcap.records import Channel, Message, Schema
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
-from bodynet.clients.body_tree import frame_transforms_json, segment_parents
+from bodynet.clients.body_tree import frame_transforms, segment_parents
 from bodynet.core import keys
 from bodynet.core.codecs import pose
 from bodynet.core.errors import DecodeError, Reason
@@ -317,6 +317,9 @@ def keep_large_buffers_off_heap() -> bool:
 _M_MMAP_THRESHOLD = -3  # glibc's malloc.h
 
 
+TF_BATCH = 64  # whole-body poses whose transforms are made together
+
+
 class McapSink:
     """Writes poses and raw samples to one MCAP file; each whole-body pose
     (``body/pose``) also as Foxglove frame transforms on ``body/tf``. A chunk is
@@ -353,6 +356,7 @@ class McapSink:
         self.messages = 0
         self._max_chunk_s = max_chunk_s
         self._chunk_opened = time.monotonic()
+        self._tf_pending: list[tuple[int, Any]] = []  # whole-body poses awaiting transforms
 
     def _channel(self, topic: str, kind: str) -> int:
         channel = self._channels.get(topic)
@@ -368,12 +372,22 @@ class McapSink:
         pose again costs twice as much as decoding it)."""
         check_time(log_time_ns)  # before the pose: its transforms share its time
         data = pose.encode(frame) if data is None else data
-        self._add(self._channel(topic, "pose"), log_time_ns, data)
         if topic == keys.pose_key():
-            tf = frame_transforms_json(frame.segments, log_time_ns, self._parents,
-                                       WORLD_FRAME)  # fmt: skip
-            self._add(self._channel(keys.TRANSFORMS, "tf"), log_time_ns,
-                      orjson.dumps(tf))  # fmt: skip
+            # its transforms are made with the next ones' (at most TF_BATCH), and
+            # before the writer closes a chunk on time, so salvage keeps them
+            self._tf_pending.append((log_time_ns, frame.segments))
+            if len(self._tf_pending) >= TF_BATCH:
+                self._write_transforms()
+        self._add(self._channel(topic, "pose"), log_time_ns, data)
+
+    def _write_transforms(self) -> None:
+        pending, self._tf_pending = self._tf_pending, []
+        channel = self._channel(keys.TRANSFORMS, "tf")
+        for (t_ns, _), tf in zip(
+            pending, frame_transforms(pending, self._parents, WORLD_FRAME), strict=True
+        ):
+            self._writer.add_message(channel, t_ns, tf, t_ns)
+            self.messages += 1
 
     def write_raw(self, topic: str, sample: RawSample, log_time_ns: int) -> None:
         try:
@@ -388,6 +402,8 @@ class McapSink:
         self.messages += 1
         now = time.monotonic()
         if now - self._chunk_opened >= self._max_chunk_s:
+            if self._tf_pending:
+                self._write_transforms()
             self._writer.flush()  # closes the open chunk: on disk, salvageable
             self._chunk_opened = now
 
@@ -408,6 +424,8 @@ class McapSink:
         self._add(self._channel(GAPS_TOPIC, "gap"), gap.to_t_ns, data)
 
     def close(self) -> None:
+        if self._tf_pending:
+            self._write_transforms()
         self._writer.finish()
         self._stream.close()
 
