@@ -207,7 +207,7 @@ def cmd_calibrate_assign(args: argparse.Namespace) -> int:
 
 
 def cmd_process(args: argparse.Namespace) -> int:
-    from bodynet.nodes.captures import format_of
+    from bodynet.nodes.captures import CaptureError, capture_options, format_of
     from bodynet.offline.process import process
 
     fmt = args.format or format_of(args.input)
@@ -217,8 +217,8 @@ def cmd_process(args: argparse.Namespace) -> int:
     try:
         profile = _profile(args.profile)
         result = process(args.input, fmt, args.output, profile, args.rate_hz,
-                         args.tick_hz, args.tpose_s)  # fmt: skip
-    except (ProfileError, OSError) as exc:
+                         args.tick_hz, args.tpose_s, capture_options(args))  # fmt: skip
+    except (ProfileError, OSError, CaptureError) as exc:
         print(f"bodynet process: {exc}", file=sys.stderr)
         return 2
     print(f"{result.ticks} ticks from {result.samples} samples -> {args.output}; "
@@ -228,10 +228,11 @@ def cmd_process(args: argparse.Namespace) -> int:
 
 
 def add_process_args(p: argparse.ArgumentParser) -> None:
-    from bodynet.nodes.captures import formats
+    from bodynet.nodes.captures import add_capture_args, formats
 
     p.add_argument("input", type=Path, help="a capture (any format of `bodynet decode`)")
     p.add_argument("--format", choices=formats())
+    add_capture_args(p)
     p.add_argument("--rate-hz", type=float, default=None, help="as for `bodynet decode`")
     p.add_argument("--tick-hz", type=float, default=100.0, help="most poses per second of capture")
     p.add_argument(

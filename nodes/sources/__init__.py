@@ -22,6 +22,7 @@ REGISTRY: dict[str, str] = {
     "concentrator": "bodynet.nodes.sources.concentrator:Concentrator",
     "imu-central": "bodynet.nodes.sources.imu_central:ImuCentral",
     "slimevr": "bodynet.nodes.sources.slimevr:SlimeVR",
+    "orientation-file": "bodynet.nodes.sources.orientation_files:OrientationFile",
 }
 
 _loaded: dict[str, type[Source]] = {}
