@@ -34,7 +34,7 @@ from bodynet.core.codecs import imu_matrix, pose
 from bodynet.core.keys import BRANCHES
 from bodynet.core.messages import Quat
 from bodynet.core.skeleton import TPOSE, build_skeleton
-from bodynet.gateway.service import branch_views
+from bodynet.gateway.frames import branch_views
 from bodynet.nodes.emulator import BodyEmulator, Realism, imu_tags
 from bodynet.nodes.motion import ROUTINES, Routine
 
