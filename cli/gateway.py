@@ -137,17 +137,16 @@ def add_calibrate_args(cal: argparse.ArgumentParser) -> None:
 
 
 def cmd_process(args: argparse.Namespace) -> int:
-    from bodynet.gateway.offline import process
-    from bodynet.nodes.captures import Format
+    from bodynet.nodes.captures import format_of
+    from bodynet.offline.process import process
 
-    fmt = args.format or ("can-log" if args.input.suffix.lower() in (".log", ".asc", ".blf", ".trc")
-                          else None)  # fmt: skip
+    fmt = args.format or format_of(args.input)
     if fmt is None:
         print("bodynet process: say which --format the capture is in", file=sys.stderr)
         return 2
     try:
         profile = _profile(args.profile)
-        result = process(args.input, Format(fmt), args.output, profile, args.rate_hz,
+        result = process(args.input, fmt, args.output, profile, args.rate_hz,
                          args.tick_hz, args.tpose_s)  # fmt: skip
     except (ProfileError, OSError) as exc:
         print(f"bodynet process: {exc}", file=sys.stderr)
@@ -159,10 +158,10 @@ def cmd_process(args: argparse.Namespace) -> int:
 
 
 def add_process_args(p: argparse.ArgumentParser) -> None:
-    from bodynet.nodes.captures import Format
+    from bodynet.nodes.captures import formats
 
     p.add_argument("input", type=Path, help="a capture (any format of `bodynet decode`)")
-    p.add_argument("--format", choices=[f.value for f in Format])
+    p.add_argument("--format", choices=formats())
     p.add_argument("--rate-hz", type=float, default=None, help="as for `bodynet decode`")
     p.add_argument("--tick-hz", type=float, default=100.0, help="most poses per second of capture")
     p.add_argument(

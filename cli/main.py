@@ -104,9 +104,9 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
 
 def add_decode_args(p: argparse.ArgumentParser) -> None:
-    from bodynet.nodes.captures import Format
+    from bodynet.nodes.captures import formats
 
-    p.add_argument("--format", required=True, choices=[f.value for f in Format])
+    p.add_argument("--format", required=True, choices=formats())
     p.add_argument("--rate-hz", type=float, default=None,
                    help="samples' time base where the capture has none "
                         "(concentrator: 1/22 ms; imu-central: 25 Hz)")  # fmt: skip
@@ -178,7 +178,7 @@ COMMANDS: dict[str, Command] = {
                       "bodynet.cli.main:add_decode_args", "bodynet.cli.main:cmd_decode"),
     "demo": Command("the main job: show the system at work",
                     "bodynet.cli.main:add_demo_args", "bodynet.cli.main:cmd_demo"),
-    "bridge": Command("bridge a CAN bus or serial receiver onto Zenoh",
+    "bridge": Command("bridge a device (CAN bus, serial port, UDP) onto Zenoh",
                       "bodynet.cli.nodes:add_bridge_args"),
     "emulate": Command("emulated hardware only, for a bridge to open",
                        "bodynet.cli.nodes:add_emulate_args"),
@@ -206,6 +206,10 @@ COMMANDS: dict[str, Command] = {
                       "bodynet.cli.analysis:add_report_args", "bodynet.cli.analysis:cmd_report"),
     "game": Command("the arm-reaching rehabilitation game, in a browser",
                     "bodynet.cli.game:add_game_args", "bodynet.cli.game:cmd_game"),
+    "lsl": Command("the live body as Lab Streaming Layer streams (LabRecorder)",
+                   "bodynet.cli.live:add_lsl_args", "bodynet.cli.live:cmd_lsl"),
+    "vmc": Command("the live body over the VMC protocol (Unity, VSeeFace, Blender add-ons)",
+                   "bodynet.cli.live:add_vmc_args", "bodynet.cli.live:cmd_vmc"),
     "certs": Command("a CA, certificates and Zenoh configs for a secure router and its clients",
                      "bodynet.cli.security:add_certs_args", "bodynet.cli.security:cmd_certs"),
     "router": Command("a Zenoh router for the body network (no zenohd needed)",
