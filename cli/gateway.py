@@ -175,7 +175,7 @@ def cmd_calibrate_assign(args: argparse.Namespace) -> int:
 
     name = keys.site_name(args.site)
     if args.profile is not None:
-        from bodynet.gateway import profile_file
+        from bodynet.session import profile_file
 
         try:
             profile = _profile(args.profile).with_tracker(args.tracker, name)

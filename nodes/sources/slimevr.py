@@ -95,7 +95,7 @@ class SlimeVR(Source):
 
         assignments: dict[str, Site] = {}
         if args.profile is not None and args.profile.exists():
-            from bodynet.gateway import profile_file
+            from bodynet.session import profile_file
 
             profile = profile_file.load(args.profile)
             assignments = {t: site_named(s) for t, s in profile.trackers.items()}
