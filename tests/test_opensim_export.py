@@ -4,19 +4,17 @@ recording's poses."""
 
 from __future__ import annotations
 
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import opensim as osim
 import pytest
+from export_recordings import export
 from scipy.spatial.transform import Rotation
 
 from bodynet.clients.mcap_store import read_poses
 from bodynet.core.codecs import pose
 
-BODYNET = Path(sys.executable).with_name("bodynet")
 # bodynet (+X forward, +Y left, +Z up) -> OpenSim's ground (+X forward, +Y up, +Z right)
 TO_OPENSIM = Rotation.from_matrix([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
 
@@ -61,13 +59,6 @@ IMUS = {
 }  # fmt: skip
 
 
-def export(kind: str, recording: Path, out: Path, *args: object) -> None:
-    result = subprocess.run([str(BODYNET), "export", kind, str(recording), "-o", str(out),
-                             *map(str, args)], capture_output=True, text=True, timeout=120,
-                            check=False)  # fmt: skip
-    assert result.returncode == 0, result.stderr
-
-
 def poses(path: Path) -> list[pose.PoseFrame]:
     return [frame for _, frame in read_poses(path)]
 
@@ -77,9 +68,11 @@ def columns(table: osim.TimeSeriesTable) -> dict[str, np.ndarray]:
             for label in table.getColumnLabels()}  # fmt: skip
 
 
-def test_mot_read_by_opensim(body_mcap: Path, tmp_path: Path) -> None:
+def test_mot_read_by_opensim(
+    body_mcap: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     out = tmp_path / "session.mot"
-    export("mot", body_mcap, out)
+    export(capsys, "mot", body_mcap, "-o", out)
     table = osim.TimeSeriesTable(str(out))
     frames = poses(body_mcap)
     assert table.getNumRows() == len(frames)
@@ -115,9 +108,11 @@ def quaternions(table: osim.TimeSeriesTableQuaternion) -> dict[str, np.ndarray]:
             for label in table.getColumnLabels()}  # fmt: skip
 
 
-def test_sto_read_by_opensim(body_mcap: Path, tmp_path: Path) -> None:
+def test_sto_read_by_opensim(
+    body_mcap: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     out = tmp_path / "session.sto"
-    export("sto", body_mcap, out)
+    export(capsys, "sto", body_mcap, "-o", out)
     header = out.read_text().split("endheader", 1)[0].splitlines()
     assert {"DataType=Quaternion", "version=3", "OpenSimVersion=4.6"} <= set(header)
     table = osim.TimeSeriesTableQuaternion(str(out))
