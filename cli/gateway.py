@@ -15,7 +15,7 @@ from bodynet.session import DEFAULT_ROUTER, add_session_args, config_from_args, 
 
 
 def _profile(path: Path | None) -> Profile:
-    from bodynet.gateway import profile_file
+    from bodynet.session import profile_file
 
     if path is None or not path.exists():
         return Profile()
@@ -224,8 +224,8 @@ def _still_counts(session: object, key: str, seconds: float) -> tuple[float, flo
 
 
 def cmd_calibrate_ole(args: argparse.Namespace) -> int:
-    from bodynet.gateway import profile_file
     from bodynet.gateway.calibrate import fit_calibration
+    from bodynet.session import profile_file
 
     key, angle_name = _module_site(args.joint)
     pairs: list[tuple[float, float]] = []

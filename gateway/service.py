@@ -30,11 +30,10 @@ import queue
 import threading
 import time
 from collections import Counter, deque
-from collections.abc import Iterable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
 import zenoh
 
 from bodynet.core import keys
@@ -43,8 +42,9 @@ from bodynet.core.errors import DecodeError, Reason, RejectCounts
 from bodynet.core.keys import BRANCHES, Branch, Site
 from bodynet.core.messages import Quat, RawSample, source_name
 from bodynet.core.subject import Profile, ProfileError, QuatWxyz
-from bodynet.gateway import profile_file
+from bodynet.gateway.frames import branch_views, pose_frame
 from bodynet.gateway.solver import BodyOutput, BodySolver, solve_bodies, tpose_mounts
+from bodynet.session import profile_file
 
 log = logging.getLogger(__name__)
 
@@ -63,53 +63,6 @@ INTAKE_DEPTH = 1 << 16
 #: How long the idle worker sleeps before it looks again: while samples flow, and
 #: after a second without any.
 IDLE_S, IDLE_QUIET_S = 0.0003, 0.005
-
-
-def branch_parts(branch: Branch) -> tuple[tuple[str, ...], tuple[str, ...]]:
-    """The joints and segments of a branch."""
-    if branch == keys.TRUNK:
-        return ("lumbar", "neck"), ("pelvis", "thorax", "head")
-    side = branch.side
-    if branch.limb is keys.Limb.ARM:
-        return tuple(f"{side}_{j}" for j in ("shoulder", "elbow", "wrist")), tuple(
-            f"{side}_{s}" for s in ("upperarm", "forearm", "hand")
-        )
-    return tuple(f"{side}_{j}" for j in ("hip", "knee", "ankle")), tuple(
-        f"{side}_{s}" for s in ("thigh", "shank", "foot")
-    )
-
-
-def branch_views(frame: pose.PoseFrame, branches: Iterable[Branch]) -> dict[Branch, pose.PoseFrame]:
-    """Each branch's view of a whole-body pose: its joints, segments and sources."""
-    views = {}
-    for branch in branches:
-        joints, segments = branch_parts(branch)
-        views[branch] = frame.subset(joints, segments, branch.key + "/")
-    return views
-
-
-def pose_frame(output: BodyOutput, seq: int, stale: Sequence[str]) -> pose.PoseFrame:
-    """The message of one tick, numbers rounded to 1e-6 (microdegrees, micrometres)."""
-    names = output.names
-    # one rounding and one conversion to Python floats for every number of the tick,
-    # cut back into vectors by zip (a body's message is built 100 times a second)
-    n_p, n_q = output.positions.size, output.quats.size
-    flat = np.round(np.concatenate([output.positions.ravel(), output.quats.ravel(),
-                                    output.angles, output.rel]), 6).tolist()  # fmt: skip
-    p, q = iter(flat[:n_p]), iter(flat[n_p : n_p + n_q])
-    positions = list(zip(p, p, p, strict=True))
-    segments = zip(positions, zip(q, q, q, q, strict=True), strict=True)
-    return pose.PoseFrame(
-        seq,
-        output.t_ns,
-        dict(zip(names.angles, flat[n_p + n_q : n_p + n_q + len(names.angles)], strict=True)),
-        dict(zip(names.joints, flat[n_p + n_q + len(names.angles) :], strict=True)),
-        dict(zip(names.segments, segments, strict=True)),
-        dict(zip(names.joints, map(positions.__getitem__, names.joint_segment), strict=True)),
-        output.flags,
-        output.sources,
-        list(stale),
-    )
 
 
 class _Site:

@@ -21,7 +21,7 @@ from bodynet.core import keys
 from bodynet.core.keys import BRANCHES, Site
 from bodynet.core.messages import Quat, RawSample
 from bodynet.core.subject import Profile
-from bodynet.gateway.service import branch_views, pose_frame
+from bodynet.gateway.frames import branch_views, pose_frame
 from bodynet.gateway.solver import BodySolver, tpose_mounts
 from bodynet.nodes import sources
 from bodynet.nodes.sources.base import CapturedSample, CaptureStats
