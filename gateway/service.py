@@ -95,6 +95,7 @@ class _Body:
         self.latest: dict[Site, _Site] = {}
         self.alive: set[str] = set()
         self.gone: set[str] = set()  # keys whose token went away
+        self.unassigned: set[str] = set()  # trackers streaming with no site yet
         self.published_stale: set[str] = set()
         self.topology_text = ""
         self.samples = 0
@@ -209,7 +210,10 @@ class _Body:
             assert isinstance(nodes, dict)
             nodes[key] = {"state": state, "node": seen.sample.reading.node if seen else None,
                           "last_t_ns": seen.sample.t_ns if seen else None}  # fmt: skip
-        return {"t_ns": time.time_ns(), "branches": branches}
+        out: dict[str, object] = {"t_ns": time.time_ns(), "branches": branches}
+        if self.unassigned:
+            out["unassigned"] = sorted(self.unassigned)
+        return out
 
     def tpose_window(self, now: float, seconds: float) -> dict[Site, list[QuatWxyz]]:
         return {
@@ -267,9 +271,9 @@ class Gateway:
         self._subs = [session.declare_subscriber(p + sel, zenoh.handlers.FifoChannel(INTAKE_DEPTH))
                       for p in prefixes for sel in inner]  # fmt: skip
         self._live = [
-            session.liveliness().declare_subscriber(p + keys.all_raw(), self._on_token,
-                                                    history=True)
+            session.liveliness().declare_subscriber(p + sel, self._on_token, history=True)
             for p in prefixes
+            for sel in (keys.all_raw(), keys.UNASSIGNED + "/*")  # sensors, unassigned trackers
         ]  # fmt: skip
         self._queryables = [
             q
@@ -486,6 +490,9 @@ class Gateway:
     def _token(self, subject: str | None, token: _Token) -> _Body | None:
         """Apply a token's coming or going to its subject's body; that body (to
         be solved at once, its topology having changed), if there is one."""
+        if token.key.startswith(keys.UNASSIGNED + "/"):
+            self._unassigned(subject, token)
+            return None
         try:
             site, _ = keys.parse(token.key)
         except keys.KeySpaceError:
@@ -500,6 +507,17 @@ class Gateway:
             (body.gone.discard if token.alive else body.gone.add)(token.key)
         self._publish_topology(body)
         return body
+
+    def _unassigned(self, subject: str | None, token: _Token) -> None:
+        """A tracker with no site (a bridge's ``body/@unassigned/<id>`` token) came
+        or went: the topology lists it, for the user to assign."""
+        body = self._body(subject)
+        if body is None:
+            return
+        tracker = token.key[len(keys.UNASSIGNED) + 1 :]
+        with self._lock:
+            (body.unassigned.add if token.alive else body.unassigned.discard)(tracker)
+        self._publish_topology(body)
 
     def _housekeeping(self, now: float) -> None:
         """Once a second for each body, one body a round (twenty bodies' topology
