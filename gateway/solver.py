@@ -453,6 +453,7 @@ class BodySolver:
                                                 self.axes[j.name].axes[0])
                             for j in self.skeleton.joints}  # fmt: skip
         self._memory = _Memory()
+        self._all_mounted = False  # assume_calibrated
         self._sites: dict[Site, tuple[str, np.ndarray, str, bool, bool]] = {}
         self._plans: dict[tuple[str, ...], tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
 
@@ -466,7 +467,7 @@ class BodySolver:
             w, x, y, z = mounts.get(site.raw_key, (1.0, 0.0, 0.0, 0.0))
             known = self._sites[site] = (mount(site).segment, _matrix((w, x, y, z)).T,
                                          site.raw_key, site.name in OLE_DOF,
-                                         site.raw_key in mounts)  # fmt: skip
+                                         self._all_mounted or site.raw_key in mounts)  # fmt: skip
         return known
 
     def solve(self, samples: Mapping[Site, RawSample]) -> BodyOutput:
@@ -536,6 +537,13 @@ class BodySolver:
             tick.plan = self._direct_plan(tuple(tick.segs))
             self._memory.expected.update(tick.segs)
         return tick
+
+    def assume_calibrated(self) -> None:
+        """Take every orientation sensor's orientation as its segment's, calibrated
+        (the profile's mount, else none): for orientations given per segment, such
+        as OpenSense files processed without a T-pose. Call before the first solve."""
+        self._all_mounted = True
+        self._sites.clear()
 
     def expect(self, raw_keys: Iterable[str], complete: bool = False) -> None:
         """Orientation sensors this body has (the gateway's topology: nodes whose

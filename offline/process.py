@@ -60,14 +60,18 @@ def process(path: Path, fmt: str, out: Path, profile: Profile | None = None,
     start: float | None = None
     for s in source.read(path, fmt, CaptureStats(), rate_hz):
         start = s.t_s if start is None else start
-        if s.t_s - start >= tpose_s:
+        if s.t_s - start >= max(tpose_s, 1.0):
             break
         sites.add(s.site.raw_key)
+        if s.t_s - start >= tpose_s:
+            continue
         if isinstance(s.reading, Quat) and s.site.raw_key not in profile.imu_mounts:
             window.setdefault(s.site, []).append(s.reading.wxyz)
     mounts = tpose_mounts(window, profile) if window else {}
     solver = BodySolver(profile.with_mounts(mounts))
     solver.expect(sites, complete=True)
+    if tpose_s <= 0:  # no T-pose: the orientations are the segments' own, as given
+        solver.assume_calibrated()
     stats = CaptureStats()
     sink = McapSink(out)
     latest: dict[Site, RawSample] = {}
