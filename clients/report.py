@@ -355,10 +355,10 @@ def uncertainty(rec: Recording, still: tuple[float, float] | None, still_s: floa
     if b - a < 2:
         raise ReportError(f"{rec.source}: the still window holds {max(b - a, 0)} poses, 2 needed")
     rows = []
-    for c in rec.observed:
+    for c in steady:  # the channels the window was chosen on: still in it
         window = rec.angles[c].to_numpy(float)[a:b]
         if not np.isfinite(window).all():
-            continue  # not measured throughout the window: listed under "left out"
+            continue  # not measured throughout the window
         ta = stats.type_a(window)
         rows.append({"channel": c, "n": ta.n, "best estimate q̄ (deg)": ta.mean,
                      "s²(q_k) (deg²)": ta.variance, "s(q_k) (deg)": ta.sd,
@@ -465,7 +465,8 @@ def _blocks(an: Analysis, images: dict[str, str]) -> list[Block]:
             ("p", f"Still window {un.window_s[0]:.2f}-{un.window_s[1]:.2f} s of {first.source} "
                   f"({un.how}). Best estimate q̄ (eq. 8.1), experimental variance and SD "
                   "(eq. 8.2, n - 1), variance and SD of the mean (eq. 8.3). Joint angles not "
-                  "measured throughout the window are left out."),
+                  "measured throughout the recording after calibration are left out (the "
+                  "window is chosen where the others are still)."),
             ("table", un.table)]  # fmt: skip
     return out
 
