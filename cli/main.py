@@ -209,6 +209,13 @@ COMMANDS: dict[str, Command] = {
                       "bodynet.cli.analysis:add_report_args", "bodynet.cli.analysis:cmd_report"),
     "game": Command("the arm-reaching rehabilitation game, in a browser",
                     "bodynet.cli.game:add_game_args", "bodynet.cli.game:cmd_game"),
+    "lsl": Command("the live body as Lab Streaming Layer streams (LabRecorder)",
+                   "bodynet.cli.live:add_lsl_args", "bodynet.cli.live:cmd_lsl"),
+    "vmc": Command("the live body over the VMC protocol (Unity, VSeeFace, Blender add-ons)",
+                   "bodynet.cli.live:add_vmc_args", "bodynet.cli.live:cmd_vmc"),
+    "metrics": Command("clinical numbers live on body/@metrics: range of motion, repetitions, "
+                       "smoothness", "bodynet.cli.live:add_metrics_args",
+                       "bodynet.cli.live:cmd_metrics"),
     "certs": Command("a CA, certificates and Zenoh configs for a secure router and its clients",
                      "bodynet.cli.security:add_certs_args", "bodynet.cli.security:cmd_certs"),
     "router": Command("a Zenoh router for the body network (no zenohd needed)",

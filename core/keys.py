@@ -182,6 +182,9 @@ HEALTH = f"{ROOT}/@health"
 
 
 TOPOLOGY = f"{ROOT}/@topology"
+#: Per subject, about twice a second: each observed dof's range of motion so far,
+#: repetitions and the smoothness of its current movement (``core/metrics.py``).
+METRICS = f"{ROOT}/@metrics"
 CALIBRATE_TPOSE = f"{ROOT}/@calibrate/tpose"
 
 

@@ -93,3 +93,14 @@ def arm_mcap(tmp_path_factory: pytest.TempPathFactory) -> Path:
     out = tmp_path_factory.mktemp("arm") / "arm.mcap"
     _bodynet("process", DATA / "smartsuit_arm.log", "-o", out)
     return out
+
+
+@pytest.fixture(scope="session")
+def flagged(body_mcap: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """``body_mcap`` with some angles flagged not measured for a window of frames
+    (``flagged_recording``)."""
+    from flagged_recording import write_flagged
+
+    out = tmp_path_factory.mktemp("flagged") / "flagged.mcap"
+    write_flagged(body_mcap, out)
+    return out

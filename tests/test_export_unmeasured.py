@@ -6,7 +6,6 @@ format and read back by that format's reader."""
 from __future__ import annotations
 
 import csv
-import dataclasses
 import subprocess
 import sys
 from pathlib import Path
@@ -14,37 +13,15 @@ from pathlib import Path
 import ezc3d
 import numpy as np
 import pytest
+from flagged_recording import FLAGS, UNMEASURED, WINDOW
 
-from bodynet.clients.mcap_store import McapSink, read_poses
-from bodynet.core import keys
+from bodynet.clients.mcap_store import read_poses
 from bodynet.core.codecs import pose
 
 BODYNET = Path(sys.executable).with_name("bodynet")
-WINDOW = range(100, 121)  # frames (25 Hz) in the moving part of the recording
-FLAGS = {
-    "left_elbow_pronation_deg": "unobserved",
-    "left_knee_flexion_deg": "uncalibrated",
-    "right_elbow_flexion_deg": "clamped",  # measured: a value at a limit
-}
-UNMEASURED = [a for a, f in FLAGS.items() if f != "clamped"]
-
-
 def run(*args: object) -> subprocess.CompletedProcess[str]:
     return subprocess.run([str(BODYNET), *map(str, args)], capture_output=True, text=True,
                           timeout=120, check=False)  # fmt: skip
-
-
-@pytest.fixture(scope="module")
-def flagged(body_mcap: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """``body_mcap`` with FLAGS added to the poses of WINDOW."""
-    out = tmp_path_factory.mktemp("flagged") / "flagged.mcap"
-    sink = McapSink(out)
-    for index, (log_time, frame) in enumerate(read_poses(body_mcap)):
-        assert not set(frame.flags) & set(FLAGS)  # the flags are the test's alone
-        flags = {**frame.flags, **FLAGS} if index in WINDOW else frame.flags
-        sink.write_pose(keys.pose_key(), dataclasses.replace(frame, flags=flags), log_time)
-    sink.close()
-    return out
 
 
 @pytest.fixture(scope="module")

@@ -120,6 +120,14 @@ WRITERS: Mapping[str, Writer] = {
             "OpenSim's IMU inverse kinematics",
             "sto",
         ),
+        Writer(
+            "amc",
+            ".amc",
+            "Acclaim motion (.amc) and skeleton (.asf, written beside it), as the CMU "
+            "database's",
+            "amc",
+            options=(UP, UNITS, PROFILE),
+        ),
     )
 }
 
