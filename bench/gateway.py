@@ -143,7 +143,7 @@ def _relay(endpoint: str, stop: Any, cpu: Any) -> None:
 
 
 def _gateway(endpoint: str, stop: Any, samples: Any, cpu: Any, all_subjects: bool,
-             share: str | None = None) -> None:  # fmt: skip
+             share: str | None = None, serving: Any = None) -> None:  # fmt: skip
     import threading
 
     from bodynet.gateway.service import Gateway
@@ -153,6 +153,8 @@ def _gateway(endpoint: str, stop: Any, samples: Any, cpu: Any, all_subjects: boo
     done = threading.Event()
     thread = threading.Thread(target=gateway.run, args=(done,))
     thread.start()
+    if serving is not None:
+        serving.set()
     cpu0 = time.process_time()
     stop.wait()
     with cpu.get_lock():
@@ -195,8 +197,9 @@ def run_once(bodies: int, seconds: float, rate_hz: float = RATE_HZ,
     stop, ready = ctx.Event(), ctx.Event()
     relay = ctx.Process(target=_relay, args=(endpoint, stop, relay_cpu))
     share = (lambda k: f"bench-{k}") if gateways > 1 else (lambda k: None)
+    serving = [ctx.Event() for _ in range(gateways)]
     procs = [ctx.Process(target=_gateway, args=(endpoint, stop, gw_samples, gw_cpu,
-                                                bodies > 1 or gateways > 1, share(k)))
+                                                bodies > 1 or gateways > 1, share(k), serving[k]))
              for k in range(gateways)]  # fmt: skip
     # one feeder process per 10 bodies, so the feed keeps its rate
     feeders = [
@@ -216,7 +219,9 @@ def run_once(bodies: int, seconds: float, rate_hz: float = RATE_HZ,
         probe.declare_subscriber(pose_selector, lambda s: pose_lat.append(
             time.time_ns() - pose.source_time(s.payload.to_bytes()))),
     ]  # fmt: skip
-    time.sleep(2.0)  # subscriptions propagate; the gateway process has imported Pinocchio
+    for event in serving:  # each gateway process has imported Pinocchio and subscribed
+        event.wait(timeout=120)
+    time.sleep(1.0)  # subscriptions propagate
     ready.set()
     for f in feeders:
         f.join()
