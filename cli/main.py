@@ -34,13 +34,23 @@ log = logging.getLogger("bodynet")
 
 def cmd_decode(args: argparse.Namespace) -> int:
     """Decode a capture: one JSON object per sample on stdout, a summary on stderr."""
-    from bodynet.nodes.captures import CaptureStats, read_capture, sample_json
+    from bodynet.nodes.captures import (
+        CaptureError,
+        CaptureStats,
+        capture_options,
+        read_capture,
+        sample_json,
+    )
 
     stats = CaptureStats()
     out = sys.stdout
+    options = capture_options(args)
     try:
-        for sample in read_capture(args.file, args.format, stats, args.rate_hz):
+        for sample in read_capture(args.file, args.format, stats, args.rate_hz, options):
             out.write(json.dumps(sample_json(sample), separators=(",", ":")) + "\n")
+    except CaptureError as exc:
+        print(f"bodynet decode: {exc}", file=sys.stderr)
+        return 2
     except OSError as exc:
         print(f"bodynet decode: cannot read {args.file}: {exc.strerror or exc}", file=sys.stderr)
         return 2
@@ -105,12 +115,13 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
 
 def add_decode_args(p: argparse.ArgumentParser) -> None:
-    from bodynet.nodes.captures import formats
+    from bodynet.nodes.captures import add_capture_args, formats
 
     p.add_argument("--format", required=True, choices=formats())
     p.add_argument("--rate-hz", type=float, default=None,
                    help="samples' time base where the capture has none "
                         "(concentrator: 1/22 ms; imu-central: 25 Hz)")  # fmt: skip
+    add_capture_args(p)
     p.add_argument("file", type=Path)
 
 
