@@ -6,22 +6,15 @@ format and read back by that format's reader."""
 from __future__ import annotations
 
 import csv
-import subprocess
-import sys
 from pathlib import Path
 
 import ezc3d
 import numpy as np
 import pytest
-from flagged_recording import FLAGS, UNMEASURED, WINDOW
+from export_recordings import FLAGS, UNMEASURED, WINDOW, export
 
 from bodynet.clients.mcap_store import read_poses
 from bodynet.core.codecs import pose
-
-BODYNET = Path(sys.executable).with_name("bodynet")
-def run(*args: object) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([str(BODYNET), *map(str, args)], capture_output=True, text=True,
-                          timeout=120, check=False)  # fmt: skip
 
 
 @pytest.fixture(scope="module")
@@ -29,10 +22,11 @@ def frames(flagged: Path) -> list[pose.PoseFrame]:
     return [frame for _, frame in read_poses(flagged)]
 
 
-def test_csv_leaves_the_cell_empty(flagged: Path, frames: list[pose.PoseFrame],
-                                   tmp_path: Path) -> None:  # fmt: skip
+def test_csv_leaves_the_cell_empty(
+    flagged: Path, frames: list[pose.PoseFrame], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     out = tmp_path / "f.csv"
-    assert run("export", "csv", flagged, "-o", out).returncode == 0
+    export(capsys, "csv", flagged, "-o", out)
     with out.open() as f:
         rows = list(csv.DictReader(f))
     assert len(rows) == len(frames)
@@ -48,10 +42,11 @@ def test_csv_leaves_the_cell_empty(flagged: Path, frames: list[pose.PoseFrame],
         assert row["left_elbow_flexion_deg"] != ""  # the other dof of the joint is measured
 
 
-def test_c3d_marks_the_angle_point_invalid(flagged: Path, frames: list[pose.PoseFrame],
-                                           tmp_path: Path) -> None:  # fmt: skip
+def test_c3d_marks_the_angle_point_invalid(
+    flagged: Path, frames: list[pose.PoseFrame], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     out = tmp_path / "f.c3d"
-    assert run("export", "c3d", flagged, "-o", out).returncode == 0
+    export(capsys, "c3d", flagged, "-o", out)
     c3d = ezc3d.c3d(str(out))
     labels = list(c3d["parameters"]["POINT"]["LABELS"]["value"])
     points = c3d["data"]["points"]
@@ -71,7 +66,7 @@ def test_c3d_marks_the_angle_point_invalid(flagged: Path, frames: list[pose.Pose
 
 
 def test_bvh_holds_the_last_measured_value_and_says_so(
-    flagged: Path, frames: list[pose.PoseFrame], tmp_path: Path
+    flagged: Path, frames: list[pose.PoseFrame], tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     """The forearm's second channel is the elbow's pronation, the shank's first
     the knee's flexion (the channels follow the dofs): both hold the value of
@@ -79,12 +74,11 @@ def test_bvh_holds_the_last_measured_value_and_says_so(
     from test_export import bvh_channels
 
     out = tmp_path / "f.bvh"
-    result = run("export", "bvh", flagged, "-o", out, "--up", "z")
-    assert result.returncode == 0, result.stderr
+    err = export(capsys, "bvh", flagged, "-o", out, "--up", "z")
     n = len(WINDOW)
-    assert f"{2 * n} values of 2 joint angles had no measurement" in result.stderr
-    assert f"left_elbow_pronation_deg ({n})" in result.stderr
-    assert f"left_knee_flexion_deg ({n})" in result.stderr
+    assert f"{2 * n} values of 2 joint angles had no measurement" in err
+    assert f"left_elbow_pronation_deg ({n})" in err
+    assert f"left_knee_flexion_deg ({n})" in err
     channels, motion, _ = bvh_channels(out)
     start = {}
     column = 0
@@ -108,15 +102,16 @@ def test_bvh_holds_the_last_measured_value_and_says_so(
     np.testing.assert_allclose(-motion[:, start["left_forearm"]], flexion, atol=0.01)
 
 
-def test_opensim_files_write_nan(flagged: Path, frames: list[pose.PoseFrame],
-                                 tmp_path: Path) -> None:  # fmt: skip
+def test_opensim_files_write_nan(
+    flagged: Path, frames: list[pose.PoseFrame], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     """.mot: the coordinate of an unmeasured angle is NaN; .sto: so is the
     orientation of every segment below an unmeasured angle (OpenSim's readers)."""
     import opensim as osim
 
     mot, sto = tmp_path / "f.mot", tmp_path / "f.sto"
-    assert run("export", "mot", flagged, "-o", mot).returncode == 0
-    assert run("export", "sto", flagged, "-o", sto).returncode == 0
+    export(capsys, "mot", flagged, "-o", mot)
+    export(capsys, "sto", flagged, "-o", sto)
     window = np.array([i in WINDOW for i in range(len(frames))])
     table = osim.TimeSeriesTable(str(mot))
     for coordinate, nan_in_window in (("pro_sup_l", True), ("knee_angle_l", True),

@@ -1,11 +1,15 @@
-"""A recording whose poses flag some angles as not measured for a window of
-frames (the exports' tests of "no number without a measurement")."""
+"""The exports' tests' helpers: ``bodynet export`` in the test's process, and a
+recording whose poses flag some angles as not measured for a window of frames
+(for "no number without a measurement")."""
 
 from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
 
+import pytest
+
+from bodynet.cli.main import main
 from bodynet.clients.mcap_store import McapSink, read_poses
 from bodynet.core import keys
 
@@ -26,3 +30,13 @@ def write_flagged(source: Path, out: Path) -> None:
         flags = {**frame.flags, **FLAGS} if index in WINDOW else frame.flags
         sink.write_pose(keys.pose_key(), dataclasses.replace(frame, flags=flags), log_time)
     sink.close()
+
+
+def export(capsys: pytest.CaptureFixture[str], *args: object) -> str:
+    """``bodynet export ARGS`` in this process (no interpreter to start); what
+    it said on stderr. It must succeed."""
+    capsys.readouterr()
+    code = main(["export", *map(str, args)])
+    err = capsys.readouterr().err
+    assert code == 0, err
+    return err
