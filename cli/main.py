@@ -94,7 +94,8 @@ def cmd_bench(args: argparse.Namespace) -> int:
     if "solver" in only:
         solver.run(seconds=args.seconds, out_dir=args.out, bodies=(1, 5, 20))
     if "gateway" in only:
-        gateway.run(seconds=args.gateway_seconds, out_dir=args.out, bodies=tuple(args.bodies))
+        gateway.run(seconds=args.gateway_seconds, out_dir=args.out, bodies=tuple(args.bodies),
+                    gateways=tuple(args.gateways))  # fmt: skip
     if "peer" in only:
         peer.run(seconds=args.gateway_seconds, out_dir=args.out)
     if "rate" in only:
@@ -158,6 +159,8 @@ def add_bench_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--gateway-seconds", type=float, default=10.0, help="time of the gateway run")
     p.add_argument("--bodies", type=int, nargs="+", default=[1, 5, 10, 15, 20, 50],
                    help="numbers of bodies fed to the gateway")  # fmt: skip
+    p.add_argument("--gateways", type=int, nargs="+", default=[1, 2, 4],
+                   help="numbers of gateway processes sharing the bodies (--share)")  # fmt: skip
     p.add_argument("--only", action="append", choices=BENCHMARKS,
                    help="run only this benchmark (repeatable; default all but soak)")  # fmt: skip
     p.add_argument("--rate-hz", type=float, default=1000.0,
