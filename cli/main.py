@@ -34,13 +34,23 @@ log = logging.getLogger("bodynet")
 
 def cmd_decode(args: argparse.Namespace) -> int:
     """Decode a capture: one JSON object per sample on stdout, a summary on stderr."""
-    from bodynet.nodes.captures import CaptureStats, read_capture, sample_json
+    from bodynet.nodes.captures import (
+        CaptureError,
+        CaptureStats,
+        capture_options,
+        read_capture,
+        sample_json,
+    )
 
     stats = CaptureStats()
     out = sys.stdout
+    options = capture_options(args)
     try:
-        for sample in read_capture(args.file, args.format, stats, args.rate_hz):
+        for sample in read_capture(args.file, args.format, stats, args.rate_hz, options):
             out.write(json.dumps(sample_json(sample), separators=(",", ":")) + "\n")
+    except CaptureError as exc:
+        print(f"bodynet decode: {exc}", file=sys.stderr)
+        return 2
     except OSError as exc:
         print(f"bodynet decode: cannot read {args.file}: {exc.strerror or exc}", file=sys.stderr)
         return 2
@@ -84,7 +94,8 @@ def cmd_bench(args: argparse.Namespace) -> int:
     if "solver" in only:
         solver.run(seconds=args.seconds, out_dir=args.out, bodies=(1, 5, 20))
     if "gateway" in only:
-        gateway.run(seconds=args.gateway_seconds, out_dir=args.out, bodies=tuple(args.bodies))
+        gateway.run(seconds=args.gateway_seconds, out_dir=args.out, bodies=tuple(args.bodies),
+                    gateways=tuple(args.gateways))  # fmt: skip
     if "peer" in only:
         peer.run(seconds=args.gateway_seconds, out_dir=args.out)
     if "rate" in only:
@@ -104,12 +115,13 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
 
 def add_decode_args(p: argparse.ArgumentParser) -> None:
-    from bodynet.nodes.captures import formats
+    from bodynet.nodes.captures import add_capture_args, formats
 
     p.add_argument("--format", required=True, choices=formats())
     p.add_argument("--rate-hz", type=float, default=None,
                    help="samples' time base where the capture has none "
                         "(concentrator: 1/22 ms; imu-central: 25 Hz)")  # fmt: skip
+    add_capture_args(p)
     p.add_argument("file", type=Path)
 
 
@@ -147,6 +159,8 @@ def add_bench_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--gateway-seconds", type=float, default=10.0, help="time of the gateway run")
     p.add_argument("--bodies", type=int, nargs="+", default=[1, 5, 10, 15, 20, 50],
                    help="numbers of bodies fed to the gateway")  # fmt: skip
+    p.add_argument("--gateways", type=int, nargs="+", default=[1, 2, 4],
+                   help="numbers of gateway processes sharing the bodies (--share)")  # fmt: skip
     p.add_argument("--only", action="append", choices=BENCHMARKS,
                    help="run only this benchmark (repeatable; default all but soak)")  # fmt: skip
     p.add_argument("--rate-hz", type=float, default=1000.0,

@@ -1,7 +1,7 @@
 """A subject's profile: segment lengths and sensor calibrations, versioned.
 
 The profile is what calibration produces and the gateway consumes. It is kept
-as plain data here (no file I/O); ``bodynet.gateway.profile_file`` reads and
+as plain data here (no file I/O); ``bodynet.session.profile_file`` reads and
 writes it as TOML a user can read and edit:
 
 ```toml
@@ -19,6 +19,9 @@ sf = [1.0, 1.0, 1.007, 1.084, 1.161, 1.261]
 
 [imu_mounts]           # sensor orientation in its segment (w, x, y, z), from T-pose
 "body/arm/left/upperarm/raw" = [1.0, 0.0, 0.0, 0.0]
+
+[trackers]             # a sensor that says who it is (SlimeVR: MAC-sensor) -> its site
+"aabbccddeeff-0" = "left-arm/upperarm"
 ```
 """
 
@@ -30,6 +33,8 @@ from types import MappingProxyType
 from typing import Any
 
 from .calibration import OleCalibration, default_ole
+from .codecs.slimevr import normalise_tracker_id
+from .keys import KeySpaceError, site_name, site_named
 from .profile import OLE_DOF, SMARTSUIT_SITES
 
 VERSION = 1
@@ -56,12 +61,19 @@ class Profile:
     lengths: Mapping[str, float] = field(default_factory=dict)  # over the skeleton's defaults
     ole: Mapping[str, OleCalibration] = field(default_factory=default_ole_table)
     imu_mounts: Mapping[str, QuatWxyz] = field(default_factory=dict)  # raw key -> mount
+    trackers: Mapping[str, str] = field(default_factory=dict)  # tracker id -> site name
     accel_counts_per_g: float = 1024.0
     accel_filter: float = 0.5  # weight of a new accelerometer sample in the tilt filter
     version: int = VERSION
 
     def with_mounts(self, mounts: Mapping[str, QuatWxyz]) -> Profile:
         return replace(self, imu_mounts=MappingProxyType({**self.imu_mounts, **mounts}))
+
+    def with_tracker(self, tracker: str, site: str) -> Profile:
+        """``tracker`` (its canonical id) sits at ``site`` (``left-arm/upperarm``);
+        a site holds one tracker, so any other tracker there is unassigned."""
+        kept = {t: s for t, s in self.trackers.items() if s != site and t != tracker}
+        return replace(self, trackers=MappingProxyType({**kept, tracker: site}))
 
     def with_ole(self, angle: str, calibration: OleCalibration) -> Profile:
         return replace(self, ole=MappingProxyType({**self.ole, angle: calibration}))
@@ -78,6 +90,7 @@ class Profile:
                 for name, c in sorted(self.ole.items())
             },
             "imu_mounts": {k: list(q) for k, q in sorted(self.imu_mounts.items())},
+            "trackers": dict(sorted(self.trackers.items())),
         }
 
     @classmethod
@@ -99,6 +112,12 @@ class Profile:
                     raise ProfileError(f"imu_mounts[{key!r}] needs 4 numbers (w, x, y, z)")
                 w, x, y, z = map(float, q)
                 mounts[key] = (w, x, y, z)
+            trackers = {}
+            for tracker, site in data.get("trackers", {}).items():
+                try:
+                    trackers[normalise_tracker_id(str(tracker))] = site_name(site_named(str(site)))
+                except (ValueError, KeySpaceError) as exc:
+                    raise ProfileError(f"trackers[{tracker!r}]: {exc}") from None
             accel_filter = float(data.get("accel_filter", 0.5))
             if not 0.0 < accel_filter <= 1.0:
                 raise ProfileError(f"accel_filter must be in (0, 1], not {accel_filter}")
@@ -109,6 +128,7 @@ class Profile:
                 ),
                 ole=MappingProxyType(ole),
                 imu_mounts=MappingProxyType(mounts),
+                trackers=MappingProxyType(trackers),
                 accel_counts_per_g=float(data.get("accel_counts_per_g", 1024.0)),
                 accel_filter=accel_filter,
             )
