@@ -86,7 +86,12 @@ BENCHMARKS = ("decode", "solver", "gateway", "peer", "rate", "recorder", "faults
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
-    from bodynet.bench import decode, faults, gateway, peer, recorder, report, soak, solver
+    try:
+        from bodynet.bench import decode, faults, gateway, peer, recorder, report, soak, solver
+    except ModuleNotFoundError as exc:  # psutil: the `bench` extra
+        print(f"bodynet bench: {exc.name} is missing: install the bench extra "
+              "(pip install -e '.[bench]', as make bench does)", file=sys.stderr)  # fmt: skip
+        return 2
 
     only = args.only or [b for b in BENCHMARKS if b != "soak"]  # the soak on demand
     if "decode" in only:
