@@ -236,10 +236,14 @@ def cmd_process(args: argparse.Namespace) -> int:
     if fmt is None:
         print("bodynet process: say which --format the capture is in", file=sys.stderr)
         return 2
+    calibration = None
+    if args.calibration is not None:
+        calibration = (args.calibration, format_of(args.calibration) or fmt)
     try:
         profile = _profile(args.profile)
         result = process(args.input, fmt, args.output, profile, args.rate_hz,
-                         args.tick_hz, args.tpose_s, capture_options(args))  # fmt: skip
+                         args.tick_hz, args.tpose_s, capture_options(args),
+                         calibration)  # fmt: skip
     except (ProfileError, OSError, CaptureError) as exc:
         print(f"bodynet process: {exc}", file=sys.stderr)
         return 2
@@ -263,6 +267,9 @@ def add_process_args(p: argparse.ArgumentParser) -> None:
         default=3.0,
         help="seconds at the start in T-pose, to calibrate orientation sensors",
     )
+    p.add_argument("--calibration", type=Path,
+                   help="take the T-pose (--tpose-s) from this file of the same session, "
+                        "e.g. static.sto (its format from its suffix, else --format)")  # fmt: skip
     p.add_argument("--profile", type=Path, help="subject profile (TOML)")
     p.add_argument("-o", "--output", type=Path, required=True, help="the MCAP file to write")
 
