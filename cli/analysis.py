@@ -4,18 +4,11 @@ from __future__ import annotations
 
 import argparse
 import sys
-from pathlib import Path
 
+from bodynet.session import argtypes
 
-def still_range(text: str) -> tuple[float, float]:
-    """``START:END`` in seconds from the recording's start."""
-    try:
-        start, end = (float(v) for v in text.split(":"))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not START:END in seconds") from None
-    if not 0 <= start < end:
-        raise argparse.ArgumentTypeError(f"{text!r}: need 0 <= START < END")
-    return start, end
+#: ``START:END`` in seconds from the recording's start.
+still_range = argtypes.time_window
 
 
 def cmd_report(args: argparse.Namespace) -> int:
@@ -40,17 +33,18 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
         "report",
         help="validation statistics of a recording (ROM, accuracy, repeatability, ICC, Type A)",
     )
-    p.add_argument("recordings", type=Path, nargs="+",
+    p.add_argument("recordings", type=argtypes.input_file, nargs="+",
                    help="MCAP recording(s) with poses; several: each one is a trial")  # fmt: skip
-    p.add_argument("-o", "--output", type=Path,
+    p.add_argument("-o", "--output", type=argtypes.output_file,
                    help="report.md or report.html, plots beside it "
                         "(default <recording>-report.md)")  # fmt: skip
-    p.add_argument("--reference", type=Path,
+    p.add_argument("--reference", type=argtypes.input_file,
                    help="reference angles: a recording (its ground truth, else its poses) or a "
                         "CSV with t_s and <joint>_<dof>_deg columns (default: the recording's "
                         "own ground truth, if it has any)")  # fmt: skip
     p.add_argument(
         "--joint",
+        type=argtypes.free_text(100),
         help="the channel whose repetitions cut the trials, e.g. "
         "left_elbow_flexion_deg (default: the smoothest repeating one)",
     )
@@ -61,7 +55,8 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
         metavar="START:END",
         help="still window for Type A, s from the start (default: auto)",
     )
-    still.add_argument("--still-s", type=float, default=2.0,
+    still.add_argument("--still-s", default=2.0,
+                       type=argtypes.bounded_float(0.1, 3600.0, "seconds of a still window"),
                        help="length of the auto-detected still window (default 2 s)")  # fmt: skip
     p.add_argument("--no-trials", action="store_true",
                    help="leave out repeatability and ICC (e.g. a still recording)")  # fmt: skip

@@ -4,9 +4,14 @@ from __future__ import annotations
 
 import argparse
 import sys
-from pathlib import Path
 
-from bodynet.session import add_session_args, config_from_args, open_session
+from bodynet.session import add_session_args, argtypes, config_from_args, open_session
+
+#: Frames per second of an export: a higher rate only repeats poses (and a
+#: C3D at 1 MHz of a one-second recording takes gigabytes).
+EXPORT_RATE_HZ = argtypes.bounded_float(0.1, 1000.0, "frames per second, 0.1 to 1000")
+#: --rotate-s: 0 (never) or a file's age from half a second up.
+ROTATE_S = argtypes.bounded_float(0.0, 7 * 86_400.0, "seconds, 0 for never, at most a week")
 
 
 def cmd_export(args: argparse.Namespace) -> int:
@@ -106,14 +111,19 @@ def cmd_view(args: argparse.Namespace) -> int:
     return 0
 
 
+_VIEWER_URL = argtypes.url("rerun", "rerun+http", "rerun+https", "http", "https")
+
+
 def add_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p = sub.add_parser("view", help="the body in Rerun, live or from a recording")
-    p.add_argument("recording", type=Path, nargs="?", help="an MCAP recording (else: live)")
+    p.add_argument("recording", type=argtypes.input_file, nargs="?",
+                   help="an MCAP recording (else: live)")  # fmt: skip
     p.add_argument("--viewer", choices=("auto", "native", "web", "connect", "none"), default="auto",
                    help="a window (if there is a display), the web viewer, or a running "
                         "viewer (--url); 'none' with --save writes the .rrd only")  # fmt: skip
-    p.add_argument("--save", type=Path, help="also write the recording to this .rrd")
-    p.add_argument("--url", help="with --viewer connect: the viewer's gRPC url")
+    p.add_argument("--save", type=argtypes.output_file,
+                   help="also write the recording to this .rrd")  # fmt: skip
+    p.add_argument("--url", type=_VIEWER_URL, help="with --viewer connect: the viewer's gRPC url")
     # Rerun's usual script flags; its --connect is --connect-viewer here, because
     # -e/--connect is Zenoh's, as on every bodynet command
     p.add_argument("--serve-web", dest="viewer", action="store_const", const="web",
@@ -123,20 +133,23 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
     p.add_argument(
         "--connect-viewer",
         metavar="URL",
+        type=_VIEWER_URL,
         nargs="?",
         const="",
         help="same as --viewer connect --url URL (default: Rerun's local viewer)",
     )
-    p.add_argument("--web-port", type=int, default=None, help="with --viewer web (default 9090)")
-    p.add_argument("--grpc-port", type=int, default=None, help="with --viewer web (default 9876)")
+    p.add_argument("--web-port", type=argtypes.port, default=None,
+                   help="with --viewer web (default 9090)")  # fmt: skip
+    p.add_argument("--grpc-port", type=argtypes.port, default=None,
+                   help="with --viewer web (default 9876)")  # fmt: skip
     add_session_args(p)
     p.set_defaults(func=cmd_view)
 
     p = sub.add_parser("export", help="export a recording to a standard format")
     esub = p.add_subparsers(dest="kind", required=True, metavar="FORMAT")
     c = esub.add_parser("csv", help="joint angles, rotations and joint centres, one row per tick")
-    c.add_argument("recording", type=Path, help="an MCAP file with poses")
-    c.add_argument("-o", "--output", type=Path, required=True)
+    c.add_argument("recording", type=argtypes.input_file, help="an MCAP file with poses")
+    c.add_argument("-o", "--output", type=argtypes.output_file, required=True)
     c.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     c.set_defaults(func=cmd_export)
     b = esub.add_parser("bvh", help="BVH motion (Blender, MotionBuilder...): the body model's "
@@ -144,9 +157,9 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
     c = esub.add_parser("c3d", help="C3D (biomechanics): joint centres in mm and joint angles "
                                     "as angle points")  # fmt: skip
     for e in (b, c):
-        e.add_argument("recording", type=Path, help="an MCAP file with poses")
-        e.add_argument("-o", "--output", type=Path, required=True)
-        e.add_argument("--rate-hz", type=float, default=None,
+        e.add_argument("recording", type=argtypes.input_file, help="an MCAP file with poses")
+        e.add_argument("-o", "--output", type=argtypes.output_file, required=True)
+        e.add_argument("--rate-hz", type=EXPORT_RATE_HZ, default=None,
                        help="frame rate (default: the recording's own tick rate)")  # fmt: skip
         e.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
         e.set_defaults(func=cmd_export_frames)
@@ -155,7 +168,9 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
                         "(X forward, Z up)")  # fmt: skip
     b.add_argument("--units", choices=("m", "cm"), default="m")
     b.add_argument(
-        "--profile", type=Path, help="subject profile: lengths of hands, feet, head (End Sites)"
+        "--profile",
+        type=argtypes.input_file,
+        help="subject profile: lengths of hands, feet, head (End Sites)",
     )
 
 
@@ -222,23 +237,43 @@ def cmd_replay(args: argparse.Namespace) -> int:
     return 0
 
 
+def _rotate_mb(text: str) -> float:
+    value = argtypes.non_negative_float(1e6, "MB, 0 for never, at most a terabyte")(text)
+    if 0 < value < 1:
+        argtypes.fail(f"{text!r}: a file of less than 1 MB (0 for never)")
+    return value
+
+
+def _rotate_s(text: str) -> float:
+    value = ROTATE_S(text)
+    if 0 < value < 0.5:
+        argtypes.fail(f"{text!r}: files shorter than half a second (0 for never)")
+    return value
+
+
 def add_record_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p = sub.add_parser("record", help="record raw samples, poses, topology and health to MCAP")
-    p.add_argument("keys", nargs="*", help="key expressions (default: every raw sample and pose, "
+    p.add_argument("keys", nargs="*", type=argtypes.key_expr,
+                   help="key expressions (default: every raw sample and pose, "
                                            "the topology and every health)")  # fmt: skip
-    p.add_argument("-o", "--output", type=Path, required=True, help="the MCAP file")
-    p.add_argument("--rotate-mb", type=float, default=0.0, help="start a new file past this size")
-    p.add_argument("--rotate-s", type=float, default=0.0, help="start a new file past this age")
-    p.add_argument("--salvage", type=Path, help="turn this unfinished file into -o, and stop")
+    p.add_argument("-o", "--output", type=argtypes.output_file, required=True,
+                   help="the MCAP file")  # fmt: skip
+    p.add_argument("--rotate-mb", type=_rotate_mb, default=0.0,
+                   help="start a new file past this size (0: never; at least 1 MB)")  # fmt: skip
+    p.add_argument("--rotate-s", type=_rotate_s, default=0.0,
+                   help="start a new file past this age (0: never; at least 0.5 s)")  # fmt: skip
+    p.add_argument("--salvage", type=argtypes.input_file,
+                   help="turn this unfinished file into -o, and stop")  # fmt: skip
     add_session_args(p)
     p.set_defaults(func=cmd_record)
 
     p = sub.add_parser("replay", help="publish a recording's raw samples again")
-    p.add_argument("recording", type=Path)
-    p.add_argument("--keys", nargs="*",
+    p.add_argument("recording", type=argtypes.input_file)
+    p.add_argument("--keys", nargs="*", type=argtypes.key_expr,
                    help="key expressions of the topics to replay, such as 'body/arm/left/**' "
                         "(default: every raw sample)")  # fmt: skip
-    p.add_argument("--speed", type=float, default=1.0, help="2 plays twice as fast")
+    p.add_argument("--speed", default=1.0, help="2 plays twice as fast",
+                   type=argtypes.bounded_float(0.01, 1000.0, "times real time"))  # fmt: skip
     p.add_argument("--loop", action="store_true")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     add_session_args(p)

@@ -6,7 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from bodynet.session import add_session_args, config_from_args, open_session
+from bodynet.session import add_session_args, argtypes, config_from_args, open_session
 
 DEFAULT_HTTP_PORT = 8088
 
@@ -61,16 +61,6 @@ def cmd_game(args: argparse.Namespace) -> int:
     return 0
 
 
-def _positive(kind: type) -> object:
-    def parse(text: str) -> object:
-        value = kind(text)
-        if value <= 0:
-            raise argparse.ArgumentTypeError(f"must be above 0, not {text}")
-        return value
-
-    return parse
-
-
 def add_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p = sub.add_parser("game", help="the arm-reaching rehabilitation game, in a browser")
     p.add_argument(
@@ -82,45 +72,45 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
     p.add_argument(
         "--http-host",
         default="127.0.0.1",
+        type=argtypes.hostname,
         help="address the page is served on; 0.0.0.0 for a player on another "
         "machine (default 127.0.0.1)",
     )
     p.add_argument(
         "--http-port",
-        type=int,
+        type=argtypes.port_or_zero,
         default=DEFAULT_HTTP_PORT,
         help=f"port of the page and its WebSocket (default {DEFAULT_HTTP_PORT}; "
         "0 picks a free one)",
     )
     p.add_argument(
         "--results",
-        type=Path,
+        type=argtypes.output_dir,
         default=Path("rehab-results"),
         help="folder of the session's results, JSON and CSV (default rehab-results)",
     )
     p.add_argument(
         "--trials",
-        type=_positive(int),
+        type=argtypes.positive_int(1000, "trials"),
         default=10,
         help="complete trials in the session, practice not counted (default 10)",
     )
     p.add_argument(
         "--practice",
-        type=int,
+        type=argtypes.bounded_int(0, 10, "practice trials"),
         default=1,
-        choices=range(11),
         metavar="N",
         help="practice trials first, left out of the summary (default 1)",
     )
     p.add_argument(
         "--radius-cm",
-        type=_positive(float),
+        type=argtypes.bounded_float(1.0, 100.0, "cm"),
         default=12.0,
         help="how close the hand tip must come to the ball (default 12)",
     )
     p.add_argument(
         "--target-timeout",
-        type=_positive(float),
+        type=argtypes.bounded_float(1.0, 3600.0, "seconds"),
         default=20.0,
         help="seconds a waiting ball gives the player before moving on (default 20)",
     )

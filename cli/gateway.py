@@ -9,9 +9,18 @@ from contextlib import suppress
 from pathlib import Path
 
 from bodynet.core import keys
-from bodynet.core.keys import branch_named
+from bodynet.core.keys import BRANCHES, branch_named
 from bodynet.core.subject import Profile, ProfileError
-from bodynet.session import DEFAULT_ROUTER, add_session_args, config_from_args, open_session
+from bodynet.session import (
+    DEFAULT_ROUTER,
+    add_session_args,
+    argtypes,
+    config_from_args,
+    open_session,
+)
+
+#: Poses per second: the solver's own pace, at most 1 kHz.
+POSE_RATE_HZ = argtypes.bounded_float(0.1, 1000.0, "poses per second, 0.1 to 1000")
 
 
 def _profile(path: Path | None) -> Profile:
@@ -111,27 +120,30 @@ def cmd_calibrate_tpose(args: argparse.Namespace) -> int:
 
 def add_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p = sub.add_parser("gateway", help="calibration and kinematics: raw samples in, poses out")
-    p.add_argument("--profile", type=Path, help="subject profile (TOML); created by calibration")
-    p.add_argument("--branch", action="append", default=[],
+    p.add_argument("--profile", type=argtypes.input_or_new_file,
+                   help="subject profile (TOML); created by calibration")  # fmt: skip
+    p.add_argument("--branch", action="append", default=[], choices=[str(b) for b in BRANCHES],
                    help="serve only these branches (repeatable; default all)")  # fmt: skip
-    p.add_argument("--rate-hz", type=float, default=100.0, help="most poses per second")
+    p.add_argument("--rate-hz", type=POSE_RATE_HZ, default=100.0, help="most poses per second")
     p.add_argument("--all-subjects", action="store_true",
                    help="serve every subject on the network, each a body of its own")  # fmt: skip
-    p.add_argument("--profile-dir", type=Path,
+    p.add_argument("--profile-dir", type=argtypes.output_dir,
                    help="with --all-subjects: <subject>.toml profiles (default.toml "
                         "without namespace), written by T-pose calibration")  # fmt: skip
     add_session_args(p, default_mode="router")
     p.set_defaults(func=cmd_gateway)
 
     p = sub.add_parser("subjects", help="list the subjects on the network and their branches")
-    p.add_argument("--timeout", type=float, default=2.0, help="seconds to wait for answers")
+    p.add_argument("--timeout", type=argtypes.bounded_float(0.01, 600.0, "seconds"), default=2.0,
+                   help="seconds to wait for answers")  # fmt: skip
     add_session_args(p)
     p.set_defaults(func=cmd_subjects)
 
     cal = sub.add_parser("calibrate", help="calibrate sensors of the subject")
     csub = cal.add_subparsers(dest="what", required=True, metavar="WHAT")
     p = csub.add_parser("tpose", help="IMU mounts: the subject stands still in T-pose")
-    p.add_argument("--seconds", type=float, default=1.0, help="still window to average")
+    p.add_argument("--seconds", type=argtypes.bounded_float(0.1, 60.0, "seconds of still T-pose"),
+                   default=1.0, help="still window to average")  # fmt: skip
     add_session_args(p)
     p.set_defaults(func=cmd_calibrate_tpose)
     add_calibrate_ole_parser(csub)
@@ -163,18 +175,22 @@ def add_process_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore
     from bodynet.nodes.captures import Format
 
     p = sub.add_parser("process", help="run the gateway over a capture into an MCAP file")
-    p.add_argument("input", type=Path, help="a capture (any format of `bodynet decode`)")
+    p.add_argument("input", type=argtypes.input_file,
+                   help="a capture (any format of `bodynet decode`)")  # fmt: skip
     p.add_argument("--format", choices=[f.value for f in Format])
-    p.add_argument("--rate-hz", type=float, default=None, help="as for `bodynet decode`")
-    p.add_argument("--tick-hz", type=float, default=100.0, help="most poses per second of capture")
+    p.add_argument("--rate-hz", type=argtypes.RATE_HZ, default=None,
+                   help="as for `bodynet decode`")  # fmt: skip
+    p.add_argument("--tick-hz", type=POSE_RATE_HZ, default=100.0,
+                   help="most poses per second of capture")  # fmt: skip
     p.add_argument(
         "--tpose-s",
-        type=float,
+        type=argtypes.non_negative_float(3600.0, "seconds at the capture's start"),
         default=3.0,
         help="seconds at the start in T-pose, to calibrate orientation sensors",
     )
-    p.add_argument("--profile", type=Path, help="subject profile (TOML)")
-    p.add_argument("-o", "--output", type=Path, required=True, help="the MCAP file to write")
+    p.add_argument("--profile", type=argtypes.input_file, help="subject profile (TOML)")
+    p.add_argument("-o", "--output", type=argtypes.output_file, required=True,
+                   help="the MCAP file to write")  # fmt: skip
     p.set_defaults(func=cmd_process)
 
 
@@ -241,7 +257,7 @@ def cmd_calibrate_ole(args: argparse.Namespace) -> int:
             except (ValueError, IndexError):
                 continue  # a header or a blank line
     else:
-        angles = [float(a) for a in args.angles.split(",")]
+        angles = args.angles
         session = open_session(config_from_args(args))
         try:
             for angle in angles:
@@ -270,12 +286,33 @@ def cmd_calibrate_ole(args: argparse.Namespace) -> int:
     return 0
 
 
+def _ole_joints() -> list[str]:
+    from bodynet.core.profile import OLE_DOF, SMARTSUIT_SITES
+
+    return sorted(f"{s.branch.side}_{s.name}" for s in SMARTSUIT_SITES.values()
+                  if s.name in OLE_DOF)  # fmt: skip
+
+
+def _angles(text: str) -> list[float]:
+    """``0,30,60`` -> [0.0, 30.0, 60.0]: finite angles within +-360 deg."""
+    check = argtypes.bounded_float(-360.0, 360.0, "degrees")
+    try:
+        return [check(a) for a in text.split(",")]
+    except argparse.ArgumentTypeError as exc:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a list of angles: {exc}") from None
+
+
 def add_calibrate_ole_parser(csub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p = csub.add_parser("ole", help="an encoder's radius and scale factors from reference poses")
-    p.add_argument("--joint", required=True, help="e.g. left_elbow, right_knee")
-    p.add_argument("--angles", default="0,30,60,90,120,140", help="reference angles to hold (deg)")
-    p.add_argument("--from-pairs", type=Path, help="CSV of angle_deg,counts instead of live poses")
-    p.add_argument("--still-s", type=float, default=1.0, help="still window to average per pose")
-    p.add_argument("--profile", type=Path, required=True, help="profile to update (or create)")
+    p.add_argument("--joint", required=True, choices=_ole_joints(), metavar="JOINT",
+                   help="e.g. left_elbow, right_knee")  # fmt: skip
+    p.add_argument("--angles", default="0,30,60,90,120,140", type=_angles,
+                   help="reference angles to hold (deg)")  # fmt: skip
+    p.add_argument("--from-pairs", type=argtypes.input_file,
+                   help="CSV of angle_deg,counts instead of live poses")  # fmt: skip
+    p.add_argument("--still-s", type=argtypes.bounded_float(0.1, 60.0, "seconds"), default=1.0,
+                   help="still window to average per pose")  # fmt: skip
+    p.add_argument("--profile", type=argtypes.input_or_new_file, required=True,
+                   help="profile to update (or create)")  # fmt: skip
     add_session_args(p)
     p.set_defaults(func=cmd_calibrate_ole)

@@ -24,6 +24,7 @@ from bodynet.session import (
     DEFAULT_ROUTER,
     SessionError,
     add_session_args,
+    argtypes,
     config_from_args,
     open_session,
 )
@@ -110,21 +111,23 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("decode", help="decode a capture file to JSON lines")
     p.add_argument("--format", required=True, choices=[f.value for f in Format])
-    p.add_argument("--rate-hz", type=float, default=None,
+    p.add_argument("--rate-hz", type=argtypes.RATE_HZ, default=None,
                    help="samples' time base where the capture has none "
                         "(concentrator: 1/22 ms; imu-central: 25 Hz)")  # fmt: skip
-    p.add_argument("file", type=Path)
+    p.add_argument("file", type=argtypes.input_file)
     p.set_defaults(func=cmd_decode)
 
     p = sub.add_parser("demo", help="the main job: show the system at work")
-    p.add_argument("-l", "--listen", default=DEFAULT_ROUTER, help="where the router listens")
+    p.add_argument("-l", "--listen", default=DEFAULT_ROUTER, type=argtypes.endpoint,
+                   help="where the router listens")  # fmt: skip
     p.add_argument(
         "--routine",
         default="reach",
         choices=sorted(ROUTINES),
         help="motion of the emulated body (default reach)",
     )
-    p.add_argument("--seconds", type=float, default=None, help="stop after this long")
+    p.add_argument("--seconds", type=argtypes.DURATION_S, default=None,
+                   help="stop after this long")  # fmt: skip
     p.add_argument(
         "--viewer",
         choices=("auto", "native", "web", "none"),
@@ -132,10 +135,13 @@ def build_parser() -> argparse.ArgumentParser:
         help="live view: a window if there is a display, else the web viewer",
     )
     p.add_argument(
-        "--rrd", type=Path, help="where the live view is saved (default beside --record)"
+        "--rrd",
+        type=argtypes.output_file,
+        help="where the live view is saved (default beside --record)",
     )
-    p.add_argument("--web-port", type=int, default=None, help="web viewer port (default 9090)")
-    p.add_argument("--record", type=Path, default=Path("bodynet-demo.mcap"),
+    p.add_argument("--web-port", type=argtypes.port, default=None,
+                   help="web viewer port (default 9090)")  # fmt: skip
+    p.add_argument("--record", type=argtypes.output_file, default=Path("bodynet-demo.mcap"),
                    help="where the recorder writes (default bodynet-demo.mcap)")  # fmt: skip
     p.set_defaults(func=cmd_demo)
 
@@ -153,17 +159,22 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_router)
 
     p = sub.add_parser("bench", help="benchmarks, side by side with their baselines")
-    p.add_argument("--seconds", type=float, default=1.0, help="time per decode measurement")
-    p.add_argument("--gateway-seconds", type=float, default=10.0, help="time of the gateway run")
-    p.add_argument("--bodies", type=int, nargs="+", default=[1, 5, 10, 15, 20, 50],
+    p.add_argument("--seconds", type=argtypes.bounded_float(0.01, 3600, "seconds, an hour at most"),
+                   default=1.0, help="time per decode measurement")  # fmt: skip
+    p.add_argument("--gateway-seconds", default=10.0, help="time of the gateway run",
+                   type=argtypes.bounded_float(0.1, 3600, "seconds, an hour at most"))  # fmt: skip
+    p.add_argument("--bodies", type=argtypes.positive_int(1000, "bodies"), nargs="+",
+                   default=[1, 5, 10, 15, 20, 50],
                    help="numbers of bodies fed to the gateway")  # fmt: skip
     p.add_argument("--only", action="append", choices=BENCHMARKS,
                    help="run only this benchmark (repeatable; default all but soak)")  # fmt: skip
-    p.add_argument("--rate-hz", type=float, default=1000.0,
+    p.add_argument("--rate-hz", type=argtypes.RATE_HZ, default=1000.0,
                    help="per-node rate of the `rate` benchmark (default 1000)")  # fmt: skip
-    p.add_argument("--repeat", type=int, default=3, help="runs of each fault (worst reported)")
-    p.add_argument("--minutes", type=float, default=10.0, help="length of the soak")
-    p.add_argument("--out", type=Path, default=Path("bench-results"))
+    p.add_argument("--repeat", type=argtypes.positive_int(100, "runs"), default=3,
+                   help="runs of each fault (worst reported)")  # fmt: skip
+    p.add_argument("--minutes", type=argtypes.bounded_float(0.1, 1440, "minutes, a day at most"),
+                   default=10.0, help="length of the soak")  # fmt: skip
+    p.add_argument("--out", type=argtypes.output_dir, default=Path("bench-results"))
     p.set_defaults(func=cmd_bench)
     return parser
 

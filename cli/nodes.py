@@ -11,10 +11,10 @@ import threading
 from collections.abc import Callable
 from pathlib import Path
 
-from bodynet.core.keys import branch_named
+from bodynet.core.keys import BRANCHES, branch_named
 from bodynet.nodes.emulator import Realism
 from bodynet.nodes.motion import ROUTINES
-from bodynet.session import add_session_args, config_from_args, open_session
+from bodynet.session import add_session_args, argtypes, config_from_args, open_session
 
 log = logging.getLogger("bodynet")
 
@@ -37,13 +37,23 @@ def stop_on_signals() -> threading.Event:
     return stop
 
 
-def _numbers(text: str) -> tuple[int, ...]:
-    """``"1-3,7"`` -> (1, 2, 3, 7)."""
-    out: list[int] = []
-    for part in text.split(","):
-        lo, _, hi = part.partition("-")
-        out.extend(range(int(lo), int(hi or lo) + 1))
-    return tuple(out)
+#: Node and sensor numbers: SmartSuit nodes and IMU tags are numbered 1-15.
+_NUMBERS = argtypes.number_list(1, 15)
+_BRANCH_NAMES = [str(b) for b in BRANCHES]
+
+
+def _numbers(numbers: tuple[int, ...] | str) -> tuple[int, ...]:
+    """``"1-3,7"`` -> (1, 2, 3, 7) (already parsed by the option's type)."""
+    return numbers if isinstance(numbers, tuple) else _NUMBERS(numbers)
+
+
+def _interface(text: str) -> str:
+    if not text.replace("_", "").replace("-", "").isalnum() or len(text) > 40:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a python-can interface name")
+    return text
+
+
+_INTERFACE = _interface
 
 
 def _branches(args: argparse.Namespace) -> tuple | None:  # type: ignore[type-arg]
@@ -142,36 +152,46 @@ def _emulation_args(p: argparse.ArgumentParser) -> None:
         "--branch",
         action="append",
         default=[],
+        choices=_BRANCH_NAMES,
         help="left-arm, right-arm, left-leg, right-leg or trunk (repeatable; default all)",
     )
-    p.add_argument("--sensors", help="IMU sensor numbers, e.g. 1-15 or 3,5,7")
+    p.add_argument("--sensors", type=_NUMBERS, help="IMU sensor numbers, e.g. 1-15 or 3,5,7")
     p.add_argument("--ideal", action="store_true", help="noise-free, bias-free sensors")
-    p.add_argument("--slack-mm", type=float, default=0.0, help="OLE cable slack (buckling)")
-    p.add_argument("--drift", type=float, default=0.0, help="IMU yaw drift, deg per minute")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--slack-mm", type=argtypes.non_negative_float(50.0, "mm of slack"),
+                   default=0.0, help="OLE cable slack (buckling)")  # fmt: skip
+    p.add_argument("--drift", default=0.0, help="IMU yaw drift, deg per minute",
+                   type=argtypes.bounded_float(-360.0, 360.0, "deg/min"))  # fmt: skip
+    p.add_argument("--seed", type=argtypes.bounded_int(0, 2**32 - 1, "a 32-bit seed"), default=0)
 
 
 def add_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     bridge = sub.add_parser("bridge", help="bridge a CAN bus or serial receiver onto Zenoh")
     bsub = bridge.add_subparsers(dest="device", required=True, metavar="DEVICE")
     p = bsub.add_parser("can", help="SmartSuit nodes on any python-can interface, or a log")
-    p.add_argument(
-        "--interface", default="socketcan", help="python-can interface (socketcan, slcan, pcan...)"
-    )
-    p.add_argument("--channel", help="channel: can0, /dev/ttyACM0 (slcan)...")
-    p.add_argument("--bitrate", type=int, default=None)
-    p.add_argument("--replay", type=Path, help="play a candump/asc/blf log at its recorded speed")
+    p.add_argument("--interface", default="socketcan", type=_INTERFACE,
+                   help="python-can interface (socketcan, slcan, pcan...)")  # fmt: skip
+    p.add_argument("--channel", type=argtypes.free_text(200),
+                   help="channel: can0, /dev/ttyACM0 (slcan)...")  # fmt: skip
+    p.add_argument("--bitrate", default=None,
+                   type=argtypes.bounded_int(1000, 8_000_000, "bit/s of a CAN bus"))  # fmt: skip
+    p.add_argument("--replay", type=argtypes.input_file,
+                   help="play a candump/asc/blf log at its recorded speed")  # fmt: skip
     p.add_argument("--loop", action="store_true", help="with --replay: play again and again")
-    p.add_argument("--name", help="name on the health key (default from the channel)")
+    p.add_argument("--name", type=argtypes.free_text(100),
+                   help="name on the health key (default from the channel)")  # fmt: skip
     add_session_args(p)
     p.set_defaults(func=cmd_bridge)
     for device, baud in (("concentrator", 115200), ("imu-central", 230400)):
         p = bsub.add_parser(device, help=f"the {device} on a serial port ({baud} baud)")
-        p.add_argument("--port", required=True, help="serial device, e.g. /dev/ttyUSB0")
-        p.add_argument("--baud", type=int, default=None, help=f"default {baud}")
+        p.add_argument("--port", required=True, type=argtypes.free_text(200),
+                       help="serial device, e.g. /dev/ttyUSB0")  # fmt: skip
+        p.add_argument("--baud", default=None, help=f"default {baud}",
+                       type=argtypes.bounded_int(50, 4_000_000, "baud"))  # fmt: skip
         if device == "concentrator":
-            p.add_argument("--nodes", default="1-3", help="nodes to poll (default 1-3)")
-        p.add_argument("--name", help="name on the health key (default from the port)")
+            p.add_argument("--nodes", default="1-3", type=_NUMBERS,
+                           help="nodes to poll (default 1-3)")  # fmt: skip
+        p.add_argument("--name", type=argtypes.free_text(100),
+                       help="name on the health key (default from the port)")  # fmt: skip
         add_session_args(p)
         p.set_defaults(func=cmd_bridge)
 
@@ -186,17 +206,18 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
         p = esub.add_parser(device, help=text)
         _emulation_args(p)
         if device == "can":
-            p.add_argument("--interface", default="socketcan")
-            p.add_argument("--channel", default="vcan0")
+            p.add_argument("--interface", default="socketcan", type=_INTERFACE)
+            p.add_argument("--channel", default="vcan0", type=argtypes.free_text(200))
         else:
             p.add_argument(
                 "--link",
-                type=Path,
+                type=argtypes.link_path,
                 required=True,
                 help="path of the symlink to the pseudo-terminal",
             )
             p.set_defaults(interface=None, channel=None)
-        p.add_argument("--silent", help="concentrator: nodes that never answer, e.g. 3")
+        p.add_argument("--silent", type=_NUMBERS,
+                       help="concentrator: nodes that never answer, e.g. 3")  # fmt: skip
         p.add_argument(
             "--truth",
             action="store_true",
@@ -221,6 +242,7 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
                 default="can",
                 help="transport of the emulated hardware (default can)",
             )
-        p.add_argument("--name", help="name prefix on the health keys")
+        p.add_argument("--name", type=argtypes.free_text(100),
+                       help="name prefix on the health keys")  # fmt: skip
         add_session_args(p)
         p.set_defaults(func=cmd_node)
