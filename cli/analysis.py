@@ -13,8 +13,15 @@ still_range = argtypes.time_window
 
 def cmd_report(args: argparse.Namespace) -> int:
     from bodynet.clients.report import ReportError, make_report
+    from bodynet.session.outputs import OutputError, check_output
 
     out = args.output or args.recordings[0].with_name(args.recordings[0].stem + "-report.md")
+    try:
+        if out.parent.is_dir():  # else a new folder, made by the report: no input is in it
+            check_output(out, [*args.recordings, args.reference])
+    except OutputError as exc:
+        print(f"bodynet report: {exc}", file=sys.stderr)
+        return 2
     try:
         files = make_report(args.recordings, out, args.reference, args.joint, args.still,
                             args.still_s, not args.no_trials)  # fmt: skip
@@ -35,7 +42,7 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
     )
     p.add_argument("recordings", type=argtypes.input_file, nargs="+",
                    help="MCAP recording(s) with poses; several: each one is a trial")  # fmt: skip
-    p.add_argument("-o", "--output", type=argtypes.output_file,
+    p.add_argument("-o", "--output", type=argtypes.output_file_new_folder,
                    help="report.md or report.html, plots beside it "
                         "(default <recording>-report.md)")  # fmt: skip
     p.add_argument("--reference", type=argtypes.input_file,

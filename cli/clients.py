@@ -17,8 +17,10 @@ ROTATE_S = argtypes.bounded_float(0.0, 7 * 86_400.0, "seconds, 0 for never, at m
 def cmd_export(args: argparse.Namespace) -> int:
     from bodynet.clients.export import export_csv
     from bodynet.clients.mcap_store import StoreError
+    from bodynet.session.outputs import check_output
 
     try:
+        check_output(args.output, [args.recording])
         rows = export_csv(args.recording, args.output, progress=not args.quiet)
     except (StoreError, OSError) as exc:
         print(f"bodynet export: {exc}", file=sys.stderr)
@@ -33,11 +35,10 @@ def cmd_export_frames(args: argparse.Namespace) -> int:
     from bodynet.clients.mcap_store import StoreError
     from bodynet.core.skeleton import build_skeleton
     from bodynet.core.subject import ProfileError
+    from bodynet.session.outputs import check_output
 
-    if args.rate_hz is not None and not args.rate_hz > 0:
-        print(f"bodynet export: --rate-hz must be positive, not {args.rate_hz}", file=sys.stderr)
-        return 2
     try:
+        check_output(args.output, [args.recording, getattr(args, "profile", None)])
         track = load_track(args.recording, progress=not args.quiet)
         rate = args.rate_hz or track.measured_rate_hz()
         track = resample(track, rate)
@@ -71,6 +72,14 @@ def cmd_view(args: argparse.Namespace) -> int:
     if args.connect_viewer is not None:
         args.viewer, args.url = "connect", args.connect_viewer or args.url
     mode = args.viewer
+    from bodynet.session.outputs import OutputError, check_output
+
+    if args.save is not None:
+        try:
+            check_output(args.save, [args.recording])
+        except OutputError as exc:
+            print(f"bodynet view: {exc}", file=sys.stderr)
+            return 2
     if mode == "auto":
         mode = (
             "none"
@@ -182,7 +191,10 @@ def cmd_record(args: argparse.Namespace) -> int:
     from bodynet.clients.recorder import DEFAULT_KEYS, Recorder
 
     if args.salvage:
+        from bodynet.session.outputs import check_output
+
         try:
+            check_output(args.output, [args.salvage])
             n = salvage(args.salvage, args.output)
         except (StoreError, OSError) as exc:
             print(f"bodynet record: {exc}", file=sys.stderr)

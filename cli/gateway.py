@@ -158,11 +158,15 @@ def cmd_process(args: argparse.Namespace) -> int:
     if fmt is None:
         print("bodynet process: say which --format the capture is in", file=sys.stderr)
         return 2
+    from bodynet.core.errors import DecodeError
+    from bodynet.session.outputs import atomic_path
+
     try:
         profile = _profile(args.profile)
-        result = process(args.input, Format(fmt), args.output, profile, args.rate_hz,
-                         args.tick_hz, args.tpose_s)  # fmt: skip
-    except (ProfileError, OSError) as exc:
+        with atomic_path(args.output, [args.input, args.profile]) as tmp:
+            result = process(args.input, Format(fmt), tmp, profile, args.rate_hz,
+                             args.tick_hz, args.tpose_s)  # fmt: skip
+    except (ProfileError, OSError, DecodeError) as exc:
         print(f"bodynet process: {exc}", file=sys.stderr)
         return 2
     print(f"{result.ticks} ticks from {result.samples} samples -> {args.output}; "

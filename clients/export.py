@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import contextlib
 import csv
-import os
 import warnings
 from collections.abc import Iterator
 from dataclasses import dataclass, replace
@@ -30,6 +29,7 @@ from tqdm import tqdm
 from bodynet.clients.mcap_store import StoreError, count_messages, read_poses
 from bodynet.core import keys
 from bodynet.core.skeleton import build_skeleton
+from bodynet.session.outputs import atomic_path
 
 #: Frame rate of a recording with a single pose, where none can be measured.
 DEFAULT_RATE_HZ = 100.0
@@ -141,13 +141,8 @@ def output_file(out: Path, suffix: str = ".part") -> Iterator[Path]:
     """A temporary file beside ``out`` (readable by the owner only: health
     data) that becomes ``out`` when the block ends without an exception, and
     is removed otherwise: nothing half-written is left under ``out``."""
-    tmp = out.with_name(out.name + suffix)
-    os.close(os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600))
-    try:
+    with atomic_path(out, suffix=suffix) as tmp:
         yield tmp
-        os.replace(tmp, out)
-    finally:
-        tmp.unlink(missing_ok=True)
 
 
 def euler_deg(rotations: Rotation, seq: str) -> np.ndarray:
@@ -174,11 +169,10 @@ def export_csv(recording: Path, out: Path, progress: bool = True) -> int:
     """
     columns = csv_columns()
     total = count_messages(recording, keys.pose_key())
-    tmp = out.with_name(out.name + ".part")
     rows = 0
     bar = tqdm(total=total or None, unit="pose", desc=recording.name, leave=False,
                disable=None if progress else True)  # fmt: skip
-    try:
+    with output_file(out) as tmp:
         with bar, tmp.open("w", newline="") as f:
             writer = csv.writer(f)
             writer.writerow(columns)
@@ -193,9 +187,6 @@ def export_csv(recording: Path, out: Path, progress: bool = True) -> int:
                 bar.update()
         if not rows:
             raise StoreError(f"{recording}: no poses to export (process the capture first?)")
-        os.replace(tmp, out)
-    finally:
-        tmp.unlink(missing_ok=True)
     return rows
 
 

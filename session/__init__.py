@@ -21,6 +21,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import sys
 import threading
 import time
@@ -160,7 +161,9 @@ def session_config(
 
 
 def _one_line(exc: BaseException) -> str:
-    return " ".join(str(exc).split())[:300]
+    """Zenoh's error on one line, without its Rust source location."""
+    text = re.sub(r"\s+at\s+\S+\.rs:\d+\.?", "", " ".join(str(exc).split()))
+    return text[:300]
 
 
 def _file_mode(conf: zenoh.Config) -> str | None:

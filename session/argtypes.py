@@ -52,6 +52,7 @@ __all__ = [
     "number_list",
     "output_dir",
     "output_file",
+    "output_file_new_folder",
     "port",
     "port_or_zero",
     "positive_float",
@@ -273,6 +274,26 @@ def output_file(text: str) -> Path:
     An existing regular file is allowed (it is replaced atomically on success,
     see ``bodynet.session.outputs``); whether it is one of the command's inputs
     is checked there."""
+    path = _output(text)
+    _writable_folder(path, text)
+    return path
+
+
+def output_file_new_folder(text: str) -> Path:
+    """As :func:`output_file`, but the folder may not exist yet (the command
+    makes it); an existing part of the path must be a writable folder."""
+    path = _output(text)
+    folder = path.parent
+    while str(folder) not in ("", ".", "/") and not folder.exists():
+        folder = folder.parent
+    if not folder.is_dir():
+        fail(f"cannot write {_shown(text)}: {_shown(str(folder))} is not a folder")
+    if not os.access(folder, os.W_OK | os.X_OK):
+        fail(f"cannot write {_shown(text)}: {_shown(str(folder))} is not writable")
+    return path
+
+
+def _output(text: str) -> Path:
     path = _path(text)
     if text.endswith(os.sep):
         fail(f"{_shown(text)} names a folder; give a file name")
@@ -289,7 +310,6 @@ def output_file(text: str) -> Path:
             fail(f"{_shown(text)} is not a regular file (a device or pipe); refusing to write it")
         if not os.access(path, os.W_OK):
             fail(f"cannot write {_shown(text)}: it is read-only")
-    _writable_folder(path, text)
     return path
 
 
@@ -406,8 +426,8 @@ def hostname(text: str) -> str:
         re.fullmatch(r"[A-Za-z0-9](?:[A-Za-z0-9-]{0,61}[A-Za-z0-9])?", label) for label in labels
     ))  # fmt: skip
     if not ok:
-        fail(f"{_shown(text)} is not a host name (ASCII letters, digits, '-' and '.') "
-             "or an IP address; write an international name in its xn-- form")  # fmt: skip
+        fail(f"{_shown(text)} is neither a host name (ASCII letters, digits, '-' and '.') "
+             "nor an IP address; write an international name in its xn-- form")  # fmt: skip
     return text
 
 
