@@ -149,6 +149,10 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
     add_calibrate_ole_parser(csub)
 
 
+class _Unusable(Exception):
+    """A capture that gives nothing to write."""
+
+
 def cmd_process(args: argparse.Namespace) -> int:
     from bodynet.gateway.offline import process
     from bodynet.nodes.captures import Format
@@ -156,17 +160,32 @@ def cmd_process(args: argparse.Namespace) -> int:
     fmt = args.format or ("can-log" if args.input.suffix.lower() in (".log", ".asc", ".blf", ".trc")
                           else None)  # fmt: skip
     if fmt is None:
-        print("bodynet process: say which --format the capture is in", file=sys.stderr)
+        from bodynet.nodes.captures import looks_like
+
+        what = looks_like(args.input)
+        print("bodynet process: say which --format the capture is in"
+              + (f" (it looks like {what})" if what else ""), file=sys.stderr)  # fmt: skip
         return 2
     from bodynet.core.errors import DecodeError
+    from bodynet.nodes.captures import looks_like
     from bodynet.session.outputs import atomic_path
 
+    tpose_s = 3.0 if args.tpose_s is None else args.tpose_s
     try:
         profile = _profile(args.profile)
         with atomic_path(args.output, [args.input, args.profile]) as tmp:
             result = process(args.input, Format(fmt), tmp, profile, args.rate_hz,
-                             args.tick_hz, args.tpose_s)  # fmt: skip
-    except (ProfileError, OSError, DecodeError) as exc:
+                             args.tick_hz, tpose_s)  # fmt: skip
+            if not result.samples:  # nothing written: no empty recording is left
+                what = looks_like(args.input)
+                raise _Unusable(
+                    f"no {fmt} samples in {args.input} ({result.stats.summary()})"
+                    + (f"; it looks like {what}" if what else "")
+                )
+            if args.tpose_s is not None and args.tpose_s > result.span_s:
+                raise _Unusable(f"--tpose-s {args.tpose_s:g} is longer than the capture "
+                                f"({result.span_s:.3g} s of samples); nothing written")  # fmt: skip
+    except (ProfileError, OSError, DecodeError, _Unusable) as exc:
         print(f"bodynet process: {exc}", file=sys.stderr)
         return 2
     print(f"{result.ticks} ticks from {result.samples} samples -> {args.output}; "
@@ -189,8 +208,9 @@ def add_process_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore
     p.add_argument(
         "--tpose-s",
         type=argtypes.non_negative_float(3600.0, "seconds at the capture's start"),
-        default=3.0,
-        help="seconds at the start in T-pose, to calibrate orientation sensors",
+        default=None,
+        help="seconds at the start in T-pose, to calibrate orientation sensors (default 3, "
+        "or the whole capture if shorter; longer than the capture is refused)",
     )
     p.add_argument("--profile", type=argtypes.input_file, help="subject profile (TOML)")
     p.add_argument("-o", "--output", type=argtypes.output_file, required=True,

@@ -34,18 +34,55 @@ log = logging.getLogger("bodynet")
 
 def cmd_decode(args: argparse.Namespace) -> int:
     """Decode a capture: one JSON object per sample on stdout, a summary on stderr."""
+    from bodynet.nodes.captures import looks_like
+
     stats = CaptureStats()
     out = sys.stdout
-    try:
-        for sample in read_capture(args.file, args.format, stats, args.rate_hz):
-            out.write(json.dumps(sample_json(sample), separators=(",", ":")) + "\n")
-    except OSError as exc:
-        print(f"bodynet decode: cannot read {args.file}: {exc.strerror or exc}", file=sys.stderr)
+    if out is None:  # started with its stdout closed
+        print("bodynet decode: stdout is closed: nowhere to write the samples", file=sys.stderr)
         return 2
+    samples = read_capture(args.file, args.format, stats, args.rate_hz)
+    try:
+        while True:
+            try:
+                sample = next(samples)
+            except StopIteration:
+                break
+            except OSError as exc:
+                print(f"bodynet decode: cannot read {args.file}: {exc.strerror or exc}",
+                      file=sys.stderr)  # fmt: skip
+                return 2
+            out.write(json.dumps(sample_json(sample), separators=(",", ":")) + "\n")
+        out.flush()
     except BrokenPipeError:  # e.g. piped into head
+        _stdout_gone()
         return 0
+    except OSError as exc:  # a full disk, a closed descriptor
+        _stdout_gone()
+        print(f"bodynet decode: cannot write the samples to stdout: {exc.strerror or exc}",
+              file=sys.stderr)  # fmt: skip
+        return 1
     print(stats.summary(), file=sys.stderr)
+    if not stats.decoded:
+        what = looks_like(args.file)
+        print(f"bodynet decode: no {args.format} samples in {args.file}"
+              + (f"; it looks like {what}" if what else ""), file=sys.stderr)  # fmt: skip
+        return 2
     return 0
+
+
+def _stdout_gone() -> None:
+    """Point stdout at /dev/null: what is still buffered cannot be written, and
+    Python's own flush at exit would complain about it."""
+    import os
+
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(devnull, sys.stdout.fileno())
+    except (OSError, ValueError):
+        pass
+    finally:
+        os.close(devnull)
 
 
 def cmd_demo(args: argparse.Namespace) -> int:

@@ -262,6 +262,8 @@ def existing_dir(text: str) -> Path:
 
 def _writable_folder(path: Path, text: str) -> None:
     parent = path.parent if str(path.parent) else Path(".")
+    if parent.exists() and not parent.is_dir():
+        fail(f"cannot write {_shown(text)}: {_shown(str(parent))} is a file, not a folder")
     if not parent.is_dir():
         fail(f"cannot write {_shown(text)}: its folder {_shown(str(parent))} does not exist")
     if not os.access(parent, os.W_OK | os.X_OK):

@@ -187,7 +187,7 @@ def test_bad_options_are_refused_cleanly() -> None:
     out = subprocess.run([*BODYNET, "game", "--trials", "0"], capture_output=True, text=True,
                          timeout=60, check=False)  # fmt: skip
     assert out.returncode == 2
-    assert "must be above 0" in out.stderr
+    assert "argument --trials: '0' is outside 1..1000" in out.stderr
     assert "Traceback" not in out.stderr
 
 
@@ -199,7 +199,7 @@ def test_a_taken_port_or_unwritable_results_are_told_at_once(tmp_path: Path) -> 
         for args, told in (
             (["--http-port", port, "--results", str(tmp_path / "r")], "cannot serve on"),
             (["--http-port", "0", "--results", str(tmp_path / "file" / "r")],
-             "cannot write results"),
+             "argument --results: cannot write"),
         ):  # fmt: skip
             out = subprocess.run([*BODYNET, "game", "-e", no_router, *args], capture_output=True,
                                  text=True, timeout=60, check=False)  # fmt: skip
