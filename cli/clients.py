@@ -159,7 +159,7 @@ def cmd_record(args: argparse.Namespace) -> int:
     import time
 
     from bodynet.cli.nodes import stop_on_signals
-    from bodynet.clients.mcap_store import StoreError, salvage
+    from bodynet.clients.mcap_store import StoreError, salvage_report
     from bodynet.clients.recorder import DEFAULT_KEYS, Recorder
 
     if args.salvage:
@@ -167,11 +167,12 @@ def cmd_record(args: argparse.Namespace) -> int:
 
         try:
             check_output(args.output, [args.salvage])
-            n = salvage(args.salvage, args.output)
+            saved = salvage_report(args.salvage, args.output)
         except (StoreError, OSError) as exc:
             print(f"bodynet record: {exc}", file=sys.stderr)
             return 2
-        print(f"bodynet record: {n} messages salvaged into {args.output}", file=sys.stderr)
+        print(f"bodynet record: {saved.messages} messages salvaged into {args.output}; "
+              f"{saved.summary()}", file=sys.stderr)  # fmt: skip
         return 0
     stop = stop_on_signals()
     session = open_session(config_from_args(args))
@@ -197,14 +198,13 @@ def cmd_record(args: argparse.Namespace) -> int:
 
 def cmd_replay(args: argparse.Namespace) -> int:
     from bodynet.cli.nodes import stop_on_signals
-    from bodynet.clients.mcap_store import StoreError
+    from bodynet.clients.mcap_store import StoreError, channel_counts
     from bodynet.clients.replay import replay, topic_filter
 
-    try:
+    try:  # the file first: a mistake there is told before waiting for the router
         topic_filter(args.keys or None)
-        if not args.speed > 0:
-            raise ValueError(f"--speed must be positive, not {args.speed}")
-    except ValueError as exc:
+        channel_counts(args.recording)
+    except (ValueError, StoreError) as exc:
         print(f"bodynet replay: {exc}", file=sys.stderr)
         return 2
     stop = stop_on_signals()
