@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 from contextlib import suppress
 from pathlib import Path
@@ -274,12 +275,20 @@ def cmd_calibrate_ole(args: argparse.Namespace) -> int:
     key, angle_name = _module_site(args.joint)
     pairs: list[tuple[float, float]] = []
     if args.from_pairs:
-        for line in args.from_pairs.read_text().splitlines():
+        try:
+            text = args.from_pairs.read_text(encoding="utf-8", errors="replace")
+        except OSError as exc:
+            print(f"bodynet calibrate ole: cannot read {args.from_pairs}: {exc.strerror or exc}",
+                  file=sys.stderr)  # fmt: skip
+            return 2
+        for line in text.splitlines():
             fields = [f.strip() for f in line.replace(";", ",").split(",")]
             try:
-                pairs.append((float(fields[0]), float(fields[1])))
+                pair = (float(fields[0]), float(fields[1]))
             except (ValueError, IndexError):
                 continue  # a header or a blank line
+            if all(map(math.isfinite, pair)):
+                pairs.append(pair)
     else:
         angles = args.angles
         session = open_session(config_from_args(args))
@@ -299,9 +308,21 @@ def cmd_calibrate_ole(args: argparse.Namespace) -> int:
     if len(pairs) < 2:
         print("bodynet calibrate ole: need at least two (angle, counts) pairs", file=sys.stderr)
         return 2
-    cal, fit = fit_calibration([a for a, _ in pairs], [c for _, c in pairs])
-    profile = _profile(args.profile).with_ole(angle_name, cal)
-    profile_file.save(profile, args.profile)
+    try:
+        cal, fit = fit_calibration([a for a, _ in pairs], [c for _, c in pairs])
+        if not (math.isfinite(fit.radius_mm) and math.isfinite(fit.r)):
+            raise ValueError(f"R = {fit.radius_mm} mm, r = {fit.r}")
+        profile = _profile(args.profile).with_ole(angle_name, cal)
+    except ValueError as exc:  # ProfileError too
+        print(f"bodynet calibrate ole: no usable calibration from these pairs ({exc}); "
+              "nothing written", file=sys.stderr)  # fmt: skip
+        return 2
+    try:
+        profile_file.save(profile, args.profile)
+    except OSError as exc:
+        print(f"bodynet calibrate ole: cannot write {args.profile}: {exc.strerror or exc}",
+              file=sys.stderr)  # fmt: skip
+        return 2
     table = ", ".join(f"{d:g} mm: {s:.3f}" for d, s in zip(cal.sf_d_mm, cal.sf, strict=True))
     print(
         f"{angle_name}: R = {cal.radius_mm:.2f} mm (eq. 26 over all poses: "
