@@ -218,6 +218,10 @@ def cmd_replay(args: argparse.Namespace) -> int:
     finally:
         session.close()
     print(f"bodynet replay: {n} samples published", file=sys.stderr)
+    if not n:
+        print(f"bodynet replay: nothing to replay: {args.recording} holds no raw samples"
+              + (" on these keys" if args.keys else ""), file=sys.stderr)  # fmt: skip
+        return 2
     return 0
 
 

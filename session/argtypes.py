@@ -25,6 +25,7 @@ Use::
 from __future__ import annotations
 
 import argparse
+import errno
 import ipaddress
 import math
 import os
@@ -222,7 +223,23 @@ def _path(text: str) -> Path:
         fail("an empty path")
     if "\0" in text:
         fail(f"{_shown(text)} holds a NUL character")
+    try:
+        os.stat(text)
+    except FileNotFoundError:
+        pass
+    except OSError as exc:  # a name too long, a loop of links...
+        if exc.errno in (errno.ENAMETOOLONG, errno.ELOOP):
+            fail(f"{_shown(text)}: {exc.strerror}")
     return Path(text)
+
+
+def _kind(path: Path) -> str:
+    """"dir", "file", "other" (a device, a pipe...), or "none" (nothing there)."""
+    try:
+        mode = path.stat().st_mode
+    except OSError:
+        return "none"
+    return "dir" if stat.S_ISDIR(mode) else "file" if stat.S_ISREG(mode) else "other"
 
 
 def _why_not_readable(path: Path) -> str | None:
@@ -255,16 +272,18 @@ def input_file(text: str) -> Path:
 def existing_dir(text: str) -> Path:
     """A folder that exists."""
     path = _path(text)
-    if not path.is_dir():
-        fail(f"{_shown(text)} is not a folder" + ("" if path.exists() else " (no such path)"))
+    kind = _kind(path)
+    if kind != "dir":
+        fail(f"{_shown(text)} is not a folder" + ("" if kind != "none" else " (no such path)"))
     return path
 
 
 def _writable_folder(path: Path, text: str) -> None:
     parent = path.parent if str(path.parent) else Path(".")
-    if parent.exists() and not parent.is_dir():
+    kind = _kind(parent)
+    if kind not in ("dir", "none"):
         fail(f"cannot write {_shown(text)}: {_shown(str(parent))} is a file, not a folder")
-    if not parent.is_dir():
+    if kind != "dir":
         fail(f"cannot write {_shown(text)}: its folder {_shown(str(parent))} does not exist")
     if not os.access(parent, os.W_OK | os.X_OK):
         fail(f"cannot write {_shown(text)}: its folder is not writable")
@@ -286,9 +305,9 @@ def output_file_new_folder(text: str) -> Path:
     makes it); an existing part of the path must be a writable folder."""
     path = _output(text)
     folder = path.parent
-    while str(folder) not in ("", ".", "/") and not folder.exists():
+    while str(folder) not in ("", ".", "/") and _kind(folder) == "none":
         folder = folder.parent
-    if not folder.is_dir():
+    if _kind(folder) != "dir":
         fail(f"cannot write {_shown(text)}: {_shown(str(folder))} is not a folder")
     if not os.access(folder, os.W_OK | os.X_OK):
         fail(f"cannot write {_shown(text)}: {_shown(str(folder))} is not writable")
@@ -318,7 +337,7 @@ def _output(text: str) -> Path:
 def link_path(text: str) -> Path:
     """Where a link (or socket) will be made: not a folder, in a writable folder."""
     path = _path(text)
-    if path.is_dir() and not path.is_symlink():
+    if _kind(path) == "dir" and not os.path.islink(path):
         fail(f"{_shown(text)} is a folder; give a file name")
     _writable_folder(path, text)
     return path
@@ -328,7 +347,7 @@ def input_or_new_file(text: str) -> Path:
     """A file that is read if it exists and written otherwise (a profile that
     calibration creates): a readable file, or a new name in a writable folder."""
     path = _path(text)
-    if path.exists() or path.is_symlink():
+    if _kind(path) != "none" or os.path.islink(path):
         return input_file(text)
     _writable_folder(path, text)
     return path
@@ -337,8 +356,8 @@ def input_or_new_file(text: str) -> Path:
 def output_dir(text: str) -> Path:
     """A folder to write into: an existing folder, or a new one whose parent exists."""
     path = _path(text)
-    if path.exists():
-        if not path.is_dir():
+    if _kind(path) != "none":
+        if _kind(path) != "dir":
             fail(f"{_shown(text)} exists and is not a folder")
         if not os.access(path, os.W_OK | os.X_OK):
             fail(f"cannot write into {_shown(text)}: permission denied")
