@@ -17,7 +17,7 @@ from typing import Any
 from bodynet.core.codecs import pose
 from bodynet.core.messages import RawSample, Source
 from bodynet.core.subject import Profile
-from bodynet.gateway.service import pose_frame
+from bodynet.gateway.frames import pose_frame
 from bodynet.gateway.solver import BodySolver, solve_bodies, tpose_mounts
 from bodynet.nodes.emulator import BodyEmulator, imu_tags
 from bodynet.nodes.motion import ROUTINES

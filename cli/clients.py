@@ -29,7 +29,7 @@ def cmd_export(args: argparse.Namespace) -> int:
         check_output(out, [args.recording, options.get("profile")])
         if options.get("profile"):
             from bodynet.core.skeleton import build_skeleton
-            from bodynet.gateway import profile_file
+            from bodynet.session import profile_file
 
             options["skeleton"] = build_skeleton(profile_file.load(options["profile"]).lengths)
         track = load_track(args.recording, progress=not args.quiet, every_tick=not entry.regular)
@@ -106,8 +106,7 @@ def cmd_view(args: argparse.Namespace) -> int:
 _VIEWER_URL = argtypes.url("rerun", "rerun+http", "rerun+https", "http", "https")
 
 
-def add_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
-    p = sub.add_parser("view", help="the body in Rerun, live or from a recording")
+def add_view_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("recording", type=argtypes.input_file, nargs="?",
                    help="an MCAP recording (else: live)")  # fmt: skip
     p.add_argument("--viewer", choices=("auto", "native", "web", "connect", "none"), default="auto",
@@ -135,11 +134,11 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
     p.add_argument("--grpc-port", type=argtypes.port, default=None,
                    help="with --viewer web (default 9876)")  # fmt: skip
     add_session_args(p)
-    p.set_defaults(func=cmd_view)
 
+
+def add_export_args(p: argparse.ArgumentParser) -> None:
     from bodynet.clients.exports import WRITERS
 
-    p = sub.add_parser("export", help="export a recording to a standard format")
     esub = p.add_subparsers(dest="kind", required=True, metavar="FORMAT")
     for entry in WRITERS.values():
         e = esub.add_parser(entry.name, help=entry.help)
@@ -239,8 +238,7 @@ def _rotate_s(text: str) -> float:
     return value
 
 
-def add_record_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
-    p = sub.add_parser("record", help="record raw samples, poses, topology and health to MCAP")
+def add_record_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("keys", nargs="*", type=argtypes.key_expr,
                    help="key expressions (default: every raw sample and pose, "
                                            "the topology and every health)")  # fmt: skip
@@ -253,9 +251,9 @@ def add_record_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore
     p.add_argument("--salvage", type=argtypes.input_file,
                    help="turn this unfinished file into -o, and stop")  # fmt: skip
     add_session_args(p)
-    p.set_defaults(func=cmd_record)
 
-    p = sub.add_parser("replay", help="publish a recording's raw samples again")
+
+def add_replay_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("recording", type=argtypes.input_file)
     p.add_argument("--keys", nargs="*", type=argtypes.key_expr,
                    help="key expressions of the topics to replay, such as 'body/arm/left/**' "
@@ -265,4 +263,3 @@ def add_record_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore
     p.add_argument("--loop", action="store_true")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     add_session_args(p)
-    p.set_defaults(func=cmd_replay)

@@ -25,7 +25,7 @@ POSE_RATE_HZ = argtypes.bounded_float(0.1, 1000.0, "poses per second, 0.1 to 100
 
 
 def _profile(path: Path | None) -> Profile:
-    from bodynet.gateway import profile_file
+    from bodynet.session import profile_file
 
     if path is None or not path.exists():
         return Profile()
@@ -119,8 +119,7 @@ def cmd_calibrate_tpose(args: argparse.Namespace) -> int:
     return 1
 
 
-def add_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
-    p = sub.add_parser("gateway", help="calibration and kinematics: raw samples in, poses out")
+def add_gateway_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--profile", type=argtypes.input_or_new_file,
                    help="subject profile (TOML); created by calibration")  # fmt: skip
     p.add_argument("--branch", action="append", default=[], choices=[str(b) for b in BRANCHES],
@@ -132,15 +131,15 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
                    help="with --all-subjects: <subject>.toml profiles (default.toml "
                         "without namespace), written by T-pose calibration")  # fmt: skip
     add_session_args(p, default_mode="router")
-    p.set_defaults(func=cmd_gateway)
 
-    p = sub.add_parser("subjects", help="list the subjects on the network and their branches")
+
+def add_subjects_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--timeout", type=argtypes.bounded_float(0.01, 600.0, "seconds"), default=2.0,
                    help="seconds to wait for answers")  # fmt: skip
     add_session_args(p)
-    p.set_defaults(func=cmd_subjects)
 
-    cal = sub.add_parser("calibrate", help="calibrate sensors of the subject")
+
+def add_calibrate_args(cal: argparse.ArgumentParser) -> None:
     csub = cal.add_subparsers(dest="what", required=True, metavar="WHAT")
     p = csub.add_parser("tpose", help="IMU mounts: the subject stands still in T-pose")
     p.add_argument("--seconds", type=argtypes.bounded_float(0.1, 60.0, "seconds of still T-pose"),
@@ -148,6 +147,77 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
     add_session_args(p)
     p.set_defaults(func=cmd_calibrate_tpose)
     add_calibrate_ole_parser(csub)
+    add_calibrate_assign_parser(csub)
+
+
+def _tracker_arg(text: str) -> str:
+    from bodynet.core.codecs.slimevr import normalise_tracker_id
+
+    try:
+        return normalise_tracker_id(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def _site_arg(text: str) -> keys.Site:
+    try:
+        return keys.site_named(text)
+    except keys.KeySpaceError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def add_calibrate_assign_parser(csub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    p = csub.add_parser("assign", help="put a tracker (SlimeVR: MAC-sensor) on a site")
+    p.add_argument("tracker", type=_tracker_arg,
+                   help="the tracker's id, e.g. aabbccddeeff-0 (body/@topology lists "
+                        "unassigned ones)")  # fmt: skip
+    p.add_argument("site", type=_site_arg, help="where it sits, e.g. left-arm/upperarm")
+    p.add_argument("--profile", type=argtypes.input_or_new_file,
+                   help="also keep it in this profile (TOML)")  # fmt: skip
+    p.add_argument("--offline", action="store_true",
+                   help="only write the profile; tell no running bridge")  # fmt: skip
+    p.add_argument("--timeout", type=argtypes.bounded_float(0.01, 600.0, "seconds"), default=3.0,
+                   help="seconds to wait for a bridge to publish the site")  # fmt: skip
+    add_session_args(p)
+    p.set_defaults(func=cmd_calibrate_assign)
+
+
+def cmd_calibrate_assign(args: argparse.Namespace) -> int:
+    """Save the assignment in the profile, and tell the running bridges: the
+    tracker's samples then come on the site's key."""
+    import time
+
+    name = keys.site_name(args.site)
+    if args.profile is not None:
+        from bodynet.session import profile_file
+
+        try:
+            profile = _profile(args.profile).with_tracker(args.tracker, name)
+            profile_file.save(profile, args.profile)
+        except (ProfileError, OSError) as exc:
+            print(f"bodynet calibrate assign: {exc}", file=sys.stderr)
+            return 2
+        print(f"{args.tracker} -> {name}: saved in {args.profile}", file=sys.stderr)
+    elif args.offline:
+        print("bodynet calibrate assign: --offline needs --profile", file=sys.stderr)
+        return 2
+    if args.offline:
+        return 0
+    session = open_session(config_from_args(args))
+    try:
+        session.put(keys.ASSIGN, json.dumps({"tracker": args.tracker, "site": name}))
+        deadline = time.monotonic() + args.timeout
+        while time.monotonic() < deadline:
+            if any(r.ok is not None for r in session.liveliness().get(args.site.raw_key,
+                                                                       timeout=0.5)):  # fmt: skip
+                print(f"{args.tracker} -> {name}: live on {args.site.raw_key}", file=sys.stderr)
+                return 0
+            time.sleep(0.1)
+    finally:
+        session.close()
+    print(f"bodynet calibrate assign: no bridge published {args.site.raw_key} within "
+          f"{args.timeout:g} s (is the tracker streaming?)", file=sys.stderr)  # fmt: skip
+    return 0 if args.profile is not None else 1
 
 
 class _Unusable(Exception):
@@ -155,11 +225,10 @@ class _Unusable(Exception):
 
 
 def cmd_process(args: argparse.Namespace) -> int:
-    from bodynet.gateway.offline import process
-    from bodynet.nodes.captures import Format
+    from bodynet.nodes.captures import CaptureError, capture_options, format_of
+    from bodynet.offline.process import process
 
-    fmt = args.format or ("can-log" if args.input.suffix.lower() in (".log", ".asc", ".blf", ".trc")
-                          else None)  # fmt: skip
+    fmt = args.format or format_of(args.input)
     if fmt is None:
         from bodynet.nodes.captures import looks_like
 
@@ -175,8 +244,8 @@ def cmd_process(args: argparse.Namespace) -> int:
     try:
         profile = _profile(args.profile)
         with atomic_path(args.output, [args.input, args.profile]) as tmp:
-            result = process(args.input, Format(fmt), tmp, profile, args.rate_hz,
-                             args.tick_hz, tpose_s)  # fmt: skip
+            result = process(args.input, fmt, tmp, profile, args.rate_hz,
+                             args.tick_hz, tpose_s, capture_options(args))  # fmt: skip
             if not result.samples:  # nothing written: no empty recording is left
                 what = looks_like(args.input)
                 raise _Unusable(
@@ -186,7 +255,7 @@ def cmd_process(args: argparse.Namespace) -> int:
             if args.tpose_s is not None and args.tpose_s > result.span_s:
                 raise _Unusable(f"--tpose-s {args.tpose_s:g} is longer than the capture "
                                 f"({result.span_s:.3g} s of samples); nothing written")  # fmt: skip
-    except (ProfileError, OSError, DecodeError, _Unusable) as exc:
+    except (ProfileError, OSError, CaptureError, DecodeError, _Unusable) as exc:
         print(f"bodynet process: {exc}", file=sys.stderr)
         return 2
     print(f"{result.ticks} ticks from {result.samples} samples -> {args.output}; "
@@ -195,13 +264,13 @@ def cmd_process(args: argparse.Namespace) -> int:
     return 0
 
 
-def add_process_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
-    from bodynet.nodes.captures import Format
+def add_process_args(p: argparse.ArgumentParser) -> None:
+    from bodynet.nodes.captures import add_capture_args, formats
 
-    p = sub.add_parser("process", help="run the gateway over a capture into an MCAP file")
     p.add_argument("input", type=argtypes.input_file,
                    help="a capture (any format of `bodynet decode`)")  # fmt: skip
-    p.add_argument("--format", choices=[f.value for f in Format])
+    p.add_argument("--format", choices=formats())
+    add_capture_args(p)
     p.add_argument("--rate-hz", type=argtypes.RATE_HZ, default=None,
                    help="as for `bodynet decode`")  # fmt: skip
     p.add_argument("--tick-hz", type=POSE_RATE_HZ, default=100.0,
@@ -216,7 +285,6 @@ def add_process_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore
     p.add_argument("--profile", type=argtypes.input_file, help="subject profile (TOML)")
     p.add_argument("-o", "--output", type=argtypes.output_file, required=True,
                    help="the MCAP file to write")  # fmt: skip
-    p.set_defaults(func=cmd_process)
 
 
 def _module_site(joint: str) -> tuple[str, str]:
@@ -269,8 +337,8 @@ def _still_counts(session: object, key: str, seconds: float) -> tuple[float, flo
 
 
 def cmd_calibrate_ole(args: argparse.Namespace) -> int:
-    from bodynet.gateway import profile_file
     from bodynet.gateway.calibrate import fit_calibration
+    from bodynet.session import profile_file
 
     key, angle_name = _module_site(args.joint)
     pairs: list[tuple[float, float]] = []

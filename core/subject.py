@@ -19,6 +19,9 @@ sf = [1.0, 1.0, 1.007, 1.084, 1.161, 1.261]
 
 [imu_mounts]           # sensor orientation in its segment (w, x, y, z), from T-pose
 "body/arm/left/upperarm/raw" = [1.0, 0.0, 0.0, 0.0]
+
+[trackers]             # a sensor that says who it is (SlimeVR: MAC-sensor) -> its site
+"aabbccddeeff-0" = "left-arm/upperarm"
 ```
 """
 
@@ -31,6 +34,8 @@ from types import MappingProxyType
 from typing import Any
 
 from .calibration import OleCalibration, default_ole
+from .codecs.slimevr import normalise_tracker_id
+from .keys import KeySpaceError, site_name, site_named
 from .profile import OLE_DOF, SMARTSUIT_SITES
 
 VERSION = 1
@@ -57,12 +62,19 @@ class Profile:
     lengths: Mapping[str, float] = field(default_factory=dict)  # over the skeleton's defaults
     ole: Mapping[str, OleCalibration] = field(default_factory=default_ole_table)
     imu_mounts: Mapping[str, QuatWxyz] = field(default_factory=dict)  # raw key -> mount
+    trackers: Mapping[str, str] = field(default_factory=dict)  # tracker id -> site name
     accel_counts_per_g: float = 1024.0
     accel_filter: float = 0.5  # weight of a new accelerometer sample in the tilt filter
     version: int = VERSION
 
     def with_mounts(self, mounts: Mapping[str, QuatWxyz]) -> Profile:
         return replace(self, imu_mounts=MappingProxyType({**self.imu_mounts, **mounts}))
+
+    def with_tracker(self, tracker: str, site: str) -> Profile:
+        """``tracker`` (its canonical id) sits at ``site`` (``left-arm/upperarm``);
+        a site holds one tracker, so any other tracker there is unassigned."""
+        kept = {t: s for t, s in self.trackers.items() if s != site and t != tracker}
+        return replace(self, trackers=MappingProxyType({**kept, tracker: site}))
 
     def with_ole(self, angle: str, calibration: OleCalibration) -> Profile:
         return replace(self, ole=MappingProxyType({**self.ole, angle: calibration}))
@@ -79,6 +91,7 @@ class Profile:
                 for name, c in sorted(self.ole.items())
             },
             "imu_mounts": {k: list(q) for k, q in sorted(self.imu_mounts.items())},
+            "trackers": dict(sorted(self.trackers.items())),
         }
 
     @classmethod
@@ -105,6 +118,12 @@ class Profile:
                        float(data.get("accel_counts_per_g", 1024.0))]  # fmt: skip
             if not all(math.isfinite(v) for v in numbers):
                 raise ProfileError("a number that is not finite (nan or inf)")
+            trackers = {}
+            for tracker, site in data.get("trackers", {}).items():
+                try:
+                    trackers[normalise_tracker_id(str(tracker))] = site_name(site_named(str(site)))
+                except (ValueError, KeySpaceError) as exc:
+                    raise ProfileError(f"trackers[{tracker!r}]: {exc}") from None
             accel_filter = float(data.get("accel_filter", 0.5))
             if not 0.0 < accel_filter <= 1.0:
                 raise ProfileError(f"accel_filter must be in (0, 1], not {accel_filter}")
@@ -115,6 +134,7 @@ class Profile:
                 ),
                 ole=MappingProxyType(ole),
                 imu_mounts=MappingProxyType(mounts),
+                trackers=MappingProxyType(trackers),
                 accel_counts_per_g=float(data.get("accel_counts_per_g", 1024.0)),
                 accel_filter=accel_filter,
             )

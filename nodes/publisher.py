@@ -40,7 +40,10 @@ from bodynet.core import keys
 from bodynet.core.codecs import raw_sample
 from bodynet.core.errors import Reason, RejectCounts, Rejected
 from bodynet.core.keys import Site
-from bodynet.core.messages import RawSample, Reading, Source
+from bodynet.core.messages import RawSample, Reading, source_name
+from bodynet.nodes.sources.base import PeriodicSeq
+
+__all__ = ["PeriodicSeq", "SitePublisher"]
 
 log = logging.getLogger(__name__)
 
@@ -61,10 +64,11 @@ class NodeHealth:
     last_seen: float = 0.0  # monotonic
     alive: bool = False
     window: deque[float] = field(default_factory=deque)  # arrival times of the last second
+    status: dict[str, float | int | str] = field(default_factory=dict)  # battery, rssi...
 
     def as_json(self, now: float) -> dict[str, object]:
         recent = [t for t in self.window if now - t <= 1.0]
-        return {
+        out: dict[str, object] = {
             "key": self.site.raw_key,
             "alive": self.alive,
             "rate_hz": len(recent),
@@ -72,20 +76,9 @@ class NodeHealth:
             "gaps": self.gaps,
             "rejected": dict(self.rejected),
         }
-
-
-class PeriodicSeq:
-    """Sequence numbers from arrival times of a source sending every ``period_s``."""
-
-    def __init__(self, period_s: float) -> None:
-        self.period_s = period_s
-        self._last: dict[int, tuple[int, float]] = {}
-
-    def next(self, node: int, t_s: float) -> int:
-        last = self._last.get(node)
-        seq = 0 if last is None else last[0] + max(1, round((t_s - last[1]) / self.period_s))
-        self._last[node] = (seq, t_s)
-        return seq
+        if self.status:
+            out["status"] = dict(self.status)
+        return out
 
 
 def _raw_publisher(session: zenoh.Session, key: str) -> zenoh.ext.AdvancedPublisher:
@@ -106,7 +99,7 @@ class SitePublisher:
         self,
         session: zenoh.Session,
         sites: Mapping[int, Site],
-        source: Source,
+        source: int,
         name: str,
         period_s: float,
         stale_periods: float = 5.0,
@@ -119,6 +112,7 @@ class SitePublisher:
         self.stale_after_s = max(stale_periods * period_s, MIN_STALE_S)
         self.nodes: dict[int, NodeHealth] = {}
         self.rejected = RejectCounts()
+        self._early_status: dict[int, dict[str, float | int | str]] = {}
         self.device = "starting"
         self._publishers: dict[int, zenoh.ext.AdvancedPublisher] = {}
         self._tokens: dict[int, zenoh.LivelinessToken] = {}
@@ -144,6 +138,7 @@ class SitePublisher:
             health = self.nodes.get(reading.node)
             if health is None:
                 health = self.nodes[reading.node] = NodeHealth(site)
+                health.status.update(self._early_status.pop(reading.node, {}))
             if health.last_seq is not None and seq > health.last_seq + 1:
                 health.gaps += seq - health.last_seq - 1
             health.last_seq = seq
@@ -176,6 +171,34 @@ class SitePublisher:
             "%s: rejected %s: %s %r", self.name, rejected.reason, rejected.detail, rejected.data
         )
 
+    def move(self, node: int, site: Site) -> None:
+        """Node ``node`` sits at ``site`` from now on (a tracker assigned live): what
+        it published elsewhere is dropped, its health starts over."""
+        with self._lock:
+            if self.sites.get(node) == site:
+                return
+            self.sites[node] = site
+            token = self._tokens.pop(node, None)
+            if token is not None:
+                token.undeclare()
+            publisher = self._publishers.pop(node, None)
+            if publisher is not None:
+                publisher.undeclare()
+            health = self.nodes.pop(node, None)
+            if health is not None:  # what the node said of itself still holds
+                self._early_status[node] = dict(health.status)
+        self.publish_health()
+
+    def set_status(self, node: int, key: str, value: float | int | str) -> None:
+        """Keep what node ``node`` says of itself (battery, signal strength...) for
+        its health (what it says before its first sample is kept for then)."""
+        with self._lock:
+            health = self.nodes.get(node)
+            if health is not None:
+                health.status[key] = value
+            else:
+                self._early_status.setdefault(node, {})[key] = value
+
     def set_device(self, state: str) -> None:
         """Say how the device behind the source is doing (``connected``...)."""
         if state != self.device:
@@ -187,7 +210,7 @@ class SitePublisher:
         with self._lock:
             return {
                 "source": self.name,
-                "kind": self.source.name.lower(),
+                "kind": source_name(self.source),
                 "device": self.device,
                 "t_ns": time.time_ns(),
                 "rejected": dict(self.rejected),

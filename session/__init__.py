@@ -14,6 +14,9 @@ stands unless ``--mode`` is given.
 ``--subject NAME`` (or ``BODYNET_SUBJECT``) runs the session in the Zenoh
 namespace ``NAME``: the process keeps using ``body/...`` keys while the
 network carries ``NAME/body/...``, so several subjects share one router.
+
+Zenoh itself is imported when a session is configured, not with this module,
+so that parsing a command's flags (``bodynet --help``) stays quick.
 """
 
 from __future__ import annotations
