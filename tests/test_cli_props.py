@@ -177,7 +177,10 @@ def test_the_parser_has_every_command_and_each_parses_with_valid_values(
 
 
 #: Options where an empty value means "none", and what it means.
-EMPTY_MEANS_NONE = {("game", "--patient"): "no patient id (the default)"}
+EMPTY_MEANS_NONE = {
+    ("game", "--patient"): "no patient id (the default)",
+    ("gateway", "--share"): "an id made of the host, the pid and a random part",
+}
 
 #: Options checked by their command instead, before it does anything, and why.
 CHECKED_BY_THE_COMMAND = {
