@@ -208,7 +208,8 @@ def add_bench_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--bodies", type=argtypes.positive_int(1000, "bodies"), nargs="+",
                    default=[1, 5, 10, 15, 20, 50],
                    help="numbers of bodies fed to the gateway")  # fmt: skip
-    p.add_argument("--gateways", type=int, nargs="+", default=[1, 2, 4],
+    p.add_argument("--gateways", type=argtypes.positive_int(64, "gateways"), nargs="+",
+                   default=[1, 2, 4],
                    help="numbers of gateway processes sharing the bodies (--share)")  # fmt: skip
     p.add_argument("--only", action="append", choices=BENCHMARKS,
                    help="run only this benchmark (repeatable; default all but soak)")  # fmt: skip
