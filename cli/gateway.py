@@ -262,19 +262,24 @@ def cmd_process(args: argparse.Namespace) -> int:
     from bodynet.nodes.captures import looks_like
     from bodynet.session.outputs import atomic_path
 
+    calibration = None
+    if args.calibration is not None:
+        calibration = (args.calibration, format_of(args.calibration) or fmt)
     tpose_s = 3.0 if args.tpose_s is None else args.tpose_s
     try:
         profile = _profile(args.profile)
-        with atomic_path(args.output, [args.input, args.profile]) as tmp:
+        with atomic_path(args.output, [args.input, args.profile, args.calibration]) as tmp:
             result = process(args.input, fmt, tmp, profile, args.rate_hz,
-                             args.tick_hz, tpose_s, capture_options(args))  # fmt: skip
+                             args.tick_hz, tpose_s, capture_options(args),
+                             calibration)  # fmt: skip
             if not result.samples:  # nothing written: no empty recording is left
                 what = looks_like(args.input)
                 raise _Unusable(
                     f"no {fmt} samples in {args.input} ({result.stats.summary()})"
                     + (f"; it looks like {what}" if what else "")
                 )
-            if args.tpose_s is not None and args.tpose_s > result.span_s:
+            too_long = args.tpose_s is not None and args.tpose_s > result.span_s
+            if too_long and calibration is None:
                 raise _Unusable(f"--tpose-s {args.tpose_s:g} is longer than the capture "
                                 f"({result.span_s:.3g} s of samples); nothing written")  # fmt: skip
     except (ProfileError, OSError, CaptureError, DecodeError, _Unusable) as exc:
@@ -304,6 +309,9 @@ def add_process_args(p: argparse.ArgumentParser) -> None:
         help="seconds at the start in T-pose, to calibrate orientation sensors (default 3, "
         "or the whole capture if shorter; longer than the capture is refused)",
     )
+    p.add_argument("--calibration", type=argtypes.input_file,
+                   help="take the T-pose (--tpose-s) from this file of the same session, "
+                        "e.g. static.sto (its format from its suffix, else --format)")  # fmt: skip
     p.add_argument("--profile", type=argtypes.input_file, help="subject profile (TOML)")
     p.add_argument("-o", "--output", type=argtypes.output_file, required=True,
                    help="the MCAP file to write")  # fmt: skip

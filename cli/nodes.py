@@ -74,7 +74,11 @@ def cmd_bridge(args: argparse.Namespace) -> int:
     from bodynet.nodes import services, sources
 
     name = args.name or sources.get(args.device).bridge_name(args)
-    return _with_session(args, services.bridge, args.device, name, args)
+    try:
+        return _with_session(args, services.bridge, args.device, name, args)
+    except OSError as exc:  # e.g. the UDP port is taken (another SlimeVR server runs)
+        print(f"bodynet bridge {args.device}: {exc}", file=sys.stderr)
+        return 2
 
 
 def cmd_emulate(args: argparse.Namespace) -> int:

@@ -51,15 +51,19 @@ def _ticks(samples: Iterator[CapturedSample], period_s: float) -> Iterator[list[
 
 def process(path: Path, fmt: str, out: Path, profile: Profile | None = None,
             rate_hz: float | None = None, tick_hz: float = 100.0,
-            tpose_s: float = 3.0,
-            options: Mapping[str, Any] | None = None) -> ProcessResult:  # fmt: skip
+            tpose_s: float = 3.0, options: Mapping[str, Any] | None = None,
+            calibration: tuple[Path, str] | None = None) -> ProcessResult:  # fmt: skip
     """Solve every tick of a capture and write poses and raw samples to ``out``
-    (``options``: the source's capture options, e.g. an orientation file's ``map``)."""
+    (``options``: the source's capture options, e.g. an orientation file's ``map``).
+    The T-pose is the first ``tpose_s`` seconds of the capture, or of
+    ``calibration`` (another file of the session, and its format)."""
     source = sources.by_format(fmt).from_options(options or {})
     profile = profile or Profile()
     window: dict[Site, list[tuple[float, float, float, float]]] = {}
     start: float | None = None
-    for s in source.read(path, fmt, CaptureStats(), rate_hz):
+    cal_path, cal_fmt = calibration or (path, fmt)
+    cal_source = sources.by_format(cal_fmt).from_options(options or {})
+    for s in cal_source.read(cal_path, cal_fmt, CaptureStats(), rate_hz):
         start = s.t_s if start is None else start
         if s.t_s - start >= tpose_s:
             break
