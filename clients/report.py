@@ -32,10 +32,12 @@ complete or not at all (its plots are moved in place just before it).
 
 from __future__ import annotations
 
+import csv
 import html
 import math
 import os
 import shutil
+import sys
 import tempfile
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -47,6 +49,7 @@ import pandas as pd
 
 from bodynet.clients import stats
 from bodynet.clients.mcap_store import StoreError, read_poses, read_truth
+from bodynet.core import metrics
 from bodynet.core.codecs import pose
 
 #: At most this many channels get a panel of their own in a plot.
@@ -129,19 +132,63 @@ def _truth(path: Path) -> Series | None:
     return Series(f"ground truth in {path}", np.asarray(times, dtype=float) / 1e9, frame)
 
 
+def _reference_csv(path: Path) -> tuple[pd.DataFrame, list[str]]:
+    """A reference CSV's good rows, and why each other row was left out (a
+    row with more or fewer fields than the header, or no number for t_s)."""
+    left_out: list[str] = []
+    rows: list[list[str]] = []
+    try:
+        with path.open(newline="", encoding="utf-8", errors="replace") as f:
+            reader = csv.reader(f)
+            header = next(reader, None)
+            if header is None:
+                raise ReportError(f"{path}: the reference CSV is empty")
+            header = [h.strip() for h in header]
+            if "t_s" not in header or not any(h.endswith("_deg") for h in header):
+                raise ReportError(f"{path}: a reference CSV needs a t_s column and *_deg columns")
+            t_col = header.index("t_s")
+            for row in reader:
+                line = reader.line_num
+                if not row or all(not cell.strip() for cell in row):
+                    continue
+                if len(row) != len(header):
+                    left_out.append(f"line {line} left out: {len(row)} fields, the header has "
+                                    f"{len(header)}")  # fmt: skip
+                    continue
+                try:
+                    t = float(row[t_col])
+                except ValueError:
+                    t = math.nan
+                if not math.isfinite(t):
+                    left_out.append(f"line {line} left out: t_s {row[t_col][:20]!r} is not a "
+                                    "finite number")  # fmt: skip
+                    continue
+                rows.append(row)
+    except (OSError, csv.Error) as exc:
+        raise ReportError(f"{path}: cannot read the reference CSV ({exc})") from None
+    if not rows:
+        raise ReportError(f"{path}: the reference CSV has no usable row"
+                          + (f" ({left_out[0]}...)" if left_out else ""))  # fmt: skip
+    table = pd.DataFrame(rows, columns=header)
+    table["t_s"] = table["t_s"].astype(float)
+    return table, left_out
+
+
 def load_reference(path: Path) -> Series:
     """A reference: a CSV (``t_s`` and angle columns) or a recording (truth, else poses)."""
     if path.suffix.lower() == ".csv":
-        try:
-            table = pd.read_csv(path)
-        except (OSError, ValueError) as exc:
-            raise ReportError(f"{path}: cannot read the reference CSV ({exc})") from None
+        table, left_out = _reference_csv(path)
         columns = [c for c in table.columns if str(c).endswith("_deg")]
-        if "t_s" not in table.columns or not columns:
-            raise ReportError(f"{path}: a reference CSV needs a t_s column and *_deg columns")
-        table = table.dropna(subset=["t_s"]).sort_values("t_s")
+        table = table.sort_values("t_s", kind="stable")
         values = table[columns].apply(pd.to_numeric, errors="coerce")
-        return Series(f"{path}", table["t_s"].to_numpy(float), values.reset_index(drop=True))
+        for why in left_out:
+            print(f"bodynet report: {path}: {why}", file=sys.stderr)
+        source = str(path)
+        if left_out:
+            shown = "; ".join(left_out[:5]) + (f"; and {len(left_out) - 5} more"
+                                               if len(left_out) > 5 else "")  # fmt: skip
+            source += f" ({len(left_out)} rows left out: {shown})"
+        return Series(source, table["t_s"].to_numpy(float), values.reset_index(drop=True))
     truth = _truth(path)
     if truth is not None:
         return truth
@@ -186,6 +233,7 @@ class Analysis:
     accuracy_note: str
     trials: Trials | None
     uncertainty: Uncertainty
+    clinical: list[pd.DataFrame] = field(default_factory=list)  # one per recording
 
 
 def _moving(rec: Recording) -> list[str]:
@@ -206,6 +254,26 @@ def left_out_table(rec: Recording) -> pd.DataFrame:
         rows.append({"channel": c, "left out": sum(counts.values()), "of": len(rec.angles),
                      "why": why})  # fmt: skip
     return pd.DataFrame(rows, columns=["channel", "left out", "of", "why"])
+
+
+def clinical_table(path: Path) -> pd.DataFrame:
+    """The clinical metrics of a recording's poses, by the module the live
+    ``body/@metrics`` publisher uses (``core.metrics``), fed the same way: each
+    pose's measured angles at its source time. The numbers at the end of the
+    recording, per observed dof."""
+    body = metrics.BodyMetrics()
+    try:
+        for _, frame in read_poses(path):
+            body.add(frame.t_ns, metrics.measured_angles(frame))
+    except StoreError as exc:
+        raise ReportError(str(exc)) from None
+    except ValueError as exc:
+        raise ReportError(f"{path}: not a bodynet pose recording ({exc})") from None
+    rows = [{"channel": name, "min (deg)": d["min_deg"], "max (deg)": d["max_deg"],
+             "range (deg)": d["range_deg"], "repetitions": d["repetitions"],
+             "SPARC (last movement)": d["sparc"], "samples": d["samples"]}
+            for name, d in body.snapshot()["dofs"].items()]  # fmt: skip
+    return pd.DataFrame(rows)
 
 
 def rom_table(rec: Recording) -> pd.DataFrame:
@@ -389,7 +457,8 @@ def analyse(
     acc = accuracy(first, ref) if ref is not None else None
     tri = trials_of(recs, joint) if with_trials else None
     return Analysis(recs, [rom_table(r) for r in recs], acc, note, tri,
-                    uncertainty(first, still, still_s))  # fmt: skip
+                    uncertainty(first, still, still_s),
+                    [clinical_table(Path(p)) for p in paths])  # fmt: skip
 
 
 # -- writing -------------------------------------------------------------------
@@ -424,6 +493,7 @@ def _blocks(an: Analysis, images: dict[str, str]) -> list[Block]:
             out.append(("p", rec.source))
         out.append(("table", table))
     out.append(("img", images["angles"]))
+    out += _clinical_blocks(an)
 
     out.append(("h2", "Accuracy against a reference (000 seed, ch. 5)"))
     if an.accuracy is None:
@@ -468,6 +538,27 @@ def _blocks(an: Analysis, images: dict[str, str]) -> list[Block]:
                   "measured throughout the recording after calibration are left out (the "
                   "window is chosen where the others are still)."),
             ("table", un.table)]  # fmt: skip
+    return out
+
+
+def _clinical_blocks(an: Analysis) -> list[Block]:
+    """The "Clinical metrics" section: what ``body/@metrics`` said live at the end."""
+    out: list[Block] = [
+        ("h2", "Clinical metrics"),
+        ("p", "The numbers `bodynet metrics` publishes live on body/@metrics, computed by the "
+              "same module (core/metrics.py) over the recording's measured samples only "
+              "(an angle flagged anything but clamped is left out): range of motion so far; "
+              "repetitions, each a swing from the lower quarter of the range to the upper "
+              f"quarter and back (range at least {metrics.MIN_SPAN_DEG:g} deg); smoothness "
+              "of the last movement (the last stretch faster than "
+              f"{metrics.MOVING_DEG_S:g} deg/s) as its spectral arc length SPARC "
+              "(Balasubramanian et al. 2015; closer to 0 is smoother, a single minimum-jerk "
+              "movement gives -1.41; blank without a movement)."),
+    ]  # fmt: skip
+    for rec, table in zip(an.recordings, an.clinical, strict=False):
+        if len(an.recordings) > 1:
+            out.append(("p", rec.source))
+        out.append(("table", table) if len(table) else ("p", "No measured joint angle."))
     return out
 
 

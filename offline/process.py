@@ -34,6 +34,8 @@ class ProcessResult:
     samples: int
     calibrated: list[str]
     stats: CaptureStats
+    #: seconds from the capture's first sample to its last
+    span_s: float = 0.0
 
 
 def _ticks(samples: Iterator[CapturedSample], period_s: float) -> Iterator[list[CapturedSample]]:
@@ -49,16 +51,20 @@ def _ticks(samples: Iterator[CapturedSample], period_s: float) -> Iterator[list[
 
 def process(path: Path, fmt: str, out: Path, profile: Profile | None = None,
             rate_hz: float | None = None, tick_hz: float = 100.0,
-            tpose_s: float = 3.0,
-            options: Mapping[str, Any] | None = None) -> ProcessResult:  # fmt: skip
+            tpose_s: float = 3.0, options: Mapping[str, Any] | None = None,
+            calibration: tuple[Path, str] | None = None) -> ProcessResult:  # fmt: skip
     """Solve every tick of a capture and write poses and raw samples to ``out``
-    (``options``: the source's capture options, e.g. an orientation file's ``map``)."""
+    (``options``: the source's capture options, e.g. an orientation file's ``map``).
+    The T-pose is the first ``tpose_s`` seconds of the capture, or of
+    ``calibration`` (another file of the session, and its format)."""
     source = sources.by_format(fmt).from_options(options or {})
     profile = profile or Profile()
     window: dict[Site, list[tuple[float, float, float, float]]] = {}
     sites: set[str] = set()  # the capture's topology: every site of its first seconds
     start: float | None = None
-    for s in source.read(path, fmt, CaptureStats(), rate_hz):
+    cal_path, cal_fmt = calibration or (path, fmt)
+    cal_source = sources.by_format(cal_fmt).from_options(options or {})
+    for s in cal_source.read(cal_path, cal_fmt, CaptureStats(), rate_hz):
         start = s.t_s if start is None else start
         if s.t_s - start >= max(tpose_s, 1.0):
             break
@@ -77,8 +83,12 @@ def process(path: Path, fmt: str, out: Path, profile: Profile | None = None,
     latest: dict[Site, RawSample] = {}
     seqs: dict[Site, int] = {}
     ticks = 0
+    first_t: float | None = None
+    last_t = 0.0
     try:
         for tick in _ticks(source.read(path, fmt, stats, rate_hz), 1.0 / tick_hz):
+            first_t = tick[0].t_s if first_t is None else first_t
+            last_t = tick[-1].t_s
             for s in tick:
                 seq = seqs[s.site] = seqs.get(s.site, -1) + 1
                 sample = RawSample(s.reading, seq, round(s.t_s * 1e9), source.wire_id)
@@ -92,4 +102,5 @@ def process(path: Path, fmt: str, out: Path, profile: Profile | None = None,
                 sink.write_pose(keys.pose_key(branch), view, t_ns)
     finally:
         sink.close()
-    return ProcessResult(ticks, stats.decoded, sorted(mounts), stats)
+    span = 0.0 if first_t is None else last_t - first_t
+    return ProcessResult(ticks, stats.decoded, sorted(mounts), stats, span)

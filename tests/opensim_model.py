@@ -123,9 +123,18 @@ def build_model(defaults_deg: Mapping[str, float]) -> osim.Model:
         joint(
             f"ankle_{s}",
             f"tibia_{s}",
-            f"calcn_{s}",
+            f"talus_{s}",
             (0, -0.42, 0),
             [(f"ankle_angle_{s}", (0, 0, 1))],
+        )
+        # the models' subtalar axis is oblique; here about X (+ inversion), so that
+        # the foot's orientation can be matched (no .mot column to compare with)
+        joint(
+            f"subtalar_{s}",
+            f"talus_{s}",
+            f"calcn_{s}",
+            (0, 0, 0),
+            [(f"subtalar_angle_{s}", (-k, 0, 0))],
         )
         joint(
             f"acromial_{s}",

@@ -57,8 +57,8 @@ def test_an_argument_error_loads_nothing_heavy(command: str) -> None:
 
 def test_the_probe_sees_a_heavy_import() -> None:
     """The check above can fail: a command that runs does load Zenoh."""
-    result = probe(["router", "--cfg", "no-colon"], heavy=("zenoh",))
-    assert result["code"] == 2  # the session refuses the entry, once Zenoh is loaded
+    result = probe(["router", "--cfg", "mode:{"], heavy=("zenoh",))
+    assert result["code"] == 2  # the session refuses the entry's JSON5, once Zenoh is loaded
     assert result["loaded"] == ["zenoh"]
 
 
@@ -75,3 +75,14 @@ def test_every_command_runs_a_function_or_gives_its_subcommands_one() -> None:
         assert leaves, f"{name} has neither a run function nor sub-commands"
         for leaf in leaves.values():
             assert callable(leaf.get_default("func")), f"{name}: a sub-command without func"
+
+
+def test_bench_without_its_extra_says_what_to_install() -> None:
+    """psutil comes with the `bench` extra only; without it `bodynet bench` says so."""
+    code = ("import sys; sys.modules['psutil'] = None\n"  # as if it were not installed
+            "from bodynet.cli.main import main; sys.exit(main(['bench', '--only', 'decode']))")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          timeout=60, check=False)  # fmt: skip
+    assert done.returncode == 2, done.stderr
+    assert "psutil is missing: install the bench extra" in done.stderr
+    assert "Traceback" not in done.stderr
