@@ -57,6 +57,33 @@ def address(text: str) -> tuple[str, int]:
     return host or "127.0.0.1", int(port)
 
 
+def profile_trackers(text: str) -> dict[str, Site]:
+    """The tracker -> site table of the profile at ``text`` (an argparse type: a
+    profile that does not read is refused; one not written yet assigns none)."""
+    from bodynet.core.subject import ProfileError
+    from bodynet.session import profile_file
+
+    path = Path(text)
+    if not path.exists():
+        return {}
+    try:
+        profile = profile_file.load(path)
+    except (ProfileError, OSError) as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+    return {t: site_named(s) for t, s in profile.trackers.items()}
+
+
+def rate(text: str) -> float:
+    """A rate in Hz, 0.1..10000 (an argparse type)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not 0.1 <= value <= 10_000:  # NaN fails too
+        raise argparse.ArgumentTypeError(f"a rate from 0.1 to 10000 Hz, not {text}")
+    return value
+
+
 class SlimeVR(Source):
     name = "slimevr"
     wire_id = SourceId.SLIMEVR
@@ -79,7 +106,7 @@ class SlimeVR(Source):
         p.add_argument("--udp", type=address, default=("0.0.0.0", codec.PORT), metavar="HOST:PORT",
                        help=f"where to take the trackers' datagrams (default "
                             f"0.0.0.0:{codec.PORT}, where trackers look)")  # fmt: skip
-        p.add_argument("--profile", type=Path,
+        p.add_argument("--profile", type=profile_trackers, default={},
                        help="subject profile whose [trackers] table assigns sites")  # fmt: skip
         p.add_argument("--assign", type=parse_assignment, action="append", default=[],
                        metavar="TRACKER=SITE",
@@ -94,13 +121,7 @@ class SlimeVR(Source):
                args: argparse.Namespace) -> None:  # fmt: skip
         from bodynet.nodes.slimevr_bridge import run_bridge
 
-        assignments: dict[str, Site] = {}
-        if args.profile is not None and args.profile.exists():
-            from bodynet.session import profile_file
-
-            profile = profile_file.load(args.profile)
-            assignments = {t: site_named(s) for t, s in profile.trackers.items()}
-        assignments.update(dict(args.assign))
+        assignments = {**args.profile, **dict(args.assign)}
         run_bridge(session, stop, name, args.udp, assignments)
 
     # --- emulation ----------------------------------------------------------------------
@@ -109,7 +130,8 @@ class SlimeVR(Source):
         p.add_argument("--server", type=address, default=("127.0.0.1", codec.PORT),
                        metavar="HOST:PORT",
                        help=f"the server's host:port (default 127.0.0.1:{codec.PORT})")  # fmt: skip
-        p.add_argument("--rate-hz", type=float, default=100.0, help="rotations per second")
+        p.add_argument("--rate-hz", type=rate, default=100.0,
+                       help="rotations per second (default 100)")  # fmt: skip
 
     def emulated_sensors(self, sensors: Any = None, branches: Any = None) -> list[Any]:
         from bodynet.nodes.emulator import imu_tags
