@@ -27,6 +27,7 @@ sf = [1.0, 1.0, 1.007, 1.084, 1.161, 1.261]
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from types import MappingProxyType
@@ -112,6 +113,11 @@ class Profile:
                     raise ProfileError(f"imu_mounts[{key!r}] needs 4 numbers (w, x, y, z)")
                 w, x, y, z = map(float, q)
                 mounts[key] = (w, x, y, z)
+            numbers = [*(v for q in mounts.values() for v in q),
+                       *map(float, data.get("segments", {}).values()),
+                       float(data.get("accel_counts_per_g", 1024.0))]  # fmt: skip
+            if not all(math.isfinite(v) for v in numbers):
+                raise ProfileError("a number that is not finite (nan or inf)")
             trackers = {}
             for tracker, site in data.get("trackers", {}).items():
                 try:
@@ -132,7 +138,7 @@ class Profile:
                 accel_counts_per_g=float(data.get("accel_counts_per_g", 1024.0)),
                 accel_filter=accel_filter,
             )
-        except (KeyError, TypeError, ValueError) as exc:
+        except (KeyError, TypeError, ValueError, AttributeError) as exc:
             if isinstance(exc, ProfileError):
                 raise
             raise ProfileError(f"bad profile: {exc}") from None

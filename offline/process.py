@@ -34,6 +34,8 @@ class ProcessResult:
     samples: int
     calibrated: list[str]
     stats: CaptureStats
+    #: seconds from the capture's first sample to its last
+    span_s: float = 0.0
 
 
 def _ticks(samples: Iterator[CapturedSample], period_s: float) -> Iterator[list[CapturedSample]]:
@@ -74,8 +76,12 @@ def process(path: Path, fmt: str, out: Path, profile: Profile | None = None,
     latest: dict[Site, RawSample] = {}
     seqs: dict[Site, int] = {}
     ticks = 0
+    first_t: float | None = None
+    last_t = 0.0
     try:
         for tick in _ticks(source.read(path, fmt, stats, rate_hz), 1.0 / tick_hz):
+            first_t = tick[0].t_s if first_t is None else first_t
+            last_t = tick[-1].t_s
             for s in tick:
                 seq = seqs[s.site] = seqs.get(s.site, -1) + 1
                 sample = RawSample(s.reading, seq, round(s.t_s * 1e9), source.wire_id)
@@ -89,4 +95,5 @@ def process(path: Path, fmt: str, out: Path, profile: Profile | None = None,
                 sink.write_pose(keys.pose_key(branch), view, t_ns)
     finally:
         sink.close()
-    return ProcessResult(ticks, stats.decoded, sorted(mounts), stats)
+    span = 0.0 if first_t is None else last_t - first_t
+    return ProcessResult(ticks, stats.decoded, sorted(mounts), stats, span)

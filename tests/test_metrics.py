@@ -109,17 +109,29 @@ def test_body_metrics_snapshot_is_json_and_counts_only_what_it_is_given() -> Non
 
 def elbow_poses(n: int, t0_ns: int) -> list[pose.PoseFrame]:
     """Elbow flexion cycling 10..100 deg at 100 Hz; every 7th pose flagged held at
-    150 deg (no measurement: it must not reach the range of motion)."""
+    150 deg, every 11th at 160 deg while the elbow's module is stale (no
+    measurement either: neither may reach the range of motion)."""
     out = []
     for i in range(n):
         t = i / FS
         angle = round(55 - 45 * math.cos(2 * math.pi * t / 1.0), 6)
         flags = {}
+        stale = []
         if i % 7 == 3:
             angle, flags = 150.0, {"left_elbow_flexion_deg": "held"}
+        elif i % 11 == 5:  # the elbow module stopped delivering: its last sample held
+            angle, stale = 160.0, [keys.raw_key("arm", "left", "elbow")]
         angles = {"left_elbow_flexion_deg": angle, "left_knee_flexion_deg": 5.0}
-        out.append(pose.PoseFrame(i, t0_ns + i * 10_000_000, angles, {}, {}, {}, flags))
+        out.append(pose.PoseFrame(i, t0_ns + i * 10_000_000, angles, {}, {}, {}, flags, {},
+                                  stale))  # fmt: skip
     return out
+
+
+def measured_here(f: pose.PoseFrame) -> dict[str, float]:
+    """This test's own rule for its poses: flagged or stale elbow out; the knee
+    (no sensor on the forearm takes part in it) stays."""
+    return {n: v for n, v in f.angles_deg.items()
+            if n not in f.flags and not (f.stale and n.startswith("left_elbow"))}  # fmt: skip
 
 
 def test_metrics_are_published_live_per_subject(router_endpoint: str,
@@ -152,14 +164,14 @@ def test_metrics_are_published_live_per_subject(router_endpoint: str,
         out_session.close()
     alice = next(m for k, m in reversed(seen) if k == f"alice/{keys.METRICS}")
     elbow = alice["dofs"]["left_elbow_flexion_deg"]
-    assert elbow["max_deg"] == pytest.approx(100.0, abs=0.01)  # never the held 150
+    assert elbow["max_deg"] == pytest.approx(100.0, abs=0.01)  # never the held 150 or 160
     assert elbow["min_deg"] == pytest.approx(10.0, abs=0.01)
     assert elbow["repetitions"] == 3, alice  # 3.5 s of 1 s cycles
-    assert elbow["samples"] == 300
+    assert elbow["samples"] == sum(1 for f in frames if not f.flags and not f.stale)
     # the same numbers as the module fed offline
     offline = metrics.BodyMetrics()
     for f in frames:
-        offline.add(f.t_ns, {n: v for n, v in f.angles_deg.items() if n not in f.flags})
+        offline.add(f.t_ns, measured_here(f))
     assert alice == json.loads(json.dumps(offline.snapshot()))
     assert alice["dofs"]["left_knee_flexion_deg"]["repetitions"] == 0
 
@@ -204,12 +216,12 @@ def test_the_report_has_the_same_clinical_metrics(tmp_path: Path) -> None:
     an = SimpleNamespace(recordings=[SimpleNamespace(source=str(recording))], clinical=[table])
     table = table.set_index("channel")
     elbow = table.loc["left_elbow_flexion_deg"]
-    assert elbow["max (deg)"] == pytest.approx(100.0, abs=0.01)  # never the held 150
+    assert elbow["max (deg)"] == pytest.approx(100.0, abs=0.01)  # never the held 150 or 160
     assert elbow["repetitions"] == 3
-    assert elbow["samples"] == 300
+    assert elbow["samples"] == sum(1 for f in frames if not f.flags and not f.stale)
     live = metrics.BodyMetrics()  # what body/@metrics said at the end (the live test: equal)
     for f in frames:
-        live.add(f.t_ns, {n: v for n, v in f.angles_deg.items() if n not in f.flags})
+        live.add(f.t_ns, measured_here(f))
     want = live.snapshot()["dofs"]["left_elbow_flexion_deg"]
     assert elbow["SPARC (last movement)"] == want["sparc"]
     assert elbow["range (deg)"] == want["range_deg"]
@@ -230,3 +242,34 @@ def test_the_views_metrics_panel_shows_what_it_can() -> None:
     odd = metrics_text({"dofs": {"x": {"min_deg": [1], "repetitions": "many" * 50}, "y": 3}})
     assert "| x | ? |" in odd
     assert "| y | ? | ? | ? | ? |" in odd
+
+
+def test_bodynet_metrics_publishes_on_the_subjects_key(router_endpoint: str) -> None:
+    import queue
+
+    from service_procs import Services, bodynet
+
+    from bodynet.session import open_session, session_config
+
+    session = open_session(session_config("client", connect=[router_endpoint], subject="carol"))
+    got = Collector(session, keys.METRICS, json.loads)  # carol/body/@metrics on the wire
+    services = Services()
+    argv = bodynet("metrics", "-e", router_endpoint, "--subject", "carol", "--rate-hz", "5")
+    try:
+        proc = services.start("metrics", argv)
+        proc.wait_line("bodynet metrics: subject carol, body/@metrics at 5 Hz")
+        frames = iter(elbow_poses(10_000, time.time_ns()))
+        deadline = time.monotonic() + 30
+        while True:  # poses until the command (subscribed by now or soon) answers
+            assert time.monotonic() < deadline, proc.tail()
+            session.put(keys.pose_key(), pose.encode(next(frames)))
+            try:
+                _, message = got.queue.get(timeout=0.05)
+                break
+            except queue.Empty:
+                continue
+        assert "left_elbow_flexion_deg" in message["dofs"]
+        assert proc.stop() == 0
+    finally:
+        services.close()
+        session.close()

@@ -30,6 +30,7 @@ from bodynet.core.keys import KeySpaceError, Site, site_named
 from bodynet.core.messages import Source as SourceId
 from bodynet.nodes.loop import Loop
 from bodynet.nodes.sources.base import NodeParts, Source, Transport
+from bodynet.session import argtypes
 
 log = logging.getLogger(__name__)
 
@@ -63,7 +64,7 @@ def profile_trackers(text: str) -> dict[str, Site]:
     from bodynet.core.subject import ProfileError
     from bodynet.session import profile_file
 
-    path = Path(text)
+    path = argtypes.input_or_new_file(text)
     if not path.exists():
         return {}
     try:
@@ -71,17 +72,6 @@ def profile_trackers(text: str) -> dict[str, Site]:
     except (ProfileError, OSError) as exc:
         raise argparse.ArgumentTypeError(str(exc)) from None
     return {t: site_named(s) for t, s in profile.trackers.items()}
-
-
-def rate(text: str) -> float:
-    """A rate in Hz, 0.1..10000 (an argparse type)."""
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
-    if not 0.1 <= value <= 10_000:  # NaN fails too
-        raise argparse.ArgumentTypeError(f"a rate from 0.1 to 10000 Hz, not {text}")
-    return value
 
 
 class SlimeVR(Source):
@@ -130,8 +120,8 @@ class SlimeVR(Source):
         p.add_argument("--server", type=address, default=("127.0.0.1", codec.PORT),
                        metavar="HOST:PORT",
                        help=f"the server's host:port (default 127.0.0.1:{codec.PORT})")  # fmt: skip
-        p.add_argument("--rate-hz", type=rate, default=100.0,
-                       help="rotations per second (default 100)")  # fmt: skip
+        p.add_argument("--rate-hz", type=argtypes.bounded_float(0.1, 1000.0, "per second"),
+                       default=100.0, help="rotations per second (default 100)")  # fmt: skip
 
     def emulated_sensors(self, sensors: Any = None, branches: Any = None) -> list[Any]:
         from bodynet.nodes.emulator import imu_tags
