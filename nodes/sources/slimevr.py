@@ -34,6 +34,7 @@ from bodynet.session import argtypes
 
 log = logging.getLogger(__name__)
 
+MAX_PROFILE_BYTES = 1 << 20
 #: How often an emulated tracker sends its battery and signal strength.
 STATUS_S = 1.0
 
@@ -67,6 +68,8 @@ def profile_trackers(text: str) -> dict[str, Site]:
     path = argtypes.input_or_new_file(text)
     if not path.exists():
         return {}
+    if not path.is_file() or path.stat().st_size > MAX_PROFILE_BYTES:  # /dev/zero, /dev/full...
+        raise argparse.ArgumentTypeError(f"{text}: not a profile (a TOML file up to 1 MB)")
     try:
         profile = profile_file.load(path)
     except (ProfileError, OSError) as exc:
