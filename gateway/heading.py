@@ -57,10 +57,14 @@ HINGES = (
     ("knee", "thigh", "shank", (0.0, 1.0, 0.0)),
     ("elbow", "upperarm", "forearm", (0.0, -1.0, 0.0)),
 )
-#: A hinge counts once its relative rotation since calibration passes this ...
-HINGE_MIN_DEG = 15.0
-#: ... in this many samples, whose axes agree (mean resultant length at least this).
-HINGE_SAMPLES = 10
+#: A hinge's samples count once its relative rotation since calibration passes
+#: this; its axis is their mean, weighted by the angle (noise tilts the axis of a
+#: small rotation most) ...
+HINGE_MIN_DEG = 10.0
+#: ... taken once this many have come, turning this far in all, with axes that agree
+#: (mean resultant length at least this; a joint turning about two axes does not).
+HINGE_SAMPLES = 20
+HINGE_TOTAL_DEG = 500.0
 HINGE_AGREEMENT = 0.97
 #: An axis whose horizontal part (in the calibration pose) is below this gives no heading.
 HORIZONTAL_MIN = 0.5
@@ -210,26 +214,13 @@ def calibrate_window(
     tags: dict[str, dict[str, Any]] = {}
     mounts: dict[str, QuatWxyz] = {}
     means: dict[str, np.ndarray] = {}
-    span_all = 0.0
     for site, samples in sorted(present.items(), key=lambda kv: kv[0].raw_key):
         key = site.raw_key
-        times = np.array([t for t, _ in samples])
-        rots = Rotation.from_quat([[x, y, z, w] for _, (w, x, y, z) in samples])
-        mean = rots.mean()
-        spread = float(np.degrees((mean.inv() * rots).magnitude()).max())
-        span = float(times.max() - times.min())
-        span_all = max(span_all, span)
         seg = segments[mount(site).segment]
-        means[key] = mean.as_matrix()
-        mounts[key] = _wxyz(seg.T @ mean.as_matrix())
-        residual = None
-        if key in profile.imu_mounts:
-            expect = rz(profile.heading_of(key)) @ seg @ _matrix(profile.imu_mounts[key])
-            residual = round(math.degrees(Rotation.from_matrix(expect.T @ mean.as_matrix())
-                                          .magnitude()), 2)  # fmt: skip
-        tags[key] = {"samples": len(samples), "span_s": round(span, 3),
-                     "still_deg": round(spread, 2), "residual_deg": residual}  # fmt: skip
-    report: dict[str, Any] = {"pose": pose, "window_s": round(span_all, 3), "tags": tags,
+        means[key], tags[key] = _tag_stats(key, samples, seg, profile)
+        mounts[key] = _wxyz(seg.T @ means[key])
+    span_all = max((t["span_s"] for t in tags.values()), default=0.0)
+    report: dict[str, Any] = {"pose": pose, "window_s": span_all, "tags": tags,
                               "missing": missing, "still_limit_deg": STILL_DEG}  # fmt: skip
     if not present:
         raise CalibrationRefused("no orientation samples in the window", report)
@@ -253,29 +244,52 @@ def calibrate_window(
             + ("..." if len(worst) > 4 else "") + "); stand still in the pose and try again",
             report,
         )  # fmt: skip
-    headings: dict[str, float] = {}
-    if profile.heading == "fixed":
-        headings = dict.fromkeys(mounts, 0.0)
-        report["heading"] = {"state": "fixed", "deg": 0.0}
-    elif profile.heading_reference is not None:
-        ref_key, axis = profile.heading_reference
-        if ref_key not in means:
-            raise CalibrationRefused(f"the declared heading reference {ref_key} has no samples "
-                                     "in the window", report)  # fmt: skip
-        try:
-            psi = declared_heading(_wxyz(means[ref_key]), axis)
-        except ValueError as exc:
-            raise CalibrationRefused(str(exc), report) from None
-        headings = dict.fromkeys(mounts, psi)
-        report["heading"] = {"state": "declared", "deg": round(psi, 2),
-                             "reference": f"{ref_key} {axis}"}  # fmt: skip
-    else:
-        report["heading"] = {"state": "unknown", "deg": None,
-                             "next": "move a knee (or, after an N-pose, an elbow): the "
-                                     "heading is found from the hinge's axis"}  # fmt: skip
+    headings = _window_heading(profile, means, report)
     report["ok"] = True
     report["calibrated"] = sorted(mounts)
     return WindowCalibration(mounts, headings, report)
+
+
+def _tag_stats(key: str, samples: Sequence[tuple[float, QuatWxyz]], seg: np.ndarray,
+               profile: Profile) -> tuple[np.ndarray, dict[str, Any]]:  # fmt: skip
+    """A tag's mean orientation in a window, and its line of the report."""
+    times = np.array([t for t, _ in samples])
+    rots = Rotation.from_quat([[x, y, z, w] for _, (w, x, y, z) in samples])
+    mean = rots.mean()
+    spread = float(np.degrees((mean.inv() * rots).magnitude()).max())
+    residual = None
+    if key in profile.imu_mounts:
+        expect = rz(profile.heading_of(key)) @ seg @ _matrix(profile.imu_mounts[key])
+        residual = round(math.degrees(Rotation.from_matrix(expect.T @ mean.as_matrix())
+                                      .magnitude()), 2)  # fmt: skip
+    return mean.as_matrix(), {"samples": len(samples),
+                              "span_s": round(float(times.max() - times.min()), 3),
+                              "still_deg": round(spread, 2), "residual_deg": residual}  # fmt: skip
+
+
+def _window_heading(profile: Profile, means: Mapping[str, np.ndarray],
+                    report: dict[str, Any]) -> dict[str, float]:  # fmt: skip
+    """The tags' headings a calibration window gives (``fixed`` mode, a declared
+    reference) or none (to be found); says which in ``report["heading"]``."""
+    if profile.heading == "fixed":
+        report["heading"] = {"state": "fixed", "deg": 0.0}
+        return dict.fromkeys(means, 0.0)
+    if profile.heading_reference is None:
+        report["heading"] = {"state": "unknown", "deg": None,
+                             "next": "move a knee (or, after an N-pose, an elbow): the "
+                                     "heading is found from the hinge's axis"}  # fmt: skip
+        return {}
+    ref_key, axis = profile.heading_reference
+    if ref_key not in means:
+        raise CalibrationRefused(f"the declared heading reference {ref_key} has no samples "
+                                 "in the window", report)  # fmt: skip
+    try:
+        psi = declared_heading(_wxyz(means[ref_key]), axis)
+    except ValueError as exc:
+        raise CalibrationRefused(str(exc), report) from None
+    report["heading"] = {"state": "declared", "deg": round(psi, 2),
+                         "reference": f"{ref_key} {axis}"}  # fmt: skip
+    return dict.fromkeys(means, psi)
 
 
 @dataclass
@@ -286,6 +300,8 @@ class _Hinge:
     relative0: np.ndarray  # child tag in the parent tag's frame at calibration
     axis_pose: np.ndarray  # the joint axis in the body's frame, in the calibration pose
     sum_axis: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    sum_unit: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    total_deg: float = 0.0
     count: int = 0
     first_move_t: float | None = None
 
@@ -349,13 +365,17 @@ class HingeHeading:
                 continue
             # the axis in the parent tag's frame, taken to the tag's reference frame
             # at calibration (the tag's own motion since then drops out)
-            h.sum_axis += h.parent0 @ (rotvec / np.linalg.norm(rotvec))
+            axis = h.parent0 @ rotvec
+            h.sum_axis += axis
+            h.sum_unit += axis / np.linalg.norm(axis)
+            h.total_deg += angle
             h.count += 1
-            if h.count >= HINGE_SAMPLES:
-                agreement = float(np.linalg.norm(h.sum_axis)) / h.count
+            if h.count >= HINGE_SAMPLES and h.total_deg >= HINGE_TOTAL_DEG:
+                agreement = float(np.linalg.norm(h.sum_unit)) / h.count
                 if agreement < HINGE_AGREEMENT:  # not a hinge's motion (yet): start again
                     h.sum_axis[:] = 0.0
-                    h.count = 0
+                    h.sum_unit[:] = 0.0
+                    h.total_deg, h.count = 0.0, 0
                     continue
                 u, v = h.sum_axis, h.axis_pose
                 self.heading = _wrap(math.degrees(math.atan2(u[1], u[0])
@@ -363,3 +383,59 @@ class HingeHeading:
                 self.found_t, self.hinge = t_s, name
                 return self.heading
         return None
+
+
+class BodyHeading:
+    """A body's heading between calibration and the solver.
+
+    With tags of unknown heading (``auto`` mode, nothing declared) it feeds each
+    tick to a :class:`HingeHeading`, and once that finds the heading returns the
+    profile with it (:meth:`update`); :meth:`state` says where it stands, for the
+    pose's health and the user."""
+
+    def __init__(self, profile: Profile) -> None:
+        self.profile = profile
+        self.unknown = sorted(k for k in profile.imu_mounts if not profile.heading_known(k))
+        self.finder = HingeHeading(profile) if self.unknown else None
+        if profile.heading == "fixed":
+            self.how = "fixed"
+        elif not profile.imu_mounts:
+            self.how = "uncalibrated"
+        elif self.unknown:
+            self.how = "unknown"
+        else:
+            self.how = "declared" if profile.heading_reference is not None else "found"
+
+    def update(self, t_s: float, samples: Mapping[Site, Any]) -> Profile | None:
+        """Take one tick's samples (site -> RawSample); the profile with the heading
+        once it is found (then never again)."""
+        if self.finder is None or not self.unknown:
+            return None
+        orientations = {site.raw_key: s.reading.wxyz for site, s in samples.items()
+                        if hasattr(s.reading, "wxyz")}  # fmt: skip
+        psi = self.finder.update(t_s, orientations)
+        if psi is None:
+            return None
+        self.profile = with_headings(self.profile, dict.fromkeys(self.unknown, psi))
+        self.unknown = []
+        self.how = "found"
+        return self.profile
+
+    def state(self) -> dict[str, Any]:
+        """Where the heading stands: ``state`` (fixed, declared, found, unknown or
+        uncalibrated), ``deg`` (the tags' shared heading against the body's
+        forward), and how it was or will be found."""
+        out: dict[str, Any] = {"state": self.how, "deg": None}
+        values = [self.profile.heading_of(k) for k in self.profile.imu_mounts
+                  if self.profile.heading_known(k)]  # fmt: skip
+        if values and not self.unknown:
+            out["deg"] = round(values[0], 2)
+        finder = self.finder
+        if finder is not None:
+            out["hinge"] = finder.hinge
+            out["first_move_t"] = finder.first_move_t
+            out["found_t"] = finder.found_t
+            if self.unknown:
+                out["waiting_for"] = finder.informative or "no hinge with both tags: " \
+                    "declare a heading reference"
+        return out
