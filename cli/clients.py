@@ -10,50 +10,39 @@ from bodynet.session import add_session_args, config_from_args, open_session
 
 
 def cmd_export(args: argparse.Namespace) -> int:
-    from bodynet.clients.export import export_csv
+    """``export <format>``: the recording's poses through the format's writer."""
+    from bodynet.clients.exports import writer
+    from bodynet.clients.exports.track import load_track, resample
     from bodynet.clients.mcap_store import StoreError
-
-    try:
-        rows = export_csv(args.recording, args.output, progress=not args.quiet)
-    except (StoreError, OSError) as exc:
-        print(f"bodynet export: {exc}", file=sys.stderr)
-        return 2
-    print(f"{rows} rows -> {args.output}", file=sys.stderr)
-    return 0
-
-
-def cmd_export_frames(args: argparse.Namespace) -> int:
-    """``export bvh`` and ``export c3d``: poses on a regular frame grid."""
-    from bodynet.clients.export import load_track, resample
-    from bodynet.clients.mcap_store import StoreError
-    from bodynet.core.skeleton import build_skeleton
     from bodynet.core.subject import ProfileError
 
-    if args.rate_hz is not None and not args.rate_hz > 0:
+    entry = writer(args.kind)
+    out = args.output or args.recording.with_suffix(entry.suffix)
+    if out.resolve() == args.recording.resolve():
+        print(f"bodynet export: {out} is the recording itself: choose another -o",
+              file=sys.stderr)  # fmt: skip
+        return 2
+    if entry.regular and args.rate_hz is not None and not args.rate_hz > 0:
         print(f"bodynet export: --rate-hz must be positive, not {args.rate_hz}", file=sys.stderr)
         return 2
+    options = {o.dest: getattr(args, o.dest) for o in entry.options}
     try:
-        track = load_track(args.recording, progress=not args.quiet)
-        rate = args.rate_hz or track.measured_rate_hz()
-        track = resample(track, rate)
-        if args.kind == "bvh":
-            from bodynet.clients.bvh import write_bvh
+        if options.get("profile"):
+            from bodynet.core.skeleton import build_skeleton
+            from bodynet.gateway import profile_file
 
-            lengths = None
-            if args.profile:
-                from bodynet.gateway import profile_file
-
-                lengths = profile_file.load(args.profile).lengths
-            frames = write_bvh(track, rate, args.output, build_skeleton(lengths), args.up,
-                               args.units)  # fmt: skip
-        else:
-            from bodynet.clients.c3d_export import write_c3d
-
-            frames = write_c3d(track, rate, args.output)
+            options["skeleton"] = build_skeleton(profile_file.load(options["profile"]).lengths)
+        track = load_track(args.recording, progress=not args.quiet, every_tick=not entry.regular)
+        if entry.regular:
+            track = resample(track, args.rate_hz or track.measured_rate_hz())
+        written = entry.write(track, out, options)
     except (StoreError, ProfileError, OSError) as exc:
         print(f"bodynet export: {exc}", file=sys.stderr)
         return 2
-    print(f"{frames} frames at {rate:g} Hz -> {args.output}", file=sys.stderr)
+    for note in written.notes:
+        print(f"bodynet export: {note}", file=sys.stderr)
+    rate = f" at {track.rate_hz:g} Hz" if entry.regular else ""
+    print(f"{written.count} {written.unit}{rate} -> {out}", file=sys.stderr)
     return 0
 
 
@@ -132,31 +121,22 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
     add_session_args(p)
     p.set_defaults(func=cmd_view)
 
+    from bodynet.clients.exports import WRITERS
+
     p = sub.add_parser("export", help="export a recording to a standard format")
     esub = p.add_subparsers(dest="kind", required=True, metavar="FORMAT")
-    c = esub.add_parser("csv", help="joint angles, rotations and joint centres, one row per tick")
-    c.add_argument("recording", type=Path, help="an MCAP file with poses")
-    c.add_argument("-o", "--output", type=Path, required=True)
-    c.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
-    c.set_defaults(func=cmd_export)
-    b = esub.add_parser("bvh", help="BVH motion (Blender, MotionBuilder...): the body model's "
-                                    "hierarchy, segment rotations per frame")  # fmt: skip
-    c = esub.add_parser("c3d", help="C3D (biomechanics): joint centres in mm and joint angles "
-                                    "as angle points")  # fmt: skip
-    for e in (b, c):
+    for entry in WRITERS.values():
+        e = esub.add_parser(entry.name, help=entry.help)
         e.add_argument("recording", type=Path, help="an MCAP file with poses")
-        e.add_argument("-o", "--output", type=Path, required=True)
-        e.add_argument("--rate-hz", type=float, default=None,
-                       help="frame rate (default: the recording's own tick rate)")  # fmt: skip
+        e.add_argument("-o", "--output", type=Path,
+                       help=f"the file to write (default: the recording's name, {entry.suffix})")
+        if entry.regular:
+            e.add_argument("--rate-hz", type=float, default=None,
+                           help="frame rate (default: the recording's own tick rate)")  # fmt: skip
+        for option in entry.options:
+            e.add_argument(*option.flags, **option.kwargs)
         e.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
-        e.set_defaults(func=cmd_export_frames)
-    b.add_argument("--up", choices=("y", "z"), default="y",
-                   help="y: the Biovision convention (Y up, facing +Z); z: bodynet's axes "
-                        "(X forward, Z up)")  # fmt: skip
-    b.add_argument("--units", choices=("m", "cm"), default="m")
-    b.add_argument(
-        "--profile", type=Path, help="subject profile: lengths of hands, feet, head (End Sites)"
-    )
+        e.set_defaults(func=cmd_export)
 
 
 def cmd_record(args: argparse.Namespace) -> int:

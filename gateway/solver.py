@@ -246,10 +246,10 @@ class _SplitBatch:
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """What committing a joint does, for many at once: angles (m, 3) clamped to
         the range of motion, which were clamped, the joint rotations (m, 3, 3) and
-        each joint's total rotation (deg) from the calibration pose, taken from the
-        measured relative rotations ``relative`` (m, 3, 3), not from the clamped
-        dofs: how a rotation splits into dofs is ambiguous at a gimbal lock, the
-        rotation is not."""
+        each joint's total rotation (deg) from the calibration pose (its rotation
+        there inverted: ``calibration_inv``, (m, 3, 3)), taken from the measured
+        relative rotations ``relative`` (m, 3, 3), not from the clamped dofs: how a
+        rotation splits into dofs is ambiguous at a gimbal lock, the rotation is not."""
         lo, hi = self.lo[rows], self.hi[rows]
         clamped = (values < lo) | (values > hi)
         values = np.clip(values, lo, hi)
@@ -258,7 +258,7 @@ class _SplitBatch:
         dofs = _axis_rotations(self.axis[rows].reshape(-1, 3),
                                np.radians(values).ravel()).reshape(-1, 3, 3, 3)  # fmt: skip
         matrices = dofs[:, 0] @ dofs[:, 1] @ dofs[:, 2]
-        total = _angles_deg(calibration_inv[rows] @ relative)
+        total = _angles_deg(calibration_inv @ relative)
         return values, clamped, matrices, total
 
 
@@ -315,14 +315,16 @@ class _Memory:
 
 
 class _Tick:
-    """One body's working state during one solve."""
+    """One body's working state during one solve: plain data that its
+    :class:`BodySolver` fills (:meth:`BodySolver._gather`) and reads."""
 
-    __slots__ = ("angles", "direct_rot", "direct_rows", "flags", "lefts", "measured", "modules",
-                 "mounts", "quats", "rel", "segs", "solver", "sources", "t_ns",
+    __slots__ = ("angles", "direct_rot", "direct_rows", "flags", "last", "lefts", "measured",
+                 "modules", "mounts", "plan", "quats", "rel", "segs", "solver", "sources", "t_ns",
                  "unknown")  # fmt: skip
 
-    def __init__(self, solver: BodySolver, samples: Mapping[Site, RawSample]) -> None:
+    def __init__(self, solver: BodySolver, last: np.ndarray | None) -> None:
         self.solver = solver
+        self.last = last  # the angle vector of the body's last tick (None before one)
         self.segs: list[str] = []  # segments with an orientation sensor (the first one wins)
         self.quats: list[QuatWxyz] = []
         self.mounts: list[np.ndarray] = []
@@ -330,26 +332,9 @@ class _Tick:
         self.unknown: set[str] = set()  # segments whose sensor's heading is not known
         self.modules: dict[str, tuple[Site, OleAccel]] = {}  # SmartSuit modules by segment
         self.sources: dict[str, int] = {}
-        sources = self.sources
-        seen: set[str] = set()
-        known, t_ns = solver._sites, 0
-        for site, sample in samples.items():
-            seg, mount_inv, key, module, left, heading_known = known.get(site) or solver._site(site)
-            sources[key] = t = sample.t_ns
-            t_ns = max(t_ns, t)
-            r = sample.reading
-            if type(r) is Quat:
-                if seg not in seen:
-                    seen.add(seg)
-                    self.segs.append(seg)
-                    self.quats.append(r.wxyz)
-                    self.mounts.append(mount_inv)
-                    self.lefts.append(left)
-                    if not heading_known:
-                        self.unknown.add(seg)
-            elif module:
-                self.modules[seg] = (site, r)  # type: ignore[assignment]
-        self.t_ns = t_ns
+        self.t_ns = 0
+        # the joints between two of ``segs``: rows, parent and child indices (see _direct_plan)
+        self.plan: tuple[np.ndarray, np.ndarray, np.ndarray] = (np.zeros(0, dtype=int),) * 3
         self.measured: dict[str, np.ndarray] = {}  # segment -> world orientation
         # the joints split from two sensors: their rows and rotations
         self.direct_rows: np.ndarray = np.zeros(0, dtype=int)
@@ -360,107 +345,17 @@ class _Tick:
 
 
 def solve_bodies(work: Sequence[tuple[BodySolver, Mapping[Site, RawSample]]]) -> list[BodyOutput]:
-    """One tick of each of several bodies: angles and poses from the latest
-    sample of each site.
-
-    The array work of every body is done together: sensor orientations, the
-    relative rotations of the joints between two sensors, their split into
-    dofs, clamping and total rotations, and after forward kinematics the floor
-    and the canonical quaternions are each one numpy pass over all the bodies.
-    What is left per body is gathering its samples, the joints that SmartSuit
-    modules measure (scalar code) and Pinocchio's forward kinematics. The
-    solvers must share one skeleton structure (any segment lengths)."""
-    if not work:
-        return []
-    ticks = [_Tick(solver, samples) for solver, samples in work]
-    n_angles = len(ticks[0].solver.names.angles)
-    n_joints = len(ticks[0].solver.names.joints)
-    angles = np.zeros((len(ticks), n_angles + 1))
-    rel = np.zeros((len(ticks), n_joints))
-    for b, tick in enumerate(ticks):
-        tick.angles, tick.rel = angles[b], rel[b]
-    quats = [q for t in ticks for q in t.quats]
-    if quats:
-        sensors = Rotation.from_quat(np.array(quats), scalar_first=True).as_matrix()
-        segments = (np.array([m for t in ticks for m in t.lefts]) @ sensors
-                    @ np.array([m for t in ticks for m in t.mounts]))  # fmt: skip
-        start = 0
-        for tick in ticks:
-            tick.measured = dict(zip(tick.segs, segments[start : start + len(tick.segs)],
-                                     strict=True))  # fmt: skip
-            start += len(tick.segs)
-        _solve_direct(ticks, segments, angles, rel)
-    for tick in ticks:
-        tick.solver._solve_rest(tick)
-        if tick.unknown:
-            tick.solver._flag_uncalibrated(tick)
-    return _outputs(ticks)
-
-
-def _outputs(ticks: Sequence[_Tick]) -> list[BodyOutput]:
-    """Forward kinematics of each body's angles (Pinocchio), then, for every body
-    at once, the pelvis height that puts the lowest point on the floor (z = 0)
-    and the segments' quaternions, canonical (w >= 0)."""
-    poses, floor = zip(*(tick.solver._forward(tick) for tick in ticks), strict=True)
-    for tick in ticks:  # what the next tick's angles are continuous with
-        tick.solver._memory.last = tick.angles
-    model = ticks[0].solver.model
-    poses = np.array(poses)  # (bodies, segments, xyz + quaternion x, y, z, w)
-    points = np.array([tick.solver.model.floor_points for tick in ticks])  # lengths differ
-    floor_z = model.floor_heights(np.array(floor), points).min(axis=1)
-    lowest = np.minimum(floor_z, poses[:, :, 2].min(axis=1))  # or a joint centre
-    poses[:, :, 2] -= lowest[:, None]
-    quats = poses[:, :, [6, 3, 4, 5]]  # x, y, z, w -> w, x, y, z
-    quats /= np.linalg.norm(quats, axis=2, keepdims=True)
-    quats *= np.where(quats[:, :, :1] < 0, -1.0, 1.0)
-    return [BodyOutput(t.t_ns, t.solver.names, t.angles[:-1], t.rel, t.flags, p[:, :3], q,
-                       t.sources) for t, p, q in zip(ticks, poses, quats, strict=True)]  # fmt: skip
-
-
-def _solve_direct(ticks: Sequence[_Tick], segments: np.ndarray, angles: np.ndarray,
-                  rel: np.ndarray) -> None:  # fmt: skip
-    """The joints between two orientation sensors (or the root and one), of every
-    body at once, into ``angles`` and ``rel`` (one row a body). Each comes from
-    its two segments' measured orientations (``segments``, every body's in
-    turn), so a parent joint clamped to its range of motion does not move its child's."""
-    batch = ticks[0].solver._batch
-    plans = [tick.solver._direct_plan(tuple(tick.segs)) for tick in ticks]
-    counts = [len(p[0]) for p in plans]
-    if not sum(counts):
-        return
-    owner = np.repeat(np.arange(len(ticks)), counts)
-    offsets = np.repeat(np.cumsum([0, *(len(t.segs) for t in ticks[:-1])]), counts)
-    rows = np.concatenate([p[0] for p in plans])
-    parents = np.concatenate([p[1] for p in plans])
-    children = np.concatenate([p[2] for p in plans]) + offsets
-    # an unmeasured pelvis (-1) is the identity, put after every measured segment
-    segments = np.concatenate([segments, np.eye(3)[None]])
-    parents = np.where(parents >= 0, parents + offsets, len(segments) - 1)
-    relative = np.einsum("nji,njk->nik", segments[parents], segments[children])
-    index = batch.angle_index[rows]
-    nothing = np.zeros(angles.shape[1])  # a body's first tick: no previous angles
-    last = np.stack([t.solver._memory.last if t.solver._memory.last is not None else nothing
-                     for t in ticks])  # fmt: skip
-    values, clamped, matrices, total = batch.commit(
-        rows, batch.split(rows, relative, last[owner[:, None], index]),
-        ticks[0].solver._calibration_inv, relative,
-    )
-    angles[owner[:, None], index] = values
-    angles[:, -1] = 0.0  # the absent dofs' column
-    rel[owner, rows] = total
-    start = 0
-    for tick, (mine, _, _) in zip(ticks, plans, strict=True):
-        tick.direct_rows, tick.direct_rot = mine, matrices[start : start + len(mine)]
-        start += len(mine)
-    clamped &= ~batch.unused[rows]
-    for r, d in zip(*np.nonzero(clamped), strict=True):
-        ticks[owner[r]].flags[batch.names[rows[r]][d]] = "clamped"
+    """One tick of each of several bodies: :meth:`BodySolver.solve_many`."""
+    return BodySolver.solve_many(work)
 
 
 class BodySolver:
     """Joint angles and poses of one body from its latest raw samples.
 
-    ``solve`` does one tick of this body; :func:`solve_bodies` does one tick of
+    It is the one owner of the body's state between ticks (the last angles, the
+    accelerometers' filtered "up", the wrists' tilt, the sites and plans it has
+    worked out); a tick's working state (:class:`_Tick`) is plain data it fills.
+    ``solve`` does one tick of this body; :meth:`solve_many` does one tick of
     many, with the array work shared. Both run the same code."""
 
     def __init__(self, profile: Profile | None = None) -> None:
@@ -489,13 +384,14 @@ class BodySolver:
                                 strict=True):  # fmt: skip
             self._slices[joint.name] = slice(start, start + len(joint.dofs))
         self._memory = _Memory()
-        self._sites: dict[Site, tuple[str, np.ndarray, str, bool]] = {}
+        self._sites: dict[Site, tuple[str, np.ndarray, str, bool, np.ndarray, bool]] = {}
         self._plans: dict[tuple[str, ...], tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
 
     def _site(self, site: Site) -> tuple[str, np.ndarray, str, bool, np.ndarray, bool]:
         """The segment a sensor rides on, its mount's inverse (for orientation
         sensors), its raw key, whether it is a SmartSuit module, the turn from its
-        reference frame to the body's (``Rz(-heading)``) and whether that heading is known."""
+        reference frame to the body's (``Rz(-heading)``, see gateway/heading.py) and
+        whether that heading is known."""
         known = self._sites.get(site)
         if known is None:
             key = site.raw_key
@@ -522,7 +418,132 @@ class BodySolver:
 
     def solve(self, samples: Mapping[Site, RawSample]) -> BodyOutput:
         """Angles and poses from the latest sample of each site."""
-        return solve_bodies([(self, samples)])[0]
+        return BodySolver.solve_many([(self, samples)])[0]
+
+    @staticmethod
+    def solve_many(work: Sequence[tuple[BodySolver, Mapping[Site, RawSample]]]) -> list[BodyOutput]:
+        """One tick of each of several bodies: angles and poses from the latest
+        sample of each site.
+
+        The array work of every body is done together: sensor orientations, the
+        relative rotations of the joints between two sensors, their split into
+        dofs, clamping and total rotations, and after forward kinematics the floor
+        and the canonical quaternions are each one numpy pass over all the bodies.
+        What is left per body is gathering its samples, the joints that SmartSuit
+        modules measure (scalar code) and Pinocchio's forward kinematics. The
+        solvers must share one skeleton structure (any segment lengths)."""
+        if not work:
+            return []
+        ticks = [solver._gather(samples) for solver, samples in work]
+        first = work[0][0]
+        angles = np.zeros((len(ticks), len(first.names.angles) + 1))
+        rel = np.zeros((len(ticks), len(first.names.joints)))
+        for b, tick in enumerate(ticks):
+            tick.angles, tick.rel = angles[b], rel[b]
+        quats = [q for t in ticks for q in t.quats]
+        if quats:
+            sensors = Rotation.from_quat(np.array(quats), scalar_first=True).as_matrix()
+            segments = (np.array([m for t in ticks for m in t.lefts]) @ sensors
+                        @ np.array([m for t in ticks for m in t.mounts]))  # fmt: skip
+            start = 0
+            for tick in ticks:
+                tick.measured = dict(zip(tick.segs, segments[start : start + len(tick.segs)],
+                                         strict=True))  # fmt: skip
+                start += len(tick.segs)
+            first._solve_direct(ticks, segments, angles, rel)
+        for tick in ticks:
+            tick.solver._solve_rest(tick)
+            if tick.unknown:
+                tick.solver._flag_uncalibrated(tick)
+        return first._outputs(ticks)
+
+    def _gather(self, samples: Mapping[Site, RawSample]) -> _Tick:
+        """A new tick of this body: its samples sorted by kind, against its last angles."""
+        tick = _Tick(self, self._memory.last)
+        sources = tick.sources
+        seen: set[str] = set()
+        known, t_ns = self._sites, 0
+        for site, sample in samples.items():
+            seg, mount_inv, key, module, left, heading_known = known.get(site) or self._site(site)
+            sources[key] = t = sample.t_ns
+            t_ns = max(t_ns, t)
+            r = sample.reading
+            if type(r) is Quat:
+                if seg not in seen:
+                    seen.add(seg)
+                    tick.segs.append(seg)
+                    tick.quats.append(r.wxyz)
+                    tick.mounts.append(mount_inv)
+                    tick.lefts.append(left)
+                    if not heading_known:
+                        tick.unknown.add(seg)
+            elif module:
+                tick.modules[seg] = (site, r)  # type: ignore[assignment]
+        tick.t_ns = t_ns
+        if tick.segs:
+            tick.plan = self._direct_plan(tuple(tick.segs))
+        return tick
+
+    def _solve_direct(self, ticks: Sequence[_Tick], segments: np.ndarray, angles: np.ndarray,
+                      rel: np.ndarray) -> None:  # fmt: skip
+        """The joints between two orientation sensors (or the root and one), of every
+        body at once (this solver's structure, which they share), into ``angles``
+        and ``rel`` (one row a body). Each comes from its two segments' measured
+        orientations (``segments``, every body's in turn), so a parent joint
+        clamped to its range of motion does not move its child's."""
+        batch = self._batch
+        plans = [tick.plan for tick in ticks]
+        counts = [len(p[0]) for p in plans]
+        if not sum(counts):
+            return
+        owner = np.repeat(np.arange(len(ticks)), counts)
+        offsets = np.repeat(np.cumsum([0, *(len(t.segs) for t in ticks[:-1])]), counts)
+        rows = np.concatenate([p[0] for p in plans])
+        parents = np.concatenate([p[1] for p in plans])
+        children = np.concatenate([p[2] for p in plans]) + offsets
+        # an unmeasured pelvis (-1) is the identity, put after every measured segment
+        segments = np.concatenate([segments, np.eye(3)[None]])
+        parents = np.where(parents >= 0, parents + offsets, len(segments) - 1)
+        relative = np.einsum("nji,njk->nik", segments[parents], segments[children])
+        index = batch.angle_index[rows]
+        nothing = np.zeros(angles.shape[1])  # a body's first tick: no previous angles
+        last = np.stack([t.last if t.last is not None else nothing for t in ticks])
+        # each body's own calibration pose (T or N): the total rotations are from it
+        calibration_inv = np.stack([t.solver._calibration_inv for t in ticks])[owner, rows]
+        values, clamped, matrices, total = batch.commit(
+            rows, batch.split(rows, relative, last[owner[:, None], index]), calibration_inv,
+            relative,
+        )
+        angles[owner[:, None], index] = values
+        angles[:, -1] = 0.0  # the absent dofs' column
+        rel[owner, rows] = total
+        start = 0
+        for tick, (mine, _, _) in zip(ticks, plans, strict=True):
+            tick.direct_rows, tick.direct_rot = mine, matrices[start : start + len(mine)]
+            start += len(mine)
+        clamped &= ~batch.unused[rows]
+        for r, d in zip(*np.nonzero(clamped), strict=True):
+            ticks[owner[r]].flags[batch.names[rows[r]][d]] = "clamped"
+
+    def _outputs(self, ticks: Sequence[_Tick]) -> list[BodyOutput]:
+        """Forward kinematics of each body's angles (Pinocchio), then, for every body
+        at once (this solver's structure, which they share), the pelvis height that
+        puts the lowest point on the floor (z = 0) and the segments' quaternions,
+        canonical (w >= 0)."""
+        poses, floor = zip(*(tick.solver._forward(tick) for tick in ticks), strict=True)
+        for tick in ticks:  # what the next tick's angles are continuous with
+            tick.solver._memory.last = tick.angles
+        poses = np.array(poses)  # (bodies, segments, xyz + quaternion x, y, z, w)
+        points = np.array([tick.solver.model.floor_points for tick in ticks])  # lengths differ
+        floor_z = self.model.floor_heights(np.array(floor), points).min(axis=1)
+        lowest = np.minimum(floor_z, poses[:, :, 2].min(axis=1))  # or a joint centre
+        poses[:, :, 2] -= lowest[:, None]
+        quats = poses[:, :, [6, 3, 4, 5]]  # x, y, z, w -> w, x, y, z
+        quats /= np.linalg.norm(quats, axis=2, keepdims=True)
+        quats *= np.where(quats[:, :, :1] < 0, -1.0, 1.0)
+        return [BodyOutput(t.t_ns, t.solver.names, t.angles[:-1], t.rel, t.flags, p[:, :3], q,
+                           t.sources)
+                for t, p, q in zip(ticks, poses, quats, strict=True)]  # fmt: skip
 
     def _direct_plan(self, measured: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """For segments ``measured`` (in this order), the joints between two of them
@@ -553,7 +574,7 @@ class BodySolver:
         world: dict[str, np.ndarray] = {"pelvis": tick.measured.get("pelvis", np.eye(3))}
         by_child = {j.child: j for j in self.skeleton.joints}
         measured, modules = tick.measured, tick.modules
-        last = self._memory.last
+        last = tick.last
         for joint in self.skeleton.joints:
             if joint.name in direct:
                 world[joint.child] = world[joint.parent] @ direct[joint.name]

@@ -23,18 +23,25 @@ BVH importer and most tools expect: +Y up, the subject facing +Z, its left on
 +X (bodynet's +X forward, +Y left, +Z up rotated, a proper rotation).
 ``up="z"`` keeps bodynet's axes as they are (import with "Z up" in Blender).
 Units: metres (Blender's unit) or centimetres.
+
+BVH has no way to say "not measured": a joint angle with no measurement
+behind it (``is_measured`` false) holds the last measured value of its channel
+(0, the neutral pose, before the first one), and the export counts the held
+values (:class:`~bodynet.clients.exports.Written`'s note, on stderr).
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from bodynet.clients.body_tree import ROOT_SEGMENT, local_poses, segment_parents
-from bodynet.clients.export import PoseTrack, euler_deg, output_file
+from bodynet.clients.exports import Written
+from bodynet.clients.exports.track import PoseTrack, euler_deg, output_file
 from bodynet.core.skeleton import Skeleton, Vec3, build_skeleton
 
 #: bodynet axes -> BVH axes: the rows are the BVH X, Y, Z axes in bodynet's frame.
@@ -63,31 +70,66 @@ def channel_orders(skeleton: Skeleton, m: np.ndarray) -> dict[str, str]:
     return orders
 
 
-def write_bvh(
-    track: PoseTrack,
-    rate_hz: float,
-    out: Path,
-    skeleton: Skeleton | None = None,
-    up: str = "y",
-    units: str = "m",
-) -> int:
-    """Write ``track`` (frames at ``rate_hz``, see ``export.resample``) as BVH;
-    returns the number of frames. ``skeleton`` gives the End Site lengths."""
-    skeleton = skeleton or build_skeleton()
-    m, scale = AXES[up], UNITS[units]
+def hold_unmeasured(values: np.ndarray, measured: np.ndarray, last: np.ndarray) -> np.ndarray:
+    """``values`` (F, C) where ``measured``, else the last measured value of the
+    column (from ``last`` (C,), the value before the first row; updated)."""
+    # for each row and column, the last measured row up to it (-1: none yet)
+    rows = np.where(measured, np.arange(len(values))[:, None], -1)
+    upto = np.maximum.accumulate(rows, axis=0)
+    cols = np.arange(values.shape[1])
+    out = np.where(upto >= 0, values[np.maximum(upto, 0), cols], last)
+    if len(out):
+        last[:] = out[-1]
+    return out
+
+
+def children_of(parents: Mapping[str, str], segments: Sequence[str]) -> dict[str, list[str]]:
+    """Each segment's children, in the skeleton's order."""
+    children: dict[str, list[str]] = {s: [] for s in segments}
+    for child, parent in parents.items():
+        children[parent].append(child)
+    return children
+
+
+def rest_offsets(track: PoseTrack, parent_index: list[int]) -> np.ndarray:
+    """(S, 3) each segment's origin in its parent's frame (bodynet's axes, m):
+    constant for a rigid body; the median over the first frames evens out the
+    1 µm rounding of the pose messages."""
+    head = slice(0, 1000)
+    translations, _ = local_poses(track.segment_p[head], track.segment_q[head], parent_index)
+    return np.asarray(np.median(translations, axis=0))
+
+
+def channel_angles(
+    track: PoseTrack, skeleton: Skeleton, written: list[str]
+) -> tuple[np.ndarray, np.ndarray]:
+    """The MOTION columns that are joint angles (a joint's first channels are
+    its dofs, in order; the root's six and the completing axes are not), and
+    the index in ``track.angles`` of each."""
+    angle_index = {a: i for i, a in enumerate(track.angles)}
+    column_angle: list[int] = [-1] * 6
+    joint_of = {j.child: j for j in skeleton.joints}
+    for seg in written[1:]:
+        dofs = [angle_index[a] for a in joint_of[seg].angle_names()]
+        column_angle += dofs + [-1] * (3 - len(dofs))
+    columns = np.array([c for c, a in enumerate(column_angle) if a >= 0])
+    return columns, np.array([column_angle[c] for c in columns])
+
+
+def write(track: PoseTrack, out: Path, options: Mapping[str, Any]) -> Written:
+    """Write ``track`` (frames at ``track.rate_hz``, see ``track.resample``) as
+    BVH. Options: ``up`` ("y" or "z"), ``units`` ("m" or "cm"), ``skeleton``
+    (the End Site lengths; default: the model's)."""
+    skeleton: Skeleton = options.get("skeleton") or build_skeleton()
+    m, scale = AXES[options.get("up", "y")], UNITS[options.get("units", "m")]
+    rate_hz = track.rate_hz or track.measured_rate_hz()
     parents = segment_parents(skeleton)
     segs = track.segments
     index = {s: i for i, s in enumerate(segs)}
     parent_index = [index[parents[s]] if s in parents else -1 for s in segs]
-    # constant for a rigid body; the median evens out the 1 µm rounding of the
-    # pose messages (+ 0.0 turns -0.0 into 0.0)
-    head = slice(0, 1000)
-    translations, _ = local_poses(track.segment_p[head], track.segment_q[head], parent_index)
-    offsets = np.round(np.median(translations, axis=0) @ m.T * scale, 6) + 0.0  # (S, 3)
+    offsets = np.round(rest_offsets(track, parent_index) @ m.T * scale, 6) + 0.0  # -0.0: 0.0
     orders = channel_orders(skeleton, m)
-    children: dict[str, list[str]] = {s: [] for s in segs}
-    for child, parent in parents.items():
-        children[parent].append(child)
+    children = children_of(parents, segs)
     lines = ["HIERARCHY"]
     written: list[str] = []  # segments in the order the file lists them
 
@@ -118,6 +160,8 @@ def write_bvh(
 
     emit(ROOT_SEGMENT, 0)
     lines += ["MOTION", f"Frames: {len(track)}", f"Frame Time: {1.0 / rate_hz:.8f}"]
+    angle_columns, column_angles = channel_angles(track, skeleton, written)
+    held_from = np.zeros(len(angle_columns))  # each column's held value before a chunk
 
     def motion(frames: slice) -> np.ndarray:
         """The MOTION rows of some frames: root position, then every joint's channels."""
@@ -130,10 +174,24 @@ def write_bvh(
         for seg in written:
             local = Rotation.from_quat(xyzw[:, index[seg]])
             columns.append(euler_deg(local, orders[seg]))
-        return np.hstack(columns)
+        table = np.hstack(columns)
+        measured = track.measured[frames][:, column_angles]
+        table[:, angle_columns] = hold_unmeasured(table[:, angle_columns], measured, held_from)
+        return table
 
     with output_file(out) as tmp, tmp.open("w") as f:
         f.write("\n".join(lines) + "\n")
         for start in range(0, len(track), CHUNK_FRAMES):
             np.savetxt(f, motion(slice(start, start + CHUNK_FRAMES)), fmt="%.6f")
-    return len(track)
+    return Written(len(track), notes=held_note(track))
+
+
+def held_note(track: PoseTrack) -> tuple[str, ...]:
+    """What a format without an absent value says of the values it held."""
+    held = ~track.measured
+    if not held.any():
+        return ()
+    per_angle = held.sum(axis=0)
+    names = [f"{track.angles[i]} ({per_angle[i]})" for i in np.flatnonzero(per_angle)]
+    return (f"{int(held.sum())} values of {len(names)} joint angles had no measurement behind "
+            f"them and hold their last measured value: {', '.join(names)}",)  # fmt: skip

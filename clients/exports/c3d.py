@@ -21,18 +21,23 @@ stored as floats (``POINT:SCALE`` -1), in bodynet's world frame (+X forward,
   so readers that know it plot them as angles, and ``POINT:DESCRIPTIONS``
   names each component.
 
-A value the recording lacks is NaN (ezc3d writes it as an invalid point).
+A value the recording lacks is NaN, and so is a joint angle with no
+measurement behind it (``is_measured`` false): ezc3d writes a point with a
+NaN component as an invalid point (residual -1, its components NaN when read).
 """
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from pathlib import Path
+from typing import Any
 
 import ezc3d
 import numpy as np
 
 from bodynet.clients.body_tree import ROOT_SEGMENT
-from bodynet.clients.export import PoseTrack, output_file
+from bodynet.clients.exports import Written
+from bodynet.clients.exports.track import PoseTrack, output_file
 from bodynet.core.skeleton import build_skeleton
 
 ANGLE_SUFFIX = "_angles"
@@ -55,7 +60,8 @@ def c3d_points(track: PoseTrack) -> tuple[list[str], list[str], np.ndarray]:
     for k, joint in enumerate(skeleton.joints):
         names = joint.angle_names()
         for c, name in enumerate(names):
-            angle_points[:, k, c] = track.angle_deg[:, angle_index[name]]
+            i = angle_index[name]
+            angle_points[:, k, c] = np.where(track.measured[:, i], track.angle_deg[:, i], np.nan)
         labels.append(joint.name + ANGLE_SUFFIX)
         parts = [f"{axis} {dof.name}" for axis, dof in zip("xyz", joint.dofs, strict=False)]
         descriptions.append(f"{joint.name} angles (deg): " + ", ".join(parts))
@@ -65,9 +71,10 @@ def c3d_points(track: PoseTrack) -> tuple[list[str], list[str], np.ndarray]:
     return labels, descriptions, points
 
 
-def write_c3d(track: PoseTrack, rate_hz: float, out: Path) -> int:
-    """Write ``track`` (frames at ``rate_hz``, see ``export.resample``) as C3D;
-    returns the number of frames."""
+def write(track: PoseTrack, out: Path, options: Mapping[str, Any]) -> Written:
+    """Write ``track`` (frames at ``track.rate_hz``, see ``track.resample``) as
+    C3D. No options."""
+    rate_hz = track.rate_hz or track.measured_rate_hz()
     labels, descriptions, points = c3d_points(track)
     c3d = ezc3d.c3d()
     point = c3d["parameters"]["POINT"]
@@ -81,4 +88,4 @@ def write_c3d(track: PoseTrack, rate_hz: float, out: Path) -> int:
     # ezc3d adds ".c3d" to a name without it: the temporary file has it already
     with output_file(out, ".part.c3d") as tmp:
         c3d.write(str(tmp))
-    return len(track)
+    return Written(len(track))

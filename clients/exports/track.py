@@ -1,21 +1,17 @@
-"""``bodynet export``: recordings to standard formats.
+"""A recording's poses as arrays: what every export writer is given.
 
-CSV: one row per pose tick, ``t_s`` (the recording's time base: for a processed
-capture, the same as ``bodynet decode`` gives it), then every joint angle
-``<joint>_<dof>_deg``, every joint's total rotation from the calibration pose
-``<joint>_rel_deg``, and every joint centre ``<joint>_x_m``, ``_y_m``, ``_z_m``.
-
-BVH (``bvh.py``) and C3D (``c3d_export.py``) need frames at a constant rate:
-:func:`load_track` reads a recording's poses into arrays and :func:`resample`
-puts them on a regular grid (segment orientations by slerp, positions and
-angles linearly). A recording whose ticks are already regular comes out
-frame for frame.
+:func:`load_track` reads a recording's poses into a :class:`PoseTrack`, with
+which of its joint angles were measured (``is_measured``). Formats with a
+frame rate (BVH, C3D, OpenSim's tables...) want frames at a constant rate:
+:func:`resample` puts a track on a regular grid (segment orientations by
+slerp, positions and angles linearly; a resampled angle is measured only
+where both poses around it were). A recording whose ticks are already
+regular comes out frame for frame.
 """
 
 from __future__ import annotations
 
 import contextlib
-import csv
 import os
 import warnings
 from collections.abc import Iterator
@@ -29,6 +25,7 @@ from tqdm import tqdm
 
 from bodynet.clients.mcap_store import StoreError, count_messages, read_poses
 from bodynet.core import keys
+from bodynet.core.codecs.pose import PoseFrame
 from bodynet.core.skeleton import build_skeleton
 
 #: Frame rate of a recording with a single pose, where none can be measured.
@@ -51,9 +48,19 @@ class PoseTrack:
     joint_p: np.ndarray  # (F, J, 3)
     angles: tuple[str, ...]
     angle_deg: np.ndarray  # (F, A)
+    rel_deg: np.ndarray  # (F, J) each joint's total rotation from the calibration pose
+    measured: np.ndarray  # (F, A) bool: a measurement is behind the angle (is_measured)
+    rate_hz: float | None = None  # set by resample: the frames are 1 / rate_hz apart
 
     def __len__(self) -> int:
         return len(self.t_ns)
+
+    def joint_measured(self) -> np.ndarray:
+        """(F, J) bool: every dof of the joint is measured (its ``rel_deg`` is)."""
+        names = build_skeleton().joints
+        index = {a: i for i, a in enumerate(self.angles)}
+        return np.stack([self.measured[:, [index[a] for a in j.angle_names()]].all(axis=1)
+                         for j in names], axis=1)  # fmt: skip
 
     def measured_rate_hz(self) -> float:
         """The recording's tick rate (median interval), to 0.01 Hz."""
@@ -62,9 +69,18 @@ class PoseTrack:
         return round(1e9 / float(np.median(np.diff(self.t_ns))), 2)
 
 
-def load_track(recording: Path, progress: bool = True) -> PoseTrack:
+def is_measured(frame: PoseFrame, angle: str) -> bool:
+    """A measurement is behind ``angle``: no flag, or only ``clamped`` (the
+    team's convention; ``core.codecs.pose.is_measured`` once it lands)."""
+    return frame.flags.get(angle, "clamped") == "clamped"
+
+
+def load_track(recording: Path, progress: bool = True, every_tick: bool = False) -> PoseTrack:
     """The poses on ``body/pose`` of a recording; ``StoreError`` if it has none,
-    is not a complete MCAP file, or holds something else than bodynet poses."""
+    is not a complete MCAP file, or holds something else than bodynet poses.
+
+    Ticks that carry no newer sample repeat a time: only the last pose of each
+    time is kept, unless ``every_tick`` (one row per pose, as CSV gives it)."""
     skeleton = build_skeleton()
     segments, joints = skeleton.segments, tuple(j.name for j in skeleton.joints)
     angles = skeleton.angle_names()
@@ -76,6 +92,8 @@ def load_track(recording: Path, progress: bool = True) -> PoseTrack:
     seg_q = np.empty((cap, len(segments), 4))
     joint_p = np.empty((cap, len(joints), 3))
     angle_deg = np.empty((cap, len(angles)))
+    rel_deg = np.empty((cap, len(joints)))
+    measured = np.empty((cap, len(angles)), dtype=bool)
     nan3 = (np.nan, np.nan, np.nan)
     n = 0
     # disable=None: no bar when stderr is not a terminal
@@ -88,41 +106,46 @@ def load_track(recording: Path, progress: bool = True) -> PoseTrack:
                 raise StoreError(f"{recording}: the pose at {log_time} ns lacks segments "
                                  f"{', '.join(missing)}")  # fmt: skip
             if n == len(t):
-                t, seg_p, seg_q, joint_p, angle_deg = (
-                    np.concatenate([a, np.empty_like(a)]) for a in (t, seg_p, seg_q, joint_p,
-                                                                    angle_deg)
-                )  # fmt: skip
+                t, seg_p, seg_q, joint_p, angle_deg, rel_deg, measured = (
+                    np.concatenate([a, np.empty_like(a)])
+                    for a in (t, seg_p, seg_q, joint_p, angle_deg, rel_deg, measured)
+                )
             t[n] = log_time
             seg_p[n] = [frame.segments[s][0] for s in segments]
             seg_q[n] = [frame.segments[s][1] for s in segments]
             joint_p[n] = [frame.joints_m.get(j, nan3) for j in joints]
             angle_deg[n] = [frame.angles_deg.get(a, np.nan) for a in angles]
+            rel_deg[n] = [frame.rel_deg.get(j, np.nan) for j in joints]
+            measured[n] = [is_measured(frame, a) for a in angles] if frame.flags else True
             n += 1
             bar.update()
     if not n:
         raise StoreError(f"{recording}: no poses on {keys.pose_key()} to export "
                          "(raw samples only? process the capture first)")  # fmt: skip
-    t = t[:n]
-    # ticks that carry no newer sample repeat a time: keep the last pose of each
-    _, last_first = np.unique(t[::-1], return_index=True)
-    keep = n - 1 - last_first
+    measured[:n] &= ~np.isnan(angle_deg[:n])  # an angle a pose lacks was not measured either
+    if every_tick:
+        keep: np.ndarray | slice = slice(0, n)
+    else:
+        _, last_first = np.unique(t[:n][::-1], return_index=True)
+        keep = n - 1 - last_first
     return PoseTrack(t[keep], segments, seg_p[keep], seg_q[keep], joints, joint_p[keep], angles,
-                     angle_deg[keep])  # fmt: skip
+                     angle_deg[keep], rel_deg[keep], measured[keep])  # fmt: skip
 
 
 def resample(track: PoseTrack, rate_hz: float) -> PoseTrack:
     """``track`` at ``rate_hz`` from its first pose to its last: segment
-    orientations by slerp, positions and angles linearly (gaps included)."""
+    orientations by slerp, positions and angles linearly (gaps included); an
+    angle is measured where both poses around it were."""
     if rate_hz <= 0 or not np.isfinite(rate_hz):
         raise ValueError(f"frame rate must be positive, not {rate_hz}")
     if len(track) < 2:
-        return track
+        return replace(track, rate_hz=rate_hz)
     period_ns = 1e9 / rate_hz
     rel = (track.t_ns - track.t_ns[0]).astype(np.float64)
     n = int(np.floor(rel[-1] / period_ns + 1e-6)) + 1
     grid = np.minimum(np.arange(n) * period_ns, rel[-1])
     if n == len(track) and np.allclose(grid, rel, rtol=0.0, atol=period_ns * 1e-3):
-        return track  # regular ticks already: frame for frame
+        return replace(track, rate_hz=rate_hz)  # regular ticks already: frame for frame
 
     def linear(values: np.ndarray) -> np.ndarray:
         return np.asarray(make_interp_spline(rel, values, k=1, axis=0, check_finite=False)(grid))
@@ -131,9 +154,13 @@ def resample(track: PoseTrack, rate_hz: float) -> PoseTrack:
     for s in range(len(track.segments)):
         rot = Rotation.from_quat(track.segment_q[:, s], scalar_first=True)
         quats[:, s] = Slerp(rel, rot)(grid).as_quat(scalar_first=True)
+    # 1.0 only where every pose the value is drawn from was measured
+    measured = linear(track.measured.astype(np.float64)) > 1.0 - 1e-9
     return replace(track, t_ns=track.t_ns[0] + np.round(grid).astype(np.int64),
                    segment_p=linear(track.segment_p), segment_q=quats,
-                   joint_p=linear(track.joint_p), angle_deg=linear(track.angle_deg))  # fmt: skip
+                   joint_p=linear(track.joint_p), angle_deg=linear(track.angle_deg),
+                   rel_deg=linear(track.rel_deg), measured=measured,
+                   rate_hz=rate_hz)  # fmt: skip
 
 
 @contextlib.contextmanager
@@ -157,47 +184,3 @@ def euler_deg(rotations: Rotation, seq: str) -> np.ndarray:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)
         return np.asarray(rotations.as_euler(seq.upper(), degrees=True))
-
-
-def csv_columns() -> list[str]:
-    skeleton = build_skeleton()
-    joints = [j.name for j in skeleton.joints]
-    return (["t_s", *skeleton.angle_names(), *(f"{j}_rel_deg" for j in joints)]
-            + [f"{j}_{axis}_m" for j in joints for axis in "xyz"])  # fmt: skip
-
-
-def export_csv(recording: Path, out: Path, progress: bool = True) -> int:
-    """Write the CSV of a recording's poses; returns the number of rows.
-
-    The file appears complete or not at all (written aside, then renamed).
-    ``progress``: a progress bar on a terminal, as :func:`load_track` shows.
-    """
-    columns = csv_columns()
-    total = count_messages(recording, keys.pose_key())
-    tmp = out.with_name(out.name + ".part")
-    rows = 0
-    bar = tqdm(total=total or None, unit="pose", desc=recording.name, leave=False,
-               disable=None if progress else True)  # fmt: skip
-    try:
-        with bar, tmp.open("w", newline="") as f:
-            writer = csv.writer(f)
-            writer.writerow(columns)
-            for log_time, frame in read_poses(recording):
-                row: dict[str, float] = {"t_s": round(log_time / 1e9, 9)}
-                row.update(frame.angles_deg)
-                row.update({f"{j}_rel_deg": v for j, v in frame.rel_deg.items()})
-                for j, (x, y, z) in frame.joints_m.items():
-                    row.update({f"{j}_x_m": x, f"{j}_y_m": y, f"{j}_z_m": z})
-                writer.writerow([str(row["t_s"]), *(_fmt(row.get(c)) for c in columns[1:])])
-                rows += 1
-                bar.update()
-        if not rows:
-            raise StoreError(f"{recording}: no poses to export (process the capture first?)")
-        os.replace(tmp, out)
-    finally:
-        tmp.unlink(missing_ok=True)
-    return rows
-
-
-def _fmt(value: float | None) -> str:
-    return "" if value is None else f"{value:.6g}"
