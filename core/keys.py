@@ -183,6 +183,8 @@ HEALTH = f"{ROOT}/@health"
 
 TOPOLOGY = f"{ROOT}/@topology"
 CALIBRATE_TPOSE = f"{ROOT}/@calibrate/tpose"
+#: The yaw reset: the subject faces forward now (a query; the gateway answers).
+CALIBRATE_YAW = f"{ROOT}/@calibrate/yaw"
 
 
 def health_key(source: str) -> str:

@@ -199,7 +199,7 @@ def calibrate_window(
 
     Refused (:class:`CalibrationRefused`) when a tag of ``expected`` has no sample
     in it, when it is shorter than ``MIN_WINDOW_S`` (or than ``seconds``, the
-    length asked for, by more than a tenth) or holds fewer than ``MIN_SAMPLES`` of
+    length asked for, by more than a fifth) or holds fewer than ``MIN_SAMPLES`` of
     a tag, or when a tag turned more than ``STILL_DEG`` in it. The report gives,
     per tag, its samples, the time they span, how far it turned from its mean
     (its stillness), and its residual against the profile's current calibration
@@ -228,7 +228,7 @@ def calibrate_window(
         raise CalibrationRefused(f"no samples of {len(missing)} tag(s) in the window: "
                                  + ", ".join(missing), report)  # fmt: skip
     short = [k for k, t in tags.items() if t["samples"] < MIN_SAMPLES]
-    want = max(MIN_WINDOW_S, 0.9 * seconds if seconds else 0.0)
+    want = max(MIN_WINDOW_S, 0.8 * seconds if seconds else 0.0)
     if span_all < want or short:
         what = f"{len(short)} tag(s) with fewer than {MIN_SAMPLES} samples" if short else ""
         raise CalibrationRefused(
@@ -439,3 +439,28 @@ class BodyHeading:
                 out["waiting_for"] = finder.informative or "no hinge with both tags: " \
                     "declare a heading reference"
         return out
+
+
+#: Where the body faces, for the yaw reset: the first of these segments with a tag.
+FACING_SEGMENTS = ("pelvis", "thorax", "head")
+
+
+def yaw_reset(profile: Profile, output: Any) -> tuple[Profile, float]:
+    """The yaw reset: the subject faces forward now. Every tag's heading turns by
+    the heading the body's trunk has in ``output`` (a solved tick), so that the
+    body faces +X from now on; the mounts stay. Returns the profile and the turn
+    (deg). Refused (``ValueError``) while the tags' heading is unknown: facing
+    forward says nothing about which way round a tag sits on its segment."""
+    if not profile.imu_mounts:
+        raise ValueError("no orientation sensor is calibrated: calibrate a pose first")
+    unknown = [k for k in profile.imu_mounts if not profile.heading_known(k)]
+    if unknown:
+        raise ValueError("the tags' heading is not known yet: bend a knee (or declare a "
+                         "heading reference) before a yaw reset")  # fmt: skip
+    by_segment = set(_segments_of(profile.imu_mounts).values())
+    facing = next((s for s in FACING_SEGMENTS if s in by_segment), None)
+    if facing is None:
+        raise ValueError("no tag on the pelvis, thorax or head to say where the body faces")
+    turn = yaw_deg(_matrix(output.segments[facing][1]))
+    headings = {k: _wrap(profile.heading_of(k) + turn) for k in profile.imu_mounts}
+    return replace(profile, heading="auto", imu_headings=MappingProxyType(headings)), turn
