@@ -35,11 +35,7 @@ def cmd_report(args: argparse.Namespace) -> int:
     return 0
 
 
-def add_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
-    p = sub.add_parser(
-        "report",
-        help="validation statistics of a recording (ROM, accuracy, repeatability, ICC, Type A)",
-    )
+def add_report_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("recordings", type=Path, nargs="+",
                    help="MCAP recording(s) with poses; several: each one is a trial")  # fmt: skip
     p.add_argument("-o", "--output", type=Path,
@@ -65,4 +61,3 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
                        help="length of the auto-detected still window (default 2 s)")  # fmt: skip
     p.add_argument("--no-trials", action="store_true",
                    help="leave out repeatability and ICC (e.g. a still recording)")  # fmt: skip
-    p.set_defaults(func=cmd_report)

@@ -95,8 +95,7 @@ def cmd_view(args: argparse.Namespace) -> int:
     return 0
 
 
-def add_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
-    p = sub.add_parser("view", help="the body in Rerun, live or from a recording")
+def add_view_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("recording", type=Path, nargs="?", help="an MCAP recording (else: live)")
     p.add_argument("--viewer", choices=("auto", "native", "web", "connect", "none"), default="auto",
                    help="a window (if there is a display), the web viewer, or a running "
@@ -119,11 +118,11 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
     p.add_argument("--web-port", type=int, default=None, help="with --viewer web (default 9090)")
     p.add_argument("--grpc-port", type=int, default=None, help="with --viewer web (default 9876)")
     add_session_args(p)
-    p.set_defaults(func=cmd_view)
 
+
+def add_export_args(p: argparse.ArgumentParser) -> None:
     from bodynet.clients.exports import WRITERS
 
-    p = sub.add_parser("export", help="export a recording to a standard format")
     esub = p.add_subparsers(dest="kind", required=True, metavar="FORMAT")
     for entry in WRITERS.values():
         e = esub.add_parser(entry.name, help=entry.help)
@@ -202,8 +201,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
     return 0
 
 
-def add_record_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
-    p = sub.add_parser("record", help="record raw samples, poses, topology and health to MCAP")
+def add_record_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("keys", nargs="*", help="key expressions (default: every raw sample and pose, "
                                            "the topology and every health)")  # fmt: skip
     p.add_argument("-o", "--output", type=Path, required=True, help="the MCAP file")
@@ -211,9 +209,9 @@ def add_record_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore
     p.add_argument("--rotate-s", type=float, default=0.0, help="start a new file past this age")
     p.add_argument("--salvage", type=Path, help="turn this unfinished file into -o, and stop")
     add_session_args(p)
-    p.set_defaults(func=cmd_record)
 
-    p = sub.add_parser("replay", help="publish a recording's raw samples again")
+
+def add_replay_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("recording", type=Path)
     p.add_argument("--keys", nargs="*",
                    help="key expressions of the topics to replay, such as 'body/arm/left/**' "
@@ -222,4 +220,3 @@ def add_record_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore
     p.add_argument("--loop", action="store_true")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     add_session_args(p)
-    p.set_defaults(func=cmd_replay)

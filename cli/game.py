@@ -3,81 +3,127 @@
 from __future__ import annotations
 
 import argparse
+import math
+import re
 import sys
 from pathlib import Path
 
-from bodynet.session import add_session_args, config_from_args, open_session
+from bodynet.session import SessionError, add_session_args, config_from_args
 
 DEFAULT_HTTP_PORT = 8088
 
 
 def cmd_game(args: argparse.Namespace) -> int:
+    import zenoh
+
     from bodynet.cli.nodes import stop_on_signals
-    from bodynet.clients.game import ResultsFile, listen_socket, run_game
-    from bodynet.clients.rehab import GameError, RehabGame
+    from bodynet.clients.game import GameOptions, listen_socket, run_game
+    from bodynet.clients.rehab import GameError, check_patient, plural
+
+    def fail(message: str) -> int:
+        print(f"bodynet game: {message}", file=sys.stderr)
+        return 2
 
     try:
-        game = RehabGame(
-            args.arm, args.trials, args.practice, args.radius_cm / 100.0, args.target_timeout
-        )
-    except GameError as exc:
-        print(f"bodynet game: {exc}", file=sys.stderr)
-        return 2
+        options = GameOptions(args.arm, args.trials, args.practice, args.radius_cm / 100.0,
+                              args.target_timeout, check_patient(args.patient))  # fmt: skip
+        options.game()  # the rules check them too
+        conf = config_from_args(args)
+    except (GameError, SessionError) as exc:
+        return fail(str(exc))
+    except zenoh.ZError as exc:  # e.g. an endpoint that is not <protocol>/<address>
+        return fail(f"bad Zenoh session option: {_zenoh_message(exc)}")
+    where = ", ".join(args.connect) or "the configured endpoints"
 
     def announce(url: str) -> None:
         print(f"bodynet game: {url}", flush=True)
+        print(f"bodynet game: waiting for the Zenoh router at {where}", flush=True)
 
     # the page's address and the results folder first: a mistake there is told at
     # once, not after waiting for the router
     try:
         sock = listen_socket(args.http_host, args.http_port)
     except OSError as exc:
-        print(f"bodynet game: cannot serve on {args.http_host}:{args.http_port}: "
-              f"{exc.strerror or exc}", file=sys.stderr)  # fmt: skip
-        return 2
+        return fail(f"cannot serve on {args.http_host}:{args.http_port}: {exc.strerror or exc}")
     try:
-        results = ResultsFile(args.results, game.side)
+        args.results.mkdir(parents=True, exist_ok=True, mode=0o700)
+        if not args.results.is_dir():
+            raise NotADirectoryError(20, "not a folder")
     except OSError as exc:
         sock.close()
-        print(f"bodynet game: cannot write results in {args.results}: {exc.strerror or exc}",
-              file=sys.stderr)  # fmt: skip
-        return 2
+        return fail(f"cannot write results in {args.results}: {exc.strerror or exc}")
     stop = stop_on_signals()
-    session = open_session(config_from_args(args))
     try:
-        run_game(session, stop, game, results, sock, args.http_host, announce)
+        server = run_game(conf, stop, options, args.results, sock, args.http_host, announce)
+    except SessionError as exc:  # e.g. an endpoint Zenoh cannot use
+        return fail(str(exc))
     except OSError as exc:  # the results folder went away mid-session
-        print(f"bodynet game: {exc}", file=sys.stderr)
-        return 2
+        return fail(str(exc))
     finally:
         sock.close()
-        session.close()
-    summary = game.summary()
-    print(
-        f"bodynet game: {summary['complete_trials']} complete trials, score {summary['score']}"
-        + (f", results in {args.results}" if summary["trials"] else ""),
-        file=sys.stderr,
-    )
+    summary = server.game.summary()
+    saved = f", results in {args.results}" if server.results.written else ", nothing saved"
+    print(f"bodynet game: {plural(summary['complete_trials'], 'complete trial')}, "
+          f"score {summary['score']}{saved}", file=sys.stderr)  # fmt: skip
     return 0
+
+
+def _zenoh_message(exc: Exception) -> str:
+    """Zenoh's message without its Rust wrapping and source location."""
+    text = str(exc)
+    if match := re.search(r'msg: "(.*?)(?: at [^ "]+\.rs:\d+\.?)?"', text):
+        text = match.group(1)
+    return re.sub(r" at \S+\.rs:\d+\.?", "", text).strip()
+
+
+def _port(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"a port is a whole number, not {text!r}") from None
+    if not 0 <= value <= 65535:
+        raise argparse.ArgumentTypeError(f"a port is 1 to 65535 (0: any free one), not {text}")
+    return value
 
 
 def _positive(kind: type) -> object:
     def parse(text: str) -> object:
-        value = kind(text)
-        if value <= 0:
-            raise argparse.ArgumentTypeError(f"must be above 0, not {text}")
+        try:
+            value = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"must be a number, not {text!r}") from None
+        if not math.isfinite(value) or value <= 0:
+            raise argparse.ArgumentTypeError(f"must be a finite number above 0, not {text}")
+        if value > 1e6:
+            raise argparse.ArgumentTypeError(f"must be at most 1000000, not {text}")
         return value
 
+    parse.__name__ = f"positive {kind.__name__}"
     return parse
 
 
-def add_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
-    p = sub.add_parser("game", help="the arm-reaching rehabilitation game, in a browser")
+def _patient(text: str) -> str:
+    from bodynet.clients.rehab import GameError, check_patient
+
+    try:
+        return check_patient(text)
+    except GameError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def add_game_args(p: argparse.ArgumentParser) -> None:
+    """``bodynet game``'s arguments (its entry in ``cli.main.COMMANDS``)."""
     p.add_argument(
         "--arm",
         choices=("left", "right"),
         default="left",
         help="the player's arm (its pose key body/arm/<arm>/pose; default left)",
+    )
+    p.add_argument(
+        "--patient",
+        type=_patient,
+        default="",
+        help="the patient's id (letters, digits, - and _), in the results' file names",
     )
     p.add_argument(
         "--http-host",
@@ -87,16 +133,16 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
     )
     p.add_argument(
         "--http-port",
-        type=int,
+        type=_port,
         default=DEFAULT_HTTP_PORT,
-        help=f"port of the page and its WebSocket (default {DEFAULT_HTTP_PORT}; "
+        help=f"port of the page and its WebSocket, 1-65535 (default {DEFAULT_HTTP_PORT}; "
         "0 picks a free one)",
     )
     p.add_argument(
         "--results",
         type=Path,
         default=Path("rehab-results"),
-        help="folder of the session's results, JSON and CSV (default rehab-results)",
+        help="folder of the sessions' results, JSON and CSV (default rehab-results)",
     )
     p.add_argument(
         "--trials",
@@ -110,13 +156,13 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
         default=1,
         choices=range(11),
         metavar="N",
-        help="practice trials first, left out of the summary (default 1)",
+        help="practice trials first (0-10), left out of the summary (default 1)",
     )
     p.add_argument(
         "--radius-cm",
         type=_positive(float),
         default=12.0,
-        help="how close the hand tip must come to the ball (default 12)",
+        help="how close the hand tip must come to the ball, cm (default 12)",
     )
     p.add_argument(
         "--target-timeout",
@@ -125,4 +171,3 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
         help="seconds a waiting ball gives the player before moving on (default 20)",
     )
     add_session_args(p)
-    p.set_defaults(func=cmd_game)

@@ -109,8 +109,7 @@ def cmd_calibrate_tpose(args: argparse.Namespace) -> int:
     return 1
 
 
-def add_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
-    p = sub.add_parser("gateway", help="calibration and kinematics: raw samples in, poses out")
+def add_gateway_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--profile", type=Path, help="subject profile (TOML); created by calibration")
     p.add_argument("--branch", action="append", default=[],
                    help="serve only these branches (repeatable; default all)")  # fmt: skip
@@ -121,14 +120,14 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
                    help="with --all-subjects: <subject>.toml profiles (default.toml "
                         "without namespace), written by T-pose calibration")  # fmt: skip
     add_session_args(p, default_mode="router")
-    p.set_defaults(func=cmd_gateway)
 
-    p = sub.add_parser("subjects", help="list the subjects on the network and their branches")
+
+def add_subjects_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--timeout", type=float, default=2.0, help="seconds to wait for answers")
     add_session_args(p)
-    p.set_defaults(func=cmd_subjects)
 
-    cal = sub.add_parser("calibrate", help="calibrate sensors of the subject")
+
+def add_calibrate_args(cal: argparse.ArgumentParser) -> None:
     csub = cal.add_subparsers(dest="what", required=True, metavar="WHAT")
     p = csub.add_parser("tpose", help="IMU mounts: the subject stands still in T-pose")
     p.add_argument("--seconds", type=float, default=1.0, help="still window to average")
@@ -138,17 +137,16 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
 
 
 def cmd_process(args: argparse.Namespace) -> int:
-    from bodynet.gateway.offline import process
-    from bodynet.nodes.captures import Format
+    from bodynet.nodes.captures import format_of
+    from bodynet.offline.process import process
 
-    fmt = args.format or ("can-log" if args.input.suffix.lower() in (".log", ".asc", ".blf", ".trc")
-                          else None)  # fmt: skip
+    fmt = args.format or format_of(args.input)
     if fmt is None:
         print("bodynet process: say which --format the capture is in", file=sys.stderr)
         return 2
     try:
         profile = _profile(args.profile)
-        result = process(args.input, Format(fmt), args.output, profile, args.rate_hz,
+        result = process(args.input, fmt, args.output, profile, args.rate_hz,
                          args.tick_hz, args.tpose_s)  # fmt: skip
     except (ProfileError, OSError) as exc:
         print(f"bodynet process: {exc}", file=sys.stderr)
@@ -159,12 +157,11 @@ def cmd_process(args: argparse.Namespace) -> int:
     return 0
 
 
-def add_process_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
-    from bodynet.nodes.captures import Format
+def add_process_args(p: argparse.ArgumentParser) -> None:
+    from bodynet.nodes.captures import formats
 
-    p = sub.add_parser("process", help="run the gateway over a capture into an MCAP file")
     p.add_argument("input", type=Path, help="a capture (any format of `bodynet decode`)")
-    p.add_argument("--format", choices=[f.value for f in Format])
+    p.add_argument("--format", choices=formats())
     p.add_argument("--rate-hz", type=float, default=None, help="as for `bodynet decode`")
     p.add_argument("--tick-hz", type=float, default=100.0, help="most poses per second of capture")
     p.add_argument(
@@ -175,7 +172,6 @@ def add_process_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore
     )
     p.add_argument("--profile", type=Path, help="subject profile (TOML)")
     p.add_argument("-o", "--output", type=Path, required=True, help="the MCAP file to write")
-    p.set_defaults(func=cmd_process)
 
 
 def _module_site(joint: str) -> tuple[str, str]:

@@ -1,25 +1,26 @@
 """bodynet: a distributed body-network gateway for wearable motion capture.
 
-(Argument parsing only: each subcommand calls a ``main``-style function of
-its module with explicit arguments.)"""
+Argument parsing only. :data:`COMMANDS` names, for each command, the function
+it runs and the hook that adds its arguments, as ``"module:function"``
+strings: a command's module is imported only when that command is parsed or
+runs, so ``bodynet --help`` loads no Zenoh, Pinocchio, Rerun or pandas, and
+the command modules of ``cli/`` keep their own imports inside the functions
+that run. Each command calls a ``main``-style function of its module with
+explicit arguments.
+"""
 
 from __future__ import annotations
 
 import argparse
+import importlib
 import json
 import logging
 import sys
-from collections.abc import Sequence
+from collections.abc import Callable, Collection, Sequence
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
-from bodynet.cli import analysis as analysis_cli
-from bodynet.cli import clients as clients_cli
-from bodynet.cli import game as game_cli
-from bodynet.cli import gateway as gateway_cli
-from bodynet.cli import nodes as nodes_cli
-from bodynet.cli import security as security_cli
-from bodynet.nodes.captures import CaptureStats, Format, read_capture, sample_json
-from bodynet.nodes.motion import ROUTINES
 from bodynet.session import (
     DEFAULT_ROUTER,
     SessionError,
@@ -33,6 +34,8 @@ log = logging.getLogger("bodynet")
 
 def cmd_decode(args: argparse.Namespace) -> int:
     """Decode a capture: one JSON object per sample on stdout, a summary on stderr."""
+    from bodynet.nodes.captures import CaptureStats, read_capture, sample_json
+
     stats = CaptureStats()
     out = sys.stdout
     try:
@@ -100,23 +103,19 @@ def cmd_bench(args: argparse.Namespace) -> int:
     return 0
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
-        prog="bodynet",
-        description="A distributed body-network gateway for wearable motion capture.",
-    )
-    parser.add_argument("-v", "--verbose", action="count", default=0, help="more logging")
-    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+def add_decode_args(p: argparse.ArgumentParser) -> None:
+    from bodynet.nodes.captures import formats
 
-    p = sub.add_parser("decode", help="decode a capture file to JSON lines")
-    p.add_argument("--format", required=True, choices=[f.value for f in Format])
+    p.add_argument("--format", required=True, choices=formats())
     p.add_argument("--rate-hz", type=float, default=None,
                    help="samples' time base where the capture has none "
                         "(concentrator: 1/22 ms; imu-central: 25 Hz)")  # fmt: skip
     p.add_argument("file", type=Path)
-    p.set_defaults(func=cmd_decode)
 
-    p = sub.add_parser("demo", help="the main job: show the system at work")
+
+def add_demo_args(p: argparse.ArgumentParser) -> None:
+    from bodynet.nodes.motion import ROUTINES
+
     p.add_argument("-l", "--listen", default=DEFAULT_ROUTER, help="where the router listens")
     p.add_argument(
         "--routine",
@@ -137,22 +136,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--web-port", type=int, default=None, help="web viewer port (default 9090)")
     p.add_argument("--record", type=Path, default=Path("bodynet-demo.mcap"),
                    help="where the recorder writes (default bodynet-demo.mcap)")  # fmt: skip
-    p.set_defaults(func=cmd_demo)
 
-    nodes_cli.add_parsers(sub)
-    gateway_cli.add_parsers(sub)
-    gateway_cli.add_process_parser(sub)
-    clients_cli.add_parsers(sub)
-    clients_cli.add_record_parsers(sub)
-    analysis_cli.add_parsers(sub)
-    game_cli.add_parsers(sub)
-    security_cli.add_parsers(sub)
 
-    p = sub.add_parser("router", help="a Zenoh router for the body network (no zenohd needed)")
+def add_router_args(p: argparse.ArgumentParser) -> None:
     add_session_args(p, default_mode="router")
-    p.set_defaults(func=cmd_router)
 
-    p = sub.add_parser("bench", help="benchmarks, side by side with their baselines")
+
+def add_bench_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seconds", type=float, default=1.0, help="time per decode measurement")
     p.add_argument("--gateway-seconds", type=float, default=10.0, help="time of the gateway run")
     p.add_argument("--bodies", type=int, nargs="+", default=[1, 5, 10, 15, 20, 50],
@@ -164,18 +154,115 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--repeat", type=int, default=3, help="runs of each fault (worst reported)")
     p.add_argument("--minutes", type=float, default=10.0, help="length of the soak")
     p.add_argument("--out", type=Path, default=Path("bench-results"))
-    p.set_defaults(func=cmd_bench)
+
+
+@dataclass(frozen=True)
+class Command:
+    """One ``bodynet`` command: what it runs and how its arguments are added.
+
+    ``run`` and ``arguments`` are ``"module:function"``; neither module is
+    imported unless this command is the one being parsed. ``run(args) -> int``
+    gets the parsed arguments; ``arguments(parser)`` adds them to the
+    command's own parser. A command with sub-commands (``bridge can``...)
+    leaves ``run`` empty: its hook gives each sub-command a ``func`` default."""
+
+    help: str
+    arguments: str
+    run: str | None = None
+
+
+#: Every command, in the order ``bodynet --help`` lists them. A new command is
+#: one line here; its module keeps heavy imports inside the functions that run.
+COMMANDS: dict[str, Command] = {
+    "decode": Command("decode a capture file to JSON lines",
+                      "bodynet.cli.main:add_decode_args", "bodynet.cli.main:cmd_decode"),
+    "demo": Command("the main job: show the system at work",
+                    "bodynet.cli.main:add_demo_args", "bodynet.cli.main:cmd_demo"),
+    "bridge": Command("bridge a device (CAN bus, serial port, UDP) onto Zenoh",
+                      "bodynet.cli.nodes:add_bridge_args"),
+    "emulate": Command("emulated hardware only, for a bridge to open",
+                       "bodynet.cli.nodes:add_emulate_args"),
+    "node": Command("emulated sensors with their bridge, live on Zenoh",
+                    "bodynet.cli.nodes:add_node_args"),
+    "gateway": Command("calibration and kinematics: raw samples in, poses out",
+                       "bodynet.cli.gateway:add_gateway_args", "bodynet.cli.gateway:cmd_gateway"),
+    "subjects": Command("list the subjects on the network and their branches",
+                        "bodynet.cli.gateway:add_subjects_args",
+                        "bodynet.cli.gateway:cmd_subjects"),
+    "calibrate": Command("calibrate sensors of the subject",
+                         "bodynet.cli.gateway:add_calibrate_args"),
+    "process": Command("run the gateway over a capture into an MCAP file",
+                       "bodynet.cli.gateway:add_process_args", "bodynet.cli.gateway:cmd_process"),
+    "view": Command("the body in Rerun, live or from a recording",
+                    "bodynet.cli.clients:add_view_args", "bodynet.cli.clients:cmd_view"),
+    "export": Command("export a recording to a standard format",
+                      "bodynet.cli.clients:add_export_args"),
+    "record": Command("record raw samples, poses, topology and health to MCAP",
+                      "bodynet.cli.clients:add_record_args", "bodynet.cli.clients:cmd_record"),
+    "replay": Command("publish a recording's raw samples again",
+                      "bodynet.cli.clients:add_replay_args", "bodynet.cli.clients:cmd_replay"),
+    "report": Command("validation statistics of a recording (ROM, accuracy, repeatability, "
+                      "ICC, Type A)",
+                      "bodynet.cli.analysis:add_report_args", "bodynet.cli.analysis:cmd_report"),
+    "game": Command("the arm-reaching rehabilitation game, in a browser",
+                    "bodynet.cli.game:add_game_args", "bodynet.cli.game:cmd_game"),
+    "lsl": Command("the live body as Lab Streaming Layer streams (LabRecorder)",
+                   "bodynet.cli.live:add_lsl_args", "bodynet.cli.live:cmd_lsl"),
+    "vmc": Command("the live body over the VMC protocol (Unity, VSeeFace, Blender add-ons)",
+                   "bodynet.cli.live:add_vmc_args", "bodynet.cli.live:cmd_vmc"),
+    "certs": Command("a CA, certificates and Zenoh configs for a secure router and its clients",
+                     "bodynet.cli.security:add_certs_args", "bodynet.cli.security:cmd_certs"),
+    "router": Command("a Zenoh router for the body network (no zenohd needed)",
+                      "bodynet.cli.main:add_router_args", "bodynet.cli.main:cmd_router"),
+    "bench": Command("benchmarks, side by side with their baselines",
+                     "bodynet.cli.main:add_bench_args", "bodynet.cli.main:cmd_bench"),
+}  # fmt: skip
+
+
+def resolve(spec: str) -> Callable[..., Any]:
+    """The function a ``"module:function"`` string names (importing its module)."""
+    module, _, name = spec.partition(":")
+    return getattr(importlib.import_module(module), name)  # type: ignore[no-any-return]
+
+
+def build_parser(only: Collection[str] | None = None) -> argparse.ArgumentParser:
+    """The ``bodynet`` parser. Every command is listed with its help; the
+    arguments are added for every command, or for those in ``only`` (the
+    command about to run, so that no other command's module is imported)."""
+    parser = argparse.ArgumentParser(
+        prog="bodynet",
+        description="A distributed body-network gateway for wearable motion capture.",
+    )
+    parser.add_argument("-v", "--verbose", action="count", default=0, help="more logging")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    for name, command in COMMANDS.items():
+        p = sub.add_parser(name, help=command.help)
+        if only is None or name in only:
+            resolve(command.arguments)(p)
+            if command.run:
+                p.set_defaults(command_run=command.run)
     return parser
 
 
+def command_in(argv: Sequence[str]) -> str | None:
+    """The command ``argv`` names: its first word after the global options."""
+    for word in argv:
+        if not word.startswith("-"):
+            return word if word in COMMANDS else None
+    return None
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    argv = list(sys.argv[1:] if argv is None else argv)
+    command = command_in(argv)
+    args = build_parser(only=(command,) if command else ()).parse_args(argv)
     logging.basicConfig(
         level=(logging.WARNING, logging.INFO, logging.DEBUG)[min(args.verbose, 2)],
         format="%(asctime)s %(name)s %(levelname)s %(message)s",
     )
+    func = getattr(args, "func", None) or resolve(args.command_run)
     try:
-        code: int = args.func(args)
+        code: int = func(args)
     except SessionError as exc:
         print(f"bodynet {args.command}: {exc}", file=sys.stderr)
         return 2

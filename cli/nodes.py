@@ -9,10 +9,8 @@ import signal
 import sys
 import threading
 from collections.abc import Callable
-from pathlib import Path
 
 from bodynet.core.keys import branch_named
-from bodynet.nodes.emulator import Realism
 from bodynet.nodes.motion import ROUTINES
 from bodynet.session import add_session_args, config_from_args, open_session
 
@@ -39,11 +37,9 @@ def stop_on_signals() -> threading.Event:
 
 def _numbers(text: str) -> tuple[int, ...]:
     """``"1-3,7"`` -> (1, 2, 3, 7)."""
-    out: list[int] = []
-    for part in text.split(","):
-        lo, _, hi = part.partition("-")
-        out.extend(range(int(lo), int(hi or lo) + 1))
-    return tuple(out)
+    from bodynet.nodes.sources.base import numbers
+
+    return numbers(text)
 
 
 def _branches(args: argparse.Namespace) -> tuple | None:  # type: ignore[type-arg]
@@ -51,6 +47,7 @@ def _branches(args: argparse.Namespace) -> tuple | None:  # type: ignore[type-ar
 
 
 def _options(args: argparse.Namespace):  # type: ignore[no-untyped-def]
+    from bodynet.nodes.emulator import Realism
     from bodynet.nodes.services import EmulationOptions
 
     realism = (
@@ -74,25 +71,10 @@ def _with_session(
 
 
 def cmd_bridge(args: argparse.Namespace) -> int:
-    from bodynet.nodes import services
+    from bodynet.nodes import services, sources
 
-    if args.device == "can":
-        name = args.name or f"can-{args.channel or 'replay'}"
-        bus_args = {"interface": args.interface, "channel": args.channel}
-        if args.bitrate:
-            bus_args["bitrate"] = args.bitrate
-        return _with_session(args, services.bridge_can, name, args.replay, args.loop, **bus_args)
-    name = args.name or f"{args.device}-{Path(args.port).name}"
-    if args.device == "concentrator":
-        return _with_session(
-            args,
-            services.bridge_concentrator,
-            name,
-            args.port,
-            _numbers(args.nodes),
-            args.baud or 115200,
-        )
-    return _with_session(args, services.bridge_imu_central, name, args.port, args.baud or 230400)
+    name = args.name or sources.get(args.device).bridge_name(args)
+    return _with_session(args, services.bridge, args.device, name, args)
 
 
 def cmd_emulate(args: argparse.Namespace) -> int:
@@ -100,17 +82,23 @@ def cmd_emulate(args: argparse.Namespace) -> int:
 
     stop = stop_on_signals()
     session = open_session(config_from_args(args)) if args.truth else None
+    # what the device's own options say (its source added them), for its emulator
+    explicit = ("link", "sensors", "silent", "func")
+    device_args = {k: v for k, v in vars(args).items() if k not in explicit}
+    bus_args = {"interface": getattr(args, "interface", None),
+                "channel": getattr(args, "channel", None)}  # fmt: skip
     try:
         services.emulate(
             args.device,
             stop,
             _options(args),
-            link=args.link,
+            link=getattr(args, "link", None),
             branches=_branches(args),
             sensors=_numbers(args.sensors) if args.sensors else None,
             silent=_numbers(args.silent) if args.silent else (),
-            bus_args={"interface": args.interface, "channel": args.channel},
+            bus_args=bus_args,
             truth_session=session,
+            **device_args,
         )
     finally:
         if session is not None:
@@ -151,51 +139,28 @@ def _emulation_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, default=0)
 
 
-def add_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
-    bridge = sub.add_parser("bridge", help="bridge a CAN bus or serial receiver onto Zenoh")
+def add_bridge_args(bridge: argparse.ArgumentParser) -> None:
+    from bodynet.nodes import sources
+
     bsub = bridge.add_subparsers(dest="device", required=True, metavar="DEVICE")
-    p = bsub.add_parser("can", help="SmartSuit nodes on any python-can interface, or a log")
-    p.add_argument(
-        "--interface", default="socketcan", help="python-can interface (socketcan, slcan, pcan...)"
-    )
-    p.add_argument("--channel", help="channel: can0, /dev/ttyACM0 (slcan)...")
-    p.add_argument("--bitrate", type=int, default=None)
-    p.add_argument("--replay", type=Path, help="play a candump/asc/blf log at its recorded speed")
-    p.add_argument("--loop", action="store_true", help="with --replay: play again and again")
-    p.add_argument("--name", help="name on the health key (default from the channel)")
-    add_session_args(p)
-    p.set_defaults(func=cmd_bridge)
-    for device, baud in (("concentrator", 115200), ("imu-central", 230400)):
-        p = bsub.add_parser(device, help=f"the {device} on a serial port ({baud} baud)")
-        p.add_argument("--port", required=True, help="serial device, e.g. /dev/ttyUSB0")
-        p.add_argument("--baud", type=int, default=None, help=f"default {baud}")
-        if device == "concentrator":
-            p.add_argument("--nodes", default="1-3", help="nodes to poll (default 1-3)")
-        p.add_argument("--name", help="name on the health key (default from the port)")
+    for cls in sources.all_sources():
+        if not cls.has_bridge():
+            continue
+        p = bsub.add_parser(cls.name, help=cls.help)
+        cls.add_bridge_args(p)
+        p.add_argument("--name", help="name on the health key (default from the device)")
         add_session_args(p)
         p.set_defaults(func=cmd_bridge)
 
-    emulate = sub.add_parser("emulate", help="emulated hardware only, for a bridge to open")
+
+def add_emulate_args(emulate: argparse.ArgumentParser) -> None:
+    from bodynet.nodes import sources
+
     esub = emulate.add_subparsers(dest="device", required=True, metavar="DEVICE")
-    for device, text in (
-        ("slcan", "a slcan USB-CAN adapter with SmartSuit nodes"),
-        ("concentrator", "a Data Concentrator with SmartSuit nodes"),
-        ("imu-central", "the IMU central with its tags"),
-        ("can", "SmartSuit nodes on a python-can bus"),
-    ):
-        p = esub.add_parser(device, help=text)
+    for device, cls in sources.emulated_devices().items():
+        p = esub.add_parser(device, help=cls.emulators[device])
         _emulation_args(p)
-        if device == "can":
-            p.add_argument("--interface", default="socketcan")
-            p.add_argument("--channel", default="vcan0")
-        else:
-            p.add_argument(
-                "--link",
-                type=Path,
-                required=True,
-                help="path of the symlink to the pseudo-terminal",
-            )
-            p.set_defaults(interface=None, channel=None)
+        cls.add_emulate_args(device, p)
         p.add_argument("--silent", help="concentrator: nodes that never answer, e.g. 3")
         p.add_argument(
             "--truth",
@@ -205,7 +170,8 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
         add_session_args(p)
         p.set_defaults(func=cmd_emulate)
 
-    node = sub.add_parser("node", help="emulated sensors with their bridge, live on Zenoh")
+
+def add_node_args(node: argparse.ArgumentParser) -> None:
     nsub = node.add_subparsers(dest="system", required=True, metavar="SYSTEM")
     for system, text in (
         ("smartsuit", "SmartSuit branches"),

@@ -61,14 +61,12 @@ def cmd_certs(args: argparse.Namespace) -> int:
     return 0
 
 
-def add_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
-    p = sub.add_parser(
-        "certs",
-        help="a CA, certificates and Zenoh configs for a secure router and its clients",
-        description="Create DIR with a certificate authority, the router's certificate and "
+def add_certs_args(p: argparse.ArgumentParser) -> None:
+    p.description = (
+        "Create DIR with a certificate authority, the router's certificate and "
         "config (mutual TLS only, default-deny access control) and one folder per identity "
         "(ROLE@SUBJECT, or ROLE for the router's subjects) with its certificate, key and "
-        "Zenoh client config. Run again to add subjects; what exists is kept.",
+        "Zenoh client config. Run again to add subjects; what exists is kept."
     )
     p.add_argument("dir", type=Path, metavar="DIR", help="where to write (created 0700)")
     p.add_argument("--subject", action="append", default=[], metavar="NAME",
@@ -84,4 +82,3 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
                    help="where DIR will be on the router's machine, for the paths in its config "
                         "(default: DIR)")  # fmt: skip
     p.add_argument("--days", type=_days, default=825, help="validity of the certificates")
-    p.set_defaults(func=cmd_certs)

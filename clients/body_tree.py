@@ -13,6 +13,7 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 
 import numpy as np
+import orjson
 from scipy.spatial.transform import Rotation
 
 from bodynet.core.skeleton import Skeleton, build_skeleton
@@ -53,36 +54,64 @@ def local_poses(
     return translations, inv * world[(rows + np.arange(n_seg)).ravel()]
 
 
-def frame_transforms_json(
-    segments: Mapping[str, tuple[Sequence[float], Sequence[float]]],
-    t_ns: int,
+def frame_transforms(
+    poses: Sequence[tuple[int, Mapping[str, tuple[Sequence[float], Sequence[float]]]]],
     parents: Mapping[str, str],
     world_frame: str = "world",
-) -> dict[str, object]:
-    """A ``foxglove.FrameTransforms`` message (JSON form) for one pose: the root
-    segment in ``world_frame``, every other segment in its parent segment.
-    Segments whose parent the pose lacks (a branch view) are left out."""
-    names = [n for n in segments if n == ROOT_SEGMENT or parents.get(n) in segments]
-    if not names:
-        return {"transforms": []}
-    pos = np.array([segments[n][0] for n in names], dtype=float)
-    quat = np.array([segments[n][1] for n in names], dtype=float)
-    index = {n: i for i, n in enumerate(names)}
-    parent_index = [index[parents[n]] if n in parents else -1 for n in names]
-    translations, rotations = local_poses(pos, quat, parent_index)
-    # 0.1 µm and 1e-9 are below what the pose carries; + 0.0 turns -0.0 into 0.0
-    moves = (np.round(translations, 7) + 0.0).tolist()
-    turns = (np.round(rotations.as_quat(), 9) + 0.0).tolist()
-    stamp = {"sec": t_ns // 1_000_000_000, "nsec": t_ns % 1_000_000_000}
-    return {
-        "transforms": [
-            {
-                "timestamp": stamp,
-                "parent_frame_id": parents.get(n, world_frame),
-                "child_frame_id": n,
-                "translation": dict(zip("xyz", moves[i], strict=True)),
-                "rotation": dict(zip("xyzw", turns[i], strict=True)),
-            }
-            for i, n in enumerate(names)
-        ]
-    }
+) -> list[bytes]:
+    """One ``foxglove.FrameTransforms`` message (JSON bytes) for each pose
+    ``(t_ns, segments)``, in order: the root segment in ``world_frame``, every
+    other segment in its parent segment. Segments whose parent the pose lacks
+    (a branch view) are left out.
+
+    A recorder makes one of these per whole-body pose, so the work is done for
+    many poses at once: poses with the same segments go through one array pass,
+    and the JSON is one template per segment set filled with numbers that orjson
+    writes (building a dict per transform cost several times the maths)."""
+    groups: dict[tuple[str, ...], list[int]] = {}
+    for i, (_, segments) in enumerate(poses):
+        names = tuple(n for n in segments if n == ROOT_SEGMENT or parents.get(n) in segments)
+        groups.setdefault(names, []).append(i)
+    out = [b'{"transforms":[]}'] * len(poses)
+    for names, members in groups.items():
+        if not names:
+            continue
+        pos = np.array([[poses[i][1][n][0] for n in names] for i in members], dtype=float)
+        quat = np.array([[poses[i][1][n][1] for n in names] for i in members], dtype=float)
+        index = {n: k for k, n in enumerate(names)}
+        parent_index = [index[parents[n]] if n in parents else -1 for n in names]
+        translations, rotations = local_poses(pos, quat, parent_index)
+        turns = rotations.as_quat().reshape(len(members), len(names), 4)
+        # 0.1 µm and 1e-9 are below what the pose carries; + 0.0 turns -0.0 into 0.0
+        numbers = np.concatenate([np.round(translations, 7), np.round(turns, 9)], axis=2) + 0.0
+        template = _transforms_template(names, [parents.get(n, world_frame) for n in names])
+        for row, i in zip(numbers.reshape(len(members), -1).tolist(), members, strict=True):
+            sec, nsec = divmod(poses[i][0], 1_000_000_000)
+            stamped = template % ((b"%d" % sec, b"%d" % nsec) * len(names))
+            out[i] = stamped % tuple(orjson.dumps(row)[1:-1].split(b","))
+    return out
+
+
+def _transforms_template(names: Sequence[str], frames_of: Sequence[str]) -> bytes:
+    """The message with ``%s`` for each stamp's sec and nsec and ``%%s`` for each
+    number (x, y, z of the translation, x, y, z, w of the rotation)."""
+
+    def text(name: str) -> bytes:
+        return orjson.dumps(name).replace(b"%", b"%%%%")  # through two formattings
+
+    numbers = (
+        b'"translation":{"x":%%s,"y":%%s,"z":%%s},"rotation":{"x":%%s,"y":%%s,"z":%%s,"w":%%s}}'
+    )
+    return (
+        b'{"transforms":['
+        + b",".join(
+            b'{"timestamp":{"sec":%s,"nsec":%s},"parent_frame_id":'
+            + text(parent)
+            + b',"child_frame_id":'
+            + text(name)
+            + b","
+            + numbers
+            for name, parent in zip(names, frames_of, strict=True)
+        )
+        + b"]}"
+    )

@@ -59,11 +59,11 @@ from mcap.records import Channel, Message, Schema
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
-from bodynet.clients.body_tree import frame_transforms_json, segment_parents
+from bodynet.clients.body_tree import frame_transforms, segment_parents
 from bodynet.core import keys
 from bodynet.core.codecs import pose
 from bodynet.core.errors import DecodeError, Reason
-from bodynet.core.messages import OleAccel, RawSample
+from bodynet.core.messages import OleAccel, RawSample, source_name
 
 POSE_SCHEMA = {
     "title": "bodynet.PoseFrame",
@@ -267,7 +267,7 @@ def check_time(t_ns: int) -> int:
 def raw_json(sample: RawSample) -> dict[str, Any]:
     r = sample.reading
     out: dict[str, Any] = {"node": r.node, "seq": sample.seq, "t_ns": sample.t_ns,
-                           "source": sample.source.name.lower()}  # fmt: skip
+                           "source": source_name(sample.source)}  # fmt: skip
     if isinstance(r, OleAccel):
         out.update(encoder=r.encoder, accel=list(r.accel))
     else:
@@ -317,6 +317,9 @@ def keep_large_buffers_off_heap() -> bool:
 _M_MMAP_THRESHOLD = -3  # glibc's malloc.h
 
 
+TF_BATCH = 64  # whole-body poses whose transforms are made together
+
+
 class McapSink:
     """Writes poses and raw samples to one MCAP file; each whole-body pose
     (``body/pose``) also as Foxglove frame transforms on ``body/tf``. A chunk is
@@ -353,6 +356,7 @@ class McapSink:
         self.messages = 0
         self._max_chunk_s = max_chunk_s
         self._chunk_opened = time.monotonic()
+        self._tf_pending: list[tuple[int, Any]] = []  # whole-body poses awaiting transforms
 
     def _channel(self, topic: str, kind: str) -> int:
         channel = self._channels.get(topic)
@@ -368,12 +372,22 @@ class McapSink:
         pose again costs twice as much as decoding it)."""
         check_time(log_time_ns)  # before the pose: its transforms share its time
         data = pose.encode(frame) if data is None else data
-        self._add(self._channel(topic, "pose"), log_time_ns, data)
         if topic == keys.pose_key():
-            tf = frame_transforms_json(frame.segments, log_time_ns, self._parents,
-                                       WORLD_FRAME)  # fmt: skip
-            self._add(self._channel(keys.TRANSFORMS, "tf"), log_time_ns,
-                      orjson.dumps(tf))  # fmt: skip
+            # its transforms are made with the next ones' (at most TF_BATCH), and
+            # before the writer closes a chunk on time, so salvage keeps them
+            self._tf_pending.append((log_time_ns, frame.segments))
+            if len(self._tf_pending) >= TF_BATCH:
+                self._write_transforms()
+        self._add(self._channel(topic, "pose"), log_time_ns, data)
+
+    def _write_transforms(self) -> None:
+        pending, self._tf_pending = self._tf_pending, []
+        channel = self._channel(keys.TRANSFORMS, "tf")
+        for (t_ns, _), tf in zip(
+            pending, frame_transforms(pending, self._parents, WORLD_FRAME), strict=True
+        ):
+            self._writer.add_message(channel, t_ns, tf, t_ns)
+            self.messages += 1
 
     def write_raw(self, topic: str, sample: RawSample, log_time_ns: int) -> None:
         try:
@@ -388,6 +402,8 @@ class McapSink:
         self.messages += 1
         now = time.monotonic()
         if now - self._chunk_opened >= self._max_chunk_s:
+            if self._tf_pending:
+                self._write_transforms()
             self._writer.flush()  # closes the open chunk: on disk, salvageable
             self._chunk_opened = now
 
@@ -408,6 +424,8 @@ class McapSink:
         self._add(self._channel(GAPS_TOPIC, "gap"), gap.to_t_ns, data)
 
     def close(self) -> None:
+        if self._tf_pending:
+            self._write_transforms()
         self._writer.finish()
         self._stream.close()
 
@@ -441,7 +459,7 @@ def _messages(path: Path, topics: Iterable[str] | None) -> Iterator[Any]:
 
 def raw_from_json(data: bytes) -> RawSample:
     """The raw sample a ``bodynet.RawSample`` message holds (see :func:`raw_json`)."""
-    from bodynet.core.messages import Quat, Source
+    from bodynet.core.messages import Quat, source_of
 
     try:
         d = json.loads(data)
@@ -451,7 +469,7 @@ def raw_from_json(data: bytes) -> RawSample:
         else:
             ax, ay, az = (int(c) for c in d["accel"])
             reading = OleAccel(int(d["node"]), int(d["encoder"]), (ax, ay, az))
-        return RawSample(reading, int(d["seq"]), int(d["t_ns"]), Source[str(d["source"]).upper()])
+        return RawSample(reading, int(d["seq"]), int(d["t_ns"]), source_of(str(d["source"])))
     except (ValueError, KeyError, TypeError) as exc:
         raise StoreError(f"not a raw-sample message: {exc}") from None
 

@@ -9,7 +9,7 @@ consumer counts it (:class:`RejectCounts`) and carries on.
 from __future__ import annotations
 
 from collections import Counter
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from enum import StrEnum
 
 
@@ -57,10 +57,15 @@ class Rejected:
     reason: Reason
     detail: str
     data: bytes = b""
+    #: the node the rejected input was for, where the format says (else None); an
+    #: attribution for counting, not part of what was rejected (not compared)
+    node: int | None = field(default=None, compare=False)
 
     @classmethod
-    def of(cls, error: DecodeError, data: bytes | bytearray = b"") -> Rejected:
-        return cls(error.reason, error.detail, bytes(data[:MAX_KEPT]))
+    def of(
+        cls, error: DecodeError, data: bytes | bytearray = b"", node: int | None = None
+    ) -> Rejected:
+        return cls(error.reason, error.detail, bytes(data[:MAX_KEPT]), node)
 
 
 MAX_KEPT = 64

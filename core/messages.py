@@ -17,14 +17,47 @@ from __future__ import annotations
 from dataclasses import dataclass
 from enum import IntEnum
 
+from .errors import Rejected
+
 
 class Source(IntEnum):
-    """Which kind of hardware (or emulator) a sample came through."""
+    """Which kind of hardware (or emulator, or file) a sample came through.
+
+    The raw-sample message carries this id in one byte. These are the ids this
+    version knows by name; a message with any other id is accepted all the same
+    (a source added elsewhere, see ``bodynet.nodes.sources``) and named by
+    :func:`source_name` as ``source-<id>``.
+    """
 
     UNKNOWN = 0
     CAN = 1
     CONCENTRATOR = 2
     IMU_CENTRAL = 3
+    SLIMEVR = 4
+    ORIENTATION_FILE = 5
+
+
+_SOURCE_PREFIX = "source-"
+
+
+def source_name(source: int) -> str:
+    """``"can"`` for :attr:`Source.CAN`, ``"source-231"`` for an id this version lacks."""
+    try:
+        return Source(source).name.lower()
+    except ValueError:
+        return f"{_SOURCE_PREFIX}{source}"
+
+
+def source_of(name: str) -> int:
+    """The id :func:`source_name` gave ``name``; ``ValueError`` if it gave none."""
+    if name.startswith(_SOURCE_PREFIX) and name[len(_SOURCE_PREFIX) :].isdigit():
+        value = int(name[len(_SOURCE_PREFIX) :])
+        if 0 <= value <= 0xFF:
+            return value
+    try:
+        return Source[name.upper()]
+    except KeyError:
+        raise ValueError(f"no source named {name!r}") from None
 
 
 @dataclass(slots=True)
@@ -61,13 +94,15 @@ class RawSample:
     """A reading as published on ``body/<limb>/<side>/<site>/raw``.
 
     ``t_ns`` is the source timestamp (integer ns, the receiver's clock or the
-    capture's), ``seq`` the per-node sequence number (uint32, wraps).
+    capture's), ``seq`` the per-node sequence number (uint32, wraps), ``source``
+    the id of the source it came through (a :class:`Source` where this version
+    knows it, any byte otherwise).
     """
 
     reading: Reading
     seq: int
     t_ns: int
-    source: Source = Source.UNKNOWN
+    source: int = Source.UNKNOWN
 
 
 @dataclass(frozen=True, slots=True)
@@ -86,10 +121,28 @@ class SensorAbsent:
 
 @dataclass(frozen=True, slots=True)
 class Tick:
-    """A stream decoder's marker: the events that follow belong to tick ``index``.
+    """A stream decoder's marker: the events that follow belong to tick ``index``
+    (of node ``node`` only, when it is given).
 
     The IMU central prints each sensor's line once per tick; a decoder emits a
-    ``Tick`` when the sensor numbers start over.
+    ``Tick`` when the sensor numbers start over. A SlimeVR tracker numbers its
+    packets; its decoder gives each packet's number as the tracker's tick.
     """
 
     index: int
+    node: int | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class NodeStatus:
+    """Something a node says about itself that is not a sample: battery, signal
+    strength, which device it is (``key`` names it, e.g. ``battery_v``)."""
+
+    node: int
+    key: str
+    value: float | int | str
+
+
+#: Every event a source's stream decoder gives: readings, the markers and states
+#: around them, and rejections. One adapter per source turns them into samples.
+StreamEvent = OleAccel | Quat | NoNewData | SensorAbsent | Tick | NodeStatus | Rejected

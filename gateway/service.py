@@ -33,7 +33,7 @@ import logging
 import queue
 import threading
 import time
-from collections import deque
+from collections import Counter, deque
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -45,7 +45,7 @@ from bodynet.core import keys
 from bodynet.core.codecs import pose, raw_sample
 from bodynet.core.errors import DecodeError, Reason, RejectCounts
 from bodynet.core.keys import BRANCHES, Branch, Site
-from bodynet.core.messages import Quat, RawSample
+from bodynet.core.messages import Quat, RawSample, source_name
 from bodynet.core.subject import Profile, ProfileError, QuatWxyz
 from bodynet.gateway import profile_file
 from bodynet.gateway.heading import BodyHeading, CalibrationRefused, calibrate_window, yaw_reset
@@ -713,6 +713,10 @@ class Gateway:
         if body is not None:
             out["body"] = {"samples": body.samples, "ticks": body.ticks,
                            "heading": body.heading.state()}  # fmt: skip
+            # sites by the source they come through, ids this version has no name for too
+            with self._lock:
+                kinds = Counter(source_name(s.sample.source) for s in body.latest.values())
+            out["sources"] = dict(sorted(kinds.items()))
         return out
 
     def close(self) -> None:

@@ -37,9 +37,10 @@ from bodynet.nodes.emulator import BodyEmulator, Truth
 log = logging.getLogger(__name__)
 
 TruthSink = Callable[[int, Truth, int], None]  # node, truth, t_ns
-CAN_PERIOD_S = 0.01
-CONCENTRATOR_CYCLE_S = 0.022
-IMU_TICK_S = 0.04  # 25 Hz: about what 230400 baud carries for 15 sensors
+# the devices' timing is their protocol's: the emulators keep to it
+CAN_PERIOD_S = smartsuit_can.PERIOD_S
+CONCENTRATOR_CYCLE_S = concentrator.CYCLE_S
+IMU_TICK_S = imu_matrix.TICK_S
 _BAUD = {115200: termios.B115200, 230400: termios.B230400}
 
 
@@ -244,7 +245,7 @@ class ConcentratorEmulator(_PtyEmulator):
         cycle_s: float = CONCENTRATOR_CYCLE_S,
         silent: Sequence[int] = (),
     ) -> None:
-        super().__init__("concentrator-emulator", link, 115200, body, clock, truth)
+        super().__init__("concentrator-emulator", link, concentrator.BAUD, body, clock, truth)
         self.cycle_s = cycle_s
         self.silent = set(silent)
         self.replies = 0
@@ -306,7 +307,7 @@ class ImuCentralEmulator(_PtyEmulator):
         dropouts: Sequence[int] = (),
         dropout_every: int = 4,
     ) -> None:
-        super().__init__("imu-central-emulator", link, 230400, body, clock, truth)
+        super().__init__("imu-central-emulator", link, imu_matrix.BAUD, body, clock, truth)
         self.tick_s = tick_s
         self.dropouts, self.dropout_every = set(dropouts), dropout_every
         self.ticks = 0

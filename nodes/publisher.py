@@ -40,7 +40,10 @@ from bodynet.core import keys
 from bodynet.core.codecs import raw_sample
 from bodynet.core.errors import Reason, RejectCounts, Rejected
 from bodynet.core.keys import Site
-from bodynet.core.messages import RawSample, Reading, Source
+from bodynet.core.messages import RawSample, Reading, source_name
+from bodynet.nodes.sources.base import PeriodicSeq
+
+__all__ = ["PeriodicSeq", "SitePublisher"]
 
 log = logging.getLogger(__name__)
 
@@ -61,10 +64,11 @@ class NodeHealth:
     last_seen: float = 0.0  # monotonic
     alive: bool = False
     window: deque[float] = field(default_factory=deque)  # arrival times of the last second
+    status: dict[str, float | int | str] = field(default_factory=dict)  # battery, rssi...
 
     def as_json(self, now: float) -> dict[str, object]:
         recent = [t for t in self.window if now - t <= 1.0]
-        return {
+        out: dict[str, object] = {
             "key": self.site.raw_key,
             "alive": self.alive,
             "rate_hz": len(recent),
@@ -72,20 +76,9 @@ class NodeHealth:
             "gaps": self.gaps,
             "rejected": dict(self.rejected),
         }
-
-
-class PeriodicSeq:
-    """Sequence numbers from arrival times of a source sending every ``period_s``."""
-
-    def __init__(self, period_s: float) -> None:
-        self.period_s = period_s
-        self._last: dict[int, tuple[int, float]] = {}
-
-    def next(self, node: int, t_s: float) -> int:
-        last = self._last.get(node)
-        seq = 0 if last is None else last[0] + max(1, round((t_s - last[1]) / self.period_s))
-        self._last[node] = (seq, t_s)
-        return seq
+        if self.status:
+            out["status"] = dict(self.status)
+        return out
 
 
 def _raw_publisher(session: zenoh.Session, key: str) -> zenoh.ext.AdvancedPublisher:
@@ -106,7 +99,7 @@ class SitePublisher:
         self,
         session: zenoh.Session,
         sites: Mapping[int, Site],
-        source: Source,
+        source: int,
         name: str,
         period_s: float,
         stale_periods: float = 5.0,
@@ -176,6 +169,14 @@ class SitePublisher:
             "%s: rejected %s: %s %r", self.name, rejected.reason, rejected.detail, rejected.data
         )
 
+    def set_status(self, node: int, key: str, value: float | int | str) -> None:
+        """Keep what node ``node`` says of itself (battery, signal strength...) for
+        its health, once it has delivered a sample."""
+        with self._lock:
+            health = self.nodes.get(node)
+            if health is not None:
+                health.status[key] = value
+
     def set_device(self, state: str) -> None:
         """Say how the device behind the source is doing (``connected``...)."""
         if state != self.device:
@@ -187,7 +188,7 @@ class SitePublisher:
         with self._lock:
             return {
                 "source": self.name,
-                "kind": self.source.name.lower(),
+                "kind": source_name(self.source),
                 "device": self.device,
                 "t_ns": time.time_ns(),
                 "rejected": dict(self.rejected),

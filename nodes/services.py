@@ -3,19 +3,20 @@
 Each function takes explicit arguments and runs until ``stop`` is set (the
 command line sets it on Ctrl-C or SIGTERM).
 
-- ``bridge_*``: real or emulated hardware -> Zenoh (one bridge per device).
-- ``emulate_*``: emulated hardware only, on a pseudo-terminal or CAN bus, for
-  a bridge in another process (or another machine) to open.
+- ``bridge``: real or emulated hardware -> Zenoh, any registered source
+  (``nodes.sources``), one bridge per device.
+- ``emulate``: emulated hardware only, on a pseudo-terminal, CAN bus or UDP,
+  for a bridge in another process (or another machine) to open.
 - ``run_node``: emulated hardware plus its bridge in one process, and the
   emulator's ground truth on ``body/<limb>/<side>/<site>/truth``.
 """
 
 from __future__ import annotations
 
+import argparse
 import json
 import logging
 import threading
-import time
 from collections.abc import Mapping, Sequence
 from contextlib import ExitStack
 from dataclasses import dataclass, field
@@ -23,26 +24,22 @@ from pathlib import Path
 from tempfile import TemporaryDirectory
 from typing import Any
 
-import can
 import zenoh
 
 from bodynet.core.keys import Branch, Site, Stream
-from bodynet.core.profile import IMU_SITES, SMARTSUIT_SITES
-from bodynet.nodes.can_bridge import CanBridge
-from bodynet.nodes.concentrator_bridge import ConcentratorBridge
-from bodynet.nodes.emulator import BodyEmulator, Realism, Truth, imu_tags, smartsuit_sensors
-from bodynet.nodes.hardware import (
-    CanNodes,
-    Clock,
-    ConcentratorEmulator,
-    ImuCentralEmulator,
-    SlcanAdapterEmulator,
-    TruthSink,
-)
-from bodynet.nodes.imu_bridge import ImuCentralBridge
+from bodynet.core.profile import IMU_SITES
+from bodynet.nodes import sources
+from bodynet.nodes.emulator import BodyEmulator, Realism, Truth
+from bodynet.nodes.hardware import Clock, TruthSink
 from bodynet.nodes.motion import ROUTINES, Routine
 
 log = logging.getLogger(__name__)
+
+
+def bridge(session: zenoh.Session, stop: threading.Event, source_name: str, name: str,
+           args: argparse.Namespace) -> None:  # fmt: skip
+    """Run the bridge of the registered source ``source_name`` until ``stop``."""
+    sources.get(source_name)().bridge(session, stop, name, args)
 
 
 def truth_sink(session: zenoh.Session, sites: Mapping[int, Site]) -> TruthSink:
@@ -79,49 +76,6 @@ def _body(options: EmulationOptions, sensors: Sequence[Any]) -> BodyEmulator:
     return BodyEmulator(routine, sensors, realism=options.realism, seed=options.seed)
 
 
-def bridge_can(
-    session: zenoh.Session,
-    stop: threading.Event,
-    name: str,
-    replay: Path | None = None,
-    loop: bool = False,
-    **bus_args: Any,
-) -> None:
-    bridge = CanBridge(session, name)
-    try:
-        if replay is not None:
-            bridge.run_replay(replay, stop, loop)
-        else:
-            bridge.run_bus(stop, **bus_args)
-    finally:
-        bridge.close()
-
-
-def bridge_concentrator(
-    session: zenoh.Session,
-    stop: threading.Event,
-    name: str,
-    port: str,
-    nodes: Sequence[int] = (1, 2, 3),
-    baud: int = 115200,
-) -> None:
-    bridge = ConcentratorBridge(session, name, nodes)
-    try:
-        bridge.run(port, stop, baud)
-    finally:
-        bridge.close()
-
-
-def bridge_imu_central(
-    session: zenoh.Session, stop: threading.Event, name: str, port: str, baud: int = 230400
-) -> None:
-    bridge = ImuCentralBridge(session, name)
-    try:
-        bridge.run(port, stop, baud)
-    finally:
-        bridge.close()
-
-
 def emulate(
     kind: str,
     stop: threading.Event,
@@ -133,40 +87,33 @@ def emulate(
     silent: Sequence[int] = (),
     bus_args: Mapping[str, Any] | None = None,
     truth_session: zenoh.Session | None = None,
+    **device_args: Any,
 ) -> None:
-    """Run one emulated device until ``stop``: ``slcan``, ``concentrator``,
-    ``imu-central`` (on a pseudo-terminal behind ``link``) or ``can`` (on a bus).
-    With ``truth_session``, the ground truth is published there too."""
-    sites = IMU_SITES if kind == "imu-central" else SMARTSUIT_SITES
-    sink = truth_sink(truth_session, sites) if truth_session is not None else None
-    if kind == "can":
-        with can.Bus(**dict(bus_args or {})) as bus:
-            nodes = CanNodes(bus, _body(options, smartsuit_sensors(branches)), truth=sink)
-            nodes.start()
-            stop.wait()
-            nodes.stop()
-        return
-    assert link is not None
-    device: ConcentratorEmulator | ImuCentralEmulator | SlcanAdapterEmulator
-    if kind == "slcan":
-        device = SlcanAdapterEmulator(link, _body(options, smartsuit_sensors(branches)), truth=sink)
-    elif kind == "concentrator":
-        body = _body(options, smartsuit_sensors(branches))
-        device = ConcentratorEmulator(link, body, truth=sink, silent=silent)
-    else:
-        device = ImuCentralEmulator(link, _body(options, imu_tags(sensors, branches)), truth=sink)
+    """Run one emulated device until ``stop``: any device a registered source
+    offers (``slcan``, ``concentrator``, ``imu-central`` on a pseudo-terminal
+    behind ``link``, ``can`` on a bus...). With ``truth_session``, the ground
+    truth is published there too."""
+    source = sources.by_device(kind)()
+    sink = truth_sink(truth_session, source.sites) if truth_session is not None else None
+    body = _body(options, source.emulated_sensors(sensors, branches))
+    opts = {"link": link, "silent": silent, "bus_args": bus_args, **device_args}
+    device = source.emulator(kind, body, sink, opts)
     device.start()
-    print(f"emulated {kind} on {device.link} -> {device.link.resolve()}", flush=True)
+    where = device.link
+    if isinstance(where, Path):
+        print(f"emulated {kind} on {where} -> {where.resolve()}", flush=True)
+    else:
+        print(f"emulated {kind} on {where}", flush=True)
     stop.wait()
     device.stop()
 
 
 @dataclass(frozen=True)
 class NodePlan:
-    """What ``bodynet node`` runs: which sensors, over which transport."""
+    """What ``bodynet node`` runs: which sensors, over which emulated device."""
 
-    system: str  # "smartsuit" or "imu"
-    via: str  # smartsuit: "can", "slcan", "concentrator"; imu: "imu-central"
+    system: str  # "smartsuit", "imu"...: what the sensors are (for the log)
+    via: str  # an emulated device of a registered source: "can", "slcan", "imu-central"...
     branches: tuple[Branch, ...] | None = None
     sensors: tuple[int, ...] | None = None
 
@@ -198,30 +145,12 @@ def run_node(
         tmp = Path(stack.enter_context(TemporaryDirectory(prefix="bodynet-")))
         for i, plan in enumerate(plans):
             label = f"{name}-{plan.via}-{i}"
-            if plan.system == "imu":
-                sensors = imu_tags(plan.sensors, plan.branches)
-                sink = truth_sink(session, IMU_SITES)
-            else:
-                sensors = smartsuit_sensors(plan.branches)
-                sink = truth_sink(session, SMARTSUIT_SITES)
+            source = sources.by_device(plan.via)()
+            sensors = source.emulated_sensors(plan.sensors, plan.branches)
             body = _body(options, sensors)
-            target: Any
-            if plan.via == "can":
-                channel = f"bodynet-{label}-{time.monotonic_ns()}"
-                bus = stack.enter_context(can.Bus(interface="virtual", channel=channel))
-                emulator: Any = CanNodes(bus, body, clock, sink)
-                target, kwargs = bridge_can, {"interface": "virtual", "channel": channel}
-            elif plan.via == "slcan":
-                emulator = SlcanAdapterEmulator(tmp / label, body, clock, sink)
-                target = bridge_can
-                kwargs = {"interface": "slcan", "channel": str(tmp / label), "sleep_after_open": 0}
-            elif plan.via == "concentrator":
-                emulator = ConcentratorEmulator(tmp / label, body, clock, sink)
-                nodes = tuple(s.node for s in sensors)
-                target, kwargs = bridge_concentrator, {"port": str(tmp / label), "nodes": nodes}
-            else:
-                emulator = ImuCentralEmulator(tmp / label, body, clock, sink)
-                target, kwargs = bridge_imu_central, {"port": str(tmp / label)}
+            emulator, target, kwargs = source.node(
+                plan.via, body, tmp, clock, truth_sink(session, source.sites), sensors, label
+            )
             emulator.start()
             stack.callback(emulator.stop)
             thread = threading.Thread(

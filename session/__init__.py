@@ -12,6 +12,9 @@ is not up yet and reconnecting quickly when it comes back.
 ``--subject NAME`` (or ``BODYNET_SUBJECT``) runs the session in the Zenoh
 namespace ``NAME``: the process keeps using ``body/...`` keys while the
 network carries ``NAME/body/...``, so several subjects share one router.
+
+Zenoh itself is imported when a session is configured, not with this module,
+so that parsing a command's flags (``bodynet --help``) stays quick.
 """
 
 from __future__ import annotations
@@ -22,11 +25,12 @@ import os
 import threading
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
-
-import zenoh
+from typing import TYPE_CHECKING, Any
 
 from bodynet.core.keys import KeySpaceError, subject_name
+
+if TYPE_CHECKING:
+    import zenoh
 
 DEFAULT_ROUTER = "tcp/127.0.0.1:7447"
 MODES = ("client", "peer", "router")
@@ -81,6 +85,8 @@ def session_config(
     subject: str | None = None,
 ) -> zenoh.Config:
     """A Zenoh config from explicit arguments (see the module docstring)."""
+    import zenoh
+
     env_file = os.environ.get("BODYNET_ZENOH_CONFIG")
     path = config_file or (Path(env_file) if env_file else None)
     try:
@@ -142,6 +148,8 @@ def open_session(conf: zenoh.Config) -> zenoh.Session:
     A client waits for its router as long as it takes; the wait happens in a
     helper thread so that the main thread still runs signal handlers (see
     ``cli.nodes.stop_on_signals``: Ctrl-C or SIGTERM while waiting ends the process)."""
+    import zenoh
+
     zenoh.try_init_log_from_env()
     box: dict[str, Any] = {}
 

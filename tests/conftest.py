@@ -50,3 +50,57 @@ def zsession(router_endpoint: str) -> Iterator[zenoh.Session]:
     session = client(router_endpoint)
     yield session
     session.close()
+
+
+def _bodynet(*args: object) -> None:
+    import subprocess
+
+    bodynet = Path(sys.executable).with_name("bodynet")
+    result = subprocess.run([str(bodynet), *map(str, args)], capture_output=True, text=True,
+                            timeout=120, check=False)  # fmt: skip
+    assert result.returncode == 0, result.stderr
+
+
+@pytest.fixture(scope="session")
+def body_mcap(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A real recording of the whole body moving every dof (the exports' tests):
+    3 s of T-pose, then 4 s of smooth random motion, through the IMU central's
+    data matrix at 25 Hz and `bodynet process`."""
+    from bodynet.core.codecs import imu_matrix
+    from bodynet.core.messages import Quat
+    from bodynet.core.skeleton import TPOSE
+    from bodynet.nodes.emulator import BodyEmulator, Realism, imu_tags
+    from bodynet.nodes.motion import ROUTINES, Routine
+
+    tmp = tmp_path_factory.mktemp("body")
+    wander = ROUTINES["random"].angles
+    motion = Routine("capture", "", lambda t: dict(TPOSE) if t < 3.0 else wander(t - 3.0))
+    realism = Realism(0.0, 0.0, 0.0, 0.0, 0.0, random_tag_mounts=True)
+    body = BodyEmulator(motion, imu_tags(), realism=realism, seed=7)
+    capture = tmp / "session.txt"
+    with capture.open("wb") as f:
+        for tick in range(25 * 7):
+            readings, _ = body.sample(tick / 25)
+            f.write(b"".join(imu_matrix.encode_line(r) for r in readings if isinstance(r, Quat)))
+    out = tmp / "session.mcap"
+    _bodynet("process", capture, "--format", "imu-central", "-o", out)
+    return out
+
+
+@pytest.fixture(scope="session")
+def arm_mcap(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The golden SmartSuit CAN log (left elbow 0-90-0, 100 Hz) processed."""
+    out = tmp_path_factory.mktemp("arm") / "arm.mcap"
+    _bodynet("process", DATA / "smartsuit_arm.log", "-o", out)
+    return out
+
+
+@pytest.fixture(scope="session")
+def flagged(body_mcap: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """``body_mcap`` with some angles flagged not measured for a window of frames
+    (``flagged_recording``)."""
+    from flagged_recording import write_flagged
+
+    out = tmp_path_factory.mktemp("flagged") / "flagged.mcap"
+    write_flagged(body_mcap, out)
+    return out

@@ -7,6 +7,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
+
 
 def test_tiny_decode_benchmark_writes_its_table(tmp_path: Path) -> None:
     bodynet = Path(sys.executable).with_name("bodynet")
@@ -95,12 +97,40 @@ def test_tiny_gateway_benchmark_reports_both_paths(tmp_path: Path) -> None:
     from bodynet.bench import gateway
 
     result = gateway.run(seconds=1.0, out_dir=tmp_path, bodies=(1, 2))
-    one, two = result["runs"]
-    assert 0 < one["sent"] <= 1500  # at most 15 nodes x 100 Hz x 1 s
-    assert 1500 < two["sent"] <= 3000
-    for row in (one, two):
-        assert row["relay"]["received"] > 0
-        assert row["gateway"]["poses"] > 0
-    # two bodies: poses of both subjects came back
-    assert two["gateway"]["samples_received"] > one["gateway"]["samples_received"]
-    assert (tmp_path / "gateway.md").read_text().startswith("| bodies |")
+    rows = result["runs"]
+    assert [(r["bodies"], r["feed"]) for r in rows] == [
+        (1, "realistic"), (1, "locked"), (2, "realistic"), (2, "locked")]  # fmt: skip
+    for one, two in zip(rows[:2], rows[2:], strict=True):
+        assert 0 < one["sent"] <= 1500  # at most 15 nodes x 100 Hz x 1 s
+        assert 1500 < two["sent"] <= 3000
+        for row in (one, two):
+            assert row["relay"]["received"] > 0
+            assert row["gateway"]["poses"] > 0
+        # two bodies: poses of both subjects came back
+        assert two["gateway"]["samples_received"] > one["gateway"]["samples_received"]
+    table = (tmp_path / "gateway.md").read_text()
+    assert table.startswith("| bodies | feed |")
+    assert "| 2 | realistic | gateway (raw -> pose) |" in table
+
+
+def test_realistic_feed_is_not_phase_locked() -> None:
+    """The realistic feed sends as real suits do: each body at its own phase, CAN
+    nodes on their own timers, a serial receiver's lines one after another; the
+    locked feed sends every node of every body at once."""
+    from bodynet.bench.gateway import DRIFT_PPM, LINE_S, feed_schedule
+
+    period = 0.01
+    locked = feed_schedule(range(4), 15, 100.0, "locked")
+    assert locked == [(0.0, period)] * 60
+    real = feed_schedule(range(4), 15, 100.0, "realistic")
+    assert len(real) == 60
+    bodies = [real[i * 15 : (i + 1) * 15] for i in range(4)]
+    starts = [min(o for o, _ in b) for b in bodies]
+    assert len({round(s, 9) for s in starts}) == 4  # no two bodies in phase
+    can, serial = bodies[0], bodies[1]
+    assert len({round(o, 9) for o, _ in can}) == 15  # each CAN node its own phase
+    assert all(abs(p / period - 1) <= DRIFT_PPM * 1e-6 for _, p in can)
+    assert len({p for _, p in can}) > 1  # and its own clock
+    gaps = np.diff([o for o, _ in serial])
+    assert np.allclose(gaps, min(LINE_S, period / 15))  # lines one after another
+    assert all(0 <= o < 2 * period for o, _ in real)

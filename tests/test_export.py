@@ -30,13 +30,10 @@ from scipy.spatial.transform import Rotation
 from bodynet.cli.main import main
 from bodynet.clients.mcap_store import McapSink, count_messages, read_poses, read_raw
 from bodynet.core import keys
-from bodynet.core.codecs import imu_matrix, pose
+from bodynet.core.codecs import pose
 from bodynet.core.keys import BRANCHES
-from bodynet.core.messages import Quat
-from bodynet.core.skeleton import TPOSE, build_skeleton
+from bodynet.core.skeleton import build_skeleton
 from bodynet.gateway.service import branch_views
-from bodynet.nodes.emulator import BodyEmulator, Realism, imu_tags
-from bodynet.nodes.motion import ROUTINES, Routine
 
 with warnings.catch_warnings():
     warnings.simplefilter("ignore", PendingDeprecationWarning)  # bvhio imports glm the old way
@@ -50,36 +47,6 @@ TO_Y_UP = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0]])
 def run(*args: object) -> subprocess.CompletedProcess[str]:
     return subprocess.run([str(BODYNET), *map(str, args)], capture_output=True, text=True,
                           timeout=120, check=False)  # fmt: skip
-
-
-@pytest.fixture(scope="module")
-def body_mcap(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """A real recording of the whole body moving every dof: 3 s of T-pose, then
-    4 s of smooth random motion, through the IMU central's data matrix at 25 Hz
-    and `bodynet process`."""
-    tmp = tmp_path_factory.mktemp("body")
-    wander = ROUTINES["random"].angles
-    motion = Routine("capture", "", lambda t: dict(TPOSE) if t < 3.0 else wander(t - 3.0))
-    realism = Realism(0.0, 0.0, 0.0, 0.0, 0.0, random_tag_mounts=True)
-    body = BodyEmulator(motion, imu_tags(), realism=realism, seed=7)
-    capture = tmp / "session.txt"
-    with capture.open("wb") as f:
-        for tick in range(25 * 7):
-            readings, _ = body.sample(tick / 25)
-            f.write(b"".join(imu_matrix.encode_line(r) for r in readings if isinstance(r, Quat)))
-    out = tmp / "session.mcap"
-    result = run("process", capture, "--format", "imu-central", "-o", out)
-    assert result.returncode == 0, result.stderr
-    return out
-
-
-@pytest.fixture(scope="module")
-def arm_mcap(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """The golden SmartSuit CAN log (left elbow 0-90-0, 100 Hz) processed."""
-    out = tmp_path_factory.mktemp("arm") / "arm.mcap"
-    result = run("process", Path(__file__).parent / "data" / "smartsuit_arm.log", "-o", out)
-    assert result.returncode == 0, result.stderr
-    return out
 
 
 def poses(path: Path) -> list[pose.PoseFrame]:

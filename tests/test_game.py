@@ -1,9 +1,13 @@
-"""The rehabilitation game: its rules, its results file, and the whole chain in a real
-browser (gateway and emulated arm as processes, ``bodynet game``, headless Chromium).
+"""The rehabilitation game: its rules, its results files, its options, and the whole
+chain in a real browser (headless Chromium driven by Playwright).
 
-The browser tests need Chromium: ``make test`` installs Debian's ``chromium`` when none
-is there; ``BODYNET_CHROMIUM`` names another binary. Without one they FAIL, on purpose:
-the game's page is tested in a real browser or not at all.
+Two browser tests: one drives the game with pose messages published here, whose
+flags the test controls (a still arm, a lost signal, an unmeasured dof: exact
+cases), the other runs the real chain (gateway and emulated SmartSuit arm as
+processes). The browser tests need Chromium: ``make test`` installs Debian's
+``chromium`` when none is there; ``BODYNET_CHROMIUM`` names another binary.
+Without one they FAIL, on purpose: the game's page is tested in a real browser or
+not at all.
 """
 
 from __future__ import annotations
@@ -20,13 +24,16 @@ import sys
 import threading
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from bodynet.clients.game import ResultsFile, results_csv
+from bodynet.cli.main import main as bodynet_main
+from bodynet.clients.game import ResultsFile, results_csv, session_history
 from bodynet.clients.rehab import (
+    GAP_S,
     ROUTE,
     STALE_S,
     GameError,
@@ -34,8 +41,10 @@ from bodynet.clients.rehab import (
     arm_pose,
     route_offsets,
 )
+from bodynet.core import keys
+from bodynet.core.codecs import pose
 from bodynet.core.codecs.pose import PoseFrame
-from bodynet.core.skeleton import DEFAULT_LENGTHS, build_skeleton
+from bodynet.core.skeleton import ARM_DOFS, DEFAULT_LENGTHS, build_skeleton
 from bodynet.kinematics.model import BodyModel
 from bodynet.nodes.motion import ROUTINES, reach
 
@@ -54,18 +63,43 @@ class FkArm:
         self.frames = [self.model.segment_frames[f"{side}_{s}"]
                        for s in ("upperarm", "forearm", "hand")]  # fmt: skip
 
-    def frame(self, angles: dict[str, float], seq: int = 0, stale: bool = False) -> PoseFrame:
-        rot, pos = self.model.frame_placements(self.model.q(angles), self.frames)
-        hand_q = Rotation.from_matrix(rot[2]).as_quat(scalar_first=True)
+    def frame(self, angles: dict[str, float], seq: int = 0, stale: bool = False,
+              flags: dict[str, str] | None = None) -> PoseFrame:  # fmt: skip
+        """``angles`` by full name; every arm dof is in the message (0 when not given),
+        ``flags`` by stem (``{"shoulder_abduction": "unobserved"}``)."""
         s = self.side
+        full = {f"{s}_{d}_deg": 0.0 for d in ARM_DOFS}
+        full.update({n: v for n, v in angles.items() if n.startswith(s)})
+        rot, pos = self.model.frame_placements(self.model.q(full), self.frames)
+        hand_q = Rotation.from_matrix(rot[2]).as_quat(scalar_first=True)
         joints = {
             f"{s}_{j}": tuple(p) for j, p in zip(("shoulder", "elbow", "wrist"), pos, strict=True)
         }
         return PoseFrame(
-            seq, 0, {n: v for n, v in angles.items() if n.startswith(s)}, {},
-            {f"{s}_hand": (tuple(pos[2]), tuple(hand_q))}, joints,  # type: ignore[dict-item]
+            seq, 0, full, {}, {f"{s}_hand": (tuple(pos[2]), tuple(hand_q))},  # type: ignore[dict-item]
+            joints,  # type: ignore[arg-type]
+            flags={f"{s}_{d}_deg": f for d, f in (flags or {}).items()},
             stale=[f"body/arm/{s}/elbow/raw"] if stale else [],
         )  # fmt: skip
+
+    def pose(self, angles: dict[str, float], **kw: object) -> object:
+        return arm_pose(self.frame(angles, **kw), self.side)  # type: ignore[arg-type]
+
+
+def play(game: RehabGame, arm: FkArm, motion: object, t: float = 0.0, until: float = 120.0,
+         dt: float = 0.02, **kw: object) -> float:  # fmt: skip
+    """Feed ``motion(t)`` (angles by full name) to the game until its trial or
+    session ends; returns the time."""
+    trials = len(game.results)
+    while len(game.results) == trials and t < until:
+        t += dt
+        game.on_pose(arm.pose(motion(t), **kw), t)  # type: ignore[operator, arg-type]
+        game.tick(t)
+    return t
+
+
+def still(_: float) -> dict[str, float]:
+    return {}
 
 
 def test_route_is_the_seed_procedure_in_front_of_the_shoulder() -> None:
@@ -73,13 +107,15 @@ def test_route_is_the_seed_procedure_in_front_of_the_shoulder() -> None:
     right = route_offsets("right", 0.293, 0.265)
     names = [t.name for t in ROUTE]
     np.testing.assert_allclose(left[names.index("lift")], [ARM, 0, 0], atol=1e-9)  # forward
-    np.testing.assert_allclose(left[names.index("rest")], [0, 0, -ARM], atol=1e-9)  # down
+    np.testing.assert_allclose(left[names.index("lower")], [0, 0, -ARM], atol=1e-9)  # down
     np.testing.assert_allclose(left[names.index("side")], [0, ARM, 0], atol=1e-9)  # out left
     np.testing.assert_allclose(right[names.index("side")], [0, -ARM, 0], atol=1e-9)  # out right
     up = left[names.index("bend-elbow")]  # forearm and hand straight up from the elbow
     np.testing.assert_allclose(up, [0.293, 0, ARM - 0.293], atol=1e-9)
     # a longer arm moves the balls out with it
     assert route_offsets("left", 0.35, 0.30)[0][0] > left[0][0]
+    # every label says what its instruction says
+    assert [t.name for t in ROUTE][:4] == ["lift", "bend-elbow", "straighten-elbow", "lower"]
 
 
 @pytest.mark.parametrize("side", ["left", "right"])
@@ -87,19 +123,18 @@ def test_arm_doing_the_reach_routine_completes_every_trial(side: str) -> None:
     arm = FkArm(side)
     routine = reach(side)
     game = RehabGame(side, trials=1, practice=1)
-    t, dt = 0.0, 0.02
-    game.on_pose(arm_pose(arm.frame(routine(t)), side), t)
-    game.start(t)
-    while game.state != "finished" and t < 4 * REACH_PERIOD_S:
-        t += dt
-        game.on_pose(arm_pose(arm.frame(routine(t)), side), t)
-        game.tick(t)
+    game.on_pose(arm.pose(routine(0.0)), 0.0)  # type: ignore[arg-type]
+    game.start(0.0)
+    t = play(game, arm, routine)
+    t = play(game, arm, routine, t)
     assert game.state == "finished"
     summary = game.summary()
-    assert [(x["practice"], x["complete"], x["success"]) for x in summary["trials"]] == [
-        (True, True, True), (False, True, True)]  # fmt: skip
+    assert [(x["practice"], x["number"], x["complete"], x["success"])
+            for x in summary["trials"]] == [(True, 1, True, True),
+                                            (False, 1, True, True)]  # fmt: skip
     for trial in summary["trials"]:
         assert [x["name"] for x in trial["targets"]] == [x.name for x in ROUTE]
+        assert {x["outcome"] for x in trial["targets"]} == {"reached"}
         times = [x["time_to_target_s"] for x in trial["targets"]]
         assert all(0.0 < x <= game.target_timeout_s + game.travel_s for x in times)
         assert trial["score"] == sum(10 + max(0, 10 - int(x)) for x in times)
@@ -112,101 +147,212 @@ def test_arm_doing_the_reach_routine_completes_every_trial(side: str) -> None:
     assert summary["mean_time_to_target_s"] > 0
 
 
-def test_a_still_arm_misses_its_targets_and_the_trial_fails() -> None:
+def test_a_still_arm_scores_nothing_not_even_the_rest_stops() -> None:
     arm = FkArm("left")
-    game = RehabGame("left", trials=1, target_timeout_s=2.0)
-    game.on_pose(arm_pose(arm.frame({}), "left"), 0.0)
+    game = RehabGame("left", trials=1, practice=0, target_timeout_s=2.0)
+    game.on_pose(arm.pose({}), 0.0)  # type: ignore[arg-type]
     game.start(0.0)
-    t = 0.0
-    while game.state != "finished" and t < 60:
-        t += 0.05
-        game.on_pose(arm_pose(arm.frame({}), "left"), t)
-        game.tick(t)
+    play(game, arm, still)
     trial = game.summary()["trials"][0]
     assert trial["complete"]
     assert not trial["success"]
-    reached = [x["name"] for x in trial["targets"] if x["reached"]]
-    assert reached == ["rest", "rest", "rest"]  # where the arm hangs
-    assert all(x["time_to_target_s"] is None for x in trial["targets"] if not x["reached"])
+    assert trial["score"] == 0
+    assert [x["outcome"] for x in trial["targets"]] == ["missed"] * len(ROUTE)
+    assert all(x["time_to_target_s"] is None and x["waited_for"] == [] for x in trial["targets"])
+    assert trial["rom_deg"]["shoulder_flexion"]["range"] == 0.0
 
 
-def test_interruptions_and_a_stale_arm() -> None:
+def test_unmeasured_dofs_never_reach_nor_miss_and_leave_the_range_of_motion() -> None:
+    """The reach routine with shoulder abduction unobserved and wrist flexion held: the
+    touch targets and the wrist end "not measured"; the roll (forearm pronation,
+    ``clamped`` = measured) is reached; the range of motion leaves those dofs out."""
     arm = FkArm("left")
-    game = RehabGame("left", trials=1)
-    with pytest.raises(GameError, match="no live signal"):
+    routine = reach("left")
+    game = RehabGame("left", trials=1, practice=0, target_timeout_s=3.0)
+    flags = {"shoulder_abduction": "unobserved", "wrist_flexion": "held",
+             "elbow_pronation": "clamped"}  # fmt: skip
+    game.on_pose(arm.pose(routine(0.0), flags=flags), 0.0)  # type: ignore[arg-type]
+    game.start(0.0)
+    play(game, arm, routine, flags=flags)
+    trial = game.summary()["trials"][0]
+    outcomes = {x["name"]: x for x in trial["targets"]}
+    for target in ROUTE:
+        x = outcomes[target.name]
+        if target.name == "roll":
+            assert x["outcome"] == "reached", x
+        else:
+            assert x["outcome"] == "not measured", x
+            assert not x["reached"]
+            assert x["points"] == 0
+            assert x["waited_for"] == (["wrist_flexion"] if target.gate else ["shoulder_abduction"])
+            assert x["waited_s"] == pytest.approx(3.0, abs=0.05)
+    assert set(trial["rom_deg"]) == {"shoulder_flexion", "shoulder_rotation", "elbow_flexion",
+                                     "elbow_pronation", "wrist_deviation"}  # fmt: skip
+    assert trial["score"] == sum(x["points"] for x in trial["targets"]) > 0
+
+
+def test_a_lost_signal_pauses_the_target_instead_of_missing_it() -> None:
+    arm = FkArm("left")
+    game = RehabGame("left", trials=1, practice=0, target_timeout_s=2.0, travel_s=0.5)
+    game.on_pose(arm.pose({}), 0.0)  # type: ignore[arg-type]
+    game.start(0.0)
+    t = 0.0
+    for _ in range(50):  # 1 s of a still arm: the countdown runs
+        t += 0.02
+        game.on_pose(arm.pose({}), t)  # type: ignore[arg-type]
+        game.tick(t)
+    left = game.snapshot(t)["target"]["left_s"]
+    assert left == pytest.approx(1.5, abs=0.05)
+    for _ in range(500):  # 10 s without a pose: paused, not missed
+        t += 0.02
+        game.tick(t)
+    snap = game.snapshot(t)
+    assert snap["target"]["paused"]
+    assert snap["target"]["i"] == 1
+    assert snap["target"]["left_s"] == pytest.approx(left - GAP_S, abs=0.05)
+    assert snap["arm"]["stale"]
+    # the arm comes back and lifts: reached, the lost time left out of its time
+    lifted = {"left_shoulder_flexion_deg": 90.0}
+    for _ in range(5):
+        t += 0.02
+        game.on_pose(arm.pose(lifted), t)  # type: ignore[arg-type]
+        game.tick(t)
+    game.abort(t, "stopped by the therapist")
+    first = game.summary()["trials"][0]["targets"][0]
+    assert first["outcome"] == "reached"
+    assert first["time_to_target_s"] == pytest.approx(1.0 + GAP_S, abs=0.1)
+    assert first["paused_s"] == pytest.approx(10.0 - GAP_S, abs=0.1)
+    assert game.summary()["trials"][0]["stale_s"] == pytest.approx(10.0 - STALE_S, abs=0.1)
+
+
+def test_interruptions_keep_trial_numbers_and_refuse_without_a_signal() -> None:
+    arm = FkArm("left")
+    game = RehabGame("left", trials=1, practice=1)
+    with pytest.raises(GameError, match="no live signal") as refused:
         game.start(0.0)
-    game.on_pose(arm_pose(arm.frame({}), "left"), 0.0)
+    assert refused.value.cause == "signal"
+    game.on_pose(arm.pose({}), 0.0)  # type: ignore[arg-type]
     game.start(0.0)
     with pytest.raises(GameError, match="already running"):
         game.start(0.1)
-    game.abort(1.0, "player disconnected")
+    game.abort(1.0, "stopped by the therapist")
     assert game.state == "paused"
-    first = game.summary()["trials"][0]
-    assert (first["complete"], first["reason"], first["success"]) == (
-        False, "player disconnected", False)  # fmt: skip
-    # the arm falls silent: stale, counted in the trial, and no new trial can start
-    game.on_pose(arm_pose(arm.frame({}), "left"), 2.0)
-    game.start(2.0)
-    game.tick(2.0)
-    game.tick(2.0 + STALE_S + 1.0)
-    assert game.snapshot(2.0 + STALE_S + 1.0)["arm"]["stale"] is True
-    game.abort(4.0, "game stopped")
-    assert game.summary()["trials"][1]["stale_s"] == pytest.approx(STALE_S + 1.0 - STALE_S, abs=1)
-    with pytest.raises(GameError, match="no live signal"):
-        game.start(5.0)
-    # the gateway flagging the arm's sensors stale counts too, and such poses never reach
-    game.on_pose(arm_pose(arm.frame({}, stale=True), "left"), 6.0)
+    game.on_pose(arm.pose({}), 1.5)  # type: ignore[arg-type]
+    game.start(1.5)
+    assert game.snapshot(1.5)["trial"] == {"number": 1, "practice": True, "attempt": 2, "score": 0}
+    game.abort(2.0, "player disconnected")
+    trials = game.summary()["trials"]
+    assert [(t["practice"], t["number"], t["attempt"], t["complete"], t["reason"])
+            for t in trials] == [(True, 1, 1, False, "stopped by the therapist"),
+                                 (True, 1, 2, False, "player disconnected")]  # fmt: skip
+    # the gateway flagging the arm's sensors stale counts as a lost signal
+    game.on_pose(arm.pose({}, stale=True), 6.0)  # type: ignore[arg-type]
     assert not game.arm_live(6.0)
+    with pytest.raises(GameError, match="no live signal"):
+        game.start(6.0)
     with pytest.raises(GameError, match="the pose has no right arm"):
         arm_pose(arm.frame({}), "right")
+    for bad in (float("nan"), float("inf"), 0.0, -1.0):
+        with pytest.raises(GameError, match="finite number above 0"):
+            RehabGame("left", radius_m=bad)
+        with pytest.raises(GameError, match="finite number above 0"):
+            RehabGame("left", target_timeout_s=bad)
 
 
-def test_results_are_owner_only_json_and_csv(tmp_path: Path) -> None:
+def test_results_are_owner_only_and_the_history_reads_them_back(tmp_path: Path) -> None:
     arm = FkArm("left")
-    game = RehabGame("left", trials=1)
-    game.on_pose(arm_pose(arm.frame({"left_shoulder_flexion_deg": 30.0}), "left"), 0.0)
-    game.start(0.0)
-    game.on_pose(arm_pose(arm.frame({"left_shoulder_flexion_deg": 50.0}), "left"), 0.5)
-    game.abort(1.0, "aborted by the player")
-    results = ResultsFile(tmp_path / "res", "left")
-    results.save(game)
-    for path in (results.json_path, results.csv_path):
-        assert path.stat().st_mode & 0o777 == 0o600
+    games = []
+    for patient, lift in (("p1", 30.0), ("p2", 50.0)):
+        game = RehabGame("left", trials=1, practice=0, patient=patient)
+        game.on_pose(arm.pose({"left_shoulder_flexion_deg": 20.0}), 0.0)  # type: ignore[arg-type]
+        game.start(0.0)
+        game.on_pose(arm.pose({"left_shoulder_flexion_deg": lift}), 0.5)  # type: ignore[arg-type]
+        # a sample flagged unobserved is left out of the range of motion
+        game.on_pose(arm.pose({"left_shoulder_flexion_deg": 170.0},  # type: ignore[arg-type]
+                              flags={"shoulder_flexion": "unobserved"}), 0.6)  # fmt: skip
+        game.abort(1.0, "stopped by the therapist")
+        results = ResultsFile(tmp_path / "res", "left", patient)
+        results.save(game)
+        games.append(results)
+    twin = ResultsFile(tmp_path / "res", "left", "p1")  # same second, same patient
+    assert twin.json_path != games[0].json_path
+    assert not twin.json_path.exists()
+    for results in games:
+        for path in (results.json_path, results.csv_path):
+            assert path.stat().st_mode & 0o777 == 0o600
     assert (tmp_path / "res").stat().st_mode & 0o777 == 0o700
-    saved = json.loads(results.json_path.read_text())
+    saved = json.loads(games[0].json_path.read_text())
+    assert saved["patient"] == "p1"
     assert saved["trials"][0]["rom_deg"]["shoulder_flexion"] == {
-        "min": 30.0, "max": 50.0, "range": 20.0}  # fmt: skip
-    rows = list(csv.DictReader(results.csv_path.open()))
-    assert rows[0]["reason"] == "aborted by the player"
-    assert float(rows[0]["shoulder_flexion_range_deg"]) == 20.0
-    assert results_csv(saved) == results.csv_path.read_bytes().decode()
+        "min": 20.0, "max": 30.0, "range": 10.0, "samples": 2}  # fmt: skip
+    rows = list(csv.DictReader(games[0].csv_path.open()))
+    assert rows[0]["reason"] == "stopped by the therapist"
+    assert float(rows[0]["shoulder_flexion_range_deg"]) == 10.0
+    assert results_csv(saved) == games[0].csv_path.read_bytes().decode()
     assert not list((tmp_path / "res").glob("*.part"))
+    (tmp_path / "res" / "rehab-left-arm-broken.json").write_text("{")
+    history = session_history(tmp_path / "res")
+    assert sorted(s["patient"] for s in history["sessions"]) == ["p1", "p2"]
+    by_patient = sorted(history["sessions"], key=lambda s: s["patient"])
+    assert [s["trials"][0]["rom_deg"]["shoulder_flexion"] for s in by_patient] == [10.0, 30.0]
+    assert {(d["patient"], d["sessions"], d["trials"]) for d in history["days"]} == {
+        ("p1", 1, 0), ("p2", 1, 0)}  # fmt: skip  (the stopped trials are not complete)
+    assert len(history["unreadable"]) == 1
+    assert "rehab-left-arm-broken.json" in history["unreadable"][0]
 
 
-def test_bad_options_are_refused_cleanly() -> None:
-    out = subprocess.run([*BODYNET, "game", "--trials", "0"], capture_output=True, text=True,
-                         timeout=60, check=False)  # fmt: skip
-    assert out.returncode == 2
-    assert "must be above 0" in out.stderr
-    assert "Traceback" not in out.stderr
+@pytest.mark.parametrize(
+    ("args", "told"),
+    [
+        (["--http-port", "99999"], "--http-port: a port is 1 to 65535"),
+        (["--http-port", "-1"], "--http-port: a port is 1 to 65535"),
+        (["--http-port", "http"], "--http-port: a port is a whole number"),
+        (["--radius-cm", "nan"], "--radius-cm: must be a finite number above 0"),
+        (["--radius-cm", "0"], "--radius-cm: must be a finite number above 0"),
+        (["--target-timeout", "inf"], "--target-timeout: must be a finite number above 0"),
+        (["--target-timeout", "1e300"], "--target-timeout: must be at most"),
+        (["--trials", "0"], "--trials: must be a finite number above 0"),
+        (["--practice", "-1"], "--practice: invalid choice"),
+        (["--patient", "Jane Doe"], "--patient: a patient id is"),
+    ],
+)
+def test_bad_options_are_refused_with_one_line(
+    args: list[str], told: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    with pytest.raises(SystemExit) as exited:
+        bodynet_main(["game", *args])
+    assert exited.value.code == 2
+    err = capsys.readouterr().err
+    assert told in err, err
+    assert "Traceback" not in err
 
 
-def test_a_taken_port_or_unwritable_results_are_told_at_once(tmp_path: Path) -> None:
+def test_a_bad_endpoint_a_taken_port_or_unwritable_results_are_told_at_once(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     no_router = "tcp/127.0.0.1:1"  # never reached: the mistakes are told before that
     (tmp_path / "file").write_text("")
     with socket.create_server(("127.0.0.1", 0)) as taken:
         port = str(taken.getsockname()[1])
         for args, told in (
-            (["--http-port", port, "--results", str(tmp_path / "r")], "cannot serve on"),
-            (["--http-port", "0", "--results", str(tmp_path / "file" / "r")],
+            (["-e", no_router, "--http-port", port, "--results", str(tmp_path / "r")],
+             "cannot serve on"),
+            (["-e", no_router, "--http-port", "0", "--results", str(tmp_path / "file" / "r")],
              "cannot write results"),
+            (["-e", "foo", "--http-port", "0"], "Endpoints must be of the form"),
         ):  # fmt: skip
-            out = subprocess.run([*BODYNET, "game", "-e", no_router, *args], capture_output=True,
-                                 text=True, timeout=60, check=False)  # fmt: skip
-            assert out.returncode == 2
-            assert told in out.stderr
-            assert "Traceback" not in out.stderr
-            assert out.stdout == ""
+            assert bodynet_main(["game", *args]) == 2
+            out = capsys.readouterr()
+            assert told in out.err
+            assert len(out.err.strip().splitlines()) == 1, out.err
+            assert ".rs:" not in out.err
+            assert out.out == ""
+    # the real executable, once
+    out = subprocess.run([*BODYNET, "game", "-e", "foo"], capture_output=True, text=True,
+                         timeout=60, check=False)  # fmt: skip
+    assert out.returncode == 2
+    assert out.stderr.startswith("bodynet game: bad Zenoh session option: Endpoints must")
+    assert "Traceback" not in out.stderr
 
 
 # --- the whole chain in a real browser ---------------------------------------------------
@@ -265,21 +411,13 @@ def procs() -> Iterator[list[Proc]]:
         p.stop(signal.SIGKILL)
 
 
-def start_stack(procs: list[Proc], tmp_path: Path, *game_args: str) -> tuple[str, Proc, Proc]:
-    """Gateway (router on a free port), an emulated left arm doing the reach routine,
-    and the game; returns the page's URL, the arm's process and the game's."""
-    from zenoh_helpers import free_port
-
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
-    procs.append(Proc("gateway", "-l", endpoint, "--branch", "left-arm"))
-    arm = Proc("node", "smartsuit", "--branch", "left-arm", "--routine", "reach", "--ideal",
-               "-e", endpoint)  # fmt: skip
-    procs.append(arm)
+def start_game(procs: list[Proc], tmp_path: Path, endpoint: str, *args: str) -> tuple[str, Proc]:
+    """``bodynet game`` on a free port for the left arm; its page's URL once it serves."""
     game = Proc("game", "--arm", "left", "--http-port", "0", "--results", str(tmp_path / "res"),
-                "-e", endpoint, *game_args)  # fmt: skip
+                "-e", endpoint, *args)  # fmt: skip
     procs.append(game)
     url = game.wait_line("bodynet game: http://").removeprefix("bodynet game: ")
-    return url, arm, game
+    return url, game
 
 
 @pytest.fixture
@@ -293,105 +431,253 @@ def browser() -> Iterator[object]:
         b.close()
 
 
+def open_page(browser: object, url: str, errors: list[str]) -> object:
+    page = browser.new_page(viewport={"width": 1280, "height": 800})
+    page.on("pageerror", lambda e: errors.append(str(e)))
+    page.goto(url)
+    return page
+
+
 def text(page: object, selector: str) -> str:
-    return str(page.text_content(selector))  # type: ignore[attr-defined]
+    return str(page.text_content(selector))
 
 
-def _results(tmp_path: Path) -> dict[str, object]:
-    (path,) = (tmp_path / "res").glob("rehab-left-arm-*.json")
-    assert path.stat().st_mode & 0o777 == 0o600
-    return json.loads(path.read_text())  # type: ignore[no-any-return]
+def wait_js(page: Any, expression: str, timeout_s: float = 20.0) -> None:
+    """Wait until ``expression`` holds in the page; on a timeout, say what the page shows."""
+    from playwright.sync_api import TimeoutError as PlaywrightTimeout
+
+    try:
+        page.wait_for_function(expression, timeout=timeout_s * 1000)
+    except PlaywrightTimeout:
+        shown = {s: page.text_content(s) for s in ("#state", "#arm-state", "#cue", "#target",
+                                                   "#countdown", "#message", "#flash")}  # fmt: skip
+        raise AssertionError(f"never true: {expression}; the page shows {shown}") from None
+
+
+def wait_text(page: object, selector: str, test: str, timeout_s: float = 20.0) -> None:
+    """Wait until ``document.querySelector(selector).textContent`` passes ``test`` (JS,
+    of ``t``)."""
+    wait_js(page, f"(() => {{ const e = document.querySelector({json.dumps(selector)}); "
+                  f"if (!e) return false; const t = e.textContent; return {test}; }})()",
+            timeout_s)  # fmt: skip
+
+
+def saved(tmp_path: Path) -> list[dict[str, object]]:
+    out = []
+    for path in sorted((tmp_path / "res").glob("rehab-left-arm-*.json")):
+        assert path.stat().st_mode & 0o777 == 0o600
+        out.append({**json.loads(path.read_text()), "file": path.name})
+    return out
+
+
+class PosePublisher:
+    """The left arm's branch poses, 50 a second, from the body model, published by a
+    Zenoh router session of the test's own: ``angles``, ``flags`` and ``sending`` are
+    changed on the fly."""
+
+    def __init__(self, endpoint: str) -> None:
+        from bodynet.session import open_session, session_config
+
+        self.session = open_session(session_config("router", listen=[endpoint]))
+        self.arm = FkArm("left")
+        self.angles: dict[str, float] = {}
+        self.flags: dict[str, str] = {}
+        self.sending = threading.Event()
+        self.sending.set()
+        self._stop = threading.Event()
+        key = keys.pose_key(keys.Branch(keys.Limb.ARM, keys.Side("left")))
+        self._pub = self.session.declare_publisher(key)
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        seq = 0
+        while not self._stop.wait(0.02):  # the rate of the poses, not a wait for an event
+            if self.sending.is_set():
+                seq += 1
+                self._pub.put(pose.encode(self.arm.frame(self.angles, seq, flags=self.flags)))
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=5)
+        self._pub.undeclare()
+        self.session.close()
+
+
+def still_arm_trial(page: Any, publisher: PosePublisher, tmp_path: Path) -> None:
+    """A still arm whose wrist flexion is held (not measured): countdowns, misses (the
+    rest stop too), a lost signal, the wrist stop "not measured", the therapist's
+    Stop; nothing reached, nothing saved before the trial ends."""
+    assert text(page, "#file").startswith("not saved yet")
+    assert saved(tmp_path) == []
+    page.click("#start")
+    # "1 / 9: Lift your arm forward" and the instruction: the label says what the cue says
+    wait_text(page, "#target", "t.includes(' / 9: ') && "
+                               "t.endsWith(': ' + document.getElementById('cue').textContent)")
+    wait_text(page, "#countdown", "/^[0-9]+ s$/.test(t)")  # the countdown, in seconds
+    wait_text(page, "#flash", "t === 'Missed'")
+    page.screenshot(path=str(tmp_path / "missed.png"))
+    # the signal is lost: the instruction gives way, the target waits
+    publisher.sending.clear()
+    page.wait_for_selector("#cue.lost")
+    assert text(page, "#countdown") == "paused"
+    lost_at = text(page, "#target")
+    # lost for longer than a countdown: the target is still the same
+    wait_text(page, "#arm-state", "t.startsWith('arm signal lost (2.')")
+    assert text(page, "#target") == lost_at
+    publisher.sending.set()
+    page.wait_for_selector("#arm-state.ok")
+    page.wait_for_selector("#cue:not(.lost)")
+    # the still arm at a rest stop it is already at: not reached, missed
+    wait_text(page, "#flash", "t === 'Missed' && "
+                              "document.getElementById('flash').dataset.i === '4'")
+    # the wrist's measurement is held: the game waits for one, then moves on
+    wait_text(page, "#cue", "t === 'Waiting for a measurement of wrist flexion'")
+    wait_text(page, "#flash", "t === 'Not measured (wrist flexion)'")
+    assert text(page, "#file").startswith("not saved yet")
+    page.click("#stop")
+    row = page.wait_for_selector("#trials tr[data-complete='false']")
+    assert "incomplete: stopped by the therapist" in row.text_content()
+    wait_text(page, "#file", "t.startsWith('saved to ')")
+    page.wait_for_selector("#flash", state="hidden")
+    (first,) = saved(tmp_path)
+    trial = first["trials"][0]  # type: ignore[index]
+    assert (trial["complete"], trial["reason"], trial["score"]) == (
+        False, "stopped by the therapist", 0)  # fmt: skip
+    assert not any(x["reached"] for x in trial["targets"])
+    assert [(x["outcome"], x["waited_for"]) for x in trial["targets"][:5]] == [
+        *[("missed", [])] * 4, ("not measured", ["wrist_flexion"])]  # fmt: skip
+    lost = int(lost_at.split(" / ")[0]) - 1  # the target whose signal was lost
+    assert trial["targets"][lost]["paused_s"] > 1.5  # 2 s without a pose, less GAP_S
+    assert trial["stale_s"] > 0.8  # the same, less STALE_S (and a tick)
+    assert trial["rom_deg"]["shoulder_flexion"]["range"] == 0.0
+    assert "wrist_flexion" not in trial["rom_deg"]  # never measured
+
+
+def second_session(page: Any, publisher: PosePublisher) -> None:
+    """A new session for patient p2, Start refused without a signal (the message
+    clears when the signal is back), a trial stopped by the therapist."""
+    # a second session, for another patient, without a restart
+    page.fill("#patient", "p2")
+    page.click("#new-session")
+    wait_text(page, "#state", "t === 'ready'")
+    wait_text(page, "#file", "t.startsWith('not saved yet')")
+    assert text(page, "#side") == "(p2, left arm)"
+    assert page.query_selector_all("#trials tr") == []
+    # Start without a signal is refused; the message goes when the signal is back
+    publisher.sending.clear()
+    page.wait_for_selector("#arm-state.bad")
+    page.click("#start")
+    wait_text(page, "#message", "t.includes('no live signal')")
+    publisher.sending.set()
+    wait_text(page, "#message", "t === ''")
+    page.click("#start")
+    wait_text(page, "#state", "t === 'running'")
+    page.click("#stop")
+    row = page.wait_for_selector("#trials tr[data-complete='false']")
+    assert "incomplete: stopped by the therapist" in row.text_content()
+
+
+def therapist_view(browser: Any, url: str, tmp_path: Path, errors: list[str]) -> None:
+    """The therapist's view reads both sessions back from their files."""
+    # the therapist's view reads both sessions back from their files
+    files = [s["file"] for s in saved(tmp_path)]
+    assert len(files) == 2
+    assert any(f.endswith("-p2.json") for f in files)
+    view = open_page(browser, url + "therapist", errors)
+    wait_text(view, "#status", "t === '2 sessions saved'")
+    shown = [e.get_attribute("data-file") for e in view.query_selector_all("section.session")]
+    assert sorted(shown) == sorted(files)
+    days = [e.text_content() for e in view.query_selector_all("#days tr")]
+    assert len(days) == 2  # one patient without an id, and p2
+    for f in files:
+        assert "incomplete: stopped by the therapist" in text(view, f"section[data-file='{f}']")
 
 
 @pytest.mark.slow
-@pytest.mark.timeout(300)
-def test_browser_plays_a_session_through_a_reconnect(
+@pytest.mark.timeout(150)
+def test_browser_still_arm_countdown_miss_signal_loss_and_a_second_session(
     procs: list[Proc], browser: object, tmp_path: Path
 ) -> None:
-    url, _, game = start_stack(procs, tmp_path, "--trials", "1", "--practice", "1")
-    page = browser.new_page()  # type: ignore[attr-defined]
+    """Poses published here: the game waits for its router (and says so), a still arm
+    sees every countdown run out (missed, score 0), a lost signal pauses the target and
+    replaces the instruction, a held dof ends its target "not measured"; then a second
+    session without a restart, its trial stopped by the therapist, and the therapist's
+    view of both sessions."""
+    from zenoh_helpers import free_port
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    url, game = start_game(procs, tmp_path, endpoint, "--trials", "1", "--practice", "0",
+                           "--target-timeout", "1.5")  # fmt: skip
+    assert game.wait_line("bodynet game: waiting for the Zenoh router at ") == (
+        f"bodynet game: waiting for the Zenoh router at {endpoint}")  # fmt: skip
     errors: list[str] = []
-    page.on("pageerror", lambda e: errors.append(str(e)))
-    page.goto(url)
-    page.wait_for_selector("#arm-state.ok", timeout=30_000)  # the arm's poses arrive
+    page = open_page(browser, url, errors)
+    wait_text(page, "#arm-state", "t.startsWith('waiting for the Zenoh router')")
+    assert text(page, "#cue").startswith("Waiting for the Zenoh router")
+    publisher = PosePublisher(endpoint)  # the router comes up, with a still arm
+    publisher.flags = {"wrist_flexion": "held"}
+    try:
+        page.wait_for_selector("#arm-state.ok", timeout=30_000)
+        still_arm_trial(page, publisher, tmp_path)
+        second_session(page, publisher)
+        therapist_view(browser, url, tmp_path, errors)
+        assert errors == []
+    finally:
+        publisher.close()
+    assert game.stop() == 0
+    assert "Traceback" not in game.stderr
+    assert "0 complete trials, score 0, results in" in game.stderr
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(150)
+def test_browser_plays_the_real_chain_and_the_ranges_match_the_motion(
+    procs: list[Proc], browser: object, tmp_path: Path
+) -> None:
+    """Gateway and an emulated SmartSuit arm doing the reach routine: a whole trial.
+    A stop whose dofs the gateway flags unmeasured ends "not measured" (never reached
+    or missed: the SmartSuit's tilt sensors may not see abduction with the arm lifted
+    forward); the measured ranges match the routine's."""
+    from zenoh_helpers import free_port
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    procs.append(Proc("gateway", "-l", endpoint, "--branch", "left-arm"))
+    procs.append(Proc("node", "smartsuit", "--branch", "left-arm", "--routine", "reach",
+                      "--ideal", "-e", endpoint))  # fmt: skip
+    url, game = start_game(procs, tmp_path, endpoint, "--trials", "1", "--practice", "0",
+                           "--target-timeout", "4")  # fmt: skip
+    errors: list[str] = []
+    page = open_page(browser, url, errors)
+    page.wait_for_selector("#arm-state.ok", timeout=60_000)
     page.click("#start")
-    page.wait_for_function("document.getElementById('state').textContent === 'running'")
-    # the player reaches a first ball, then the browser goes away mid-trial
-    page.wait_for_function("Number(document.getElementById('score').textContent) > 0",
-                           timeout=2 * REACH_PERIOD_S * 1000)  # fmt: skip
-    page.close()
-    page = browser.new_page()  # type: ignore[attr-defined]
-    page.on("pageerror", lambda e: errors.append(str(e)))
-    page.goto(url)
-    row = page.wait_for_selector("#trials tr[data-complete='false']", timeout=10_000)
-    assert "incomplete: player disconnected" in row.text_content()
-    assert text(page, "#state") == "paused"
-    page.click("#start")
-    page.wait_for_function("document.getElementById('state').textContent === 'finished'",
-                           timeout=4 * REACH_PERIOD_S * 1000)  # fmt: skip
-    page.wait_for_selector("#trials tr:nth-child(3)")
-    assert "session finished" in text(page, "#summary")
+    wait_text(page, "#state", "t === 'finished'", timeout_s=90)
+    page.wait_for_selector("#trials tr")
+    assert text(page, "#cue") == "Session complete. Thank you!"
+    assert "1 complete trial (" in text(page, "#summary")
     page.screenshot(path=str(tmp_path / "finished.png"))
     assert errors == []
-
     assert game.stop() == 0
     assert "Traceback" not in game.stderr
-    saved = _results(tmp_path)
-    trials = saved["trials"]
-    assert isinstance(trials, list)
-    assert [(t["practice"], t["complete"], t["reason"]) for t in trials] == [
-        (True, False, "player disconnected"), (True, True, ""), (False, True, "")]  # fmt: skip
-    assert sum(x["reached"] for x in trials[0]["targets"]) >= 1
-    for trial in trials[1:]:
-        assert trial["success"], trial
-        assert all(x["time_to_target_s"] > 0 for x in trial["targets"])
-        assert trial["score"] >= 10 * len(ROUTE)
-        rom = trial["rom_deg"]
-        assert rom["shoulder_flexion"]["range"] > 80  # the emulated arm lifts to 90
-        assert rom["shoulder_abduction"]["range"] > 80
-        assert rom["elbow_flexion"]["range"] > 80
-        assert rom["wrist_flexion"]["max"] >= 45
-        assert trial["poses"] > 500
-    assert saved["finished"] is True
-    assert (saved["complete_trials"], saved["successful_trials"]) == (1, 1)
-    assert saved["score"] == trials[2]["score"]
-    (csv_path,) = (tmp_path / "res").glob("rehab-left-arm-*.csv")
-    rows = list(csv.DictReader(csv_path.open()))
-    assert [r["complete"] for r in rows] == ["False", "True", "True"]
-    assert csv_path.stat().st_mode & 0o777 == 0o600
-
-
-@pytest.mark.slow
-@pytest.mark.timeout(180)
-def test_browser_shows_a_stale_arm_when_the_node_dies(
-    procs: list[Proc], browser: object, tmp_path: Path
-) -> None:
-    url, arm, game = start_stack(procs, tmp_path, "--trials", "1", "--practice", "0")
-    page = browser.new_page()  # type: ignore[attr-defined]
-    errors: list[str] = []
-    page.on("pageerror", lambda e: errors.append(str(e)))
-    page.goto(url)
-    page.wait_for_selector("#arm-state.ok", timeout=30_000)
-    page.click("#start")
-    page.wait_for_function("document.getElementById('state').textContent === 'running'")
-    arm.stop(signal.SIGKILL)  # the sensors' process dies: no more poses of the arm
-    page.wait_for_function(
-        "document.getElementById('arm-state').textContent.startsWith('arm signal lost')",
-        timeout=15_000,
-    )
-    assert text(page, "#state") == "running"  # the game goes on
-    page.screenshot(path=str(tmp_path / "stale.png"))
-    page.click("#abort")
-    row = page.wait_for_selector("#trials tr[data-complete='false']", timeout=10_000)
-    assert "aborted by the player" in row.text_content()
-    page.click("#start")  # refused while the arm is stale, with a message
-    page.wait_for_function(
-        "document.getElementById('message').textContent.includes('no live signal')"
-    )
-    assert game.popen.poll() is None  # still serving
-    assert errors == []
-    assert game.stop() == 0
-    assert "Traceback" not in game.stderr
-    trial = _results(tmp_path)["trials"][0]  # type: ignore[index]
-    assert trial["complete"] is False
-    assert trial["stale_s"] > 0
+    (result,) = saved(tmp_path)
+    trial = result["trials"][0]  # type: ignore[index]
+    outcomes = {x["outcome"] for x in trial["targets"]}
+    assert outcomes <= {"reached", "missed", "not measured"}
+    for x in trial["targets"]:  # only a measured target is reached or missed
+        assert (x["outcome"] == "not measured") == bool(x["waited_for"]), x
+        assert x["reached"] == (x["outcome"] == "reached") == (x["time_to_target_s"] is not None)
+    # which stops the arm meets in time depends on the routine's phase at Start
+    assert sum(x["reached"] for x in trial["targets"]) >= 2, trial["targets"]
+    assert trial["score"] == sum(x["points"] for x in trial["targets"]) > 0
+    # the routine's truth (nodes/motion.py's reach). Forearm pronation and wrist
+    # deviation are left out: the solver of this version swings a still forearm's
+    # pronation (the honest-dofs issue), and the game reports what it is given.
+    truth = {"shoulder_flexion": (0, 90), "shoulder_abduction": (0, 90),
+             "shoulder_rotation": (0, 0), "elbow_flexion": (0, 90),
+             "wrist_flexion": (0, 60)}  # fmt: skip
+    rom = trial["rom_deg"]
+    for dof, (lo, hi) in truth.items():
+        assert rom[dof]["samples"] > 100, rom[dof]
+        assert rom[dof]["min"] == pytest.approx(lo, abs=3), (dof, rom[dof])
+        assert rom[dof]["max"] == pytest.approx(hi, abs=3), (dof, rom[dof])
+        assert rom[dof]["range"] == pytest.approx(hi - lo, abs=3), (dof, rom[dof])

@@ -106,6 +106,28 @@ WRITERS: Mapping[str, Writer] = {
             "C3D (biomechanics): joint centres in mm and joint angles as angle points",
             "c3d",
         ),
+        Writer(
+            "mot",
+            ".mot",
+            "OpenSim motion: joint angles as the coordinates of OpenSim's full-body models, "
+            "degrees",
+            "mot",
+        ),
+        Writer(
+            "sto",
+            ".sto",
+            "OpenSense IMU orientations: one <body>_imu quaternion column per segment, for "
+            "OpenSim's IMU inverse kinematics",
+            "sto",
+        ),
+        Writer(
+            "amc",
+            ".amc",
+            "Acclaim motion (.amc) and skeleton (.asf, written beside it), as the CMU "
+            "database's",
+            "amc",
+            options=(UP, UNITS, PROFILE),
+        ),
     )
 }
 

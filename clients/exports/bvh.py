@@ -41,7 +41,13 @@ from scipy.spatial.transform import Rotation
 
 from bodynet.clients.body_tree import ROOT_SEGMENT, local_poses, segment_parents
 from bodynet.clients.exports import Written
-from bodynet.clients.exports.track import PoseTrack, euler_deg, output_file
+from bodynet.clients.exports.track import (
+    PoseTrack,
+    euler_deg,
+    held_note,
+    hold_unmeasured,
+    output_file,
+)
 from bodynet.core.skeleton import Skeleton, Vec3, build_skeleton
 
 #: bodynet axes -> BVH axes: the rows are the BVH X, Y, Z axes in bodynet's frame.
@@ -68,19 +74,6 @@ def channel_orders(skeleton: Skeleton, m: np.ndarray) -> dict[str, str]:
         letters += [c for c in "XYZ" if c not in letters]
         orders[joint.child] = "".join(letters)
     return orders
-
-
-def hold_unmeasured(values: np.ndarray, measured: np.ndarray, last: np.ndarray) -> np.ndarray:
-    """``values`` (F, C) where ``measured``, else the last measured value of the
-    column (from ``last`` (C,), the value before the first row; updated)."""
-    # for each row and column, the last measured row up to it (-1: none yet)
-    rows = np.where(measured, np.arange(len(values))[:, None], -1)
-    upto = np.maximum.accumulate(rows, axis=0)
-    cols = np.arange(values.shape[1])
-    out = np.where(upto >= 0, values[np.maximum(upto, 0), cols], last)
-    if len(out):
-        last[:] = out[-1]
-    return out
 
 
 def children_of(parents: Mapping[str, str], segments: Sequence[str]) -> dict[str, list[str]]:
@@ -184,14 +177,3 @@ def write(track: PoseTrack, out: Path, options: Mapping[str, Any]) -> Written:
         for start in range(0, len(track), CHUNK_FRAMES):
             np.savetxt(f, motion(slice(start, start + CHUNK_FRAMES)), fmt="%.6f")
     return Written(len(track), notes=held_note(track))
-
-
-def held_note(track: PoseTrack) -> tuple[str, ...]:
-    """What a format without an absent value says of the values it held."""
-    held = ~track.measured
-    if not held.any():
-        return ()
-    per_angle = held.sum(axis=0)
-    names = [f"{track.angles[i]} ({per_angle[i]})" for i in np.flatnonzero(per_angle)]
-    return (f"{int(held.sum())} values of {len(names)} joint angles had no measurement behind "
-            f"them and hold their last measured value: {', '.join(names)}",)  # fmt: skip

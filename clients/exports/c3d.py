@@ -22,8 +22,8 @@ stored as floats (``POINT:SCALE`` -1), in bodynet's world frame (+X forward,
   names each component.
 
 A value the recording lacks is NaN, and so is a joint angle with no
-measurement behind it (``is_measured`` false): ezc3d writes a point with a
-NaN component as an invalid point (residual -1, its components NaN when read).
+measurement behind it (``is_measured`` false): such a point is written
+invalid, C3D's way (residual -1, all its coordinates NaN).
 """
 
 from __future__ import annotations
@@ -82,7 +82,11 @@ def write(track: PoseTrack, out: Path, options: Mapping[str, Any]) -> Written:
     point["UNITS"]["value"] = ["mm"]
     point["LABELS"]["value"] = labels
     point["DESCRIPTIONS"]["value"] = descriptions
+    # C3D's own mark of a point without data: residual -1 (its coordinates NaN)
+    invalid = np.isnan(points[:3]).any(axis=0)
+    points[:3, invalid] = np.nan
     c3d["data"]["points"] = points
+    c3d["data"]["meta_points"] = {"residuals": np.where(invalid, -1.0, 0.0)[None]}
     c3d.add_parameter("POINT", "ANGLES", [lab for lab in labels if lab.endswith(ANGLE_SUFFIX)])
     c3d.add_parameter("POINT", "ANGLE_UNITS", ["deg"])
     # ezc3d adds ".c3d" to a name without it: the temporary file has it already

@@ -184,3 +184,27 @@ def euler_deg(rotations: Rotation, seq: str) -> np.ndarray:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)
         return np.asarray(rotations.as_euler(seq.upper(), degrees=True))
+
+
+def hold_unmeasured(values: np.ndarray, measured: np.ndarray, last: np.ndarray) -> np.ndarray:
+    """``values`` (F, C) where ``measured``, else the last measured value of the
+    column (from ``last`` (C,), the value before the first row; updated)."""
+    # for each row and column, the last measured row up to it (-1: none yet)
+    rows = np.where(measured, np.arange(len(values))[:, None], -1)
+    upto = np.maximum.accumulate(rows, axis=0)
+    cols = np.arange(values.shape[1])
+    out = np.where(upto >= 0, values[np.maximum(upto, 0), cols], last)
+    if len(out):
+        last[:] = out[-1]
+    return out
+
+
+def held_note(track: PoseTrack) -> tuple[str, ...]:
+    """What a format without an absent value says of the values it held."""
+    held = ~track.measured
+    if not held.any():
+        return ()
+    per_angle = held.sum(axis=0)
+    names = [f"{track.angles[i]} ({per_angle[i]})" for i in np.flatnonzero(per_angle)]
+    return (f"{int(held.sum())} values of {len(names)} joint angles had no measurement behind "
+            f"them and hold their last measured value: {', '.join(names)}",)  # fmt: skip

@@ -30,11 +30,15 @@ import re
 import struct
 
 from ..errors import DecodeError, Reason, Rejected
-from ..messages import OleAccel
+from ..messages import OleAccel, StreamEvent
 from ..profile import smartsuit_branch_index
 from ._common import HEX_DIGITS, GarbageRun, check_int16, ole_values
 
 MAX_NODES = 15
+#: The link's speed, and how long the concentrator takes to answer one request
+#: (000 seed, ch. 3.4.2: one reply every 22 ms).
+BAUD = 115200
+CYCLE_S = 0.022
 FIRST_REQUEST = ord("I")
 REPLY_LEN = 20
 EXTENDED_TYPE = 1  # the type code bodynet sends: motion data
@@ -46,7 +50,6 @@ _EXT_CHARS = frozenset(b"0123456789+- \t")
 _EXT_START = frozenset(b"0123456789+-")
 _SPACE = frozenset(b"\r\n \t")
 
-StreamEvent = OleAccel | Rejected
 
 
 def request(node: int) -> bytes:
@@ -144,7 +147,8 @@ class ConcentratorDecoder:
                 pos += 1
             elif FIRST_REQUEST <= b < FIRST_REQUEST + self.max_nodes:
                 if self._pending is not None:
-                    self._emit_error(out, Reason.NO_REPLY, f"node {self._pending}")
+                    self._garbage.flush(out)
+                    out.append(self._no_reply(self._pending))
                 self._pending = b - FIRST_REQUEST + 1
                 pos += 1
             elif b == _TEMPLATE[0]:
@@ -185,9 +189,9 @@ class ConcentratorDecoder:
         self._buf.clear()
         return out
 
-    def _emit_error(self, out: list[StreamEvent], reason: Reason, detail: str) -> None:
-        self._garbage.flush(out)
-        out.append(Rejected(reason, detail))
+    @staticmethod
+    def _no_reply(node: int) -> Rejected:
+        return Rejected(Reason.NO_REPLY, f"node {node}", node=node)
 
     def _reply(self, m: re.Match[bytes], out: list[StreamEvent]) -> None:
         self._garbage.flush(out)
@@ -206,7 +210,7 @@ class ConcentratorDecoder:
             return
         if isinstance(result, int):
             if self._pending is not None:
-                out.append(Rejected(Reason.NO_REPLY, f"node {self._pending}"))
+                out.append(self._no_reply(self._pending))
             self._pending = result
         else:
             self._pending = None

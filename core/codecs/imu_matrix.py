@@ -25,7 +25,7 @@ import binascii
 import struct
 
 from ..errors import MAX_KEPT, DecodeError, Reason, Rejected
-from ..messages import NoNewData, Quat, SensorAbsent, Tick
+from ..messages import NoNewData, Quat, SensorAbsent, StreamEvent, Tick
 from ._common import unit_quat
 
 FLAG_NEW, FLAG_NONE, FLAG_ABSENT = 0x01, 0x00, 0xFF
@@ -33,6 +33,10 @@ PAYLOAD_LEN = 25
 EXTRA_LEN = PAYLOAD_LEN - 16
 LINE_LEN = 2 * (2 + PAYLOAD_LEN)  # 54 hex characters before the LF
 MAX_SENSORS = 15
+#: The central's serial speed, and its tick: 25 Hz, about what 230400 baud carries
+#: for 15 sensors' 55-byte lines (419 lines a second).
+BAUD = 230400
+TICK_S = 0.04
 #: Bytes kept of a line that has not ended yet: enough for any valid tail and
 #: for the head an error reports, so chunking never changes what is reported.
 _KEEP = max(LINE_LEN + 2, MAX_KEPT)
@@ -40,7 +44,6 @@ _KEEP = max(LINE_LEN + 2, MAX_KEPT)
 _QUAT = struct.Struct("<4f")
 
 ImuEvent = Quat | NoNewData | SensorAbsent
-StreamEvent = ImuEvent | Tick | Rejected
 
 
 def decode_line(line: bytes | bytearray, max_sensors: int = MAX_SENSORS) -> ImuEvent:

@@ -8,7 +8,9 @@ splits. Layout::
     0      2     magic  b"BN"
     2      1     version = 1
     3      1     kind: 1 = OLE + accelerometer, 2 = quaternion
-    4      1     source: 0 unknown, 1 CAN, 2 concentrator, 3 IMU central
+    4      1     source id: 0 unknown, 1 CAN, 2 concentrator, 3 IMU central,
+                 4 SlimeVR, 5 orientation file; any other id is accepted too
+                 (a source this version has not heard of), see ``Source``
     5      1     flags, reserved: sent as 0, ignored on receipt
     6      2     node number (uint16, >= 1)
     8      4     sequence number (uint32, per node, wraps)
@@ -39,9 +41,12 @@ _HEADER = struct.Struct("<2sBBBBHIq")
 _OLE = struct.Struct("<4h")
 _QUAT = struct.Struct("<4dB")
 HEADER_LEN = _HEADER.size
-_SOURCES = {s.value: s for s in Source}
+#: every byte's source: the named one where this version knows it, else the id itself
+_SOURCES: tuple[int, ...] = tuple(
+    Source(v) if v in Source._value2member_map_ else v for v in range(256)
+)
 
-StreamEvent = RawSample | Rejected
+RawEvent = RawSample | Rejected
 
 
 def encode(sample: RawSample) -> bytes:
@@ -91,8 +96,6 @@ def _length(buf: bytes | bytearray, pos: int) -> int | None:
 
 def _decode_at(buf: bytes | bytearray, pos: int, length: int) -> RawSample:
     _, _, kind, source, _, node, seq, t_ns = _HEADER.unpack_from(buf, pos)
-    if source not in _SOURCES:
-        raise DecodeError(Reason.BAD_KIND, f"source {source}")
     if node == 0:
         raise DecodeError(Reason.UNKNOWN_NODE, "node 0")
     body = pos + HEADER_LEN
@@ -118,9 +121,8 @@ def decode(payload: bytes | bytearray) -> RawSample:
             payload
         )
         if magic == MAGIC and version == VERSION and kind == KIND_QUAT and not n and node:
-            src = _SOURCES.get(source)
-            if src is not None:
-                return RawSample(Quat(node, unit_quat(w, x, y, z, normalise=False)), seq, t_ns, src)
+            reading = Quat(node, unit_quat(w, x, y, z, normalise=False))
+            return RawSample(reading, seq, t_ns, _SOURCES[source])
         # anything else takes the checks below, which say what is wrong
     length = _length(payload, 0)
     if length is None or length > len(payload):
@@ -139,7 +141,7 @@ def source_time(payload: bytes | bytearray) -> int:
     return int(_T_NS.unpack_from(payload, 12)[0])
 
 
-def decode_batch(payload: bytes | bytearray) -> list[StreamEvent]:
+def decode_batch(payload: bytes | bytearray) -> list[RawEvent]:
     """Every message of one payload, with rejections in place of bad ones."""
     decoder = RawSampleDecoder()
     return decoder.feed(payload) + decoder.close()
@@ -152,10 +154,10 @@ class RawSampleDecoder:
         self._buf = bytearray()
         self._garbage = GarbageRun()
 
-    def feed(self, data: bytes | bytearray) -> list[StreamEvent]:
+    def feed(self, data: bytes | bytearray) -> list[RawEvent]:
         buf = self._buf
         buf += data
-        out: list[StreamEvent] = []
+        out: list[RawEvent] = []
         pos = 0
         while pos < len(buf):
             try:
@@ -184,8 +186,8 @@ class RawSampleDecoder:
         del buf[:pos]
         return out
 
-    def close(self) -> list[StreamEvent]:
-        out: list[StreamEvent] = []
+    def close(self) -> list[RawEvent]:
+        out: list[RawEvent] = []
         self._garbage.flush(out)
         if self._buf:
             out.append(Rejected(Reason.TRUNCATED, f"{len(self._buf)} bytes", bytes(self._buf[:64])))

@@ -20,11 +20,13 @@ import struct
 from dataclasses import dataclass
 
 from ..errors import DecodeError, Reason, Rejected
-from ..messages import OleAccel, Quat, Reading
+from ..messages import OleAccel, Quat, Reading, StreamEvent
 from ..profile import SMARTSUIT_QUAT_NODES
 from ._common import HEX_DIGITS, INT16_MAX, INT16_MIN, GarbageRun, ole_values, unit_quat
 
 MAX_NODES = 15
+#: Every node sends one frame each 10 ms (000 seed, ch. 3.4).
+PERIOD_S = 0.01
 Q14 = 1 << 14
 DLC = 8
 _ID_LOW = 0xFFFF
@@ -56,6 +58,16 @@ def node_of(arbitration_id: int) -> int:
     if arbitration_id & _ID_LOW != _ID_LOW or high % 4 != 2 or not 1 <= high // 4 <= MAX_NODES:
         raise DecodeError(Reason.UNKNOWN_NODE, f"identifier {arbitration_id:#010x}")
     return high // 4
+
+
+def frame_events(frame: CanFrame) -> list[StreamEvent]:
+    """A frame as decoder events: its reading, or its rejection (with the node
+    where the identifier names one)."""
+    try:
+        return [decode_frame(frame)]
+    except DecodeError as exc:
+        node = frame.arbitration_id >> 18 if frame.is_extended_id else None
+        return [Rejected.of(exc, frame.data, node)]
 
 
 def decode_frame(frame: CanFrame) -> Reading:
@@ -204,20 +216,17 @@ class SmartSuitSlcanDecoder:
     def __init__(self) -> None:
         self._slcan = SlcanDecoder()
 
-    def _readings(self, events: list[CanFrame | SlcanReply | Rejected]) -> list[Reading | Rejected]:
-        out: list[Reading | Rejected] = []
+    def _readings(self, events: list[CanFrame | SlcanReply | Rejected]) -> list[StreamEvent]:
+        out: list[StreamEvent] = []
         for event in events:
             if isinstance(event, CanFrame):
-                try:
-                    out.append(decode_frame(event))
-                except DecodeError as exc:
-                    out.append(Rejected.of(exc, event.data))
+                out += frame_events(event)
             elif isinstance(event, Rejected):
                 out.append(event)
         return out
 
-    def feed(self, data: bytes) -> list[Reading | Rejected]:
+    def feed(self, data: bytes) -> list[StreamEvent]:
         return self._readings(self._slcan.feed(data))
 
-    def close(self) -> list[Reading | Rejected]:
+    def close(self) -> list[StreamEvent]:
         return self._readings(self._slcan.close())

@@ -1,6 +1,7 @@
 """``bodynet process``: exactly the gateway's solver, run over a capture.
 
-The input is any capture ``bodynet decode`` reads. Samples are taken in the
+The input is any capture ``bodynet decode`` reads (any format of a registered
+source, ``nodes.sources``). Samples are taken in the
 capture's time order and grouped into ticks of ``1 / tick_hz`` (a data-matrix
 frame, or a concentrator reply, is always one tick); after each tick the body
 is solved as the live gateway would and the pose written to MCAP at the
@@ -18,14 +19,12 @@ from pathlib import Path
 from bodynet.clients.mcap_store import McapSink
 from bodynet.core import keys
 from bodynet.core.keys import BRANCHES, Site
-from bodynet.core.messages import Quat, RawSample, Source
+from bodynet.core.messages import Quat, RawSample
 from bodynet.core.subject import Profile
 from bodynet.gateway.service import branch_views, pose_frame
 from bodynet.gateway.solver import BodySolver, tpose_mounts
-from bodynet.nodes.captures import CapturedSample, CaptureStats, Format, read_capture
-
-SOURCES = {Format.CAN_LOG: Source.CAN, Format.CONCENTRATOR: Source.CONCENTRATOR,
-           Format.IMU_CENTRAL: Source.IMU_CENTRAL}  # fmt: skip
+from bodynet.nodes import sources
+from bodynet.nodes.sources.base import CapturedSample, CaptureStats
 
 
 @dataclass
@@ -47,15 +46,15 @@ def _ticks(samples: Iterator[CapturedSample], period_s: float) -> Iterator[list[
         yield tick
 
 
-def process(path: Path, fmt: Format | str, out: Path, profile: Profile | None = None,
+def process(path: Path, fmt: str, out: Path, profile: Profile | None = None,
             rate_hz: float | None = None, tick_hz: float = 100.0,
             tpose_s: float = 3.0) -> ProcessResult:  # fmt: skip
     """Solve every tick of a capture and write poses and raw samples to ``out``."""
-    fmt = Format(fmt)
+    source = sources.by_format(fmt)()
     profile = profile or Profile()
     window: dict[Site, list[tuple[float, float, float, float]]] = {}
     start: float | None = None
-    for s in read_capture(path, fmt, CaptureStats(), rate_hz):
+    for s in source.read(path, fmt, CaptureStats(), rate_hz):
         start = s.t_s if start is None else start
         if s.t_s - start >= tpose_s:
             break
@@ -69,10 +68,10 @@ def process(path: Path, fmt: Format | str, out: Path, profile: Profile | None = 
     seqs: dict[Site, int] = {}
     ticks = 0
     try:
-        for tick in _ticks(read_capture(path, fmt, stats, rate_hz), 1.0 / tick_hz):
+        for tick in _ticks(source.read(path, fmt, stats, rate_hz), 1.0 / tick_hz):
             for s in tick:
                 seq = seqs[s.site] = seqs.get(s.site, -1) + 1
-                sample = RawSample(s.reading, seq, round(s.t_s * 1e9), SOURCES[fmt])
+                sample = RawSample(s.reading, seq, round(s.t_s * 1e9), source.wire_id)
                 latest[s.site] = sample
                 sink.write_raw(s.site.raw_key, sample, sample.t_ns)
             ticks += 1

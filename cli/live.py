@@ -1,0 +1,91 @@
+"""Command-line wiring of the live outputs: ``lsl`` and ``vmc``."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from typing import Any
+
+from bodynet.session import add_session_args, config_from_args, open_session
+
+
+def _run_output(args: argparse.Namespace, name: str, options: dict[str, Any]) -> int:
+    from bodynet.cli.nodes import stop_on_signals
+    from bodynet.clients import live
+
+    command = f"bodynet {name}"
+    args.all_subjects = getattr(args, "all_subjects", False)  # vmc: one performer
+    if args.all_subjects and args.subject:
+        print(f"{command}: --all-subjects or --subject, not both", file=sys.stderr)
+        return 2
+    output = live.load_output(name, **options)
+    stop = stop_on_signals()
+    conf = config_from_args(args)
+    session = open_session(conf)
+    subject = args.subject or live.DEFAULT_SUBJECT
+    who = "every subject" if args.all_subjects else f"subject {subject}"
+    print(f"{command}: {who}, {output.describe()}", flush=True)
+    try:
+        counts = live.run(session, output, stop, subject=args.subject,
+                          all_subjects=args.all_subjects)  # fmt: skip
+    finally:
+        session.close()
+    print(f"{command}: {counts.summary()}", file=sys.stderr)
+    return 0
+
+
+def cmd_lsl(args: argparse.Namespace) -> int:
+    return _run_output(args, "lsl", {"raw": args.raw})
+
+
+def cmd_vmc(args: argparse.Namespace) -> int:
+    return _run_output(args, "vmc", {"host": args.host, "port": args.port,
+                                     "rate_hz": args.rate_hz})  # fmt: skip
+
+
+def _port(text: str) -> int:
+    try:
+        n = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a port number: {text!r}") from None
+    if not 1 <= n <= 65535:
+        raise argparse.ArgumentTypeError(f"a port is 1..65535, not {n}")
+    return n
+
+
+def _rate(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not 0.1 <= v <= 1000:
+        raise argparse.ArgumentTypeError(f"a rate is 0.1..1000 Hz, not {text}")
+    return v
+
+
+def _host(text: str) -> str:
+    import socket
+
+    try:
+        socket.getaddrinfo(text, None, type=socket.SOCK_DGRAM)
+    except (OSError, UnicodeError, ValueError):
+        raise argparse.ArgumentTypeError(f"cannot resolve host {text!r}") from None
+    return text
+
+
+def add_lsl_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--raw", action="store_true",
+                   help="also one stream per sensor site with its raw samples")  # fmt: skip
+    p.add_argument("--all-subjects", action="store_true",
+                   help="every subject on the network (<subject>/body/...), each its own "
+                        "streams; else the session's --subject (or none)")  # fmt: skip
+    add_session_args(p)
+
+
+def add_vmc_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--host", type=_host, default="127.0.0.1",
+                   help="where the VMC receiver (marionette) runs (default 127.0.0.1)")  # fmt: skip
+    p.add_argument("--port", type=_port, default=39539, help="its UDP port (default 39539)")
+    p.add_argument("--rate-hz", type=_rate, default=60.0,
+                   help="bundles per second, each the newest pose (default 60)")  # fmt: skip
+    add_session_args(p)

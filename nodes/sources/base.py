@@ -1,0 +1,341 @@
+"""What a source is: a transport, a sans-io decoder, a site map and period, and
+one adapter from decoder events to stamped readings.
+
+A :class:`Source` subclass describes one kind of device or file (the SmartSuit
+CAN bus, the Data Concentrator, the IMU central, SlimeVR trackers, orientation
+files). The same :class:`Adapter` turns its decoder's events into readings with
+a sequence number and a time for the live bridge (``live.Bridge``) and for the
+capture reader (:meth:`Source.read`), so a sample has one meaning whichever
+way it came. Nothing here imports Zenoh: offline processing reads captures
+without loading it; the live parts import it when a bridge runs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import threading
+from collections.abc import Callable, Iterable, Iterator, Mapping
+from dataclasses import dataclass, field
+from enum import StrEnum
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, ClassVar, Protocol
+
+from bodynet.core.errors import Reason, RejectCounts, Rejected
+from bodynet.core.keys import Site
+from bodynet.core.messages import (
+    NodeStatus,
+    NoNewData,
+    OleAccel,
+    Quat,
+    Reading,
+    SensorAbsent,
+    StreamEvent,
+    Tick,
+)
+
+if TYPE_CHECKING:
+    import zenoh
+
+log = logging.getLogger(__name__)
+
+CHUNK = 1 << 16
+
+
+class Transport(StrEnum):
+    """What carries a source's bytes."""
+
+    CAN = "can bus"
+    SERIAL = "serial port"
+    UDP = "udp socket"
+    FILE = "file"
+
+
+class Decoder(Protocol):
+    """A sans-io stream decoder: units in (bytes, a CAN frame, a datagram), events out."""
+
+    def feed(self, data: Any) -> list[StreamEvent]: ...
+    def close(self) -> list[StreamEvent]: ...
+
+
+class Sink(Protocol):
+    """Where an adapter puts what it makes of the events."""
+
+    def sample(self, reading: Reading, seq: int, t_s: float) -> None: ...
+    def reject(self, rejected: Rejected) -> None: ...
+    def status(self, event: NoNewData | SensorAbsent | NodeStatus) -> None: ...
+
+
+class PeriodicSeq:
+    """Sequence numbers from arrival times of a source sending every ``period_s``."""
+
+    def __init__(self, period_s: float) -> None:
+        self.period_s = period_s
+        self._last: dict[int, tuple[int, float]] = {}
+
+    def next(self, node: int, t_s: float) -> int:
+        last = self._last.get(node)
+        seq = 0 if last is None else last[0] + max(1, round((t_s - last[1]) / self.period_s))
+        self._last[node] = (seq, t_s)
+        return seq
+
+
+class Adapter:
+    """A source's decoder events -> readings with a sequence number and a time.
+
+    ``t_s`` given to :meth:`events` is the time of the unit the events came in
+    (its arrival, or the time a log gives it); ``None`` where the medium has
+    none, and then the source's own counter times the sample: ``tick /
+    rate_hz``. The default numbers samples by the last :class:`Tick` (the
+    stream's own, or the node's own when the tick names it); a source whose
+    stream has no ticks numbers them otherwise (:meth:`stamp`).
+    """
+
+    def __init__(self, period_s: float, rate_hz: float | None = None) -> None:
+        self.period_s = period_s
+        self.rate_hz = rate_hz or 1.0 / period_s
+        self.tick = 0
+        self.node_ticks: dict[int, int] = {}
+        self.base = 0  # ticks of earlier connections, so sequence numbers keep rising
+
+    def events(self, events: Iterable[StreamEvent], t_s: float | None, sink: Sink) -> None:
+        """Hand each event to ``sink``: samples stamped, markers taken, the rest as is."""
+        for event in events:
+            if isinstance(event, OleAccel | Quat):
+                seq, t = self.stamp(event, t_s)
+                sink.sample(event, seq, t)
+            elif isinstance(event, Tick):
+                self.take_tick(event)
+            elif isinstance(event, Rejected):
+                sink.reject(event)
+            else:
+                sink.status(event)
+
+    def take_tick(self, tick: Tick) -> None:
+        if tick.node is None:
+            self.tick = tick.index
+        else:
+            self.node_ticks[tick.node] = tick.index
+
+    def stamp(self, reading: Reading, t_s: float | None) -> tuple[int, float]:
+        tick = self.node_ticks.get(reading.node, self.tick)
+        return self.base + tick, (tick / self.rate_hz if t_s is None else t_s)
+
+    def restart(self) -> None:
+        """The device was opened again: its ticks start over, ours go on."""
+        self.base += self.tick + 1
+        self.tick = 0
+
+
+class PeriodicAdapter(Adapter):
+    """For a stream with no ticks of its own: numbered by arrival (a gap is a
+    missed period), or, without times, by order at ``rate_hz``."""
+
+    def __init__(self, period_s: float, rate_hz: float | None = None) -> None:
+        super().__init__(period_s, rate_hz)
+        self._periodic = PeriodicSeq(period_s)
+        self.count = 0
+
+    def stamp(self, reading: Reading, t_s: float | None) -> tuple[int, float]:
+        if t_s is None:
+            t_s = self.count / self.rate_hz
+        self.count += 1
+        return self._periodic.next(reading.node, t_s), t_s
+
+
+@dataclass(frozen=True, slots=True)
+class CapturedSample:
+    """A decoded reading, where it sits, and the capture's time of it."""
+
+    t_s: float
+    reading: Reading
+    site: Site
+
+
+@dataclass(slots=True)
+class CaptureStats:
+    """What a capture held besides its samples."""
+
+    decoded: int = 0
+    rejected: RejectCounts = field(default_factory=RejectCounts)
+    no_new_data: int = 0
+    sensor_absent: int = 0
+
+    def summary(self) -> str:
+        """``decoded N, rejected M (reason: count, ...)`` plus idle lines if any."""
+        total = sum(self.rejected.values())
+        text = f"decoded {self.decoded}, rejected {total}"
+        if total:
+            text += f" ({self.rejected.summary()})"
+        idle = [(n, what) for n, what in ((self.no_new_data, "no new data"),
+                (self.sensor_absent, "sensor absent")) if n]  # fmt: skip
+        if idle:
+            text += "; not samples: " + ", ".join(f"{what} {n}" for n, what in idle)
+        return text
+
+    def count(self, rejected: Rejected) -> None:
+        self.rejected[rejected.reason] += 1
+        log.debug("rejected %s: %s %r", rejected.reason, rejected.detail, rejected.data)
+
+
+class CaptureSink:
+    """A capture reader's sink: samples placed on their sites, the rest counted."""
+
+    def __init__(self, sites: Mapping[int, Site], stats: CaptureStats) -> None:
+        self.sites = sites
+        self.stats = stats
+        self.out: list[CapturedSample] = []
+
+    def sample(self, reading: Reading, seq: int, t_s: float) -> None:
+        site = self.sites.get(reading.node)
+        if site is None:
+            self.reject(Rejected(Reason.UNKNOWN_NODE, f"node {reading.node} has no site"))
+            return
+        self.stats.decoded += 1
+        self.out.append(CapturedSample(round(t_s, 9), reading, site))
+
+    def reject(self, rejected: Rejected) -> None:
+        self.stats.count(rejected)
+
+    def status(self, event: NoNewData | SensorAbsent | NodeStatus) -> None:
+        if isinstance(event, NoNewData):
+            self.stats.no_new_data += 1
+        elif isinstance(event, SensorAbsent):
+            self.stats.sensor_absent += 1
+
+    def take(self) -> list[CapturedSample]:
+        out, self.out = self.out, []
+        return out
+
+
+def numbers(text: str) -> tuple[int, ...]:
+    """``"1-3,7"`` -> (1, 2, 3, 7): node or sensor numbers as a user writes them
+    (an argparse type: a bad list is refused with its reason)."""
+    out: list[int] = []
+    try:
+        for part in text.split(","):
+            lo, _, hi = part.partition("-")
+            out.extend(range(int(lo), int(hi or lo) + 1))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a list of numbers like 1-3,7: {text!r}") from None
+    if not out or min(out) < 1 or max(out) > 0xFFFF:
+        raise argparse.ArgumentTypeError(f"numbers must lie in 1..65535: {text!r}")
+    return tuple(out)
+
+
+def file_chunks(path: Path) -> Iterator[bytes]:
+    """A file's bytes in chunks, then ``b""`` for the end (decoders' close())."""
+    with path.open("rb") as f:
+        while chunk := f.read(CHUNK):
+            yield chunk
+    yield b""
+
+
+class Feed(Protocol):
+    """What a source's :meth:`Source.serve` hands its events to (the live bridge)."""
+
+    adapter: Adapter
+
+    def feed(self, events: Iterable[StreamEvent], t_s: float | None = None) -> None: ...
+
+
+#: Starts one emulated device with a bridge for it; returns what to stop, the
+#: bridge's target and its keyword arguments (see :meth:`Source.node`).
+NodeParts = tuple[Any, Callable[..., None], dict[str, Any]]
+
+
+class Source:
+    """One kind of source. Subclasses set the class attributes and the methods
+    their transport needs; see docs/sources.md for adding one.
+
+    - ``name``: its registry name (``bodynet bridge NAME``);
+    - ``wire_id``: the source byte of its raw-sample messages (any 0-255; a
+      gateway accepts ids it does not know);
+    - ``transport``: what carries its bytes;
+    - ``sites``/``period_s``: node number -> site, and how often a node sends;
+    - ``formats``: capture formats it reads (``decode``/``process --format``);
+    - ``emulators``: emulated devices it offers (``emulate DEVICE``, ``node --via``).
+    """
+
+    name: ClassVar[str]
+    wire_id: ClassVar[int]
+    transport: ClassVar[Transport]
+    help: ClassVar[str] = ""
+    SITES: ClassVar[Mapping[int, Site]] = {}
+    PERIOD_S: ClassVar[float] = 0.01
+    formats: ClassVar[Mapping[str, str]] = {}
+    emulators: ClassVar[Mapping[str, str]] = {}
+    #: suffixes of capture files whose format goes without saying
+    suffixes: ClassVar[Mapping[str, str]] = {}
+    #: serial sources: the link's speed, and how long one read waits
+    BAUD: ClassVar[int] = 115200
+    SERIAL_TIMEOUT_S: ClassVar[float] = 0.05
+
+    def __init__(self, sites: Mapping[int, Site] | None = None,
+                 period_s: float | None = None) -> None:  # fmt: skip
+        self.sites: Mapping[int, Site] = dict(self.SITES if sites is None else sites)
+        self.period_s = self.PERIOD_S if period_s is None else period_s
+
+    # --- the sans-io part, the same live and from files ---------------------------------
+    def decoder(self) -> Decoder:
+        raise NotImplementedError(f"{self.name} has no stream decoder")
+
+    def adapter(self, rate_hz: float | None = None) -> Adapter:
+        return Adapter(self.period_s, rate_hz)
+
+    # --- captures -----------------------------------------------------------------------
+    def read(self, path: Path, fmt: str, stats: CaptureStats,
+             rate_hz: float | None = None) -> Iterator[CapturedSample]:  # fmt: skip
+        """Decode a capture file into samples (capture time), counting the rest in
+        ``stats``. The default feeds the file's bytes to :meth:`decoder`."""
+        decoder, adapter = self.decoder(), self.adapter(rate_hz)
+        sink = CaptureSink(self.sites, stats)
+        for chunk in file_chunks(path):
+            adapter.events(decoder.feed(chunk) if chunk else decoder.close(), None, sink)
+            yield from sink.take()
+
+    # --- live ---------------------------------------------------------------------------
+    @classmethod
+    def add_bridge_args(cls, parser: argparse.ArgumentParser) -> None:
+        """Options of ``bodynet bridge NAME``; a source without a bridge adds none
+        and :meth:`bridge` refuses."""
+
+    @classmethod
+    def has_bridge(cls) -> bool:
+        return cls.transport is not Transport.FILE
+
+    def bridge(self, session: zenoh.Session, stop: threading.Event, name: str,
+               args: argparse.Namespace) -> None:  # fmt: skip
+        """Serve the device ``args`` name until ``stop``, publishing on ``session``."""
+        raise NotImplementedError(f"{self.name} has no live bridge")
+
+    def serve(self, link: Any, stop: threading.Event, bridge: Feed) -> None:
+        """A serial source's work on its open port (pyserial's ``Serial``) until
+        ``stop``: by default read what comes and feed it to the decoder."""
+        decoder = self.decoder()
+        while not stop.is_set():
+            bridge.feed(decoder.feed(link.read(max(1, link.in_waiting))))
+
+    @classmethod
+    def bridge_name(cls, args: argparse.Namespace) -> str:
+        """The name on the health key when ``--name`` is not given."""
+        return cls.name
+
+    # --- emulation ----------------------------------------------------------------------
+    @classmethod
+    def add_emulate_args(cls, device: str, parser: argparse.ArgumentParser) -> None:
+        """Options of ``bodynet emulate DEVICE`` besides the emulation ones."""
+
+    def emulate(self, device: str, stop: threading.Event, body: Any, truth: Any,
+                args: argparse.Namespace) -> None:  # fmt: skip
+        """Run the emulated ``device`` driven by ``body`` until ``stop``."""
+        raise NotImplementedError(f"{self.name} has no emulator")
+
+    def emulated_sensors(self, sensors: Any = None, branches: Any = None) -> list[Any]:
+        """The emulated sensors of this source (see ``nodes.emulator``)."""
+        raise NotImplementedError(f"{self.name} has no emulator")
+
+    def node(self, device: str, body: Any, where: Path, clock: Any, truth: Any,
+             sensors: list[Any], label: str) -> NodeParts:  # fmt: skip
+        """An emulated ``device`` (started by the caller) beside which a bridge runs."""
+        raise NotImplementedError(f"{self.name} has no emulator")

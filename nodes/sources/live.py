@@ -1,0 +1,124 @@
+"""A source live: its transport's units through its decoder and adapter onto Zenoh.
+
+:class:`Bridge` is what every source's bridge is made of: a
+:class:`~bodynet.nodes.publisher.SitePublisher` for its sites, the source's
+adapter (the same one its capture reader uses) and a sink between them.
+:class:`SerialBridge` adds the loop of a source on a serial port: open the
+port (again after an unplug), feed what it reads to the decoder.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Iterable
+from pathlib import Path
+from typing import Any
+
+import can
+import serial
+import zenoh
+
+from bodynet.core.errors import Rejected
+from bodynet.core.messages import NodeStatus, NoNewData, Reading, SensorAbsent, StreamEvent
+from bodynet.nodes.device import keep_connected
+from bodynet.nodes.publisher import SitePublisher
+from bodynet.nodes.sources.base import CaptureStats, Source
+from bodynet.nodes.sources.can_transport import can_log_messages, frame_of, paced
+
+SERIAL_ERRORS = (serial.SerialException, OSError)
+CAN_ERRORS = (can.CanError, OSError, serial.SerialException)
+
+
+class Bridge:
+    """One source's events onto Zenoh: samples published on their sites, node
+    states and rejections counted in health."""
+
+    def __init__(self, session: zenoh.Session, source: Source, name: str) -> None:
+        self.source = source
+        self.publisher = SitePublisher(session, source.sites, source.wire_id, name,
+                                       source.period_s)  # fmt: skip
+        self.adapter = source.adapter()
+        self.absent: set[int] = set()  # nodes the device says it has never seen
+
+    def feed(self, events: Iterable[StreamEvent], t_s: float | None = None) -> None:
+        """Events decoded from one unit that arrived at ``t_s`` (now if None)."""
+        self.adapter.events(events, time.time() if t_s is None else t_s, self)
+
+    # --- the adapter's sink -------------------------------------------------------------
+    def sample(self, reading: Reading, seq: int, t_s: float) -> None:
+        self.absent.discard(reading.node)
+        self.publisher.publish(reading, seq, round(t_s * 1e9))
+
+    def reject(self, rejected: Rejected) -> None:
+        self.publisher.reject(rejected, rejected.node)
+
+    def status(self, event: NoNewData | SensorAbsent | NodeStatus) -> None:
+        if isinstance(event, SensorAbsent):
+            self.absent.add(event.node)
+        elif isinstance(event, NodeStatus):
+            self.publisher.set_status(event.node, event.key, event.value)
+        # NoNewData shows as a gap: the node's next sample skips this tick
+
+    def close(self) -> None:
+        self.publisher.close()
+
+
+class SerialBridge(Bridge):
+    """A source on a serial port: the source serves the open port (by default
+    reading and decoding what comes); reopened after an unplug."""
+
+    def run(self, port: str, stop: threading.Event, baud: int | None = None) -> None:
+        def serve(link: serial.Serial) -> None:
+            try:
+                self.source.serve(link, stop, self)
+            finally:
+                self.adapter.restart()
+
+        source = self.source
+        keep_connected(
+            self.publisher,
+            lambda: serial.Serial(port, baud or source.BAUD, timeout=source.SERIAL_TIMEOUT_S),
+            serve,
+            lambda link: link.close(),
+            SERIAL_ERRORS,
+            stop,
+        )
+
+
+class CanBusBridge(Bridge):
+    """A source on a python-can bus (or a log of one played back at its pace)."""
+
+    def __init__(self, session: zenoh.Session, source: Source, name: str) -> None:
+        super().__init__(session, source, name)
+        self._decoder = source.decoder()
+
+    def handle(self, msg: can.Message) -> None:
+        """Decode and publish one message (bad frames are counted, never raised)."""
+        self.feed(self._decoder.feed(frame_of(msg)), msg.timestamp or time.time())
+
+    def run_bus(self, stop: threading.Event, **bus_args: Any) -> None:
+        """Serve ``can.Bus(**bus_args)`` until ``stop``, reopening it when it fails."""
+
+        def serve(bus: can.BusABC) -> None:
+            while not stop.is_set():
+                msg = bus.recv(timeout=0.1)
+                if msg is not None:
+                    self.handle(msg)
+
+        keep_connected(self.publisher, lambda: can.Bus(**bus_args), serve,
+                       lambda bus: bus.shutdown(), CAN_ERRORS, stop)  # fmt: skip
+
+    def run_replay(self, path: Path, stop: threading.Event, loop: bool = False) -> None:
+        """Play a CAN log back at its recorded speed, stamped with the time of play."""
+        self.publisher.set_device("replay")
+        while not stop.is_set():
+            stats = CaptureStats()
+            for msg in paced(can_log_messages(path, stats), stop):
+                msg.timestamp = time.time()
+                self.handle(msg)
+            for reason, n in stats.rejected.items():
+                for _ in range(n):
+                    self.publisher.reject(Rejected(reason, "log line"))
+            if not loop:
+                break

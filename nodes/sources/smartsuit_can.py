@@ -1,0 +1,171 @@
+"""SmartSuit nodes on a CAN bus (000 seed, ch. 3): any python-can interface, or a log.
+
+The transport's unit is a frame: python-can's ``Message``, turned into the
+core's :class:`~bodynet.core.codecs.smartsuit_can.CanFrame` and decoded by the
+sans-io frame codec. Frames carry no sequence number: a node's samples are
+numbered by arrival (a missed 10 ms period is a gap). The same source serves
+real adapters (``socketcan``, ``slcan``, ``pcan``...), the emulators, and
+``--replay`` of a candump/asc/blf log at its recorded speed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any, ClassVar
+
+import can
+
+from bodynet.core.codecs import smartsuit_can as codec
+from bodynet.core.codecs.smartsuit_can import CanFrame
+from bodynet.core.messages import Source as SourceId
+from bodynet.core.messages import StreamEvent
+from bodynet.core.profile import SMARTSUIT_SITES
+from bodynet.nodes.sources.base import (
+    Adapter,
+    CapturedSample,
+    CaptureSink,
+    CaptureStats,
+    NodeParts,
+    PeriodicAdapter,
+    Source,
+    Transport,
+)
+from bodynet.nodes.sources.can_transport import LOG_SUFFIXES, can_log_messages, frame_of
+from bodynet.nodes.sources.serial_port import SerialSource
+
+
+class FrameDecoder:
+    """Frames in, the SmartSuit readings (or rejections) they carry out."""
+
+    def feed(self, frame: CanFrame) -> list[StreamEvent]:
+        return codec.frame_events(frame)
+
+    def close(self) -> list[StreamEvent]:
+        return []
+
+
+class SmartSuitCan(Source):
+    name = "can"
+    wire_id = SourceId.CAN
+    transport = Transport.CAN
+    help = "SmartSuit nodes on any python-can interface, or a log"
+    SITES = SMARTSUIT_SITES
+    PERIOD_S = codec.PERIOD_S
+    formats: ClassVar = {"can-log": "a CAN log (candump .log, .asc, .blf, .trc)"}
+    suffixes: ClassVar = dict.fromkeys(LOG_SUFFIXES, "can-log")
+    emulators: ClassVar = {
+        "slcan": "a slcan USB-CAN adapter with SmartSuit nodes",
+        "can": "SmartSuit nodes on a python-can bus",
+    }
+
+    def decoder(self) -> FrameDecoder:
+        return FrameDecoder()
+
+    def adapter(self, rate_hz: float | None = None) -> Adapter:
+        return PeriodicAdapter(self.period_s, rate_hz)
+
+    def read(self, path: Path, fmt: str, stats: CaptureStats,
+             rate_hz: float | None = None) -> Iterator[CapturedSample]:  # fmt: skip
+        decoder, adapter = self.decoder(), self.adapter(rate_hz)
+        sink = CaptureSink(self.sites, stats)
+        for msg in can_log_messages(path, stats):
+            adapter.events(decoder.feed(frame_of(msg)), msg.timestamp, sink)
+            yield from sink.take()
+
+    # --- live ---------------------------------------------------------------------------
+    @classmethod
+    def add_bridge_args(cls, p: argparse.ArgumentParser) -> None:
+        p.add_argument("--interface", default="socketcan",
+                       help="python-can interface (socketcan, slcan, pcan...)")  # fmt: skip
+        p.add_argument("--channel", help="channel: can0, /dev/ttyACM0 (slcan)...")
+        p.add_argument("--bitrate", type=int, default=None)
+        p.add_argument("--replay", type=Path,
+                       help="play a candump/asc/blf log at its recorded speed")  # fmt: skip
+        p.add_argument("--loop", action="store_true", help="with --replay: play again and again")
+
+    @classmethod
+    def bridge_name(cls, args: argparse.Namespace) -> str:
+        return f"can-{args.channel or 'replay'}"
+
+    def bridge(self, session: Any, stop: threading.Event, name: str,
+               args: argparse.Namespace) -> None:  # fmt: skip
+        bus_args = {"interface": args.interface, "channel": args.channel}
+        if args.bitrate:
+            bus_args["bitrate"] = args.bitrate
+        run_bridge(session, stop, name, args.replay, args.loop, **bus_args)
+
+    # --- emulation ----------------------------------------------------------------------
+    @classmethod
+    def add_emulate_args(cls, device: str, p: argparse.ArgumentParser) -> None:
+        if device == "can":
+            p.add_argument("--interface", default="socketcan")
+            p.add_argument("--channel", default="vcan0")
+        else:
+            SerialSource.add_emulate_args(device, p)
+
+    def emulated_sensors(self, sensors: Any = None, branches: Any = None) -> list[Any]:
+        from bodynet.nodes.emulator import smartsuit_sensors
+
+        return smartsuit_sensors(branches)
+
+    def emulator(self, device: str, body: Any, truth: Any, opts: dict[str, Any]) -> Any:
+        from bodynet.nodes.hardware import SlcanAdapterEmulator
+
+        if device == "can":
+            return _BusNodes(dict(opts.get("bus_args") or {}), body, truth)
+        return SlcanAdapterEmulator(opts["link"], body, truth=truth)
+
+    def node(self, device: str, body: Any, where: Path, clock: Any, truth: Any,
+             sensors: list[Any], label: str) -> NodeParts:  # fmt: skip
+        from bodynet.nodes.hardware import SlcanAdapterEmulator
+
+        if device == "can":
+            channel = f"bodynet-{label}-{time.monotonic_ns()}"
+            bus_args = {"interface": "virtual", "channel": channel}
+            return _BusNodes(bus_args, body, truth, clock), run_bridge, bus_args
+        link = str(where / label)
+        emulator = SlcanAdapterEmulator(where / label, body, clock, truth)
+        return emulator, run_bridge, {"interface": "slcan", "channel": link,
+                                      "sleep_after_open": 0}  # fmt: skip
+
+
+class _BusNodes:
+    """Emulated nodes on a python-can bus this object opens and closes."""
+
+    def __init__(self, bus_args: dict[str, Any], body: Any, truth: Any, clock: Any = None):
+        self.bus_args, self.body, self.truth, self.clock = bus_args, body, truth, clock
+        self.link = bus_args.get("channel")
+        self._bus: can.BusABC | None = None
+        self._nodes: Any = None
+
+    def start(self) -> None:
+        from bodynet.nodes.hardware import CanNodes
+
+        self._bus = can.Bus(**self.bus_args)
+        self._nodes = CanNodes(self._bus, self.body, self.clock, self.truth)
+        self._nodes.start()
+
+    def stop(self) -> None:
+        if self._nodes is not None:
+            self._nodes.stop()
+        if self._bus is not None:
+            self._bus.shutdown()
+
+
+def run_bridge(session: Any, stop: threading.Event, name: str, replay: Path | None = None,
+               loop: bool = False, **bus_args: Any) -> None:  # fmt: skip
+    """A CAN bridge on ``can.Bus(**bus_args)`` (or playing ``replay``) until ``stop``."""
+    from bodynet.nodes.sources.live import CanBusBridge
+
+    bridge = CanBusBridge(session, SmartSuitCan(), name)
+    try:
+        if replay is not None:
+            bridge.run_replay(replay, stop, loop)
+        else:
+            bridge.run_bus(stop, **bus_args)
+    finally:
+        bridge.close()

@@ -1,0 +1,295 @@
+"""``bodynet lsl``: its conversions alone, then the live streams read by a real
+LSL inlet in another process (liblsl from pylsl's wheel, on loopback)."""
+
+from __future__ import annotations
+
+import math
+import os
+import statistics
+import time
+from functools import partial
+from pathlib import Path
+
+import numpy as np
+import pytest
+import zenoh
+from lsl_inlet import Recorder, loopback_lsl
+from zenoh_helpers import Collector, Running, free_port
+
+from bodynet.clients import live, lsl
+from bodynet.core import keys
+from bodynet.core.codecs import pose, raw_sample
+from bodynet.core.keys import LEFT_ARM
+from bodynet.core.messages import OleAccel, Quat, RawSample, Source
+from bodynet.core.skeleton import build_skeleton
+from bodynet.gateway.service import Gateway
+from bodynet.nodes.services import EmulationOptions, NodePlan, run_node
+from bodynet.session import open_session, session_config
+
+SKELETON = build_skeleton()
+SEGMENT_SUFFIXES = ("x", "y", "z", "qw", "qx", "qy", "qz")
+
+
+def frame(seq: int, t_ns: int, base: float = 0.0, flags: dict[str, str] | None = None
+          ) -> pose.PoseFrame:  # fmt: skip
+    """A whole-body pose with every angle and segment, values from ``base``."""
+    names = SKELETON.angle_names()
+    angles = {n: round(base + i * 0.5 + seq * 0.01, 6) for i, n in enumerate(names)}
+    segments = {}
+    for i, s in enumerate(SKELETON.segments):
+        a = 0.1 * i + 0.01 * seq
+        segments[s] = ((0.01 * i, -0.02 * i, 1.0 + base), (math.cos(a), 0.0, math.sin(a), 0.0))
+    return pose.PoseFrame(seq, t_ns, angles, {}, segments, {}, flags or {}, {}, [])
+
+
+# --- conversions ---------------------------------------------------------------------------
+
+
+def test_clock_map_keeps_the_narrowest_bracket_and_maps_without_rounding() -> None:
+    local = iter([10.0, 10.5, 20.0, 20.001, 30.0, 30.2])  # brackets of 0.5, 0.001, 0.2 s
+    unix = iter([1_700_000_000_000_000_000, 1_700_000_010_000_000_000, 1_700_000_020_000_000_000])
+    m = lsl.estimate_clock_map(lambda: next(local), lambda: next(unix), tries=3)
+    assert m.unix_ns == 1_700_000_010_000_000_000
+    assert m.local_s == pytest.approx(20.0005, abs=1e-12)
+    # 1 ns later is 1 ns later on LSL's clock: the integer difference first
+    assert m.to_local(1_700_000_010_000_000_001) - m.local_s == pytest.approx(1e-9, abs=1e-12)
+    assert m.to_local(1_700_000_009_000_000_000) == pytest.approx(19.0005, abs=1e-9)
+
+
+def test_unmeasured_angles_and_the_segments_they_carry_are_nan() -> None:
+    flags = {"left_elbow_flexion_deg": "unobserved", "left_knee_flexion_deg": "clamped",
+             "neck_rotation_deg": "held"}  # fmt: skip
+    f = frame(3, 0, flags=flags)
+    names = lsl.angle_names(SKELETON)
+    values = dict(zip(names, lsl.angle_values(f, names), strict=True))
+    assert math.isnan(values["left_elbow_flexion_deg"])
+    assert math.isnan(values["neck_rotation_deg"])
+    assert values["left_knee_flexion_deg"] == f.angles_deg["left_knee_flexion_deg"]  # clamped
+    assert values["right_elbow_flexion_deg"] == f.angles_deg["right_elbow_flexion_deg"]
+
+    chains = lsl.segment_chains(SKELETON)
+    assert chains["left_hand"] == (*SKELETON.joint("left_wrist").angle_names(),
+                                   *SKELETON.joint("left_elbow").angle_names(),
+                                   *SKELETON.joint("left_shoulder").angle_names(),
+                                   *SKELETON.joint("lumbar").angle_names())  # fmt: skip
+    seg = lsl.segment_values(f, chains)
+    labels = [c.label for c in lsl.segment_channels(SKELETON)]
+    got = dict(zip(labels, seg, strict=True))
+    for s in ("left_forearm", "left_hand", "head"):  # below the elbow, below the neck
+        assert all(math.isnan(got[f"{s}_{c}"]) for c in SEGMENT_SUFFIXES)
+    for s in ("pelvis", "thorax", "left_upperarm", "left_shank", "right_hand"):
+        p, q = f.segments[s]
+        assert [got[f"{s}_{c}"] for c in SEGMENT_SUFFIXES] == [*p, *q]
+    missing = pose.PoseFrame(1, 0, f.angles_deg, {}, {"pelvis": f.segments["pelvis"]}, {})
+    assert np.isnan(lsl.segment_values(missing, chains)[7:]).all()
+
+
+def test_channel_metadata() -> None:
+    angles = lsl.angle_channels(SKELETON)
+    assert [c.label + "_deg" for c in angles] == list(SKELETON.angle_names())
+    assert {(c.type, c.unit) for c in angles} == {("JointAngle", "degrees")}
+    segs = lsl.segment_channels(SKELETON)
+    assert len(segs) == 7 * len(SKELETON.segments)
+    assert [(c.label, c.type, c.unit) for c in segs[:7]] == [
+        ("pelvis_x", "PositionX", "meters"), ("pelvis_y", "PositionY", "meters"),
+        ("pelvis_z", "PositionZ", "meters"), ("pelvis_qw", "OrientationA", "normalized"),
+        ("pelvis_qx", "OrientationB", "normalized"), ("pelvis_qy", "OrientationC", "normalized"),
+        ("pelvis_qz", "OrientationD", "normalized")]  # fmt: skip
+    ole = RawSample(OleAccel(2, -35, (10, -1024, 3)), 7, 5)
+    assert [c.label for c in lsl.raw_channels(ole)] == ["seq", "encoder", "accel_x", "accel_y",
+                                                       "accel_z"]  # fmt: skip
+    assert lsl.raw_values(ole) == [7.0, -35.0, 10.0, -1024.0, 3.0]
+    quat = RawSample(Quat(9, (0.5, 0.5, -0.5, 0.5)), 8, 5)
+    assert [c.label for c in lsl.raw_channels(quat)] == ["seq", "qw", "qx", "qy", "qz"]
+    assert lsl.raw_values(quat) == [8.0, 0.5, 0.5, -0.5, 0.5]
+
+
+# --- live, through a real inlet in another process -------------------------------------------
+
+
+@pytest.fixture(autouse=True)
+def _loopback_lsl(tmp_path_factory: pytest.TempPathFactory) -> None:
+    loopback_lsl(tmp_path_factory.mktemp("lsl"))
+
+
+def unix_to_lsl_offset() -> float:
+    """This test's own estimate of local_clock() - Unix time (s), as a median."""
+    import pylsl
+
+    offsets = []
+    for _ in range(200):
+        a = pylsl.local_clock()
+        u = time.time_ns()
+        b = pylsl.local_clock()
+        offsets.append((a + b) / 2 - u * 1e-9)
+    return statistics.median(offsets)
+
+
+def expected_angles(f: pose.PoseFrame, labels: list[str]) -> list[float]:
+    """The pose's angle under each channel label; NaN where the team's convention
+    says nothing was measured (flagged, and not merely clamped)."""
+    out = []
+    for label in labels:
+        name = label + "_deg"
+        flag = f.flags.get(name)
+        out.append(f.angles_deg[name] if flag in (None, "clamped") else math.nan)
+    return out
+
+
+def check_stream(rec: Recorder, sid: str, frames: list[pose.PoseFrame], offset: float) -> int:
+    """Every pose of ``frames`` from the first the inlet got on is in the stream,
+    in order, with equal values and a timestamp within 1 ms of its mapped source
+    time; returns how many."""
+    samples = rec.samples[sid]
+    assert samples, f"{sid}: nothing received"
+    labels = [c["label"] for c in rec.info[sid]["channels"]]
+    mapped = np.array([f.t_ns * 1e-9 + offset for f in frames])
+    first = int(np.argmin(np.abs(mapped - samples[0][1])))
+    expected = frames[first:]
+    assert len(samples) == len(expected), (
+        f"{sid}: {len(samples)} samples for {len(expected)} poses from the first received")
+    for (values, stamp), f, m in zip(samples, expected, mapped[first:], strict=True):
+        assert abs(stamp - m) < 1e-3, f"{sid}: seq {f.seq} stamped {(stamp - m) * 1e3:.3f} ms off"
+        np.testing.assert_array_equal(values, expected_angles(f, labels))
+    return len(samples)
+
+
+def check_subject(rec: Recorder, subject: str, sent: list[pose.PoseFrame], offset: float) -> None:
+    """One subject's two streams: the angles as :func:`check_stream`, the last
+    segment sample's left hand as the last pose's."""
+    sid = lsl.source_id(subject, "angles")
+    assert rec.info[sid]["name"] == f"bodynet {subject} joint angles"
+    check_stream(rec, sid, sent, offset)
+    seg_sid = lsl.source_id(subject, "segments")
+    labels = [c["label"] for c in rec.info[seg_sid]["channels"]]
+    values = dict(zip(labels, rec.samples[seg_sid][-1][0], strict=True))
+    p, q = sent[-1].segments["left_hand"]
+    assert [values[f"left_hand_{c}"] for c in SEGMENT_SUFFIXES] == [*p, *q]
+
+
+def stop_gateway(gw: Gateway, running: Running) -> None:
+    running.stop()
+    gw.close()
+
+
+def test_lsl_streams_every_pose_through_gateway_and_router_restarts(tmp_path: Path) -> None:
+    subject = f"lsl{os.getpid()}"
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    router = open_session(session_config("router", listen=[endpoint]))
+    sessions: list[zenoh.Session] = []
+
+    def client() -> zenoh.Session:
+        sessions.append(open_session(session_config("client", connect=[endpoint],
+                                                    subject=subject)))  # fmt: skip
+        return sessions[-1]
+
+    def start_gateway() -> tuple[Gateway, Running]:
+        gw = Gateway(client(), profile_path=tmp_path / "subject.toml")
+        return gw, Running(gw.run)
+
+    out_session = client()
+    poses = Collector(out_session, keys.pose_key(), pose.decode)  # the poses on Zenoh
+    output = lsl.LslOutput()
+    outlet = Running(partial(live.run, out_session, output, subject=subject))
+    gw, gw_run = start_gateway()
+    options = EmulationOptions("reach", seed=5)
+    nodes = Running(partial(run_node, client(), plans=[NodePlan("smartsuit", "can", (LEFT_ARM,))],
+                            options=options, name="lsl"))  # fmt: skip
+    sid, rec = lsl.source_id(subject, "angles"), None
+    try:
+        poses.wait_for(lambda s: len(s) >= 3, timeout=30)
+        rec = Recorder([sid])
+        rec.wait_ready()
+        assert rec.info[sid]["type"] == "MoCap"
+        uid = rec.info[sid]["uid"]
+        rec.wait_for(sid, 20)
+
+        stop_gateway(gw, gw_run)  # a gateway restart: a new process would be the same to us
+        n = len(rec.samples[sid])
+        gw, gw_run = start_gateway()
+        rec.wait_for(sid, n + 20)
+
+        router.close()  # a router restart; every client reconnects by itself
+        n = len(rec.samples[sid])
+        router = open_session(session_config("router", listen=[endpoint]))
+        rec.wait_for(sid, n + 20)
+
+        nodes.stop()
+        stop_gateway(gw, gw_run)
+        outlet.stop()  # the output drains what Zenoh gave it
+        rec.finish()
+    finally:
+        if rec is not None and not rec.done:
+            rec.finish()
+        for s in sessions:
+            s.close()
+        router.close()
+    while not poses.queue.empty():  # every pose the collector got
+        poses.seen.append(poses.queue.get_nowait())
+    assert check_stream(rec, sid, [f for _, f in poses.seen], unix_to_lsl_offset()) >= 60
+    assert rec.info[sid]["uid"] == uid  # one outlet throughout: the inlet never re-resolved
+    measured = ~np.isnan(np.array([v for v, _ in rec.samples[sid]])).any(axis=0)
+    labels = [c["label"] for c in rec.info[sid]["channels"]]
+    assert measured[labels.index("left_elbow_flexion")]  # the CAN arm's encoder
+    assert not measured.all()  # and the rest of the body, without sensors, NaN
+
+
+def test_two_subjects_give_two_streams_each_and_raw_samples(router_endpoint: str) -> None:
+    names = [f"a{os.getpid()}", f"b{os.getpid()}"]
+    pub = open_session(session_config("client", connect=[router_endpoint]))
+    sub = open_session(session_config("client", connect=[router_endpoint]))
+    output = lsl.LslOutput(raw=True)
+    outlet = Running(partial(live.run, sub, output, all_subjects=True))
+    t0 = time.time_ns()
+    raw_key = keys.raw_key("arm", "left", "elbow")
+    sids = [lsl.source_id(s, k) for s in names for k in ("angles", "segments")]
+    raw_sid = lsl.source_id(names[0], "raw/arm/left/elbow/ole")
+    sent: dict[str, list[pose.PoseFrame]] = {s: [] for s in names}
+    raws: list[RawSample] = []
+
+    def publish(i: int) -> None:
+        for k, s in enumerate(names):
+            f = frame(i, t0 + i * 10_000_000 + k * 1_000_000, base=100.0 * k)
+            sent[s].append(f)
+            pub.put(f"{s}/{keys.pose_key()}", pose.encode(f))
+        r = RawSample(OleAccel(2, 100 + i, (i, -1024, 3)), i, t0 + i * 10_000_000, Source.CAN)
+        raws.append(r)
+        pub.put(f"{names[0]}/{raw_key}", raw_sample.encode(r))
+
+    rec = None
+    try:
+        deadline = time.monotonic() + 30
+        while len(output.streams) < 5:  # the outlets are made by the first messages
+            assert time.monotonic() < deadline, output.streams
+            publish(len(raws))
+            time.sleep(0.05)
+        rec = Recorder([*sids, raw_sid])
+        rec.wait_ready()
+        start = len(raws)
+        for i in range(start, start + 30):
+            publish(i)
+        for s in sids:
+            rec.wait_for(s, 30)
+        rec.wait_for(raw_sid, 30)
+        outlet.stop()
+        rec.finish()
+    finally:
+        if rec is not None and not rec.done:
+            rec.finish()
+        pub.close()
+        sub.close()
+    offset = unix_to_lsl_offset()
+    for s in names:
+        check_subject(rec, s, sent[s], offset)
+    # the subjects' streams differ: bob's values are alice's plus 100
+    a, b = rec.samples[sids[0]][-1][0], rec.samples[sids[2]][-1][0]
+    assert b[0] - a[0] == pytest.approx(100.0)
+    chans = rec.info[raw_sid]["channels"]
+    assert [(c["label"], c["unit"]) for c in chans][:2] == [("seq", "count"), ("encoder", "0.1 mm")]
+    got = rec.samples[raw_sid]
+    by_seq = {int(v[0]): (v, t) for v, t in got}
+    for r in raws[-30:]:
+        v, t = by_seq[r.seq]
+        assert v == [r.seq, r.reading.encoder, *r.reading.accel]  # type: ignore[union-attr]
+        assert abs(t - (r.t_ns * 1e-9 + offset)) < 1e-3
+
