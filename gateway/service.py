@@ -198,7 +198,7 @@ class _Body:
         if type(reading) is Quat:
             # kept by the sample's own time: the worker takes samples in rounds, and
             # by arrival a round's samples would all have one time (one kept a round)
-            t = sample.t_ns * 1e-9
+            t = sample.t_ns / 1e9
             hist = kept.history
             if hist is None:
                 hist = kept.history = deque()
