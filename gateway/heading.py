@@ -219,7 +219,10 @@ def calibrate_window(
         seg = segments[mount(site).segment]
         means[key], tags[key] = _tag_stats(key, samples, seg, profile)
         mounts[key] = _wxyz(seg.T @ means[key])
-    span_all = max((t["span_s"] for t in tags.values()), default=0.0)
+    # what the window covers: each of a tag's n samples stands for one sampling
+    # interval, n - 1 of which its span holds (a slow sensor's window is not short)
+    span_all = max((round(t["span_s"] * t["samples"] / (t["samples"] - 1), 3)
+                    for t in tags.values() if t["samples"] > 1), default=0.0)  # fmt: skip
     report: dict[str, Any] = {"pose": pose, "window_s": span_all, "tags": tags,
                               "missing": missing, "still_limit_deg": STILL_DEG}  # fmt: skip
     if not present:
