@@ -48,7 +48,7 @@ def _body_samples(ticks: int) -> tuple[list[str], list[bytes]]:
 
 def _pose_payload() -> bytes:
     """One whole-body pose message as the gateway publishes it."""
-    from bodynet.gateway.service import pose_frame
+    from bodynet.gateway.frames import pose_frame
     from bodynet.gateway.solver import BodySolver
     from bodynet.nodes.emulator import BodyEmulator, imu_tags
     from bodynet.nodes.motion import ROUTINES

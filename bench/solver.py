@@ -17,7 +17,7 @@ from typing import Any
 from bodynet.core.codecs import pose
 from bodynet.core.messages import RawSample, Source
 from bodynet.core.subject import Profile
-from bodynet.gateway.service import pose_frame
+from bodynet.gateway.frames import pose_frame
 from bodynet.gateway.solver import BodySolver, solve_bodies, tpose_mounts
 from bodynet.nodes.emulator import BodyEmulator, imu_tags
 from bodynet.nodes.motion import ROUTINES
@@ -33,7 +33,7 @@ def _frames() -> tuple[Profile, list[dict[Any, RawSample]]]:
     for k in range(10):
         for tag, r in zip(tags, still.sample(k / 100)[0], strict=True):
             window.setdefault(tag.site, []).append(r.wxyz)  # type: ignore[union-attr]
-    profile = Profile().with_mounts(tpose_mounts(window))
+    profile = Profile(heading="fixed").with_mounts(tpose_mounts(window))  # faces +X
     body = BodyEmulator(ROUTINES["walk"], tags, seed=3)
     frames = []
     for k in range(FRAMES):

@@ -29,7 +29,7 @@ def cmd_export(args: argparse.Namespace) -> int:
     try:
         if options.get("profile"):
             from bodynet.core.skeleton import build_skeleton
-            from bodynet.gateway import profile_file
+            from bodynet.session import profile_file
 
             options["skeleton"] = build_skeleton(profile_file.load(options["profile"]).lengths)
         track = load_track(args.recording, progress=not args.quiet, every_tick=not entry.regular)

@@ -15,7 +15,7 @@ from bodynet.session import DEFAULT_ROUTER, add_session_args, config_from_args, 
 
 
 def _profile(path: Path | None) -> Profile:
-    from bodynet.gateway import profile_file
+    from bodynet.session import profile_file
 
     if path is None or not path.exists():
         return Profile()
@@ -134,10 +134,80 @@ def add_calibrate_args(cal: argparse.ArgumentParser) -> None:
     add_session_args(p)
     p.set_defaults(func=cmd_calibrate_tpose)
     add_calibrate_ole_parser(csub)
+    add_calibrate_assign_parser(csub)
+
+
+def _tracker_arg(text: str) -> str:
+    from bodynet.core.codecs.slimevr import normalise_tracker_id
+
+    try:
+        return normalise_tracker_id(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def _site_arg(text: str) -> keys.Site:
+    try:
+        return keys.site_named(text)
+    except keys.KeySpaceError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def add_calibrate_assign_parser(csub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    p = csub.add_parser("assign", help="put a tracker (SlimeVR: MAC-sensor) on a site")
+    p.add_argument("tracker", type=_tracker_arg,
+                   help="the tracker's id, e.g. aabbccddeeff-0 (body/@topology lists "
+                        "unassigned ones)")  # fmt: skip
+    p.add_argument("site", type=_site_arg, help="where it sits, e.g. left-arm/upperarm")
+    p.add_argument("--profile", type=Path, help="also keep it in this profile (TOML)")
+    p.add_argument("--offline", action="store_true",
+                   help="only write the profile; tell no running bridge")  # fmt: skip
+    p.add_argument("--timeout", type=float, default=3.0,
+                   help="seconds to wait for a bridge to publish the site")  # fmt: skip
+    add_session_args(p)
+    p.set_defaults(func=cmd_calibrate_assign)
+
+
+def cmd_calibrate_assign(args: argparse.Namespace) -> int:
+    """Save the assignment in the profile, and tell the running bridges: the
+    tracker's samples then come on the site's key."""
+    import time
+
+    name = keys.site_name(args.site)
+    if args.profile is not None:
+        from bodynet.session import profile_file
+
+        try:
+            profile = _profile(args.profile).with_tracker(args.tracker, name)
+            profile_file.save(profile, args.profile)
+        except (ProfileError, OSError) as exc:
+            print(f"bodynet calibrate assign: {exc}", file=sys.stderr)
+            return 2
+        print(f"{args.tracker} -> {name}: saved in {args.profile}", file=sys.stderr)
+    elif args.offline:
+        print("bodynet calibrate assign: --offline needs --profile", file=sys.stderr)
+        return 2
+    if args.offline:
+        return 0
+    session = open_session(config_from_args(args))
+    try:
+        session.put(keys.ASSIGN, json.dumps({"tracker": args.tracker, "site": name}))
+        deadline = time.monotonic() + args.timeout
+        while time.monotonic() < deadline:
+            if any(r.ok is not None for r in session.liveliness().get(args.site.raw_key,
+                                                                       timeout=0.5)):  # fmt: skip
+                print(f"{args.tracker} -> {name}: live on {args.site.raw_key}", file=sys.stderr)
+                return 0
+            time.sleep(0.1)
+    finally:
+        session.close()
+    print(f"bodynet calibrate assign: no bridge published {args.site.raw_key} within "
+          f"{args.timeout:g} s (is the tracker streaming?)", file=sys.stderr)  # fmt: skip
+    return 0 if args.profile is not None else 1
 
 
 def cmd_process(args: argparse.Namespace) -> int:
-    from bodynet.nodes.captures import format_of
+    from bodynet.nodes.captures import CaptureError, capture_options, format_of
     from bodynet.offline.process import process
 
     fmt = args.format or format_of(args.input)
@@ -147,8 +217,8 @@ def cmd_process(args: argparse.Namespace) -> int:
     try:
         profile = _profile(args.profile)
         result = process(args.input, fmt, args.output, profile, args.rate_hz,
-                         args.tick_hz, args.tpose_s)  # fmt: skip
-    except (ProfileError, OSError) as exc:
+                         args.tick_hz, args.tpose_s, capture_options(args))  # fmt: skip
+    except (ProfileError, OSError, CaptureError) as exc:
         print(f"bodynet process: {exc}", file=sys.stderr)
         return 2
     print(f"{result.ticks} ticks from {result.samples} samples -> {args.output}; "
@@ -158,10 +228,11 @@ def cmd_process(args: argparse.Namespace) -> int:
 
 
 def add_process_args(p: argparse.ArgumentParser) -> None:
-    from bodynet.nodes.captures import formats
+    from bodynet.nodes.captures import add_capture_args, formats
 
     p.add_argument("input", type=Path, help="a capture (any format of `bodynet decode`)")
     p.add_argument("--format", choices=formats())
+    add_capture_args(p)
     p.add_argument("--rate-hz", type=float, default=None, help="as for `bodynet decode`")
     p.add_argument("--tick-hz", type=float, default=100.0, help="most poses per second of capture")
     p.add_argument(
@@ -224,8 +295,8 @@ def _still_counts(session: object, key: str, seconds: float) -> tuple[float, flo
 
 
 def cmd_calibrate_ole(args: argparse.Namespace) -> int:
-    from bodynet.gateway import profile_file
     from bodynet.gateway.calibrate import fit_calibration
+    from bodynet.session import profile_file
 
     key, angle_name = _module_site(args.joint)
     pairs: list[tuple[float, float]] = []

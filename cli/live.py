@@ -1,4 +1,4 @@
-"""Command-line wiring of the live outputs: ``lsl`` and ``vmc``."""
+"""Command-line wiring of the live outputs: ``lsl``, ``vmc`` and ``metrics``."""
 
 from __future__ import annotations
 
@@ -18,10 +18,15 @@ def _run_output(args: argparse.Namespace, name: str, options: dict[str, Any]) ->
     if args.all_subjects and args.subject:
         print(f"{command}: --all-subjects or --subject, not both", file=sys.stderr)
         return 2
-    output = live.load_output(name, **options)
     stop = stop_on_signals()
-    conf = config_from_args(args)
-    session = open_session(conf)
+    session = open_session(config_from_args(args))
+    if name == "metrics":  # its "send" is a put on this session
+        options = {**options, "session": session, "all_subjects": args.all_subjects}
+    try:
+        output = live.load_output(name, **options)
+    except BaseException:
+        session.close()
+        raise
     subject = args.subject or live.DEFAULT_SUBJECT
     who = "every subject" if args.all_subjects else f"subject {subject}"
     print(f"{command}: {who}, {output.describe()}", flush=True)
@@ -41,6 +46,10 @@ def cmd_lsl(args: argparse.Namespace) -> int:
 def cmd_vmc(args: argparse.Namespace) -> int:
     return _run_output(args, "vmc", {"host": args.host, "port": args.port,
                                      "rate_hz": args.rate_hz})  # fmt: skip
+
+
+def cmd_metrics(args: argparse.Namespace) -> int:
+    return _run_output(args, "metrics", {"rate_hz": args.rate_hz})
 
 
 def _port(text: str) -> int:
@@ -88,4 +97,13 @@ def add_vmc_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--port", type=_port, default=39539, help="its UDP port (default 39539)")
     p.add_argument("--rate-hz", type=_rate, default=60.0,
                    help="bundles per second, each the newest pose (default 60)")  # fmt: skip
+    add_session_args(p)
+
+
+def add_metrics_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--all-subjects", action="store_true",
+                   help="every subject on the network, each its own <subject>/body/@metrics; "
+                        "else the session's --subject (or none)")  # fmt: skip
+    p.add_argument("--rate-hz", type=_rate, default=2.0,
+                   help="metrics messages per second and subject (default 2)")  # fmt: skip
     add_session_args(p)

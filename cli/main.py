@@ -34,13 +34,23 @@ log = logging.getLogger("bodynet")
 
 def cmd_decode(args: argparse.Namespace) -> int:
     """Decode a capture: one JSON object per sample on stdout, a summary on stderr."""
-    from bodynet.nodes.captures import CaptureStats, read_capture, sample_json
+    from bodynet.nodes.captures import (
+        CaptureError,
+        CaptureStats,
+        capture_options,
+        read_capture,
+        sample_json,
+    )
 
     stats = CaptureStats()
     out = sys.stdout
+    options = capture_options(args)
     try:
-        for sample in read_capture(args.file, args.format, stats, args.rate_hz):
+        for sample in read_capture(args.file, args.format, stats, args.rate_hz, options):
             out.write(json.dumps(sample_json(sample), separators=(",", ":")) + "\n")
+    except CaptureError as exc:
+        print(f"bodynet decode: {exc}", file=sys.stderr)
+        return 2
     except OSError as exc:
         print(f"bodynet decode: cannot read {args.file}: {exc.strerror or exc}", file=sys.stderr)
         return 2
@@ -104,12 +114,13 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
 
 def add_decode_args(p: argparse.ArgumentParser) -> None:
-    from bodynet.nodes.captures import formats
+    from bodynet.nodes.captures import add_capture_args, formats
 
     p.add_argument("--format", required=True, choices=formats())
     p.add_argument("--rate-hz", type=float, default=None,
                    help="samples' time base where the capture has none "
                         "(concentrator: 1/22 ms; imu-central: 25 Hz)")  # fmt: skip
+    add_capture_args(p)
     p.add_argument("file", type=Path)
 
 
@@ -210,6 +221,9 @@ COMMANDS: dict[str, Command] = {
                    "bodynet.cli.live:add_lsl_args", "bodynet.cli.live:cmd_lsl"),
     "vmc": Command("the live body over the VMC protocol (Unity, VSeeFace, Blender add-ons)",
                    "bodynet.cli.live:add_vmc_args", "bodynet.cli.live:cmd_vmc"),
+    "metrics": Command("clinical numbers live on body/@metrics: range of motion, repetitions, "
+                       "smoothness", "bodynet.cli.live:add_metrics_args",
+                       "bodynet.cli.live:cmd_metrics"),
     "certs": Command("a CA, certificates and Zenoh configs for a secure router and its clients",
                      "bodynet.cli.security:add_certs_args", "bodynet.cli.security:cmd_certs"),
     "router": Command("a Zenoh router for the body network (no zenohd needed)",

@@ -111,9 +111,10 @@ def cmd_node(args: argparse.Namespace) -> int:
 
     if args.system == "body":
         plans = body_plan()
-    elif args.system == "imu":
+    elif args.system in ("imu", "slimevr"):  # IMU tags on the central, or as SlimeVR trackers
         sensors = _numbers(args.sensors) if args.sensors else None
-        plans = [NodePlan("imu", "imu-central", _branches(args), sensors)]
+        via = "imu-central" if args.system == "imu" else "slimevr"
+        plans = [NodePlan(args.system, via, _branches(args), sensors)]
     else:
         plans = [NodePlan("smartsuit", args.via, _branches(args))]
     return _with_session(args, run_node, plans, _options(args), args.name or f"node-{args.system}")
@@ -176,6 +177,7 @@ def add_node_args(node: argparse.ArgumentParser) -> None:
     for system, text in (
         ("smartsuit", "SmartSuit branches"),
         ("imu", "IMU tags"),
+        ("slimevr", "IMU tags as SlimeVR trackers over UDP, with a SlimeVR bridge"),
         ("body", "a full body: SmartSuit arms, IMU tags for the rest"),
     ):
         p = nsub.add_parser(system, help=text)

@@ -43,6 +43,7 @@ log = logging.getLogger(__name__)
 OUTPUTS: dict[str, str] = {
     "lsl": "bodynet.clients.lsl:LslOutput",
     "vmc": "bodynet.clients.vmc:VmcOutput",
+    "metrics": "bodynet.clients.metrics:MetricsOutput",
 }
 
 #: The name a subject without namespace goes by in the outputs (stream names,

@@ -132,6 +132,30 @@ TOPOLOGY_SCHEMA = {
         },
     },
 }
+METRICS_SCHEMA = {
+    "title": "bodynet.Metrics",
+    "description": "body/@metrics: per observed dof, range of motion so far, repetitions and "
+                   "the SPARC smoothness of its current movement (core/metrics.py)",
+    "type": "object",
+    "properties": {
+        "v": {"type": "integer"},
+        "t_ns": {"type": ["integer", "null"]},
+        "dofs": {
+            "type": "object",
+            "additionalProperties": {
+                "type": "object",
+                "properties": {
+                    "min_deg": {"type": "number"},
+                    "max_deg": {"type": "number"},
+                    "range_deg": {"type": "number"},
+                    "repetitions": {"type": "integer"},
+                    "sparc": {"type": ["number", "null"]},
+                    "samples": {"type": "integer"},
+                },
+            },
+        },
+    },
+}  # fmt: skip
 HEALTH_SCHEMA = {
     "title": "bodynet.Health",
     "type": "object",
@@ -350,6 +374,8 @@ class McapSink:
                                                      json.dumps(TOPOLOGY_SCHEMA).encode()),
             "health": self._writer.register_schema("bodynet.Health", "jsonschema",
                                                    json.dumps(HEALTH_SCHEMA).encode()),
+            "metrics": self._writer.register_schema("bodynet.Metrics", "jsonschema",
+                                                    json.dumps(METRICS_SCHEMA).encode()),
         }  # fmt: skip
         self._parents = segment_parents()
         self._channels: dict[str, int] = {}
@@ -418,6 +444,10 @@ class McapSink:
     def write_health(self, topic: str, data: bytes, log_time_ns: int) -> None:
         """A health message (``body/@health/<source>``), as published (JSON bytes)."""
         self._add(self._channel(topic, "health"), log_time_ns, data)
+
+    def write_metrics(self, topic: str, data: bytes, log_time_ns: int) -> None:
+        """A metrics message (``body/@metrics``), as published (JSON bytes)."""
+        self._add(self._channel(topic, "metrics"), log_time_ns, data)
 
     def write_gap(self, gap: Gap) -> None:
         data = orjson.dumps(asdict(gap))

@@ -47,9 +47,10 @@ from bodynet.core.errors import DecodeError, Reason, RejectCounts
 
 log = logging.getLogger(__name__)
 
-#: Raw samples, poses, topology and health. ``@`` chunks are verbatim (no
-#: wildcard matches them): the admin keys are named.
-DEFAULT_KEYS = (keys.all_raw(), keys.all_poses(), keys.TOPOLOGY, keys.all_health())
+#: Raw samples, poses, topology, health and metrics. ``@`` chunks are verbatim
+#: (no wildcard matches them): the admin keys are named.
+DEFAULT_KEYS = (keys.all_raw(), keys.all_poses(), keys.TOPOLOGY, keys.all_health(),
+                keys.METRICS)  # fmt: skip
 
 
 class Recorder:
@@ -132,6 +133,8 @@ class Recorder:
                     self._sink.write_topology(key, data, _admin_time(data))
                 elif kind == _HEALTH:
                     self._sink.write_health(key, data, _admin_time(data))
+                elif kind == _METRICS:
+                    self._sink.write_metrics(key, data, _admin_time(data))
                 else:
                     raw = raw_sample.decode(data)
                     self._note_seq(key, raw.seq, check_time(raw.t_ns))
@@ -161,7 +164,8 @@ class Recorder:
 
 
 _POSE, _TRUTH, _TOPOLOGY, _HEALTH, _RAW = "pose", "truth", "topology", "health", "raw"
-_PLAIN = (_POSE, _TOPOLOGY, _HEALTH)  # what only plain publishers send
+_METRICS = "metrics"
+_PLAIN = (_POSE, _TOPOLOGY, _HEALTH, _METRICS)  # what only plain publishers send
 
 
 @lru_cache(maxsize=4096)  # on every sample's path; the key space is small
@@ -177,6 +181,8 @@ def _kind(key: str) -> str:
         return _TOPOLOGY
     if rest.startswith(f"{keys.HEALTH}/"):
         return _HEALTH
+    if rest == keys.METRICS:
+        return _METRICS
     if key.endswith(f"/{keys.POSE}"):
         return _POSE
     if key.endswith(f"/{keys.Stream.TRUTH}"):

@@ -35,6 +35,7 @@ class Reason(StrEnum):
     BAD_VERSION = "bad_version"
     BAD_KIND = "bad_kind"
     TRUNCATED = "truncated"
+    OUT_OF_ORDER = "out_of_order"
 
 
 class DecodeError(ValueError):

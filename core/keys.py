@@ -182,9 +182,35 @@ HEALTH = f"{ROOT}/@health"
 
 
 TOPOLOGY = f"{ROOT}/@topology"
+#: Per subject, about twice a second: each observed dof's range of motion so far,
+#: repetitions and the smoothness of its current movement (``core/metrics.py``).
+METRICS = f"{ROOT}/@metrics"
 CALIBRATE_TPOSE = f"{ROOT}/@calibrate/tpose"
 #: The yaw reset: the subject faces forward now (a query; the gateway answers).
 CALIBRATE_YAW = f"{ROOT}/@calibrate/yaw"
+#: Liveliness tokens of sensors a bridge sees but no site is assigned to yet:
+#: ``body/@unassigned/<tracker id>`` (the gateway lists them in the topology).
+UNASSIGNED = f"{ROOT}/@unassigned"
+#: ``bodynet calibrate assign`` puts ``{"tracker": id, "site": "left-arm/upperarm"}``
+#: here; bridges that serve the tracker take it at once.
+ASSIGN = f"{ROOT}/@assign"
+
+
+def unassigned_key(tracker: str) -> str:
+    return f"{UNASSIGNED}/{chunk(tracker)}"
+
+
+def site_named(text: str) -> Site:
+    """The site a user names ``left-arm/upperarm`` (branch name / site name)."""
+    branch_text, sep, name = text.strip().rpartition("/")
+    if not sep:
+        raise KeySpaceError(f"not a site like left-arm/upperarm: {text!r}")
+    return Site(branch_named(branch_text), name)
+
+
+def site_name(site: Site) -> str:
+    """``left-arm/upperarm``: how :func:`site_named` reads it."""
+    return f"{site.branch}/{site.name}"
 
 
 def health_key(source: str) -> str:

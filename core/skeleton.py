@@ -27,6 +27,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from functools import cache
 from types import MappingProxyType
 
 Vec3 = tuple[float, float, float]
@@ -150,6 +151,26 @@ def build_skeleton(lengths: Mapping[str, float] | None = None) -> Skeleton:
             directions[f"{side}_{seg}"] = _neg(Z)
         directions[f"{side}_foot"] = X
     return Skeleton(MappingProxyType(L), tuple(joints), MappingProxyType(directions))
+
+
+#: The joints of each part of the body, from the trunk outwards (a limb's
+#: without its side: ``elbow`` is ``left_elbow`` on the left arm). The parts
+#: are the branches of the body bus (``core/keys.py``): the trunk and each limb.
+PART_JOINTS: Mapping[str, tuple[str, ...]] = MappingProxyType(
+    {"trunk": ("lumbar", "neck"), "arm": ("shoulder", "elbow", "wrist"),
+     "leg": ("hip", "knee", "ankle")}
+)  # fmt: skip
+
+
+@cache
+def part(limb: str, side: str) -> tuple[tuple[str, ...], tuple[str, ...]]:
+    """The joints and segments of one part of the body: ``part("arm", "left")``
+    is the left shoulder, elbow and wrist and the segments they turn; the
+    trunk (``part("trunk", "mid")``) also holds the root, the pelvis."""
+    joints = tuple(j if limb == "trunk" else f"{side}_{j}" for j in PART_JOINTS[limb])
+    child = {j.name: j.child for j in build_skeleton().joints}
+    root = ("pelvis",) if limb == "trunk" else ()
+    return joints, (*root, *(child[j] for j in joints))
 
 
 #: The seven dofs of an arm, shoulder to hand (``<joint>_<dof>``, either side).

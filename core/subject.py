@@ -27,8 +27,11 @@ heading = "auto"       # auto: found from motion; fixed: the subject faced +X of
 "body/arm/left/upperarm/raw" = 0.0
 
 [heading_reference]    # optional, declared: this tag's axis pointed forward during calibration
-key = "body/trunk/low/sacrum/raw"
+key = "body/trunk/mid/sacrum/raw"
 axis = "+z"
+
+[trackers]             # a sensor that says who it is (SlimeVR: MAC-sensor) -> its site
+"aabbccddeeff-0" = "left-arm/upperarm"
 ```
 """
 
@@ -40,6 +43,8 @@ from types import MappingProxyType
 from typing import Any
 
 from .calibration import OleCalibration, default_ole
+from .codecs.slimevr import normalise_tracker_id
+from .keys import KeySpaceError, site_name, site_named
 from .profile import OLE_DOF, SMARTSUIT_SITES
 
 VERSION = 1
@@ -78,6 +83,7 @@ class Profile:
     lengths: Mapping[str, float] = field(default_factory=dict)  # over the skeleton's defaults
     ole: Mapping[str, OleCalibration] = field(default_factory=default_ole_table)
     imu_mounts: Mapping[str, QuatWxyz] = field(default_factory=dict)  # raw key -> mount
+    trackers: Mapping[str, str] = field(default_factory=dict)  # tracker id -> site name
     accel_counts_per_g: float = 1024.0
     accel_filter: float = 0.5  # weight of a new accelerometer sample in the tilt filter
     pose: str = "tpose"  # the calibration pose (POSES)
@@ -114,6 +120,12 @@ class Profile:
         """The tag's heading reference (deg; 0 when unknown or ``fixed``)."""
         return 0.0 if self.heading == "fixed" else self.imu_headings.get(key, 0.0)
 
+    def with_tracker(self, tracker: str, site: str) -> Profile:
+        """``tracker`` (its canonical id) sits at ``site`` (``left-arm/upperarm``);
+        a site holds one tracker, so any other tracker there is unassigned."""
+        kept = {t: s for t, s in self.trackers.items() if s != site and t != tracker}
+        return replace(self, trackers=MappingProxyType({**kept, tracker: site}))
+
     def with_ole(self, angle: str, calibration: OleCalibration) -> Profile:
         return replace(self, ole=MappingProxyType({**self.ole, angle: calibration}))
 
@@ -132,6 +144,7 @@ class Profile:
             "pose": self.pose,
             "heading": self.heading,
             "imu_headings": dict(sorted(self.imu_headings.items())),
+            "trackers": dict(sorted(self.trackers.items())),
             **({"heading_reference": {"key": self.heading_reference[0],
                                       "axis": self.heading_reference[1]}}
                if self.heading_reference else {}),
@@ -156,6 +169,12 @@ class Profile:
                     raise ProfileError(f"imu_mounts[{key!r}] needs 4 numbers (w, x, y, z)")
                 w, x, y, z = map(float, q)
                 mounts[key] = (w, x, y, z)
+            trackers = {}
+            for tracker, site in data.get("trackers", {}).items():
+                try:
+                    trackers[normalise_tracker_id(str(tracker))] = site_name(site_named(str(site)))
+                except (ValueError, KeySpaceError) as exc:
+                    raise ProfileError(f"trackers[{tracker!r}]: {exc}") from None
             accel_filter = float(data.get("accel_filter", 0.5))
             if not 0.0 < accel_filter <= 1.0:
                 raise ProfileError(f"accel_filter must be in (0, 1], not {accel_filter}")
@@ -174,6 +193,7 @@ class Profile:
                 ),
                 ole=MappingProxyType(ole),
                 imu_mounts=MappingProxyType(mounts),
+                trackers=MappingProxyType(trackers),
                 accel_counts_per_g=float(data.get("accel_counts_per_g", 1024.0)),
                 accel_filter=accel_filter,
             )

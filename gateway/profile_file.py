@@ -1,33 +1,8 @@
-"""Reading and writing a subject's profile as TOML."""
+"""Moved to :mod:`bodynet.session.profile_file`, where clients may read it too.
 
-from __future__ import annotations
+Kept as a name only while branches written before the move still import it;
+new code imports ``bodynet.session.profile_file``."""
 
-import os
-import tomllib
-from pathlib import Path
+from bodynet.session.profile_file import HEADER, load, save
 
-import tomli_w
-
-from bodynet.core.subject import Profile, ProfileError
-
-HEADER = (
-    "# bodynet subject profile: edit freely; `bodynet calibrate` rewrites the sections it owns.\n"
-)
-
-
-def load(path: Path) -> Profile:
-    """The profile in ``path``; ``ProfileError`` says what is wrong with it."""
-    try:
-        data = tomllib.loads(path.read_text())
-    except tomllib.TOMLDecodeError as exc:
-        raise ProfileError(f"{path}: not valid TOML: {exc}") from None
-    return Profile.from_dict(data)
-
-
-def save(profile: Profile, path: Path) -> None:
-    """Write ``profile`` to ``path`` atomically, readable by the owner only."""
-    tmp = path.with_name(path.name + ".tmp")
-    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
-    with os.fdopen(fd, "w") as f:
-        f.write(HEADER + tomli_w.dumps(profile.to_dict()))
-    tmp.replace(path)
+__all__ = ["HEADER", "load", "save"]

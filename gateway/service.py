@@ -34,11 +34,10 @@ import queue
 import threading
 import time
 from collections import Counter, deque
-from collections.abc import Iterable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
 import zenoh
 
 from bodynet.core import keys
@@ -47,9 +46,10 @@ from bodynet.core.errors import DecodeError, Reason, RejectCounts
 from bodynet.core.keys import BRANCHES, Branch, Site
 from bodynet.core.messages import Quat, RawSample, source_name
 from bodynet.core.subject import Profile, ProfileError, QuatWxyz
-from bodynet.gateway import profile_file
+from bodynet.gateway.frames import branch_views, pose_frame
 from bodynet.gateway.heading import BodyHeading, CalibrationRefused, calibrate_window, yaw_reset
 from bodynet.gateway.solver import BodyOutput, BodySolver, solve_bodies
+from bodynet.session import profile_file
 
 log = logging.getLogger(__name__)
 
@@ -68,53 +68,6 @@ INTAKE_DEPTH = 1 << 16
 #: How long the idle worker sleeps before it looks again: while samples flow, and
 #: after a second without any.
 IDLE_S, IDLE_QUIET_S = 0.0003, 0.005
-
-
-def branch_parts(branch: Branch) -> tuple[tuple[str, ...], tuple[str, ...]]:
-    """The joints and segments of a branch."""
-    if branch == keys.TRUNK:
-        return ("lumbar", "neck"), ("pelvis", "thorax", "head")
-    side = branch.side
-    if branch.limb is keys.Limb.ARM:
-        return tuple(f"{side}_{j}" for j in ("shoulder", "elbow", "wrist")), tuple(
-            f"{side}_{s}" for s in ("upperarm", "forearm", "hand")
-        )
-    return tuple(f"{side}_{j}" for j in ("hip", "knee", "ankle")), tuple(
-        f"{side}_{s}" for s in ("thigh", "shank", "foot")
-    )
-
-
-def branch_views(frame: pose.PoseFrame, branches: Iterable[Branch]) -> dict[Branch, pose.PoseFrame]:
-    """Each branch's view of a whole-body pose: its joints, segments and sources."""
-    views = {}
-    for branch in branches:
-        joints, segments = branch_parts(branch)
-        views[branch] = frame.subset(joints, segments, branch.key + "/")
-    return views
-
-
-def pose_frame(output: BodyOutput, seq: int, stale: Sequence[str]) -> pose.PoseFrame:
-    """The message of one tick, numbers rounded to 1e-6 (microdegrees, micrometres)."""
-    names = output.names
-    # one rounding and one conversion to Python floats for every number of the tick,
-    # cut back into vectors by zip (a body's message is built 100 times a second)
-    n_p, n_q = output.positions.size, output.quats.size
-    flat = np.round(np.concatenate([output.positions.ravel(), output.quats.ravel(),
-                                    output.angles, output.rel]), 6).tolist()  # fmt: skip
-    p, q = iter(flat[:n_p]), iter(flat[n_p : n_p + n_q])
-    positions = list(zip(p, p, p, strict=True))
-    segments = zip(positions, zip(q, q, q, q, strict=True), strict=True)
-    return pose.PoseFrame(
-        seq,
-        output.t_ns,
-        dict(zip(names.angles, flat[n_p + n_q : n_p + n_q + len(names.angles)], strict=True)),
-        dict(zip(names.joints, flat[n_p + n_q + len(names.angles) :], strict=True)),
-        dict(zip(names.segments, segments, strict=True)),
-        dict(zip(names.joints, map(positions.__getitem__, names.joint_segment), strict=True)),
-        output.flags,
-        output.sources,
-        list(stale),
-    )
 
 
 class _Site:
@@ -149,6 +102,7 @@ class _Body:
         self.latest: dict[Site, _Site] = {}
         self.alive: set[str] = set()
         self.gone: set[str] = set()  # keys whose token went away
+        self.unassigned: set[str] = set()  # trackers streaming with no site yet
         self.published_stale: set[str] = set()
         self.topology_text = ""
         self.samples = 0
@@ -266,7 +220,10 @@ class _Body:
             assert isinstance(nodes, dict)
             nodes[key] = {"state": state, "node": seen.sample.reading.node if seen else None,
                           "last_t_ns": seen.sample.t_ns if seen else None}  # fmt: skip
-        return {"t_ns": time.time_ns(), "branches": branches}
+        out: dict[str, object] = {"t_ns": time.time_ns(), "branches": branches}
+        if self.unassigned:
+            out["unassigned"] = sorted(self.unassigned)
+        return out
 
     def tpose_window(self, now: float, seconds: float
                      ) -> dict[Site, list[tuple[float, QuatWxyz]]]:  # fmt: skip
@@ -340,9 +297,9 @@ class Gateway:
         self._subs = [session.declare_subscriber(p + sel, zenoh.handlers.FifoChannel(INTAKE_DEPTH))
                       for p in prefixes for sel in inner]  # fmt: skip
         self._live = [
-            session.liveliness().declare_subscriber(p + keys.all_raw(), self._on_token,
-                                                    history=True)
+            session.liveliness().declare_subscriber(p + sel, self._on_token, history=True)
             for p in prefixes
+            for sel in (keys.all_raw(), keys.UNASSIGNED + "/*")  # sensors, unassigned trackers
         ]  # fmt: skip
         self._queryables = [
             q
@@ -624,6 +581,9 @@ class Gateway:
     def _token(self, subject: str | None, token: _Token) -> _Body | None:
         """Apply a token's coming or going to its subject's body; that body (to
         be solved at once, its topology having changed), if there is one."""
+        if token.key.startswith(keys.UNASSIGNED + "/"):
+            self._unassigned(subject, token)
+            return None
         try:
             site, _ = keys.parse(token.key)
         except keys.KeySpaceError:
@@ -638,6 +598,17 @@ class Gateway:
             (body.gone.discard if token.alive else body.gone.add)(token.key)
         self._publish_topology(body)
         return body
+
+    def _unassigned(self, subject: str | None, token: _Token) -> None:
+        """A tracker with no site (a bridge's ``body/@unassigned/<id>`` token) came
+        or went: the topology lists it, for the user to assign."""
+        body = self._body(subject)
+        if body is None:
+            return
+        tracker = token.key[len(keys.UNASSIGNED) + 1 :]
+        with self._lock:
+            (body.unassigned.add if token.alive else body.unassigned.discard)(tracker)
+        self._publish_topology(body)
 
     def _housekeeping(self, now: float) -> None:
         """Once a second for each body, one body a round (twenty bodies' topology

@@ -11,15 +11,18 @@ one, otherwise the source's counter (reply, tick) divided by its rate.
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+import argparse
+from collections.abc import Iterator, Mapping
 from pathlib import Path
+from typing import Any
 
 from bodynet.core.messages import OleAccel
 from bodynet.nodes import sources
-from bodynet.nodes.sources.base import CapturedSample, CaptureStats
+from bodynet.nodes.sources.base import CapturedSample, CaptureError, CaptureStats
 from bodynet.nodes.sources.can_transport import can_log_messages, frame_of
 
 __all__ = [
+    "CaptureError",
     "CaptureStats",
     "CapturedSample",
     "can_log_messages",
@@ -50,10 +53,23 @@ def read_capture(
     fmt: str,
     stats: CaptureStats,
     rate_hz: float | None = None,
+    options: Mapping[str, Any] | None = None,
 ) -> Iterator[CapturedSample]:
-    """Decode a capture file into samples, counting everything else in ``stats``."""
-    source = sources.by_format(str(fmt))()
+    """Decode a capture file into samples, counting everything else in ``stats``;
+    ``CaptureError`` if it cannot be read. ``options``: the sources' capture
+    options (``map`` of orientation files)."""
+    source = sources.by_format(str(fmt)).from_options(options or {})
     yield from source.read(Path(path), str(fmt), stats, rate_hz)
+
+
+def add_capture_args(parser: argparse.ArgumentParser) -> None:
+    """Every source's options for reading its files (``--map``...)."""
+    for cls in sources.all_sources():
+        cls.add_capture_args(parser)
+
+
+def capture_options(args: argparse.Namespace) -> dict[str, Any]:
+    return {k: v for k, v in vars(args).items() if k in ("map",)}
 
 
 def sample_json(sample: CapturedSample) -> dict[str, object]:

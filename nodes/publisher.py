@@ -112,6 +112,7 @@ class SitePublisher:
         self.stale_after_s = max(stale_periods * period_s, MIN_STALE_S)
         self.nodes: dict[int, NodeHealth] = {}
         self.rejected = RejectCounts()
+        self._early_status: dict[int, dict[str, float | int | str]] = {}
         self.device = "starting"
         self._publishers: dict[int, zenoh.ext.AdvancedPublisher] = {}
         self._tokens: dict[int, zenoh.LivelinessToken] = {}
@@ -137,6 +138,7 @@ class SitePublisher:
             health = self.nodes.get(reading.node)
             if health is None:
                 health = self.nodes[reading.node] = NodeHealth(site)
+                health.status.update(self._early_status.pop(reading.node, {}))
             if health.last_seq is not None and seq > health.last_seq + 1:
                 health.gaps += seq - health.last_seq - 1
             health.last_seq = seq
@@ -169,13 +171,33 @@ class SitePublisher:
             "%s: rejected %s: %s %r", self.name, rejected.reason, rejected.detail, rejected.data
         )
 
+    def move(self, node: int, site: Site) -> None:
+        """Node ``node`` sits at ``site`` from now on (a tracker assigned live): what
+        it published elsewhere is dropped, its health starts over."""
+        with self._lock:
+            if self.sites.get(node) == site:
+                return
+            self.sites[node] = site
+            token = self._tokens.pop(node, None)
+            if token is not None:
+                token.undeclare()
+            publisher = self._publishers.pop(node, None)
+            if publisher is not None:
+                publisher.undeclare()
+            health = self.nodes.pop(node, None)
+            if health is not None:  # what the node said of itself still holds
+                self._early_status[node] = dict(health.status)
+        self.publish_health()
+
     def set_status(self, node: int, key: str, value: float | int | str) -> None:
         """Keep what node ``node`` says of itself (battery, signal strength...) for
-        its health, once it has delivered a sample."""
+        its health (what it says before its first sample is kept for then)."""
         with self._lock:
             health = self.nodes.get(node)
             if health is not None:
                 health.status[key] = value
+            else:
+                self._early_status.setdefault(node, {})[key] = value
 
     def set_device(self, state: str) -> None:
         """Say how the device behind the source is doing (``connected``...)."""

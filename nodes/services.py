@@ -94,8 +94,10 @@ def emulate(
     behind ``link``, ``can`` on a bus...). With ``truth_session``, the ground
     truth is published there too."""
     source = sources.by_device(kind)()
-    sink = truth_sink(truth_session, source.sites) if truth_session is not None else None
-    body = _body(options, source.emulated_sensors(sensors, branches))
+    emulated = source.emulated_sensors(sensors, branches)
+    sites = {s.node: s.site for s in emulated}
+    sink = truth_sink(truth_session, sites) if truth_session is not None else None
+    body = _body(options, emulated)
     opts = {"link": link, "silent": silent, "bus_args": bus_args, **device_args}
     device = source.emulator(kind, body, sink, opts)
     device.start()
@@ -148,8 +150,9 @@ def run_node(
             source = sources.by_device(plan.via)()
             sensors = source.emulated_sensors(plan.sensors, plan.branches)
             body = _body(options, sensors)
+            truth = truth_sink(session, {s.node: s.site for s in sensors})
             emulator, target, kwargs = source.node(
-                plan.via, body, tmp, clock, truth_sink(session, source.sites), sensors, label
+                plan.via, body, tmp, clock, truth, sensors, label
             )
             emulator.start()
             stack.callback(emulator.stop)

@@ -12,16 +12,17 @@ the profile already holds their mounts.
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from bodynet.clients.mcap_store import McapSink
 from bodynet.core import keys
 from bodynet.core.keys import BRANCHES, Site
 from bodynet.core.messages import Quat, RawSample
 from bodynet.core.subject import Profile
-from bodynet.gateway.service import branch_views, pose_frame
+from bodynet.gateway.frames import branch_views, pose_frame
 from bodynet.gateway.solver import BodySolver, tpose_mounts
 from bodynet.nodes import sources
 from bodynet.nodes.sources.base import CapturedSample, CaptureStats
@@ -48,9 +49,11 @@ def _ticks(samples: Iterator[CapturedSample], period_s: float) -> Iterator[list[
 
 def process(path: Path, fmt: str, out: Path, profile: Profile | None = None,
             rate_hz: float | None = None, tick_hz: float = 100.0,
-            tpose_s: float = 3.0) -> ProcessResult:  # fmt: skip
-    """Solve every tick of a capture and write poses and raw samples to ``out``."""
-    source = sources.by_format(fmt)()
+            tpose_s: float = 3.0,
+            options: Mapping[str, Any] | None = None) -> ProcessResult:  # fmt: skip
+    """Solve every tick of a capture and write poses and raw samples to ``out``
+    (``options``: the source's capture options, e.g. an orientation file's ``map``)."""
+    source = sources.by_format(fmt).from_options(options or {})
     profile = profile or Profile()
     window: dict[Site, list[tuple[float, float, float, float]]] = {}
     start: float | None = None

@@ -17,11 +17,11 @@ from zenoh_helpers import raw_collector
 
 from bodynet.core.calibration import ELBOW_SF
 from bodynet.core.keys import LEFT_ARM
-from bodynet.gateway import profile_file
 from bodynet.nodes.can_bridge import CanBridge
 from bodynet.nodes.emulator import BodyEmulator, Realism, smartsuit_sensors
 from bodynet.nodes.hardware import CanNodes
 from bodynet.nodes.motion import Routine
+from bodynet.session import profile_file
 
 BODYNET = Path(sys.executable).with_name("bodynet")
 

@@ -9,8 +9,8 @@ import pytest
 
 from bodynet.core.calibration import OleCalibration, default_ole
 from bodynet.core.subject import Profile, ProfileError
-from bodynet.gateway import profile_file
 from bodynet.gateway.calibrate import fit_radius, fit_scale_factors, radius_from_pair
+from bodynet.session import profile_file
 
 
 @pytest.mark.parametrize(

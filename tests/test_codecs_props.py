@@ -5,15 +5,17 @@ from __future__ import annotations
 import contextlib
 import itertools
 import math
+import struct
 from collections.abc import Callable, Sequence
 from typing import Any, Protocol
 
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from bodynet.core.codecs import concentrator, imu_matrix, raw_sample, smartsuit_can
-from bodynet.core.errors import Rejected
+from bodynet.core.codecs import concentrator, imu_matrix, raw_sample, slimevr, smartsuit_can
+from bodynet.core.errors import DecodeError, Rejected
 from bodynet.core.messages import (
+    NodeStatus,
     NoNewData,
     OleAccel,
     Quat,
@@ -276,3 +278,70 @@ def test_single_message_decoders_raise_only_declared_errors(data: bytes) -> None
             smartsuit_can.decode_frame(
                 smartsuit_can.CanFrame(0x0006FFFF, frame_data, dlc=len(frame_data))
             )
+
+
+# --- SlimeVR: one datagram is one packet --------------------------------------------------
+
+MAC = bytes.fromhex("02b0d1000001")
+HANDSHAKE = slimevr.encode_handshake(0, slimevr.Handshake(MAC, 2, 10, 2, 17, "fw"))
+
+# Datagrams that look like the protocol: right-sized bodies of every packet type,
+# with the bytes of the body and the number drawn at random.
+slimevr_like = st.builds(
+    lambda kind, number, body: struct.pack(">iq", kind, number) + body,
+    st.sampled_from([0, 1, 3, 4, 10, 12, 15, 17, 19, 22, 23, 99, 200, -1]),
+    st.integers(-(2**63), 2**63 - 1),
+    st.binary(max_size=40),
+)
+
+
+@given(st.one_of(st.binary(max_size=60), slimevr_like, noisy))
+def test_slimevr_packets_raise_only_declared_errors(data: bytes) -> None:
+    with contextlib.suppress(DecodeError):
+        slimevr.decode_packet(data)
+    with contextlib.suppress(DecodeError):
+        slimevr.decode_server_packet(data)
+
+
+@given(st.lists(st.tuples(st.one_of(st.binary(max_size=60), slimevr_like),
+                          st.sampled_from(["a", "b"])), max_size=30))  # fmt: skip
+def test_slimevr_server_gives_only_declared_events(datagrams: list[tuple[bytes, str]]) -> None:
+    """Random datagrams from a tracker that shook hands and from one that did not:
+    only declared events, and state only for the one that did."""
+    server = slimevr.SlimeVRServer()
+    server.receive(HANDSHAKE, "a")
+    for data, sender in datagrams:
+        for event in server.receive(data, sender):
+            assert isinstance(event, Quat | Tick | NodeStatus | Rejected)
+            if isinstance(event, Quat):
+                assert math.isclose(sum(c * c for c in event.wxyz), 1.0, rel_tol=1e-9)
+    assert set(server.connections) <= {"a", "b"}
+
+
+@given(st.integers(0, 254), unit_quats(), st.integers(1, 2**40))
+def test_slimevr_rotation_roundtrip(sensor: int, q: tuple[float, ...], number: int) -> None:
+    w, x, y, z = q
+    server = slimevr.SlimeVRServer()
+    server.receive(HANDSHAKE, "t")
+    events = server.receive(slimevr.encode_rotation(number, sensor, (x, y, z, w)), "t")
+    first, quat = events[-2:]
+    assert isinstance(quat, Quat)
+    assert quats_close(quat.wxyz, q, 1e-6)  # float32 on the wire
+    events = server.receive(slimevr.encode_rotation_accel(number + 1, sensor, (x, y, z, w)), "t")
+    assert isinstance(events[-1], Quat)
+    assert quats_close(events[-1].wxyz, q, 1e-4)  # Q15 on the wire
+    assert isinstance(first, Tick)
+    assert events[-2] == Tick(first.index + 1, quat.node)  # the packet after: the next sample
+
+
+@given(st.lists(st.integers(1, 50), min_size=1, max_size=20))
+def test_slimevr_sequence_counts_every_lost_packet(steps: list[int]) -> None:
+    """Sequence numbers rise by one plus the packets lost before each sample."""
+    server = slimevr.SlimeVRServer()
+    server.receive(HANDSHAKE, "t")
+    number, seqs = 0, []
+    for step in steps:
+        number += step
+        events = server.receive(slimevr.encode_rotation(number, 0, (0, 0, 0, 1.0)), "t")
+        seqs.append(next(e.index for e in events if isinstance(e, Tick)))
+    assert seqs == [sum(steps[: i + 1]) - 1 for i in range(len(steps))]

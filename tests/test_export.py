@@ -33,7 +33,7 @@ from bodynet.core import keys
 from bodynet.core.codecs import pose
 from bodynet.core.keys import BRANCHES
 from bodynet.core.skeleton import build_skeleton
-from bodynet.gateway.service import branch_views
+from bodynet.gateway.frames import branch_views
 
 with warnings.catch_warnings():
     warnings.simplefilter("ignore", PendingDeprecationWarning)  # bvhio imports glm the old way

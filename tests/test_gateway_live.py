@@ -22,12 +22,12 @@ from bodynet.core.keys import LEFT_ARM
 from bodynet.core.messages import RawSample, Source
 from bodynet.core.profile import IMU_SITES
 from bodynet.core.skeleton import TPOSE
-from bodynet.gateway import profile_file
 from bodynet.gateway.service import Gateway
 from bodynet.gateway.solver import BodySolver
 from bodynet.nodes.emulator import BodyEmulator, Realism, imu_tags
 from bodynet.nodes.motion import ROUTINES, Routine
 from bodynet.nodes.services import EmulationOptions, NodePlan, run_node
+from bodynet.session import profile_file
 
 IDEAL_RANDOM_MOUNTS = Realism(0.0, 0.0, 0.0, 0.0, 0.0, random_tag_mounts=True)
 TARGET = {

@@ -21,6 +21,8 @@ REGISTRY: dict[str, str] = {
     "can": "bodynet.nodes.sources.smartsuit_can:SmartSuitCan",
     "concentrator": "bodynet.nodes.sources.concentrator:Concentrator",
     "imu-central": "bodynet.nodes.sources.imu_central:ImuCentral",
+    "slimevr": "bodynet.nodes.sources.slimevr:SlimeVR",
+    "orientation-file": "bodynet.nodes.sources.orientation_files:OrientationFile",
 }
 
 _loaded: dict[str, type[Source]] = {}

@@ -42,6 +42,10 @@ log = logging.getLogger(__name__)
 CHUNK = 1 << 16
 
 
+class CaptureError(ValueError):
+    """A capture or file that cannot be read; the message says where (file, line)."""
+
+
 class Transport(StrEnum):
     """What carries a source's bytes."""
 
@@ -276,6 +280,15 @@ class Source:
         self.sites: Mapping[int, Site] = dict(self.SITES if sites is None else sites)
         self.period_s = self.PERIOD_S if period_s is None else period_s
 
+    @classmethod
+    def from_options(cls, options: Mapping[str, Any]) -> Source:
+        """The source for reading files, given the capture options (``--map``...)."""
+        return cls()
+
+    @classmethod
+    def add_capture_args(cls, parser: argparse.ArgumentParser) -> None:
+        """Options of ``decode``/``process`` this source's files take."""
+
     # --- the sans-io part, the same live and from files ---------------------------------
     def decoder(self) -> Decoder:
         raise NotImplementedError(f"{self.name} has no stream decoder")
@@ -287,7 +300,8 @@ class Source:
     def read(self, path: Path, fmt: str, stats: CaptureStats,
              rate_hz: float | None = None) -> Iterator[CapturedSample]:  # fmt: skip
         """Decode a capture file into samples (capture time), counting the rest in
-        ``stats``. The default feeds the file's bytes to :meth:`decoder`."""
+        ``stats``; :class:`CaptureError` if the file cannot be read as ``fmt``.
+        The default feeds the file's bytes to :meth:`decoder`."""
         decoder, adapter = self.decoder(), self.adapter(rate_hz)
         sink = CaptureSink(self.sites, stats)
         for chunk in file_chunks(path):

@@ -1,0 +1,167 @@
+"""Orientation files as a source: OpenSense ``.sto`` and per-segment quaternion CSV.
+
+The parsers are ``core.codecs.orientation`` (pure); this source maps each
+column to a site and gives the samples the file's own times (no
+``--rate-hz``). Default column -> site map: OpenSense's ``<body>_imu`` labels
+(``pelvis_imu``, ``torso_imu``, ``femur_r_imu``... see ``core.opensim``) and
+bodynet's segment names (``pelvis``, ``thorax``, ``left_forearm``...), each on
+the IMU site of its segment; ``--map COLUMN=SITE`` (``left-arm/upperarm``)
+overrides it or adds a column.
+
+Frames: a ``.sto`` file's orientations are taken as OpenSense gives them to
+OpenSim: rotated by the header's ``sensor_to_opensim_rotations`` (X, Y, Z
+body-fixed Euler angles in radians, ``0 0 0`` if absent) into OpenSim's ground
+frame (Y up), then into bodynet's (Z up) by ``core.opensim.OPENSIM_FROM_BODYNET``
+(``q = m^-1 * q_opensim * m``, the inverse of what ``bodynet export sto``
+does). A CSV is taken in bodynet's frame as it is. Either way, a quaternion
+is the sensor's orientation; its mount on the segment is the profile's (or
+calibrated from the first ``--tpose-s`` seconds, as for any orientation
+sensor): a file of segment orientations, as bodynet exports, is processed with
+``--tpose-s 0``.
+"""
+
+from __future__ import annotations
+
+import argparse
+from collections.abc import Iterator, Mapping
+from pathlib import Path
+from typing import Any, ClassVar
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from bodynet.core.codecs.orientation import OrientationFileError, Table, parse_csv, parse_sto
+from bodynet.core.errors import Reason, Rejected
+from bodynet.core.keys import (
+    LEFT_ARM,
+    LEFT_LEG,
+    RIGHT_ARM,
+    RIGHT_LEG,
+    TRUNK,
+    KeySpaceError,
+    Site,
+    site_named,
+)
+from bodynet.core.messages import Quat, StreamEvent, Tick
+from bodynet.core.messages import Source as SourceId
+from bodynet.core.opensim import IMU_BODIES, OPENSIM_FROM_BODYNET, SENSOR_TO_OPENSIM, imu_label
+from bodynet.nodes.sources.base import (
+    CapturedSample,
+    CaptureError,
+    CaptureSink,
+    CaptureStats,
+    Source,
+    Transport,
+)
+
+#: bodynet segment -> the IMU site on it
+SEGMENT_SITES: Mapping[str, Site] = {
+    "pelvis": Site(TRUNK, "sacrum"),
+    "thorax": Site(TRUNK, "chest"),
+    "head": Site(TRUNK, "forehead"),
+    **{
+        f"{branch.side}_{segment}": Site(branch, segment)
+        for branch, segments in ((LEFT_ARM, ("upperarm", "forearm", "hand")),
+                                 (RIGHT_ARM, ("upperarm", "forearm", "hand")),
+                                 (LEFT_LEG, ("thigh", "shank", "foot")),
+                                 (RIGHT_LEG, ("thigh", "shank", "foot")))
+        for segment in segments
+    },
+}  # fmt: skip
+
+#: column -> site, both kinds of names
+DEFAULT_MAP: Mapping[str, Site] = {
+    **SEGMENT_SITES,
+    **{imu_label(seg): site for seg, site in SEGMENT_SITES.items() if seg in IMU_BODIES},
+}
+
+
+def parse_map(text: str) -> tuple[str, Site]:
+    """``COLUMN=SITE`` (an argparse type)."""
+    column, sep, site = text.partition("=")
+    try:
+        if not sep or not column.strip():
+            raise ValueError(f"not COLUMN=SITE: {text!r}")
+        return column.strip(), site_named(site)
+    except (ValueError, KeySpaceError) as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def _to_bodynet(table: Table) -> Rotation:
+    """The rotation that takes a ``.sto`` file's orientations into bodynet's frame
+    (applied on the left; on the right its inverse, see the module docstring)."""
+    text = table.header.get(SENSOR_TO_OPENSIM, "0 0 0")
+    try:
+        angles = [float(v) for v in text.split()]
+        if len(angles) != 3:
+            raise ValueError
+    except ValueError:
+        raise OrientationFileError(1, f"{SENSOR_TO_OPENSIM}={text}: not three angles") from None
+    to_opensim = Rotation.from_euler("XYZ", angles)
+    return Rotation.from_matrix(np.array(OPENSIM_FROM_BODYNET)).inv() * to_opensim
+
+
+class OrientationFile(Source):
+    name = "orientation-file"
+    wire_id = SourceId.ORIENTATION_FILE
+    transport = Transport.FILE
+    help = "orientation files: OpenSense quaternion .sto, per-segment quaternion CSV"
+    formats: ClassVar = {
+        "sto": "OpenSense IMU orientations (.sto, DataType=Quaternion)",
+        "orientation-csv": "a CSV of per-segment quaternions w, x, y, z",
+    }
+    suffixes: ClassVar = {".sto": "sto", ".csv": "orientation-csv"}
+
+    def __init__(self, sites: Mapping[int, Site] | None = None, period_s: float | None = None,
+                 column_map: Mapping[str, Site] | None = None) -> None:  # fmt: skip
+        super().__init__(sites, period_s)
+        self.column_map = {**DEFAULT_MAP, **(column_map or {})}
+
+    @classmethod
+    def from_options(cls, options: Mapping[str, Any]) -> OrientationFile:
+        return cls(column_map=dict(options.get("map") or ()))
+
+    @classmethod
+    def add_capture_args(cls, p: argparse.ArgumentParser) -> None:
+        p.add_argument("--map", type=parse_map, action="append", default=[],
+                       metavar="COLUMN=SITE",
+                       help="orientation files: put a column on a site (left-arm/upperarm), "
+                            "over the default map (repeatable)")  # fmt: skip
+
+    def read(self, path: Path, fmt: str, stats: CaptureStats,
+             rate_hz: float | None = None) -> Iterator[CapturedSample]:  # fmt: skip
+        try:
+            with path.open(encoding="utf-8", errors="replace", newline="") as f:
+                table = parse_sto(f) if fmt == "sto" else parse_csv(f)
+            to_bodynet = _to_bodynet(table) if fmt == "sto" else None
+        except OrientationFileError as exc:
+            raise CaptureError(f"{path}: {exc}") from None
+        start = float(table.header.get("bodynet_start_ns", 0)) / 1e9 if fmt == "sto" else 0.0
+        sites, events = {}, []
+        for i, column in enumerate(table.columns):
+            site = self.column_map.get(column)
+            if site is None:
+                events.append(Rejected(Reason.UNKNOWN_NODE, f"column {column!r} has no site "
+                                                            "(--map COLUMN=SITE)"))  # fmt: skip
+            else:
+                sites[i + 1] = site
+        self.sites = sites
+        adapter, sink = self.adapter(), CaptureSink(sites, stats)
+        adapter.events(events, None, sink)
+        for row, (_, t, quats) in enumerate(table.rows):
+            found: list[StreamEvent] = [Tick(row)]
+            for i, q in quats.items():
+                if i + 1 in sites:
+                    found.append(Quat(i + 1, self._frame(q, to_bodynet)))
+            adapter.events(found, start + t, sink)
+            yield from sink.take()
+
+    @staticmethod
+    def _frame(q: tuple[float, float, float, float],
+               to_bodynet: Rotation | None) -> tuple[float, float, float, float]:  # fmt: skip
+        if to_bodynet is None:
+            return q
+        m = Rotation.from_matrix(np.array(OPENSIM_FROM_BODYNET))
+        r = to_bodynet * Rotation.from_quat(q, scalar_first=True) * m
+        w, x, y, z = r.as_quat(canonical=True, scalar_first=True)
+        return (float(w), float(x), float(y), float(z))

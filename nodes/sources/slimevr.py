@@ -1,0 +1,335 @@
+"""SlimeVR trackers over Wi-Fi (UDP 6969): bodynet as the trackers' server.
+
+The protocol is ``core.codecs.slimevr`` (sans-io, its module docstring says
+which packets and fields are read). This module is the source: its sites come
+from the subject profile's ``[trackers]`` table (tracker id -> site), from
+``--assign`` on the command line, or live from ``bodynet calibrate assign``;
+the live bridge is ``nodes.slimevr_bridge``. :class:`EmulatedTracker` is a
+tracker on a real UDP socket, speaking the same protocol: handshake until the
+server answers, then rotations (packet 17, or 23 with acceleration), battery,
+signal strength and sensor info, heartbeats and ping echoes; it goes back to
+its handshake when the server has been silent for three seconds, as the
+firmware does.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import logging
+import socket
+import threading
+import time
+from collections.abc import Callable, Mapping, Sequence
+from pathlib import Path
+from typing import Any, ClassVar
+
+from bodynet.core.codecs import slimevr as codec
+from bodynet.core.errors import DecodeError
+from bodynet.core.keys import KeySpaceError, Site, site_named
+from bodynet.core.messages import Source as SourceId
+from bodynet.nodes.sources.base import NodeParts, Source, Transport
+
+log = logging.getLogger(__name__)
+
+#: How often an emulated tracker sends its battery and signal strength.
+STATUS_S = 1.0
+
+
+def parse_assignment(text: str) -> tuple[str, Site]:
+    """``TRACKER=SITE`` (``aabbccddeeff-0=left-arm/upperarm``) -> (tracker id, site);
+    an argparse type, refusing a bad one with its reason."""
+    tracker, sep, site = text.partition("=")
+    try:
+        if not sep:
+            raise ValueError(f"not TRACKER=SITE: {text!r}")
+        return codec.normalise_tracker_id(tracker), site_named(site)
+    except (ValueError, KeySpaceError) as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def address(text: str) -> tuple[str, int]:
+    """``host:port`` (an argparse type)."""
+    host, sep, port = text.rpartition(":")
+    if not sep or not port.isdigit() or not 0 < int(port) < 65536:
+        raise argparse.ArgumentTypeError(f"not host:port: {text!r}")
+    return host or "127.0.0.1", int(port)
+
+
+class SlimeVR(Source):
+    name = "slimevr"
+    wire_id = SourceId.SLIMEVR
+    transport = Transport.UDP
+    help = "SlimeVR trackers over Wi-Fi (their server's protocol, UDP 6969)"
+    PERIOD_S = 0.01
+    emulators: ClassVar = {"slimevr": "SlimeVR trackers on UDP, for a bridge to take"}
+
+    def __init__(self, sites: Mapping[int, Site] | None = None, period_s: float | None = None,
+                 assignments: Mapping[str, Site] | None = None) -> None:  # fmt: skip
+        super().__init__(sites, period_s)
+        #: tracker id -> site; nodes get their sites as their trackers appear
+        self.assignments: dict[str, Site] = dict(assignments or {})
+
+    def decoder(self) -> codec.SlimeVRServer:
+        return codec.SlimeVRServer()
+
+    @classmethod
+    def add_bridge_args(cls, p: argparse.ArgumentParser) -> None:
+        p.add_argument("--udp", type=address, default=("0.0.0.0", codec.PORT), metavar="HOST:PORT",
+                       help=f"where to take the trackers' datagrams (default "
+                            f"0.0.0.0:{codec.PORT}, where trackers look)")  # fmt: skip
+        p.add_argument("--profile", type=Path,
+                       help="subject profile whose [trackers] table assigns sites")  # fmt: skip
+        p.add_argument("--assign", type=parse_assignment, action="append", default=[],
+                       metavar="TRACKER=SITE",
+                       help="assign a tracker (aabbccddeeff-0) to a site (left-arm/upperarm); "
+                            "repeatable, over the profile's")  # fmt: skip
+
+    @classmethod
+    def bridge_name(cls, args: argparse.Namespace) -> str:
+        return f"slimevr-{args.udp[1]}"
+
+    def bridge(self, session: Any, stop: threading.Event, name: str,
+               args: argparse.Namespace) -> None:  # fmt: skip
+        from bodynet.nodes.slimevr_bridge import run_bridge
+
+        assignments: dict[str, Site] = {}
+        if args.profile is not None and args.profile.exists():
+            from bodynet.session import profile_file
+
+            profile = profile_file.load(args.profile)
+            assignments = {t: site_named(s) for t, s in profile.trackers.items()}
+        assignments.update(dict(args.assign))
+        run_bridge(session, stop, name, args.udp, assignments)
+
+    # --- emulation ----------------------------------------------------------------------
+    @classmethod
+    def add_emulate_args(cls, device: str, p: argparse.ArgumentParser) -> None:
+        p.add_argument("--server", type=address, default=("127.0.0.1", codec.PORT),
+                       metavar="HOST:PORT",
+                       help=f"the server's host:port (default 127.0.0.1:{codec.PORT})")  # fmt: skip
+        p.add_argument("--rate-hz", type=float, default=100.0, help="rotations per second")
+
+    def emulated_sensors(self, sensors: Any = None, branches: Any = None) -> list[Any]:
+        from bodynet.nodes.emulator import imu_tags
+
+        return imu_tags(sensors, branches)
+
+    def emulator(self, device: str, body: Any, truth: Any, opts: dict[str, Any]) -> Any:
+        return EmulatedTrackers(body, opts.get("server") or ("127.0.0.1", codec.PORT),
+                                opts.get("rate_hz") or 100.0, truth=truth)  # fmt: skip
+
+    def node(self, device: str, body: Any, where: Path, clock: Any, truth: Any,
+             sensors: list[Any], label: str) -> NodeParts:  # fmt: skip
+        from bodynet.nodes.slimevr_bridge import run_bridge
+
+        listen = ("127.0.0.1", free_udp_port())
+        trackers = EmulatedTrackers(body, listen, 100.0, clock, truth)
+        assignments = {trackers.tracker_of(s.node): s.site for s in sensors}
+        return trackers, run_bridge, {"listen": listen, "assignments": assignments}
+
+
+def free_udp_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def emulated_mac(number: int) -> bytes:
+    """The MAC of emulated tracker ``number`` (locally administered, unicast)."""
+    return bytes([0x02, 0xB0, 0xD1, 0x00, (number >> 8) & 0xFF, number & 0xFF])
+
+
+class EmulatedTracker:
+    """One SlimeVR tracker on its own UDP socket; see the module docstring.
+
+    ``orientation(sensor, t_s)`` gives each sensor's quaternion (w, x, y, z).
+    :meth:`pause` and :meth:`resume` unplug and plug it (silence, then a new
+    handshake once the server forgets it... or the same connection if not),
+    :meth:`skip` jumps its packet counter, :meth:`send` sends any bytes."""
+
+    def __init__(self, server: tuple[str, int], mac: bytes, sensors: Sequence[int],
+                 orientation: Callable[[int, float], tuple[float, float, float, float]],
+                 rate_hz: float = 100.0, compact: bool = False, clock: Any = None,
+                 name: str = "tracker") -> None:  # fmt: skip
+        self.server = server
+        self.mac = mac
+        self.sensors = list(sensors)
+        self.orientation = orientation
+        self.period_s = 1.0 / rate_hz
+        self.compact = compact
+        self.clock = clock
+        self.name = name
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.bind(("", 0))
+        self.sock.settimeout(0.0)
+        self.number = 0
+        self.connected = threading.Event()
+        self.paused = threading.Event()
+        self.sent = 0
+        self.pings_echoed = 0
+        self.heartbeats = 0
+        self.acked: set[int] = set()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._heard = 0.0
+        self._t0 = time.monotonic()
+
+    @property
+    def address(self) -> tuple[str, int]:
+        return self.sock.getsockname()  # type: ignore[no-any-return]
+
+    def tracker_ids(self) -> list[str]:
+        return [codec.tracker_id(self.mac, s) for s in self.sensors]
+
+    def _next(self) -> int:
+        self.number += 1
+        return self.number
+
+    def send(self, data: bytes) -> None:
+        with contextlib.suppress(OSError):  # nobody listening yet: like a lost datagram
+            self.sock.sendto(data, self.server)
+
+    def skip(self, n: int) -> None:
+        """Jump the packet counter by ``n``: ``n`` packets the server never sees."""
+        self.number += n
+
+    def pause(self) -> None:
+        self.paused.set()
+
+    def resume(self) -> None:
+        self.paused.clear()
+
+    def start(self) -> None:
+        self._stop.clear()
+        self._thread = threading.Thread(target=self._run, name=self.name, daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=5)
+        self.sock.close()
+
+    def _now(self) -> float:
+        return self.clock.now() if self.clock is not None else time.monotonic() - self._t0
+
+    def _handshake(self) -> None:
+        self.number = 0  # the firmware numbers from its handshake
+        hs = codec.Handshake(self.mac, board=2, imu=10, mcu=2, build=17, firmware="bodynet-emu")
+        self.send(codec.encode_handshake(0, hs))
+
+    def _read(self) -> None:
+        while True:
+            try:
+                data, _ = self.sock.recvfrom(2048)
+            except (BlockingIOError, OSError):
+                return
+            try:
+                packet = codec.decode_server_packet(data)
+            except DecodeError:
+                continue
+            self._heard = time.monotonic()
+            if packet.kind == codec.HANDSHAKE:
+                if not self.connected.is_set():
+                    self.connected.set()
+                    self.acked.clear()
+            elif packet.kind == codec.PING and packet.ping_id is not None:
+                self.send(codec.encode_ping(self._next(), packet.ping_id))
+                self.pings_echoed += 1
+            elif packet.kind == codec.SERVER_HEARTBEAT:
+                self.heartbeats += 1
+            elif packet.kind == codec.SENSOR_INFO and packet.sensor is not None:
+                self.acked.add(packet.sensor)
+
+    def _run(self) -> None:
+        next_send = next_status = next_handshake = time.monotonic()
+        while not self._stop.is_set():
+            now = time.monotonic()
+            if self.paused.is_set():
+                self._stop.wait(0.01)
+                with contextlib.suppress(OSError, BlockingIOError):
+                    while self.sock.recvfrom(2048):  # what comes meanwhile is lost
+                        pass
+                continue
+            self._read()
+            if self.connected.is_set() and now - self._heard > codec.TRACKER_TIMEOUT_S:
+                self.connected.clear()  # the server is gone: look for it again
+            if not self.connected.is_set():
+                if now >= next_handshake:
+                    self._handshake()
+                    next_handshake = now + 0.2
+                self._stop.wait(0.01)
+                continue
+            if now >= next_status:
+                self._status()
+                next_status = now + STATUS_S
+            if now >= next_send:
+                t = self._now()
+                for sensor in self.sensors:
+                    w, x, y, z = self.orientation(sensor, t)
+                    if self.compact:
+                        data = codec.encode_rotation_accel(self._next(), sensor, (x, y, z, w),
+                                                           (0.0, 0.0, 9.81))  # fmt: skip
+                    else:
+                        data = codec.encode_rotation(self._next(), sensor, (x, y, z, w), 3)
+                    self.send(data)
+                    self.sent += 1
+                next_send += self.period_s
+                if next_send < now:  # fell behind (a loaded machine): no burst to catch up
+                    next_send = now + self.period_s
+            self._stop.wait(max(0.0, min(next_send, next_status) - time.monotonic()))
+
+    def _status(self) -> None:
+        for sensor in self.sensors:
+            if sensor not in self.acked:
+                self.send(codec.encode_sensor_info(self._next(), sensor, 1, 10))
+        self.send(codec.encode_battery(self._next(), 3.9, 0.8))
+        self.send(codec.encode_signal_strength(self._next(), codec.DEVICE_SENSOR, -52))
+        self.send(codec.encode_heartbeat(self._next()))
+
+
+class EmulatedTrackers:
+    """An emulated body's IMU tags as SlimeVR trackers, one per tag (sensor 0),
+    the ground truth published through ``truth`` as the other emulators do."""
+
+    def __init__(self, body: Any, server: tuple[str, int], rate_hz: float = 100.0,
+                 clock: Any = None, truth: Any = None, compact: bool = False) -> None:  # fmt: skip
+        self.body = body
+        self.truth = truth
+        self.link = f"{server[0]}:{server[1]}"
+        self.tolerance_s = 0.5 / rate_hz  # trackers a period's half apart share a sample
+        self._lock = threading.Lock()
+        self._cache: tuple[float, dict[int, tuple[float, float, float, float]]] = (-1.0, {})
+        nodes = [s.node for s in body.sensors]
+        self.trackers = [
+            EmulatedTracker(server, emulated_mac(node), [0],
+                            lambda _sensor, t, node=node: self._quat(node, t),
+                            rate_hz, compact, clock, f"slimevr-tracker-{node}")
+            for node in nodes
+        ]  # fmt: skip
+        self._by_node = dict(zip(nodes, self.trackers, strict=True))
+
+    def tracker_of(self, node: int) -> str:
+        return self._by_node[node].tracker_ids()[0]
+
+    def _quat(self, node: int, t: float) -> tuple[float, float, float, float]:
+        with self._lock:  # one body sample a period for every tracker
+            at, quats = self._cache
+            if abs(t - at) > self.tolerance_s:
+                readings, truths = self.body.sample(t)
+                quats = {r.node: r.wxyz for r in readings}
+                self._cache = (t, quats)
+                if self.truth is not None:
+                    t_ns = time.time_ns()
+                    for reading, tr in zip(readings, truths, strict=True):
+                        self.truth(reading.node, tr, t_ns)
+            return quats[node]
+
+    def start(self) -> None:
+        for tracker in self.trackers:
+            tracker.start()
+
+    def stop(self) -> None:
+        for tracker in self.trackers:
+            tracker.stop()

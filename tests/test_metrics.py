@@ -1,0 +1,189 @@
+"""Clinical metrics: the pure module against references, then live on
+``body/@metrics`` from poses on Zenoh, and kept by the recorder."""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from functools import partial
+from pathlib import Path
+
+import numpy as np
+import pytest
+import zenoh
+from scipy.integrate import quad
+from zenoh_helpers import Collector, Running, client
+
+from bodynet.clients import live
+from bodynet.clients.metrics import MetricsOutput
+from bodynet.core import keys, metrics
+from bodynet.core.codecs import pose
+
+FS = 100.0
+
+
+def gaussian_sparc(sigma: float, fc: float = 10.0, amp_th: float = 0.05) -> float:
+    """SPARC of the speed profile exp(-t^2 / (2 sigma^2)) in closed form: its
+    normalised Fourier magnitude is exp(-2 pi^2 sigma^2 f^2), cut at fc or where
+    it falls to amp_th; minus the arc length with frequency over the band's width."""
+    band = min(fc, math.sqrt(math.log(1 / amp_th) / (2 * math.pi**2 * sigma**2)))
+
+    def slope(f: float) -> float:
+        return -4 * math.pi**2 * sigma**2 * f * math.exp(-2 * math.pi**2 * sigma**2 * f**2)
+
+    return -quad(lambda f: math.sqrt((1 / band) ** 2 + slope(f) ** 2), 0, band)[0]
+
+
+@pytest.mark.parametrize("sigma", [0.03, 0.1, 0.2])
+def test_sparc_of_a_gaussian_speed_profile_matches_the_closed_form(sigma: float) -> None:
+    t = np.arange(-1.5, 1.5, 1 / FS)
+    speed = np.exp(-(t**2) / (2 * sigma**2))
+    assert metrics.sparc(speed, FS) == pytest.approx(gaussian_sparc(sigma), abs=5e-3)
+
+
+def min_jerk_speed(t: np.ndarray, duration: float = 1.0) -> np.ndarray:
+    tau = np.clip(t / duration, 0, 1)
+    return (30 * tau**2 - 60 * tau**3 + 30 * tau**4) / duration
+
+
+def test_sparc_orders_smooth_and_jerky_movements() -> None:
+    t = np.arange(0, 2, 1 / FS)
+    one = min_jerk_speed(t)
+    two = min_jerk_speed(t) + min_jerk_speed(t - 0.6)  # two overlapping sub-movements
+    assert metrics.sparc(one, FS) == pytest.approx(-1.41, abs=0.01)
+    assert metrics.sparc(two, FS) < metrics.sparc(one, FS) - 0.2
+    assert math.isnan(metrics.sparc(np.zeros(50), FS))
+    assert math.isnan(metrics.sparc([1.0, math.nan, 2.0], FS))
+
+
+def reach_angles(t: np.ndarray, start: float, amplitude: float, duration: float) -> np.ndarray:
+    """A minimum-jerk reach from ``start`` by ``amplitude`` degrees."""
+    tau = np.clip((t - start) / duration, 0, 1)
+    return amplitude * (10 * tau**3 - 15 * tau**4 + 6 * tau**5)
+
+
+def test_range_repetitions_and_the_current_movements_smoothness() -> None:
+    t = np.arange(0, 9, 1 / FS)
+    x = 45 - 45 * np.cos(2 * np.pi * t / 2.0)  # 0..90 deg, a cycle every 2 s
+    x[t > 6] = 0.0  # then still
+    dof = metrics.DofMetrics()
+    for ti, xi in zip(t, x, strict=True):
+        dof.add(float(ti), float(xi))
+    assert dof.lo == pytest.approx(0.0)
+    assert dof.hi == pytest.approx(90.0, abs=0.01)
+    assert dof.repetitions == 3  # 0-2, 2-4, 4-6 s, then rest
+    jitter = metrics.DofMetrics()
+    for i, ti in enumerate(t):
+        jitter.add(float(ti), 2.0 * (-1) ** i)  # 4 deg peak to peak: under MIN_SPAN_DEG
+    assert jitter.repetitions == 0
+
+    reach = metrics.DofMetrics()
+    t = np.arange(0, 4, 1 / FS)
+    angle = reach_angles(t, 1.0, 60.0, 1.0) + reach_angles(t, 2.5, -60.0, 1.0)
+    for ti, xi in zip(t, angle, strict=True):
+        reach.add(float(ti), float(xi))
+    # the current movement is the second reach alone: SPARC of one minimum-jerk profile
+    assert reach.smoothness() == pytest.approx(-1.41, abs=0.03)
+    assert reach.repetitions == 1
+    snap = reach.snapshot()
+    assert snap["range_deg"] == pytest.approx(60.0)
+    assert snap["sparc"] == pytest.approx(-1.41, abs=0.03)
+
+
+def test_body_metrics_snapshot_is_json_and_counts_only_what_it_is_given() -> None:
+    body = metrics.BodyMetrics()
+    assert body.snapshot() == {"v": 1, "t_ns": None, "dofs": {}}
+    body.add(1_700_000_000_000_000_000, {"left_elbow_flexion_deg": 10.0})
+    body.add(1_700_000_000_010_000_000, {"left_elbow_flexion_deg": 20.0, "x_deg": math.nan})
+    snap = json.loads(json.dumps(body.snapshot(), allow_nan=False))
+    assert set(snap["dofs"]) == {"left_elbow_flexion_deg"}  # NaN is no measurement
+    assert snap["dofs"]["left_elbow_flexion_deg"]["min_deg"] == 10.0
+    assert snap["dofs"]["left_elbow_flexion_deg"]["samples"] == 2
+    assert snap["t_ns"] == 1_700_000_000_010_000_000
+
+
+# --- live ------------------------------------------------------------------------------------
+
+
+def elbow_poses(n: int, t0_ns: int) -> list[pose.PoseFrame]:
+    """Elbow flexion cycling 10..100 deg at 100 Hz; every 7th pose flagged held at
+    150 deg (no measurement: it must not reach the range of motion)."""
+    out = []
+    for i in range(n):
+        t = i / FS
+        angle = round(55 - 45 * math.cos(2 * math.pi * t / 1.0), 6)
+        flags = {}
+        if i % 7 == 3:
+            angle, flags = 150.0, {"left_elbow_flexion_deg": "held"}
+        angles = {"left_elbow_flexion_deg": angle, "left_knee_flexion_deg": 5.0}
+        out.append(pose.PoseFrame(i, t0_ns + i * 10_000_000, angles, {}, {}, {}, flags))
+    return out
+
+
+def test_metrics_are_published_live_per_subject(router_endpoint: str,
+                                                zsession: zenoh.Session) -> None:  # fmt: skip
+    out_session = client(router_endpoint)
+    output = MetricsOutput(out_session, all_subjects=True, rate_hz=10)
+    running = Running(partial(live.run, out_session, output, all_subjects=True))
+    got = Collector(zsession, f"*/{keys.METRICS}", json.loads)
+    try:
+        frames = elbow_poses(350, 1_700_000_000_000_000_000)
+        # a burst: none dropped on the way, none sent before the output subscribed
+        block = zenoh.CongestionControl.BLOCK
+        pub = zsession.declare_publisher(f"alice/{keys.pose_key()}", congestion_control=block)
+        deadline = time.monotonic() + 10
+        while not pub.matching_status.matching:
+            assert time.monotonic() < deadline, "the output never subscribed"
+            time.sleep(0.01)
+        for f in frames:
+            pub.put(pose.encode(f))
+        zsession.put(f"bob/{keys.pose_key()}", pose.encode(frames[0]))
+        last_t = frames[-1].t_ns
+
+        def done(s: list[tuple[str, dict]]) -> bool:
+            alice = any(k.startswith("alice/") and m["t_ns"] == last_t for k, m in s)
+            return alice and any(k.startswith("bob/") for k, _ in s)
+
+        seen = got.wait_for(done)
+    finally:
+        running.stop()
+        out_session.close()
+    alice = next(m for k, m in reversed(seen) if k == f"alice/{keys.METRICS}")
+    elbow = alice["dofs"]["left_elbow_flexion_deg"]
+    assert elbow["max_deg"] == pytest.approx(100.0, abs=0.01)  # never the held 150
+    assert elbow["min_deg"] == pytest.approx(10.0, abs=0.01)
+    assert elbow["repetitions"] == 3, alice  # 3.5 s of 1 s cycles
+    assert elbow["samples"] == 300
+    # the same numbers as the module fed offline
+    offline = metrics.BodyMetrics()
+    for f in frames:
+        offline.add(f.t_ns, {n: v for n, v in f.angles_deg.items() if n not in f.flags})
+    assert alice == json.loads(json.dumps(offline.snapshot()))
+    assert alice["dofs"]["left_knee_flexion_deg"]["repetitions"] == 0
+
+
+def test_the_recorder_keeps_metrics(router_endpoint: str, zsession: zenoh.Session,
+                                    tmp_path: Path) -> None:  # fmt: skip
+    from mcap.reader import make_reader
+
+    from bodynet.clients.recorder import DEFAULT_KEYS, Recorder
+
+    rec_session = client(router_endpoint)
+    out = tmp_path / "m.mcap"
+    recorder = Recorder(rec_session, out, DEFAULT_KEYS)
+    message = {"v": 1, "t_ns": 1_700_000_000_000_000_000,
+               "dofs": {"left_elbow_flexion_deg": {"min_deg": 1.0}}}  # fmt: skip
+    zsession.put(keys.METRICS, json.dumps(message))
+    zsession.put(keys.METRICS, b"[1, 2]")  # not an object: refused, counted
+    deadline = time.monotonic() + 10
+    while recorder.messages + sum(recorder.rejected.values()) < 2:
+        assert time.monotonic() < deadline, "the recorder did not get both messages"
+        time.sleep(0.01)
+    recorder.close()
+    rec_session.close()
+    with out.open("rb") as f:
+        found = [(c.topic, s.name, json.loads(m.data))
+                 for s, c, m in make_reader(f).iter_messages(topics=[keys.METRICS])]  # fmt: skip
+    assert found == [(keys.METRICS, "bodynet.Metrics", message)]
+    assert sum(recorder.rejected.values()) == 1

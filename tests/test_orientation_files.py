@@ -1,0 +1,158 @@
+"""Orientation files in: OpenSense `.sto` and per-segment quaternion CSV through
+`bodynet decode` and `bodynet process`, with their own timestamps."""
+
+from __future__ import annotations
+
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from scipy.spatial.transform import Rotation
+
+from bodynet.cli.main import main
+from bodynet.clients.mcap_store import read_poses
+from bodynet.core.codecs.orientation import OrientationFileError, parse_sto
+from bodynet.core.messages import Quat
+from bodynet.core.profile import mount
+from bodynet.nodes.emulator import BodyEmulator, Realism, imu_tags
+from bodynet.nodes.motion import ROUTINES
+
+BODYNET = Path(sys.executable).with_name("bodynet")
+
+
+def is_measured(frame: object, dof: str) -> bool:  # core.codecs.pose.is_measured once it lands
+    return getattr(frame, "flags", {}).get(dof) in (None, "clamped")
+
+
+def bodynet(*args: object) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([str(BODYNET), *map(str, args)], capture_output=True, text=True,
+                          timeout=120, check=False)  # fmt: skip
+
+
+def test_an_sto_export_processed_again_gives_the_same_angles(
+    body_mcap: Path, tmp_path: Path
+) -> None:
+    """`export sto` then `process trial.sto`: every measured angle comes back."""
+    sto = tmp_path / "trial.sto"
+    assert main(["export", "sto", str(body_mcap), "-o", str(sto)]) == 0
+    out = tmp_path / "again.mcap"
+    assert main(["process", str(sto), "--tpose-s", "0", "-o", str(out)]) == 0  # format: suffix
+    before = dict(read_poses(body_mcap))
+    after = dict(read_poses(out))
+    assert sorted(after) == sorted(before)  # the file's own times, frame for frame
+    compared, close = 0, 0
+    for t, frame in before.items():
+        again = after[t]
+        for segment, (_, q) in frame.segments.items():
+            diff = Rotation.from_quat(again.segments[segment][1], scalar_first=True)
+            diff = diff * Rotation.from_quat(q, scalar_first=True).inv()
+            assert diff.magnitude() < 1e-4, (t, segment)  # the file's 8 decimals
+        for name, value in frame.angles_deg.items():
+            if is_measured(frame, name):
+                # 0.05 deg where the shoulder nears its singular pose (flexion and
+                # rotation about one axis), a ten-thousandth elsewhere
+                error = abs(again.angles_deg[name] - value)
+                assert error < 0.05, (t, name)
+                compared += 1
+                close += error < 1e-3
+    assert compared > 1000
+    assert close >= 0.95 * compared
+
+
+def test_a_quaternion_csv_processed_to_the_true_angles(tmp_path: Path) -> None:
+    """Segment orientations (ideal tags mounted square on their segments) as a CSV
+    with irregular timestamps; `--map` puts one renamed column on its site."""
+    motion = ROUTINES["upper-body"]
+    tags = imu_tags()
+    body = BodyEmulator(motion, tags, realism=Realism.ideal(), seed=3)
+    names = {t.node: mount(t.site).segment for t in tags}
+    names[1] = "headband"  # not a default name: mapped below
+    header = ["time"] + [f"{names[t.node]}_{c}" for t in tags for c in "wxyz"]
+    times = [0.5 + 0.021 * k + 0.004 * (k % 3) for k in range(120)]  # never within a tick
+    rows = []
+    for t in times:
+        readings, _ = body.sample(t)
+        quats = {r.node: r.wxyz for r in readings if isinstance(r, Quat)}
+        rows.append([repr(t)] + [repr(c) for tag in tags for c in quats[tag.node]])
+    csv_file = tmp_path / "trial.csv"
+    csv_file.write_text("\n".join(",".join(r) for r in [header, *rows]) + "\n")
+    out = tmp_path / "trial.mcap"
+    assert main(["process", str(csv_file), "--tpose-s", "0", "--map",
+                 "headband=trunk/forehead", "-o", str(out)]) == 0  # fmt: skip
+    poses = list(read_poses(out))
+    assert [t / 1e9 for t, _ in poses] == pytest.approx(times)
+    for t_ns, frame in poses[::10]:
+        truth = motion.angles(t_ns / 1e9)
+        for name in ("left_shoulder_abduction_deg", "right_elbow_flexion_deg",
+                     "neck_rotation_deg", "lumbar_rotation_deg"):  # fmt: skip
+            assert frame.angles_deg[name] == pytest.approx(truth.get(name, 0.0), abs=0.01), name
+    assert "neck_rotation_deg" not in poses[0][1].flags  # the mapped head column counts
+
+
+MALFORMED = {
+    "missing endheader": ("DataType=Quaternion\nversion=3\ntime\tpelvis_imu\n0\t1,0,0,0\n", 4),
+    "bad cell": ("DataType=Quaternion\nendheader\ntime\tpelvis_imu\n0\t1,0,0,0\n"
+                 "0.01\t1,0,zero,0\n", 5),
+    "non-unit quaternion": ("DataType=Quaternion\nendheader\ntime\tpelvis_imu\n0\t1,0,0,0\n"
+                            "0.01\t2,0,0,0\n", 5),
+    "unsorted time": ("DataType=Quaternion\nendheader\ntime\tpelvis_imu\n0.02\t1,0,0,0\n"
+                      "0.01\t1,0,0,0\n", 5),
+    "short row": ("DataType=Quaternion\nendheader\ntime\tpelvis_imu\ttorso_imu\n"
+                  "0\t1,0,0,0\n", 4),
+}  # fmt: skip
+
+
+@pytest.mark.parametrize("case", sorted(MALFORMED))
+def test_a_malformed_sto_is_refused_naming_its_line(
+    case: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    text, line = MALFORMED[case]
+    sto = tmp_path / "bad.sto"
+    sto.write_text(text)
+    with pytest.raises(OrientationFileError, match=f"^line {line}: "):
+        parse_sto(text.splitlines())
+    for argv in (["decode", "--format", "sto", str(sto)],
+                 ["process", str(sto), "-o", str(tmp_path / "x.mcap")]):  # fmt: skip
+        assert main(argv) == 2
+        err = capsys.readouterr().err
+        assert f"bad.sto: line {line}: " in err, err
+        assert "Traceback" not in err
+    assert not (tmp_path / "x.mcap").exists()
+
+
+def test_a_malformed_file_through_the_real_command_shows_no_traceback(tmp_path: Path) -> None:
+    bad = tmp_path / "bad.csv"
+    bad.write_text("time,pelvis_w,pelvis_x,pelvis_y,pelvis_z\n0,1,0,0,0\n0.01,1,0,0,nan5\n")
+    result = bodynet("process", bad, "-o", tmp_path / "x.mcap")
+    assert result.returncode == 2
+    assert "bad.csv: line 3: pelvis: not four numbers" in result.stderr
+    assert "Traceback" not in result.stderr
+
+
+def test_our_sto_reader_agrees_with_opensims(body_mcap: Path, tmp_path: Path) -> None:
+    """The same file through OpenSim's own TimeSeriesTableQuaternion and through
+    ours: the same labels, times and quaternions."""
+    osim = pytest.importorskip("opensim")
+    sto = tmp_path / "trial.sto"
+    assert bodynet("export", "sto", body_mcap, "-o", sto).returncode == 0
+    ours = parse_sto(sto.read_text().splitlines())
+    table = osim.TimeSeriesTableQuaternion(str(sto))
+    assert list(table.getColumnLabels()) == ours.columns
+    assert [table.getIndependentColumn()[i] for i in range(table.getNumRows())] == pytest.approx(
+        [t for _, t, _ in ours.rows]
+    )
+    flat = table.flatten()  # OpenSim's own split of each quaternion: <label>_1.._4 = w, x, y, z
+    labels = list(flat.getColumnLabels())
+    for c, label in enumerate(ours.columns):
+        parts = [flat.getDependentColumnAtIndex(labels.index(f"{label}_{k}")) for k in range(1, 5)]
+        for r, (_, _, quats) in enumerate(ours.rows):
+            theirs = [float(part[r]) for part in parts]
+            if c in quats:
+                diff = Rotation.from_quat(theirs, scalar_first=True) * Rotation.from_quat(
+                    quats[c], scalar_first=True
+                ).inv()
+                assert diff.magnitude() < 1e-6, (label, r)
+            else:
+                assert all(math.isnan(v) for v in theirs), (label, r)
