@@ -142,22 +142,27 @@ def _relay(endpoint: str, stop: Any, cpu: Any) -> None:
     session.close()
 
 
-def _gateway(endpoint: str, stop: Any, samples: Any, cpu: Any, all_subjects: bool) -> None:
+def _gateway(endpoint: str, stop: Any, samples: Any, cpu: Any, all_subjects: bool,
+             share: str | None = None, serving: Any = None) -> None:  # fmt: skip
     import threading
 
     from bodynet.gateway.service import Gateway
 
     session = _session(endpoint)
-    gateway = Gateway(session, all_subjects=all_subjects)
+    gateway = Gateway(session, all_subjects=all_subjects, share=share)
     done = threading.Event()
     thread = threading.Thread(target=gateway.run, args=(done,))
     thread.start()
+    if serving is not None:
+        serving.set()
     cpu0 = time.process_time()
     stop.wait()
-    cpu.value = time.process_time() - cpu0
+    with cpu.get_lock():
+        cpu.value += time.process_time() - cpu0
     done.set()
     thread.join()
-    samples.value = gateway.samples
+    with samples.get_lock():
+        samples.value += gateway.samples
     gateway.close()
     session.close()
 
@@ -171,9 +176,11 @@ def _stats(lat: list[int]) -> dict[str, float]:
 
 
 def run_once(bodies: int, seconds: float, rate_hz: float = RATE_HZ,
-             feed: str = "realistic") -> dict[str, Any]:  # fmt: skip
+             feed: str = "realistic", gateways: int = 1) -> dict[str, Any]:  # fmt: skip
     """One side-by-side run of relay and gateway fed ``bodies`` bodies, each
-    node sending ``rate_hz`` as ``feed`` says (see :func:`feed_schedule`)."""
+    node sending ``rate_hz`` as ``feed`` says (see :func:`feed_schedule`).
+    ``gateways`` > 1: that many gateway processes share the bodies
+    (``gateway --share``); their samples and CPU are added up."""
     import socket
 
     from bodynet.core.codecs import pose, raw_sample
@@ -189,14 +196,18 @@ def run_once(bodies: int, seconds: float, rate_hz: float = RATE_HZ,
     relay_cpu, gw_cpu = ctx.Value("d", 0.0), ctx.Value("d", 0.0)
     stop, ready = ctx.Event(), ctx.Event()
     relay = ctx.Process(target=_relay, args=(endpoint, stop, relay_cpu))
-    gateway = ctx.Process(target=_gateway, args=(endpoint, stop, gw_samples, gw_cpu, bodies > 1))
+    share = (lambda k: f"bench-{k}") if gateways > 1 else (lambda k: None)
+    serving = [ctx.Event() for _ in range(gateways)]
+    procs = [ctx.Process(target=_gateway, args=(endpoint, stop, gw_samples, gw_cpu,
+                                                bodies > 1 or gateways > 1, share(k), serving[k]))
+             for k in range(gateways)]  # fmt: skip
     # one feeder process per 10 bodies, so the feed keeps its rate
     feeders = [
         ctx.Process(target=_feed, args=(endpoint, seconds, sent, ready,
                                         range(i, min(i + 10, bodies)), bodies, rate_hz, feed))
         for i in range(0, bodies, 10)
     ]  # fmt: skip
-    for p in (relay, gateway, *feeders):
+    for p in (relay, *procs, *feeders):
         p.start()
     probe = open_session(session_config("client", connect=[endpoint]))
     relay_lat: list[int] = []
@@ -208,13 +219,15 @@ def run_once(bodies: int, seconds: float, rate_hz: float = RATE_HZ,
         probe.declare_subscriber(pose_selector, lambda s: pose_lat.append(
             time.time_ns() - pose.source_time(s.payload.to_bytes()))),
     ]  # fmt: skip
-    time.sleep(2.0)  # subscriptions propagate; the gateway process has imported Pinocchio
+    for event in serving:  # each gateway process has imported Pinocchio and subscribed
+        event.wait(timeout=120)
+    time.sleep(1.0)  # subscriptions propagate
     ready.set()
     for f in feeders:
         f.join()
     time.sleep(0.5)  # the last samples drain
     stop.set()
-    for p in (relay, gateway):
+    for p in (relay, *procs):
         p.join(timeout=30)
     for sub in subs:
         sub.undeclare()
@@ -223,7 +236,7 @@ def run_once(bodies: int, seconds: float, rate_hz: float = RATE_HZ,
     r, g = _stats(relay_lat), _stats(pose_lat)
     expected_poses = seconds * RATE_HZ * bodies  # the gateway ticks at 100 Hz at most
     return {
-        "bodies": bodies, "feed": feed, "sent": sent.value,
+        "bodies": bodies, "feed": feed, "gateways": gateways, "sent": sent.value,
         "relay": {**r, "received": len(relay_lat), "lost": sent.value - len(relay_lat),
                   "cpu_ms_per_body_s": 1e3 * relay_cpu.value / seconds / bodies},
         "gateway": {**g, "samples_received": gw_samples.value,
@@ -260,27 +273,38 @@ def run(
     rate_hz: float = RATE_HZ,
     name: str = "gateway",
     feeds: tuple[str, ...] = FEEDS,
+    gateways: tuple[int, ...] = (1,),
 ) -> dict[str, Any]:
     """Run the comparison for each number of bodies and each feed (realistic
     first, see :func:`feed_schedule`), each node sending ``rate_hz``; print a
     table; write ``<name>.json`` and ``<name>.md``. The first run's figures
     (one body, the first feed) are also at the top level of the result; the
-    bodies sustained are counted on the first feed."""
+    bodies sustained are counted on the first feed. Each count in ``gateways``
+    other than 1 adds a row per number of bodies: that many gateway processes
+    sharing the bodies (``gateway --share``), on the first feed."""
     from bodynet.bench import machine
 
     rows = [run_once(n, seconds, rate_hz, feed) for n in bodies for feed in feeds]
-    first = [r for r in rows if r["feed"] == feeds[0]]
+    rows += [run_once(n, seconds, rate_hz, feeds[0], g)
+             for g in gateways if g != 1 for n in bodies]  # fmt: skip
+    first = [r for r in rows if r["feed"] == feeds[0] and r["gateways"] == 1]
     best = {
         path: max((r["bodies"] for r in first if sustained(r, path)), default=0)
         for path in ("relay", "gateway")
     }
+    by_gateways = {
+        g: max((r["bodies"] for r in rows
+                if r["gateways"] == g and r["feed"] == feeds[0] and sustained(r, "gateway")),
+               default=0)
+        for g in sorted({1, *gateways})
+    }  # fmt: skip
     result = {
         "machine": f"{machine.cpu_model()}, {mp.cpu_count()} cores, "
         f"Python {platform.python_version()}",
         "seconds": seconds, "rate_hz_per_node": rate_hz, "nodes_per_body": 15,
         "feeds": list(feeds),
         **{k: rows[0][k] for k in ("sent", "relay", "gateway", "p50_ratio", "p99_ratio")},
-        "runs": rows, "sustained_bodies": best,
+        "runs": rows, "sustained_bodies": best, "sustained_by_gateways": by_gateways,
         "sustained_ratio": best["gateway"] / best["relay"] if best["relay"] else None,
     }  # fmt: skip
     lines = [
@@ -295,12 +319,15 @@ def run(
             f"| | {r['p50_ms']:.2f} | {r['p99_ms']:.2f} | | {r['cpu_ms_per_body_s']:.0f} |"
         )
         ratio = f"{row['p99_ratio']:.2f}" if row["p99_ratio"] else "-"
-        lines.append(f"| {row['bodies']} | {f} | gateway (raw -> pose) | {row['sent']} "
+        path = "gateway" if row["gateways"] == 1 else f"{row['gateways']} gateways sharing"
+        lines.append(f"| {row['bodies']} | {f} | {path} (raw -> pose) | {row['sent']} "
                      f"| {g['lost']} | {g['pose_rate'] * RATE_HZ:.0f} | {g['p50_ms']:.2f} "
                      f"| {g['p99_ms']:.2f} | {ratio} | {g['cpu_ms_per_body_s']:.0f} |")  # fmt: skip
     table = "\n".join(lines) + (
         f"\n\nSustained with zero loss ({feeds[0]} feed): relay {best['relay']} bodies, "
-        f"gateway {best['gateway']} bodies (at least {TICKS_GOAL:.0%} of ticks delivered).\n"
+        f"gateway {best['gateway']} bodies (at least {TICKS_GOAL:.0%} of ticks delivered)"
+        + "".join(f"; {g} gateways sharing: {n}" for g, n in by_gateways.items() if g != 1)
+        + ".\n"
     )
     print(f"Gateway vs bare relay (15 nodes x {rate_hz:g} Hz per body), {seconds:g} s each, "
           f"{result['machine']}\n\n{table}")  # fmt: skip

@@ -61,6 +61,11 @@ def cmd_view(args: argparse.Namespace) -> int:
             if args.recording and args.save
             else ("native" if os.environ.get("DISPLAY") else "web")
         )
+    stop = None
+    if not args.recording:  # before anything is printed: a signal from then on ends it cleanly
+        from bodynet.cli.nodes import stop_on_signals
+
+        stop = stop_on_signals()
     try:
         viewer = Viewer.start(mode, args.save, args.url, args.web_port, args.grpc_port)
     except OSError as exc:  # e.g. --save in a folder that is not there
@@ -78,9 +83,7 @@ def cmd_view(args: argparse.Namespace) -> int:
                 print(f"bodynet view: {exc}", file=sys.stderr)
                 return 2
         else:
-            from bodynet.cli.nodes import stop_on_signals
-
-            stop = stop_on_signals()
+            assert stop is not None
             session = open_session(config_from_args(args))
             try:
                 n = view_live(session, viewer, stop)

@@ -11,6 +11,7 @@ from pathlib import Path
 from bodynet.core import keys
 from bodynet.core.keys import branch_named
 from bodynet.core.subject import Profile, ProfileError
+from bodynet.gateway import shards
 from bodynet.session import DEFAULT_ROUTER, add_session_args, config_from_args, open_session
 
 
@@ -36,17 +37,25 @@ def cmd_gateway(args: argparse.Namespace) -> int:
     if args.all_subjects and args.subject:
         print("bodynet gateway: --all-subjects or --subject, not both", file=sys.stderr)
         return 2
+    if args.share is not None and not args.all_subjects:
+        print("bodynet gateway: --share shares the subjects of --all-subjects; give both",
+              file=sys.stderr)  # fmt: skip
+        return 2
     stop = stop_on_signals()
     session = open_session(config_from_args(args))
     branches = [branch_named(b) for b in args.branch] or None
+    share = None if args.share is None else (args.share or shards.new_id())
     gateway = Gateway(session, profile, args.profile, branches, args.rate_hz,
-                      all_subjects=args.all_subjects, profile_dir=args.profile_dir)  # fmt: skip
+                      all_subjects=args.all_subjects, profile_dir=args.profile_dir,
+                      share=share)  # fmt: skip
     where = ", ".join(args.listen) if args.listen else "its router"
     served = (
         "every subject (<subject>/body/...)"
         if args.all_subjects
         else f"subject {args.subject or profile.subject!r}"
     )
+    if gateway.share is not None:
+        served = f"its share of every subject (gateway {gateway.share.id})"
     print(f"bodynet gateway: {served}, serving on {where}; "
           f"poses on {keys.pose_key()} and {keys.all_poses()}", flush=True)  # fmt: skip
     try:
@@ -227,7 +236,20 @@ def add_gateway_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--profile-dir", type=Path,
                    help="with --all-subjects: <subject>.toml profiles (default.toml "
                         "without namespace), written by T-pose calibration")  # fmt: skip
+    p.add_argument("--share", nargs="?", const="", metavar="ID", type=_gateway_id,
+                   help="with --all-subjects: share the subjects with the other gateways "
+                        "started with --share (each serves its own; a dead one's are "
+                        "taken over); ID names this one (default: host, pid, random)")  # fmt: skip
     add_session_args(p, default_mode="router")
+
+
+def _gateway_id(text: str) -> str:
+    if not text:
+        return text
+    try:
+        return shards.check_id(text)
+    except keys.KeySpaceError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
 
 
 def add_subjects_args(p: argparse.ArgumentParser) -> None:

@@ -86,7 +86,12 @@ BENCHMARKS = ("decode", "solver", "gateway", "peer", "rate", "recorder", "faults
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
-    from bodynet.bench import decode, faults, gateway, peer, recorder, report, soak, solver
+    try:
+        from bodynet.bench import decode, faults, gateway, peer, recorder, report, soak, solver
+    except ModuleNotFoundError as exc:  # psutil: the `bench` extra
+        print(f"bodynet bench: {exc.name} is missing: install the bench extra "
+              "(pip install -e '.[bench]', as make bench does)", file=sys.stderr)  # fmt: skip
+        return 2
 
     only = args.only or [b for b in BENCHMARKS if b != "soak"]  # the soak on demand
     if "decode" in only:
@@ -94,7 +99,8 @@ def cmd_bench(args: argparse.Namespace) -> int:
     if "solver" in only:
         solver.run(seconds=args.seconds, out_dir=args.out, bodies=(1, 5, 20))
     if "gateway" in only:
-        gateway.run(seconds=args.gateway_seconds, out_dir=args.out, bodies=tuple(args.bodies))
+        gateway.run(seconds=args.gateway_seconds, out_dir=args.out, bodies=tuple(args.bodies),
+                    gateways=tuple(args.gateways))  # fmt: skip
     if "peer" in only:
         peer.run(seconds=args.gateway_seconds, out_dir=args.out)
     if "rate" in only:
@@ -158,6 +164,8 @@ def add_bench_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--gateway-seconds", type=float, default=10.0, help="time of the gateway run")
     p.add_argument("--bodies", type=int, nargs="+", default=[1, 5, 10, 15, 20, 50],
                    help="numbers of bodies fed to the gateway")  # fmt: skip
+    p.add_argument("--gateways", type=int, nargs="+", default=[1, 2, 4],
+                   help="numbers of gateway processes sharing the bodies (--share)")  # fmt: skip
     p.add_argument("--only", action="append", choices=BENCHMARKS,
                    help="run only this benchmark (repeatable; default all but soak)")  # fmt: skip
     p.add_argument("--rate-hz", type=float, default=1000.0,

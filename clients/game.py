@@ -316,14 +316,22 @@ class GameServer:
         self._save_if_changed()
 
     def new_session(self, patient: str, arm: object = None) -> None:
-        """End this session (its running trial saved as incomplete) and begin another."""
+        """End this session (its running trial saved as incomplete) and begin another,
+        in a new file; ``GameError`` (and this session goes on) if it cannot be."""
         patient = check_patient(patient)
-        side = arm if arm in ("left", "right") else self.game.side
+        side = str(arm) if arm in ("left", "right") else self.game.side
+        try:
+            results = ResultsFile(self.results_dir, side, patient)
+        except OSError as exc:
+            raise GameError(f"cannot write results in {self.results_dir}: "
+                            f"{exc.strerror or exc}", "results") from None  # fmt: skip
         old = self.game
         old.abort(time.monotonic(), "new session started")
         self._save_if_changed()
-        self.options = replace(self.options, side=str(side), patient=patient)
-        self.results = ResultsFile(self.results_dir, self.options.side, patient)
+        if results.json_path.exists():  # the old session's file, saved just now
+            results = ResultsFile(self.results_dir, side, patient)
+        self.options = replace(self.options, side=side, patient=patient)
+        self.results = results
         self.game = self.options.game()
         if old.side == self.game.side:  # the arm's signal carries over
             self.game.arm, self.game.arm_at = old.arm, old.arm_at

@@ -58,12 +58,6 @@ def output_class(name: str) -> type[LiveOutput]:
     return found
 
 
-def is_measured(frame: pose.PoseFrame, angle: str) -> bool:
-    """Is there a measurement behind ``frame``'s value of ``angle`` (a
-    ``<joint>_<dof>_deg`` name)? The team's convention: no flag, or ``clamped``."""
-    return frame.flags.get(angle, "clamped") == "clamped"
-
-
 class LiveOutput:
     """One live output. :func:`run` calls, from one thread:
 

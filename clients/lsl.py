@@ -50,10 +50,11 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from bodynet.clients.live import LiveOutput, is_measured
+from bodynet.clients.live import LiveOutput
 from bodynet.core.codecs import pose
 from bodynet.core.keys import parse
 from bodynet.core.messages import OleAccel, Quat, RawSample
+from bodynet.core.metrics import is_measured
 from bodynet.core.skeleton import Skeleton, build_skeleton
 
 STREAM_TYPE = "MoCap"

@@ -16,17 +16,12 @@ from __future__ import annotations
 import json
 from typing import Any
 
-from bodynet.clients.live import DEFAULT_SUBJECT, LiveOutput, is_measured
+from bodynet.clients.live import DEFAULT_SUBJECT, LiveOutput
 from bodynet.core import keys
 from bodynet.core.codecs import pose
-from bodynet.core.metrics import BodyMetrics
+from bodynet.core.metrics import BodyMetrics, measured_angles
 
 DEFAULT_RATE_HZ = 2.0
-
-
-def measured_angles(frame: pose.PoseFrame) -> dict[str, float]:
-    """The angles of ``frame`` a measurement stands behind."""
-    return {n: v for n, v in frame.angles_deg.items() if is_measured(frame, n)}
 
 
 def metrics_key(subject: str, all_subjects: bool) -> str:

@@ -36,8 +36,8 @@ other flag (``unobserved``, ``held``, ``uncalibrated``) means no measurement
 is behind the number. A target *needs* dofs: its gate's angle, or for a
 touch the ones that place the hand tip (``TOUCH_DOFS``). A target is reached
 only when (1) a pose with every needed dof measured showed the hand *away*
-from the target (outside the radius, or below the gate's angle) after the
-target's cue, and (2) a later such pose shows it *there*, after the ball has
+from the target (outside the radius, or below the gate's angle) at or after
+the target's cue, and (2) a later such pose shows it *there*, after the ball has
 arrived. So an arm that does not move reaches nothing, not even the rest
 stops it is already at. Range of motion counts, per dof, only measured
 samples.
@@ -343,13 +343,17 @@ class RehabGame:
         if self.state != "running" or arm.stale_sources:
             return
         self._samples.append({d: v for d, v in arm.angles.items() if d in arm.measured})
-        target = ROUTE[self._index]
-        if arm.unmeasured(target.needs):
-            return
-        if not self._there(arm):
-            self._run.away = True
-        elif self._run.away and self._arrived(now):
+        if self._observe(arm) and self._run.away and self._arrived(now):
             self._reached(now)
+
+    def _observe(self, arm: ArmPose) -> bool:
+        """Is the hand at the current target in this pose? (False if not measured);
+        a measured pose away from it is noted."""
+        if arm.unmeasured(ROUTE[self._index].needs):
+            return False
+        there = self._there(arm)
+        self._run.away |= not there
+        return there
 
     def start(self, now: float) -> None:
         """Begin the next trial (Start was pressed)."""
@@ -561,8 +565,11 @@ class RehabGame:
         self._advance(now)
 
     def _cue(self, now: float) -> None:
+        """The ball leaves for the current target: the pose of this moment counts."""
         self._cue_at = now
         self._run = _Run()
+        if self._index < len(ROUTE) and self.arm is not None and not self.arm.stale_sources:
+            self._observe(self.arm)
 
     def _close_target(self, now: float) -> None:
         """Copy the current target's waits into its result."""

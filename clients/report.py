@@ -38,6 +38,7 @@ import pandas as pd
 
 from bodynet.clients import stats
 from bodynet.clients.mcap_store import StoreError, read_poses, read_truth
+from bodynet.core import metrics
 
 #: At most this many channels get a panel of their own in a plot.
 MAX_PANELS = 12
@@ -162,10 +163,31 @@ class Analysis:
     accuracy_note: str
     trials: Trials | None
     uncertainty: Uncertainty
+    clinical: list[pd.DataFrame] = field(default_factory=list)  # one per recording
 
 
 def _moving(rec: Recording) -> list[str]:
     return [c for c in rec.observed if float(np.ptp(rec.angles[c])) >= stats.REP_MIN_PROMINENCE_DEG]
+
+
+def clinical_table(path: Path) -> pd.DataFrame:
+    """The clinical metrics of a recording's poses, by the module the live
+    ``body/@metrics`` publisher uses (``core.metrics``), fed the same way: each
+    pose's measured angles at its source time. The numbers at the end of the
+    recording, per observed dof."""
+    body = metrics.BodyMetrics()
+    try:
+        for _, frame in read_poses(path):
+            body.add(frame.t_ns, metrics.measured_angles(frame))
+    except StoreError as exc:
+        raise ReportError(str(exc)) from None
+    except ValueError as exc:
+        raise ReportError(f"{path}: not a bodynet pose recording ({exc})") from None
+    rows = [{"channel": name, "min (deg)": d["min_deg"], "max (deg)": d["max_deg"],
+             "range (deg)": d["range_deg"], "repetitions": d["repetitions"],
+             "SPARC (last movement)": d["sparc"], "samples": d["samples"]}
+            for name, d in body.snapshot()["dofs"].items()]  # fmt: skip
+    return pd.DataFrame(rows)
 
 
 def rom_table(rec: Recording) -> pd.DataFrame:
@@ -323,7 +345,8 @@ def analyse(
     acc = accuracy(first, ref) if ref is not None else None
     tri = trials_of(recs, joint) if with_trials else None
     return Analysis(recs, [rom_table(r) for r in recs], acc, note, tri,
-                    uncertainty(first, still, still_s))  # fmt: skip
+                    uncertainty(first, still, still_s),
+                    [clinical_table(Path(p)) for p in paths])  # fmt: skip
 
 
 # -- writing -------------------------------------------------------------------
@@ -348,6 +371,7 @@ def _blocks(an: Analysis, images: dict[str, str]) -> list[Block]:
             out.append(("p", rec.source))
         out.append(("table", table))
     out.append(("img", images["angles"]))
+    out += _clinical_blocks(an)
 
     out.append(("h2", "Accuracy against a reference (000 seed, ch. 5)"))
     if an.accuracy is None:
@@ -384,6 +408,27 @@ def _blocks(an: Analysis, images: dict[str, str]) -> list[Block]:
                   f"({un.how}). Best estimate q̄ (eq. 8.1), experimental variance and SD "
                   "(eq. 8.2, n - 1), variance and SD of the mean (eq. 8.3)."),
             ("table", un.table)]  # fmt: skip
+    return out
+
+
+def _clinical_blocks(an: Analysis) -> list[Block]:
+    """The "Clinical metrics" section: what ``body/@metrics`` said live at the end."""
+    out: list[Block] = [
+        ("h2", "Clinical metrics"),
+        ("p", "The numbers `bodynet metrics` publishes live on body/@metrics, computed by the "
+              "same module (core/metrics.py) over the recording's measured samples only "
+              "(an angle flagged anything but clamped is left out): range of motion so far; "
+              "repetitions, each a swing from the lower quarter of the range to the upper "
+              f"quarter and back (range at least {metrics.MIN_SPAN_DEG:g} deg); smoothness "
+              "of the last movement (the last stretch faster than "
+              f"{metrics.MOVING_DEG_S:g} deg/s) as its spectral arc length SPARC "
+              "(Balasubramanian et al. 2015; closer to 0 is smoother, a single minimum-jerk "
+              "movement gives -1.41; blank without a movement)."),
+    ]  # fmt: skip
+    for rec, table in zip(an.recordings, an.clinical, strict=False):
+        if len(an.recordings) > 1:
+            out.append(("p", rec.source))
+        out.append(("table", table) if len(table) else ("p", "No measured joint angle."))
     return out
 
 

@@ -87,6 +87,7 @@ def blueprint() -> rrb.Blueprint:
                 rrb.TimeSeriesView(origin="angles", name="Joint angles (deg)"),
                 rrb.Spatial2DView(origin="gauges", name="Gauges (degrees)"),
                 rrb.TextDocumentView(origin="status", name="Topology and health"),
+                rrb.TextDocumentView(origin="metrics", name="Clinical metrics"),
             ),
         ),
         collapse_panels=True,
@@ -266,6 +267,26 @@ def status_text(topology: object, health: Mapping[str, object], bad: int = 0) ->
     return "\n".join(lines)
 
 
+def metrics_text(message: object) -> str:
+    """The clinical-metrics panel from a ``body/@metrics`` message (JSON): one row
+    per observed dof; what is not as documented shows as ``?``."""
+    dofs = message.get("dofs") if isinstance(message, dict) else None
+    if not isinstance(dofs, dict) or not dofs:
+        return "No measured joint angle yet."
+    lines = ["| dof | min | max | range (deg) | reps | SPARC |", "|---|---|---|---|---|---|"]
+    for name, d in sorted(dofs.items()):
+        def get(key: str, d: object = d) -> str:
+            v = d.get(key) if isinstance(d, dict) else None
+            if v is None and key == "sparc":
+                return ""
+            return f"{v:.4g}" if isinstance(v, float) else _show(v)
+
+        lines.append(f"| {str(name).removesuffix('_deg')[:40]} | {get('min_deg')} | "
+                     f"{get('max_deg')} | {get('range_deg')} | {get('repetitions')} | "
+                     f"{get('sparc')} |")  # fmt: skip
+    return "\n".join(lines)
+
+
 @dataclass
 class Viewer:
     """Logs poses to Rerun, batching them; to several sinks at once if asked
@@ -353,6 +374,10 @@ class Viewer:
         for rec in self.recs:
             rec.log("status", rr.TextDocument(text, media_type=rr.MediaType.MARKDOWN))
 
+    def log_metrics(self, text: str) -> None:
+        for rec in self.recs:
+            rec.log("metrics", rr.TextDocument(text, media_type=rr.MediaType.MARKDOWN))
+
     def close(self, keep: bool = True) -> None:
         """Flush and close every sink; the ``.rrd`` goes into place if ``keep``
         (and it was all written), else it is removed, leaving an older file of
@@ -384,7 +409,7 @@ def view_recording(path: Path, viewer: Viewer, batch: int = 100) -> int:
 
 
 def view_live(session: zenoh.Session, viewer: Viewer, stop: threading.Event) -> int:
-    """Log the live poses, topology and health until ``stop``; returns how many
+    """Log the live poses, topology, health and metrics until ``stop``; returns how many
     poses were shown. No message stops it: what cannot be shown is counted in
     ``viewer.bad`` (and in the status panel) and the view goes on."""
     inbox: queue.SimpleQueue[tuple[str, bytes]] = queue.SimpleQueue()
@@ -394,7 +419,7 @@ def view_live(session: zenoh.Session, viewer: Viewer, stop: threading.Event) -> 
 
     subs = [
         session.declare_subscriber(k, put)
-        for k in (keys.pose_key(), keys.TOPOLOGY, f"{keys.HEALTH}/**")
+        for k in (keys.pose_key(), keys.TOPOLOGY, f"{keys.HEALTH}/**", keys.METRICS)
     ]
     topology: object = None
     health: dict[str, object] = {}
@@ -413,6 +438,8 @@ def view_live(session: zenoh.Session, viewer: Viewer, stop: threading.Event) -> 
                 try:
                     if key == keys.pose_key():
                         frames.append(pose.decode(data))
+                    elif key == keys.METRICS:
+                        viewer.log_metrics(metrics_text(json.loads(data)))
                     elif key == keys.TOPOLOGY:
                         topology, changed = json.loads(data), True
                     else:

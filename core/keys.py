@@ -240,6 +240,15 @@ def parse(key: str) -> tuple[Site, Stream]:
 #: Every subject's namespace, as the first chunk of a key expression.
 ANY_SUBJECT = "*"
 
+#: Liveliness tokens of the gateways sharing the subjects (``gateway --share``):
+#: outside every subject's namespace, verbatim so that no wildcard matches it.
+GATEWAYS = "@bodynet/gateways"
+
+
+def gateway_token(gateway_id: str) -> str:
+    """The liveliness token of one sharing gateway."""
+    return f"{GATEWAYS}/{gateway_id}"
+
 
 def subject_name(name: str) -> str:
     """``name`` if it can be a subject namespace (one key chunk, not ``body``)."""

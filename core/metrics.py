@@ -41,6 +41,8 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from .codecs.pose import PoseFrame
+
 MIN_SPAN_DEG = 5.0
 MOVING_DEG_S = 10.0
 SPARC_RATE_HZ = 100.0
@@ -50,6 +52,17 @@ HISTORY = 2000
 MIN_MOVEMENT_S = 0.1
 
 FloatArray = npt.NDArray[np.float64]
+
+
+def is_measured(frame: PoseFrame, angle: str) -> bool:
+    """Is there a measurement behind ``frame``'s value of ``angle`` (a
+    ``<joint>_<dof>_deg`` name)? The team's convention: no flag, or ``clamped``."""
+    return frame.flags.get(angle, "clamped") == "clamped"
+
+
+def measured_angles(frame: PoseFrame) -> dict[str, float]:
+    """The angles of ``frame`` a measurement stands behind."""
+    return {n: v for n, v in frame.angles_deg.items() if is_measured(frame, n)}
 
 
 def sparc(speed: npt.ArrayLike, fs: float, pad_level: int = 4, fc: float = 10.0,

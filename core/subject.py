@@ -1,7 +1,7 @@
 """A subject's profile: segment lengths and sensor calibrations, versioned.
 
 The profile is what calibration produces and the gateway consumes. It is kept
-as plain data here (no file I/O); ``bodynet.gateway.profile_file`` reads and
+as plain data here (no file I/O); ``bodynet.session.profile_file`` reads and
 writes it as TOML a user can read and edit:
 
 ```toml

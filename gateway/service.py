@@ -48,6 +48,7 @@ from bodynet.core.messages import Quat, RawSample, source_name
 from bodynet.core.subject import Profile, ProfileError, QuatWxyz
 from bodynet.gateway.frames import branch_views, pose_frame
 from bodynet.gateway.heading import BodyHeading, CalibrationRefused, calibrate_window, yaw_reset
+from bodynet.gateway.shards import Share
 from bodynet.gateway.solver import BodyOutput, BodySolver, solve_bodies
 from bodynet.session import profile_file
 
@@ -65,6 +66,9 @@ MAX_SUBJECTS = 64
 #: Raw samples Zenoh queues for the gateway's worker (some 2 s of 20 bodies); when
 #: full, Zenoh waits (the publishers' congestion control decides what follows).
 INTAKE_DEPTH = 1 << 16
+#: Raw keys of subjects another sharing gateway serves, remembered so that their
+#: samples are skipped before decoding (past this many they are still skipped).
+MAX_FOREIGN_KEYS = 1 << 14
 #: How long the idle worker sleeps before it looks again: while samples flow, and
 #: after a second without any.
 IDLE_S, IDLE_QUIET_S = 0.0003, 0.005
@@ -275,7 +279,7 @@ class Gateway:
     def __init__(self, session: zenoh.Session, profile: Profile | None = None,
                  profile_path: Path | None = None, branches: Sequence[Branch] | None = None,
                  rate_hz: float = 100.0, *, all_subjects: bool = False,
-                 profile_dir: Path | None = None) -> None:  # fmt: skip
+                 profile_dir: Path | None = None, share: str | None = None) -> None:  # fmt: skip
         self.session = session
         self.branches = tuple(branches) if branches else BRANCHES
         self.period_s = 1.0 / rate_hz
@@ -284,6 +288,12 @@ class Gateway:
         self.rejected = RejectCounts()
         self.solver_errors = 0
         self.refused_subjects = 0
+        # --share: the gateways that share the subjects, and what is not this one's
+        self.share = Share(share) if share is not None and all_subjects else None
+        self.foreign_samples = 0  # samples of subjects another gateway serves
+        self._foreign: set[str] = set()  # their raw keys, skipped undecoded
+        self._foreign_alive: dict[str | None, set[str]] = {}  # their live nodes' keys
+        self._members: queue.SimpleQueue[tuple[str, bool]] = queue.SimpleQueue()
         # liveliness tokens that came or went (on Zenoh's threads), for the worker
         self._events: queue.SimpleQueue[tuple[str | None, _Token]] = queue.SimpleQueue()
         self._lock = threading.RLock()
@@ -301,6 +311,9 @@ class Gateway:
             for p in prefixes
             for sel in (keys.all_raw(), keys.UNASSIGNED + "/*")  # sensors, unassigned trackers
         ]  # fmt: skip
+        self._share_decls: list[object] = []
+        if self.share is not None:
+            self._join_share(self.share)
         self._queryables = [
             q
             for p in prefixes
@@ -339,7 +352,7 @@ class Gateway:
         Returns how many were taken and the bodies they went to."""
         taken, touched = 0, set()
         until = now + self.period_s  # a flood (of garbage, say) still leaves time to solve
-        routes = self._routes
+        routes, foreign, share = self._routes, self._foreign, self.share
         with self._lock:
             for sub in self._subs:
                 while (taken % 256 or time.monotonic() < until) and (
@@ -350,8 +363,16 @@ class Gateway:
                     try:
                         route = routes.get(key)
                         if route is None:
+                            if key in foreign:
+                                self.foreign_samples += 1
+                                continue
                             subject, body_key = keys.split_subject(key)
                             site, _ = keys.parse(body_key)
+                            if share is not None and not share.owns(subject):
+                                if len(foreign) < MAX_FOREIGN_KEYS:
+                                    foreign.add(key)
+                                self.foreign_samples += 1
+                                continue
                         raw = raw_sample.decode(sample.payload.to_bytes())
                     except DecodeError as exc:
                         self.rejected[exc.reason] += 1
@@ -370,6 +391,56 @@ class Gateway:
                     touched.add(body)
         return taken, touched
 
+    def _join_share(self, share: Share) -> None:
+        """Declare this gateway's token and learn the members already there
+        before serving (a newcomer that took itself for alone would serve every
+        subject twice until the others' tokens came)."""
+        group = keys.GATEWAYS + "/*"
+
+        def on_member(sample: zenoh.Sample) -> None:  # Zenoh's thread
+            member = str(sample.key_expr).rsplit("/", 1)[-1]
+            self._members.put((member, sample.kind == zenoh.SampleKind.PUT))
+
+        liveliness = self.session.liveliness()
+        self._share_decls = [
+            liveliness.declare_token(keys.gateway_token(share.id)),
+            liveliness.declare_subscriber(group, on_member, history=True),
+        ]
+        for reply in liveliness.get(group, timeout=1.0):
+            if reply.ok is not None:
+                share.update(str(reply.ok.key_expr).rsplit("/", 1)[-1], True)
+        log.info("gateway %s: sharing the subjects with %d other gateways", share.id,
+                 len(share.members) - 1)  # fmt: skip
+
+    def _reshare(self) -> int:
+        """Apply the members that came or went: drop the bodies of subjects now
+        another gateway's (their profiles stay in the profile folder), and let
+        samples of the others be looked at again. How many events there were."""
+        assert self.share is not None
+        events, changed = 0, False
+        while True:
+            try:
+                member, alive = self._members.get_nowait()
+            except queue.Empty:
+                break
+            events += 1
+            changed |= self.share.update(member, alive)
+        if not changed:
+            return events
+        with self._lock:
+            for subject, body in list(self._bodies.items()):
+                if not self.share.owns(subject):
+                    del self._bodies[subject]
+                    self._foreign_alive[subject] = set(body.alive)
+                    for key in [k for k, (b, _) in self._routes.items() if b is body]:
+                        del self._routes[key]
+                    body.close()
+                    log.info("gateway: subject %s is now another gateway's", subject)
+            self._foreign.clear()
+        log.info("gateway %s: %d gateways share the subjects", self.share.id,
+                 len(self.share.members))  # fmt: skip
+        return events
+
     def _on_token(self, sample: zenoh.Sample) -> None:  # Zenoh's thread
         try:
             subject, key = keys.split_subject(str(sample.key_expr))
@@ -378,13 +449,16 @@ class Gateway:
         self._events.put((subject, _Token(key, sample.kind == zenoh.SampleKind.PUT)))
 
     def _body(self, subject: str | None) -> _Body | None:
-        """The subject's body, made on first sight (a refusal is counted)."""
+        """The subject's body, made on first sight (a refusal is counted); None
+        for a subject another sharing gateway serves."""
         body = self._bodies.get(subject)
         if body is not None:
             return body
         with self._lock:
             if subject in self._bodies:
                 return self._bodies[subject]
+            if self.share is not None and not self.share.owns(subject):
+                return None
             if len(self._bodies) >= MAX_SUBJECTS:
                 self.refused_subjects += 1
                 return None
@@ -398,6 +472,7 @@ class Gateway:
                 profile = Profile()
             prefix = keys.subject_prefix(subject)
             body = _Body(self.session, prefix, profile, path, self.branches)
+            body.alive |= self._foreign_alive.pop(subject, set())  # nodes seen while not ours
             self._bodies[subject] = body
             log.info("gateway: serving subject %s", subject or "(no namespace)")
             return body
@@ -554,7 +629,7 @@ class Gateway:
                         due[body] = False
                     elif body.first_new is not None:
                         next_due = min(next_due, body.first_new + self.period_s)
-            events = 0
+            events = self._reshare() if self.share is not None else 0
             while True:
                 try:
                     subject, token = self._events.get_nowait()
@@ -592,6 +667,12 @@ class Gateway:
             return None  # a node this gateway does not serve (it subscribes to a subset)
         body = self._body(subject)
         if body is None:
+            foreign = self._foreign_alive
+            if self.share is not None and not self.share.owns(subject) and (
+                subject in foreign or len(foreign) < MAX_SUBJECTS * len(self.share.members)
+            ):
+                alive = foreign.setdefault(subject, set())
+                (alive.add if token.alive else alive.discard)(token.key)
             return None
         with self._lock:
             (body.alive.add if token.alive else body.alive.discard)(token.key)
@@ -681,6 +762,9 @@ class Gateway:
                                   "rejected": dict(self.rejected),
                                   "subjects": len(self._bodies),
                                   "refused_subjects": self.refused_subjects}  # fmt: skip
+        if self.share is not None:
+            out["share"] = {"gateway": self.share.id, "members": sorted(self.share.members),
+                            "foreign_samples": self.foreign_samples}  # fmt: skip
         if body is not None:
             out["body"] = {"samples": body.samples, "ticks": body.ticks,
                            "heading": body.heading.state()}  # fmt: skip
@@ -691,6 +775,8 @@ class Gateway:
         return out
 
     def close(self) -> None:
+        for decl in self._share_decls:
+            decl.undeclare()  # type: ignore[attr-defined]
         for q in self._queryables:
             q.undeclare()
         for sub in self._subs:

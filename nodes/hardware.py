@@ -33,6 +33,7 @@ from bodynet.core.codecs import concentrator, imu_matrix, smartsuit_can
 from bodynet.core.codecs.smartsuit_can import SlcanDecoder, SlcanReply
 from bodynet.core.messages import NoNewData, OleAccel, Quat, Reading, SensorAbsent
 from bodynet.nodes.emulator import BodyEmulator, Truth
+from bodynet.nodes.loop import Loop
 
 log = logging.getLogger(__name__)
 
@@ -54,34 +55,6 @@ class Clock:
         return time.monotonic() - self.t0
 
 
-class _Loop:
-    """A background thread with a stop event."""
-
-    def __init__(self, name: str) -> None:
-        self.name = name
-        self.stop_event = threading.Event()
-        self._thread: threading.Thread | None = None
-
-    def start(self) -> None:
-        self.stop_event.clear()
-        self._thread = threading.Thread(target=self._guarded, name=self.name, daemon=True)
-        self._thread.start()
-
-    def stop(self) -> None:
-        self.stop_event.set()
-        if self._thread is not None:
-            self._thread.join(timeout=5)
-
-    def _guarded(self) -> None:
-        try:
-            self.run()
-        except Exception:
-            log.exception("%s stopped", self.name)
-
-    def run(self) -> None:
-        raise NotImplementedError
-
-
 def _sample(body: BodyEmulator, clock: Clock, truth: TruthSink | None) -> list[Reading]:
     readings, truths = body.sample(clock.now())
     if truth is not None:
@@ -91,7 +64,7 @@ def _sample(body: BodyEmulator, clock: Clock, truth: TruthSink | None) -> list[R
     return readings
 
 
-class CanNodes(_Loop):
+class CanNodes(Loop):
     """SmartSuit nodes on a python-can bus, one frame each every 10 ms."""
 
     def __init__(
@@ -203,7 +176,7 @@ class PtyPort:
             self.dropped += len(view)
 
 
-class _PtyEmulator(_Loop):
+class _PtyEmulator(Loop):
     """A device on a pseudo-terminal, driven by an emulated body."""
 
     def __init__(self, name: str, link: Path, baud: int, body: BodyEmulator,

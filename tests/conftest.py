@@ -53,12 +53,10 @@ def zsession(router_endpoint: str) -> Iterator[zenoh.Session]:
 
 
 def _bodynet(*args: object) -> None:
-    import subprocess
+    """``bodynet ARGS`` in this process (no interpreter to start); it must succeed."""
+    from bodynet.cli.main import main
 
-    bodynet = Path(sys.executable).with_name("bodynet")
-    result = subprocess.run([str(bodynet), *map(str, args)], capture_output=True, text=True,
-                            timeout=120, check=False)  # fmt: skip
-    assert result.returncode == 0, result.stderr
+    assert main([str(a) for a in args]) == 0
 
 
 @pytest.fixture(scope="session")
@@ -100,8 +98,8 @@ def arm_mcap(tmp_path_factory: pytest.TempPathFactory) -> Path:
 @pytest.fixture(scope="session")
 def flagged(body_mcap: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
     """``body_mcap`` with some angles flagged not measured for a window of frames
-    (``flagged_recording``)."""
-    from flagged_recording import write_flagged
+    (``export_recordings``)."""
+    from export_recordings import write_flagged
 
     out = tmp_path_factory.mktemp("flagged") / "flagged.mcap"
     write_flagged(body_mcap, out)

@@ -96,11 +96,12 @@ def test_demo_runs_the_live_body_network(tmp_path: Path) -> None:
 def test_tiny_gateway_benchmark_reports_both_paths(tmp_path: Path) -> None:
     from bodynet.bench import gateway
 
-    result = gateway.run(seconds=1.0, out_dir=tmp_path, bodies=(1, 2))
+    result = gateway.run(seconds=1.0, out_dir=tmp_path, bodies=(1, 2), gateways=(1, 2))
     rows = result["runs"]
-    assert [(r["bodies"], r["feed"]) for r in rows] == [
-        (1, "realistic"), (1, "locked"), (2, "realistic"), (2, "locked")]  # fmt: skip
-    for one, two in zip(rows[:2], rows[2:], strict=True):
+    assert [(r["bodies"], r["feed"], r["gateways"]) for r in rows] == [
+        (1, "realistic", 1), (1, "locked", 1), (2, "realistic", 1), (2, "locked", 1),
+        (1, "realistic", 2), (2, "realistic", 2)]  # fmt: skip
+    for one, two in ((rows[0], rows[2]), (rows[1], rows[3]), (rows[4], rows[5])):
         assert 0 < one["sent"] <= 1500  # at most 15 nodes x 100 Hz x 1 s
         assert 1500 < two["sent"] <= 3000
         for row in (one, two):
@@ -111,6 +112,8 @@ def test_tiny_gateway_benchmark_reports_both_paths(tmp_path: Path) -> None:
     table = (tmp_path / "gateway.md").read_text()
     assert table.startswith("| bodies | feed |")
     assert "| 2 | realistic | gateway (raw -> pose) |" in table
+    assert "| 2 | realistic | 2 gateways sharing (raw -> pose) |" in table
+    assert set(result["sustained_by_gateways"]) == {1, 2}
 
 
 def test_realistic_feed_is_not_phase_locked() -> None:

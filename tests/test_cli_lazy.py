@@ -75,3 +75,14 @@ def test_every_command_runs_a_function_or_gives_its_subcommands_one() -> None:
         assert leaves, f"{name} has neither a run function nor sub-commands"
         for leaf in leaves.values():
             assert callable(leaf.get_default("func")), f"{name}: a sub-command without func"
+
+
+def test_bench_without_its_extra_says_what_to_install() -> None:
+    """psutil comes with the `bench` extra only; without it `bodynet bench` says so."""
+    code = ("import sys; sys.modules['psutil'] = None\n"  # as if it were not installed
+            "from bodynet.cli.main import main; sys.exit(main(['bench', '--only', 'decode']))")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          timeout=60, check=False)  # fmt: skip
+    assert done.returncode == 2, done.stderr
+    assert "psutil is missing: install the bench extra" in done.stderr
+    assert "Traceback" not in done.stderr

@@ -1,10 +1,14 @@
 """The documentation holds together: every relative link resolves (file and
-heading), every page of docs/ is listed in the README's table, and the README
-stays short enough to read in ten minutes."""
+heading), every page of docs/ is listed in the README's table, every
+``bodynet ...`` line of a shell block is a command the real parser accepts,
+and the README stays short enough to read in ten minutes."""
 
 from __future__ import annotations
 
+import contextlib
+import io
 import re
+import shlex
 from pathlib import Path
 
 import pytest
@@ -82,3 +86,38 @@ def test_the_link_checker_finds_broken_links(tmp_path: Path) -> None:
     page.write_text("# A title\n\n[x](b.md) [y](#nowhere) [z](#a-title) [w](a.md#a-title)\n"
                     "```\n[q](c.md)\n```\n")  # fmt: skip
     assert _broken_links(page) == ["b.md: no such file", "#nowhere: no heading #nowhere in a.md"]
+
+
+def _command_lines(doc: Path) -> list[str]:
+    """The ``bodynet`` command lines of a page's ``sh`` blocks, comments cut off."""
+    lines = []
+    for block in re.findall(r"^```sh\n(.*?)^```", doc.read_text(encoding="utf-8"), re.M | re.S):
+        for line in block.splitlines():
+            command = re.match(r"(?:\S+=\S+ )*(?:\.venv/bin/)?bodynet (.*)", line.split(" #")[0])
+            if command:
+                lines.append(command.group(1).strip())
+    return lines
+
+
+@pytest.mark.parametrize("doc", [README, *PAGES], ids=lambda p: p.name)
+def test_every_command_shown_parses(doc: Path) -> None:
+    from bodynet.cli.main import build_parser
+
+    parser = build_parser()
+    refused = []
+    for line in _command_lines(doc):
+        err = io.StringIO()
+        try:
+            with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
+                parser.parse_args(shlex.split(line))
+        except SystemExit as exc:
+            if exc.code:
+                refused.append(f"bodynet {line}: {err.getvalue().strip().splitlines()[-1:]}")
+    assert not refused, "\n".join(refused)
+
+
+def test_the_command_check_reads_shell_blocks(tmp_path: Path) -> None:
+    page = tmp_path / "a.md"
+    page.write_text("```sh\n.venv/bin/bodynet view -e tcp/h:7447   # a comment\n"
+                    "bodynet record -o x.mcap\nls\n```\n\n    bodynet not-in-a-block\n")
+    assert _command_lines(page) == ["view -e tcp/h:7447", "record -o x.mcap"]

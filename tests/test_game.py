@@ -31,7 +31,13 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from bodynet.cli.main import main as bodynet_main
-from bodynet.clients.game import ResultsFile, results_csv, session_history
+from bodynet.clients.game import (
+    GameOptions,
+    GameServer,
+    ResultsFile,
+    results_csv,
+    session_history,
+)
 from bodynet.clients.rehab import (
     GAP_S,
     ROUTE,
@@ -301,6 +307,29 @@ def test_results_are_owner_only_and_the_history_reads_them_back(tmp_path: Path) 
     assert "rehab-left-arm-broken.json" in history["unreadable"][0]
 
 
+def test_a_new_session_saves_the_old_one_and_starts_a_file_of_its_own(tmp_path: Path) -> None:
+    import time
+
+    server = GameServer(GameOptions("left", 1, 0, 0.12, 5.0, "p1"), tmp_path)
+    arm = FkArm("left")
+    now = time.monotonic()
+    server.game.on_pose(arm.pose({}), now)  # type: ignore[arg-type]
+    server.game.start(now)
+    old = server.results.json_path
+    server.new_session("p1")  # the same patient within the same second
+    assert server.results.json_path != old
+    assert not server.results.json_path.exists()  # nothing saved before a trial ends
+    (trial,) = json.loads(old.read_text())["trials"]
+    assert (trial["complete"], trial["reason"]) == (False, "new session started")
+    assert server.game.state == "ready"
+    assert server.game.arm_live(time.monotonic())  # the arm's signal carries over
+    with pytest.raises(GameError, match="a patient id is"):
+        server.new_session("Jane Doe")
+    server.new_session("p2", "right")
+    assert (server.game.side, server.game.patient) == ("right", "p2")
+    assert server.results.json_path.name.startswith("rehab-right-arm-")
+
+
 @pytest.mark.parametrize(
     ("args", "told"),
     [
@@ -554,10 +583,11 @@ def still_arm_trial(page: Any, publisher: PosePublisher, tmp_path: Path) -> None
     assert "wrist_flexion" not in trial["rom_deg"]  # never measured
 
 
-def second_session(page: Any, publisher: PosePublisher) -> None:
-    """A new session for patient p2, Start refused without a signal (the message
-    clears when the signal is back), a trial stopped by the therapist."""
-    # a second session, for another patient, without a restart
+def second_session(page: Any, publisher: PosePublisher, tmp_path: Path) -> None:
+    """A new session for patient p2 without a restart: Start refused without a signal
+    (the message clears when the signal is back), then a player who moves the arm to
+    each stop when it is cued: every target reached, and the range of motion is the
+    route's, exactly."""
     page.fill("#patient", "p2")
     page.click("#new-session")
     wait_text(page, "#state", "t === 'ready'")
@@ -571,27 +601,54 @@ def second_session(page: Any, publisher: PosePublisher) -> None:
     wait_text(page, "#message", "t.includes('no live signal')")
     publisher.sending.set()
     wait_text(page, "#message", "t === ''")
+    publisher.flags = {}
     page.click("#start")
-    wait_text(page, "#state", "t === 'running'")
-    page.click("#stop")
-    row = page.wait_for_selector("#trials tr[data-complete='false']")
-    assert "incomplete: stopped by the therapist" in row.text_content()
+    for i, target in enumerate(ROUTE, 1):
+        wait_text(page, "#target", f"t.startsWith('{i} / 9: ')")
+        publisher.angles = {f"left_{d}_deg": v for d, v in target.pose.items()}
+    wait_text(page, "#state", "t === 'finished'")
+    wait_text(page, "#cue", "t === 'Session complete. Thank you!'")
+    wait_text(page, "#summary", "t.startsWith('1 complete trial (practice not counted), 1 "
+                                "successful, 9 of 9 targets reached')")  # fmt: skip
+    (result,) = [s for s in saved(tmp_path) if s["patient"] == "p2"]
+    trial = result["trials"][0]  # type: ignore[index]
+    assert [x["outcome"] for x in trial["targets"]] == ["reached"] * len(ROUTE)
+    truth = {"shoulder_flexion": (0, 90), "shoulder_abduction": (0, 90),
+             "shoulder_rotation": (0, 0), "elbow_flexion": (0, 90), "wrist_flexion": (0, 60),
+             "elbow_pronation": (0, 60), "wrist_deviation": (0, 0)}  # fmt: skip
+    rom = trial["rom_deg"]
+    assert set(rom) == set(truth)
+    for dof, (lo, hi) in truth.items():
+        assert (rom[dof]["min"], rom[dof]["max"]) == pytest.approx((lo, hi), abs=0.01), dof
+    # large print, for a player across the room
+    size = "parseFloat(getComputedStyle(document.getElementById('cue')).fontSize)"
+    normal = page.evaluate(size)
+    page.click("#large")
+    wait_js(page, "document.body.classList.contains('large')")
+    assert page.evaluate(size) >= 2 * normal
+    assert text(page, "#large") == "Normal print"
+    page.screenshot(path=str(tmp_path / "large.png"))
 
 
 def therapist_view(browser: Any, url: str, tmp_path: Path, errors: list[str]) -> None:
     """The therapist's view reads both sessions back from their files."""
-    # the therapist's view reads both sessions back from their files
-    files = [s["file"] for s in saved(tmp_path)]
+    files = {s["patient"]: s["file"] for s in saved(tmp_path)}
     assert len(files) == 2
-    assert any(f.endswith("-p2.json") for f in files)
     view = open_page(browser, url + "therapist", errors)
     wait_text(view, "#status", "t === '2 sessions saved'")
     shown = [e.get_attribute("data-file") for e in view.query_selector_all("section.session")]
-    assert sorted(shown) == sorted(files)
-    days = [e.text_content() for e in view.query_selector_all("#days tr")]
-    assert len(days) == 2  # one patient without an id, and p2
-    for f in files:
-        assert "incomplete: stopped by the therapist" in text(view, f"section[data-file='{f}']")
+    assert sorted(shown) == sorted(files.values())
+    assert "incomplete: stopped by the therapist" in text(
+        view, f"section[data-file='{files['']}']")  # fmt: skip
+    p2 = view.query_selector(f"section[data-file='{files['p2']}'] tbody tr")
+    cells = [c.text_content() for c in p2.query_selector_all("td")]
+    assert cells[:3] == ["1", "success", "9 / 9"]
+    assert cells[-5:] == ["90.0", "90.0", "90.0", "60.0", "60.0"]  # the ranges, degrees
+    days = {e.query_selector("td:nth-child(2)").text_content(): e.text_content()
+            for e in view.query_selector_all("#days tr")}  # fmt: skip
+    assert set(days) == {"–", "p2"}  # the session without a patient id, and p2's
+    assert "9 / 9 (100 %)" in days["p2"]
+    view.screenshot(path=str(tmp_path / "therapist.png"), full_page=True)
 
 
 @pytest.mark.slow
@@ -601,9 +658,9 @@ def test_browser_still_arm_countdown_miss_signal_loss_and_a_second_session(
 ) -> None:
     """Poses published here: the game waits for its router (and says so), a still arm
     sees every countdown run out (missed, score 0), a lost signal pauses the target and
-    replaces the instruction, a held dof ends its target "not measured"; then a second
-    session without a restart, its trial stopped by the therapist, and the therapist's
-    view of both sessions."""
+    replaces the instruction, a held dof ends its target "not measured", the therapist
+    stops the trial; then a second session without a restart, a moving arm whose
+    ranges are the route's, and the therapist's view of both sessions."""
     from zenoh_helpers import free_port
 
     endpoint = f"tcp/127.0.0.1:{free_port()}"
@@ -620,14 +677,14 @@ def test_browser_still_arm_countdown_miss_signal_loss_and_a_second_session(
     try:
         page.wait_for_selector("#arm-state.ok", timeout=30_000)
         still_arm_trial(page, publisher, tmp_path)
-        second_session(page, publisher)
+        second_session(page, publisher, tmp_path)
         therapist_view(browser, url, tmp_path, errors)
         assert errors == []
     finally:
         publisher.close()
     assert game.stop() == 0
     assert "Traceback" not in game.stderr
-    assert "0 complete trials, score 0, results in" in game.stderr
+    assert "1 complete trial, score " in game.stderr
 
 
 @pytest.mark.slow
@@ -638,7 +695,7 @@ def test_browser_plays_the_real_chain_and_the_ranges_match_the_motion(
     """Gateway and an emulated SmartSuit arm doing the reach routine: a whole trial.
     A stop whose dofs the gateway flags unmeasured ends "not measured" (never reached
     or missed: the SmartSuit's tilt sensors may not see abduction with the arm lifted
-    forward); the measured ranges match the routine's."""
+    forward); the measured ranges stay within the routine's."""
     from zenoh_helpers import free_port
 
     endpoint = f"tcp/127.0.0.1:{free_port()}"
@@ -646,7 +703,7 @@ def test_browser_plays_the_real_chain_and_the_ranges_match_the_motion(
     procs.append(Proc("node", "smartsuit", "--branch", "left-arm", "--routine", "reach",
                       "--ideal", "-e", endpoint))  # fmt: skip
     url, game = start_game(procs, tmp_path, endpoint, "--trials", "1", "--practice", "0",
-                           "--target-timeout", "4")  # fmt: skip
+                           "--target-timeout", "3")  # fmt: skip
     errors: list[str] = []
     page = open_page(browser, url, errors)
     page.wait_for_selector("#arm-state.ok", timeout=60_000)
@@ -669,15 +726,16 @@ def test_browser_plays_the_real_chain_and_the_ranges_match_the_motion(
     # which stops the arm meets in time depends on the routine's phase at Start
     assert sum(x["reached"] for x in trial["targets"]) >= 2, trial["targets"]
     assert trial["score"] == sum(x["points"] for x in trial["targets"]) > 0
-    # the routine's truth (nodes/motion.py's reach). Forearm pronation and wrist
-    # deviation are left out: the solver of this version swings a still forearm's
-    # pronation (the honest-dofs issue), and the game reports what it is given.
+    # within the routine's truth (nodes/motion.py's reach); which of its peaks fall in
+    # the trial depends on the phase at Start and on the load (a starved node skips
+    # them), so only the envelope is checked here, the exact ranges with poses
+    # published by the test. Forearm pronation and wrist deviation are left out: the
+    # solver of this version swings a still forearm's pronation (the honest-dofs issue).
     truth = {"shoulder_flexion": (0, 90), "shoulder_abduction": (0, 90),
              "shoulder_rotation": (0, 0), "elbow_flexion": (0, 90),
              "wrist_flexion": (0, 60)}  # fmt: skip
     rom = trial["rom_deg"]
     for dof, (lo, hi) in truth.items():
         assert rom[dof]["samples"] > 100, rom[dof]
-        assert rom[dof]["min"] == pytest.approx(lo, abs=3), (dof, rom[dof])
-        assert rom[dof]["max"] == pytest.approx(hi, abs=3), (dof, rom[dof])
-        assert rom[dof]["range"] == pytest.approx(hi - lo, abs=3), (dof, rom[dof])
+        assert lo - 3 <= rom[dof]["min"] <= rom[dof]["max"] <= hi + 3, (dof, rom[dof])
+    assert max(r["range"] for r in rom.values()) >= 60  # the arm did move

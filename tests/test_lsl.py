@@ -293,3 +293,48 @@ def test_two_subjects_give_two_streams_each_and_raw_samples(router_endpoint: str
         assert v == [r.seq, r.reading.encoder, *r.reading.accel]  # type: ignore[union-attr]
         assert abs(t - (r.t_ns * 1e-9 + offset)) < 1e-3
 
+
+
+def test_bodynet_lsl_restarted_is_picked_up_again_by_its_source_id(router_endpoint: str) -> None:
+    """The command itself, stopped and started again: an inlet opened with
+    recovery (as LabRecorder's) goes on receiving from the new process."""
+    import threading
+
+    from service_procs import Services, bodynet
+
+    subject = f"cli{os.getpid()}"
+    sid = lsl.source_id(subject, "angles")
+    pub = open_session(session_config("client", connect=[router_endpoint], subject=subject))
+    stop = threading.Event()
+
+    def publish() -> None:
+        seq = 0
+        while not stop.wait(0.01):
+            seq += 1
+            pub.put(keys.pose_key(), pose.encode(frame(seq, time.time_ns())))
+
+    publisher = threading.Thread(target=publish, daemon=True)
+    publisher.start()
+    services = Services()
+    argv = bodynet("lsl", "-e", router_endpoint, "--subject", subject)
+    rec = None
+    try:
+        first = services.start("lsl", argv)
+        first.wait_line(f"bodynet lsl: subject {subject}, LSL streams of type MoCap")
+        rec = Recorder([sid])
+        rec.wait_ready()
+        rec.wait_for(sid, 10)
+        assert first.stop() == 0
+        assert any("poses" in line for line in first.output)  # its summary
+        n = len(rec.samples[sid])
+        second = services.start("lsl", argv)
+        rec.wait_for(sid, n + 10, timeout=60)  # the inlet found the new outlet by itself
+        assert second.stop() == 0
+        rec.finish()
+    finally:
+        stop.set()
+        publisher.join(timeout=5)
+        if rec is not None and not rec.done:
+            rec.finish()
+        services.close()
+        pub.close()

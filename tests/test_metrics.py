@@ -8,6 +8,7 @@ import math
 import time
 from functools import partial
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -187,3 +188,45 @@ def test_the_recorder_keeps_metrics(router_endpoint: str, zsession: zenoh.Sessio
                  for s, c, m in make_reader(f).iter_messages(topics=[keys.METRICS])]  # fmt: skip
     assert found == [(keys.METRICS, "bodynet.Metrics", message)]
     assert sum(recorder.rejected.values()) == 1
+
+
+def test_the_report_has_the_same_clinical_metrics(tmp_path: Path) -> None:
+    from bodynet.clients import report
+    from bodynet.clients.mcap_store import McapSink
+
+    recording = tmp_path / "elbow.mcap"
+    frames = elbow_poses(350, 1_700_000_000_000_000_000)
+    sink = McapSink(recording)
+    for f in frames:
+        sink.write_pose(keys.pose_key(), f, f.t_ns)
+    sink.close()
+    table = report.clinical_table(recording)  # what analyse() puts in Analysis.clinical
+    an = SimpleNamespace(recordings=[SimpleNamespace(source=str(recording))], clinical=[table])
+    table = table.set_index("channel")
+    elbow = table.loc["left_elbow_flexion_deg"]
+    assert elbow["max (deg)"] == pytest.approx(100.0, abs=0.01)  # never the held 150
+    assert elbow["repetitions"] == 3
+    assert elbow["samples"] == 300
+    live = metrics.BodyMetrics()  # what body/@metrics said at the end (the live test: equal)
+    for f in frames:
+        live.add(f.t_ns, {n: v for n, v in f.angles_deg.items() if n not in f.flags})
+    want = live.snapshot()["dofs"]["left_elbow_flexion_deg"]
+    assert elbow["SPARC (last movement)"] == want["sparc"]
+    assert elbow["range (deg)"] == want["range_deg"]
+    text = report._markdown(report._clinical_blocks(an))  # the section as written (no plots)
+    section = text.split("## Clinical metrics", 1)[1]
+    assert "left_elbow_flexion_deg" in section
+    assert f"{want['sparc']:.4g}" in section
+
+
+def test_the_views_metrics_panel_shows_what_it_can() -> None:
+    from bodynet.clients.view import metrics_text
+
+    text = metrics_text({"dofs": {"left_knee_flexion_deg": {
+        "min_deg": 1.5, "max_deg": 61.25, "range_deg": 59.75, "repetitions": 2, "sparc": None}}})
+    assert "| left_knee_flexion | 1.5 | 61.25 | 59.75 | 2 |  |" in text
+    for hostile in (None, [], {"dofs": []}, {"dofs": {}}):
+        assert metrics_text(hostile) == "No measured joint angle yet."
+    odd = metrics_text({"dofs": {"x": {"min_deg": [1], "repetitions": "many" * 50}, "y": 3}})
+    assert "| x | ? |" in odd
+    assert "| y | ? | ? | ? | ? |" in odd

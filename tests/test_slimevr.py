@@ -13,6 +13,7 @@ import socket
 import struct
 import time
 from collections.abc import Callable, Iterator
+from pathlib import Path
 
 import pytest
 import zenoh
@@ -26,6 +27,7 @@ from bodynet.core.messages import Quat, Source
 from bodynet.gateway.service import Gateway
 from bodynet.nodes.slimevr_bridge import SlimeVRBridge
 from bodynet.nodes.sources.slimevr import EmulatedTracker, emulated_mac, free_udp_port
+from bodynet.session import profile_file
 
 UPPER, FORE = Site(LEFT_ARM, "upperarm"), Site(RIGHT_ARM, "forearm")
 HALF = math.sqrt(0.5)
@@ -125,7 +127,7 @@ def test_silence_and_back_and_a_packet_counter_jump(
 
 
 def test_a_second_tracker_appears_unassigned_and_is_assigned_live(
-    router_endpoint: str, zsession: zenoh.Session,
+    router_endpoint: str, zsession: zenoh.Session, tmp_path: Path,
     served: tuple[SlimeVRBridge, tuple[str, int]], trackers: Callable[..., EmulatedTracker],
 ) -> None:  # fmt: skip
     bridge, listen = served
@@ -140,9 +142,12 @@ def test_a_second_tracker_appears_unassigned_and_is_assigned_live(
         topology.wait_for(lambda t: any(ident in m.get("unassigned", []) for _, m in t))
         assert bridge.unassigned_samples > 0
         raw = raw_collector(zsession, FORE.raw_key)
-        code = main(["calibrate", "assign", ident.upper().replace("-", "/"), "right-arm/forearm",
+        profile = tmp_path / "subject.toml"
+        typed = ident.upper().replace("-", "/")  # as a user may write it
+        code = main(["calibrate", "assign", typed, "right-arm/forearm", "--profile", str(profile),
                      "-e", router_endpoint, "--timeout", "10"])  # fmt: skip
         assert code == 0
+        assert profile_file.load(profile).trackers == {ident: "right-arm/forearm"}
         raw.wait_for(lambda s: len(s) >= 5)
         topology.wait_for(lambda t: not t[-1][1].get("unassigned")
                           and FORE.raw_key in json.dumps(t[-1][1]))  # fmt: skip

@@ -139,6 +139,11 @@ def wait(done: Callable[[], bool], timeout: float = 15.0) -> None:
         time.sleep(0.02)
 
 
+METRICS = {"v": 1, "t_ns": 1, "dofs": {"left_elbow_flexion_deg": {
+    "min_deg": 10.0, "max_deg": 100.0, "range_deg": 90.0, "repetitions": 3, "sparc": -1.5624,
+    "samples": 300}}}  # fmt: skip
+
+
 def rrd_texts(rrd: Path, entity: str) -> list[str]:
     """Every text logged to ``entity`` in a Rerun file, read back with Rerun's reader."""
     texts = []
@@ -197,6 +202,7 @@ def test_live_viewer_draws_partial_poses_and_survives_hostile_ones(
         for key, payload in bad_admin:
             publisher.put(key, payload)
         publisher.put(keys.health_key("imu"), json.dumps(health).encode())
+        publisher.put(keys.METRICS, json.dumps(METRICS).encode())  # before the poses, in order
         for payload in [*good[:2], *bad_pose, *good[2:]]:
             publisher.put(keys.pose_key(), payload)
         wait(lambda: viewer.shown == len(good) and viewer.bad == len(bad_pose) + len(bad_admin))
@@ -217,6 +223,7 @@ def test_live_viewer_draws_partial_poses_and_survives_hostile_ones(
     node = "- node 7 `body/arm/left/elbow/raw`: alive, 97 Hz, 4321 samples, 13 gaps"
     assert f"{node}, rejected bad_length 2" in status
     assert "- **viewer**: 4 bad messages" in status
+    assert "| left_elbow_flexion | 10 | 100 | 90 | 3 | -1.562 |" in rrd_texts(rrd, "/metrics")[-1]
 
 
 def test_figure_skips_missing_bones() -> None:

@@ -7,6 +7,7 @@ from __future__ import annotations
 import math
 import socket
 import threading
+import time
 from functools import partial
 from typing import Any
 
@@ -139,8 +140,10 @@ def receiver() -> Any:
     sock.close()
 
 
-def next_bundle_with_bones(sock: socket.socket) -> dict[str, list[Any]]:
+def next_bundle_with_bones(sock: socket.socket, timeout: float = 20.0) -> dict[str, list[Any]]:
+    deadline = time.monotonic() + timeout
     while True:
+        assert time.monotonic() < deadline, "no bundle with bones"
         data, _ = sock.recvfrom(65536)
         assert OscBundle.dgram_is_bundle(data)  # one bundle per frame, nothing else
         msgs = [m for m in OscBundle(data) if isinstance(m, OscMessage)]
@@ -163,9 +166,14 @@ def test_vmc_receiver_rebuilds_every_segment_orientation(
     try:
         first, second = random_frame(1), random_frame(2)
         matched = threading.Event()
-        zsession.put(keys.pose_key(), pose.encode(first))
+        publisher = zsession.declare_publisher(keys.pose_key())
+        deadline = time.monotonic() + 20
+        while not publisher.matching_status.matching:  # the output has subscribed
+            assert time.monotonic() < deadline, "the output never subscribed"
+            time.sleep(0.01)
+        publisher.put(pose.encode(first))
         assert worst_error_deg(first, next_bundle_with_bones(receiver)) < 0.01
-        zsession.put(keys.pose_key(), pose.encode(second))
+        publisher.put(pose.encode(second))
         for _ in range(200):  # bundles of the first pose until the second arrives
             bones = next_bundle_with_bones(receiver)
             if worst_error_deg(first, bones) >= 0.01:
@@ -177,3 +185,23 @@ def test_vmc_receiver_rebuilds_every_segment_orientation(
         running.stop()
         out_session.close()
     assert output.sent > 0
+
+
+def test_bodynet_vmc_sends_to_the_port_it_is_given(router_endpoint: str,
+                                                  receiver: socket.socket) -> None:  # fmt: skip
+    from service_procs import Services, bodynet
+
+    port = receiver.getsockname()[1]
+    services = Services()
+    try:
+        proc = services.start("vmc", bodynet("vmc", "-e", router_endpoint, "--port", str(port),
+                                             "--rate-hz", "20"))  # fmt: skip
+        proc.wait_line(f"VMC bundles at 20 Hz to 127.0.0.1:{port}")
+        receiver.settimeout(30)
+        data, _ = receiver.recvfrom(65536)
+        msgs = [m for m in OscBundle(data) if isinstance(m, OscMessage)]
+        assert msgs[0].address == "/VMC/Ext/OK"
+        assert msgs[0].params == [0, 0, 3, 0]  # nothing loaded before a pose comes
+        assert proc.stop() == 0
+    finally:
+        services.close()

@@ -78,12 +78,15 @@ def formats() -> dict[str, type[Source]]:
     return {fmt: cls for cls in all_sources() for fmt in cls.formats}
 
 
-def by_format(fmt: str) -> type[Source]:
+def _one(table: dict[str, type[Source]], key: str, what: str) -> type[Source]:
     try:
-        return formats()[fmt]
+        return table[key]
     except KeyError:
-        raise UnknownSource(f"no capture format {fmt!r}; formats: "
-                            f"{', '.join(sorted(formats()))}") from None  # fmt: skip
+        raise UnknownSource(f"no {what} {key!r}; {what}s: {', '.join(sorted(table))}") from None
+
+
+def by_format(fmt: str) -> type[Source]:
+    return _one(formats(), fmt, "capture format")
 
 
 def emulated_devices() -> dict[str, type[Source]]:
@@ -92,7 +95,4 @@ def emulated_devices() -> dict[str, type[Source]]:
 
 
 def by_device(device: str) -> type[Source]:
-    try:
-        return emulated_devices()[device]
-    except KeyError:
-        raise UnknownSource(f"no emulated device {device!r}") from None
+    return _one(emulated_devices(), device, "emulated device")

@@ -28,6 +28,7 @@ from bodynet.core.codecs import slimevr as codec
 from bodynet.core.errors import DecodeError
 from bodynet.core.keys import KeySpaceError, Site, site_named
 from bodynet.core.messages import Source as SourceId
+from bodynet.nodes.loop import Loop
 from bodynet.nodes.sources.base import NodeParts, Source, Transport
 
 log = logging.getLogger(__name__)
@@ -140,7 +141,7 @@ def emulated_mac(number: int) -> bytes:
     return bytes([0x02, 0xB0, 0xD1, 0x00, (number >> 8) & 0xFF, number & 0xFF])
 
 
-class EmulatedTracker:
+class EmulatedTracker(Loop):
     """One SlimeVR tracker on its own UDP socket; see the module docstring.
 
     ``orientation(sensor, t_s)`` gives each sensor's quaternion (w, x, y, z).
@@ -152,6 +153,7 @@ class EmulatedTracker:
                  orientation: Callable[[int, float], tuple[float, float, float, float]],
                  rate_hz: float = 100.0, compact: bool = False, clock: Any = None,
                  name: str = "tracker") -> None:  # fmt: skip
+        super().__init__(name)
         self.server = server
         self.mac = mac
         self.sensors = list(sensors)
@@ -159,7 +161,6 @@ class EmulatedTracker:
         self.period_s = 1.0 / rate_hz
         self.compact = compact
         self.clock = clock
-        self.name = name
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.sock.bind(("", 0))
         self.sock.settimeout(0.0)
@@ -170,8 +171,6 @@ class EmulatedTracker:
         self.pings_echoed = 0
         self.heartbeats = 0
         self.acked: set[int] = set()
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
         self._heard = 0.0
         self._t0 = time.monotonic()
 
@@ -200,15 +199,8 @@ class EmulatedTracker:
     def resume(self) -> None:
         self.paused.clear()
 
-    def start(self) -> None:
-        self._stop.clear()
-        self._thread = threading.Thread(target=self._run, name=self.name, daemon=True)
-        self._thread.start()
-
     def stop(self) -> None:
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout=5)
+        super().stop()
         self.sock.close()
 
     def _now(self) -> float:
@@ -242,12 +234,12 @@ class EmulatedTracker:
             elif packet.kind == codec.SENSOR_INFO and packet.sensor is not None:
                 self.acked.add(packet.sensor)
 
-    def _run(self) -> None:
+    def run(self) -> None:
         next_send = next_status = next_handshake = time.monotonic()
-        while not self._stop.is_set():
+        while not self.stop_event.is_set():
             now = time.monotonic()
             if self.paused.is_set():
-                self._stop.wait(0.01)
+                self.stop_event.wait(0.01)
                 with contextlib.suppress(OSError, BlockingIOError):
                     while self.sock.recvfrom(2048):  # what comes meanwhile is lost
                         pass
@@ -259,7 +251,7 @@ class EmulatedTracker:
                 if now >= next_handshake:
                     self._handshake()
                     next_handshake = now + 0.2
-                self._stop.wait(0.01)
+                self.stop_event.wait(0.01)
                 continue
             if now >= next_status:
                 self._status()
@@ -278,7 +270,7 @@ class EmulatedTracker:
                 next_send += self.period_s
                 if next_send < now:  # fell behind (a loaded machine): no burst to catch up
                     next_send = now + self.period_s
-            self._stop.wait(max(0.0, min(next_send, next_status) - time.monotonic()))
+            self.stop_event.wait(max(0.0, min(next_send, next_status) - time.monotonic()))
 
     def _status(self) -> None:
         for sensor in self.sensors:
