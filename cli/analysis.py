@@ -4,24 +4,24 @@ from __future__ import annotations
 
 import argparse
 import sys
-from pathlib import Path
 
+from bodynet.session import argtypes
 
-def still_range(text: str) -> tuple[float, float]:
-    """``START:END`` in seconds from the recording's start."""
-    try:
-        start, end = (float(v) for v in text.split(":"))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not START:END in seconds") from None
-    if not 0 <= start < end:
-        raise argparse.ArgumentTypeError(f"{text!r}: need 0 <= START < END")
-    return start, end
+#: ``START:END`` in seconds from the recording's start.
+still_range = argtypes.time_window
 
 
 def cmd_report(args: argparse.Namespace) -> int:
     from bodynet.clients.report import ReportError, make_report
+    from bodynet.session.outputs import OutputError, check_output
 
     out = args.output or args.recordings[0].with_name(args.recordings[0].stem + "-report.md")
+    try:
+        if out.parent.is_dir():  # else a new folder, made by the report: no input is in it
+            check_output(out, [*args.recordings, args.reference])
+    except OutputError as exc:
+        print(f"bodynet report: {exc}", file=sys.stderr)
+        return 2
     try:
         files = make_report(args.recordings, out, args.reference, args.joint, args.still,
                             args.still_s, not args.no_trials)  # fmt: skip
@@ -36,17 +36,18 @@ def cmd_report(args: argparse.Namespace) -> int:
 
 
 def add_report_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("recordings", type=Path, nargs="+",
+    p.add_argument("recordings", type=argtypes.input_file, nargs="+",
                    help="MCAP recording(s) with poses; several: each one is a trial")  # fmt: skip
-    p.add_argument("-o", "--output", type=Path,
+    p.add_argument("-o", "--output", type=argtypes.output_file_new_folder,
                    help="report.md or report.html, plots beside it "
                         "(default <recording>-report.md)")  # fmt: skip
-    p.add_argument("--reference", type=Path,
+    p.add_argument("--reference", type=argtypes.input_file,
                    help="reference angles: a recording (its ground truth, else its poses) or a "
                         "CSV with t_s and <joint>_<dof>_deg columns (default: the recording's "
                         "own ground truth, if it has any)")  # fmt: skip
     p.add_argument(
         "--joint",
+        type=argtypes.free_text(100),
         help="the channel whose repetitions cut the trials, e.g. "
         "left_elbow_flexion_deg (default: the smoothest repeating one)",
     )
@@ -57,7 +58,8 @@ def add_report_args(p: argparse.ArgumentParser) -> None:
         metavar="START:END",
         help="still window for Type A, s from the start (default: auto)",
     )
-    still.add_argument("--still-s", type=float, default=2.0,
+    still.add_argument("--still-s", default=2.0,
+                       type=argtypes.bounded_float(0.1, 3600.0, "seconds of a still window"),
                        help="length of the auto-detected still window (default 2 s)")  # fmt: skip
     p.add_argument("--no-trials", action="store_true",
                    help="leave out repeatability and ICC (e.g. a still recording)")  # fmt: skip

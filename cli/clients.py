@@ -4,9 +4,14 @@ from __future__ import annotations
 
 import argparse
 import sys
-from pathlib import Path
 
-from bodynet.session import add_session_args, config_from_args, open_session
+from bodynet.session import add_session_args, argtypes, config_from_args, open_session
+
+#: Frames per second of an export: a higher rate only repeats poses (and a
+#: C3D at 1 MHz of a one-second recording takes gigabytes).
+EXPORT_RATE_HZ = argtypes.bounded_float(0.1, 1000.0, "frames per second, 0.1 to 1000")
+#: --rotate-s: 0 (never) or a file's age from half a second up.
+ROTATE_S = argtypes.bounded_float(0.0, 7 * 86_400.0, "seconds, 0 for never, at most a week")
 
 
 def cmd_export(args: argparse.Namespace) -> int:
@@ -15,18 +20,13 @@ def cmd_export(args: argparse.Namespace) -> int:
     from bodynet.clients.exports.track import load_track, resample
     from bodynet.clients.mcap_store import StoreError
     from bodynet.core.subject import ProfileError
+    from bodynet.session.outputs import check_output
 
     entry = writer(args.kind)
     out = args.output or args.recording.with_suffix(entry.suffix)
-    if out.resolve() == args.recording.resolve():
-        print(f"bodynet export: {out} is the recording itself: choose another -o",
-              file=sys.stderr)  # fmt: skip
-        return 2
-    if entry.regular and args.rate_hz is not None and not args.rate_hz > 0:
-        print(f"bodynet export: --rate-hz must be positive, not {args.rate_hz}", file=sys.stderr)
-        return 2
     options = {o.dest: getattr(args, o.dest) for o in entry.options}
     try:
+        check_output(out, [args.recording, options.get("profile")])
         if options.get("profile"):
             from bodynet.core.skeleton import build_skeleton
             from bodynet.session import profile_file
@@ -55,6 +55,14 @@ def cmd_view(args: argparse.Namespace) -> int:
     if args.connect_viewer is not None:
         args.viewer, args.url = "connect", args.connect_viewer or args.url
     mode = args.viewer
+    from bodynet.session.outputs import OutputError, check_output
+
+    if args.save is not None:
+        try:
+            check_output(args.save, [args.recording])
+        except OutputError as exc:
+            print(f"bodynet view: {exc}", file=sys.stderr)
+            return 2
     if mode == "auto":
         mode = (
             "none"
@@ -98,13 +106,18 @@ def cmd_view(args: argparse.Namespace) -> int:
     return 0
 
 
+_VIEWER_URL = argtypes.url("rerun", "rerun+http", "rerun+https", "http", "https")
+
+
 def add_view_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("recording", type=Path, nargs="?", help="an MCAP recording (else: live)")
+    p.add_argument("recording", type=argtypes.input_file, nargs="?",
+                   help="an MCAP recording (else: live)")  # fmt: skip
     p.add_argument("--viewer", choices=("auto", "native", "web", "connect", "none"), default="auto",
                    help="a window (if there is a display), the web viewer, or a running "
                         "viewer (--url); 'none' with --save writes the .rrd only")  # fmt: skip
-    p.add_argument("--save", type=Path, help="also write the recording to this .rrd")
-    p.add_argument("--url", help="with --viewer connect: the viewer's gRPC url")
+    p.add_argument("--save", type=argtypes.output_file,
+                   help="also write the recording to this .rrd")  # fmt: skip
+    p.add_argument("--url", type=_VIEWER_URL, help="with --viewer connect: the viewer's gRPC url")
     # Rerun's usual script flags; its --connect is --connect-viewer here, because
     # -e/--connect is Zenoh's, as on every bodynet command
     p.add_argument("--serve-web", dest="viewer", action="store_const", const="web",
@@ -114,12 +127,15 @@ def add_view_args(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--connect-viewer",
         metavar="URL",
+        type=_VIEWER_URL,
         nargs="?",
         const="",
         help="same as --viewer connect --url URL (default: Rerun's local viewer)",
     )
-    p.add_argument("--web-port", type=int, default=None, help="with --viewer web (default 9090)")
-    p.add_argument("--grpc-port", type=int, default=None, help="with --viewer web (default 9876)")
+    p.add_argument("--web-port", type=argtypes.port, default=None,
+                   help="with --viewer web (default 9090)")  # fmt: skip
+    p.add_argument("--grpc-port", type=argtypes.port, default=None,
+                   help="with --viewer web (default 9876)")  # fmt: skip
     add_session_args(p)
 
 
@@ -129,11 +145,11 @@ def add_export_args(p: argparse.ArgumentParser) -> None:
     esub = p.add_subparsers(dest="kind", required=True, metavar="FORMAT")
     for entry in WRITERS.values():
         e = esub.add_parser(entry.name, help=entry.help)
-        e.add_argument("recording", type=Path, help="an MCAP file with poses")
-        e.add_argument("-o", "--output", type=Path,
+        e.add_argument("recording", type=argtypes.input_file, help="an MCAP file with poses")
+        e.add_argument("-o", "--output", type=argtypes.output_file,
                        help=f"the file to write (default: the recording's name, {entry.suffix})")
         if entry.regular:
-            e.add_argument("--rate-hz", type=float, default=None,
+            e.add_argument("--rate-hz", type=EXPORT_RATE_HZ, default=None,
                            help="frame rate (default: the recording's own tick rate)")  # fmt: skip
         for option in entry.options:
             e.add_argument(*option.flags, **option.kwargs)
@@ -145,16 +161,20 @@ def cmd_record(args: argparse.Namespace) -> int:
     import time
 
     from bodynet.cli.nodes import stop_on_signals
-    from bodynet.clients.mcap_store import StoreError, salvage
+    from bodynet.clients.mcap_store import StoreError, salvage_report
     from bodynet.clients.recorder import DEFAULT_KEYS, Recorder
 
     if args.salvage:
+        from bodynet.session.outputs import check_output
+
         try:
-            n = salvage(args.salvage, args.output)
+            check_output(args.output, [args.salvage])
+            saved = salvage_report(args.salvage, args.output)
         except (StoreError, OSError) as exc:
             print(f"bodynet record: {exc}", file=sys.stderr)
             return 2
-        print(f"bodynet record: {n} messages salvaged into {args.output}", file=sys.stderr)
+        print(f"bodynet record: {saved.messages} messages salvaged into {args.output}; "
+              f"{saved.summary()}", file=sys.stderr)  # fmt: skip
         return 0
     stop = stop_on_signals()
     session = open_session(config_from_args(args))
@@ -180,14 +200,13 @@ def cmd_record(args: argparse.Namespace) -> int:
 
 def cmd_replay(args: argparse.Namespace) -> int:
     from bodynet.cli.nodes import stop_on_signals
-    from bodynet.clients.mcap_store import StoreError
+    from bodynet.clients.mcap_store import StoreError, channel_counts
     from bodynet.clients.replay import replay, topic_filter
 
-    try:
+    try:  # the file first: a mistake there is told before waiting for the router
         topic_filter(args.keys or None)
-        if not args.speed > 0:
-            raise ValueError(f"--speed must be positive, not {args.speed}")
-    except ValueError as exc:
+        channel_counts(args.recording)
+    except (ValueError, StoreError) as exc:
         print(f"bodynet replay: {exc}", file=sys.stderr)
         return 2
     stop = stop_on_signals()
@@ -201,25 +220,49 @@ def cmd_replay(args: argparse.Namespace) -> int:
     finally:
         session.close()
     print(f"bodynet replay: {n} samples published", file=sys.stderr)
+    if not n:
+        print(f"bodynet replay: nothing to replay: {args.recording} holds no raw samples"
+              + (" on these keys" if args.keys else ""), file=sys.stderr)  # fmt: skip
+        return 2
     return 0
 
 
+def _rotate_mb(text: str) -> float:
+    value = argtypes.non_negative_float(1e6, "MB, 0 for never, at most a terabyte")(text)
+    if 0 < value < 1:
+        argtypes.fail(f"{text!r}: a file of less than 1 MB (0 for never)")
+    return value
+
+
+def _rotate_s(text: str) -> float:
+    value = ROTATE_S(text)
+    if 0 < value < 0.5:
+        argtypes.fail(f"{text!r}: files shorter than half a second (0 for never)")
+    return value
+
+
 def add_record_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("keys", nargs="*", help="key expressions (default: every raw sample and pose, "
+    p.add_argument("keys", nargs="*", type=argtypes.key_expr,
+                   help="key expressions (default: every raw sample and pose, "
                                            "the topology and every health)")  # fmt: skip
-    p.add_argument("-o", "--output", type=Path, required=True, help="the MCAP file")
-    p.add_argument("--rotate-mb", type=float, default=0.0, help="start a new file past this size")
-    p.add_argument("--rotate-s", type=float, default=0.0, help="start a new file past this age")
-    p.add_argument("--salvage", type=Path, help="turn this unfinished file into -o, and stop")
+    p.add_argument("-o", "--output", type=argtypes.output_file, required=True,
+                   help="the MCAP file")  # fmt: skip
+    p.add_argument("--rotate-mb", type=_rotate_mb, default=0.0,
+                   help="start a new file past this size (0: never; at least 1 MB)")  # fmt: skip
+    p.add_argument("--rotate-s", type=_rotate_s, default=0.0,
+                   help="start a new file past this age (0: never; at least 0.5 s)")  # fmt: skip
+    p.add_argument("--salvage", type=argtypes.input_file,
+                   help="turn this unfinished file into -o, and stop")  # fmt: skip
     add_session_args(p)
 
 
 def add_replay_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("recording", type=Path)
-    p.add_argument("--keys", nargs="*",
+    p.add_argument("recording", type=argtypes.input_file)
+    p.add_argument("--keys", nargs="*", type=argtypes.key_expr,
                    help="key expressions of the topics to replay, such as 'body/arm/left/**' "
                         "(default: every raw sample)")  # fmt: skip
-    p.add_argument("--speed", type=float, default=1.0, help="2 plays twice as fast")
+    p.add_argument("--speed", default=1.0, help="2 plays twice as fast",
+                   type=argtypes.bounded_float(0.01, 1000.0, "times real time"))  # fmt: skip
     p.add_argument("--loop", action="store_true")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     add_session_args(p)

@@ -8,7 +8,7 @@ import re
 import sys
 from pathlib import Path
 
-from bodynet.session import SessionError, add_session_args, config_from_args
+from bodynet.session import SessionError, add_session_args, argtypes, config_from_args
 
 DEFAULT_HTTP_PORT = 8088
 
@@ -128,6 +128,7 @@ def add_game_args(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--http-host",
         default="127.0.0.1",
+        type=argtypes.hostname,
         help="address the page is served on; 0.0.0.0 for a player on another "
         "machine (default 127.0.0.1)",
     )

@@ -4,15 +4,25 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 from contextlib import suppress
 from pathlib import Path
 
 from bodynet.core import keys
-from bodynet.core.keys import branch_named
+from bodynet.core.keys import BRANCHES, branch_named
 from bodynet.core.subject import Profile, ProfileError
 from bodynet.gateway import shards
-from bodynet.session import DEFAULT_ROUTER, add_session_args, config_from_args, open_session
+from bodynet.session import (
+    DEFAULT_ROUTER,
+    add_session_args,
+    argtypes,
+    config_from_args,
+    open_session,
+)
+
+#: Poses per second: the solver's own pace, at most 1 kHz.
+POSE_RATE_HZ = argtypes.bounded_float(0.1, 1000.0, "poses per second, 0.1 to 1000")
 
 
 def _profile(path: Path | None) -> Profile:
@@ -101,23 +111,6 @@ def _is_site(key: str) -> bool:
     except keys.KeySpaceError:
         return False
     return True
-
-
-def _window_arg(text: str) -> tuple[float, float]:
-    """``2:4`` -> (2.0, 4.0): seconds from a recording's first sample."""
-    import math
-
-    start, sep, end = text.partition(":")
-    try:
-        window = (float(start), float(end))
-    except ValueError:
-        window = (math.nan, math.nan)
-    if not sep or not all(map(math.isfinite, window)) or not 0 <= window[0] < window[1]:
-        raise argparse.ArgumentTypeError(
-            f"a window is START:END in seconds from the recording's start, START < END, "
-            f"not {text!r}"
-        )
-    return window
 
 
 def _reference_arg(text: str) -> tuple[str, str]:
@@ -227,13 +220,14 @@ def _calibrate_from_recording(args: argparse.Namespace) -> int:
 
 
 def add_gateway_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--profile", type=Path, help="subject profile (TOML); created by calibration")
-    p.add_argument("--branch", action="append", default=[],
+    p.add_argument("--profile", type=argtypes.input_or_new_file,
+                   help="subject profile (TOML); created by calibration")  # fmt: skip
+    p.add_argument("--branch", action="append", default=[], choices=[str(b) for b in BRANCHES],
                    help="serve only these branches (repeatable; default all)")  # fmt: skip
-    p.add_argument("--rate-hz", type=float, default=100.0, help="most poses per second")
+    p.add_argument("--rate-hz", type=POSE_RATE_HZ, default=100.0, help="most poses per second")
     p.add_argument("--all-subjects", action="store_true",
                    help="serve every subject on the network, each a body of its own")  # fmt: skip
-    p.add_argument("--profile-dir", type=Path,
+    p.add_argument("--profile-dir", type=argtypes.output_dir,
                    help="with --all-subjects: <subject>.toml profiles (default.toml "
                         "without namespace), written by T-pose calibration")  # fmt: skip
     p.add_argument("--share", nargs="?", const="", metavar="ID", type=_gateway_id,
@@ -253,7 +247,8 @@ def _gateway_id(text: str) -> str:
 
 
 def add_subjects_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--timeout", type=float, default=2.0, help="seconds to wait for answers")
+    p.add_argument("--timeout", type=argtypes.bounded_float(0.01, 600.0, "seconds"), default=2.0,
+                   help="seconds to wait for answers")  # fmt: skip
     add_session_args(p)
 
 
@@ -263,17 +258,20 @@ def add_calibrate_args(cal: argparse.ArgumentParser) -> None:
 
     p = csub.add_parser("tpose", help="IMU mounts: the subject stands still in the T-pose "
                                       "(or --pose npose)")  # fmt: skip
-    p.add_argument("--seconds", type=float, default=1.0, help="still window to average")
-    p.add_argument("--from", dest="from_", type=Path, default=None, metavar="RECORDING",
+    p.add_argument("--seconds", type=argtypes.bounded_float(0.1, 60.0, "seconds of still pose"),
+                   default=1.0, help="still window to average")  # fmt: skip
+    p.add_argument("--from", dest="from_", type=argtypes.input_file, default=None,
+                   metavar="RECORDING",
                    help="calibrate from a recording (MCAP, or a capture of --format) instead "
                         "of the live gateway; needs --profile")  # fmt: skip
-    p.add_argument("--window", type=_window_arg, default=None, metavar="START:END",
+    p.add_argument("--window", type=argtypes.time_window, default=None, metavar="START:END",
                    help="with --from: the still window, seconds from the recording's start "
                         "(default 0:--seconds)")  # fmt: skip
     p.add_argument("--format", choices=formats(), default=None,
                    help="with --from: the capture's format (an .mcap needs none)")
     add_capture_args(p)
-    p.add_argument("--profile", type=Path, help="with --from: the profile to write")
+    p.add_argument("--profile", type=argtypes.input_or_new_file,
+                   help="with --from: the profile to write")  # fmt: skip
     add_heading_args(p)
     add_session_args(p)
     p.set_defaults(func=cmd_calibrate_tpose)
@@ -303,10 +301,11 @@ def add_calibrate_assign_parser(csub: argparse._SubParsersAction) -> None:  # ty
                    help="the tracker's id, e.g. aabbccddeeff-0 (body/@topology lists "
                         "unassigned ones)")  # fmt: skip
     p.add_argument("site", type=_site_arg, help="where it sits, e.g. left-arm/upperarm")
-    p.add_argument("--profile", type=Path, help="also keep it in this profile (TOML)")
+    p.add_argument("--profile", type=argtypes.input_or_new_file,
+                   help="also keep it in this profile (TOML)")  # fmt: skip
     p.add_argument("--offline", action="store_true",
                    help="only write the profile; tell no running bridge")  # fmt: skip
-    p.add_argument("--timeout", type=float, default=3.0,
+    p.add_argument("--timeout", type=argtypes.bounded_float(0.01, 600.0, "seconds"), default=3.0,
                    help="seconds to wait for a bridge to publish the site")  # fmt: skip
     add_session_args(p)
     p.set_defaults(func=cmd_calibrate_assign)
@@ -350,27 +349,51 @@ def cmd_calibrate_assign(args: argparse.Namespace) -> int:
     return 0 if args.profile is not None else 1
 
 
+class _Unusable(Exception):
+    """A capture that gives nothing to write."""
+
+
 def cmd_process(args: argparse.Namespace) -> int:
     from bodynet.nodes.captures import CaptureError, capture_options, format_of
     from bodynet.offline.process import process
 
     fmt = args.format or format_of(args.input)
     if fmt is None:
-        print("bodynet process: say which --format the capture is in", file=sys.stderr)
-        return 2
-    from bodynet.gateway.heading import CalibrationRefused
+        from bodynet.nodes.captures import looks_like
 
+        what = looks_like(args.input)
+        print("bodynet process: say which --format the capture is in"
+              + (f" (it looks like {what})" if what else ""), file=sys.stderr)  # fmt: skip
+        return 2
+    from bodynet.core.errors import DecodeError
+    from bodynet.gateway.heading import CalibrationRefused
+    from bodynet.nodes.captures import looks_like
+    from bodynet.session.outputs import atomic_path
+
+    calibration = None
+    if args.calibration is not None:
+        calibration = (args.calibration, format_of(args.calibration) or fmt)
+    tpose_s = 3.0 if args.tpose_s is None else args.tpose_s
     try:
         profile = with_heading_args(_profile(args.profile), args)
-        calibrate_from = (args.calibrate_from, args.calibrate_format) if args.calibrate_from \
-            else None
-        result = process(args.input, fmt, args.output, profile, args.rate_hz,
-                         args.tick_hz, args.tpose_s, capture_options(args), window=args.window,
-                         pose=args.pose, calibrate_from=calibrate_from)  # fmt: skip
+        with atomic_path(args.output, [args.input, args.profile, args.calibration]) as tmp:
+            result = process(args.input, fmt, tmp, profile, args.rate_hz,
+                             args.tick_hz, tpose_s, capture_options(args),
+                             calibration, window=args.window, pose=args.pose)  # fmt: skip
+            if not result.samples:  # nothing written: no empty recording is left
+                what = looks_like(args.input)
+                raise _Unusable(
+                    f"no {fmt} samples in {args.input} ({result.stats.summary()})"
+                    + (f"; it looks like {what}" if what else "")
+                )
+            too_long = args.tpose_s is not None and args.tpose_s > result.span_s
+            if too_long and calibration is None and args.window is None:
+                raise _Unusable(f"--tpose-s {args.tpose_s:g} is longer than the capture "
+                                f"({result.span_s:.3g} s of samples); nothing written")  # fmt: skip
     except CalibrationRefused as exc:
-        print(f"bodynet process: calibration refused: {exc}", file=sys.stderr)
+        print(f"bodynet process: calibration refused: {exc}; nothing written", file=sys.stderr)
         return 1
-    except (ProfileError, OSError, CaptureError, ValueError) as exc:
+    except (ProfileError, OSError, CaptureError, DecodeError, _Unusable, ValueError) as exc:
         print(f"bodynet process: {exc}", file=sys.stderr)
         return 2
     heading = result.heading or {}
@@ -393,27 +416,33 @@ def cmd_process(args: argparse.Namespace) -> int:
 def add_process_args(p: argparse.ArgumentParser) -> None:
     from bodynet.nodes.captures import add_capture_args, formats
 
-    p.add_argument("input", type=Path, help="a capture (any format of `bodynet decode`)")
+    p.add_argument("input", type=argtypes.input_file,
+                   help="a capture (any format of `bodynet decode`)")  # fmt: skip
     p.add_argument("--format", choices=formats())
     add_capture_args(p)
-    p.add_argument("--rate-hz", type=float, default=None, help="as for `bodynet decode`")
-    p.add_argument("--tick-hz", type=float, default=100.0, help="most poses per second of capture")
+    p.add_argument("--rate-hz", type=argtypes.RATE_HZ, default=None,
+                   help="as for `bodynet decode`")  # fmt: skip
+    p.add_argument("--tick-hz", type=POSE_RATE_HZ, default=100.0,
+                   help="most poses per second of capture")  # fmt: skip
     p.add_argument(
         "--tpose-s",
-        type=float,
-        default=3.0,
+        type=argtypes.non_negative_float(3600.0, "seconds at the capture's start"),
+        default=None,
         help="seconds at the start still in the calibration pose, to calibrate orientation "
-             "sensors (or --window)",
+        "sensors (default 3, or the whole capture if shorter; longer than the capture is "
+        "refused; 0: the orientations are the segments' own, as bodynet exports them)",
     )
-    p.add_argument("--window", type=_window_arg, default=None, metavar="START:END",
-                   help="calibrate from this still window (seconds from the start) instead")
-    p.add_argument("--calibrate-from", type=Path, default=None, metavar="RECORDING",
-                   help="take the calibration window from this recording (MCAP or capture)")
-    p.add_argument("--calibrate-format", choices=formats(), default=None,
-                   help="the format of --calibrate-from, when not an .mcap")
+    p.add_argument("--window", type=argtypes.time_window, default=None, metavar="START:END",
+                   help="calibrate from this still window (seconds from the start of the "
+                        "capture, or of --calibration) instead; refused if not still")  # fmt: skip
+    p.add_argument("--calibration", type=argtypes.input_file,
+                   help="take the calibration pose (--tpose-s, --window) from this file of the "
+                        "same session, e.g. static.sto (its format from its suffix, else "
+                        "--format)")  # fmt: skip
     add_heading_args(p)
-    p.add_argument("--profile", type=Path, help="subject profile (TOML)")
-    p.add_argument("-o", "--output", type=Path, required=True, help="the MCAP file to write")
+    p.add_argument("--profile", type=argtypes.input_file, help="subject profile (TOML)")
+    p.add_argument("-o", "--output", type=argtypes.output_file, required=True,
+                   help="the MCAP file to write")  # fmt: skip
 
 
 def _module_site(joint: str) -> tuple[str, str]:
@@ -472,14 +501,22 @@ def cmd_calibrate_ole(args: argparse.Namespace) -> int:
     key, angle_name = _module_site(args.joint)
     pairs: list[tuple[float, float]] = []
     if args.from_pairs:
-        for line in args.from_pairs.read_text().splitlines():
+        try:
+            text = args.from_pairs.read_text(encoding="utf-8", errors="replace")
+        except OSError as exc:
+            print(f"bodynet calibrate ole: cannot read {args.from_pairs}: {exc.strerror or exc}",
+                  file=sys.stderr)  # fmt: skip
+            return 2
+        for line in text.splitlines():
             fields = [f.strip() for f in line.replace(";", ",").split(",")]
             try:
-                pairs.append((float(fields[0]), float(fields[1])))
+                pair = (float(fields[0]), float(fields[1]))
             except (ValueError, IndexError):
                 continue  # a header or a blank line
+            if all(map(math.isfinite, pair)):
+                pairs.append(pair)
     else:
-        angles = [float(a) for a in args.angles.split(",")]
+        angles = args.angles
         session = open_session(config_from_args(args))
         try:
             for angle in angles:
@@ -497,9 +534,21 @@ def cmd_calibrate_ole(args: argparse.Namespace) -> int:
     if len(pairs) < 2:
         print("bodynet calibrate ole: need at least two (angle, counts) pairs", file=sys.stderr)
         return 2
-    cal, fit = fit_calibration([a for a, _ in pairs], [c for _, c in pairs])
-    profile = _profile(args.profile).with_ole(angle_name, cal)
-    profile_file.save(profile, args.profile)
+    try:
+        cal, fit = fit_calibration([a for a, _ in pairs], [c for _, c in pairs])
+        if not (math.isfinite(fit.radius_mm) and math.isfinite(fit.r)):
+            raise ValueError(f"R = {fit.radius_mm} mm, r = {fit.r}")
+        profile = _profile(args.profile).with_ole(angle_name, cal)
+    except ValueError as exc:  # ProfileError too
+        print(f"bodynet calibrate ole: no usable calibration from these pairs ({exc}); "
+              "nothing written", file=sys.stderr)  # fmt: skip
+        return 2
+    try:
+        profile_file.save(profile, args.profile)
+    except OSError as exc:
+        print(f"bodynet calibrate ole: cannot write {args.profile}: {exc.strerror or exc}",
+              file=sys.stderr)  # fmt: skip
+        return 2
     table = ", ".join(f"{d:g} mm: {s:.3f}" for d, s in zip(cal.sf_d_mm, cal.sf, strict=True))
     print(
         f"{angle_name}: R = {cal.radius_mm:.2f} mm (eq. 26 over all poses: "
@@ -508,12 +557,33 @@ def cmd_calibrate_ole(args: argparse.Namespace) -> int:
     return 0
 
 
+def _ole_joints() -> list[str]:
+    from bodynet.core.profile import OLE_DOF, SMARTSUIT_SITES
+
+    return sorted(f"{s.branch.side}_{s.name}" for s in SMARTSUIT_SITES.values()
+                  if s.name in OLE_DOF)  # fmt: skip
+
+
+def _angles(text: str) -> list[float]:
+    """``0,30,60`` -> [0.0, 30.0, 60.0]: finite angles within +-360 deg."""
+    check = argtypes.bounded_float(-360.0, 360.0, "degrees")
+    try:
+        return [check(a) for a in text.split(",")]
+    except argparse.ArgumentTypeError as exc:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a list of angles: {exc}") from None
+
+
 def add_calibrate_ole_parser(csub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p = csub.add_parser("ole", help="an encoder's radius and scale factors from reference poses")
-    p.add_argument("--joint", required=True, help="e.g. left_elbow, right_knee")
-    p.add_argument("--angles", default="0,30,60,90,120,140", help="reference angles to hold (deg)")
-    p.add_argument("--from-pairs", type=Path, help="CSV of angle_deg,counts instead of live poses")
-    p.add_argument("--still-s", type=float, default=1.0, help="still window to average per pose")
-    p.add_argument("--profile", type=Path, required=True, help="profile to update (or create)")
+    p.add_argument("--joint", required=True, choices=_ole_joints(), metavar="JOINT",
+                   help="e.g. left_elbow, right_knee")  # fmt: skip
+    p.add_argument("--angles", default="0,30,60,90,120,140", type=_angles,
+                   help="reference angles to hold (deg)")  # fmt: skip
+    p.add_argument("--from-pairs", type=argtypes.input_file,
+                   help="CSV of angle_deg,counts instead of live poses")  # fmt: skip
+    p.add_argument("--still-s", type=argtypes.bounded_float(0.1, 60.0, "seconds"), default=1.0,
+                   help="still window to average per pose")  # fmt: skip
+    p.add_argument("--profile", type=argtypes.input_or_new_file, required=True,
+                   help="profile to update (or create)")  # fmt: skip
     add_session_args(p)
     p.set_defaults(func=cmd_calibrate_ole)

@@ -25,6 +25,7 @@ from bodynet.session import (
     DEFAULT_ROUTER,
     SessionError,
     add_session_args,
+    argtypes,
     config_from_args,
     open_session,
 )
@@ -38,26 +39,61 @@ def cmd_decode(args: argparse.Namespace) -> int:
         CaptureError,
         CaptureStats,
         capture_options,
+        looks_like,
         read_capture,
         sample_json,
     )
 
     stats = CaptureStats()
     out = sys.stdout
-    options = capture_options(args)
+    if out is None:  # started with its stdout closed
+        print("bodynet decode: stdout is closed: nowhere to write the samples", file=sys.stderr)
+        return 2
+    samples = read_capture(args.file, args.format, stats, args.rate_hz, capture_options(args))
     try:
-        for sample in read_capture(args.file, args.format, stats, args.rate_hz, options):
+        while True:
+            try:
+                sample = next(samples)
+            except StopIteration:
+                break
+            except CaptureError as exc:
+                print(f"bodynet decode: {exc}", file=sys.stderr)
+                return 2
+            except OSError as exc:
+                print(f"bodynet decode: cannot read {args.file}: {exc.strerror or exc}",
+                      file=sys.stderr)  # fmt: skip
+                return 2
             out.write(json.dumps(sample_json(sample), separators=(",", ":")) + "\n")
-    except CaptureError as exc:
-        print(f"bodynet decode: {exc}", file=sys.stderr)
-        return 2
-    except OSError as exc:
-        print(f"bodynet decode: cannot read {args.file}: {exc.strerror or exc}", file=sys.stderr)
-        return 2
+        out.flush()
     except BrokenPipeError:  # e.g. piped into head
+        _stdout_gone()
         return 0
+    except OSError as exc:  # a full disk, a closed descriptor
+        _stdout_gone()
+        print(f"bodynet decode: cannot write the samples to stdout: {exc.strerror or exc}",
+              file=sys.stderr)  # fmt: skip
+        return 1
     print(stats.summary(), file=sys.stderr)
+    if not stats.decoded:
+        what = looks_like(args.file)
+        print(f"bodynet decode: no {args.format} samples in {args.file}"
+              + (f"; it looks like {what}" if what else ""), file=sys.stderr)  # fmt: skip
+        return 2
     return 0
+
+
+def _stdout_gone() -> None:
+    """Point stdout at /dev/null: what is still buffered cannot be written, and
+    Python's own flush at exit would complain about it."""
+    import os
+
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(devnull, sys.stdout.fileno())
+    except (OSError, ValueError):
+        pass
+    finally:
+        os.close(devnull)
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
@@ -123,24 +159,26 @@ def add_decode_args(p: argparse.ArgumentParser) -> None:
     from bodynet.nodes.captures import add_capture_args, formats
 
     p.add_argument("--format", required=True, choices=formats())
-    p.add_argument("--rate-hz", type=float, default=None,
+    p.add_argument("--rate-hz", type=argtypes.RATE_HZ, default=None,
                    help="samples' time base where the capture has none "
                         "(concentrator: 1/22 ms; imu-central: 25 Hz)")  # fmt: skip
     add_capture_args(p)
-    p.add_argument("file", type=Path)
+    p.add_argument("file", type=argtypes.input_file)
 
 
 def add_demo_args(p: argparse.ArgumentParser) -> None:
     from bodynet.nodes.motion import ROUTINES
 
-    p.add_argument("-l", "--listen", default=DEFAULT_ROUTER, help="where the router listens")
+    p.add_argument("-l", "--listen", default=DEFAULT_ROUTER, type=argtypes.endpoint,
+                   help="where the router listens")  # fmt: skip
     p.add_argument(
         "--routine",
         default="reach",
         choices=sorted(ROUTINES),
         help="motion of the emulated body (default reach)",
     )
-    p.add_argument("--seconds", type=float, default=None, help="stop after this long")
+    p.add_argument("--seconds", type=argtypes.DURATION_S, default=None,
+                   help="stop after this long")  # fmt: skip
     p.add_argument(
         "--viewer",
         choices=("auto", "native", "web", "none"),
@@ -148,10 +186,13 @@ def add_demo_args(p: argparse.ArgumentParser) -> None:
         help="live view: a window if there is a display, else the web viewer",
     )
     p.add_argument(
-        "--rrd", type=Path, help="where the live view is saved (default beside --record)"
+        "--rrd",
+        type=argtypes.output_file,
+        help="where the live view is saved (default beside --record)",
     )
-    p.add_argument("--web-port", type=int, default=None, help="web viewer port (default 9090)")
-    p.add_argument("--record", type=Path, default=Path("bodynet-demo.mcap"),
+    p.add_argument("--web-port", type=argtypes.port, default=None,
+                   help="web viewer port (default 9090)")  # fmt: skip
+    p.add_argument("--record", type=argtypes.output_file, default=Path("bodynet-demo.mcap"),
                    help="where the recorder writes (default bodynet-demo.mcap)")  # fmt: skip
 
 
@@ -160,19 +201,25 @@ def add_router_args(p: argparse.ArgumentParser) -> None:
 
 
 def add_bench_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--seconds", type=float, default=1.0, help="time per decode measurement")
-    p.add_argument("--gateway-seconds", type=float, default=10.0, help="time of the gateway run")
-    p.add_argument("--bodies", type=int, nargs="+", default=[1, 5, 10, 15, 20, 50],
+    p.add_argument("--seconds", type=argtypes.bounded_float(0.01, 3600, "seconds, an hour at most"),
+                   default=1.0, help="time per decode measurement")  # fmt: skip
+    p.add_argument("--gateway-seconds", default=10.0, help="time of the gateway run",
+                   type=argtypes.bounded_float(0.1, 3600, "seconds, an hour at most"))  # fmt: skip
+    p.add_argument("--bodies", type=argtypes.positive_int(1000, "bodies"), nargs="+",
+                   default=[1, 5, 10, 15, 20, 50],
                    help="numbers of bodies fed to the gateway")  # fmt: skip
-    p.add_argument("--gateways", type=int, nargs="+", default=[1, 2, 4],
+    p.add_argument("--gateways", type=argtypes.positive_int(64, "gateways"), nargs="+",
+                   default=[1, 2, 4],
                    help="numbers of gateway processes sharing the bodies (--share)")  # fmt: skip
     p.add_argument("--only", action="append", choices=BENCHMARKS,
                    help="run only this benchmark (repeatable; default all but soak)")  # fmt: skip
-    p.add_argument("--rate-hz", type=float, default=1000.0,
+    p.add_argument("--rate-hz", type=argtypes.RATE_HZ, default=1000.0,
                    help="per-node rate of the `rate` benchmark (default 1000)")  # fmt: skip
-    p.add_argument("--repeat", type=int, default=3, help="runs of each fault (worst reported)")
-    p.add_argument("--minutes", type=float, default=10.0, help="length of the soak")
-    p.add_argument("--out", type=Path, default=Path("bench-results"))
+    p.add_argument("--repeat", type=argtypes.positive_int(100, "runs"), default=3,
+                   help="runs of each fault (worst reported)")  # fmt: skip
+    p.add_argument("--minutes", type=argtypes.bounded_float(0.1, 1440, "minutes, a day at most"),
+                   default=10.0, help="length of the soak")  # fmt: skip
+    p.add_argument("--out", type=argtypes.output_dir, default=Path("bench-results"))
 
 
 @dataclass(frozen=True)

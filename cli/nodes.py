@@ -10,9 +10,9 @@ import sys
 import threading
 from collections.abc import Callable
 
-from bodynet.core.keys import branch_named
+from bodynet.core.keys import BRANCHES, branch_named
 from bodynet.nodes.motion import ROUTINES
-from bodynet.session import add_session_args, config_from_args, open_session
+from bodynet.session import add_session_args, argtypes, config_from_args, open_session
 
 log = logging.getLogger("bodynet")
 
@@ -35,11 +35,11 @@ def stop_on_signals() -> threading.Event:
     return stop
 
 
-def _numbers(text: str) -> tuple[int, ...]:
-    """``"1-3,7"`` -> (1, 2, 3, 7)."""
+def _numbers(text: str | tuple[int, ...]) -> tuple[int, ...]:
+    """``"1-3,7"`` -> (1, 2, 3, 7) (an argparse type; an already parsed list is kept)."""
     from bodynet.nodes.sources.base import numbers
 
-    return numbers(text)
+    return text if isinstance(text, tuple) else numbers(text)
 
 
 def _branches(args: argparse.Namespace) -> tuple | None:  # type: ignore[type-arg]
@@ -79,7 +79,11 @@ def cmd_bridge(args: argparse.Namespace) -> int:
     from bodynet.nodes import services, sources
 
     name = args.name or sources.get(args.device).bridge_name(args)
-    return _with_session(args, services.bridge, args.device, name, args)
+    try:
+        return _with_session(args, services.bridge, args.device, name, args)
+    except OSError as exc:  # e.g. the UDP port is taken (another SlimeVR server runs)
+        print(f"bodynet bridge {args.device}: {exc}", file=sys.stderr)
+        return 2
 
 
 def cmd_emulate(args: argparse.Namespace) -> int:
@@ -136,25 +140,29 @@ def _emulation_args(p: argparse.ArgumentParser) -> None:
         "--branch",
         action="append",
         default=[],
+        choices=[str(b) for b in BRANCHES],
         help="left-arm, right-arm, left-leg, right-leg or trunk (repeatable; default all)",
     )
-    p.add_argument("--sensors", help="IMU sensor numbers, e.g. 1-15 or 3,5,7")
+    p.add_argument("--sensors", type=_numbers, help="IMU sensor numbers, e.g. 1-15 or 3,5,7")
     p.add_argument("--ideal", action="store_true", help="noise-free, bias-free sensors")
-    p.add_argument("--slack-mm", type=float, default=0.0, help="OLE cable slack (buckling)")
-    p.add_argument("--drift", type=float, default=0.0,
+    p.add_argument("--slack-mm", type=argtypes.non_negative_float(50.0, "mm of slack"),
+                   default=0.0, help="OLE cable slack (buckling)")  # fmt: skip
+    p.add_argument("--drift", default=0.0, type=argtypes.bounded_float(-360.0, 360.0, "deg/min"),
                    help="IMU heading drift, deg per minute (independent tags: each its own "
                         "rate within +/- this)")  # fmt: skip
-    p.add_argument("--facing", type=float, default=0.0, metavar="DEG",
+    p.add_argument("--facing", type=argtypes.bounded_float(-360.0, 360.0, "deg"), default=0.0,
+                   metavar="DEG",
                    help="where the subject faces in the tags' shared frame (a magnetometer "
                         "suit: x to north), deg about the vertical (default 0: +X)")  # fmt: skip
     p.add_argument("--tag-headings", choices=("shared", "independent"), default="shared",
                    help="shared: one earth frame for all tags (magnetometer-based); "
                         "independent: 6-axis tags, each starting with a heading of its own")
-    p.add_argument("--noise-deg", type=float, default=0.3, help="orientation noise, deg")
+    p.add_argument("--noise-deg", type=argtypes.non_negative_float(30.0, "deg"), default=0.3,
+                   help="orientation noise, deg")  # fmt: skip
     p.add_argument("--aligned-mounts", action="store_true",
                    help="tags mounted with their axes along their segments' (default: "
                         "arbitrary mountings)")  # fmt: skip
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=argtypes.bounded_int(0, 2**32 - 1, "a 32-bit seed"), default=0)
 
 
 def add_bridge_args(bridge: argparse.ArgumentParser) -> None:
@@ -166,7 +174,8 @@ def add_bridge_args(bridge: argparse.ArgumentParser) -> None:
             continue
         p = bsub.add_parser(cls.name, help=cls.help)
         cls.add_bridge_args(p)
-        p.add_argument("--name", help="name on the health key (default from the device)")
+        p.add_argument("--name", type=argtypes.free_text(100),
+                       help="name on the health key (default from the device)")  # fmt: skip
         add_session_args(p)
         p.set_defaults(func=cmd_bridge)
 
@@ -179,7 +188,8 @@ def add_emulate_args(emulate: argparse.ArgumentParser) -> None:
         p = esub.add_parser(device, help=cls.emulators[device])
         _emulation_args(p)
         cls.add_emulate_args(device, p)
-        p.add_argument("--silent", help="concentrator: nodes that never answer, e.g. 3")
+        p.add_argument("--silent", type=_numbers,
+                       help="concentrator: nodes that never answer, e.g. 3")  # fmt: skip
         p.add_argument(
             "--truth",
             action="store_true",
@@ -206,6 +216,7 @@ def add_node_args(node: argparse.ArgumentParser) -> None:
                 default="can",
                 help="transport of the emulated hardware (default can)",
             )
-        p.add_argument("--name", help="name prefix on the health keys")
+        p.add_argument("--name", type=argtypes.free_text(100),
+                       help="name prefix on the health keys")  # fmt: skip
         add_session_args(p)
         p.set_defaults(func=cmd_node)

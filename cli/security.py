@@ -6,31 +6,20 @@ import argparse
 import sys
 from pathlib import Path
 
-from bodynet.core.keys import KeySpaceError
+from bodynet.core.keys import KeySpaceError, subject_name
+from bodynet.session import argtypes
 
 
-def _positive(text: str) -> int:
+def _subject(text: str) -> str:
     try:
-        value = int(text)
-    except ValueError:
-        value = 0
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a positive whole number")
-    return value
+        return subject_name(text)
+    except KeySpaceError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
 
 
-def _days(text: str) -> int:
-    value = _positive(text)
-    if value > 36500:
-        raise argparse.ArgumentTypeError(f"{value} days is more than a hundred years")
-    return value
-
-
-def _port(text: str) -> int:
-    value = _positive(text)
-    if value > 65535:
-        raise argparse.ArgumentTypeError(f"{value} is not a port (1-65535)")
-    return value
+def _router_path(text: str) -> Path:
+    """A path on the router's machine (not checked here), printable."""
+    return Path(argtypes.free_text(1000)(text))
 
 
 def cmd_certs(args: argparse.Namespace) -> int:
@@ -68,17 +57,19 @@ def add_certs_args(p: argparse.ArgumentParser) -> None:
         "(ROLE@SUBJECT, or ROLE for the router's subjects) with its certificate, key and "
         "Zenoh client config. Run again to add subjects; what exists is kept."
     )
-    p.add_argument("dir", type=Path, metavar="DIR", help="where to write (created 0700)")
-    p.add_argument("--subject", action="append", default=[], metavar="NAME",
+    p.add_argument("dir", type=argtypes.output_dir, metavar="DIR",
+                   help="where to write (created 0700)")  # fmt: skip
+    p.add_argument("--subject", action="append", default=[], metavar="NAME", type=_subject,
                    help="a subject to serve (repeat; default: the default subject)")  # fmt: skip
-    p.add_argument("--host", action="append", default=[], metavar="NAME",
+    p.add_argument("--host", action="append", default=[], metavar="NAME", type=argtypes.hostname,
                    help="a name or address clients dial the router by (repeat; "
                         "localhost and 127.0.0.1 are always in; the first goes into "
                         "client configs)")  # fmt: skip
     p.add_argument("--users", action="store_true",
                    help="also require a user name and password (one per identity)")  # fmt: skip
-    p.add_argument("--port", type=_port, default=7447, help="router port (default 7447)")
-    p.add_argument("--router-path", type=Path, default=None, metavar="PATH",
+    p.add_argument("--port", type=argtypes.port, default=7447, help="router port (default 7447)")
+    p.add_argument("--router-path", type=_router_path, default=None, metavar="PATH",
                    help="where DIR will be on the router's machine, for the paths in its config "
                         "(default: DIR)")  # fmt: skip
-    p.add_argument("--days", type=_days, default=825, help="validity of the certificates")
+    p.add_argument("--days", type=argtypes.positive_int(36500, "days, a hundred years at most"),
+                   default=825, help="validity of the certificates")  # fmt: skip

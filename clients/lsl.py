@@ -23,9 +23,10 @@ apps give it (``channels/channel/{label, type, unit}``, plus the segment or
 joint a channel belongs to).
 
 Channels that no measurement stands behind carry NaN, never a held value:
-an angle flagged anything but ``clamped``; a segment whose chain from the
-pelvis crosses such an angle (its world pose rests on a guess); anything the
-pose message lacks.
+an angle flagged anything but ``clamped``, or resting on a stale sensor (a
+site in the pose's ``stale``: the angles of the joints at either end of the
+segment it rides on); a segment whose chain from the pelvis crosses such an
+angle (its world pose rests on a guess); anything the pose message lacks.
 
 Timestamps: each sample carries its own source time (the pose's ``t_ns``,
 the raw sample's ``t_ns``: Unix nanoseconds of the bridge that received it)
@@ -54,7 +55,7 @@ from bodynet.clients.live import LiveOutput
 from bodynet.core.codecs import pose
 from bodynet.core.keys import parse
 from bodynet.core.messages import OleAccel, Quat, RawSample
-from bodynet.core.metrics import is_measured
+from bodynet.core.metrics import measured_angles
 from bodynet.core.skeleton import Skeleton, build_skeleton
 
 STREAM_TYPE = "MoCap"
@@ -116,8 +117,10 @@ def angle_channels(skeleton: Skeleton) -> list[Channel]:
 
 
 def angle_values(frame: pose.PoseFrame, names: Sequence[str]) -> list[float]:
-    """The angles of ``frame`` in channel order; NaN where nothing was measured."""
-    return [frame.angles_deg.get(n, NAN) if is_measured(frame, n) else NAN for n in names]
+    """The angles of ``frame`` in channel order; NaN where nothing was measured
+    (flagged, or resting on a stale sensor: ``core.metrics.measured_angles``)."""
+    measured = measured_angles(frame)
+    return [measured.get(n, NAN) for n in names]
 
 
 _POSITION = (("x", "PositionX"), ("y", "PositionY"), ("z", "PositionZ"))
@@ -153,9 +156,10 @@ def segment_values(frame: pose.PoseFrame, chains: Mapping[str, Sequence[str]]) -
     """Position and quaternion of every segment in channel order; NaN for a segment
     the pose lacks or whose chain holds an angle without measurement."""
     out: list[float] = []
+    measured = measured_angles(frame)
     for seg, chain in chains.items():
         got = frame.segments.get(seg)
-        if got is None or not all(is_measured(frame, n) for n in chain):
+        if got is None or not all(n in measured for n in chain):
             out.extend((NAN,) * 7)
         else:
             out.extend(got[0])

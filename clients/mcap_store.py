@@ -40,6 +40,7 @@ from __future__ import annotations
 
 import ctypes
 import functools
+import io
 import json
 import operator
 import os
@@ -53,10 +54,12 @@ from typing import IO, Any
 
 import orjson
 import zstandard
+from mcap.data_stream import ReadDataStream
 from mcap.exceptions import McapError
+from mcap.opcode import Opcode
 from mcap.reader import make_reader
-from mcap.records import Channel, Message, Schema
-from mcap.stream_reader import StreamReader
+from mcap.records import Channel, Chunk, Message, MessageIndex, Schema
+from mcap.stream_reader import breakup_chunk
 from mcap.writer import CompressionType, Writer
 
 from bodynet.clients.body_tree import frame_transforms, segment_parents
@@ -474,17 +477,43 @@ def read_poses(path: Path, topic: str = "body/pose") -> Iterator[tuple[int, pose
         yield message.log_time, frame
 
 
+_READ_ERRORS = (McapError, ValueError, EOFError, OSError, struct.error, zstandard.ZstdError,
+                MemoryError, OverflowError)  # fmt: skip
+
+
+def _damaged(path: Path, f: IO[bytes], exc: BaseException) -> StoreError:
+    """The error of a recording that breaks off or is damaged: where, and how
+    to recover what is intact."""
+    try:
+        stop = f.tell()
+        where = f" (reading stopped at byte {stop})"
+        f.seek(0)
+        summary = make_reader(f).get_summary()
+        for ci in summary.chunk_indexes if summary is not None else ():
+            if ci.chunk_start_offset < stop <= ci.chunk_start_offset + ci.chunk_length:
+                where = f" (in the chunk at byte {ci.chunk_start_offset})"
+    except (*_READ_ERRORS, OSError, ValueError):
+        pass
+    if isinstance(exc, OSError) and not isinstance(exc, EOFError) and exc.errno is not None:
+        return StoreError(f"{path}: cannot read it ({exc.strerror}){where}")
+    return StoreError(
+        f"{path}: not a complete MCAP file ({_short(exc)}){where}; "
+        f"`bodynet record --salvage {path} -o <new file>` recovers the messages that are intact"
+    )
+
+
 def _messages(path: Path, topics: Iterable[str] | None) -> Iterator[Any]:
     try:
         f = path.open("rb")
     except OSError as exc:
         raise StoreError(f"{path}: cannot read it ({exc.strerror})") from None
-    try:
-        with f:
+    with f:
+        try:
             yield from make_reader(f).iter_messages(topics=None if topics is None else list(topics))
-    # the mcap reader raises struct.error, not an McapError, on some truncated files
-    except (McapError, ValueError, EOFError, OSError, struct.error) as exc:
-        raise StoreError(f"{path}: not a complete MCAP file ({exc})") from None
+        # the mcap reader raises struct.error, not an McapError, on some truncated files, and
+        # zstandard's error on a corrupt chunk
+        except _READ_ERRORS as exc:
+            raise _damaged(path, f, exc) from None
 
 
 def raw_from_json(data: bytes) -> RawSample:
@@ -573,11 +602,11 @@ def channel_counts(path: Path) -> list[ChannelCount] | None:
         f = path.open("rb")
     except OSError as exc:
         raise StoreError(f"{path}: cannot read it ({exc.strerror})") from None
-    try:
-        with f:
+    with f:
+        try:
             summary = make_reader(f).get_summary()
-    except (McapError, ValueError, EOFError, OSError, struct.error) as exc:
-        raise StoreError(f"{path}: not a complete MCAP file ({exc})") from None
+        except _READ_ERRORS as exc:
+            raise _damaged(path, f, exc) from None
     stats = summary.statistics if summary is not None else None
     if stats is None or summary is None:
         return None
@@ -601,13 +630,56 @@ def count_messages(path: Path, topic: str | None = None) -> int:
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 
 
+@dataclass(frozen=True)
+class Loss:
+    """A part of a recording salvage could not read: where it starts (byte
+    offset), how many messages it held (None: unknown) and why."""
+
+    offset: int
+    messages: int | None
+    why: str
+
+
+@dataclass(frozen=True)
+class Salvaged:
+    """What :func:`salvage_report` kept and lost."""
+
+    messages: int
+    losses: tuple[Loss, ...]
+
+    def summary(self) -> str:
+        """``lost N messages: a chunk at byte X (n messages, why); ...``."""
+        if not self.losses:
+            return "nothing lost"
+        known = sum(loss.messages or 0 for loss in self.losses)
+        unknown = any(loss.messages is None for loss in self.losses)
+        places = "; ".join(
+            f"byte {loss.offset} ({'?' if loss.messages is None else loss.messages} "
+            f"messages: {loss.why})"
+            for loss in self.losses[:10]
+        )
+        more = f"; and {len(self.losses) - 10} more" if len(self.losses) > 10 else ""
+        return f"lost {known}{'+' if unknown else ''} messages: {places}{more}"
+
+
 def salvage(src: Path, dst: Path) -> int:
+    """Copy every message of an unfinished or damaged file into a complete
+    one (see :func:`salvage_report`); returns how many."""
+    return salvage_report(src, dst).messages
+
+
+def salvage_report(src: Path, dst: Path) -> Salvaged:
     """Copy every message of an unfinished file (a recorder killed mid-write)
-    up to its last complete chunk into a complete file; returns how many.
+    or a damaged one (a corrupt chunk) into a complete file: each chunk that
+    cannot be read is skipped, counted (from its message index) and the
+    chunks after it are read; a file cut short keeps everything before the
+    cut.
 
     ``StoreError`` if ``src`` cannot be read or is no MCAP file at all; then,
     as on any other failure, nothing is left at ``dst`` (written aside and
     renamed into place last)."""
+    from bodynet.session.outputs import atomic_file
+
     try:
         f = src.open("rb")
     except OSError as exc:
@@ -623,45 +695,131 @@ def salvage(src: Path, dst: Path) -> int:
                                  "nothing to salvage")  # fmt: skip
             raise StoreError(f"{src}: not an MCAP recording (it does not start as MCAP files "
                              "do): nothing to salvage")  # fmt: skip
-        f.seek(0)
-        tmp = dst.with_name(dst.name + ".part")
-        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+        losses: list[Loss] = []
+        with atomic_file(dst, [src], "wb") as out:
+            count = _copy_complete(_walk(f, os.fstat(f.fileno()).st_size, losses), out)
+    return Salvaged(count, tuple(losses))
+
+
+_KNOWN_OPCODES = {int(op) for op in Opcode}
+
+
+def _walk(f: IO[bytes], size: int, losses: list[Loss]) -> Iterator[Any]:  # noqa: PLR0915
+    """The schemas, channels and messages of an MCAP file's data section, record
+    by record; a chunk that does not read is added to ``losses`` (with the
+    messages its index lists) and skipped; framing that makes no sense is
+    skipped up to the next chunk that reads."""
+    pos = len(MCAP_MAGIC)
+    bad: Loss | None = None  # the last unreadable chunk, until its indexes are counted
+    while pos + 9 <= size:
+        f.seek(pos)
+        opcode, length = f.read(1)[0], int.from_bytes(f.read(8), "little")
+        end = pos + 9 + length
+        if opcode not in _KNOWN_OPCODES or end > size:
+            if bad is not None:
+                losses.append(bad)
+                bad = None
+            nxt = _next_chunk(f, pos + 1, size)
+            if opcode in _KNOWN_OPCODES and nxt is None:
+                losses.append(Loss(pos, None, "the file ends inside this record"))
+                return
+            losses.append(Loss(pos, None, "not a record (garbled bytes)"))
+            if nxt is None:
+                return
+            pos = nxt
+            continue
+        body = f.read(length)
+        if opcode == Opcode.MESSAGE_INDEX and bad is not None:
+            with_counts = bad.messages or 0
+            try:
+                index = MessageIndex.read(ReadDataStream(io.BytesIO(body)))
+                bad = Loss(bad.offset, with_counts + len(index.records), bad.why)
+            except (McapError, ValueError, struct.error):
+                pass
+            pos = end
+            continue
+        if bad is not None:
+            losses.append(bad)
+            bad = None
+        if opcode == Opcode.FOOTER:
+            return
         try:
-            with os.fdopen(fd, "wb") as out:
-                count = _copy_complete(StreamReader(f).records, out)
-            os.replace(tmp, dst)
-        finally:
-            tmp.unlink(missing_ok=True)
-    return count
+            if opcode == Opcode.CHUNK:
+                chunk = Chunk.read(ReadDataStream(io.BytesIO(body)))
+                records: list[Any] = breakup_chunk(chunk, validate_crc=True)
+            elif opcode == Opcode.SCHEMA:
+                records = [Schema.read(ReadDataStream(io.BytesIO(body)))]
+            elif opcode == Opcode.CHANNEL:
+                records = [Channel.read(ReadDataStream(io.BytesIO(body)))]
+            elif opcode == Opcode.MESSAGE:
+                records = [Message.read(ReadDataStream(io.BytesIO(body)), length)]
+            else:
+                records = []
+        except (McapError, ValueError, EOFError, struct.error, zstandard.ZstdError,
+                UnicodeDecodeError, MemoryError) as exc:  # fmt: skip
+            what = "a chunk that does not read" if opcode == Opcode.CHUNK else "a bad record"
+            bad = Loss(pos, 0 if opcode == Opcode.CHUNK else 1, f"{what}: {_short(exc)}")
+            if opcode != Opcode.CHUNK:
+                losses.append(bad)
+                bad = None
+            pos = end
+            continue
+        yield from records
+        pos = end
+    if bad is not None:
+        losses.append(bad)
+
+
+def _short(exc: BaseException) -> str:
+    return " ".join(str(exc).split())[:120] or type(exc).__name__
+
+
+def _next_chunk(f: IO[bytes], start: int, size: int) -> int | None:
+    """The offset of the next chunk record from ``start`` that reads as one."""
+    step = 1 << 20
+    at = start
+    while at < size:
+        f.seek(at)
+        block = f.read(step + 64)
+        i = block.find(b"\x06")
+        while 0 <= i < step:
+            here = at + i
+            f.seek(here + 1)
+            length = int.from_bytes(f.read(8), "little")
+            if here + 9 + length <= size:
+                f.seek(here + 9)
+                try:
+                    chunk = Chunk.read(ReadDataStream(io.BytesIO(f.read(min(length, 1 << 26)))))
+                    known = chunk.compression in ("zstd", "lz4", "")
+                    if known and chunk.uncompressed_size < 1 << 31:
+                        return here
+                except (McapError, ValueError, EOFError, struct.error, UnicodeDecodeError):
+                    pass
+            i = block.find(b"\x06", i + 1)
+        at += step
+    return None
 
 
 def _copy_complete(records: Iterator[Any], out: IO[bytes]) -> int:
     """Schemas, channels and messages of ``records`` into a new file on ``out``
-    until the records end or break off; returns how many messages."""
+    until the records end; returns how many messages."""
     count = 0
     writer = Writer(out, chunk_size=CHUNK_BYTES, compression=CompressionType.ZSTD)
     writer.start(profile="", library="bodynet salvage")
     schemas: dict[int, int] = {}
     channels: dict[int, int] = {}
-    try:
-        for record in records:
-            # the summary section repeats schemas and channels: once each is enough
-            if isinstance(record, Schema) and record.id not in schemas:
-                schemas[record.id] = writer.register_schema(
-                    record.name, record.encoding, record.data
-                )
-            elif isinstance(record, Channel) and record.id not in channels:
-                channels[record.id] = writer.register_channel(
-                    record.topic, record.message_encoding, schemas.get(record.schema_id, 0),
-                    dict(record.metadata),
-                )  # fmt: skip
-            elif isinstance(record, Message) and record.channel_id in channels:
-                writer.add_message(channels[record.channel_id], record.log_time, record.data,
-                                   record.publish_time)  # fmt: skip
-                count += 1
-    # the end of what was written (or a chunk that does not decompress): everything
-    # before it is kept
-    except (McapError, ValueError, EOFError, struct.error, zstandard.ZstdError):
-        pass
+    for record in records:
+        # the summary section repeats schemas and channels: once each is enough
+        if isinstance(record, Schema) and record.id not in schemas:
+            schemas[record.id] = writer.register_schema(record.name, record.encoding, record.data)
+        elif isinstance(record, Channel) and record.id not in channels:
+            channels[record.id] = writer.register_channel(
+                record.topic, record.message_encoding, schemas.get(record.schema_id, 0),
+                dict(record.metadata),
+            )  # fmt: skip
+        elif isinstance(record, Message) and record.channel_id in channels:
+            writer.add_message(channels[record.channel_id], record.log_time, record.data,
+                               record.publish_time)  # fmt: skip
+            count += 1
     writer.finish()
     return count

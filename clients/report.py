@@ -24,9 +24,12 @@ complete or not at all (its plots are moved in place just before it).
 
 from __future__ import annotations
 
+import csv
 import html
+import math
 import os
 import shutil
+import sys
 import tempfile
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -106,19 +109,63 @@ def _truth(path: Path) -> Series | None:
     return Series(f"ground truth in {path}", np.asarray(times, dtype=float) / 1e9, frame)
 
 
+def _reference_csv(path: Path) -> tuple[pd.DataFrame, list[str]]:
+    """A reference CSV's good rows, and why each other row was left out (a
+    row with more or fewer fields than the header, or no number for t_s)."""
+    left_out: list[str] = []
+    rows: list[list[str]] = []
+    try:
+        with path.open(newline="", encoding="utf-8", errors="replace") as f:
+            reader = csv.reader(f)
+            header = next(reader, None)
+            if header is None:
+                raise ReportError(f"{path}: the reference CSV is empty")
+            header = [h.strip() for h in header]
+            if "t_s" not in header or not any(h.endswith("_deg") for h in header):
+                raise ReportError(f"{path}: a reference CSV needs a t_s column and *_deg columns")
+            t_col = header.index("t_s")
+            for row in reader:
+                line = reader.line_num
+                if not row or all(not cell.strip() for cell in row):
+                    continue
+                if len(row) != len(header):
+                    left_out.append(f"line {line} left out: {len(row)} fields, the header has "
+                                    f"{len(header)}")  # fmt: skip
+                    continue
+                try:
+                    t = float(row[t_col])
+                except ValueError:
+                    t = math.nan
+                if not math.isfinite(t):
+                    left_out.append(f"line {line} left out: t_s {row[t_col][:20]!r} is not a "
+                                    "finite number")  # fmt: skip
+                    continue
+                rows.append(row)
+    except (OSError, csv.Error) as exc:
+        raise ReportError(f"{path}: cannot read the reference CSV ({exc})") from None
+    if not rows:
+        raise ReportError(f"{path}: the reference CSV has no usable row"
+                          + (f" ({left_out[0]}...)" if left_out else ""))  # fmt: skip
+    table = pd.DataFrame(rows, columns=header)
+    table["t_s"] = table["t_s"].astype(float)
+    return table, left_out
+
+
 def load_reference(path: Path) -> Series:
     """A reference: a CSV (``t_s`` and angle columns) or a recording (truth, else poses)."""
     if path.suffix.lower() == ".csv":
-        try:
-            table = pd.read_csv(path)
-        except (OSError, ValueError) as exc:
-            raise ReportError(f"{path}: cannot read the reference CSV ({exc})") from None
+        table, left_out = _reference_csv(path)
         columns = [c for c in table.columns if str(c).endswith("_deg")]
-        if "t_s" not in table.columns or not columns:
-            raise ReportError(f"{path}: a reference CSV needs a t_s column and *_deg columns")
-        table = table.dropna(subset=["t_s"]).sort_values("t_s")
+        table = table.sort_values("t_s", kind="stable")
         values = table[columns].apply(pd.to_numeric, errors="coerce")
-        return Series(f"{path}", table["t_s"].to_numpy(float), values.reset_index(drop=True))
+        for why in left_out:
+            print(f"bodynet report: {path}: {why}", file=sys.stderr)
+        source = str(path)
+        if left_out:
+            shown = "; ".join(left_out[:5]) + (f"; and {len(left_out) - 5} more"
+                                               if len(left_out) > 5 else "")  # fmt: skip
+            source += f" ({len(left_out)} rows left out: {shown})"
+        return Series(source, table["t_s"].to_numpy(float), values.reset_index(drop=True))
     truth = _truth(path)
     if truth is not None:
         return truth

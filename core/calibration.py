@@ -13,6 +13,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+#: The largest radius an OLE calibration may have: a joint's bend radius is
+#: tens of mm; a fit far above this is a failed fit, not a joint.
+MAX_RADIUS_MM = 1000.0
+
 #: Millimetres of cable travel per encoder count.
 MM_PER_COUNT = 0.1
 
@@ -41,8 +45,11 @@ class OleCalibration:
     sf: tuple[float, ...] = (1.0,)
 
     def __post_init__(self) -> None:
-        if self.radius_mm <= 0:
-            raise ValueError(f"radius must be positive, not {self.radius_mm}")
+        if not 0 < self.radius_mm <= MAX_RADIUS_MM:  # also refuses NaN
+            raise ValueError(f"radius must be above 0 and at most {MAX_RADIUS_MM:g} mm (a "
+                             f"joint's), not {self.radius_mm}")  # fmt: skip
+        if not all(math.isfinite(v) for v in (*self.sf_d_mm, *self.sf)):
+            raise ValueError("SF table holds a number that is not finite")
         if len(self.sf_d_mm) != len(self.sf) or not self.sf:
             raise ValueError("SF table needs one factor per travel")
         if any(b <= a for a, b in zip(self.sf_d_mm, self.sf_d_mm[1:], strict=False)):

@@ -37,6 +37,7 @@ axis = "+z"
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from types import MappingProxyType
@@ -169,6 +170,11 @@ class Profile:
                     raise ProfileError(f"imu_mounts[{key!r}] needs 4 numbers (w, x, y, z)")
                 w, x, y, z = map(float, q)
                 mounts[key] = (w, x, y, z)
+            numbers = [*(v for q in mounts.values() for v in q),
+                       *map(float, data.get("segments", {}).values()),
+                       float(data.get("accel_counts_per_g", 1024.0))]  # fmt: skip
+            if not all(math.isfinite(v) for v in numbers):
+                raise ProfileError("a number that is not finite (nan or inf)")
             trackers = {}
             for tracker, site in data.get("trackers", {}).items():
                 try:
@@ -197,7 +203,7 @@ class Profile:
                 accel_counts_per_g=float(data.get("accel_counts_per_g", 1024.0)),
                 accel_filter=accel_filter,
             )
-        except (KeyError, TypeError, ValueError) as exc:
+        except (KeyError, TypeError, ValueError, AttributeError) as exc:
             if isinstance(exc, ProfileError):
                 raise
             raise ProfileError(f"bad profile: {exc}") from None

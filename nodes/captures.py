@@ -12,6 +12,7 @@ one, otherwise the source's counter (reply, tick) divided by its rate.
 from __future__ import annotations
 
 import argparse
+import re
 from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any
@@ -29,6 +30,7 @@ __all__ = [
     "format_of",
     "formats",
     "frame_of",
+    "looks_like",
     "read_capture",
     "sample_json",
 ]
@@ -82,3 +84,33 @@ def sample_json(sample: CapturedSample) -> dict[str, object]:
     else:
         out["quat_wxyz"] = list(r.wxyz)
     return out
+
+
+_SNIFFERS: tuple[tuple[str, re.Pattern[bytes]], ...] = (
+    ("an MCAP recording (for export, report, view or replay)", re.compile(rb"\A\x89MCAP")),
+    ("a BLF CAN log (--format can-log, named .blf)", re.compile(rb"\ALOGG")),
+    ("a candump CAN log (--format can-log, named .log)",
+     re.compile(rb"^\(\d+\.\d+\)\s+\S+\s+[0-9A-Fa-f]+#", re.M)),
+    ("a Vector ASC CAN log (--format can-log, named .asc)",
+     re.compile(rb"^\s*(date\s|base\s+(hex|dec)|begin triggerblock)", re.M | re.I)),
+    ("a PCAN TRC CAN log (--format can-log, named .trc)", re.compile(rb"^;\$FILEVERSION", re.M)),
+    ("a python-can CSV CAN log (--format can-log, named .csv)",
+     re.compile(rb"\Atimestamp,arbitration_id,")),
+    ("a Data Concentrator capture (--format concentrator)",
+     re.compile(rb"[A-Z]E[0-9A-Fa-f]{4}X[0-9A-Fa-f]{4}Y[0-9A-Fa-f]{4}Z")),
+    ("an IMU central capture (--format imu-central)", re.compile(rb"\A([0-9a-fA-F]{52,56}\r?\n)+")),
+)  # fmt: skip
+
+
+def looks_like(path: Path) -> str | None:
+    """What a file's first bytes look like, as a capture format (or a
+    recording) ``bodynet`` reads, with the option that reads it; None if none."""
+    try:
+        with path.open("rb") as f:
+            head = f.read(4096)
+    except OSError:
+        return None
+    for what, pattern in _SNIFFERS:
+        if pattern.search(head):
+            return what
+    return None

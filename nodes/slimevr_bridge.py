@@ -120,9 +120,13 @@ class SlimeVRBridge(Bridge):
     def run(self, listen: tuple[str, int], stop: threading.Event) -> None:
         """Serve the trackers on ``listen`` until ``stop``."""
         sock = self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 22)
-        sock.bind(listen)
+        try:
+            sock.bind(listen)
+        except OSError as exc:
+            sock.close()
+            raise OSError(exc.errno, f"cannot take udp/{listen[0]}:{listen[1]}: {exc.strerror}"
+                          " (is a SlimeVR server running?)") from None  # fmt: skip
         sock.settimeout(RECV_TIMEOUT_S)
         self.publisher.set_device("listening")
         log.info("%s: SlimeVR trackers on udp/%s:%d", self.publisher.name, *sock.getsockname())

@@ -52,6 +52,8 @@ class ProcessResult:
     calibration: dict[str, Any] | None = None  # the calibration report, when it calibrated
     heading: dict[str, Any] | None = None  # where the tags' heading stands (BodyHeading.state)
     refused: str | None = None  # why the default window could not calibrate (then it did not)
+    #: seconds from the capture's first sample to its last
+    span_s: float = 0.0
 
 
 def recorded_samples(path: Path, fmt: str | None, stats: CaptureStats,
@@ -110,14 +112,16 @@ def _ticks(samples: Iterator[CapturedSample], period_s: float) -> Iterator[list[
 
 def process(path: Path, fmt: str, out: Path, profile: Profile | None = None,
             rate_hz: float | None = None, tick_hz: float = 100.0,
-            tpose_s: float = 3.0,
-            options: Mapping[str, Any] | None = None, *,
-            window: tuple[float, float] | None = None, pose: str | None = None,
-            calibrate_from: tuple[Path, str | None] | None = None) -> ProcessResult:  # fmt: skip
+            tpose_s: float = 3.0, options: Mapping[str, Any] | None = None,
+            calibration: tuple[Path, str | None] | None = None, *,
+            window: tuple[float, float] | None = None,
+            pose: str | None = None) -> ProcessResult:  # fmt: skip
     """Solve every tick of a capture and write poses and raw samples to ``out``
     (``options``: the source's capture options, e.g. an orientation file's ``map``).
+    The calibration pose is the first ``tpose_s`` seconds, or ``window``, of the
+    capture or of ``calibration`` (another file of the session, and its format).
     Raises ``CalibrationRefused`` (nothing written) when an asked-for calibration
-    window (``window``, ``calibrate_from``) cannot be used; when the default one
+    window (``window``, ``calibration``) cannot be used; when the default one
     (the first ``tpose_s``) cannot, the capture is solved without it
     (``ProcessResult.refused`` says why)."""
     source = sources.by_format(fmt).from_options(options or {})
@@ -126,17 +130,17 @@ def process(path: Path, fmt: str, out: Path, profile: Profile | None = None,
         site for _, site, reading in recorded_samples(path, fmt, CaptureStats(), rate_hz, options)
         if isinstance(reading, Quat) and site.raw_key not in profile.imu_mounts
     }  # fmt: skip
-    calibration, refused = None, None
-    if uncalibrated and tpose_s <= 0 and window is None and calibrate_from is None:
+    calibrated, refused = None, None
+    if uncalibrated and tpose_s <= 0 and window is None and calibration is None:
         # no calibration window: the orientations are the segments' own, in the body's
         # frame (as bodynet exports them), so their mounts are none and heading 0
         profile = replace(profile, imu_headings=MappingProxyType(
             {**profile.imu_headings, **{s.raw_key: 0.0 for s in uncalibrated}}))
-    elif uncalibrated or window is not None or calibrate_from is not None:
-        where, where_fmt = calibrate_from or (path, fmt)
-        asked = window is not None or calibrate_from is not None
+    elif uncalibrated or window is not None or calibration is not None:
+        where, where_fmt = calibration or (path, fmt)
+        asked = window is not None or calibration is not None
         try:
-            calibration = calibrate_recording(
+            calibrated = calibrate_recording(
                 recorded_samples(where, where_fmt, CaptureStats(), rate_hz, options), profile,
                 window or (0.0, tpose_s), pose, strict=window is not None,
             )
@@ -147,7 +151,7 @@ def process(path: Path, fmt: str, out: Path, profile: Profile | None = None,
             # capture is solved uncalibrated, its tags' dofs flagged, and the user told
             refused = str(exc)
         else:
-            profile = calibration.apply(profile, pose)
+            profile = calibrated.apply(profile, pose)
     heading = BodyHeading(profile)
     if heading.unknown:  # a first pass: the heading from a hinge's motion, if one moves
         latest: dict[Site, RawSample] = {}
@@ -162,8 +166,12 @@ def process(path: Path, fmt: str, out: Path, profile: Profile | None = None,
     latest: dict[Site, RawSample] = {}
     seqs: dict[Site, int] = {}
     ticks = 0
+    first_t: float | None = None
+    last_t = 0.0
     try:
         for tick in _ticks(source.read(path, fmt, stats, rate_hz), 1.0 / tick_hz):
+            first_t = tick[0].t_s if first_t is None else first_t
+            last_t = tick[-1].t_s
             for s in tick:
                 seq = seqs[s.site] = seqs.get(s.site, -1) + 1
                 sample = RawSample(s.reading, seq, round(s.t_s * 1e9), source.wire_id)
@@ -177,6 +185,7 @@ def process(path: Path, fmt: str, out: Path, profile: Profile | None = None,
                 sink.write_pose(keys.pose_key(branch), view, t_ns)
     finally:
         sink.close()
-    return ProcessResult(ticks, stats.decoded, sorted(calibration.mounts) if calibration else [],
-                         stats, calibration.report if calibration else None, heading.state(),
-                         refused)
+    span = 0.0 if first_t is None else last_t - first_t
+    return ProcessResult(ticks, stats.decoded, sorted(calibrated.mounts) if calibrated else [],
+                         stats, calibrated.report if calibrated else None, heading.state(),
+                         refused, span)

@@ -7,7 +7,9 @@ Every service takes the same session flags as the zenoh-python examples:
 comma-separated list of endpoints), then the config file, then bodynet's
 defaults: client mode towards the gateway's router on ``tcp/127.0.0.1:7447``,
 multicast scouting off (endpoints are explicit), waiting for the router if it
-is not up yet and reconnecting quickly when it comes back.
+is not up yet (saying so, and giving up after ``--connect-timeout``, default
+30 s) and reconnecting quickly when it comes back. A config file's mode
+stands unless ``--mode`` is given.
 
 ``--subject NAME`` (or ``BODYNET_SUBJECT``) runs the session in the Zenoh
 namespace ``NAME``: the process keeps using ``body/...`` keys while the
@@ -22,18 +24,24 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
+import sys
 import threading
+import time
 from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from bodynet.core.keys import KeySpaceError, subject_name
+from bodynet.session import argtypes
 
-if TYPE_CHECKING:
+if TYPE_CHECKING:  # zenoh loads only when a session is made, not for --help
     import zenoh
 
 DEFAULT_ROUTER = "tcp/127.0.0.1:7447"
 MODES = ("client", "peer", "router")
+#: How long a client waits for its router by default before it gives up.
+DEFAULT_CONNECT_TIMEOUT_S = 30.0
 
 
 def add_session_args(parser: argparse.ArgumentParser, default_mode: str = "client") -> None:
@@ -46,18 +54,29 @@ def add_session_args(parser: argparse.ArgumentParser, default_mode: str = "clien
         "--connect",
         action="append",
         default=[],
+        type=argtypes.endpoint,
         metavar="ENDPOINT",
         help=f"endpoint to connect to (default for a client: {DEFAULT_ROUTER})",
     )
     group.add_argument("-l", "--listen", action="append", default=[], metavar="ENDPOINT",
-                       help="endpoint to listen on")  # fmt: skip
-    group.add_argument("-c", "--config", type=Path, default=None, help="Zenoh JSON5 config file")
+                       type=argtypes.endpoint, help="endpoint to listen on")  # fmt: skip
+    group.add_argument("-c", "--config", type=argtypes.input_file, default=None,
+                       help="Zenoh JSON5 config file (its mode stands unless --mode)")  # fmt: skip
     group.add_argument(
         "--cfg",
         action="append",
         default=[],
+        type=_cfg_arg,
         metavar="KEY:VALUE",
         help="a config entry, VALUE in JSON5, e.g. --cfg 'scouting/multicast/enabled:true'",
+    )
+    group.add_argument(
+        "--connect-timeout",
+        type=argtypes.bounded_float(0.1, 86_400.0, "seconds, at most a day"),
+        default=None,
+        metavar="SECONDS",
+        help=f"a client gives up if its router does not answer within this time "
+        f"(default {DEFAULT_CONNECT_TIMEOUT_S:g} s; it says it is waiting meanwhile)",
     )
     group.add_argument(
         "--subject",
@@ -69,6 +88,15 @@ def add_session_args(parser: argparse.ArgumentParser, default_mode: str = "clien
     parser.set_defaults(zenoh_default_mode=default_mode)
 
 
+def _cfg_arg(text: str) -> str:
+    key, sep, value = text.partition(":")
+    if not sep or not value.strip():
+        raise argparse.ArgumentTypeError(f"{text!r} is not KEY:VALUE (VALUE in JSON5)")
+    if not all(part and all(c.isalnum() or c in "_-" for c in part) for part in key.split("/")):
+        raise argparse.ArgumentTypeError(f"{key!r} is not a config key like connect/endpoints")
+    return text
+
+
 def _subject_arg(text: str) -> str:
     try:
         return subject_name(text)
@@ -77,14 +105,22 @@ def _subject_arg(text: str) -> str:
 
 
 def session_config(
-    mode: str = "client",
+    mode: str | None = "client",
     connect: Sequence[str] = (),
     listen: Sequence[str] = (),
     config_file: Path | None = None,
     entries: Sequence[str] = (),
     subject: str | None = None,
+    *,
+    default_mode: str = "client",
+    connect_timeout_s: float | None = None,
 ) -> zenoh.Config:
-    """A Zenoh config from explicit arguments (see the module docstring)."""
+    """A Zenoh config from explicit arguments (see the module docstring).
+
+    ``mode`` None: the config file's mode if it names one, else ``default_mode``
+    (a config's mode stands unless a flag says otherwise). A client waits for
+    its router up to ``connect_timeout_s`` (default
+    :data:`DEFAULT_CONNECT_TIMEOUT_S`), then :func:`open_session` gives up."""
     import zenoh
 
     env_file = os.environ.get("BODYNET_ZENOH_CONFIG")
@@ -92,7 +128,9 @@ def session_config(
     try:
         conf = zenoh.Config.from_file(str(path)) if path else zenoh.Config()
     except zenoh.ZError as exc:
-        raise SessionError(f"cannot use Zenoh config {path}: {exc}") from None
+        raise SessionError(f"cannot use Zenoh config {path}: {_one_line(exc)}") from None
+    if mode is None:
+        mode = _file_mode(conf) or default_mode
     if not connect and (env_connect := os.environ.get("BODYNET_ZENOH_CONNECT")):
         connect = [e.strip() for e in env_connect.split(",") if e.strip()]
     if not connect and not path and mode == "client":
@@ -103,9 +141,10 @@ def session_config(
 
     if not path:
         put("scouting/multicast/enabled", False)
-        put("connect/timeout_ms", -1 if mode == "client" else 0)
         put("connect/retry", {"period_init_ms": 100, "period_max_ms": 500})
     put("mode", mode)
+    timeout_s = DEFAULT_CONNECT_TIMEOUT_S if connect_timeout_s is None else connect_timeout_s
+    put("connect/timeout_ms", round(timeout_s * 1000) if mode == "client" else 0)
     if connect:
         put("connect/endpoints", list(connect))
     if listen:
@@ -120,14 +159,34 @@ def session_config(
         try:
             conf.insert_json5(key, value)
         except zenoh.ZError as exc:
-            raise SessionError(f"--cfg {entry!r}: {exc}") from None
+            raise SessionError(f"--cfg {entry!r}: {_one_line(exc)}") from None
     return conf
 
 
+def _one_line(exc: BaseException) -> str:
+    """Zenoh's error on one line, without its Rust source location."""
+    text = re.sub(r"\s+at\s+\S+\.rs:\d+\.?", "", " ".join(str(exc).split()))
+    return text[:300]
+
+
+def _file_mode(conf: zenoh.Config) -> str | None:
+    """The mode a config names, or None if it names none."""
+    mode = json.loads(conf.get_json("mode"))
+    return str(mode) if mode else None
+
+
 def config_from_args(args: argparse.Namespace) -> zenoh.Config:
-    mode = args.mode or getattr(args, "zenoh_default_mode", "client")
-    subject = getattr(args, "subject", None)
-    return session_config(mode, args.connect, args.listen, args.config, args.cfg, subject)
+    """The session config of a command's standard session flags."""
+    return session_config(
+        args.mode,
+        args.connect,
+        args.listen,
+        args.config,
+        args.cfg,
+        getattr(args, "subject", None),
+        default_mode=getattr(args, "zenoh_default_mode", "client"),
+        connect_timeout_s=getattr(args, "connect_timeout", None),
+    )
 
 
 class SessionError(RuntimeError):
@@ -145,9 +204,12 @@ def is_opening() -> bool:
 def open_session(conf: zenoh.Config) -> zenoh.Session:
     """Open a session; Zenoh's own logging follows ``RUST_LOG`` if set.
 
-    A client waits for its router as long as it takes; the wait happens in a
-    helper thread so that the main thread still runs signal handlers (see
-    ``cli.nodes.stop_on_signals``: Ctrl-C or SIGTERM while waiting ends the process)."""
+    A client whose router does not answer at once says so on stderr ("waiting
+    for the router at ..."), again every few seconds, and gives up after the
+    config's ``connect/timeout_ms`` (``--connect-timeout``) with
+    ``SessionError``. The wait happens in a helper thread so that the main
+    thread still runs signal handlers (see ``cli.nodes.stop_on_signals``:
+    Ctrl-C or SIGTERM while waiting ends the process)."""
     import zenoh
 
     zenoh.try_init_log_from_env()
@@ -159,14 +221,35 @@ def open_session(conf: zenoh.Config) -> zenoh.Session:
         except zenoh.ZError as exc:
             box["error"] = exc
 
+    mode = json.loads(conf.get_json("mode"))
+    where = ", ".join(json.loads(conf.get_json("connect/endpoints")) or ()) or "(none given)"
+    timeout_ms = json.loads(conf.get_json("connect/timeout_ms"))
+    limit = (f"{timeout_ms / 1000:g} s" if isinstance(timeout_ms, int) and timeout_ms > 0
+             else "no limit")  # fmt: skip
     thread = threading.Thread(target=target, name="zenoh-open", daemon=True)
     _opening.set()
+    start = time.monotonic()
+    next_word = start + 0.5  # a router that is up answers well within this
     try:
         thread.start()
         while thread.is_alive():
             thread.join(0.1)
+            now = time.monotonic()
+            if mode == "client" and thread.is_alive() and now >= next_word:
+                if now - start < 1:
+                    said = f"waiting for the router at {where} ... (giving up after {limit})"
+                else:
+                    said = (f"still waiting for the router at {where} "
+                            f"({now - start:.0f} s of {limit})")  # fmt: skip
+                print(f"bodynet: {said}", file=sys.stderr, flush=True)
+                next_word = now + 5.0
     finally:
         _opening.clear()
     if "error" in box:
-        raise SessionError(f"cannot open the Zenoh session: {box['error']}")
+        if mode == "client":
+            raise SessionError(
+                f"no router answered at {where} within {time.monotonic() - start:.0f} s "
+                f"(is it running? --connect-timeout sets the wait): {_one_line(box['error'])}"
+            )
+        raise SessionError(f"cannot open the Zenoh session: {_one_line(box['error'])}")
     return box["session"]  # type: ignore[no-any-return]

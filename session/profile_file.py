@@ -19,10 +19,17 @@ HEADER = (
 def load(path: Path) -> Profile:
     """The profile in ``path``; ``ProfileError`` says what is wrong with it."""
     try:
-        data = tomllib.loads(path.read_text())
+        data = tomllib.loads(path.read_text(encoding="utf-8"))
+    except OSError as exc:
+        raise ProfileError(f"{path}: cannot read it ({exc.strerror or exc})") from None
+    except UnicodeDecodeError:
+        raise ProfileError(f"{path}: not a text file (a profile is TOML)") from None
     except tomllib.TOMLDecodeError as exc:
         raise ProfileError(f"{path}: not valid TOML: {exc}") from None
-    return Profile.from_dict(data)
+    try:
+        return Profile.from_dict(data)
+    except ProfileError as exc:
+        raise ProfileError(f"{path}: {exc}") from None
 
 
 def save(profile: Profile, path: Path) -> None:

@@ -94,7 +94,9 @@ def test_can_log_keeps_capture_time_and_survives_garbled_lines(tmp_path: Path) -
             "accel": [6, 7, 8],
         },
     ]
-    assert result.stderr.strip() == f"decoded 2, rejected 1 ({Reason.GARBAGE}: 1)"
+    assert result.stderr.strip() == (
+        f"decoded 2, rejected 1 ({Reason.GARBAGE}: 1); skipped garbled line 2"
+    )
 
 
 def test_can_log_in_other_python_can_formats(tmp_path: Path, data_dir: Path) -> None:

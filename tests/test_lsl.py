@@ -84,6 +84,25 @@ def test_unmeasured_angles_and_the_segments_they_carry_are_nan() -> None:
     assert np.isnan(lsl.segment_values(missing, chains)[7:]).all()
 
 
+def test_angles_resting_on_a_stale_sensor_are_nan() -> None:
+    """The left elbow module rides on the forearm: elbow and wrist lose their
+    measurement while it is stale; the upper arm's sensor keeps the shoulder's."""
+    f = frame(4, 0)
+    stale = pose.PoseFrame(4, 0, f.angles_deg, {}, f.segments, {}, {}, {},
+                           ["body/arm/left/elbow/raw", "not/a/key"])  # fmt: skip
+    names = lsl.angle_names(SKELETON)
+    values = dict(zip(names, lsl.angle_values(stale, names), strict=True))
+    nan = {n for n, v in values.items() if math.isnan(v)}
+    assert nan == {*SKELETON.joint("left_elbow").angle_names(),
+                   *SKELETON.joint("left_wrist").angle_names()}  # fmt: skip
+    labels = [c.label for c in lsl.segment_channels(SKELETON)]
+    seg = lsl.segment_values(stale, lsl.segment_chains(SKELETON))
+    got = dict(zip(labels, seg, strict=True))
+    assert math.isnan(got["left_forearm_qw"])
+    assert math.isnan(got["left_hand_x"])
+    assert got["left_upperarm_qw"] == f.segments["left_upperarm"][1][0]
+
+
 def test_channel_metadata() -> None:
     angles = lsl.angle_channels(SKELETON)
     assert [c.label + "_deg" for c in angles] == list(SKELETON.angle_names())
@@ -125,14 +144,22 @@ def unix_to_lsl_offset() -> float:
     return statistics.median(offsets)
 
 
+#: The joints a stale SmartSuit left-arm module takes part in: those at either end
+#: of the segment it rides on (shoulder module: upper arm; elbow: forearm; wrist: hand).
+STALE_JOINTS = {"shoulder": ("left_shoulder", "left_elbow"), "elbow": ("left_elbow", "left_wrist"),
+                "wrist": ("left_wrist",)}  # fmt: skip
+
+
 def expected_angles(f: pose.PoseFrame, labels: list[str]) -> list[float]:
     """The pose's angle under each channel label; NaN where the team's convention
-    says nothing was measured (flagged, and not merely clamped)."""
+    says nothing was measured (flagged, and not merely clamped) or a stale module
+    of the left arm takes part in it."""
+    stale = {j for k in f.stale for j in STALE_JOINTS[k.split("/")[3]]}
     out = []
     for label in labels:
         name = label + "_deg"
-        flag = f.flags.get(name)
-        out.append(f.angles_deg[name] if flag in (None, "clamped") else math.nan)
+        measured = f.flags.get(name) in (None, "clamped") and name.rsplit("_", 2)[0] not in stale
+        out.append(f.angles_deg[name] if measured else math.nan)
     return out
 
 

@@ -109,17 +109,29 @@ def test_body_metrics_snapshot_is_json_and_counts_only_what_it_is_given() -> Non
 
 def elbow_poses(n: int, t0_ns: int) -> list[pose.PoseFrame]:
     """Elbow flexion cycling 10..100 deg at 100 Hz; every 7th pose flagged held at
-    150 deg (no measurement: it must not reach the range of motion)."""
+    150 deg, every 11th at 160 deg while the elbow's module is stale (no
+    measurement either: neither may reach the range of motion)."""
     out = []
     for i in range(n):
         t = i / FS
         angle = round(55 - 45 * math.cos(2 * math.pi * t / 1.0), 6)
         flags = {}
+        stale = []
         if i % 7 == 3:
             angle, flags = 150.0, {"left_elbow_flexion_deg": "held"}
+        elif i % 11 == 5:  # the elbow module stopped delivering: its last sample held
+            angle, stale = 160.0, [keys.raw_key("arm", "left", "elbow")]
         angles = {"left_elbow_flexion_deg": angle, "left_knee_flexion_deg": 5.0}
-        out.append(pose.PoseFrame(i, t0_ns + i * 10_000_000, angles, {}, {}, {}, flags))
+        out.append(pose.PoseFrame(i, t0_ns + i * 10_000_000, angles, {}, {}, {}, flags, {},
+                                  stale))  # fmt: skip
     return out
+
+
+def measured_here(f: pose.PoseFrame) -> dict[str, float]:
+    """This test's own rule for its poses: flagged or stale elbow out; the knee
+    (no sensor on the forearm takes part in it) stays."""
+    return {n: v for n, v in f.angles_deg.items()
+            if n not in f.flags and not (f.stale and n.startswith("left_elbow"))}  # fmt: skip
 
 
 def test_metrics_are_published_live_per_subject(router_endpoint: str,
@@ -152,14 +164,14 @@ def test_metrics_are_published_live_per_subject(router_endpoint: str,
         out_session.close()
     alice = next(m for k, m in reversed(seen) if k == f"alice/{keys.METRICS}")
     elbow = alice["dofs"]["left_elbow_flexion_deg"]
-    assert elbow["max_deg"] == pytest.approx(100.0, abs=0.01)  # never the held 150
+    assert elbow["max_deg"] == pytest.approx(100.0, abs=0.01)  # never the held 150 or 160
     assert elbow["min_deg"] == pytest.approx(10.0, abs=0.01)
     assert elbow["repetitions"] == 3, alice  # 3.5 s of 1 s cycles
-    assert elbow["samples"] == 300
+    assert elbow["samples"] == sum(1 for f in frames if not f.flags and not f.stale)
     # the same numbers as the module fed offline
     offline = metrics.BodyMetrics()
     for f in frames:
-        offline.add(f.t_ns, {n: v for n, v in f.angles_deg.items() if n not in f.flags})
+        offline.add(f.t_ns, measured_here(f))
     assert alice == json.loads(json.dumps(offline.snapshot()))
     assert alice["dofs"]["left_knee_flexion_deg"]["repetitions"] == 0
 
@@ -204,12 +216,12 @@ def test_the_report_has_the_same_clinical_metrics(tmp_path: Path) -> None:
     an = SimpleNamespace(recordings=[SimpleNamespace(source=str(recording))], clinical=[table])
     table = table.set_index("channel")
     elbow = table.loc["left_elbow_flexion_deg"]
-    assert elbow["max (deg)"] == pytest.approx(100.0, abs=0.01)  # never the held 150
+    assert elbow["max (deg)"] == pytest.approx(100.0, abs=0.01)  # never the held 150 or 160
     assert elbow["repetitions"] == 3
-    assert elbow["samples"] == 300
+    assert elbow["samples"] == sum(1 for f in frames if not f.flags and not f.stale)
     live = metrics.BodyMetrics()  # what body/@metrics said at the end (the live test: equal)
     for f in frames:
-        live.add(f.t_ns, {n: v for n, v in f.angles_deg.items() if n not in f.flags})
+        live.add(f.t_ns, measured_here(f))
     want = live.snapshot()["dofs"]["left_elbow_flexion_deg"]
     assert elbow["SPARC (last movement)"] == want["sparc"]
     assert elbow["range (deg)"] == want["range_deg"]

@@ -160,12 +160,20 @@ def test_subjects_on_one_router_are_listed_and_served_by_one_gateway(
 def test_a_bad_config_is_a_message_and_sigterm_ends_a_wait_for_the_router(tmp_path: Path) -> None:
     from zenoh_helpers import free_port
 
-    bad = subprocess.run([str(BODYNET), "router", "-c", str(tmp_path / "missing.json5")],
+    missing = tmp_path / "missing.json5"
+    bad = subprocess.run([str(BODYNET), "router", "-c", str(missing)],
+                         capture_output=True, text=True, timeout=60, check=False)  # fmt: skip
+    assert bad.returncode == 2
+    assert f"argument -c/--config: cannot read '{missing}': no such file" in bad.stderr
+    assert "Traceback" not in bad.stderr
+    missing.write_text("{ mode: ")  # there, but not JSON5
+    bad = subprocess.run([str(BODYNET), "router", "-c", str(missing)],
                          capture_output=True, text=True, timeout=60, check=False)  # fmt: skip
     assert bad.returncode == 2
     assert "cannot use Zenoh config" in bad.stderr
     assert "Traceback" not in bad.stderr
-    # a client waits for its router as long as it takes, yet SIGTERM ends the wait
+    # a client waits for its router (up to --connect-timeout, 30 s), saying so; SIGTERM ends
+    # the wait
     waiting = subprocess.Popen(
         [str(BODYNET), "gateway", "--mode", "client", "-e", f"tcp/127.0.0.1:{free_port()}"],
         stderr=subprocess.PIPE, text=True)  # fmt: skip
@@ -173,4 +181,6 @@ def test_a_bad_config_is_a_message_and_sigterm_ends_a_wait_for_the_router(tmp_pa
         waiting.wait(timeout=3)  # still waiting: no router there
     waiting.send_signal(signal.SIGTERM)
     assert waiting.wait(timeout=30) == 0
-    assert "Traceback" not in (waiting.stderr.read() if waiting.stderr else "")
+    told = waiting.stderr.read() if waiting.stderr else ""
+    assert "Traceback" not in told
+    assert "bodynet: waiting for the router at tcp/127.0.0.1:" in told

@@ -156,3 +156,36 @@ def test_our_sto_reader_agrees_with_opensims(body_mcap: Path, tmp_path: Path) ->
                 assert diff.magnitude() < 1e-6, (label, r)
             else:
                 assert all(math.isnan(v) for v in theirs), (label, r)
+
+
+def test_calibrated_from_another_file_of_the_session(tmp_path: Path) -> None:
+    """Tags at random mounts: a static T-pose file and a trial file that starts
+    moving at once. `--calibration static.csv` takes the T-pose from the first;
+    without it the trial's own start (no T-pose) gives wrong angles."""
+    from bodynet.core.skeleton import TPOSE
+    from bodynet.nodes.motion import Routine
+
+    upper = ROUTINES["upper-body"].angles
+    motion = Routine("session", "", lambda t: dict(TPOSE) if t < 1.0 else upper(t))
+    tags = imu_tags()
+    body = BodyEmulator(motion, tags, realism=Realism(0.0, 0.0, 0.0, 0.0, 0.0, True), seed=5)
+    header = ["time"] + [f"{mount(t.site).segment}_{c}" for t in tags for c in "wxyz"]
+
+    def write(path: Path, times: list[float]) -> None:
+        rows = [header]
+        for t in times:
+            quats = {r.node: r.wxyz for r in body.sample(t)[0] if isinstance(r, Quat)}
+            rows.append([repr(t)] + [repr(c) for tag in tags for c in quats[tag.node]])
+        path.write_text("\n".join(",".join(r) for r in rows) + "\n")
+
+    write(tmp_path / "static.csv", [0.02 * k for k in range(50)])
+    write(tmp_path / "trial.csv", [1.5 + 0.02 * k for k in range(100)])
+    static = ["--calibration", str(tmp_path / "static.csv")]
+    for calibration, close in ((static, True), ([], False)):
+        out = tmp_path / f"trial{len(calibration)}.mcap"
+        assert main(["process", str(tmp_path / "trial.csv"), "--tpose-s", "1", *calibration,
+                     "-o", str(out)]) == 0  # fmt: skip
+        errors = [abs(frame.angles_deg[name] - motion.angles(t_ns / 1e9).get(name, 0.0))
+                  for t_ns, frame in read_poses(out)
+                  for name in ("left_shoulder_abduction_deg", "right_elbow_flexion_deg")]
+        assert (max(errors) < 0.01) is close, max(errors)

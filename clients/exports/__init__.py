@@ -27,6 +27,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from bodynet.session import argtypes
+
 if TYPE_CHECKING:
     from bodynet.clients.exports.track import PoseTrack
 
@@ -75,8 +77,9 @@ class Writer:
 
 #: ``--profile``: the subject's segment lengths (End Sites, ASF bone lengths);
 #: the CLI reads the file and gives the writer ``options["skeleton"]``.
-PROFILE = Option(("--profile",), {"type": Path, "help": "subject profile: segment lengths "
-                                                        "(hands, feet, head)"})  # fmt: skip
+PROFILE = Option(("--profile",), {"type": argtypes.input_file,
+                                  "help": "subject profile: segment lengths "
+                                          "(hands, feet, head)"})  # fmt: skip
 UP = Option(("--up",), {"choices": ("y", "z"), "default": "y",
                         "help": "y: Y up, facing +Z (the format's usual axes); "
                                 "z: bodynet's axes (X forward, Z up)"})  # fmt: skip

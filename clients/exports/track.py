@@ -12,7 +12,6 @@ regular comes out frame for frame.
 from __future__ import annotations
 
 import contextlib
-import os
 import warnings
 from collections.abc import Iterator
 from dataclasses import dataclass, replace
@@ -27,6 +26,7 @@ from bodynet.clients.mcap_store import StoreError, count_messages, read_poses
 from bodynet.core import keys
 from bodynet.core.codecs.pose import PoseFrame
 from bodynet.core.skeleton import build_skeleton
+from bodynet.session.outputs import atomic_path
 
 #: Frame rate of a recording with a single pose, where none can be measured.
 DEFAULT_RATE_HZ = 100.0
@@ -168,13 +168,8 @@ def output_file(out: Path, suffix: str = ".part") -> Iterator[Path]:
     """A temporary file beside ``out`` (readable by the owner only: health
     data) that becomes ``out`` when the block ends without an exception, and
     is removed otherwise: nothing half-written is left under ``out``."""
-    tmp = out.with_name(out.name + suffix)
-    os.close(os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600))
-    try:
+    with atomic_path(out, suffix=suffix) as tmp:
         yield tmp
-        os.replace(tmp, out)
-    finally:
-        tmp.unlink(missing_ok=True)
 
 
 def euler_deg(rotations: Rotation, seq: str) -> np.ndarray:

@@ -164,6 +164,8 @@ class CaptureStats:
     rejected: RejectCounts = field(default_factory=RejectCounts)
     no_new_data: int = 0
     sensor_absent: int = 0
+    #: where each line (byte, in a binary log) skipped as garbled was: "line 12"
+    bad_places: list[str] = field(default_factory=list)
 
     def summary(self) -> str:
         """``decoded N, rejected M (reason: count, ...)`` plus idle lines if any."""
@@ -175,6 +177,10 @@ class CaptureStats:
                 (self.sensor_absent, "sensor absent")) if n]  # fmt: skip
         if idle:
             text += "; not samples: " + ", ".join(f"{what} {n}" for n, what in idle)
+        if self.bad_places:
+            shown = ", ".join(self.bad_places[:10])
+            more = f" and {len(self.bad_places) - 10} more" if len(self.bad_places) > 10 else ""
+            text += f"; skipped garbled {shown}{more}"
         return text
 
     def count(self, rejected: Rejected) -> None:
@@ -222,7 +228,7 @@ def numbers(text: str) -> tuple[int, ...]:
             out.extend(range(int(lo), int(hi or lo) + 1))
     except ValueError:
         raise argparse.ArgumentTypeError(f"not a list of numbers like 1-3,7: {text!r}") from None
-    if not out or min(out) < 1 or max(out) > 0xFFFF:
+    if not out or min(out) < 1 or max(out) > 0xFFFF or len(out) > 0xFFFF:
         raise argparse.ArgumentTypeError(f"numbers must lie in 1..65535: {text!r}")
     return tuple(out)
 

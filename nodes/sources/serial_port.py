@@ -7,6 +7,7 @@ from pathlib import Path
 from typing import Any
 
 from bodynet.nodes.sources.base import Source
+from bodynet.session import argtypes
 
 
 class SerialSource(Source):
@@ -15,8 +16,10 @@ class SerialSource(Source):
 
     @classmethod
     def add_bridge_args(cls, p: argparse.ArgumentParser) -> None:
-        p.add_argument("--port", required=True, help="serial device, e.g. /dev/ttyUSB0")
-        p.add_argument("--baud", type=int, default=None, help=f"default {cls.BAUD}")
+        p.add_argument("--port", required=True, type=argtypes.free_text(200),
+                       help="serial device, e.g. /dev/ttyUSB0")  # fmt: skip
+        p.add_argument("--baud", type=argtypes.bounded_int(50, 4_000_000, "baud"), default=None,
+                       help=f"default {cls.BAUD}")  # fmt: skip
 
     @classmethod
     def bridge_name(cls, args: argparse.Namespace) -> str:
@@ -37,5 +40,5 @@ class SerialSource(Source):
 
     @classmethod
     def add_emulate_args(cls, device: str, p: argparse.ArgumentParser) -> None:
-        p.add_argument("--link", type=Path, required=True,
+        p.add_argument("--link", type=argtypes.link_path, required=True,
                        help="path of the symlink to the pseudo-terminal")  # fmt: skip

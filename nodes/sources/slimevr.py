@@ -30,6 +30,7 @@ from bodynet.core.keys import KeySpaceError, Site, site_named
 from bodynet.core.messages import Source as SourceId
 from bodynet.nodes.loop import Loop
 from bodynet.nodes.sources.base import NodeParts, Source, Transport
+from bodynet.session import argtypes
 
 log = logging.getLogger(__name__)
 
@@ -79,7 +80,7 @@ class SlimeVR(Source):
         p.add_argument("--udp", type=address, default=("0.0.0.0", codec.PORT), metavar="HOST:PORT",
                        help=f"where to take the trackers' datagrams (default "
                             f"0.0.0.0:{codec.PORT}, where trackers look)")  # fmt: skip
-        p.add_argument("--profile", type=Path,
+        p.add_argument("--profile", type=argtypes.input_file,
                        help="subject profile whose [trackers] table assigns sites")  # fmt: skip
         p.add_argument("--assign", type=parse_assignment, action="append", default=[],
                        metavar="TRACKER=SITE",
@@ -109,7 +110,8 @@ class SlimeVR(Source):
         p.add_argument("--server", type=address, default=("127.0.0.1", codec.PORT),
                        metavar="HOST:PORT",
                        help=f"the server's host:port (default 127.0.0.1:{codec.PORT})")  # fmt: skip
-        p.add_argument("--rate-hz", type=float, default=100.0, help="rotations per second")
+        p.add_argument("--rate-hz", type=argtypes.bounded_float(0.1, 1000.0, "per second"),
+                       default=100.0, help="rotations per second")  # fmt: skip
 
     def emulated_sensors(self, sensors: Any = None, branches: Any = None) -> list[Any]:
         from bodynet.nodes.emulator import imu_tags

@@ -36,7 +36,14 @@ from bodynet.nodes.sources.base import (
 )
 from bodynet.nodes.sources.can_transport import LOG_SUFFIXES, can_log_messages, frame_of
 from bodynet.nodes.sources.serial_port import SerialSource
+from bodynet.session import argtypes
 
+
+def can_interface(text: str) -> str:
+    """A python-can interface name (socketcan, slcan, pcan...): an argparse type."""
+    if not text or len(text) > 40 or not text.replace("_", "").replace("-", "").isalnum():
+        argtypes.fail(f"{text!r} is not a python-can interface name")
+    return text
 
 class FrameDecoder:
     """Frames in, the SmartSuit readings (or rejections) they carry out."""
@@ -79,11 +86,13 @@ class SmartSuitCan(Source):
     # --- live ---------------------------------------------------------------------------
     @classmethod
     def add_bridge_args(cls, p: argparse.ArgumentParser) -> None:
-        p.add_argument("--interface", default="socketcan",
+        p.add_argument("--interface", default="socketcan", type=can_interface,
                        help="python-can interface (socketcan, slcan, pcan...)")  # fmt: skip
-        p.add_argument("--channel", help="channel: can0, /dev/ttyACM0 (slcan)...")
-        p.add_argument("--bitrate", type=int, default=None)
-        p.add_argument("--replay", type=Path,
+        p.add_argument("--channel", type=argtypes.free_text(200),
+                       help="channel: can0, /dev/ttyACM0 (slcan)...")  # fmt: skip
+        p.add_argument("--bitrate", default=None,
+                       type=argtypes.bounded_int(1000, 8_000_000, "bit/s"))  # fmt: skip
+        p.add_argument("--replay", type=argtypes.input_file,
                        help="play a candump/asc/blf log at its recorded speed")  # fmt: skip
         p.add_argument("--loop", action="store_true", help="with --replay: play again and again")
 
@@ -102,8 +111,8 @@ class SmartSuitCan(Source):
     @classmethod
     def add_emulate_args(cls, device: str, p: argparse.ArgumentParser) -> None:
         if device == "can":
-            p.add_argument("--interface", default="socketcan")
-            p.add_argument("--channel", default="vcan0")
+            p.add_argument("--interface", default="socketcan", type=can_interface)
+            p.add_argument("--channel", default="vcan0", type=argtypes.free_text(200))
         else:
             SerialSource.add_emulate_args(device, p)
 

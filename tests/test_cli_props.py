@@ -1,0 +1,605 @@
+"""The whole command line against a careless user: every option of the real
+parser gets hostile values (and hypothesis-made ones), every offline command
+gets unusable files, and nothing may answer with a traceback, accept nonsense,
+exit 0 on unusable input, or change an input file.
+
+Kept fast: options are parsed in this process (the real ``build_parser``); the
+commands run in this process through ``main`` (an exception escaping it fails
+the test as a traceback would); only what needs a process of its own (a closed
+stdout, a full disk, the real executable's argv) starts one. A longer fuzzing
+run: ``HYPOTHESIS_PROFILE=long``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import hashlib
+import io
+import os
+import random
+import re
+import resource
+import signal
+import subprocess
+import sys
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import can
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from mcap.writer import CompressionType, Writer
+
+from bodynet.cli.main import build_parser, main
+from bodynet.clients.mcap_store import read_poses
+from bodynet.session import argtypes
+
+BODYNET = Path(sys.executable).with_name("bodynet")
+DATA = Path(__file__).parent / "data"
+LONG = os.environ.get("HYPOTHESIS_PROFILE") == "long"
+
+# -- every option of the real parser --------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Opt:
+    """One option (or positional) of one command."""
+
+    command: tuple[str, ...]
+    action: argparse.Action
+    parser: argparse.ArgumentParser
+
+    @property
+    def name(self) -> str:
+        """The option as argparse names it in its errors ("argument NAME: ...")."""
+        a = self.action
+        if a.option_strings:
+            return "/".join(a.option_strings)
+        return str(a.metavar if a.metavar not in (None, argparse.SUPPRESS) else a.dest)
+
+    def __repr__(self) -> str:  # hypothesis and pytest ids
+        return f"{' '.join(self.command)} {self.name}"
+
+
+def _walk(parser: argparse.ArgumentParser, path: tuple[str, ...] = ()
+          ) -> Iterator[tuple[tuple[str, ...], argparse.ArgumentParser]]:  # fmt: skip
+    yield path, parser
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for name, sub in action.choices.items():
+                yield from _walk(sub, (*path, name))
+
+
+def _takes_value(action: argparse.Action) -> bool:
+    skip = (argparse._HelpAction, argparse._SubParsersAction, argparse._VersionAction)
+    return not isinstance(action, skip) and action.nargs != 0
+
+
+PARSER = build_parser()
+OPTIONS = [Opt(path, a, p) for path, p in _walk(PARSER) for a in p._actions if _takes_value(a)]
+
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    """Things a value may name: a file, a folder, nothing."""
+    d = tmp_path_factory.mktemp("cli")
+    f = d / "a-file.txt"
+    f.write_text("something\n")
+    return {"file": f, "dir": d, "missing": d / "missing" / "nothing.txt", "new": d / "new.out"}
+
+
+def _candidates(files: dict[str, Path]) -> list[str]:
+    return ["1", "0.5", "115200", str(files["file"]), str(files["new"]), "tcp/127.0.0.1:7447",
+            "body/**", "left_elbow", "x=left-arm/upperarm", "left-arm/upperarm",
+            "aabbccddeeff-0", "aabbccddeeff-0=left-arm/upperarm", "127.0.0.1:6969", "0:1",
+            "rerun+http://127.0.0.1:9876/proxy", "x"]  # fmt: skip
+
+
+def _valid(action: argparse.Action, files: dict[str, Path]) -> str:
+    """A value ``action`` accepts."""
+    if action.choices:
+        return str(next(iter(action.choices)))
+    for text in _candidates(files):
+        try:
+            (action.type or str)(text)  # type: ignore[operator]
+        except (argparse.ArgumentTypeError, ValueError, TypeError):
+            continue
+        return text
+    raise AssertionError(f"no valid value found for {action}")
+
+
+def _required(parser: argparse.ArgumentParser) -> list[argparse.Action]:
+    return [a for a in parser._actions if _takes_value(a) and (
+        a.required or (not a.option_strings and a.nargs not in ("?", "*")))]  # fmt: skip
+
+
+def argv(opt: Opt, value: str, files: dict[str, Path]) -> list[str]:
+    """The command line giving ``value`` to ``opt``, every other required
+    argument a valid value, positionals after ``--`` (a value may start with -)."""
+    optionals: list[str] = []
+    positionals: list[str] = []
+    actions = _required(opt.parser)
+    if opt.action not in actions:
+        actions.append(opt.action)
+    for a in opt.parser._actions:  # positionals in their order
+        if a not in actions:
+            continue
+        text = value if a is opt.action else _valid(a, files)
+        if a.option_strings:
+            flag = max(a.option_strings, key=len)
+            optionals.append(f"{flag}={text}")
+        else:
+            positionals.append(text)
+    return [*opt.command, *optionals, *(["--", *positionals] if positionals else [])]
+
+
+def _is_number(action: argparse.Action) -> bool:
+    """Does the option's type make numbers (or a list of them) of its text?"""
+    try:
+        value = action.type("1") if callable(action.type) else None
+    except (argparse.ArgumentTypeError, ValueError, TypeError):
+        return False
+    items = value if isinstance(value, (list, tuple)) else [value]
+    return bool(items) and all(isinstance(v, (int, float)) for v in items)
+
+
+def parse(args: list[str]) -> tuple[int | None, str]:
+    """(None, "") if the real parser accepts ``args``, else its exit code and stderr."""
+    err = io.StringIO()
+    with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
+        try:
+            PARSER.parse_args(args)
+        except SystemExit as exc:
+            return int(exc.code or 0), err.getvalue()
+    return None, err.getvalue()
+
+
+def _hostile(files: dict[str, Path]) -> list[str]:
+    return ["nan", "NaN", "inf", "-inf", "1e309", "-1", "0", "-0", "1e-300", "9" * 5000,
+            "", " ", "\udcff\udcfe", "é", "😀", "x" * 10_000, "a//b", "tcp/", "1:2:3", "-",
+            "--", "/dev/full", str(files["dir"]), str(files["missing"]), "1,2,,3",
+            "$*"]  # fmt: skip
+
+
+def test_the_parser_has_every_command_and_each_parses_with_valid_values(
+    files: dict[str, Path],
+) -> None:
+    commands = {o.command for o in OPTIONS}
+    assert {("decode",), ("process",), ("export", "csv"), ("record",), ("replay",),
+            ("report",), ("view",), ("certs",), ("game",)} <= commands  # fmt: skip
+    assert len(OPTIONS) > 200
+    for opt in OPTIONS:
+        code, err = parse(argv(opt, _valid(opt.action, files), files))
+        assert code is None, (opt, err)
+
+
+#: Options where an empty value means "none", and what it means.
+EMPTY_MEANS_NONE = {
+    ("game", "--patient"): "no patient id (the default)",
+    ("gateway", "--share"): "an id made of the host, the pid and a random part",
+}
+
+#: Options checked by their command instead, before it does anything, and why.
+CHECKED_BY_THE_COMMAND = {
+    ("game", "--results"): "a folder made by the game; told before any wait",
+}
+
+
+def test_no_option_takes_unchecked_text_numbers_or_paths() -> None:
+    """Each option is checked where it enters: a checked type or a fixed choice."""
+    for opt in OPTIONS:
+        kind = opt.action.type
+        if opt.action.choices or (*opt.command, opt.name) in CHECKED_BY_THE_COMMAND:
+            continue
+        assert kind not in (float, int, str, Path), f"{opt}: a bare {kind}"
+        assert kind is not None, f"{opt}: free text, unchecked"
+
+
+@pytest.mark.parametrize("opt", OPTIONS, ids=repr)
+def test_hostile_values_parse_or_are_refused_naming_the_option(
+    opt: Opt, files: dict[str, Path]
+) -> None:
+    accepted: set[str] = set()
+    for value in _hostile(files):
+        code, err = parse(argv(opt, value, files))
+        if code is None:
+            accepted.add(value)
+            continue
+        assert code == 2, (opt, value, err)
+        lines = [line for line in err.splitlines() if "error:" in line]
+        assert len(lines) == 1, (opt, value, err)  # one clear line
+        assert f"argument {opt.name}:" in lines[0], (opt, value, err)
+    if (*opt.command, opt.name) in CHECKED_BY_THE_COMMAND:
+        return
+    if (*opt.command, opt.name) not in EMPTY_MEANS_NONE:
+        assert "" not in accepted, f"{opt} accepts an empty value"
+    numbers = {"nan", "NaN", "inf", "-inf", "1e309", "9" * 5000}
+    if _is_number(opt.action):  # a number: finite and bounded
+        assert not accepted & numbers, f"{opt} accepts {accepted & numbers}"
+    if opt.action.type is argtypes.input_file:
+        assert not {str(files["dir"]), str(files["missing"])} & accepted, opt
+    if opt.action.type in (argtypes.output_file, argtypes.output_file_new_folder):
+        assert not {str(files["dir"]), "/dev/full"} & accepted, opt
+
+
+@settings(max_examples=2000 if LONG else 150)
+@given(opt=st.sampled_from(OPTIONS), text=st.text(max_size=40))
+def test_any_text_parses_or_is_refused_naming_the_option(opt: Opt, text: str) -> None:
+    fixed = {"file": DATA / "smartsuit_arm.log", "dir": DATA, "missing": DATA / "nope",
+             "new": Path("/tmp/bodynet-props-new.out")}  # fmt: skip
+    code, err = parse(argv(opt, text, fixed))
+    if code is not None:
+        assert code == 2, (opt, text, err)
+        assert f"argument {opt.name}:" in err, (opt, text, err)
+
+
+# -- through the real executable: real argv bytes, exit codes, no traceback ------------
+
+
+def run(*args: str | bytes | Path, timeout: float = 60, **kw: object
+        ) -> subprocess.CompletedProcess[str]:  # fmt: skip
+    return subprocess.run([str(BODYNET), *map(os.fsencode, args)], capture_output=True,
+                          text=True, timeout=timeout, check=False, **kw)  # type: ignore[call-overload]  # fmt: skip
+
+
+def test_the_real_executable_refuses_nonsense_in_one_line(tmp_path: Path) -> None:
+    log = DATA / "smartsuit_arm.log"
+    for args, told in (
+        (["decode", "--format", "can-log", "--rate-hz", "nan", log], "argument --rate-hz"),
+        (["process", log, "--tick-hz", "0", "-o", tmp_path / "x.mcap"], "argument --tick-hz"),
+        (["process", b"/tmp/\xff\xfe-missing.log", "-o", tmp_path / "x.mcap"], "argument input"),
+        (["export", "csv", log, "-o", ""], "argument -o/--output: an empty path"),
+        (["record", "--rotate-s", "1e-9", "-o", tmp_path / "r.mcap"], "argument --rotate-s"),
+        (["certs", "--host", "é.example", tmp_path / "c"], "argument --host"),
+        (["replay", "-e", "garbage", log], "argument -e/--connect"),
+    ):
+        result = run(*args)
+        assert result.returncode == 2, (args, result.stderr)
+        assert told in result.stderr, (args, result.stderr)
+        assert "Traceback" not in result.stderr
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_client_without_its_router_says_so_and_gives_up(tmp_path: Path) -> None:
+    from zenoh_helpers import free_port
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    result = run("subjects", "-e", endpoint, "--connect-timeout", "1")
+    assert result.returncode != 0
+    assert f"waiting for the router at {endpoint}" in result.stderr
+    assert f"no router answered at {endpoint}" in result.stderr
+    assert "Traceback" not in result.stderr
+    # a config's mode stands: the gateway's identity config is a client's (not the
+    # gateway's default router, which would add a TCP listener the TLS-only config refuses)
+    from bodynet.session.security import make_certs
+
+    make_certs(tmp_path / "certs", [], port=free_port())
+    conf = tmp_path / "certs" / "gateway" / "zenoh.json5"
+    result = run("gateway", "-c", conf, "--connect-timeout", "1")
+    assert result.returncode == 2, result.stderr
+    assert "waiting for the router at tls/localhost:" in result.stderr
+    assert "Unsupported protocol" not in result.stderr
+
+
+# -- the commands with unusable files ---------------------------------------------------
+
+
+def sha(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest() if path.is_file() else ""
+
+
+def cli(capsys: pytest.CaptureFixture[str], *args: object) -> tuple[int, str]:
+    """``bodynet ...`` in this process: its exit code and stderr."""
+    try:
+        code = main([str(a) for a in args])
+    except SystemExit as exc:  # argparse's refusal
+        code = int(exc.code or 0)
+    return code, capsys.readouterr().err
+
+
+@pytest.fixture(scope="module")
+def corpus(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    """Good and bad inputs: captures, recordings (whole, cut, a corrupt chunk),
+    files of another kind, profiles and reference CSVs."""
+
+    from bodynet.core.codecs import pose
+
+    d = tmp_path_factory.mktemp("corpus")
+    c: dict[str, Path] = {}
+    for name in ("smartsuit_arm.log", "imu_central.txt", "concentrator.cap"):
+        c[name] = d / name
+        c[name].write_bytes((DATA / name).read_bytes())
+    c["empty"] = d / "empty.log"
+    c["empty"].write_bytes(b"")
+    c["random"] = d / "random.bin"
+    c["random"].write_bytes(random.Random(0).randbytes(3000))
+    c["recording"] = d / "arm.mcap"
+    assert main(["process", str(c["smartsuit_arm.log"]), "-o", str(c["recording"])]) == 0
+    # the body's poses in small chunks, one of them corrupt, and the file cut short
+    chunked = d / "chunked.mcap"
+    with chunked.open("wb") as out:
+        writer = Writer(out, chunk_size=2048, compression=CompressionType.ZSTD)
+        writer.start()
+        schema = writer.register_schema("bodynet.PoseFrame", "jsonschema", b"{}")
+        channel = writer.register_channel("body/pose", "json", schema)
+        for t, frame in read_poses(c["recording"]):
+            writer.add_message(channel, t, pose.encode(frame), t)
+        writer.finish()
+    c["chunked"] = chunked
+    data = bytearray(chunked.read_bytes())
+    chunks = _chunk_offsets(bytes(data))
+    assert len(chunks) > 10
+    middle = chunks[len(chunks) // 2]
+    data[middle + 80 : middle + 120] = b"\xaa" * 40
+    c["corrupt"] = d / "corrupt.mcap"
+    c["corrupt"].write_bytes(bytes(data))
+    c["cut"] = d / "cut.mcap"
+    c["cut"].write_bytes(chunked.read_bytes()[: chunks[-3] + 100])
+    c["profile-bytes"] = d / "bytes.toml"
+    c["profile-bytes"].write_bytes(b"\xff\xfe\x00" + random.Random(1).randbytes(200))
+    c["profile-list"] = d / "list.toml"
+    c["profile-list"].write_text("version = 1\nole = [1, 2]\n")
+    c["profile-nan"] = d / "nan.toml"
+    c["profile-nan"].write_text("version = 1\n[ole.left_elbow_flexion_deg]\nradius_mm = nan\n")
+    c["pairs-bad"] = d / "pairs.csv"
+    c["pairs-bad"].write_text("angle,counts\n0,nan\n30,inf\nabc,def\n")
+    c["pairs-wild"] = d / "wild.csv"
+    c["pairs-wild"].write_text("0,0\n30,1e300\n60,-1e300\n")
+    c["ref-header"] = d / "ref-header.csv"
+    c["ref-header"].write_text("t_s,left_elbow_flexion_deg\n")
+    c["ref-ragged"] = d / "ref-ragged.csv"
+    lines = ["t_s,left_elbow_flexion_deg"] + [f"{1700000000 + i * 0.01:.2f},{i % 90}"
+                                              for i in range(100)]  # fmt: skip
+    lines[40] += ",extra"
+    lines[60] = "abc,3"
+    c["ref-ragged"].write_text("\n".join(lines) + "\n")
+    return c
+
+
+def _chunk_offsets(data: bytes) -> list[int]:
+    offsets, pos = [], 8
+    while pos + 9 <= len(data) and data[pos] != 0x02:  # up to the footer
+        if data[pos] == 0x06:
+            offsets.append(pos)
+        pos += 9 + int.from_bytes(data[pos + 1 : pos + 9], "little")
+    return offsets
+
+
+@contextlib.contextmanager
+def unchanged(*paths: Path) -> Iterator[None]:
+    """Every path's content (or absence) is the same after the block."""
+    before = {p: sha(p) for p in paths}
+    yield
+    assert {p: sha(p) for p in paths} == before
+
+
+def test_unusable_captures_are_errors_naming_what_they_look_like(
+    corpus: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "out.mcap"
+    with unchanged(*corpus.values()):
+        for name, fmt, told in (
+            ("imu_central.txt", "can-log", "IMU central capture (--format imu-central)"),
+            ("smartsuit_arm.log", "imu-central", "candump CAN log (--format can-log"),
+            ("smartsuit_arm.log", "concentrator", "candump CAN log"),
+            ("recording", "concentrator", "an MCAP recording"),
+            ("empty", "can-log", "no can-log samples"),
+            ("random", "imu-central", "no imu-central samples"),
+        ):
+            code, err = cli(capsys, "decode", "--format", fmt, corpus[name])
+            assert code == 2, (name, err)
+            assert told in err, (name, err)
+            code, err = cli(capsys, "process", corpus[name], "--format", fmt, "-o", out)
+            assert code == 2, (name, err)
+            assert told in err, (name, err)
+            assert not out.exists()  # no empty recording
+        code, err = cli(capsys, "process", corpus["smartsuit_arm.log"], "--tpose-s", "100",
+                        "-o", out)  # fmt: skip
+        assert code == 2
+        assert "--tpose-s 100 is longer than the capture" in err
+        for profile in ("profile-bytes", "profile-list", "profile-nan"):
+            code, err = cli(capsys, "process", corpus["smartsuit_arm.log"], "--profile",
+                            corpus[profile], "-o", out)  # fmt: skip
+            assert code == 2, (profile, err)
+            assert str(corpus[profile]) in err
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("kind", ["csv", "bvh", "c3d"])
+def test_damaged_recordings_are_named_with_the_offset_and_salvage(
+    kind: str, corpus: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / f"out.{kind}"
+    with unchanged(*corpus.values()):
+        for name in ("corrupt", "cut", "random", "empty", "smartsuit_arm.log"):
+            code, err = cli(capsys, "export", kind, "-q", corpus[name], "-o", out)
+            assert code == 2, (name, err)
+            assert err.startswith("bodynet export: "), err
+            assert str(corpus[name]) in err
+        code, err = cli(capsys, "export", kind, "-q", corpus["corrupt"], "-o", out)
+        assert "(in the chunk at byte" in err
+        assert f"bodynet record --salvage {corpus['corrupt']}" in err
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_report_view_and_replay_name_a_damaged_recording(
+    corpus: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    with unchanged(*corpus.values()):
+        for args in (["report", corpus["corrupt"], "-o", tmp_path / "r.md"],
+                     ["view", corpus["corrupt"], "--viewer", "none", "--save", tmp_path / "v.rrd"],
+                     ["replay", corpus["cut"], "-e", "tcp/127.0.0.1:1"]):  # fmt: skip
+            code, err = cli(capsys, *args)  # replay: the file is told before any router wait
+            assert code == 2, (args, err)
+            assert "record --salvage" in err, (args, err)
+            assert "waiting for the router" not in err
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_salvage_skips_a_corrupt_chunk_and_keeps_the_chunks_after_it(
+    corpus: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    whole = sum(1 for _ in read_poses(corpus["chunked"]))
+    last_t = max(t for t, _ in read_poses(corpus["chunked"]))
+    out = tmp_path / "saved.mcap"
+    with unchanged(corpus["corrupt"]):
+        code, err = cli(capsys, "record", "--salvage", corpus["corrupt"], "-o", out)
+    assert code == 0, err
+    kept = list(read_poses(out))
+    lost = whole - len(kept)
+    assert 0 < lost < whole // 10  # one chunk's worth, not everything after it
+    assert max(t for t, _ in kept) == last_t  # the chunks after the bad one are there
+    assert f"lost {lost} messages: byte" in err, err
+    code, err = cli(capsys, "record", "--salvage", corpus["cut"], "-o", out)
+    assert code == 0
+    assert "the file ends inside this record" in err
+    code, err = cli(capsys, "record", "--salvage", corpus["random"], "-o", tmp_path / "r.mcap")
+    assert code == 2
+    assert "not an MCAP recording" in err
+    assert not (tmp_path / "r.mcap").exists()
+
+
+def test_no_output_overwrites_an_input(
+    corpus: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    capture = tmp_path / "arm.log"
+    capture.write_bytes(corpus["smartsuit_arm.log"].read_bytes())
+    rec = tmp_path / "arm.mcap"
+    rec.write_bytes(corpus["recording"].read_bytes())
+    (tmp_path / "link.mcap").hardlink_to(rec)
+    (tmp_path / "sym.log").symlink_to(capture)
+    with unchanged(capture, rec):
+        for args in (
+            ["process", capture, "-o", capture],
+            ["process", capture, "-o", tmp_path / "sym.log"],
+            ["export", "csv", rec, "-o", rec],
+            ["export", "bvh", rec, "-o", tmp_path / "link.mcap"],
+            ["view", rec, "--viewer", "none", "--save", rec],
+            ["record", "--salvage", rec, "-o", tmp_path / "link.mcap"],
+            ["report", rec, "-o", rec],
+        ):
+            code, err = cli(capsys, *args)
+            assert code == 2, (args, err)
+            assert "it is an input of this command" in err, (args, err)
+
+
+def test_calibrate_and_report_keep_good_rows_and_refuse_bad_files(
+    corpus: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    profile = tmp_path / "p.toml"
+    with unchanged(*corpus.values()):
+        for pairs in ("pairs-bad", "pairs-wild", "random"):
+            code, err = cli(capsys, "calibrate", "ole", "--joint", "left_elbow", "--from-pairs",
+                            corpus[pairs], "--profile", profile)  # fmt: skip
+            assert code == 2, (pairs, err)
+            assert not profile.exists()
+        code, err = cli(capsys, "calibrate", "ole", "--joint", "left_elbow", "--from-pairs",
+                        corpus["pairs-bad"], "--profile", corpus["profile-list"])  # fmt: skip
+        assert code == 2
+        out = tmp_path / "r.md"
+        code, err = cli(capsys, "report", corpus["recording"], "--reference",
+                        corpus["ref-header"], "-o", out, "--no-trials",
+                        "--still-s", "0.2")  # fmt: skip
+        assert code == 2
+        assert "no usable row" in err
+        code, err = cli(capsys, "report", corpus["recording"], "--reference",
+                        corpus["ref-ragged"], "-o", out, "--no-trials",
+                        "--still-s", "0.2")  # fmt: skip
+        assert code == 0, err
+        assert "line 41 left out: 3 fields, the header has 2" in err
+        assert "line 61 left out: t_s 'abc' is not a finite number" in err
+        assert "2 rows left out" in out.read_text()
+
+
+#: Where each python-can text format writes a frame's CAN id.
+CAN_ID = {".log": r"\s([0-9A-F]{8})#", ".asc": r"\s([0-9A-F]+x)\s",
+          ".trc": r"DT\s+\d+\s+([0-9A-F]+)\s", ".csv": r",0x([0-9a-f]+),"}  # fmt: skip
+
+
+@pytest.mark.parametrize("suffix", [".log", ".asc", ".trc", ".csv", ".blf"])
+def test_a_garbled_can_log_line_costs_only_itself(
+    suffix: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from bodynet.nodes.captures import CaptureStats, can_log_messages
+
+    good = [m for m in can_log_messages(DATA / "smartsuit_arm.log", CaptureStats())
+            if not m.is_error_frame and not m.is_remote_frame]  # fmt: skip
+    log = tmp_path / f"arm{suffix}"
+    if suffix == ".blf":  # a binary log: small containers, one garbled
+        with can.BLFWriter(log, max_container_size=512) as w:
+            for m in good:
+                w.on_message_received(m)
+        data = bytearray(log.read_bytes())
+        objects = [i for i in range(len(data)) if data[i : i + 4] == b"LOBJ"]
+        data[objects[5] + 40 : objects[5] + 60] = b"\xff" * 20
+        log.write_bytes(bytes(data))
+    else:
+        with can.Logger(log) as w:
+            for m in good:
+                w.on_message_received(m)
+        lines = log.read_text().splitlines(keepends=True)
+        bad = len(lines) // 2  # a frame's line: its CAN id garbled (a Z among hex digits)
+        m = re.search(CAN_ID[suffix], lines[bad])
+        assert m is not None, lines[bad]
+        lines[bad] = lines[bad][: m.start(1) + 1] + "Z" + lines[bad][m.start(1) + 2 :]
+        log.write_text("".join(lines))
+    stats = CaptureStats()
+    kept = list(can_log_messages(log, stats))
+    if suffix == ".blf":
+        assert len(good) - 20 < len(kept) < len(good)  # one container's frames, not the rest
+        assert stats.bad_places
+        assert stats.bad_places[0].startswith("byte ")
+    else:
+        assert len(kept) == len(good) - 1
+        assert stats.bad_places == [f"line {bad + 1}"]
+    code, err = cli(capsys, "decode", "--format", "can-log", log)
+    assert code == 0
+    assert "skipped garbled " + stats.bad_places[0] in err
+
+
+# -- full disks and closed descriptors (a process of their own) -------------------------
+
+
+def _small_files() -> None:
+    """A file system that fills at 20 kB, for this process only."""
+    signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # a write past it fails, not the process
+    resource.setrlimit(resource.RLIMIT_FSIZE, (20_000, 20_000))
+
+
+def test_a_full_disk_names_the_output_and_leaves_no_half_file(
+    corpus: dict[str, Path], tmp_path: Path
+) -> None:
+    out = tmp_path / "big.csv"
+    out.write_text("an earlier export\n")
+    with unchanged(corpus["recording"], out):
+        result = run("export", "csv", "-q", corpus["recording"], "-o", out,
+                     preexec_fn=_small_files)  # fmt: skip
+    assert result.returncode == 2, result.stderr
+    assert f"bodynet export: cannot write {out}: File too large" in result.stderr
+    assert "Traceback" not in result.stderr
+    assert [p.name for p in tmp_path.iterdir()] == ["big.csv"]  # no temporary file left
+
+
+def test_a_full_or_closed_stdout_is_an_error(corpus: dict[str, Path]) -> None:
+    capture = corpus["smartsuit_arm.log"]
+    with open("/dev/full", "w") as full:
+        result = subprocess.run([str(BODYNET), "decode", "--format", "can-log", str(capture)],
+                                stdout=full, stderr=subprocess.PIPE, text=True, timeout=60,
+                                check=False)  # fmt: skip
+    assert result.returncode == 1
+    assert "cannot write the samples to stdout: No space left on device" in result.stderr
+    assert "Traceback" not in result.stderr
+    assert "Exception ignored" not in result.stderr
+    closed = subprocess.run(f"'{BODYNET}' decode --format can-log '{capture}' >&-", shell=True,
+                            capture_output=True, text=True, timeout=60, check=False)  # fmt: skip
+    assert closed.returncode == 2
+    assert "stdout is closed" in closed.stderr
+    assert "Traceback" not in closed.stderr
+    assert sha(capture) == sha(DATA / "smartsuit_arm.log")
+
+
+
+
