@@ -242,3 +242,34 @@ def test_the_views_metrics_panel_shows_what_it_can() -> None:
     odd = metrics_text({"dofs": {"x": {"min_deg": [1], "repetitions": "many" * 50}, "y": 3}})
     assert "| x | ? |" in odd
     assert "| y | ? | ? | ? | ? |" in odd
+
+
+def test_bodynet_metrics_publishes_on_the_subjects_key(router_endpoint: str) -> None:
+    import queue
+
+    from service_procs import Services, bodynet
+
+    from bodynet.session import open_session, session_config
+
+    session = open_session(session_config("client", connect=[router_endpoint], subject="carol"))
+    got = Collector(session, keys.METRICS, json.loads)  # carol/body/@metrics on the wire
+    services = Services()
+    argv = bodynet("metrics", "-e", router_endpoint, "--subject", "carol", "--rate-hz", "5")
+    try:
+        proc = services.start("metrics", argv)
+        proc.wait_line("bodynet metrics: subject carol, body/@metrics at 5 Hz")
+        frames = iter(elbow_poses(10_000, time.time_ns()))
+        deadline = time.monotonic() + 30
+        while True:  # poses until the command (subscribed by now or soon) answers
+            assert time.monotonic() < deadline, proc.tail()
+            session.put(keys.pose_key(), pose.encode(next(frames)))
+            try:
+                _, message = got.queue.get(timeout=0.05)
+                break
+            except queue.Empty:
+                continue
+        assert "left_elbow_flexion_deg" in message["dofs"]
+        assert proc.stop() == 0
+    finally:
+        services.close()
+        session.close()
