@@ -57,6 +57,13 @@ upper bound: a lost battery packet is counted too). A packet whose number is
 not above the last one (a duplicate or reordered datagram) is rejected
 (``out_of_order``), as the server drops it.
 
+Versions: the packet framing above (int32 type + int64 number) is that of
+SlimeVR firmware since its numbered packets; handshakes are read in their full
+form (firmware build and string) and in shorter older forms as long as the MAC
+is there. Checked here only against bodynet's own emulated tracker (firmware
+build 17 in its handshake), not yet against a real tracker or the SlimeVR
+server's parser.
+
 Doubts, where this had to assume:
 - the handshake reply: one byte 3 then ASCII ``Hey OVR =D 5`` (13 bytes); the
   server may pad it to a fixed buffer, which trackers do not read;
