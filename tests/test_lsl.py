@@ -255,10 +255,11 @@ def test_lsl_streams_every_pose_through_gateway_and_router_restarts(tmp_path: Pa
         poses.seen.append(poses.queue.get_nowait())
     assert check_stream(rec, sid, [f for _, f in poses.seen], unix_to_lsl_offset()) >= 60
     assert rec.info[sid]["uid"] == uid  # one outlet throughout: the inlet never re-resolved
-    measured = ~np.isnan(np.array([v for v, _ in rec.samples[sid]])).any(axis=0)
+    measured = ~np.isnan(np.array([v for v, _ in rec.samples[sid]]))
     labels = [c["label"] for c in rec.info[sid]["channels"]]
-    assert measured[labels.index("left_elbow_flexion")]  # the CAN arm's encoder
-    assert not measured.all()  # and the rest of the body, without sensors, NaN
+    # the CAN arm's encoder: measured but where its modules were stale (once the nodes stopped)
+    assert measured[:, labels.index("left_elbow_flexion")].mean() > 0.9
+    assert not measured.any(axis=0).all()  # and the rest of the body, without sensors, NaN
 
 
 def test_two_subjects_give_two_streams_each_and_raw_samples(router_endpoint: str) -> None:
