@@ -27,6 +27,7 @@ from bodynet.nodes.services import EmulationOptions, NodePlan, run_node
 from bodynet.session import open_session, session_config
 
 SKELETON = build_skeleton()
+BLOCK = zenoh.CongestionControl.BLOCK  # a test's burst of puts: none dropped on the way
 SEGMENT_SUFFIXES = ("x", "y", "z", "qw", "qx", "qy", "qz")
 
 
@@ -279,10 +280,10 @@ def test_two_subjects_give_two_streams_each_and_raw_samples(router_endpoint: str
         for k, s in enumerate(names):
             f = frame(i, t0 + i * 10_000_000 + k * 1_000_000, base=100.0 * k)
             sent[s].append(f)
-            pub.put(f"{s}/{keys.pose_key()}", pose.encode(f))
+            pub.put(f"{s}/{keys.pose_key()}", pose.encode(f), congestion_control=BLOCK)
         r = RawSample(OleAccel(2, 100 + i, (i, -1024, 3)), i, t0 + i * 10_000_000, Source.CAN)
         raws.append(r)
-        pub.put(f"{names[0]}/{raw_key}", raw_sample.encode(r))
+        pub.put(f"{names[0]}/{raw_key}", raw_sample.encode(r), congestion_control=BLOCK)
 
     rec = None
     try:
