@@ -273,3 +273,31 @@ def test_bodynet_metrics_publishes_on_the_subjects_key(router_endpoint: str) -> 
     finally:
         services.close()
         session.close()
+
+
+def test_a_recordings_view_shows_its_last_metrics(tmp_path: Path) -> None:
+    from test_view import rrd_texts
+
+    from bodynet.clients.mcap_store import McapSink, read_metrics
+    from bodynet.clients.view import Viewer, view_recording
+
+    recording = tmp_path / "m.mcap"
+    frames = elbow_poses(120, 1_700_000_000_000_000_000)
+    body = metrics.BodyMetrics()
+    sink = McapSink(recording)
+    for i, f in enumerate(frames):
+        sink.write_pose(keys.pose_key(), f, f.t_ns)
+        body.add(f.t_ns, metrics.measured_angles(f))
+        if i % 50 == 49 or i == len(frames) - 1:
+            sink.write_metrics(keys.METRICS, json.dumps(body.snapshot()).encode(), f.t_ns)
+    sink.close()
+    assert [m["t_ns"] for _, _, m in read_metrics(recording)][-1] == frames[-1].t_ns
+    rrd = tmp_path / "m.rrd"
+    viewer = Viewer.start("none", save=rrd)
+    try:
+        assert view_recording(recording, viewer) == len(frames)
+    finally:
+        viewer.close()
+    last = body.snapshot()["dofs"]["left_elbow_flexion_deg"]
+    assert f"| left_elbow_flexion | 10 | 100 | 90 | {last['repetitions']} |" in rrd_texts(
+        rrd, "/metrics")[-1]
