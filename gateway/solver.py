@@ -50,7 +50,7 @@ from bodynet.core.codecs.pose import CLAMPED, HELD, UNCALIBRATED, UNOBSERVED, pr
 from bodynet.core.keys import Site
 from bodynet.core.messages import OleAccel, Quat, RawSample
 from bodynet.core.profile import OLE_DOF, mount
-from bodynet.core.skeleton import TPOSE, Joint, build_skeleton, rom
+from bodynet.core.skeleton import CALIBRATION_POSES, TPOSE, Joint, build_skeleton, rom
 from bodynet.core.subject import Profile, QuatWxyz
 from bodynet.kinematics.model import BodyModel, accel_axes
 
@@ -281,11 +281,15 @@ class _SplitBatch:
         return chosen  # type: ignore[no-any-return]
 
     def commit(
-        self, rows: np.ndarray, values: np.ndarray, calibration_inv: np.ndarray
+        self, rows: np.ndarray, values: np.ndarray, calibration_inv: np.ndarray,
+        relative: np.ndarray,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """What committing a joint does, for many at once: angles (m, 3) clamped to
         the range of motion, which were clamped, the joint rotations (m, 3, 3) and
-        each joint's total rotation (deg) from the calibration pose."""
+        each joint's total rotation (deg) from the calibration pose (its rotation
+        there inverted: ``calibration_inv``, (m, 3, 3)), taken from the measured
+        relative rotations ``relative`` (m, 3, 3), not from the clamped dofs: how a
+        rotation splits into dofs is ambiguous at a gimbal lock, the rotation is not."""
         lo, hi = self.lo[rows], self.hi[rows]
         clamped = (values < lo) | (values > hi)
         values = np.clip(values, lo, hi)
@@ -294,7 +298,7 @@ class _SplitBatch:
         dofs = _axis_rotations(self.axis[rows].reshape(-1, 3),
                                np.radians(values).ravel()).reshape(-1, 3, 3, 3)  # fmt: skip
         matrices = dofs[:, 0] @ dofs[:, 1] @ dofs[:, 2]
-        total = _angles_deg(calibration_inv[rows] @ matrices)
+        total = _angles_deg(calibration_inv @ relative)
         return values, clamped, matrices, total
 
 
@@ -359,28 +363,9 @@ class _Tick:
     """One body's working state during one solve: plain data that its
     :class:`BodySolver` fills (:meth:`BodySolver._gather`) and reads."""
 
-    __slots__ = (
-        "angles",
-        "direct_rot",
-        "direct_rows",
-        "harm",
-        "held_tilt",
-        "last",
-        "measured",
-        "modules",
-        "mounts",
-        "plan",
-        "quats",
-        "reasons",
-        "rel",
-        "rests",
-        "segs",
-        "solver",
-        "sources",
-        "t_ns",
-        "unc",
-        "uncal",
-    )  # fmt: skip
+    __slots__ = ("angles", "direct_rot", "direct_rows", "harm", "held_tilt", "last", "lefts",
+                 "measured", "modules", "mounts", "plan", "quats", "reasons", "rel", "rests",
+                 "segs", "solver", "sources", "t_ns", "unc", "uncal", "unknown")  # fmt: skip
 
     def __init__(self, solver: BodySolver, last: np.ndarray | None) -> None:
         self.solver = solver
@@ -389,6 +374,8 @@ class _Tick:
         self.quats: list[QuatWxyz] = []
         self.mounts: list[np.ndarray] = []
         self.uncal: set[str] = set()  # segments whose orientation sensor has no mount yet
+        self.lefts: list[np.ndarray] = []  # each sensor's turn into the body's heading
+        self.unknown: set[str] = set()  # segments whose sensor's heading is not known
         self.modules: dict[str, tuple[Site, OleAccel]] = {}  # SmartSuit modules by segment
         self.sources: dict[str, int] = {}
         self.t_ns = 0
@@ -427,8 +414,9 @@ class BodySolver:
         self.skeleton = build_skeleton(self.profile.lengths)
         self.model = BodyModel(self.skeleton)
         self.axes = {j.name: JointAxes.of(j) for j in self.skeleton.joints}
+        pose = CALIBRATION_POSES[self.profile.pose]
         self._calibration = {
-            j.name: self.axes[j.name].matrix(np.array([TPOSE.get(n, 0.0) for n in j.angle_names()]))
+            j.name: self.axes[j.name].matrix(np.array([pose.get(n, 0.0) for n in j.angle_names()]))
             for j in self.skeleton.joints
         }
         self._batch = _SplitBatch([self.axes[j.name] for j in self.skeleton.joints])
@@ -454,21 +442,39 @@ class BodySolver:
                             for j in self.skeleton.joints}  # fmt: skip
         self._memory = _Memory()
         self._all_mounted = False  # assume_calibrated
-        self._sites: dict[Site, tuple[str, np.ndarray, str, bool, bool]] = {}
+        self._sites: dict[Site, tuple[str, np.ndarray, str, bool, np.ndarray, bool, bool]] = {}
         self._plans: dict[tuple[str, ...], tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
 
-    def _site(self, site: Site) -> tuple[str, np.ndarray, str, bool, bool]:
+    def _site(self, site: Site) -> tuple[str, np.ndarray, str, bool, np.ndarray, bool, bool]:
         """The segment a sensor rides on, its mount's inverse (for orientation
-        sensors), its raw key, whether it is a SmartSuit module, and whether its
-        mount is calibrated (an orientation sensor's T-pose mount exists)."""
+        sensors), its raw key, whether it is a SmartSuit module, the turn from its
+        reference frame to the body's (``Rz(-heading)``, see gateway/heading.py),
+        whether that heading is known, and whether its mount is calibrated (an
+        orientation sensor's T-pose mount exists)."""
         known = self._sites.get(site)
         if known is None:
+            key = site.raw_key
             mounts = self.profile.imu_mounts
-            w, x, y, z = mounts.get(site.raw_key, (1.0, 0.0, 0.0, 0.0))
-            known = self._sites[site] = (mount(site).segment, _matrix((w, x, y, z)).T,
-                                         site.raw_key, site.name in OLE_DOF,
-                                         self._all_mounted or site.raw_key in mounts)  # fmt: skip
+            w, x, y, z = mounts.get(key, (1.0, 0.0, 0.0, 0.0))
+            known = self._sites[site] = (
+                mount(site).segment, _matrix((w, x, y, z)).T, key, site.name in OLE_DOF,
+                _rot(np.array([0.0, 0.0, 1.0]), -math.radians(self.profile.heading_of(key))),
+                self.profile.heading_known(key), self._all_mounted or key in mounts,
+            )  # fmt: skip
         return known
+
+    def _flag_uncalibrated(self, tick: _Tick) -> None:
+        """Flag ``uncalibrated`` every dof that a sensor of unknown heading drives:
+        the joints next to its segment, and down the chain while the segments'
+        orientations come from their parents (SmartSuit modules)."""
+        unknown, tainted, measured = tick.unknown, set(tick.unknown), tick.measured
+        for joint in self.skeleton.joints:
+            if joint.parent in tainted or joint.child in unknown:
+                if joint.child not in measured:
+                    tainted.add(joint.child)
+                for name in self.axes[joint.name].names:
+                    if UNOBSERVED not in tick.reasons.get(name, ()):
+                        tick.reasons.setdefault(name, set()).add(UNCALIBRATED)
 
     def solve(self, samples: Mapping[Site, RawSample]) -> BodyOutput:
         """Angles and poses from the latest sample of each site."""
@@ -498,7 +504,8 @@ class BodySolver:
         quats = [q for t in ticks for q in t.quats]
         if quats:
             sensors = Rotation.from_quat(np.array(quats), scalar_first=True).as_matrix()
-            segments = sensors @ np.array([m for t in ticks for m in t.mounts])
+            segments = (np.array([m for t in ticks for m in t.lefts]) @ sensors
+                        @ np.array([m for t in ticks for m in t.mounts]))  # fmt: skip
             start = 0
             for tick in ticks:
                 tick.measured = dict(zip(tick.segs, segments[start : start + len(tick.segs)],
@@ -507,6 +514,8 @@ class BodySolver:
             first._solve_direct(ticks, segments, angles, rel)
         for tick in ticks:
             tick.solver._solve_rest(tick)
+            if tick.unknown:
+                tick.solver._flag_uncalibrated(tick)
         return first._outputs(ticks)
 
     def _gather(self, samples: Mapping[Site, RawSample]) -> _Tick:
@@ -516,7 +525,8 @@ class BodySolver:
         seen: set[str] = set()
         known, t_ns = self._sites, 0
         for site, sample in samples.items():
-            seg, mount_inv, key, module, calibrated = known.get(site) or self._site(site)
+            seg, mount_inv, key, module, left, heading_known, calibrated = (
+                known.get(site) or self._site(site))  # fmt: skip
             sources[key] = t = sample.t_ns
             t_ns = max(t_ns, t)
             r = sample.reading
@@ -526,6 +536,9 @@ class BodySolver:
                     tick.segs.append(seg)
                     tick.quats.append(r.wxyz)
                     tick.mounts.append(mount_inv)
+                    tick.lefts.append(left)
+                    if not heading_known:
+                        tick.unknown.add(seg)
                     if not calibrated:
                         tick.uncal.add(seg)
             elif module:
@@ -585,8 +598,11 @@ class BodySolver:
         index = batch.angle_index[rows]
         nothing = np.zeros(angles.shape[1])  # a body's first tick: no previous angles
         last = np.stack([t.last if t.last is not None else nothing for t in ticks])
+        # each body's own calibration pose (T or N): the total rotations are from it
+        calibration_inv = np.stack([t.solver._calibration_inv for t in ticks])[owner, rows]
         values, clamped, matrices, total = batch.commit(
-            rows, batch.split(rows, relative, last[owner[:, None], index]), self._calibration_inv
+            rows, batch.split(rows, relative, last[owner[:, None], index]), calibration_inv,
+            relative,
         )
         angles[owner[:, None], index] = values
         for b, tick in enumerate(ticks):
@@ -678,11 +694,8 @@ class BodySolver:
                           tick.direct_rot, strict=True))  # fmt: skip
         expected = self._memory.expected
         world: dict[str, np.ndarray] = {"pelvis": measured.get("pelvis", np.eye(3))}
-        rests = tick.rests
-        rests["pelvis"] = self._rests("pelvis", tick)
-        harm = tick.harm
-        harm["pelvis"] = 0.0
-        last = tick.last
+        rests, harm, last = tick.rests, tick.harm, tick.last
+        rests["pelvis"], harm["pelvis"] = self._rests("pelvis", tick), 0.0
         for joint in self.skeleton.joints:
             child = joint.child
             ax = self.axes[joint.name]
@@ -698,12 +711,13 @@ class BodySolver:
                     self._merge_module(tick, world, joint, parent, previous, inherited)
                 continue
             if child in measured:
-                values = ax.split(parent.T @ measured[child], previous)
+                relative = parent.T @ measured[child]
+                values = ax.split(relative, previous)
                 unc = np.full(len(names), UNC_TAG_DEG)
                 own = self._rests(child, tick)
                 why = [set(inherited | own) for _ in names]
                 rests[child] = own
-                self._commit(tick, world, joint, values, unc, why)
+                self._commit(tick, world, joint, values, unc, why, relative)
                 if child in modules:
                     self._merge_module(tick, world, joint, parent, previous, inherited)
                 continue
@@ -773,9 +787,11 @@ class BodySolver:
 
     def _commit(self, tick: _Tick, world: dict[str, np.ndarray], joint: Joint,
                 values: np.ndarray, unc: np.ndarray, why: Sequence[set[str] | frozenset[str]],
-                ) -> None:  # fmt: skip
+                relative: np.ndarray | None = None) -> None:  # fmt: skip
         """Clamp to the range of motion, record with each dof's uncertainty and
-        reasons, and carry the chain on."""
+        reasons, and carry the chain on. The total rotation from the calibration
+        pose is the measured ``relative`` rotation's when there is one (see
+        :meth:`_SplitBatch.commit`)."""
         ax = self.axes[joint.name]
         for i, (name, (lo, hi)) in enumerate(zip(ax.names, ax.limits, strict=True)):
             reasons = set(why[i])
@@ -792,7 +808,7 @@ class BodySolver:
         joint_rot = ax.matrix(values)
         world[joint.child] = world[joint.parent] @ joint_rot
         tick.rel[self._batch.index[joint.name]] = _angle_deg(
-            self._calibration[joint.name].T @ joint_rot
+            self._calibration[joint.name].T @ (joint_rot if relative is None else relative)
         )
 
     def _forward(self, tick: _Tick) -> tuple[np.ndarray, np.ndarray]:
