@@ -187,7 +187,7 @@ def number_list(lo: int, hi: int) -> Callable[[str], tuple[int, ...]]:
         out: list[int] = []
         for part in text.split(","):
             a, dash, b = part.strip().partition("-")
-            if not re.fullmatch(r"\d{1,6}", a) or (dash and not re.fullmatch(r"\d{1,6}", b)):
+            if not re.fullmatch(r"\d{1,12}", a) or (dash and not re.fullmatch(r"\d{1,12}", b)):
                 fail(f"{_shown(text)} is not a list like 1-3,7")
             first, last = int(a), int(b) if dash else int(a)
             if first > last or first < lo or last > hi:
