@@ -573,6 +573,12 @@ def read_health(path: Path) -> Iterator[tuple[str, int, dict[str, Any]]]:
     return _read_json(path, "bodynet.Health")
 
 
+def read_metrics(path: Path) -> Iterator[tuple[str, int, dict[str, Any]]]:
+    """(topic, log time ns, message) of the clinical metrics of a recording
+    (``body/@metrics``, see ``core/metrics.py``)."""
+    return _read_json(path, "bodynet.Metrics")
+
+
 def _read_json(path: Path, schema_name: str) -> Iterator[tuple[str, int, dict[str, Any]]]:
     for schema, channel, message in _messages(path, None):
         if schema is not None and schema.name == schema_name:

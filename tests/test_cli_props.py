@@ -603,3 +603,19 @@ def test_a_full_or_closed_stdout_is_an_error(corpus: dict[str, Path]) -> None:
 
 
 
+
+
+def test_a_terminated_write_leaves_the_earlier_file_and_no_half_file(tmp_path: Path) -> None:
+    from bodynet.session.outputs import atomic_file
+
+    assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL
+    out = tmp_path / "out.csv"
+    out.write_text("an earlier export\n")
+    with pytest.raises(SystemExit) as ended, atomic_file(out) as f:  # noqa: PT012
+        f.write("half a row,")
+        os.kill(os.getpid(), signal.SIGTERM)  # a kill while writing
+        f.write("never written\n")
+    assert ended.value.code == 128 + signal.SIGTERM
+    assert out.read_text() == "an earlier export\n"
+    assert list(tmp_path.iterdir()) == [out]
+    assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL  # as it was
