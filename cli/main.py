@@ -12,6 +12,7 @@ explicit arguments.
 from __future__ import annotations
 
 import argparse
+import errno
 import importlib
 import json
 import logging
@@ -341,10 +342,26 @@ def main(argv: Sequence[str] | None = None) -> int:
     func = getattr(args, "func", None) or resolve(args.command_run)
     try:
         code: int = func(args)
+        if sys.stdout is not None:
+            sys.stdout.flush()
     except SessionError as exc:
         print(f"bodynet {args.command}: {exc}", file=sys.stderr)
         return 2
+    except OSError as exc:
+        # stdout gone or full (a closed pipe, > /dev/full): the command's output is
+        # lost; say so in one line instead of a traceback (other errors go on up)
+        if exc.filename is not None or exc.errno not in _STREAM_ERRNOS:
+            raise
+        _stdout_gone()
+        print(f"bodynet {args.command}: cannot write its output: {exc.strerror or exc}",
+              file=sys.stderr)  # fmt: skip
+        return 1
     return code
+
+
+#: Errors of writing to a stream (stdout): a closed pipe, a full device, a
+#: closed descriptor.
+_STREAM_ERRNOS = {errno.EPIPE, errno.ENOSPC, errno.EBADF, errno.EIO}
 
 
 if __name__ == "__main__":
