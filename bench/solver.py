@@ -33,7 +33,7 @@ def _frames() -> tuple[Profile, list[dict[Any, RawSample]]]:
     for k in range(10):
         for tag, r in zip(tags, still.sample(k / 100)[0], strict=True):
             window.setdefault(tag.site, []).append(r.wxyz)  # type: ignore[union-attr]
-    profile = Profile().with_mounts(tpose_mounts(window))
+    profile = Profile(heading="fixed").with_mounts(tpose_mounts(window))  # faces +X
     body = BodyEmulator(ROUTINES["walk"], tags, seed=3)
     frames = []
     for k in range(FRAMES):

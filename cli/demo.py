@@ -28,7 +28,11 @@ from bodynet.nodes.motion import ROUTINES, Routine
 from bodynet.nodes.services import EmulationOptions, body_plan, run_node
 from bodynet.session import open_session, session_config
 
-TPOSE_S = 3.0
+TPOSE_S = 4.0
+#: The demo asks the gateway to calibrate from this many still seconds, ending well
+#: before the T-pose does (the loop looks once a second): a window that took in the
+#: first movement would be refused.
+CALIBRATION_S = 1.5
 SHOWN = ("lumbar_flexion_deg", "left_shoulder_flexion_deg", "left_shoulder_abduction_deg",
          "left_elbow_flexion_deg", "right_shoulder_abduction_deg", "right_elbow_flexion_deg",
          "left_hip_flexion_deg", "left_knee_flexion_deg", "right_knee_flexion_deg")  # fmt: skip
@@ -97,13 +101,17 @@ def run_demo(endpoint: str, routine: str, seconds: float | None, record: Path,
     calibrated = False
     while not stop.wait(1.0):
         elapsed = time.monotonic() - start
-        if not calibrated and elapsed >= TPOSE_S:
+        if not calibrated and elapsed >= TPOSE_S - CALIBRATION_S:
             calibrated = True
-            replies = list(client.get(f"{keys.CALIBRATE_TPOSE}?seconds=1.5", timeout=10))
+            replies = list(client.get(f"{keys.CALIBRATE_TPOSE}?seconds={CALIBRATION_S}",
+                                      timeout=10))  # fmt: skip
             result = (
                 json.loads(replies[0].ok.payload.to_bytes()) if replies and replies[0].ok else {}
             )
-            print(f"\n  T-pose calibration: {len(result.get('calibrated', []))} sensors")
+            print(f"\n  T-pose calibration: {len(result.get('calibrated', []))} sensors"
+                  + (f" (refused: {result['error']})" if result.get("error") else "")
+                  + ("; the heading is found when a knee bends"
+                     if result.get("heading", {}).get("state") == "unknown" else ""))  # fmt: skip
         frame = latest.get("body")
         if frame is not None:
             print(_status_line(elapsed, frame, recorder.messages))

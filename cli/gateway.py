@@ -113,19 +113,110 @@ def _is_site(key: str) -> bool:
     return True
 
 
+def _reference_arg(text: str) -> tuple[str, str]:
+    """``sacrum:+z`` or ``body/trunk/mid/sacrum/raw:+z`` -> (raw key, axis)."""
+    from bodynet.core.profile import IMU_SITES
+    from bodynet.core.subject import AXES
+
+    where, _, axis = text.rpartition(":")
+    named = {s.name: s.raw_key for s in IMU_SITES.values() if s.branch == keys.TRUNK}
+    named.update({f"{s.branch}/{s.name}": s.raw_key for s in IMU_SITES.values()})
+    key = named.get(where, where)
+    try:
+        keys.parse(key)
+    except keys.KeySpaceError:
+        key = ""
+    if not key or axis.lower() not in AXES:
+        raise argparse.ArgumentTypeError(
+            f"a heading reference is TAG:AXIS, e.g. sacrum:+z or left-leg/thigh:-y (the tag's "
+            f"axis that pointed forward in calibration; axes {', '.join(AXES)}), not {text!r}"
+        )
+    return key, axis.lower()
+
+
+def add_heading_args(p: argparse.ArgumentParser) -> None:
+    """The calibration pose and what is known of the tags' heading (profile overrides)."""
+    from bodynet.core.subject import HEADING_MODES, POSES
+
+    p.add_argument("--pose", choices=POSES, default=None,
+                   help="the still calibration pose: tpose (arms out, palms down) or npose "
+                        "(arms down, palms to the thighs); remembered in the profile "
+                        "(default: the profile's, tpose)")  # fmt: skip
+    p.add_argument("--heading", choices=HEADING_MODES, default=None,
+                   help="auto: the tags share one heading (magnetometer-based sensors) and the "
+                        "subject faces anywhere: found from a knee's or elbow's motion after "
+                        "the pose; fixed: the subject faced +X of the tags' frame "
+                        "(default: the profile's, auto)")  # fmt: skip
+    p.add_argument("--heading-reference", type=_reference_arg, default=None, metavar="TAG:AXIS",
+                   help="declared: this tag's axis pointed forward in the pose, e.g. sacrum:+z")
+
+
+def with_heading_args(profile: Profile, args: argparse.Namespace) -> Profile:
+    """``profile`` with the command line's heading options over its own."""
+    from dataclasses import replace
+
+    changes: dict[str, object] = {}
+    if getattr(args, "heading", None):
+        changes["heading"] = args.heading
+    if getattr(args, "heading_reference", None):
+        changes["heading_reference"] = args.heading_reference
+    if getattr(args, "pose", None):
+        changes["pose"] = args.pose
+    return replace(profile, **changes) if changes else profile  # type: ignore[arg-type]
+
+
 def cmd_calibrate_tpose(args: argparse.Namespace) -> int:
+    if args.from_ is not None:
+        return _calibrate_from_recording(args)
+    query = f"{keys.CALIBRATE_TPOSE}?seconds={args.seconds}" + (
+        f";pose={args.pose}" if args.pose else "")  # fmt: skip
     session = open_session(config_from_args(args))
     try:
-        replies = list(session.get(f"{keys.CALIBRATE_TPOSE}?seconds={args.seconds}", timeout=10.0))
+        replies = list(session.get(query, timeout=10.0 + 2 * args.seconds))
     finally:
         session.close()
     for reply in replies:
         if reply.ok is not None:
             result = json.loads(reply.ok.payload.to_bytes())
             print(json.dumps(result, indent=2))
+            if not result.get("ok"):
+                print(f"bodynet calibrate: refused: {result.get('error')}", file=sys.stderr)
             return 0 if result.get("ok") else 1
     print("bodynet calibrate tpose: no gateway answered", file=sys.stderr)
     return 1
+
+
+def _calibrate_from_recording(args: argparse.Namespace) -> int:
+    """``calibrate tpose --from REC --window A:B --profile P``: the mounts from a
+    still window of a recording, written into the profile; a refusal (subject
+    moved, too short, a tag missing) prints why, exits 1 and leaves it as it was."""
+    from bodynet.gateway.heading import CalibrationRefused
+    from bodynet.nodes.captures import CaptureError, capture_options
+    from bodynet.nodes.sources.base import CaptureStats
+    from bodynet.offline.process import calibrate_recording, recorded_samples
+    from bodynet.session import profile_file
+
+    if args.profile is None:
+        print("bodynet calibrate tpose: --from needs --profile (the file the mounts go into)",
+              file=sys.stderr)  # fmt: skip
+        return 2
+    try:
+        profile = with_heading_args(_profile(args.profile), args)
+        samples = recorded_samples(args.from_, args.format, CaptureStats(), None,
+                                   capture_options(args))  # fmt: skip
+        result = calibrate_recording(samples, profile, args.window or (0.0, args.seconds),
+                                     args.pose)  # fmt: skip
+        profile_file.save(result.apply(profile, args.pose), args.profile)
+    except CalibrationRefused as exc:
+        print(json.dumps({"ok": False, "error": str(exc), **exc.report}, indent=2))
+        print(f"bodynet calibrate tpose: refused: {exc}; {args.profile} is unchanged",
+              file=sys.stderr)  # fmt: skip
+        return 1
+    except (ProfileError, OSError, ValueError, CaptureError) as exc:
+        print(f"bodynet calibrate tpose: {exc}", file=sys.stderr)
+        return 2
+    print(json.dumps({**result.report, "profile": str(args.profile)}, indent=2))
+    return 0
 
 
 def add_gateway_args(p: argparse.ArgumentParser) -> None:
@@ -163,9 +254,25 @@ def add_subjects_args(p: argparse.ArgumentParser) -> None:
 
 def add_calibrate_args(cal: argparse.ArgumentParser) -> None:
     csub = cal.add_subparsers(dest="what", required=True, metavar="WHAT")
-    p = csub.add_parser("tpose", help="IMU mounts: the subject stands still in T-pose")
-    p.add_argument("--seconds", type=argtypes.bounded_float(0.1, 60.0, "seconds of still T-pose"),
+    from bodynet.nodes.captures import add_capture_args, formats
+
+    p = csub.add_parser("tpose", help="IMU mounts: the subject stands still in the T-pose "
+                                      "(or --pose npose)")  # fmt: skip
+    p.add_argument("--seconds", type=argtypes.bounded_float(0.1, 60.0, "seconds of still pose"),
                    default=1.0, help="still window to average")  # fmt: skip
+    p.add_argument("--from", dest="from_", type=argtypes.input_file, default=None,
+                   metavar="RECORDING",
+                   help="calibrate from a recording (MCAP, or a capture of --format) instead "
+                        "of the live gateway; needs --profile")  # fmt: skip
+    p.add_argument("--window", type=argtypes.time_window, default=None, metavar="START:END",
+                   help="with --from: the still window, seconds from the recording's start "
+                        "(default 0:--seconds)")  # fmt: skip
+    p.add_argument("--format", choices=formats(), default=None,
+                   help="with --from: the capture's format (an .mcap needs none)")
+    add_capture_args(p)
+    p.add_argument("--profile", type=argtypes.input_or_new_file,
+                   help="with --from: the profile to write")  # fmt: skip
+    add_heading_args(p)
     add_session_args(p)
     p.set_defaults(func=cmd_calibrate_tpose)
     add_calibrate_ole_parser(csub)
@@ -259,6 +366,7 @@ def cmd_process(args: argparse.Namespace) -> int:
               + (f" (it looks like {what})" if what else ""), file=sys.stderr)  # fmt: skip
         return 2
     from bodynet.core.errors import DecodeError
+    from bodynet.gateway.heading import CalibrationRefused
     from bodynet.nodes.captures import looks_like
     from bodynet.session.outputs import atomic_path
 
@@ -267,11 +375,11 @@ def cmd_process(args: argparse.Namespace) -> int:
         calibration = (args.calibration, format_of(args.calibration) or fmt)
     tpose_s = 3.0 if args.tpose_s is None else args.tpose_s
     try:
-        profile = _profile(args.profile)
+        profile = with_heading_args(_profile(args.profile), args)
         with atomic_path(args.output, [args.input, args.profile, args.calibration]) as tmp:
             result = process(args.input, fmt, tmp, profile, args.rate_hz,
                              args.tick_hz, tpose_s, capture_options(args),
-                             calibration)  # fmt: skip
+                             calibration, window=args.window, pose=args.pose)  # fmt: skip
             if not result.samples:  # nothing written: no empty recording is left
                 what = looks_like(args.input)
                 raise _Unusable(
@@ -279,15 +387,29 @@ def cmd_process(args: argparse.Namespace) -> int:
                     + (f"; it looks like {what}" if what else "")
                 )
             too_long = args.tpose_s is not None and args.tpose_s > result.span_s
-            if too_long and calibration is None:
+            if too_long and calibration is None and args.window is None:
                 raise _Unusable(f"--tpose-s {args.tpose_s:g} is longer than the capture "
                                 f"({result.span_s:.3g} s of samples); nothing written")  # fmt: skip
-    except (ProfileError, OSError, CaptureError, DecodeError, _Unusable) as exc:
+    except CalibrationRefused as exc:
+        print(f"bodynet process: calibration refused: {exc}; nothing written", file=sys.stderr)
+        return 1
+    except (ProfileError, OSError, CaptureError, DecodeError, _Unusable, ValueError) as exc:
         print(f"bodynet process: {exc}", file=sys.stderr)
         return 2
+    heading = result.heading or {}
+    note = {"found": f"heading found ({heading.get('deg')} deg, {heading.get('hinge')})",
+            "declared": f"heading declared ({heading.get('deg')} deg)",
+            "fixed": "heading fixed (the subject faced +X)",
+            "unknown": "heading NOT found (no knee or elbow moved): the tags' dofs are "
+                       "flagged uncalibrated; bend a knee after the pose, or pass "
+                       "--heading-reference or --heading fixed"}.get(heading.get("state"), "")
+    calibrated = (f"calibrated {len(result.calibrated)} sensors ({result.calibration['pose']})"
+                  if result.calibration else "calibration from the profile")  # fmt: skip
+    if result.refused:
+        calibrated = (f"NOT calibrated: {result.refused} (the tags' dofs are flagged "
+                      "uncalibrated; say where the still pose is with --window START:END)")
     print(f"{result.ticks} ticks from {result.samples} samples -> {args.output}; "
-          f"T-pose calibrated {len(result.calibrated)} sensors; {result.stats.summary()}",
-          file=sys.stderr)  # fmt: skip
+          f"{calibrated}; {note}; {result.stats.summary()}", file=sys.stderr)  # fmt: skip
     return 0
 
 
@@ -306,12 +428,18 @@ def add_process_args(p: argparse.ArgumentParser) -> None:
         "--tpose-s",
         type=argtypes.non_negative_float(3600.0, "seconds at the capture's start"),
         default=None,
-        help="seconds at the start in T-pose, to calibrate orientation sensors (default 3, "
-        "or the whole capture if shorter; longer than the capture is refused)",
+        help="seconds at the start still in the calibration pose, to calibrate orientation "
+        "sensors (default 3, or the whole capture if shorter; longer than the capture is "
+        "refused; 0: the orientations are the segments' own, as bodynet exports them)",
     )
+    p.add_argument("--window", type=argtypes.time_window, default=None, metavar="START:END",
+                   help="calibrate from this still window (seconds from the start of the "
+                        "capture, or of --calibration) instead; refused if not still")  # fmt: skip
     p.add_argument("--calibration", type=argtypes.input_file,
-                   help="take the T-pose (--tpose-s) from this file of the same session, "
-                        "e.g. static.sto (its format from its suffix, else --format)")  # fmt: skip
+                   help="take the calibration pose (--tpose-s, --window) from this file of the "
+                        "same session, e.g. static.sto (its format from its suffix, else "
+                        "--format)")  # fmt: skip
+    add_heading_args(p)
     p.add_argument("--profile", type=argtypes.input_file, help="subject profile (TOML)")
     p.add_argument("-o", "--output", type=argtypes.output_file, required=True,
                    help="the MCAP file to write")  # fmt: skip

@@ -6,7 +6,7 @@ import argparse
 import sys
 from typing import Any
 
-from bodynet.session import add_session_args, config_from_args, open_session
+from bodynet.session import add_session_args, argtypes, config_from_args, open_session
 
 
 def _run_output(args: argparse.Namespace, name: str, options: dict[str, Any]) -> int:
@@ -19,14 +19,17 @@ def _run_output(args: argparse.Namespace, name: str, options: dict[str, Any]) ->
         print(f"{command}: --all-subjects or --subject, not both", file=sys.stderr)
         return 2
     stop = stop_on_signals()
+    output = None
+    if name != "metrics":  # made first: a bad target is told before any wait for a router
+        try:
+            output = live.load_output(name, **options)
+        except OSError as exc:  # e.g. vmc's --host that does not resolve
+            print(f"{command}: {exc.strerror or exc}", file=sys.stderr)
+            return 2
     session = open_session(config_from_args(args))
-    if name == "metrics":  # its "send" is a put on this session
-        options = {**options, "session": session, "all_subjects": args.all_subjects}
-    try:
-        output = live.load_output(name, **options)
-    except BaseException:
-        session.close()
-        raise
+    if output is None:  # metrics: its "send" is a put on this session
+        output = live.load_output(name, session=session, all_subjects=args.all_subjects,
+                                  **options)  # fmt: skip
     subject = args.subject or live.DEFAULT_SUBJECT
     who = "every subject" if args.all_subjects else f"subject {subject}"
     print(f"{command}: {who}, {output.describe()}", flush=True)
@@ -52,36 +55,6 @@ def cmd_metrics(args: argparse.Namespace) -> int:
     return _run_output(args, "metrics", {"rate_hz": args.rate_hz})
 
 
-def _port(text: str) -> int:
-    try:
-        n = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a port number: {text!r}") from None
-    if not 1 <= n <= 65535:
-        raise argparse.ArgumentTypeError(f"a port is 1..65535, not {n}")
-    return n
-
-
-def _rate(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
-    if not 0.1 <= v <= 1000:
-        raise argparse.ArgumentTypeError(f"a rate is 0.1..1000 Hz, not {text}")
-    return v
-
-
-def _host(text: str) -> str:
-    import socket
-
-    try:
-        socket.getaddrinfo(text, None, type=socket.SOCK_DGRAM)
-    except (OSError, UnicodeError, ValueError):
-        raise argparse.ArgumentTypeError(f"cannot resolve host {text!r}") from None
-    return text
-
-
 def add_lsl_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--raw", action="store_true",
                    help="also one stream per sensor site with its raw samples")  # fmt: skip
@@ -92,10 +65,11 @@ def add_lsl_args(p: argparse.ArgumentParser) -> None:
 
 
 def add_vmc_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--host", type=_host, default="127.0.0.1",
+    p.add_argument("--host", type=argtypes.hostname, default="127.0.0.1",
                    help="where the VMC receiver (marionette) runs (default 127.0.0.1)")  # fmt: skip
-    p.add_argument("--port", type=_port, default=39539, help="its UDP port (default 39539)")
-    p.add_argument("--rate-hz", type=_rate, default=60.0,
+    p.add_argument("--port", type=argtypes.port, default=39539,
+                   help="its UDP port (default 39539)")  # fmt: skip
+    p.add_argument("--rate-hz", type=argtypes.RATE_HZ, default=60.0,
                    help="bundles per second, each the newest pose (default 60)")  # fmt: skip
     add_session_args(p)
 
@@ -104,6 +78,6 @@ def add_metrics_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--all-subjects", action="store_true",
                    help="every subject on the network, each its own <subject>/body/@metrics; "
                         "else the session's --subject (or none)")  # fmt: skip
-    p.add_argument("--rate-hz", type=_rate, default=2.0,
+    p.add_argument("--rate-hz", type=argtypes.RATE_HZ, default=2.0,
                    help="metrics messages per second and subject (default 2)")  # fmt: skip
     add_session_args(p)

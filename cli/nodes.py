@@ -47,14 +47,19 @@ def _branches(args: argparse.Namespace) -> tuple | None:  # type: ignore[type-ar
 
 
 def _options(args: argparse.Namespace):  # type: ignore[no-untyped-def]
-    from bodynet.nodes.emulator import Realism
+    from dataclasses import replace
+
+    from bodynet.nodes.emulator import Headings, Realism
     from bodynet.nodes.services import EmulationOptions
 
     realism = (
         Realism.ideal()
         if args.ideal
-        else Realism(ole_slack_mm=args.slack_mm, yaw_drift_deg_per_min=args.drift)
-    )
+        else Realism(ole_slack_mm=args.slack_mm, yaw_drift_deg_per_min=args.drift,
+                     quat_noise_deg=args.noise_deg, random_tag_mounts=not args.aligned_mounts)
+    )  # fmt: skip
+    # where the subject faces and the tags' heading references hold even for --ideal
+    realism = replace(realism, facing_deg=args.facing, headings=Headings(args.tag_headings))
     return EmulationOptions(args.routine, realism, args.seed)
 
 
@@ -142,8 +147,24 @@ def _emulation_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--ideal", action="store_true", help="noise-free, bias-free sensors")
     p.add_argument("--slack-mm", type=argtypes.non_negative_float(50.0, "mm of slack"),
                    default=0.0, help="OLE cable slack (buckling)")  # fmt: skip
-    p.add_argument("--drift", default=0.0, help="IMU yaw drift, deg per minute",
-                   type=argtypes.bounded_float(-360.0, 360.0, "deg/min"))  # fmt: skip
+    p.add_argument("--drift", default=0.0, type=argtypes.bounded_float(-360.0, 360.0, "deg/min"),
+                   help="IMU heading drift, deg per minute (independent tags: each its own "
+                        "rate within +/- this)")  # fmt: skip
+    p.add_argument("--facing", type=argtypes.bounded_float(-360.0, 360.0, "deg"), default=0.0,
+                   metavar="DEG",
+                   help="where the subject faces in the tags' shared frame (a magnetometer "
+                        "suit: x to north), deg about the vertical (default 0: +X)")  # fmt: skip
+    p.add_argument("--tag-headings", choices=("shared", "independent", "drifting"),
+                   default="shared",
+                   help="shared: one earth frame for all tags (magnetometer-based); "
+                        "independent: 6-axis tags, each starting with a heading of its own; "
+                        "drifting: 6-axis tags reset together, each drifting at its own "
+                        "--drift rate")  # fmt: skip
+    p.add_argument("--noise-deg", type=argtypes.non_negative_float(30.0, "deg"), default=0.3,
+                   help="orientation noise, deg")  # fmt: skip
+    p.add_argument("--aligned-mounts", action="store_true",
+                   help="tags mounted with their axes along their segments' (default: "
+                        "arbitrary mountings)")  # fmt: skip
     p.add_argument("--seed", type=argtypes.bounded_int(0, 2**32 - 1, "a 32-bit seed"), default=0)
 
 

@@ -17,6 +17,7 @@ import queue
 import tempfile
 import threading
 import time
+from collections import deque
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -395,8 +396,9 @@ class Viewer:
 
 
 def view_recording(path: Path, viewer: Viewer, batch: int = 100) -> int:
-    """Log every pose of an MCAP recording; returns how many were shown."""
-    from bodynet.clients.mcap_store import read_poses
+    """Log every pose of an MCAP recording, and its last clinical metrics;
+    returns how many poses were shown."""
+    from bodynet.clients.mcap_store import read_metrics, read_poses
 
     frames: list[pose.PoseFrame] = []
     count = 0
@@ -405,7 +407,11 @@ def view_recording(path: Path, viewer: Viewer, batch: int = 100) -> int:
         if len(frames) >= batch:
             count += viewer.log_poses(frames)
             frames = []
-    return count + viewer.log_poses(frames)
+    count += viewer.log_poses(frames)
+    last = deque(read_metrics(path), maxlen=1)  # the clinical metrics as they stood at the end
+    if last:
+        viewer.log_metrics(metrics_text(last[0][2]))
+    return count
 
 
 def view_live(session: zenoh.Session, viewer: Viewer, stop: threading.Event) -> int:

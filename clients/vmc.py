@@ -207,7 +207,10 @@ class VmcOutput(LiveOutput):
         self.address = (host, port)
         self.tick_s = 1.0 / rate_hz
         self.rate_hz = rate_hz
-        infos = socket.getaddrinfo(host, port, type=socket.SOCK_DGRAM)
+        try:
+            infos = socket.getaddrinfo(host, port, type=socket.SOCK_DGRAM)
+        except socket.gaierror as exc:
+            raise OSError(f"cannot resolve the receiver's host {host!r}: {exc.strerror}") from None
         self._sock = socket.socket(infos[0][0], socket.SOCK_DGRAM)
         self._start = time.monotonic()
         self._frame: pose.PoseFrame | None = None

@@ -186,6 +186,8 @@ TOPOLOGY = f"{ROOT}/@topology"
 #: repetitions and the smoothness of its current movement (``core/metrics.py``).
 METRICS = f"{ROOT}/@metrics"
 CALIBRATE_TPOSE = f"{ROOT}/@calibrate/tpose"
+#: The yaw reset: the subject faces forward now (a query; the gateway answers).
+CALIBRATE_YAW = f"{ROOT}/@calibrate/yaw"
 #: Liveliness tokens of sensors a bridge sees but no site is assigned to yet:
 #: ``body/@unassigned/<tracker id>`` (the gateway lists them in the topology).
 UNASSIGNED = f"{ROOT}/@unassigned"

@@ -190,6 +190,16 @@ TPOSE: Mapping[str, float] = MappingProxyType(
 )
 
 
+#: Joint angles (deg) of the N-pose (standing neutral: arms down, palms to the
+#: thighs), the other calibration pose: the skeleton's zero pose.
+NPOSE: Mapping[str, float] = MappingProxyType({})
+
+#: The calibration poses by name.
+CALIBRATION_POSES: Mapping[str, Mapping[str, float]] = MappingProxyType(
+    {"tpose": TPOSE, "npose": NPOSE}
+)
+
+
 #: Range of motion (deg) of each dof kind: typical adult limits, used to keep
 #: emulated motion plausible and to clamp and flag measured angles.
 ROM_DEG: Mapping[str, tuple[float, float]] = MappingProxyType(

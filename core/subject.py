@@ -17,8 +17,18 @@ radius_mm = 26.93
 sf_travel_mm = [0.0, 14.1, 28.0, 39.1, 48.6, 52.2]
 sf = [1.0, 1.0, 1.007, 1.084, 1.161, 1.261]
 
-[imu_mounts]           # sensor orientation in its segment (w, x, y, z), from T-pose
+pose = "tpose"         # the calibration pose: tpose or npose
+heading = "auto"       # auto: found from motion; fixed: the subject faced +X of the tags' frame
+
+[imu_mounts]           # sensor orientation in its segment (w, x, y, z), from calibration
 "body/arm/left/upperarm/raw" = [1.0, 0.0, 0.0, 0.0]
+
+[imu_headings]         # each tag's heading reference against the body's forward (deg), once known
+"body/arm/left/upperarm/raw" = 0.0
+
+[heading_reference]    # optional, declared: this tag's axis pointed forward during calibration
+key = "body/trunk/mid/sacrum/raw"
+axis = "+z"
 
 [trackers]             # a sensor that says who it is (SlimeVR: MAC-sensor) -> its site
 "aabbccddeeff-0" = "left-arm/upperarm"
@@ -40,6 +50,18 @@ from .profile import OLE_DOF, SMARTSUIT_SITES
 
 VERSION = 1
 QuatWxyz = tuple[float, float, float, float]
+
+#: Calibration poses: ``tpose`` (arms horizontal, palms down) and ``npose``
+#: (standing neutral: arms down, palms to the thighs).
+POSES = ("tpose", "npose")
+#: How the tags' heading references relate to the body. ``auto``: all tags share
+#: one reference (magnetometer-based sensors) and the subject faced anywhere: the
+#: heading is found from the motion after calibration, or declared. ``fixed``: the
+#: subject faced +X of the shared reference during calibration (emulators, captures
+#: turned by hand).
+HEADING_MODES = ("auto", "fixed")
+#: Sensor axes a declared heading reference may name.
+AXES = ("+x", "-x", "+y", "-y", "+z", "-z")
 
 
 def default_ole_table() -> dict[str, OleCalibration]:
@@ -65,10 +87,40 @@ class Profile:
     trackers: Mapping[str, str] = field(default_factory=dict)  # tracker id -> site name
     accel_counts_per_g: float = 1024.0
     accel_filter: float = 0.5  # weight of a new accelerometer sample in the tilt filter
+    pose: str = "tpose"  # the calibration pose (POSES)
+    heading: str = "auto"  # HEADING_MODES
+    #: raw key -> the heading (deg, about the vertical) of that tag's reference frame
+    #: against the body's forward at calibration; a tag without one has an unknown
+    #: heading (in ``auto`` mode), and the dofs it drives are flagged ``uncalibrated``
+    imu_headings: Mapping[str, float] = field(default_factory=dict)
+    #: declared: (raw key, sensor axis such as "+z") that pointed forward in calibration
+    heading_reference: tuple[str, str] | None = None
     version: int = VERSION
+
+    def __post_init__(self) -> None:
+        if self.pose not in POSES:
+            raise ProfileError(f"pose must be one of {', '.join(POSES)}, not {self.pose!r}")
+        if self.heading not in HEADING_MODES:
+            raise ProfileError(
+                f"heading must be one of {', '.join(HEADING_MODES)}, not {self.heading!r}"
+            )
+        if self.heading_reference is not None and self.heading_reference[1] not in AXES:
+            raise ProfileError(
+                f"heading_reference axis must be one of {', '.join(AXES)}, "
+                f"not {self.heading_reference[1]!r}"
+            )
 
     def with_mounts(self, mounts: Mapping[str, QuatWxyz]) -> Profile:
         return replace(self, imu_mounts=MappingProxyType({**self.imu_mounts, **mounts}))
+
+    def heading_known(self, key: str) -> bool:
+        """Whether the dofs a tag drives can be trusted about the vertical."""
+        return self.heading == "fixed" or key in self.imu_headings
+
+    def heading_of(self, key: str) -> float:
+        """The tag's heading reference (deg; 0 when unknown, or ``fixed`` and not
+        corrected since: a yaw reset, a drift correction)."""
+        return self.imu_headings.get(key, 0.0)
 
     def with_tracker(self, tracker: str, site: str) -> Profile:
         """``tracker`` (its canonical id) sits at ``site`` (``left-arm/upperarm``);
@@ -91,8 +143,14 @@ class Profile:
                 for name, c in sorted(self.ole.items())
             },
             "imu_mounts": {k: list(q) for k, q in sorted(self.imu_mounts.items())},
+            "pose": self.pose,
+            "heading": self.heading,
+            "imu_headings": dict(sorted(self.imu_headings.items())),
             "trackers": dict(sorted(self.trackers.items())),
-        }
+            **({"heading_reference": {"key": self.heading_reference[0],
+                                      "axis": self.heading_reference[1]}}
+               if self.heading_reference else {}),
+        }  # fmt: skip
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any]) -> Profile:
@@ -127,7 +185,15 @@ class Profile:
             accel_filter = float(data.get("accel_filter", 0.5))
             if not 0.0 < accel_filter <= 1.0:
                 raise ProfileError(f"accel_filter must be in (0, 1], not {accel_filter}")
+            ref = data.get("heading_reference")
+            reference = (str(ref["key"]), str(ref["axis"])) if ref is not None else None
             return cls(
+                pose=str(data.get("pose", "tpose")),
+                heading=str(data.get("heading", "auto")),
+                imu_headings=MappingProxyType(
+                    {str(k): float(v) for k, v in data.get("imu_headings", {}).items()}
+                ),
+                heading_reference=reference,
                 subject=str(data.get("subject", "subject-1")),
                 lengths=MappingProxyType(
                     {k: float(v) for k, v in data.get("segments", {}).items()}

@@ -11,7 +11,11 @@ on ``body/@topology`` when it changes and answered as a query there. A site that
 keeps its last sample, flagged stale; other branches carry on. Garbage on the
 raw keys is counted (``body/@health/gateway``), never fatal.
 ``body/@calibrate/tpose`` answers a query by calibrating the IMU mounts from
-the last ``seconds`` of samples (the subject standing in T-pose).
+the last ``seconds`` of samples (the subject standing still in the T-pose, or
+with ``pose=npose`` the N-pose), or refuses with the reason and a report;
+until the tags' heading is known (found from a hinge's motion, see
+gateway/heading.py) the dofs they drive are flagged ``uncalibrated``.
+``body/@calibrate/yaw`` is the yaw reset: the subject faces forward now.
 
 Several subjects: a gateway in a subject's namespace (``--subject``) serves
 that subject as above. With ``all_subjects`` it serves every subject present
@@ -43,8 +47,16 @@ from bodynet.core.keys import BRANCHES, Branch, Site
 from bodynet.core.messages import Quat, RawSample, source_name
 from bodynet.core.subject import Profile, ProfileError, QuatWxyz
 from bodynet.gateway.frames import branch_views, pose_frame
+from bodynet.gateway.heading import (
+    BodyHeading,
+    CalibrationRefused,
+    KneeDrift,
+    calibrate_window,
+    turned_headings,
+    yaw_reset,
+)
 from bodynet.gateway.shards import Share
-from bodynet.gateway.solver import BodyOutput, BodySolver, solve_bodies, tpose_mounts
+from bodynet.gateway.solver import BodyOutput, BodySolver, solve_bodies
 from bodynet.session import profile_file
 
 log = logging.getLogger(__name__)
@@ -96,6 +108,9 @@ class _Body:
         self.prefix = prefix
         self.profile_path = profile_path
         self.solver = BodySolver(profile)
+        self.heading = BodyHeading(profile)  # the tags' heading: known, or being found
+        self.knees: KneeDrift | None = KneeDrift(profile) if profile.imu_mounts else None
+        self.last_output: BodyOutput | None = None
         self.latest: dict[Site, _Site] = {}
         self.alive: set[str] = set()
         self.gone: set[str] = set()  # keys whose token went away
@@ -147,12 +162,15 @@ class _Body:
         kept.sample, kept.arrived, kept.fresh = sample, now, True
         reading = sample.reading
         if type(reading) is Quat:
+            # kept by the sample's own time: the worker takes samples in rounds, and
+            # by arrival a round's samples would all have one time (one kept a round)
+            t = sample.t_ns / 1e9
             hist = kept.history
             if hist is None:
                 hist = kept.history = deque()
-            if not hist or now - hist[-1][0] >= HISTORY_STEP_S:
-                hist.append((now, *reading.wxyz))
-                while now - hist[0][0] > HISTORY_S:
+            if not hist or t - hist[-1][0] >= HISTORY_STEP_S:
+                hist.append((t, *reading.wxyz))
+                while t - hist[0][0] > HISTORY_S:
                     hist.popleft()
         if self.first_new is None:
             self.first_new = now
@@ -219,12 +237,29 @@ class _Body:
             out["unassigned"] = sorted(self.unassigned)
         return out
 
-    def tpose_window(self, now: float, seconds: float) -> dict[Site, list[QuatWxyz]]:
+    def tpose_window(self, now: float, seconds: float
+                     ) -> dict[Site, list[tuple[float, QuatWxyz]]]:  # fmt: skip
+        """Every orientation site's samples (sample time s, (w, x, y, z)) of its last
+        ``seconds`` (an empty list for a site that is stale)."""
         return {
-            site: [(w, x, y, z) for t, w, x, y, z in kept.history if now - t <= seconds]
+            site: [(t, (w, x, y, z)) for t, w, x, y, z in kept.history
+                   if kept.history[-1][0] - t <= seconds] if now - kept.arrived <= STALE_S else []
             for site, kept in self.latest.items()
             if kept.history is not None
         }  # fmt: skip
+
+    def history_s(self) -> float | None:
+        """How far back every orientation site's history reaches (None: no such site)."""
+        spans = [k.history[-1][0] - k.history[0][0] for k in self.latest.values() if k.history]
+        return min(spans, default=None)
+
+    def set_profile(self, profile: Profile, heading: BodyHeading | None = None) -> None:
+        """A new calibration: a new solver, heading state and, if it has a file, saved."""
+        self.solver = BodySolver(profile)
+        self.heading = heading or BodyHeading(profile)
+        self.knees = KneeDrift(profile) if profile.imu_mounts else None
+        if self.profile_path is not None:
+            profile_file.save(profile, self.profile_path)
 
     def close(self) -> None:
         for listener in self._listeners:
@@ -294,6 +329,7 @@ class Gateway:
             for q in (
                 session.declare_queryable(p + keys.TOPOLOGY, self._on_topology_query),
                 session.declare_queryable(p + keys.CALIBRATE_TPOSE, self._on_tpose_query),
+                session.declare_queryable(p + keys.CALIBRATE_YAW, self._on_yaw_query),
             )
         ]
 
@@ -481,34 +517,104 @@ class Gateway:
         for subject, _, key in self._answering(query, keys.TOPOLOGY):
             query.reply(key, json.dumps(self.topology(subject)).encode())
 
-    # --- T-pose calibration ----------------------------------------------------------
+    # --- calibration of the orientation sensors ---------------------------------------
     def calibrate_tpose(
-        self, seconds: float = 1.0, subject: str | None = None
+        self, seconds: float = 1.0, subject: str | None = None, pose: str | None = None
     ) -> dict[str, object]:
-        """Mounts of every orientation sensor of a subject from its last ``seconds``."""
+        """Mounts of every orientation sensor of a subject from its last ``seconds``
+        (still in ``pose``: the profile's by default); the calibration report, or a
+        refusal (``ok`` false, ``error`` why) that leaves the profile as it was.
+        Asked before every sensor has ``seconds`` of history (right after the
+        sensors start), it waits for the window to fill, up to ``2 seconds + 2 s``
+        (the worker may be behind the samples Zenoh holds for it)."""
         body = self._bodies.get(subject)
         if body is None:
             return {"ok": False, "error": "no samples of this subject"}
+        deadline = time.monotonic() + 2 * seconds + 2.0
+        while True:
+            now = time.monotonic()
+            with self._lock:
+                reach = body.history_s()
+            filled = reach is None or reach >= seconds
+            if filled or now >= deadline:
+                break
+            time.sleep(0.02)
         with self._lock:
-            window = body.tpose_window(time.monotonic(), seconds)
-        mounts = tpose_mounts({s: q for s, q in window.items() if q}, body.solver.profile)
-        if not mounts:
-            return {"ok": False, "error": "no orientation samples in the window"}
-        profile = body.solver.profile.with_mounts(mounts)
+            window = body.tpose_window(now, seconds)
+            profile = body.solver.profile
+        try:
+            result = calibrate_window(window, profile, pose, expected=window, seconds=seconds)
+        except (CalibrationRefused, ValueError, ProfileError) as exc:
+            log.warning("calibration refused: %s", str(exc))
+            report = exc.report if isinstance(exc, CalibrationRefused) else {}
+            return {"ok": False, "error": str(exc), **{k: v for k, v in report.items()
+                                                        if k not in ("ok", "error")}}
+        profile = result.apply(profile, pose)
         with self._lock:
-            body.solver = BodySolver(profile)
-        if body.profile_path is not None:
-            profile_file.save(profile, body.profile_path)
-        log.info("T-pose calibration of %d sensors", len(mounts))
-        return {"ok": True, "calibrated": sorted(mounts), "profile": str(body.profile_path or "")}
+            body.set_profile(profile)
+        log.info("calibration (%s) of %d sensors; heading %s", profile.pose, len(result.mounts),
+                 result.report["heading"]["state"])  # fmt: skip
+        return {**result.report, "profile": str(body.profile_path or "")}
 
     def _on_tpose_query(self, query: zenoh.Query) -> None:
         try:
             seconds = float(query.parameters.get("seconds") or 1.0)
         except ValueError:
             seconds = 1.0
-        for subject, _, key in self._answering(query, keys.CALIBRATE_TPOSE):
-            query.reply(key, json.dumps(self.calibrate_tpose(seconds, subject)).encode())
+        pose = query.parameters.get("pose") or None
+        try:
+            for subject, _, key in self._answering(query, keys.CALIBRATE_TPOSE):
+                try:
+                    answer = self.calibrate_tpose(seconds, subject, pose)
+                except Exception as exc:  # a calibration that fails must not end the service
+                    log.exception("gateway: calibration failed")
+                    answer = {"ok": False, "error": f"calibration failed: {exc}"}
+                query.reply(key, json.dumps(answer).encode())
+        finally:
+            # answered: a refusal's traceback can keep this frame, and so the query,
+            # alive until a collection, and the asker would wait for its end till then
+            query.drop()
+
+    def reset_yaw(self, subject: str | None = None) -> dict[str, object]:
+        """The yaw reset: the subject faces forward now (see :func:`yaw_reset`)."""
+        body = self._bodies.get(subject)
+        if body is None or body.last_output is None:
+            return {"ok": False, "error": "no pose of this subject yet"}
+        with self._lock:
+            output, profile = body.last_output, body.solver.profile
+        try:
+            profile, turned = yaw_reset(profile, output)
+        except ValueError as exc:
+            return {"ok": False, "error": str(exc)}
+        with self._lock:
+            body.set_profile(profile)
+        return {"ok": True, "turned_deg": round(turned, 2), "heading": body.heading.state()}
+
+    def _on_yaw_query(self, query: zenoh.Query) -> None:
+        try:
+            for subject, _, key in self._answering(query, keys.CALIBRATE_YAW):
+                query.reply(key, json.dumps(self.reset_yaw(subject)).encode())
+        finally:
+            query.drop()
+
+    def _find_headings(self, work: Sequence[tuple[_Body, dict[Site, RawSample], object, object]],
+                       now: float) -> None:  # fmt: skip
+        """Feed the bodies whose tags' heading is still unknown their tick; take a
+        heading once found (a new solver, the profile saved). Once known, the knees'
+        hinge constraint keeps the shank tags' headings from drifting (KneeDrift)."""
+        for body, latest, _, _ in work:
+            if not body.heading.unknown:
+                if body.knees is not None and body.knees.knees:  # 6-axis drift at the knees
+                    turns = body.knees.update(now, latest, body.solver.profile)
+                    if turns:
+                        with self._lock:
+                            body.solver.set_profile(turned_headings(body.solver.profile, turns))
+                continue
+            found = body.heading.update(now, latest)
+            if found is not None:
+                with self._lock:
+                    body.set_profile(found, body.heading)
+                log.info("heading found: %s", body.heading.state())
 
     # --- the work loop -----------------------------------------------------------------
     def run(self, stop: threading.Event) -> None:
@@ -638,6 +744,7 @@ class Gateway:
             return
         self._publish([(body, output, stale) for (body, _, stale, _), output
                        in zip(work, outputs, strict=True)])  # fmt: skip
+        self._find_headings(work, now)
 
     def _publish(self, ticks: list[tuple[_Body, BodyOutput, list[str]]]) -> None:
         """Count the bodies' ticks and publish what someone listens to. Every message
@@ -646,6 +753,7 @@ class Gateway:
         messages = []
         for body, output, stale in ticks:
             body.ticks += 1
+            body.last_output = output
             whole, branches = body.listened()
             if whole or branches:
                 messages += body.messages(pose_frame(output, body.ticks, stale), whole, branches)
@@ -673,7 +781,13 @@ class Gateway:
             out["share"] = {"gateway": self.share.id, "members": sorted(self.share.members),
                             "foreign_samples": self.foreign_samples}  # fmt: skip
         if body is not None:
-            out["body"] = {"samples": body.samples, "ticks": body.ticks}
+            heading = body.heading.state()
+            if body.knees is not None and body.knees.knees:
+                # how far the knees' hinge has turned each shank tag's heading since
+                # calibration (6-axis drift); the other tags' drift is not corrected
+                heading["knee_corrected_deg"] = {k: round(v, 2) for k, v
+                                                 in body.knees.corrected_deg.items()}  # fmt: skip
+            out["body"] = {"samples": body.samples, "ticks": body.ticks, "heading": heading}
             # sites by the source they come through, ids this version has no name for too
             with self._lock:
                 kinds = Counter(source_name(s.sample.source) for s in body.latest.values())

@@ -35,7 +35,7 @@ from scipy.spatial.transform import Rotation
 from bodynet.core.keys import Site
 from bodynet.core.messages import OleAccel, Quat, RawSample
 from bodynet.core.profile import OLE_DOF, mount
-from bodynet.core.skeleton import TPOSE, Joint, build_skeleton, rom
+from bodynet.core.skeleton import CALIBRATION_POSES, TPOSE, Joint, build_skeleton, rom
 from bodynet.core.subject import Profile, QuatWxyz
 from bodynet.kinematics.model import BodyModel, accel_axes
 
@@ -241,11 +241,15 @@ class _SplitBatch:
         return chosen  # type: ignore[no-any-return]
 
     def commit(
-        self, rows: np.ndarray, values: np.ndarray, calibration_inv: np.ndarray
+        self, rows: np.ndarray, values: np.ndarray, calibration_inv: np.ndarray,
+        relative: np.ndarray,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """What committing a joint does, for many at once: angles (m, 3) clamped to
         the range of motion, which were clamped, the joint rotations (m, 3, 3) and
-        each joint's total rotation (deg) from the calibration pose."""
+        each joint's total rotation (deg) from the calibration pose (its rotation
+        there inverted: ``calibration_inv``, (m, 3, 3)), taken from the measured
+        relative rotations ``relative`` (m, 3, 3), not from the clamped dofs: how a
+        rotation splits into dofs is ambiguous at a gimbal lock, the rotation is not."""
         lo, hi = self.lo[rows], self.hi[rows]
         clamped = (values < lo) | (values > hi)
         values = np.clip(values, lo, hi)
@@ -254,7 +258,7 @@ class _SplitBatch:
         dofs = _axis_rotations(self.axis[rows].reshape(-1, 3),
                                np.radians(values).ravel()).reshape(-1, 3, 3, 3)  # fmt: skip
         matrices = dofs[:, 0] @ dofs[:, 1] @ dofs[:, 2]
-        total = _angles_deg(calibration_inv[rows] @ matrices)
+        total = _angles_deg(calibration_inv @ relative)
         return values, clamped, matrices, total
 
 
@@ -314,8 +318,9 @@ class _Tick:
     """One body's working state during one solve: plain data that its
     :class:`BodySolver` fills (:meth:`BodySolver._gather`) and reads."""
 
-    __slots__ = ("angles", "direct_rot", "direct_rows", "flags", "last", "measured", "modules",
-                 "mounts", "plan", "quats", "rel", "segs", "solver", "sources", "t_ns")  # fmt: skip
+    __slots__ = ("angles", "direct_rot", "direct_rows", "flags", "last", "lefts", "measured",
+                 "modules", "mounts", "plan", "quats", "rel", "segs", "solver", "sources", "t_ns",
+                 "unknown")  # fmt: skip
 
     def __init__(self, solver: BodySolver, last: np.ndarray | None) -> None:
         self.solver = solver
@@ -323,6 +328,8 @@ class _Tick:
         self.segs: list[str] = []  # segments with an orientation sensor (the first one wins)
         self.quats: list[QuatWxyz] = []
         self.mounts: list[np.ndarray] = []
+        self.lefts: list[np.ndarray] = []  # each sensor's turn into the body's heading
+        self.unknown: set[str] = set()  # segments whose sensor's heading is not known
         self.modules: dict[str, tuple[Site, OleAccel]] = {}  # SmartSuit modules by segment
         self.sources: dict[str, int] = {}
         self.t_ns = 0
@@ -356,8 +363,9 @@ class BodySolver:
         self.skeleton = build_skeleton(self.profile.lengths)
         self.model = BodyModel(self.skeleton)
         self.axes = {j.name: JointAxes.of(j) for j in self.skeleton.joints}
+        pose = CALIBRATION_POSES[self.profile.pose]
         self._calibration = {
-            j.name: self.axes[j.name].matrix(np.array([TPOSE.get(n, 0.0) for n in j.angle_names()]))
+            j.name: self.axes[j.name].matrix(np.array([pose.get(n, 0.0) for n in j.angle_names()]))
             for j in self.skeleton.joints
         }
         self._batch = _SplitBatch([self.axes[j.name] for j in self.skeleton.joints])
@@ -376,18 +384,46 @@ class BodySolver:
                                 strict=True):  # fmt: skip
             self._slices[joint.name] = slice(start, start + len(joint.dofs))
         self._memory = _Memory()
-        self._sites: dict[Site, tuple[str, np.ndarray, str, bool]] = {}
+        self._sites: dict[Site, tuple[str, np.ndarray, str, bool, np.ndarray, bool]] = {}
         self._plans: dict[tuple[str, ...], tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
 
-    def _site(self, site: Site) -> tuple[str, np.ndarray, str, bool]:
+    def _site(self, site: Site) -> tuple[str, np.ndarray, str, bool, np.ndarray, bool]:
         """The segment a sensor rides on, its mount's inverse (for orientation
-        sensors), its raw key, and whether it is a SmartSuit module."""
+        sensors), its raw key, whether it is a SmartSuit module, the turn from its
+        reference frame to the body's (``Rz(-heading)``, see gateway/heading.py) and
+        whether that heading is known."""
         known = self._sites.get(site)
         if known is None:
-            w, x, y, z = self.profile.imu_mounts.get(site.raw_key, (1.0, 0.0, 0.0, 0.0))
-            known = self._sites[site] = (mount(site).segment, _matrix((w, x, y, z)).T,
-                                         site.raw_key, site.name in OLE_DOF)  # fmt: skip
+            key = site.raw_key
+            w, x, y, z = self.profile.imu_mounts.get(key, (1.0, 0.0, 0.0, 0.0))
+            known = self._sites[site] = (
+                mount(site).segment, _matrix((w, x, y, z)).T, key, site.name in OLE_DOF,
+                _rot(np.array([0.0, 0.0, 1.0]), -math.radians(self.profile.heading_of(key))),
+                self.profile.heading_known(key),
+            )  # fmt: skip
         return known
+
+    def _flag_uncalibrated(self, tick: _Tick) -> None:
+        """Flag ``uncalibrated`` every dof that a sensor of unknown heading drives:
+        the joints next to its segment, and down the chain while the segments'
+        orientations come from their parents (SmartSuit modules)."""
+        unknown, tainted, measured = tick.unknown, set(tick.unknown), tick.measured
+        for joint in self.skeleton.joints:
+            if joint.parent in tainted or joint.child in unknown:
+                if joint.child not in measured:
+                    tainted.add(joint.child)
+                for name in self.axes[joint.name].names:
+                    if tick.flags.get(name) != "unobserved":
+                        tick.flags[name] = "uncalibrated"
+
+    def set_profile(self, profile: Profile) -> None:
+        """Take a profile of the same body (lengths, calibration pose) whose mounts or
+        headings changed, keeping the body's memory (the last angles...): a heading
+        that drifts is corrected tick by tick without starting the body again."""
+        if profile.lengths != self.profile.lengths or profile.pose != self.profile.pose:
+            raise ValueError("set_profile keeps the body: new lengths or pose need a new solver")
+        self.profile = profile
+        self._sites.clear()
 
     def solve(self, samples: Mapping[Site, RawSample]) -> BodyOutput:
         """Angles and poses from the latest sample of each site."""
@@ -416,7 +452,8 @@ class BodySolver:
         quats = [q for t in ticks for q in t.quats]
         if quats:
             sensors = Rotation.from_quat(np.array(quats), scalar_first=True).as_matrix()
-            segments = sensors @ np.array([m for t in ticks for m in t.mounts])
+            segments = (np.array([m for t in ticks for m in t.lefts]) @ sensors
+                        @ np.array([m for t in ticks for m in t.mounts]))  # fmt: skip
             start = 0
             for tick in ticks:
                 tick.measured = dict(zip(tick.segs, segments[start : start + len(tick.segs)],
@@ -425,6 +462,8 @@ class BodySolver:
             first._solve_direct(ticks, segments, angles, rel)
         for tick in ticks:
             tick.solver._solve_rest(tick)
+            if tick.unknown:
+                tick.solver._flag_uncalibrated(tick)
         return first._outputs(ticks)
 
     def _gather(self, samples: Mapping[Site, RawSample]) -> _Tick:
@@ -434,7 +473,7 @@ class BodySolver:
         seen: set[str] = set()
         known, t_ns = self._sites, 0
         for site, sample in samples.items():
-            seg, mount_inv, key, module = known.get(site) or self._site(site)
+            seg, mount_inv, key, module, left, heading_known = known.get(site) or self._site(site)
             sources[key] = t = sample.t_ns
             t_ns = max(t_ns, t)
             r = sample.reading
@@ -444,6 +483,9 @@ class BodySolver:
                     tick.segs.append(seg)
                     tick.quats.append(r.wxyz)
                     tick.mounts.append(mount_inv)
+                    tick.lefts.append(left)
+                    if not heading_known:
+                        tick.unknown.add(seg)
             elif module:
                 tick.modules[seg] = (site, r)  # type: ignore[assignment]
         tick.t_ns = t_ns
@@ -475,8 +517,11 @@ class BodySolver:
         index = batch.angle_index[rows]
         nothing = np.zeros(angles.shape[1])  # a body's first tick: no previous angles
         last = np.stack([t.last if t.last is not None else nothing for t in ticks])
+        # each body's own calibration pose (T or N): the total rotations are from it
+        calibration_inv = np.stack([t.solver._calibration_inv for t in ticks])[owner, rows]
         values, clamped, matrices, total = batch.commit(
-            rows, batch.split(rows, relative, last[owner[:, None], index]), self._calibration_inv
+            rows, batch.split(rows, relative, last[owner[:, None], index]), calibration_inv,
+            relative,
         )
         angles[owner[:, None], index] = values
         angles[:, -1] = 0.0  # the absent dofs' column
@@ -547,8 +592,10 @@ class BodySolver:
             parent = world[joint.parent]
             previous = last[self._slices[joint.name]] if last is not None else None
             names = ax.names
+            relative = None
             if joint.child in measured:
-                values = ax.split(parent.T @ measured[joint.child], previous)
+                relative = parent.T @ measured[joint.child]
+                values = ax.split(relative, previous)
             elif joint.child in modules:
                 site, reading = modules[joint.child]
                 values = self._from_module(joint, ax, parent, site, reading, previous, tick.flags)
@@ -564,11 +611,13 @@ class BodySolver:
             else:
                 values = np.zeros(len(names))
                 tick.flags.update(dict.fromkeys(names, "unobserved"))
-            self._commit(tick, world, joint, values)
+            self._commit(tick, world, joint, values, relative)
 
     def _commit(self, tick: _Tick, world: dict[str, np.ndarray], joint: Joint,
-                values: np.ndarray) -> None:  # fmt: skip
-        """Clamp to the range of motion, record, and carry the chain on."""
+                values: np.ndarray, relative: np.ndarray | None = None) -> None:  # fmt: skip
+        """Clamp to the range of motion, record, and carry the chain on. The total
+        rotation from the calibration pose is the measured ``relative`` rotation's
+        when there is one (see :meth:`_SplitBatch.commit`)."""
         ax = self.axes[joint.name]
         for i, (name, (lo, hi)) in enumerate(zip(ax.names, ax.limits, strict=True)):
             if not lo <= values[i] <= hi:
@@ -578,7 +627,7 @@ class BodySolver:
         joint_rot = ax.matrix(values)
         world[joint.child] = world[joint.parent] @ joint_rot
         tick.rel[self._batch.index[joint.name]] = _angle_deg(
-            self._calibration[joint.name].T @ joint_rot
+            self._calibration[joint.name].T @ (joint_rot if relative is None else relative)
         )
 
     def _forward(self, tick: _Tick) -> tuple[np.ndarray, np.ndarray]:

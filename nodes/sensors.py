@@ -9,8 +9,11 @@
   +/-2 g (12 bits). Mounted with x along the segment pointing away from the
   body, y along the joint's flexion axis, z = x cross y.
 - IMU tag (003 seed): the segment's orientation through an arbitrary mounting
-  rotation, with noise and an optional slow yaw drift about the world vertical
-  (all tags share one heading reference).
+  rotation, with noise, given in the tag's own reference frame (z up): that
+  frame's heading against the body's forward is ``headings_deg`` (one value for
+  all tags: a magnetometer-based sensor's earth frame, the subject facing
+  anywhere; or one per tag: 6-axis tags each starting with a heading of its
+  own), and it drifts about the vertical at ``drift_deg_per_min`` (per tag).
 """
 
 from __future__ import annotations
@@ -82,15 +85,19 @@ class QuatBank:
 
     mounts: Rotation  # k mounting rotations, sensor in segment
     noise_deg: float = 0.0
-    yaw_drift_deg_per_min: float = 0.0
+    yaw_drift_deg_per_min: float | np.ndarray = 0.0  # one rate, or one per sensor (k,)
     rng: np.random.Generator = field(default_factory=np.random.default_rng)
+    headings_deg: float | np.ndarray = 0.0  # each sensor's reference heading at t = 0
 
     def read(self, world_segment: np.ndarray, t_s: float) -> np.ndarray:
-        """Unit quaternions (k, 4) w, x, y, z of the sensors in the world at ``t_s``."""
+        """Unit quaternions (k, 4) w, x, y, z of the sensors in their reference
+        frames at ``t_s``."""
         rot = Rotation.from_matrix(world_segment) * self.mounts
-        if self.yaw_drift_deg_per_min:
-            drift = math.radians(self.yaw_drift_deg_per_min) * t_s / 60.0
-            rot = Rotation.from_rotvec([0.0, 0.0, drift]) * rot
+        heading = np.radians(self.headings_deg + np.asarray(self.yaw_drift_deg_per_min) * t_s / 60)
+        if np.any(heading):
+            yaw = np.zeros((len(rot), 3))
+            yaw[:, 2] = heading
+            rot = Rotation.from_rotvec(yaw) * rot
         if self.noise_deg:
             noise = self.rng.normal(0.0, math.radians(self.noise_deg), (len(rot), 3))
             rot = Rotation.from_rotvec(noise) * rot

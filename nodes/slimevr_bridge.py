@@ -49,7 +49,7 @@ class SlimeVRBridge(Bridge):
         self.trackers: dict[int, str] = {}  # node -> tracker id
         self.unassigned_samples = 0
         self._unassigned: dict[str, zenoh.LivelinessToken] = {}
-        self._last_seen: dict[int, float] = {}  # node -> monotonic
+        self._heard: dict[object, float] = {}  # tracker address -> its last datagram (monotonic)
         self._pings: dict[int, float] = {}  # ping id -> monotonic time sent
         self._ping_id = 0
         self._lock = threading.Lock()
@@ -92,7 +92,6 @@ class SlimeVRBridge(Bridge):
 
     # --- the adapter's sink -------------------------------------------------------------
     def sample(self, reading: Reading, seq: int, t_s: float) -> None:
-        self._last_seen[reading.node] = time.monotonic()
         if reading.node not in self.publisher.sites:
             tracker = self.trackers.get(reading.node)
             site = self.assignments.get(tracker) if tracker else None
@@ -140,11 +139,13 @@ class SlimeVRBridge(Bridge):
                 except OSError as exc:  # e.g. ICMP port unreachable reported on Linux
                     log.debug("%s: %s", self.publisher.name, exc)
                     data = b""
+                now = time.monotonic()
                 if data:
                     self.feed(self.server.receive(data, addr))
+                    if addr in self.server.connections:  # a tracker that shook hands
+                        self._heard[addr] = now
                     for to, reply in self.server.take_replies():
                         self._send(to, reply)
-                now = time.monotonic()
                 if now >= next_beat:
                     next_beat = now + codec.HEARTBEAT_S
                     self._beat(now)
@@ -159,11 +160,13 @@ class SlimeVRBridge(Bridge):
             log.debug("%s: cannot answer %s: %s", self.publisher.name, to, exc)
 
     def _beat(self, now: float) -> None:
-        """Heartbeats and a ping to every tracker; forget the silent ones."""
+        """Heartbeats and a ping to every tracker; forget the silent ones (a tracker
+        that comes back shakes hands again; one that never streams, e.g. a
+        forged handshake, holds no place for long)."""
         for addr, conn in list(self.server.connections.items()):
-            seen = max((self._last_seen.get(n, 0.0) for n in conn.nodes.values()), default=0.0)
-            if seen and now - seen > codec.TRACKER_TIMEOUT_S:
-                self.server.forget(addr)  # it will shake hands again when it is back
+            if now - self._heard.get(addr, now) > codec.TRACKER_TIMEOUT_S:
+                self.server.forget(addr)
+                self._heard.pop(addr, None)
                 for node in conn.nodes.values():
                     tracker = self.trackers.get(node)
                     token = self._unassigned.pop(tracker, None) if tracker else None

@@ -6,24 +6,39 @@ capture's time order and grouped into ticks of ``1 / tick_hz`` (a data-matrix
 frame, or a concentrator reply, is always one tick); after each tick the body
 is solved as the live gateway would and the pose written to MCAP at the
 tick's time, together with the raw samples. Orientation sensors are first
-calibrated from the first ``tpose_s`` seconds (the subject in T-pose), unless
-the profile already holds their mounts.
+calibrated from a still window (the first ``tpose_s`` seconds, or ``window``;
+none with ``tpose_s`` 0: the orientations are then the segments' own, in the
+body's frame, as bodynet exports them;
+of this capture or of another recording, ``calibrate_from``), unless the
+profile already holds their mounts and no window is asked for: a window in
+which the subject moved, too short, or missing a tag is refused
+(:class:`~bodynet.gateway.heading.CalibrationRefused`). Where the tags'
+heading is unknown (``auto``), a first pass finds it from a hinge's motion
+(gateway/heading.py), so that every tick is solved with it; if no hinge moves,
+the dofs the tags drive stay flagged ``uncalibrated``.
 """
 
 from __future__ import annotations
 
 from collections.abc import Iterator, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
+from types import MappingProxyType
 from typing import Any
 
 from bodynet.clients.mcap_store import McapSink
 from bodynet.core import keys
 from bodynet.core.keys import BRANCHES, Site
-from bodynet.core.messages import Quat, RawSample
-from bodynet.core.subject import Profile
+from bodynet.core.messages import Quat, RawSample, Reading
+from bodynet.core.subject import Profile, QuatWxyz
 from bodynet.gateway.frames import branch_views, pose_frame
-from bodynet.gateway.solver import BodySolver, tpose_mounts
+from bodynet.gateway.heading import (
+    BodyHeading,
+    CalibrationRefused,
+    WindowCalibration,
+    calibrate_window,
+)
+from bodynet.gateway.solver import BodySolver
 from bodynet.nodes import sources
 from bodynet.nodes.sources.base import CapturedSample, CaptureStats
 
@@ -34,8 +49,54 @@ class ProcessResult:
     samples: int
     calibrated: list[str]
     stats: CaptureStats
+    calibration: dict[str, Any] | None = None  # the calibration report, when it calibrated
+    heading: dict[str, Any] | None = None  # where the tags' heading stands (BodyHeading.state)
+    refused: str | None = None  # why the default window could not calibrate (then it did not)
     #: seconds from the capture's first sample to its last
     span_s: float = 0.0
+
+
+def recorded_samples(path: Path, fmt: str | None, stats: CaptureStats,
+                     rate_hz: float | None = None, options: Mapping[str, Any] | None = None,
+                     ) -> Iterator[tuple[float, Site, Reading]]:  # fmt: skip
+    """(time s, site, reading) of a recording: an MCAP file's raw samples (``fmt``
+    ``mcap`` or the file's suffix), or a capture of any source's format."""
+    if fmt == "mcap" or (fmt is None and path.suffix.lower() == ".mcap"):
+        from bodynet.clients.mcap_store import read_raw
+
+        for topic, _, sample in read_raw(path):
+            try:
+                site, _stream = keys.parse(topic)
+            except keys.KeySpaceError:
+                continue
+            stats.decoded += 1
+            yield sample.t_ns / 1e9, site, sample.reading
+        return
+    if fmt is None:
+        raise ValueError(f"{path}: say which --format the recording is in")
+    source = sources.by_format(fmt).from_options(options or {})
+    for s in source.read(path, fmt, stats, rate_hz):
+        yield s.t_s, s.site, s.reading
+
+
+def calibrate_recording(samples: Iterator[tuple[float, Site, Reading]], profile: Profile,
+                        window: tuple[float, float], pose: str | None = None,
+                        strict: bool = True) -> WindowCalibration:  # fmt: skip
+    """Calibrate the orientation sensors from ``window`` (seconds from the
+    recording's first sample, the end excluded) of a recording: every tag the
+    recording holds must be in it, still, and with ``strict`` for most of the
+    window's length (see :func:`~bodynet.gateway.heading.calibrate_window`)."""
+    start, end = window
+    found: dict[Site, list[tuple[float, QuatWxyz]]] = {}
+    first: float | None = None
+    for t, site, reading in samples:
+        first = t if first is None else first
+        if isinstance(reading, Quat):
+            seen = found.setdefault(site, [])
+            if start <= t - first < end:
+                seen.append((t, reading.wxyz))
+    return calibrate_window(found, profile, pose, expected=found,
+                            seconds=end - start if strict else None)  # fmt: skip
 
 
 def _ticks(samples: Iterator[CapturedSample], period_s: float) -> Iterator[list[CapturedSample]]:
@@ -52,25 +113,54 @@ def _ticks(samples: Iterator[CapturedSample], period_s: float) -> Iterator[list[
 def process(path: Path, fmt: str, out: Path, profile: Profile | None = None,
             rate_hz: float | None = None, tick_hz: float = 100.0,
             tpose_s: float = 3.0, options: Mapping[str, Any] | None = None,
-            calibration: tuple[Path, str] | None = None) -> ProcessResult:  # fmt: skip
+            calibration: tuple[Path, str | None] | None = None, *,
+            window: tuple[float, float] | None = None,
+            pose: str | None = None) -> ProcessResult:  # fmt: skip
     """Solve every tick of a capture and write poses and raw samples to ``out``
     (``options``: the source's capture options, e.g. an orientation file's ``map``).
-    The T-pose is the first ``tpose_s`` seconds of the capture, or of
-    ``calibration`` (another file of the session, and its format)."""
+    The calibration pose is the first ``tpose_s`` seconds, or ``window``, of the
+    capture or of ``calibration`` (another file of the session, and its format).
+    Raises ``CalibrationRefused`` (nothing written) when an asked-for calibration
+    window (``window``, ``calibration``) cannot be used; when the default one
+    (the first ``tpose_s``) cannot, the capture is solved without it
+    (``ProcessResult.refused`` says why)."""
     source = sources.by_format(fmt).from_options(options or {})
     profile = profile or Profile()
-    window: dict[Site, list[tuple[float, float, float, float]]] = {}
-    start: float | None = None
-    cal_path, cal_fmt = calibration or (path, fmt)
-    cal_source = sources.by_format(cal_fmt).from_options(options or {})
-    for s in cal_source.read(cal_path, cal_fmt, CaptureStats(), rate_hz):
-        start = s.t_s if start is None else start
-        if s.t_s - start >= tpose_s:
-            break
-        if isinstance(s.reading, Quat) and s.site.raw_key not in profile.imu_mounts:
-            window.setdefault(s.site, []).append(s.reading.wxyz)
-    mounts = tpose_mounts(window, profile) if window else {}
-    solver = BodySolver(profile.with_mounts(mounts))
+    uncalibrated = {
+        site for _, site, reading in recorded_samples(path, fmt, CaptureStats(), rate_hz, options)
+        if isinstance(reading, Quat) and site.raw_key not in profile.imu_mounts
+    }  # fmt: skip
+    calibrated, refused = None, None
+    if uncalibrated and tpose_s <= 0 and window is None and calibration is None:
+        # no calibration window: the orientations are the segments' own, in the body's
+        # frame (as bodynet exports them), so their mounts are none and heading 0
+        profile = replace(profile, imu_headings=MappingProxyType(
+            {**profile.imu_headings, **{s.raw_key: 0.0 for s in uncalibrated}}))
+    elif uncalibrated or window is not None or calibration is not None:
+        where, where_fmt = calibration or (path, fmt)
+        asked = window is not None or calibration is not None
+        try:
+            calibrated = calibrate_recording(
+                recorded_samples(where, where_fmt, CaptureStats(), rate_hz, options), profile,
+                window or (0.0, tpose_s), pose, strict=window is not None,
+            )
+        except CalibrationRefused as exc:
+            if asked:
+                raise
+            # the default window (the capture's first seconds) is not a still pose: the
+            # capture is solved uncalibrated, its tags' dofs flagged, and the user told
+            refused = str(exc)
+        else:
+            profile = calibrated.apply(profile, pose)
+    heading = BodyHeading(profile)
+    if heading.unknown:  # a first pass: the heading from a hinge's motion, if one moves
+        latest: dict[Site, RawSample] = {}
+        for tick in _ticks(source.read(path, fmt, CaptureStats(), rate_hz), 1.0 / tick_hz):
+            for s in tick:
+                latest[s.site] = RawSample(s.reading, 0, 0)
+            if heading.update(tick[-1].t_s, latest) is not None:
+                break
+    solver = BodySolver(heading.profile)
     stats = CaptureStats()
     sink = McapSink(out)
     latest: dict[Site, RawSample] = {}
@@ -96,4 +186,6 @@ def process(path: Path, fmt: str, out: Path, profile: Profile | None = None,
     finally:
         sink.close()
     span = 0.0 if first_t is None else last_t - first_t
-    return ProcessResult(ticks, stats.decoded, sorted(mounts), stats, span)
+    return ProcessResult(ticks, stats.decoded, sorted(calibrated.mounts) if calibrated else [],
+                         stats, calibrated.report if calibrated else None, heading.state(),
+                         refused, span)

@@ -18,8 +18,10 @@ from __future__ import annotations
 
 import contextlib
 import os
+import signal
 import stat
 import tempfile
+import threading
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import IO, Any
@@ -71,6 +73,31 @@ def atomic_path(
     An ``OSError`` raised in the block about the temporary file, or by the
     final rename, becomes ``OutputError`` naming ``output``."""
     check_output(output, inputs)
+    with _terminate_unwinds():
+        yield from _atomic(output, suffix)
+
+
+@contextlib.contextmanager
+def _terminate_unwinds() -> Iterator[None]:
+    """SIGTERM (a ``kill``, a service manager) ends the process through
+    ``SystemExit`` while an output is being written, so that the temporary file
+    is removed as on Ctrl-C (only where SIGTERM would otherwise kill at once)."""
+    main = threading.current_thread() is threading.main_thread()
+    if not main or signal.getsignal(signal.SIGTERM) is not signal.SIG_DFL:
+        yield
+        return
+
+    def terminate(signum: int, _frame: object) -> None:
+        raise SystemExit(128 + signum)
+
+    signal.signal(signal.SIGTERM, terminate)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)
+
+
+def _atomic(output: Path, suffix: str) -> Iterator[Path]:
     try:
         fd, name = tempfile.mkstemp(prefix=f".{output.name}.", suffix=suffix, dir=output.parent)
     except OSError as exc:

@@ -130,7 +130,7 @@ GRANTS: dict[Role, dict[str, tuple[str, ...]]] = {
         "read": (_RAW,),
         "watch": (_RAW,),
         "write": (_POSES, keys.TOPOLOGY, keys.health_key("gateway")),
-        "serve": (keys.TOPOLOGY, keys.CALIBRATE_TPOSE),
+        "serve": (keys.TOPOLOGY, keys.CALIBRATE_TPOSE, keys.CALIBRATE_YAW),
     },
     Role.VIEWER: {
         "read": (_POSES, keys.TOPOLOGY, keys.all_health()),
@@ -149,7 +149,7 @@ GRANTS: dict[Role, dict[str, tuple[str, ...]]] = {
 #: The admin may do anything anywhere: ``**`` never matches ``@`` chunks, so
 #: bodynet's admin keys and Zenoh's admin space are named too.
 ADMIN_KEYS = ("**", f"**/{keys.HEALTH}/**", f"**/{keys.TOPOLOGY}",
-              f"**/{keys.CALIBRATE_TPOSE}", "@/**")  # fmt: skip
+              f"**/{keys.CALIBRATE_TPOSE}", f"**/{keys.CALIBRATE_YAW}", "@/**")  # fmt: skip
 
 
 def _prefix(identity: Identity, named_subjects: bool) -> str:

@@ -95,7 +95,7 @@ def _candidates(files: dict[str, Path]) -> list[str]:
     return ["1", "0.5", "115200", str(files["file"]), str(files["new"]), "tcp/127.0.0.1:7447",
             "body/**", "left_elbow", "x=left-arm/upperarm", "left-arm/upperarm",
             "aabbccddeeff-0", "aabbccddeeff-0=left-arm/upperarm", "127.0.0.1:6969", "0:1",
-            "rerun+http://127.0.0.1:9876/proxy", "x"]  # fmt: skip
+            "rerun+http://127.0.0.1:9876/proxy", "sacrum:+z", "x"]  # fmt: skip
 
 
 def _valid(action: argparse.Action, files: dict[str, Path]) -> str:
@@ -583,7 +583,7 @@ def test_a_full_disk_names_the_output_and_leaves_no_half_file(
     assert [p.name for p in tmp_path.iterdir()] == ["big.csv"]  # no temporary file left
 
 
-def test_a_full_or_closed_stdout_is_an_error(corpus: dict[str, Path]) -> None:
+def test_a_full_or_closed_stdout_is_an_error(corpus: dict[str, Path], tmp_path: Path) -> None:
     capture = corpus["smartsuit_arm.log"]
     with open("/dev/full", "w") as full:
         result = subprocess.run([str(BODYNET), "decode", "--format", "can-log", str(capture)],
@@ -593,6 +593,12 @@ def test_a_full_or_closed_stdout_is_an_error(corpus: dict[str, Path]) -> None:
     assert "cannot write the samples to stdout: No space left on device" in result.stderr
     assert "Traceback" not in result.stderr
     assert "Exception ignored" not in result.stderr
+    with open("/dev/full", "w") as full:  # any command whose report goes to stdout
+        result = subprocess.run([str(BODYNET), "certs", str(tmp_path / "certs")],
+                                stdout=full, stderr=subprocess.PIPE, text=True, timeout=60,
+                                check=False)  # fmt: skip
+    assert result.returncode == 1
+    assert result.stderr == "bodynet certs: cannot write its output: No space left on device\n"
     closed = subprocess.run(f"'{BODYNET}' decode --format can-log '{capture}' >&-", shell=True,
                             capture_output=True, text=True, timeout=60, check=False)  # fmt: skip
     assert closed.returncode == 2
@@ -603,3 +609,19 @@ def test_a_full_or_closed_stdout_is_an_error(corpus: dict[str, Path]) -> None:
 
 
 
+
+
+def test_a_terminated_write_leaves_the_earlier_file_and_no_half_file(tmp_path: Path) -> None:
+    from bodynet.session.outputs import atomic_file
+
+    assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL
+    out = tmp_path / "out.csv"
+    out.write_text("an earlier export\n")
+    with pytest.raises(SystemExit) as ended, atomic_file(out) as f:  # noqa: PT012
+        f.write("half a row,")
+        os.kill(os.getpid(), signal.SIGTERM)  # a kill while writing
+        f.write("never written\n")
+    assert ended.value.code == 128 + signal.SIGTERM
+    assert out.read_text() == "an earlier export\n"
+    assert list(tmp_path.iterdir()) == [out]
+    assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL  # as it was

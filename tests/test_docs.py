@@ -5,6 +5,7 @@ and the README stays short enough to read in ten minutes."""
 
 from __future__ import annotations
 
+import argparse
 import contextlib
 import io
 import re
@@ -99,20 +100,52 @@ def _command_lines(doc: Path) -> list[str]:
     return lines
 
 
+# A page's commands name files the reader has (session.mcap, subject-1.toml...):
+# where the parser refuses one for not being there, it is made, empty, and the
+# line is parsed again. Any other refusal is the page's error.
+MISSING = (
+    (re.compile(r"cannot read '([^']+)': no such file"), "file"),
+    (re.compile(r"its folder '([^']+)' does not exist"), "dir"),
+    (re.compile(r"'([^']+)' is not a folder \(no such path\)"), "dir"),
+)
+
+
+def _refusal(parser: argparse.ArgumentParser, argv: list[str]) -> str | None:
+    err = io.StringIO()
+    try:
+        with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
+            parser.parse_args(argv)
+    except SystemExit as exc:
+        if exc.code:
+            return (err.getvalue().strip().splitlines() or [""])[-1]
+    return None
+
+
 @pytest.mark.parametrize("doc", [README, *PAGES], ids=lambda p: p.name)
-def test_every_command_shown_parses(doc: Path) -> None:
+def test_every_command_shown_parses(
+    doc: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     from bodynet.cli.main import build_parser
 
     parser = build_parser()
+    monkeypatch.chdir(tmp_path)
     refused = []
     for line in _command_lines(doc):
-        err = io.StringIO()
-        try:
-            with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
-                parser.parse_args(shlex.split(line))
-        except SystemExit as exc:
-            if exc.code:
-                refused.append(f"bodynet {line}: {err.getvalue().strip().splitlines()[-1:]}")
+        argv = shlex.split(line)
+        for _ in range(8):  # each round makes one missing file or folder
+            why = _refusal(parser, argv)
+            made = next(((m.group(1), kind) for pattern, kind in MISSING
+                         if why and (m := pattern.search(why))), None)  # fmt: skip
+            if made is None:
+                break
+            path = tmp_path / made[0]
+            if made[1] == "dir":
+                path.mkdir(parents=True, exist_ok=True)
+            else:
+                path.parent.mkdir(parents=True, exist_ok=True)
+                path.touch()
+        if why:
+            refused.append(f"bodynet {line}: {why}")
     assert not refused, "\n".join(refused)
 
 

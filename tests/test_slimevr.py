@@ -21,7 +21,7 @@ from zenoh_helpers import Collector, Liveliness, Running, client, raw_collector
 
 from bodynet.cli.main import main
 from bodynet.core.codecs import slimevr as codec
-from bodynet.core.errors import Reason
+from bodynet.core.errors import Reason, Rejected
 from bodynet.core.keys import LEFT_ARM, RIGHT_ARM, Site
 from bodynet.core.messages import Quat, Source
 from bodynet.gateway.service import Gateway
@@ -195,3 +195,23 @@ def test_garbage_is_counted_by_reason_and_an_unknown_flood_costs_nothing(
     samples = node.samples
     wait_until(lambda: node.samples > samples + 10, what="the tracker still streaming")
     assert all(bridge.publisher.rejected[r] == 1 for r in bad)
+
+
+def test_a_handshake_flood_fills_no_more_than_its_bound() -> None:
+    """Handshakes from ever new addresses and MACs: at most ``max_trackers`` are
+    kept, the rest refused and counted; a known tracker still reconnects, and a
+    tracker's nodes keep their numbers when it comes back from a new address."""
+    server = codec.SlimeVRServer(max_trackers=16)
+    refused = 0
+    for i in range(40):
+        hs = codec.Handshake(bytes([2, 0, 0, 0, 0, i]), firmware="flood")
+        events = server.receive(codec.encode_handshake(0, hs), ("10.0.0.1", 1000 + i))
+        refused += sum(isinstance(e, Rejected) and e.reason is Reason.OUT_OF_RANGE for e in events)
+        replies = server.take_replies()
+        assert len(replies) == (1 if i < 16 else 0)  # no answer to a refused handshake
+    assert (len(server.connections), refused) == (16, 24)
+    first = codec.Handshake(bytes([2, 0, 0, 0, 0, 0]))
+    server.forget(("10.0.0.1", 1000))
+    server.receive(codec.encode_handshake(0, first), ("10.0.0.2", 5))  # back, elsewhere
+    events = server.receive(codec.encode_rotation(1, 0, (0.0, 0.0, 0.0, 1.0)), ("10.0.0.2", 5))
+    assert [e.node for e in events if isinstance(e, Quat)] == [1]  # its node as before

@@ -205,3 +205,15 @@ def test_bodynet_vmc_sends_to_the_port_it_is_given(router_endpoint: str,
         assert proc.stop() == 0
     finally:
         services.close()
+
+
+def test_a_host_that_does_not_resolve_is_told_before_any_wait() -> None:
+    import subprocess
+
+    from service_procs import bodynet
+
+    done = subprocess.run(bodynet("vmc", "--host", "nosuch.invalid", "-e", "tcp/127.0.0.1:9"),
+                          capture_output=True, text=True, timeout=60, check=False)  # fmt: skip
+    assert done.returncode == 2
+    assert "bodynet vmc: cannot resolve the receiver's host 'nosuch.invalid'" in done.stderr
+    assert "Traceback" not in done.stderr

@@ -219,18 +219,12 @@ class CaptureSink:
 
 
 def numbers(text: str) -> tuple[int, ...]:
-    """``"1-3,7"`` -> (1, 2, 3, 7): node or sensor numbers as a user writes them
-    (an argparse type: a bad list is refused with its reason)."""
-    out: list[int] = []
-    try:
-        for part in text.split(","):
-            lo, _, hi = part.partition("-")
-            out.extend(range(int(lo), int(hi or lo) + 1))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a list of numbers like 1-3,7: {text!r}") from None
-    if not out or min(out) < 1 or max(out) > 0xFFFF or len(out) > 0xFFFF:
-        raise argparse.ArgumentTypeError(f"numbers must lie in 1..65535: {text!r}")
-    return tuple(out)
+    """``"1-3,7"`` -> (1, 2, 3, 7): node or sensor numbers as a user writes them,
+    each within 1..65535 (an argparse type: a bad list is refused with its reason;
+    bounds are checked before a range is expanded)."""
+    from bodynet.session import argtypes
+
+    return argtypes.number_list(1, 0xFFFF)(text)
 
 
 def file_chunks(path: Path) -> Iterator[bytes]:

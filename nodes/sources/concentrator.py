@@ -21,8 +21,9 @@ from bodynet.core.keys import Site
 from bodynet.core.messages import OleAccel, Reading, Tick
 from bodynet.core.messages import Source as SourceId
 from bodynet.core.profile import SMARTSUIT_SITES
-from bodynet.nodes.sources.base import Adapter, Feed, NodeParts, Transport, numbers
+from bodynet.nodes.sources.base import Adapter, Feed, NodeParts, Transport
 from bodynet.nodes.sources.serial_port import SerialSource
+from bodynet.session import argtypes
 
 REPLY_TIMEOUT_S = 0.1
 
@@ -86,7 +87,8 @@ class Concentrator(SerialSource):
     @classmethod
     def add_bridge_args(cls, p: argparse.ArgumentParser) -> None:
         super().add_bridge_args(p)
-        p.add_argument("--nodes", type=numbers, default="1-3", help="nodes to poll (default 1-3)")
+        p.add_argument("--nodes", type=argtypes.number_list(1, codec.MAX_NODES), default="1-3",
+                       help=f"nodes to poll, 1..{codec.MAX_NODES} (default 1-3)")  # fmt: skip
 
     def bridge(self, session: Any, stop: Any, name: str, args: argparse.Namespace) -> None:
         Concentrator(self.sites, None, args.nodes).run_bridge(

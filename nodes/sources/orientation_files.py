@@ -23,6 +23,7 @@ sensor): a file of segment orientations, as bodynet exports, is processed with
 from __future__ import annotations
 
 import argparse
+import logging
 from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any, ClassVar
@@ -53,6 +54,8 @@ from bodynet.nodes.sources.base import (
     Source,
     Transport,
 )
+
+log = logging.getLogger(__name__)
 
 #: bodynet segment -> the IMU site on it
 SEGMENT_SITES: Mapping[str, Site] = {
@@ -130,6 +133,9 @@ class OrientationFile(Source):
 
     def read(self, path: Path, fmt: str, stats: CaptureStats,
              rate_hz: float | None = None) -> Iterator[CapturedSample]:  # fmt: skip
+        if rate_hz is not None:
+            log.warning("%s: an orientation file keeps its own times; --rate-hz is not used",
+                        path)  # fmt: skip
         try:
             with path.open(encoding="utf-8", errors="replace", newline="") as f:
                 table = parse_sto(f) if fmt == "sto" else parse_csv(f)

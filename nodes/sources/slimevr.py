@@ -34,6 +34,7 @@ from bodynet.session import argtypes
 
 log = logging.getLogger(__name__)
 
+MAX_PROFILE_BYTES = 1 << 20
 #: How often an emulated tracker sends its battery and signal strength.
 STATUS_S = 1.0
 
@@ -58,6 +59,24 @@ def address(text: str) -> tuple[str, int]:
     return host or "127.0.0.1", int(port)
 
 
+def profile_trackers(text: str) -> dict[str, Site]:
+    """The tracker -> site table of the profile at ``text`` (an argparse type: a
+    profile that does not read is refused; one not written yet assigns none)."""
+    from bodynet.core.subject import ProfileError
+    from bodynet.session import profile_file
+
+    path = argtypes.input_or_new_file(text)
+    if not path.exists():
+        return {}
+    if not path.is_file() or path.stat().st_size > MAX_PROFILE_BYTES:  # /dev/zero, /dev/full...
+        raise argparse.ArgumentTypeError(f"{text}: not a profile (a TOML file up to 1 MB)")
+    try:
+        profile = profile_file.load(path)
+    except (ProfileError, OSError) as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+    return {t: site_named(s) for t, s in profile.trackers.items()}
+
+
 class SlimeVR(Source):
     name = "slimevr"
     wire_id = SourceId.SLIMEVR
@@ -80,7 +99,7 @@ class SlimeVR(Source):
         p.add_argument("--udp", type=address, default=("0.0.0.0", codec.PORT), metavar="HOST:PORT",
                        help=f"where to take the trackers' datagrams (default "
                             f"0.0.0.0:{codec.PORT}, where trackers look)")  # fmt: skip
-        p.add_argument("--profile", type=argtypes.input_file,
+        p.add_argument("--profile", type=profile_trackers, default={},
                        help="subject profile whose [trackers] table assigns sites")  # fmt: skip
         p.add_argument("--assign", type=parse_assignment, action="append", default=[],
                        metavar="TRACKER=SITE",
@@ -95,13 +114,7 @@ class SlimeVR(Source):
                args: argparse.Namespace) -> None:  # fmt: skip
         from bodynet.nodes.slimevr_bridge import run_bridge
 
-        assignments: dict[str, Site] = {}
-        if args.profile is not None and args.profile.exists():
-            from bodynet.session import profile_file
-
-            profile = profile_file.load(args.profile)
-            assignments = {t: site_named(s) for t, s in profile.trackers.items()}
-        assignments.update(dict(args.assign))
+        assignments = {**args.profile, **dict(args.assign)}
         run_bridge(session, stop, name, args.udp, assignments)
 
     # --- emulation ----------------------------------------------------------------------
@@ -111,7 +124,7 @@ class SlimeVR(Source):
                        metavar="HOST:PORT",
                        help=f"the server's host:port (default 127.0.0.1:{codec.PORT})")  # fmt: skip
         p.add_argument("--rate-hz", type=argtypes.bounded_float(0.1, 1000.0, "per second"),
-                       default=100.0, help="rotations per second")  # fmt: skip
+                       default=100.0, help="rotations per second (default 100)")  # fmt: skip
 
     def emulated_sensors(self, sensors: Any = None, branches: Any = None) -> list[Any]:
         from bodynet.nodes.emulator import imu_tags

@@ -1,0 +1,543 @@
+"""Calibration of orientation sensors on real frames: pose, window, heading.
+
+Frames. A tag reports ``R_s``, its orientation in its own reference frame (z
+up: gravity is known; the heading about the vertical is the tag's). The body's
+frame is the one the solver works in: +X the way the subject faced during
+calibration, +Z up. With ``psi`` the heading of the tag's reference frame
+against that forward direction, ``M`` the mount (sensor in segment) and
+``R_seg`` the segment in the body's frame::
+
+    R_s(t) = Rz(psi) R_seg(t) M        so   R_seg(t) = Rz(-psi) R_s(t) M^T
+
+A still calibration pose gives ``R_seg`` (the pose's, from the skeleton) and so
+``Rz(psi) M`` for each tag, but not ``psi`` and ``M`` apart: whichever way the
+subject faced looks the same to one static pose when mountings are arbitrary.
+(:func:`calibrate_window` computes the mounts for ``psi = 0`` and says whether
+the heading is known: ``fixed`` mode, or a declared reference.)
+
+The motion after the pose gives ``psi`` when tags share one reference
+(magnetometer-based sensors, :class:`HingeHeading`): the relative rotation of
+the two segments of a hinge joint (knee, elbow) since calibration, seen in the
+parent tag's frame, turns about the joint axis, which is the parent segment's
+lateral axis (Seel et al. 2014). That axis, in the tag's reference frame at
+calibration, against where the pose puts it in the body's frame, is the
+heading. A hinge whose axis was vertical in the pose (the elbow in a T-pose)
+tells nothing and is skipped. Until the heading is known the solver flags the
+dofs it would drive ``uncalibrated``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass, field, replace
+from types import MappingProxyType
+from typing import Any
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from bodynet.core.keys import Site
+from bodynet.core.profile import mount
+from bodynet.core.skeleton import CALIBRATION_POSES, build_skeleton
+from bodynet.core.subject import Profile, QuatWxyz
+from bodynet.kinematics.model import BodyModel
+
+POSE_ANGLES = CALIBRATION_POSES
+#: A calibration window shorter than this, or with fewer samples of a tag, is refused.
+MIN_WINDOW_S = 0.4
+MIN_SAMPLES = 5
+#: A tag turning further than this from its mean orientation in the window: the
+#: subject moved, and the window is refused.
+STILL_DEG = 3.0
+
+#: Hinge joints whose motion reveals the heading: (joint, parent, child, the flexion
+#: axis in the parent segment's frame, signed so that flexion turns positively).
+HINGES = (
+    ("knee", "thigh", "shank", (0.0, 1.0, 0.0)),
+    ("elbow", "upperarm", "forearm", (0.0, -1.0, 0.0)),
+)
+#: A hinge's samples count once its relative rotation since calibration passes
+#: this; its axis is their mean, weighted by the angle (noise tilts the axis of a
+#: small rotation most) ...
+HINGE_MIN_DEG = 10.0
+#: ... taken once this many have come, turning this far in all, with axes that agree
+#: (mean resultant length at least this; a joint turning about two axes does not).
+HINGE_SAMPLES = 20
+HINGE_TOTAL_DEG = 500.0
+HINGE_AGREEMENT = 0.97
+#: An axis whose horizontal part (in the calibration pose) is below this gives no heading.
+HORIZONTAL_MIN = 0.5
+
+
+class CalibrationRefused(ValueError):
+    """A calibration window that cannot be used: the message says why; ``report``
+    is the calibration report (what was seen)."""
+
+    def __init__(self, message: str, report: Mapping[str, Any]) -> None:
+        super().__init__(message)
+        self.report = dict(report)
+
+
+def rz(deg: float) -> np.ndarray:
+    """Rotation about the vertical by ``deg``."""
+    c, s = math.cos(math.radians(deg)), math.sin(math.radians(deg))
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def _matrix(q: Sequence[float]) -> np.ndarray:
+    w, x, y, z = q
+    return Rotation.from_quat([x, y, z, w]).as_matrix()  # type: ignore[no-any-return]
+
+
+def _wxyz(rot: np.ndarray) -> QuatWxyz:
+    x, y, z, w = Rotation.from_matrix(rot).as_quat(canonical=True)
+    return (float(w), float(x), float(y), float(z))
+
+
+def pose_segments(profile: Profile, pose: str | None = None) -> dict[str, np.ndarray]:
+    """Each segment's orientation (body frame) in the calibration ``pose``."""
+    skeleton = build_skeleton(profile.lengths)
+    model = BodyModel(skeleton)
+    names = list(model.segment_frames)
+    rots, _ = model.frame_placements(
+        model.q(dict(POSE_ANGLES[pose or profile.pose])), [model.segment_frames[s] for s in names]
+    )
+    return dict(zip(names, rots, strict=True))
+
+
+def yaw_deg(rot: np.ndarray) -> float:
+    """Heading (deg) of a segment orientation: where its forward (x) axis points
+    about the vertical (its lateral axis, turned, when x is near vertical)."""
+    x = rot[:, 0]
+    if math.hypot(x[0], x[1]) < 0.3:
+        y = rot[:, 1]
+        return math.degrees(math.atan2(y[1], y[0])) - 90.0
+    return math.degrees(math.atan2(x[1], x[0]))
+
+
+def _wrap(deg: float) -> float:
+    return (deg + 180.0) % 360.0 - 180.0
+
+
+def declared_heading(orientation: QuatWxyz, axis: str) -> float:
+    """The heading of a tag's reference frame when its sensor ``axis`` ("+z",
+    "-x", ...) pointed forward at ``orientation`` (a calibration pose)."""
+    v = np.zeros(3)
+    v["xyz".index(axis[1])] = 1.0 if axis[0] == "+" else -1.0
+    u = _matrix(orientation) @ v
+    if math.hypot(u[0], u[1]) < HORIZONTAL_MIN:
+        raise ValueError(f"the declared axis {axis} was near vertical in calibration, "
+                         "not pointing forward")  # fmt: skip
+    return math.degrees(math.atan2(u[1], u[0]))
+
+
+def with_headings(profile: Profile, headings: Mapping[str, float]) -> Profile:
+    """``profile`` with tags' headings now known: their mounts, computed for a heading
+    of 0 at calibration, turned to match (``M = R_seg0^T Rz(-psi) R_seg0 M_0``)."""
+    segments = pose_segments(profile)
+    by_key = _segments_of(profile.imu_mounts)
+    mounts = dict(profile.imu_mounts)
+    known = dict(profile.imu_headings)
+    for key, psi in headings.items():
+        old = known.get(key, 0.0)
+        seg = segments[by_key[key]] if key in by_key else np.eye(3)
+        if key in mounts:
+            turn = seg.T @ rz(-(psi - old)) @ seg
+            mounts[key] = _wxyz(turn @ _matrix(mounts[key]))
+        known[key] = _wrap(psi)
+    return replace(profile, imu_mounts=MappingProxyType(mounts),
+                   imu_headings=MappingProxyType(known))  # fmt: skip
+
+
+def _segments_of(keys: Iterable[str]) -> dict[str, str]:
+    """Raw key -> the segment its sensor rides on (for the keys that name a site)."""
+    from bodynet.core import keys as keyspace
+
+    out = {}
+    for key in keys:
+        try:
+            site, _ = keyspace.parse(key)
+        except keyspace.KeySpaceError:
+            continue
+        if isinstance(site, Site):
+            out[key] = mount(site).segment
+    return out
+
+
+@dataclass(frozen=True)
+class WindowCalibration:
+    """What a still window gives: mounts (for a heading of 0 where it is not
+    known), the tags' headings where known, and the report for the user."""
+
+    mounts: dict[str, QuatWxyz]
+    headings: dict[str, float]
+    report: dict[str, Any]
+
+    def apply(self, profile: Profile, pose: str | None = None) -> Profile:
+        """``profile`` calibrated: these mounts, the pose, and the headings (the
+        tags recalibrated here lose any heading they had, until it is found)."""
+        calibrated = replace(
+            profile.with_mounts(self.mounts),
+            pose=pose or profile.pose,
+            imu_headings=MappingProxyType(
+                {k: v for k, v in profile.imu_headings.items() if k not in self.mounts}
+            ),
+        )
+        return with_headings(calibrated, self.headings) if self.headings else calibrated
+
+
+def calibrate_window(
+    window: Mapping[Site, Sequence[tuple[float, QuatWxyz]]],
+    profile: Profile,
+    pose: str | None = None,
+    expected: Iterable[Site] = (),
+    seconds: float | None = None,
+) -> WindowCalibration:
+    """Mounts of the orientation sensors from a still window of ``(t_s, wxyz)``
+    samples, the subject in ``pose`` (the profile's by default).
+
+    Refused (:class:`CalibrationRefused`) when a tag of ``expected`` has no sample
+    in it, when it is shorter than ``MIN_WINDOW_S`` (or than ``seconds``, the
+    length asked for, by more than a fifth) or holds fewer than ``MIN_SAMPLES`` of
+    a tag, or when a tag turned more than ``STILL_DEG`` in it. The report gives,
+    per tag, its samples, the time they span, how far it turned from its mean
+    (its stillness), and its residual against the profile's current calibration
+    (the angle between where the old mount puts it in the pose and where it was:
+    a tag moved on the body, or another pose than before)."""
+    pose = pose or profile.pose
+    if pose not in POSE_ANGLES:
+        raise ValueError(f"unknown calibration pose {pose!r}; one of {', '.join(POSE_ANGLES)}")
+    segments = pose_segments(profile, pose)
+    present = {s: v for s, v in window.items() if v}
+    missing = sorted(s.raw_key for s in set(expected) - set(present))
+    tags: dict[str, dict[str, Any]] = {}
+    mounts: dict[str, QuatWxyz] = {}
+    means: dict[str, np.ndarray] = {}
+    for site, samples in sorted(present.items(), key=lambda kv: kv[0].raw_key):
+        key = site.raw_key
+        seg = segments[mount(site).segment]
+        means[key], tags[key] = _tag_stats(key, samples, seg, profile)
+        mounts[key] = _wxyz(seg.T @ means[key])
+    # what the window covers: each of a tag's n samples stands for one sampling
+    # interval, n - 1 of which its span holds (a slow sensor's window is not short)
+    span_all = max((round(t["span_s"] * t["samples"] / (t["samples"] - 1), 3)
+                    for t in tags.values() if t["samples"] > 1), default=0.0)  # fmt: skip
+    report: dict[str, Any] = {"pose": pose, "window_s": span_all, "tags": tags,
+                              "missing": missing, "still_limit_deg": STILL_DEG}  # fmt: skip
+    if not present:
+        raise CalibrationRefused("no orientation samples in the window", report)
+    if missing:
+        raise CalibrationRefused(f"no samples of {len(missing)} tag(s) in the window: "
+                                 + ", ".join(missing), report)  # fmt: skip
+    short = [k for k, t in tags.items() if t["samples"] < MIN_SAMPLES]
+    want = max(MIN_WINDOW_S, 0.8 * seconds if seconds else 0.0)
+    if span_all < want or short:
+        what = f"{len(short)} tag(s) with fewer than {MIN_SAMPLES} samples" if short else ""
+        raise CalibrationRefused(
+            f"the window is too short: {span_all:.2f} s"
+            + (f" ({what})" if what else "") + f"; it needs at least {want:.2f} s", report
+        )  # fmt: skip
+    moved = {k: t["still_deg"] for k, t in tags.items() if t["still_deg"] > STILL_DEG}
+    if moved:
+        worst = sorted(moved, key=moved.__getitem__, reverse=True)
+        raise CalibrationRefused(
+            f"the subject moved: {len(moved)} tag(s) turned more than {STILL_DEG:g} deg in the "
+            "window (" + ", ".join(f"{k} {moved[k]:.1f} deg" for k in worst[:4])
+            + ("..." if len(worst) > 4 else "") + "); stand still in the pose and try again",
+            report,
+        )  # fmt: skip
+    headings = _window_heading(profile, means, report)
+    report["ok"] = True
+    report["calibrated"] = sorted(mounts)
+    return WindowCalibration(mounts, headings, report)
+
+
+def _tag_stats(key: str, samples: Sequence[tuple[float, QuatWxyz]], seg: np.ndarray,
+               profile: Profile) -> tuple[np.ndarray, dict[str, Any]]:  # fmt: skip
+    """A tag's mean orientation in a window, and its line of the report."""
+    times = np.array([t for t, _ in samples])
+    rots = Rotation.from_quat([[x, y, z, w] for _, (w, x, y, z) in samples])
+    mean = rots.mean()
+    spread = float(np.degrees((mean.inv() * rots).magnitude()).max())
+    residual = None
+    if key in profile.imu_mounts:
+        expect = rz(profile.heading_of(key)) @ seg @ _matrix(profile.imu_mounts[key])
+        residual = round(math.degrees(Rotation.from_matrix(expect.T @ mean.as_matrix())
+                                      .magnitude()), 2)  # fmt: skip
+    return mean.as_matrix(), {"samples": len(samples),
+                              "span_s": round(float(times.max() - times.min()), 3),
+                              "still_deg": round(spread, 2), "residual_deg": residual}  # fmt: skip
+
+
+def _window_heading(profile: Profile, means: Mapping[str, np.ndarray],
+                    report: dict[str, Any]) -> dict[str, float]:  # fmt: skip
+    """The tags' headings a calibration window gives (``fixed`` mode, a declared
+    reference) or none (to be found); says which in ``report["heading"]``."""
+    if profile.heading == "fixed":
+        report["heading"] = {"state": "fixed", "deg": 0.0}
+        return dict.fromkeys(means, 0.0)
+    if profile.heading_reference is None:
+        report["heading"] = {"state": "unknown", "deg": None,
+                             "next": "move a knee (or, after an N-pose, an elbow): the "
+                                     "heading is found from the hinge's axis"}  # fmt: skip
+        return {}
+    ref_key, axis = profile.heading_reference
+    if ref_key not in means:
+        raise CalibrationRefused(f"the declared heading reference {ref_key} has no samples "
+                                 "in the window", report)  # fmt: skip
+    try:
+        psi = declared_heading(_wxyz(means[ref_key]), axis)
+    except ValueError as exc:
+        raise CalibrationRefused(str(exc), report) from None
+    report["heading"] = {"state": "declared", "deg": round(psi, 2),
+                         "reference": f"{ref_key} {axis}"}  # fmt: skip
+    return dict.fromkeys(means, psi)
+
+
+@dataclass
+class _Hinge:
+    parent_key: str
+    child_key: str
+    parent0: np.ndarray  # parent tag in its reference frame at calibration
+    relative0: np.ndarray  # child tag in the parent tag's frame at calibration
+    axis_pose: np.ndarray  # the joint axis in the body's frame, in the calibration pose
+    sum_axis: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    sum_unit: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    total_deg: float = 0.0
+    count: int = 0
+    first_move_t: float | None = None
+
+
+class HingeHeading:
+    """Finds the shared heading of a body's tags from its hinge joints' motion.
+
+    Built from a calibrated profile (mounts for a heading of 0); fed each tick's
+    tag orientations by raw key (:meth:`update`), it returns the heading once a
+    hinge has turned far enough, consistently about one axis, and then stays
+    done (``heading``, ``found_t``, ``first_move_t``, ``hinge``)."""
+
+    def __init__(self, profile: Profile) -> None:
+        segments = pose_segments(profile)
+        by_segment: dict[str, str] = {}
+        for key, seg in _segments_of(profile.imu_mounts).items():
+            by_segment.setdefault(seg, key)
+        self.hinges: dict[str, _Hinge] = {}
+        for joint, parent, child, axis in HINGES:
+            for side in ("left", "right"):
+                p, c = by_segment.get(f"{side}_{parent}"), by_segment.get(f"{side}_{child}")
+                if p is None or c is None:
+                    continue
+                seg_p, seg_c = segments[f"{side}_{parent}"], segments[f"{side}_{child}"]
+                p0 = seg_p @ _matrix(profile.imu_mounts[p])
+                c0 = seg_c @ _matrix(profile.imu_mounts[c])
+                self.hinges[f"{side}_{joint}"] = _Hinge(p, c, p0, p0.T @ c0,
+                                                        seg_p @ np.array(axis))  # fmt: skip
+        self.informative = sorted(
+            name for name, h in self.hinges.items()
+            if math.hypot(h.axis_pose[0], h.axis_pose[1]) >= HORIZONTAL_MIN
+        )  # fmt: skip
+        self.heading: float | None = None
+        self.found_t: float | None = None
+        self.first_move_t: float | None = None
+        self.hinge: str | None = None
+
+    @property
+    def wanted_keys(self) -> set[str]:
+        return {k for name in self.informative
+                for k in (self.hinges[name].parent_key, self.hinges[name].child_key)}  # fmt: skip
+
+    def update(self, t_s: float, orientations: Mapping[str, QuatWxyz]) -> float | None:
+        """Take one tick's tag orientations; the heading (deg) once found."""
+        if self.heading is not None:
+            return self.heading
+        for name in self.informative:
+            h = self.hinges[name]
+            p, c = orientations.get(h.parent_key), orientations.get(h.child_key)
+            if p is None or c is None:
+                continue
+            rp = _matrix(p)
+            change = rp.T @ _matrix(c) @ h.relative0.T  # about the axis, in the parent tag
+            rotvec = Rotation.from_matrix(change).as_rotvec()
+            angle = math.degrees(float(np.linalg.norm(rotvec)))
+            if angle > 5.0 and h.first_move_t is None:
+                h.first_move_t = t_s
+                if self.first_move_t is None:
+                    self.first_move_t = t_s
+            if angle < HINGE_MIN_DEG:
+                continue
+            # the axis in the parent tag's frame, taken to the tag's reference frame
+            # at calibration (the tag's own motion since then drops out)
+            axis = h.parent0 @ rotvec
+            h.sum_axis += axis
+            h.sum_unit += axis / np.linalg.norm(axis)
+            h.total_deg += angle
+            h.count += 1
+            if h.count >= HINGE_SAMPLES and h.total_deg >= HINGE_TOTAL_DEG:
+                agreement = float(np.linalg.norm(h.sum_unit)) / h.count
+                if agreement < HINGE_AGREEMENT:  # not a hinge's motion (yet): start again
+                    h.sum_axis[:] = 0.0
+                    h.sum_unit[:] = 0.0
+                    h.total_deg, h.count = 0.0, 0
+                    continue
+                u, v = h.sum_axis, h.axis_pose
+                self.heading = _wrap(math.degrees(math.atan2(u[1], u[0])
+                                                  - math.atan2(v[1], v[0])))  # fmt: skip
+                self.found_t, self.hinge = t_s, name
+                return self.heading
+        return None
+
+
+class BodyHeading:
+    """A body's heading between calibration and the solver.
+
+    With tags of unknown heading (``auto`` mode, nothing declared) it feeds each
+    tick to a :class:`HingeHeading`, and once that finds the heading returns the
+    profile with it (:meth:`update`); :meth:`state` says where it stands, for the
+    pose's health and the user."""
+
+    def __init__(self, profile: Profile) -> None:
+        self.profile = profile
+        self.unknown = sorted(k for k in profile.imu_mounts if not profile.heading_known(k))
+        self.finder = HingeHeading(profile) if self.unknown else None
+        if profile.heading == "fixed":
+            self.how = "fixed"
+        elif not profile.imu_mounts:
+            self.how = "uncalibrated"
+        elif self.unknown:
+            self.how = "unknown"
+        else:
+            self.how = "declared" if profile.heading_reference is not None else "found"
+
+    def update(self, t_s: float, samples: Mapping[Site, Any]) -> Profile | None:
+        """Take one tick's samples (site -> RawSample); the profile with the heading
+        once it is found (then never again)."""
+        if self.finder is None or not self.unknown:
+            return None
+        orientations = {site.raw_key: s.reading.wxyz for site, s in samples.items()
+                        if hasattr(s.reading, "wxyz")}  # fmt: skip
+        psi = self.finder.update(t_s, orientations)
+        if psi is None:
+            return None
+        self.profile = with_headings(self.profile, dict.fromkeys(self.unknown, psi))
+        self.unknown = []
+        self.how = "found"
+        return self.profile
+
+    def state(self) -> dict[str, Any]:
+        """Where the heading stands: ``state`` (fixed, declared, found, unknown or
+        uncalibrated), ``deg`` (the tags' shared heading against the body's
+        forward), and how it was or will be found."""
+        out: dict[str, Any] = {"state": self.how, "deg": None}
+        values = [self.profile.heading_of(k) for k in self.profile.imu_mounts
+                  if self.profile.heading_known(k)]  # fmt: skip
+        if values and not self.unknown:
+            out["deg"] = round(values[0], 2)
+        finder = self.finder
+        if finder is not None:
+            out["hinge"] = finder.hinge
+            out["first_move_t"] = finder.first_move_t
+            out["found_t"] = finder.found_t
+            if self.unknown:
+                out["waiting_for"] = finder.informative or "no hinge with both tags: " \
+                    "declare a heading reference"
+        return out
+
+
+#: Where the body faces, for the yaw reset: the first of these segments with a tag.
+FACING_SEGMENTS = ("pelvis", "thorax", "head")
+
+
+def yaw_reset(profile: Profile, output: Any) -> tuple[Profile, float]:
+    """The yaw reset: the subject faces forward now. Every tag's heading turns by
+    the heading the body's trunk has in ``output`` (a solved tick), so that the
+    body faces +X from now on; the mounts stay. Returns the profile and the turn
+    (deg). Refused (``ValueError``) while the tags' heading is unknown: facing
+    forward says nothing about which way round a tag sits on its segment."""
+    if not profile.imu_mounts:
+        raise ValueError("no orientation sensor is calibrated: calibrate a pose first")
+    unknown = [k for k in profile.imu_mounts if not profile.heading_known(k)]
+    if unknown:
+        raise ValueError("the tags' heading is not known yet: bend a knee (or declare a "
+                         "heading reference) before a yaw reset")  # fmt: skip
+    by_segment = set(_segments_of(profile.imu_mounts).values())
+    facing = next((s for s in FACING_SEGMENTS if s in by_segment), None)
+    if facing is None:
+        raise ValueError("no tag on the pelvis, thorax or head to say where the body faces")
+    turn = yaw_deg(_matrix(output.segments[facing][1]))
+    headings = {k: _wrap(profile.heading_of(k) + turn) for k in profile.imu_mounts}
+    return replace(profile, imu_headings=MappingProxyType(headings)), turn
+
+
+class KneeDrift:
+    """Heading drift of tags held at the knees, from the hinge constraint.
+
+    A knee turns about one axis, the thigh's lateral (y) axis, which is also the
+    shank's: in the body's frame the two segments' y axes must coincide. When a
+    shank tag's heading reference drifts (6-axis tags, no magnetometer), its y
+    axis turns about the vertical away from the thigh's by the drift: the angle
+    between their horizontal parts is the shank tag's heading error, seen at
+    every instant (no movement needed), the better the nearer the axis is to
+    horizontal. :meth:`update` takes a tick's samples and returns the small turns to
+    add to the shank tags' headings (each error low-passed with ``tau_s``, so
+    noise and brief ab/adduction of the knee's soft tissue average out). What it
+    cannot see: a heading drift shared by thigh and shank (the whole leg against
+    the pelvis, a three-dof hip), nor the trunk's, arms', hands' or feet's; the
+    state reports how long each tag has gone uncorrected."""
+
+    def __init__(self, profile: Profile, tau_s: float = 5.0) -> None:
+        by_segment: dict[str, str] = {}
+        for key, seg in _segments_of(profile.imu_mounts).items():
+            by_segment.setdefault(seg, key)
+        self.tau_s = tau_s
+        both = [s for s in ("left", "right")
+                if f"{s}_shank" in by_segment and f"{s}_thigh" in by_segment]  # fmt: skip
+        self.knees = {side: by_segment[f"{side}_shank"] for side in both}
+        self.thighs = {side: by_segment[f"{side}_thigh"] for side in both}
+        self.error_deg = dict.fromkeys(self.knees.values(), 0.0)  # filtered, per shank tag
+        self.corrected_deg = dict.fromkeys(self.knees.values(), 0.0)  # in all
+        self._last_t: float | None = None
+
+    def update(self, t_s: float, samples: Mapping[Site, Any],
+               profile: Profile) -> dict[str, float]:  # fmt: skip
+        """The turns (deg) to add to shank tags' headings after the tick at ``t_s``
+        whose samples (site -> RawSample) are ``samples``, solved with ``profile``
+        (the segments as the tags measure them: the solver's output has the knee's
+        one dof already imposed)."""
+        dt = 0.0 if self._last_t is None else max(0.0, t_s - self._last_t)
+        self._last_t = t_s
+        gain = min(1.0, dt / self.tau_s)
+        tags = {site.raw_key: s.reading.wxyz for site, s in samples.items()
+                if hasattr(s.reading, "wxyz")}  # fmt: skip
+        turns: dict[str, float] = {}
+        for side, key in self.knees.items():
+            thigh_key = self.thighs[side]
+            if key not in tags or thigh_key not in tags:
+                continue
+            thigh = self._segment(profile, thigh_key, tags[thigh_key])[:, 1]
+            shank = self._segment(profile, key, tags[key])[:, 1]
+            weight = math.hypot(thigh[0], thigh[1]) * math.hypot(shank[0], shank[1])
+            if weight < HORIZONTAL_MIN:  # the knee's axis near vertical: nothing to see
+                continue
+            error = math.degrees(math.atan2(shank[1], shank[0]) - math.atan2(thigh[1], thigh[0]))
+            self.error_deg[key] += gain * (_wrap(error) - self.error_deg[key])
+            turn = gain * self.error_deg[key]
+            if turn:
+                turns[key] = turn
+                self.corrected_deg[key] += turn
+        return turns
+
+    @staticmethod
+    def _segment(profile: Profile, key: str, wxyz: QuatWxyz) -> np.ndarray:
+        """The segment's orientation (body frame) as its tag measures it."""
+        mount = _matrix(profile.imu_mounts[key])
+        return rz(-profile.heading_of(key)) @ _matrix(wxyz) @ mount.T  # type: ignore[no-any-return]
+
+
+def turned_headings(profile: Profile, turns: Mapping[str, float]) -> Profile:
+    """``profile`` with these tags' heading references turned by ``turns`` (deg),
+    their mounts kept (a drift of the reference, not of the tag on the segment)."""
+    headings = dict(profile.imu_headings)
+    for key, turn in turns.items():
+        headings[key] = _wrap(profile.heading_of(key) + turn)
+    return replace(profile, imu_headings=MappingProxyType(headings))

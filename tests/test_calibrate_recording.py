@@ -1,0 +1,121 @@
+"""`bodynet calibrate tpose --from REC --window A:B`: calibration from a recording.
+
+A real MCAP recording (the recorder's raw-sample messages, written by the
+project's sink and read back by mcap's reader) of emulated tags: the subject
+stands still in the pose for 2 s, then bends a knee.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from bodynet.cli.main import main
+from bodynet.clients.mcap_store import McapSink
+from bodynet.core.messages import RawSample, Source
+from bodynet.core.skeleton import CALIBRATION_POSES
+from bodynet.core.subject import Profile
+from bodynet.gateway.heading import BodyHeading
+from bodynet.gateway.solver import BodySolver
+from bodynet.nodes.emulator import BodyEmulator, Realism, imu_tags
+from bodynet.nodes.motion import Routine, keyframes
+from bodynet.session import profile_file
+
+T0_NS = 1_700_000_000_000_000_000
+
+
+def _record(path: Path, pose: str, facing: float) -> BodyEmulator:
+    held = dict(CALIBRATION_POSES[pose])
+    bend = {"left_knee_flexion_deg": 70.0, "left_hip_flexion_deg": 20.0}
+    motion = Routine("still-then-knee", "", keyframes(
+        [(0.0, held), (2.0, held), (3.0, {**held, **bend}), (3.5, held)], loop=False))  # fmt: skip
+    body = BodyEmulator(motion, imu_tags(), realism=Realism(facing_deg=facing), seed=3)
+    sink = McapSink(path)
+    try:
+        for k, t in enumerate(np.arange(0.0, 3.5, 1 / 50)):
+            readings, _ = body.sample(float(t))
+            t_ns = T0_NS + round(float(t) * 1e9)
+            for sensor, reading in zip(body.sensors, readings, strict=True):
+                sink.write_raw(sensor.site.raw_key, RawSample(reading, k, t_ns, Source.IMU_CENTRAL),
+                               t_ns)  # fmt: skip
+    finally:
+        sink.close()
+    return body
+
+
+@pytest.fixture(scope="module")
+def recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    path = tmp_path_factory.mktemp("rec") / "still.mcap"
+    _record(path, "tpose", 40.0)
+    return path
+
+
+def test_calibration_from_a_recordings_still_window(
+    recording: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    profile_path = tmp_path / "subject.toml"
+    assert main(["calibrate", "tpose", "--from", str(recording), "--window", "0.2:1.8",
+                 "--profile", str(profile_path)]) == 0  # fmt: skip
+    report = json.loads(capsys.readouterr().out)
+    assert report["ok"]
+    assert len(report["calibrated"]) == 15
+    assert report["window_s"] == pytest.approx(1.6, abs=0.05)
+    assert all(t["still_deg"] < 2.0 for t in report["tags"].values())
+    assert report["heading"]["state"] == "unknown"  # found once a knee moves
+    profile = profile_file.load(profile_path)
+    assert len(profile.imu_mounts) == 15
+    assert profile.pose == "tpose"
+    assert not profile.imu_headings
+
+
+@pytest.mark.parametrize(("window", "why"), [("1.5:3.0", "the subject moved"),
+                                             ("0:0.2", "too short")])  # fmt: skip
+def test_a_bad_window_is_refused_and_the_profile_kept(
+    recording: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], window: str, why: str
+) -> None:
+    profile_path = tmp_path / "subject.toml"
+    profile_file.save(Profile(subject="kept"), profile_path)
+    before = profile_path.read_bytes()
+    assert main(["calibrate", "tpose", "--from", str(recording), "--window", window,
+                 "--profile", str(profile_path)]) == 1  # fmt: skip
+    out, err = capsys.readouterr()
+    assert why in err
+    assert "unchanged" in err
+    assert json.loads(out)["ok"] is False
+    assert profile_path.read_bytes() == before
+
+
+def test_bad_window_arguments_are_refused_by_the_parser(recording: Path) -> None:
+    for bad in ("4:2", "x:1", "2", "-1:2", "nan:3"):
+        with pytest.raises(SystemExit) as caught:
+            main(["calibrate", "tpose", "--from", str(recording), "--window", bad])
+        assert caught.value.code == 2
+
+
+def test_n_pose_from_a_recording_then_the_heading_from_the_knee(tmp_path: Path) -> None:
+    """The N-pose, remembered in the profile; the profile then finds the heading
+    from the knee that bends after the pose, and the angles are the truth's."""
+    path = tmp_path / "npose.mcap"
+    body = _record(path, "npose", -100.0)
+    profile_path = tmp_path / "subject.toml"
+    assert main(["calibrate", "tpose", "--from", str(path), "--window", "0.5:1.9",
+                 "--pose", "npose", "--profile", str(profile_path)]) == 0  # fmt: skip
+    profile = profile_file.load(profile_path)
+    assert profile.pose == "npose"
+    heading = BodyHeading(profile)
+    for t in np.arange(2.0, 3.0, 1 / 50):
+        readings, _ = body.sample(float(t))
+        samples = {s.site: RawSample(r, 0, 0) for s, r in zip(body.sensors, readings, strict=True)}
+        if heading.update(float(t), samples) is not None:
+            break
+    assert heading.state()["deg"] == pytest.approx(-100.0, abs=1.5)
+    readings, _ = body.sample(2.8)
+    out = BodySolver(heading.profile).solve(
+        {s.site: RawSample(r, 0, 0) for s, r in zip(body.sensors, readings, strict=True)})
+    truth = body.angles(2.8)
+    assert not out.flags
+    for name, value in out.angles_deg.items():
+        assert value == pytest.approx(truth.get(name, 0.0), abs=2.0), name
