@@ -15,7 +15,8 @@ interface, :class:`LiveOutput`:
 - **send**: the output's ``on_pose`` / ``on_raw`` / ``tick`` methods write them
   (an LSL outlet, a UDP socket, a Zenoh publisher).
 
-A message that does not decode is counted (``Counts.bad``), never fatal.
+A message that does not decode is counted (``Counts.bad``), one the output
+fails on too (``Counts.failed``, logged): neither is fatal.
 :data:`OUTPUTS` is the registry: name -> ``module:class``, imported lazily.
 """
 
@@ -95,6 +96,7 @@ class Counts:
     poses: Counter[str] = field(default_factory=Counter)
     raw: Counter[str] = field(default_factory=Counter)
     bad: int = 0
+    failed: int = 0
     refused_subjects: int = 0
 
     def summary(self) -> str:
@@ -103,6 +105,8 @@ class Counts:
                  for s in subjects]  # fmt: skip
         if self.bad:
             parts.append(f"{self.bad} messages that did not decode")
+        if self.failed:
+            parts.append(f"{self.failed} messages the output failed on (see the log)")
         if self.refused_subjects:
             parts.append(f"{self.refused_subjects} messages of subjects past the limit")
         return "; ".join(parts) or "nothing received"
@@ -173,6 +177,10 @@ def run(
                             counts.bad += 1
             except (DecodeError, keys.KeySpaceError):
                 counts.bad += 1
+            except Exception:  # one message the output could not send: counted, it goes on
+                counts.failed += 1
+                if counts.failed <= 3:
+                    log.exception("live output: a message on %s could not be sent", key)
     finally:
         for sub in subs:
             sub.undeclare()

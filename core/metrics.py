@@ -54,6 +54,9 @@ SPARC_RATE_HZ = 100.0
 HISTORY = 2000
 #: The shortest movement SPARC is computed for (s).
 MIN_MOVEMENT_S = 0.1
+#: Dofs one body keeps metrics of (the body model has 32): names past this many
+#: (a publisher inventing them) are passed over, so memory stays bounded.
+MAX_DOFS = 64
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -217,6 +220,8 @@ class BodyMetrics:
         for name, value in measured.items():
             dof = self.dofs.get(name)
             if dof is None:
+                if len(self.dofs) >= MAX_DOFS:
+                    continue
                 dof = self.dofs[name] = DofMetrics()
             dof.add(t_s, value)
 

@@ -583,7 +583,7 @@ def test_a_full_disk_names_the_output_and_leaves_no_half_file(
     assert [p.name for p in tmp_path.iterdir()] == ["big.csv"]  # no temporary file left
 
 
-def test_a_full_or_closed_stdout_is_an_error(corpus: dict[str, Path]) -> None:
+def test_a_full_or_closed_stdout_is_an_error(corpus: dict[str, Path], tmp_path: Path) -> None:
     capture = corpus["smartsuit_arm.log"]
     with open("/dev/full", "w") as full:
         result = subprocess.run([str(BODYNET), "decode", "--format", "can-log", str(capture)],
@@ -593,6 +593,12 @@ def test_a_full_or_closed_stdout_is_an_error(corpus: dict[str, Path]) -> None:
     assert "cannot write the samples to stdout: No space left on device" in result.stderr
     assert "Traceback" not in result.stderr
     assert "Exception ignored" not in result.stderr
+    with open("/dev/full", "w") as full:  # any command whose report goes to stdout
+        result = subprocess.run([str(BODYNET), "certs", str(tmp_path / "certs")],
+                                stdout=full, stderr=subprocess.PIPE, text=True, timeout=60,
+                                check=False)  # fmt: skip
+    assert result.returncode == 1
+    assert result.stderr == "bodynet certs: cannot write its output: No space left on device\n"
     closed = subprocess.run(f"'{BODYNET}' decode --format can-log '{capture}' >&-", shell=True,
                             capture_output=True, text=True, timeout=60, check=False)  # fmt: skip
     assert closed.returncode == 2

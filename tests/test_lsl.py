@@ -27,6 +27,7 @@ from bodynet.nodes.services import EmulationOptions, NodePlan, run_node
 from bodynet.session import open_session, session_config
 
 SKELETON = build_skeleton()
+BLOCK = zenoh.CongestionControl.BLOCK  # a test's burst of puts: none dropped on the way
 SEGMENT_SUFFIXES = ("x", "y", "z", "qw", "qx", "qy", "qz")
 
 
@@ -255,10 +256,11 @@ def test_lsl_streams_every_pose_through_gateway_and_router_restarts(tmp_path: Pa
         poses.seen.append(poses.queue.get_nowait())
     assert check_stream(rec, sid, [f for _, f in poses.seen], unix_to_lsl_offset()) >= 60
     assert rec.info[sid]["uid"] == uid  # one outlet throughout: the inlet never re-resolved
-    measured = ~np.isnan(np.array([v for v, _ in rec.samples[sid]])).any(axis=0)
+    measured = ~np.isnan(np.array([v for v, _ in rec.samples[sid]]))
     labels = [c["label"] for c in rec.info[sid]["channels"]]
-    assert measured[labels.index("left_elbow_flexion")]  # the CAN arm's encoder
-    assert not measured.all()  # and the rest of the body, without sensors, NaN
+    # the CAN arm's encoder: measured but where its modules were stale (once the nodes stopped)
+    assert measured[:, labels.index("left_elbow_flexion")].mean() > 0.9
+    assert not measured.any(axis=0).all()  # and the rest of the body, without sensors, NaN
 
 
 def test_two_subjects_give_two_streams_each_and_raw_samples(router_endpoint: str) -> None:
@@ -278,10 +280,10 @@ def test_two_subjects_give_two_streams_each_and_raw_samples(router_endpoint: str
         for k, s in enumerate(names):
             f = frame(i, t0 + i * 10_000_000 + k * 1_000_000, base=100.0 * k)
             sent[s].append(f)
-            pub.put(f"{s}/{keys.pose_key()}", pose.encode(f))
+            pub.put(f"{s}/{keys.pose_key()}", pose.encode(f), congestion_control=BLOCK)
         r = RawSample(OleAccel(2, 100 + i, (i, -1024, 3)), i, t0 + i * 10_000_000, Source.CAN)
         raws.append(r)
-        pub.put(f"{names[0]}/{raw_key}", raw_sample.encode(r))
+        pub.put(f"{names[0]}/{raw_key}", raw_sample.encode(r), congestion_control=BLOCK)
 
     rec = None
     try:

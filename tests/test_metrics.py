@@ -301,3 +301,47 @@ def test_a_recordings_view_shows_its_last_metrics(tmp_path: Path) -> None:
     last = body.snapshot()["dofs"]["left_elbow_flexion_deg"]
     assert f"| left_elbow_flexion | 10 | 100 | 90 | {last['repetitions']} |" in rrd_texts(
         rrd, "/metrics")[-1]
+
+
+def test_a_publisher_inventing_dofs_cannot_grow_a_body_without_end() -> None:
+    body = metrics.BodyMetrics()
+    for i in range(10):
+        body.add(i, {f"made_up_{i}_{k}_deg": 1.0 for k in range(50)})
+    assert len(body.dofs) == metrics.MAX_DOFS
+
+
+def test_a_message_an_output_fails_on_is_counted_and_the_output_goes_on(
+    router_endpoint: str, zsession: zenoh.Session
+) -> None:
+    class Picky(live.LiveOutput):
+        def __init__(self) -> None:
+            self.seen: list[int] = []
+
+        def on_pose(self, subject: str, frame: pose.PoseFrame) -> None:
+            if frame.seq == 2:
+                raise RuntimeError("a bug met by one message")
+            self.seen.append(frame.seq)
+
+    out_session = client(router_endpoint)
+    output = Picky()
+    result: list[live.Counts] = []
+    running = Running(lambda stop: result.append(live.run(out_session, output, stop)))
+    try:
+        block = zenoh.CongestionControl.BLOCK
+        pub = zsession.declare_publisher(keys.pose_key(), congestion_control=block)
+        deadline = time.monotonic() + 10
+        while not pub.matching_status.matching:
+            assert time.monotonic() < deadline, "the output never subscribed"
+            time.sleep(0.01)
+        for f in elbow_poses(4, 1_700_000_000_000_000_000):
+            pub.put(pose.encode(f))
+        deadline = time.monotonic() + 10
+        while len(output.seen) < 3:
+            assert time.monotonic() < deadline, output.seen
+            time.sleep(0.01)
+    finally:
+        running.stop()
+        out_session.close()
+    assert output.seen == [0, 1, 3]
+    assert result[0].failed == 1
+    assert "1 messages the output failed on" in result[0].summary()

@@ -27,8 +27,7 @@ not at hand when this was written, see "doubts" below). Every packet is::
 | 1    | heartbeat (server)  | none; sent by us every second                   |
 | 3    | handshake           | board i32, IMU i32, MCU i32, 3 x i32 IMU info,  |
 |      |                     | firmware build i32, firmware string (u8 length  |
-|      |                     | + bytes), MAC 6 bytes; shorter (older) forms    |
-|      |                     | are taken with what they hold, MAC required     |
+|      |                     | + bytes), MAC 6 bytes; the full form only       |
 | 10   | ping                | i32 id: we send pings, the tracker echoes them  |
 | 12   | battery             | f32 voltage, f32 level                          |
 | 15   | sensor info         | sensor id u8, status u8, IMU type u8 (more      |
@@ -56,6 +55,13 @@ skipped), so a lost packet is a gap of the sensors it could have carried (an
 upper bound: a lost battery packet is counted too). A packet whose number is
 not above the last one (a duplicate or reordered datagram) is rejected
 (``out_of_order``), as the server drops it.
+
+Versions: the packet framing above (int32 type + int64 number) is that of
+SlimeVR firmware since its numbered packets; handshakes are read in their full
+form only (board, IMU, MCU, IMU info, firmware build and string, MAC): an
+older, shorter handshake is refused as ``truncated``. Checked here only against
+bodynet's own emulated tracker (firmware build 17 in its handshake), not yet
+against a real tracker or the SlimeVR server's parser.
 
 Doubts, where this had to assume:
 - the handshake reply: one byte 3 then ASCII ``Hey OVR =D 5`` (13 bytes); the
@@ -221,8 +227,8 @@ def _unit_xyzw(x: float, y: float, z: float, w: float) -> tuple[float, float, fl
 
 
 def _handshake(body: bytes) -> Handshake:
-    """The handshake's fields as far as they go; the MAC (the last 6 bytes of the
-    full form) is required: it is the tracker's identity."""
+    """The handshake's fields, in the full form (the MAC, its last 6 bytes, is the
+    tracker's identity)."""
     if len(body) < _HANDSHAKE_INTS.size + 1 + MAC_LEN:
         raise DecodeError(Reason.TRUNCATED, f"handshake of {len(body)} bytes has no MAC")
     board, imu, mcu, _, _, _, build = _HANDSHAKE_INTS.unpack_from(body)
