@@ -466,4 +466,78 @@ def yaw_reset(profile: Profile, output: Any) -> tuple[Profile, float]:
         raise ValueError("no tag on the pelvis, thorax or head to say where the body faces")
     turn = yaw_deg(_matrix(output.segments[facing][1]))
     headings = {k: _wrap(profile.heading_of(k) + turn) for k in profile.imu_mounts}
-    return replace(profile, heading="auto", imu_headings=MappingProxyType(headings)), turn
+    return replace(profile, imu_headings=MappingProxyType(headings)), turn
+
+
+class KneeDrift:
+    """Heading drift of tags held at the knees, from the hinge constraint.
+
+    A knee turns about one axis, the thigh's lateral (y) axis, which is also the
+    shank's: in the body's frame the two segments' y axes must coincide. When a
+    shank tag's heading reference drifts (6-axis tags, no magnetometer), its y
+    axis turns about the vertical away from the thigh's by the drift: the angle
+    between their horizontal parts is the shank tag's heading error, seen at
+    every instant (no movement needed), the better the nearer the axis is to
+    horizontal. :meth:`update` takes a tick's samples and returns the small turns to
+    add to the shank tags' headings (each error low-passed with ``tau_s``, so
+    noise and brief ab/adduction of the knee's soft tissue average out). What it
+    cannot see: a heading drift shared by thigh and shank (the whole leg against
+    the pelvis, a three-dof hip), nor the trunk's, arms', hands' or feet's; the
+    state reports how long each tag has gone uncorrected."""
+
+    def __init__(self, profile: Profile, tau_s: float = 5.0) -> None:
+        by_segment: dict[str, str] = {}
+        for key, seg in _segments_of(profile.imu_mounts).items():
+            by_segment.setdefault(seg, key)
+        self.tau_s = tau_s
+        both = [s for s in ("left", "right")
+                if f"{s}_shank" in by_segment and f"{s}_thigh" in by_segment]  # fmt: skip
+        self.knees = {side: by_segment[f"{side}_shank"] for side in both}
+        self.thighs = {side: by_segment[f"{side}_thigh"] for side in both}
+        self.error_deg = dict.fromkeys(self.knees.values(), 0.0)  # filtered, per shank tag
+        self.corrected_deg = dict.fromkeys(self.knees.values(), 0.0)  # in all
+        self._last_t: float | None = None
+
+    def update(self, t_s: float, samples: Mapping[Site, Any],
+               profile: Profile) -> dict[str, float]:  # fmt: skip
+        """The turns (deg) to add to shank tags' headings after the tick at ``t_s``
+        whose samples (site -> RawSample) are ``samples``, solved with ``profile``
+        (the segments as the tags measure them: the solver's output has the knee's
+        one dof already imposed)."""
+        dt = 0.0 if self._last_t is None else max(0.0, t_s - self._last_t)
+        self._last_t = t_s
+        gain = min(1.0, dt / self.tau_s)
+        tags = {site.raw_key: s.reading.wxyz for site, s in samples.items()
+                if hasattr(s.reading, "wxyz")}  # fmt: skip
+        turns: dict[str, float] = {}
+        for side, key in self.knees.items():
+            thigh_key = self.thighs[side]
+            if key not in tags or thigh_key not in tags:
+                continue
+            thigh = self._segment(profile, thigh_key, tags[thigh_key])[:, 1]
+            shank = self._segment(profile, key, tags[key])[:, 1]
+            weight = math.hypot(thigh[0], thigh[1]) * math.hypot(shank[0], shank[1])
+            if weight < HORIZONTAL_MIN:  # the knee's axis near vertical: nothing to see
+                continue
+            error = math.degrees(math.atan2(shank[1], shank[0]) - math.atan2(thigh[1], thigh[0]))
+            self.error_deg[key] += gain * (_wrap(error) - self.error_deg[key])
+            turn = gain * self.error_deg[key]
+            if turn:
+                turns[key] = turn
+                self.corrected_deg[key] += turn
+        return turns
+
+    @staticmethod
+    def _segment(profile: Profile, key: str, wxyz: QuatWxyz) -> np.ndarray:
+        """The segment's orientation (body frame) as its tag measures it."""
+        mount = _matrix(profile.imu_mounts[key])
+        return rz(-profile.heading_of(key)) @ _matrix(wxyz) @ mount.T  # type: ignore[no-any-return]
+
+
+def turned_headings(profile: Profile, turns: Mapping[str, float]) -> Profile:
+    """``profile`` with these tags' heading references turned by ``turns`` (deg),
+    their mounts kept (a drift of the reference, not of the tag on the segment)."""
+    headings = dict(profile.imu_headings)
+    for key, turn in turns.items():
+        headings[key] = _wrap(profile.heading_of(key) + turn)
+    return replace(profile, imu_headings=MappingProxyType(headings))

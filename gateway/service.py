@@ -47,7 +47,14 @@ from bodynet.core.keys import BRANCHES, Branch, Site
 from bodynet.core.messages import Quat, RawSample, source_name
 from bodynet.core.subject import Profile, ProfileError, QuatWxyz
 from bodynet.gateway.frames import branch_views, pose_frame
-from bodynet.gateway.heading import BodyHeading, CalibrationRefused, calibrate_window, yaw_reset
+from bodynet.gateway.heading import (
+    BodyHeading,
+    CalibrationRefused,
+    KneeDrift,
+    calibrate_window,
+    turned_headings,
+    yaw_reset,
+)
 from bodynet.gateway.shards import Share
 from bodynet.gateway.solver import BodyOutput, BodySolver, solve_bodies
 from bodynet.session import profile_file
@@ -102,6 +109,7 @@ class _Body:
         self.profile_path = profile_path
         self.solver = BodySolver(profile)
         self.heading = BodyHeading(profile)  # the tags' heading: known, or being found
+        self.knees: KneeDrift | None = KneeDrift(profile) if profile.imu_mounts else None
         self.last_output: BodyOutput | None = None
         self.latest: dict[Site, _Site] = {}
         self.alive: set[str] = set()
@@ -249,6 +257,7 @@ class _Body:
         """A new calibration: a new solver, heading state and, if it has a file, saved."""
         self.solver = BodySolver(profile)
         self.heading = heading or BodyHeading(profile)
+        self.knees = KneeDrift(profile) if profile.imu_mounts else None
         if self.profile_path is not None:
             profile_file.save(profile, self.profile_path)
 
@@ -591,9 +600,15 @@ class Gateway:
     def _find_headings(self, work: Sequence[tuple[_Body, dict[Site, RawSample], object, object]],
                        now: float) -> None:  # fmt: skip
         """Feed the bodies whose tags' heading is still unknown their tick; take a
-        heading once found (a new solver, the profile saved)."""
+        heading once found (a new solver, the profile saved). Once known, the knees'
+        hinge constraint keeps the shank tags' headings from drifting (KneeDrift)."""
         for body, latest, _, _ in work:
             if not body.heading.unknown:
+                if body.knees is not None and body.knees.knees:  # 6-axis drift at the knees
+                    turns = body.knees.update(now, latest, body.solver.profile)
+                    if turns:
+                        with self._lock:
+                            body.solver.set_profile(turned_headings(body.solver.profile, turns))
                 continue
             found = body.heading.update(now, latest)
             if found is not None:
@@ -766,8 +781,13 @@ class Gateway:
             out["share"] = {"gateway": self.share.id, "members": sorted(self.share.members),
                             "foreign_samples": self.foreign_samples}  # fmt: skip
         if body is not None:
-            out["body"] = {"samples": body.samples, "ticks": body.ticks,
-                           "heading": body.heading.state()}  # fmt: skip
+            heading = body.heading.state()
+            if body.knees is not None and body.knees.knees:
+                # how far the knees' hinge has turned each shank tag's heading since
+                # calibration (6-axis drift); the other tags' drift is not corrected
+                heading["knee_corrected_deg"] = {k: round(v, 2) for k, v
+                                                 in body.knees.corrected_deg.items()}  # fmt: skip
+            out["body"] = {"samples": body.samples, "ticks": body.ticks, "heading": heading}
             # sites by the source they come through, ids this version has no name for too
             with self._lock:
                 kinds = Counter(source_name(s.sample.source) for s in body.latest.values())

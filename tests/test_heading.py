@@ -239,3 +239,40 @@ def test_emulated_tags_report_in_frames_of_their_own() -> None:
         _, magnetic = readings(Realism(0, 0, 0, 0, 0, True, facing_deg=-110.0), t)
         shared = (magnetic * base.inv()).as_rotvec(degrees=True)
         np.testing.assert_allclose(shared[:, 2], -110.0, atol=1e-6)
+
+
+def test_knee_hinge_holds_the_shank_tags_drift() -> None:
+    """6-axis tags reset together, then each drifting at its own rate (up to
+    5 deg/min): walking 40 s, the knees' hinge turns each shank tag's heading by
+    its drift against the thigh's, and the ankles stay within 3 deg; without it
+    they do not follow."""
+    from bodynet.gateway.heading import KneeDrift, turned_headings
+    from bodynet.nodes.motion import ROUTINES
+
+    realism = Realism(yaw_drift_deg_per_min=5.0, headings=Headings.DRIFTING)
+    walk = ROUTINES["walk"].angles
+    still = dict(CALIBRATION_POSES["tpose"])
+    routine = Routine("pose-then-walk", "", lambda t: still if t < 1.0 else walk(t - 1.0))
+    body = BodyEmulator(routine, imu_tags(), realism=realism, seed=5)
+    profile = calibrate_window(_window(body, 0.2, 0.95), Profile(heading="fixed"),
+                               "tpose").apply(Profile(heading="fixed"))  # fmt: skip
+    solvers = {"plain": BodySolver(profile), "held": BodySolver(profile)}
+    knees = KneeDrift(profile)
+    worst = {"plain": 0.0, "held": 0.0}
+    for t in np.arange(1.0, 41.0, 0.1):
+        samples, truth = _samples(body, float(t))
+        for name, solver in solvers.items():
+            out = solver.solve(samples)
+            errors = _errors(out.angles_deg, out.flags, truth)
+            if t > 20.0:
+                worst[name] = max(worst[name], *(e for n, e in errors.items() if "ankle" in n))
+        turns = knees.update(float(t), samples, solvers["held"].profile)
+        if turns:
+            solvers["held"].set_profile(turned_headings(solvers["held"].profile, turns))
+    rates = body.drift_deg_per_min
+    for side, thigh, shank in (("left", 10, 12), ("right", 11, 13)):
+        drifted = (rates[shank] - rates[thigh]) * 40.0 / 60.0
+        got = knees.corrected_deg[f"body/leg/{side}/shank/raw"]
+        assert got == pytest.approx(drifted, abs=0.6), side
+    assert worst["held"] <= 3.0, worst
+    assert worst["plain"] > worst["held"], worst
