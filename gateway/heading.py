@@ -90,6 +90,18 @@ def _matrix(q: Sequence[float]) -> np.ndarray:
     return Rotation.from_quat([x, y, z, w]).as_matrix()  # type: ignore[no-any-return]
 
 
+def _quat_matrix(q: Sequence[float]) -> np.ndarray:
+    """The rotation matrix of a unit quaternion (w, x, y, z)."""
+    w, x, y, z = q
+    n = math.sqrt(w * w + x * x + y * y + z * z) or 1.0
+    w, x, y, z = w / n, x / n, y / n, z / n
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+    ])  # fmt: skip
+
+
 def _wxyz(rot: np.ndarray) -> QuatWxyz:
     x, y, z, w = Rotation.from_matrix(rot).as_quat(canonical=True)
     return (float(w), float(x), float(y), float(z))
@@ -504,11 +516,18 @@ class JointDrift:
     neck), so a drift of the thighs, upper arms, trunk and head against each
     other stays."""
 
+    #: it looks at most this often (drift is slow; a gateway solves 100 ticks a second)
+    INTERVAL_S = 0.1
+    #: and turns a tag's heading once the turn due to it has grown to this (each turn
+    #: costs the solver its sites' set-up)
+    MIN_TURN_DEG = 0.05
+
     def __init__(self, profile: Profile, tau_s: float = 5.0) -> None:
         by_segment: dict[str, str] = {}
         for key, seg in _segments_of(profile.imu_mounts).items():
             by_segment.setdefault(seg, key)
         self.tau_s = tau_s
+        self.pending = dict[str, float]()
         #: child key -> (joint name, parent key, parent axis, child axis, kind)
         self.pairs: dict[str, tuple[str, str, int, int, str]] = {}
         for joint, parent, child, p_axis, c_axis, kind in DRIFT_JOINTS:
@@ -526,7 +545,9 @@ class JointDrift:
         whose samples (site -> RawSample) are ``samples``, solved with ``profile``
         (the segments as the tags measure them: the solver's output has the
         joints' dofs already imposed)."""
-        dt = 0.0 if self._last_t is None else max(0.0, t_s - self._last_t)
+        if self._last_t is not None and t_s - self._last_t < self.INTERVAL_S - 1e-6:
+            return {}
+        dt = 0.0 if self._last_t is None else t_s - self._last_t
         self._last_t = t_s
         gain = min(1.0, dt / self.tau_s)
         tags = {site.raw_key: s.reading.wxyz for site, s in samples.items()
@@ -541,17 +562,20 @@ class JointDrift:
             if error is None:
                 continue
             self.error_deg[key] += gain * (error - self.error_deg[key])
-            turn = gain * self.error_deg[key]
-            if turn:
+            turn = self.pending.get(key, 0.0) + gain * self.error_deg[key]
+            if abs(turn) >= self.MIN_TURN_DEG:
                 turns[key] = turn
                 self.corrected_deg[key] += turn
+                turn = 0.0
+            self.pending[key] = turn
         return turns
 
     @staticmethod
     def _segment(profile: Profile, key: str, wxyz: QuatWxyz) -> np.ndarray:
-        """The segment's orientation (body frame) as its tag measures it."""
-        mount = _matrix(profile.imu_mounts[key])
-        return rz(-profile.heading_of(key)) @ _matrix(wxyz) @ mount.T  # type: ignore[no-any-return]
+        """The segment's orientation (body frame) as its tag measures it (plain
+        arithmetic: a scipy Rotation costs tens of microseconds a call)."""
+        mount = _quat_matrix(profile.imu_mounts[key])
+        return rz(-profile.heading_of(key)) @ _quat_matrix(wxyz) @ mount.T  # type: ignore[no-any-return]
 
 
 def _parallel_error(p: np.ndarray, c: np.ndarray) -> float | None:

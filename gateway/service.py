@@ -788,6 +788,11 @@ class Gateway:
                 # since calibration (6-axis drift); the other tags' drift is not corrected
                 heading["drift_corrected_deg"] = {k: round(v, 2) for k, v
                                                   in body.drift.corrected_deg.items()}  # fmt: skip
+                # how well each tag's heading is held: by a joint's constraint, or not
+                # (a 6-axis tag's then drifts freely since calibration)
+                heading["held_by"] = {k: pair[0] for k, pair in body.drift.pairs.items()}
+                heading["not_held"] = sorted(set(body.solver.profile.imu_mounts)
+                                             - set(body.drift.pairs))  # fmt: skip
             out["body"] = {"samples": body.samples, "ticks": body.ticks, "heading": heading}
             # sites by the source they come through, ids this version has no name for too
             with self._lock:
