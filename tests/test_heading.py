@@ -279,3 +279,34 @@ def test_joint_constraints_hold_the_shank_and_foot_tags_drift() -> None:
         assert got == pytest.approx(drifted, abs=0.8), side
     assert worst["held"] <= 3.0, worst
     assert worst["plain"] > worst["held"], worst
+
+
+def test_yaw_reset_turns_the_body_to_face_forward() -> None:
+    """Calibrated facing +X, the subject then faces 40 deg away (the same suit in a
+    frame turned by 40): the yaw reset turns every tag's heading so the body faces
+    +X again, mounts and joint angles unchanged; refused while the heading is unknown."""
+    from bodynet.gateway.heading import yaw_deg, yaw_reset
+
+    ideal = Realism(0, 0, 0, 0, 0, True)
+    body = BodyEmulator(_motion("tpose"), imu_tags(), realism=ideal, seed=6)
+    turned = BodyEmulator(_motion("tpose"), imu_tags(), realism=Realism(
+        0, 0, 0, 0, 0, True, facing_deg=40.0), seed=6)  # fmt: skip
+    profile = calibrate_window(_window(body, 0.1, 0.9), Profile(heading="fixed"),
+                               "tpose").apply(Profile(heading="fixed"))  # fmt: skip
+    samples, truth = _samples(turned, 2.0)
+    before = BodySolver(profile).solve(samples)
+    pelvis = before.segments["pelvis"][1]
+    from scipy.spatial.transform import Rotation
+
+    assert yaw_deg(Rotation.from_quat(pelvis, scalar_first=True).as_matrix()) == pytest.approx(
+        40.0, abs=1e-3)  # fmt: skip
+    reset, turn = yaw_reset(profile, before)
+    assert turn == pytest.approx(40.0, abs=1e-3)
+    assert reset.imu_mounts == profile.imu_mounts
+    after = BodySolver(reset).solve(samples)
+    pelvis = Rotation.from_quat(after.segments["pelvis"][1], scalar_first=True).as_matrix()
+    assert yaw_deg(pelvis) == pytest.approx(0.0, abs=1e-3)
+    assert max(_errors(after.angles_deg, after.flags, truth).values()) < 1e-3
+    unknown = calibrate_window(_window(body, 0.1, 0.9), Profile(), "tpose").apply(Profile())
+    with pytest.raises(ValueError, match="not known yet"):
+        yaw_reset(unknown, before)
