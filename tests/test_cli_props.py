@@ -625,3 +625,22 @@ def test_a_terminated_write_leaves_the_earlier_file_and_no_half_file(tmp_path: P
     assert out.read_text() == "an earlier export\n"
     assert list(tmp_path.iterdir()) == [out]
     assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL  # as it was
+
+
+@settings(max_examples=5000 if LONG else 500)
+@given(text=st.text(alphabet="ab/*$?#@-", min_size=1, max_size=12))
+def test_key_expressions_are_checked_as_zenoh_checks_them(text: str) -> None:
+    """``argtypes.key_expr`` (no Zenoh loaded) agrees with Zenoh's own ``KeyExpr``."""
+    import zenoh
+
+    try:
+        zenoh.KeyExpr(text)
+        zenoh_takes = True
+    except zenoh.ZError:
+        zenoh_takes = False
+    try:
+        argtypes.key_expr(text)
+        we_take = True
+    except argparse.ArgumentTypeError:
+        we_take = False
+    assert we_take == zenoh_takes, text
