@@ -10,7 +10,7 @@ correction and solver, called directly on emulated samples with a truth):
 - **drift**: 6-axis tags reset together, each then drifting at its own rate
   within +/- ``drift`` deg/min; the subject walks for ``minutes``. The joints'
   error against the truth, minute by minute, with and without the knee's hinge
-  correction (:class:`~bodynet.gateway.heading.KneeDrift`), and each joint
+  correction (:class:`~bodynet.gateway.heading.JointDrift`), and each joint
   group's fitted slope (deg/min) of its error.
 """
 
@@ -29,7 +29,7 @@ from bodynet.core.skeleton import CALIBRATION_POSES
 from bodynet.core.subject import Profile
 from bodynet.gateway.heading import (
     BodyHeading,
-    KneeDrift,
+    JointDrift,
     calibrate_window,
     turned_headings,
 )
@@ -40,10 +40,11 @@ from bodynet.nodes.motion import ROUTINES, Routine, keyframes
 #: joint groups whose error is reported (dofs by name stem)
 GROUPS = {
     "knee": ("knee_flexion",),
-    "hip": ("hip_flexion", "hip_abduction", "hip_rotation"),
     "ankle": ("ankle_flexion", "ankle_inversion"),
+    "elbow, wrist": ("elbow", "wrist"),
+    "hip": ("hip_flexion", "hip_abduction", "hip_rotation"),
+    "shoulder": ("shoulder",),
     "trunk": ("lumbar", "neck"),
-    "arm": ("shoulder", "elbow", "wrist"),
 }
 
 
@@ -123,7 +124,7 @@ def drift(minutes: float = 10.0, drift_deg_per_min: float = 5.0, rate_hz: float 
     # reset together facing +X of their first frame: the start heading is known
     profile = _calibrated(body, Profile(heading="fixed"), 0.2, 0.95, 50.0)
     solver = BodySolver(profile)
-    knees = KneeDrift(profile) if correct else None
+    knees = JointDrift(profile) if correct else None
     times, groups = [], {g: [] for g in GROUPS}  # type: ignore[var-annotated]
     for t in np.arange(1.0, 1.0 + 60.0 * minutes, 1 / rate_hz):
         samples = _samples(body, float(t))
@@ -165,7 +166,8 @@ def run(out_dir: Path, minutes: float = 10.0) -> dict[str, Any]:
     lines += ["", f"6-axis tags drifting apart (each within +/- {rate} deg/min), walking "
               f"{minutes:g} min: worst error per group, first and last "
               "minute, and the fitted slope of the error:", "",
-              "| group | without correction | with the knee's hinge correction |", "|---|---|---|"]
+              "| group | without correction | with the joints' constraints "
+              "(knee, ankle, elbow, wrist) |", "|---|---|---|"]
     plain, fixed = result["drift"]
     for group in GROUPS:
         a, b = plain["groups"][group], fixed["groups"][group]

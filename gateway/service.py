@@ -50,7 +50,7 @@ from bodynet.gateway.frames import branch_views, pose_frame
 from bodynet.gateway.heading import (
     BodyHeading,
     CalibrationRefused,
-    KneeDrift,
+    JointDrift,
     calibrate_window,
     turned_headings,
     yaw_reset,
@@ -109,7 +109,7 @@ class _Body:
         self.profile_path = profile_path
         self.solver = BodySolver(profile)
         self.heading = BodyHeading(profile)  # the tags' heading: known, or being found
-        self.knees: KneeDrift | None = KneeDrift(profile) if profile.imu_mounts else None
+        self.drift: JointDrift | None = JointDrift(profile) if profile.imu_mounts else None
         self.last_output: BodyOutput | None = None
         self.latest: dict[Site, _Site] = {}
         self.alive: set[str] = set()
@@ -257,7 +257,7 @@ class _Body:
         """A new calibration: a new solver, heading state and, if it has a file, saved."""
         self.solver = BodySolver(profile)
         self.heading = heading or BodyHeading(profile)
-        self.knees = KneeDrift(profile) if profile.imu_mounts else None
+        self.drift = JointDrift(profile) if profile.imu_mounts else None
         if self.profile_path is not None:
             profile_file.save(profile, self.profile_path)
 
@@ -601,11 +601,12 @@ class Gateway:
                        now: float) -> None:  # fmt: skip
         """Feed the bodies whose tags' heading is still unknown their tick; take a
         heading once found (a new solver, the profile saved). Once known, the knees'
-        hinge constraint keeps the shank tags' headings from drifting (KneeDrift)."""
+        and the 2-dof joints' constraints keep the child tags' headings from drifting
+        (JointDrift)."""
         for body, latest, _, _ in work:
             if not body.heading.unknown:
-                if body.knees is not None and body.knees.knees:  # 6-axis drift at the knees
-                    turns = body.knees.update(now, latest, body.solver.profile)
+                if body.drift is not None and body.drift.pairs:  # 6-axis drift (JointDrift)
+                    turns = body.drift.update(now, latest, body.solver.profile)
                     if turns:
                         with self._lock:
                             body.solver.set_profile(turned_headings(body.solver.profile, turns))
@@ -782,11 +783,16 @@ class Gateway:
                             "foreign_samples": self.foreign_samples}  # fmt: skip
         if body is not None:
             heading = body.heading.state()
-            if body.knees is not None and body.knees.knees:
-                # how far the knees' hinge has turned each shank tag's heading since
-                # calibration (6-axis drift); the other tags' drift is not corrected
-                heading["knee_corrected_deg"] = {k: round(v, 2) for k, v
-                                                 in body.knees.corrected_deg.items()}  # fmt: skip
+            if body.drift is not None and body.drift.pairs:
+                # how far the joints' constraints have turned each child tag's heading
+                # since calibration (6-axis drift); the other tags' drift is not corrected
+                heading["drift_corrected_deg"] = {k: round(v, 2) for k, v
+                                                  in body.drift.corrected_deg.items()}  # fmt: skip
+                # how well each tag's heading is held: by a joint's constraint, or not
+                # (a 6-axis tag's then drifts freely since calibration)
+                heading["held_by"] = {k: pair[0] for k, pair in body.drift.pairs.items()}
+                heading["not_held"] = sorted(set(body.solver.profile.imu_mounts)
+                                             - set(body.drift.pairs))  # fmt: skip
             out["body"] = {"samples": body.samples, "ticks": body.ticks, "heading": heading}
             # sites by the source they come through, ids this version has no name for too
             with self._lock:
