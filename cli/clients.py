@@ -182,7 +182,7 @@ def cmd_record(args: argparse.Namespace) -> int:
                         int(args.rotate_mb * 1e6), args.rotate_s)  # fmt: skip
     start = time.monotonic()
     try:
-        while not stop.wait(1.0):
+        while not stop.wait(1.0) and recorder.error is None:
             elapsed = time.monotonic() - start
             print(f"\rrecording {recorder.files[-1]}: {recorder.messages} messages, "
                   f"{elapsed:.0f} s, {recorder.messages / elapsed:.0f}/s", end="",
@@ -195,6 +195,13 @@ def cmd_record(args: argparse.Namespace) -> int:
     if recorder.rejected:
         print(f"bodynet record: {sum(recorder.rejected.values())} messages refused "
               f"({recorder.rejected.summary()})", file=sys.stderr)  # fmt: skip
+    if recorder.error is not None:
+        last = recorder.files[-1]
+        print(f"bodynet record: cannot write {last}: "
+              f"{recorder.error.strerror or recorder.error}; the recording stopped there "
+              f"(`bodynet record --salvage {last} -o <new file>` keeps what reached the disk)",
+              file=sys.stderr)  # fmt: skip
+        return 1
     return 0
 
 

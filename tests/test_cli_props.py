@@ -16,10 +16,10 @@ import argparse
 import contextlib
 import hashlib
 import io
+import json
 import os
 import random
 import re
-import resource
 import signal
 import subprocess
 import sys
@@ -563,10 +563,10 @@ def test_a_garbled_can_log_line_costs_only_itself(
 # -- full disks and closed descriptors (a process of their own) -------------------------
 
 
-def _small_files() -> None:
-    """A file system that fills at 20 kB, for this process only."""
-    signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # a write past it fails, not the process
-    resource.setrlimit(resource.RLIMIT_FSIZE, (20_000, 20_000))
+#: Run a command as if its file system filled at 20-40 kB (``ulimit -f`` counts
+#: 512- or 1024-byte blocks); SIGXFSZ ignored, so a write past it fails with
+#: EFBIG instead of killing the process.
+SMALL_DISK = ["sh", "-c", "trap '' XFSZ; ulimit -f 40; exec \"$0\" \"$@\"", str(BODYNET)]
 
 
 def test_a_full_disk_names_the_output_and_leaves_no_half_file(
@@ -575,8 +575,9 @@ def test_a_full_disk_names_the_output_and_leaves_no_half_file(
     out = tmp_path / "big.csv"
     out.write_text("an earlier export\n")
     with unchanged(corpus["recording"], out):
-        result = run("export", "csv", "-q", corpus["recording"], "-o", out,
-                     preexec_fn=_small_files)  # fmt: skip
+        result = subprocess.run([*SMALL_DISK, "export", "csv", "-q", str(corpus["recording"]),
+                                 "-o", str(out)], capture_output=True, text=True, timeout=60,
+                                check=False)  # fmt: skip
     assert result.returncode == 2, result.stderr
     assert f"bodynet export: cannot write {out}: File too large" in result.stderr
     assert "Traceback" not in result.stderr
@@ -644,3 +645,33 @@ def test_key_expressions_are_checked_as_zenoh_checks_them(text: str) -> None:
     except argparse.ArgumentTypeError:
         we_take = False
     assert we_take == zenoh_takes, text
+
+
+def test_a_recording_onto_a_full_disk_stops_and_says_so(
+    tmp_path: Path, router_endpoint: str
+) -> None:
+    from zenoh_helpers import client
+
+    out = tmp_path / "r.mcap"
+    recorder = subprocess.Popen([*SMALL_DISK, "record", "body/@health/**", "-o", str(out),
+                                 "-e", router_endpoint], stderr=subprocess.PIPE,
+                                text=True)  # fmt: skip
+    session = client(router_endpoint)
+    try:
+        publisher = session.declare_publisher("body/@health/filler")
+        t_ns = 1
+        while recorder.poll() is None and t_ns < 100_000:  # until the disk is full
+            t_ns += 1
+            publisher.put(json.dumps({"source": "filler", "t_ns": t_ns, "pad": "x" * 2000}))
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                recorder.wait(timeout=0.01)
+        code = recorder.wait(timeout=60)
+    finally:
+        session.close()
+        if recorder.poll() is None:
+            recorder.kill()
+    told = recorder.stderr.read() if recorder.stderr else ""
+    assert code == 1, told
+    assert f"bodynet record: cannot write {out}: File too large" in told
+    assert f"bodynet record --salvage {out}" in told
+    assert "Traceback" not in told
