@@ -102,6 +102,14 @@ def _quat_matrix(q: Sequence[float]) -> np.ndarray:
     ])  # fmt: skip
 
 
+def _rotvec(rot: np.ndarray) -> np.ndarray:
+    """Rotation vector (rad) of a rotation matrix, accurate below 180 deg."""
+    vee = np.array([rot[2, 1] - rot[1, 2], rot[0, 2] - rot[2, 0], rot[1, 0] - rot[0, 1]])
+    sin2 = float(np.linalg.norm(vee))  # 2 sin(angle)
+    angle = math.atan2(sin2 / 2.0, (float(np.trace(rot)) - 1.0) / 2.0)
+    return vee * (0.5 if sin2 < 1e-12 else angle / sin2)  # type: ignore[no-any-return]
+
+
 def _wxyz(rot: np.ndarray) -> QuatWxyz:
     x, y, z, w = Rotation.from_matrix(rot).as_quat(canonical=True)
     return (float(w), float(x), float(y), float(z))
@@ -368,9 +376,10 @@ class HingeHeading:
             p, c = orientations.get(h.parent_key), orientations.get(h.child_key)
             if p is None or c is None:
                 continue
-            rp = _matrix(p)
-            change = rp.T @ _matrix(c) @ h.relative0.T  # about the axis, in the parent tag
-            rotvec = Rotation.from_matrix(change).as_rotvec()
+            # plain arithmetic: scipy's Rotation costs tens of microseconds a call, and
+            # this runs every tick of a body until its heading is found
+            change = _quat_matrix(p).T @ _quat_matrix(c) @ h.relative0.T  # in the parent tag
+            rotvec = _rotvec(change)
             angle = math.degrees(float(np.linalg.norm(rotvec)))
             if angle > 5.0 and h.first_move_t is None:
                 h.first_move_t = t_s
