@@ -20,6 +20,7 @@ SECTIONS = (
     ("recorder", "Recorder against the bare mcap writer"),
     ("faults", "Faults: time to see them or recover"),
     ("soak", "Soak: one body through gateway and recorder"),
+    ("drift", "Calibration on real frames: the subject facing anywhere, 6-axis drift"),
 )
 
 

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import math
 import re
 import sys
 from pathlib import Path
@@ -76,32 +75,6 @@ def _zenoh_message(exc: Exception) -> str:
     return re.sub(r" at \S+\.rs:\d+\.?", "", text).strip()
 
 
-def _port(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"a port is a whole number, not {text!r}") from None
-    if not 0 <= value <= 65535:
-        raise argparse.ArgumentTypeError(f"a port is 1 to 65535 (0: any free one), not {text}")
-    return value
-
-
-def _positive(kind: type) -> object:
-    def parse(text: str) -> object:
-        try:
-            value = kind(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"must be a number, not {text!r}") from None
-        if not math.isfinite(value) or value <= 0:
-            raise argparse.ArgumentTypeError(f"must be a finite number above 0, not {text}")
-        if value > 1e6:
-            raise argparse.ArgumentTypeError(f"must be at most 1000000, not {text}")
-        return value
-
-    parse.__name__ = f"positive {kind.__name__}"
-    return parse
-
-
 def _patient(text: str) -> str:
     from bodynet.clients.rehab import GameError, check_patient
 
@@ -134,7 +107,7 @@ def add_game_args(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--http-port",
-        type=_port,
+        type=argtypes.port_or_zero,
         default=DEFAULT_HTTP_PORT,
         help=f"port of the page and its WebSocket, 1-65535 (default {DEFAULT_HTTP_PORT}; "
         "0 picks a free one)",
@@ -147,28 +120,27 @@ def add_game_args(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--trials",
-        type=_positive(int),
+        type=argtypes.positive_int(1000, "trials"),
         default=10,
-        help="complete trials in the session, practice not counted (default 10)",
+        help="complete trials in a session, practice not counted, 1-1000 (default 10)",
     )
     p.add_argument(
         "--practice",
-        type=int,
+        type=argtypes.bounded_int(0, 10, "practice trials"),
         default=1,
-        choices=range(11),
         metavar="N",
         help="practice trials first (0-10), left out of the summary (default 1)",
     )
     p.add_argument(
         "--radius-cm",
-        type=_positive(float),
+        type=argtypes.bounded_float(1.0, 100.0, "cm"),
         default=12.0,
-        help="how close the hand tip must come to the ball, cm (default 12)",
+        help="how close the hand tip must come to the ball, 1-100 cm (default 12)",
     )
     p.add_argument(
         "--target-timeout",
-        type=_positive(float),
+        type=argtypes.bounded_float(1.0, 3600.0, "seconds, at most an hour"),
         default=20.0,
-        help="seconds a waiting ball gives the player before moving on (default 20)",
+        help="seconds a waiting ball counts down before moving on, 1-3600 (default 20)",
     )
     add_session_args(p)

@@ -12,6 +12,7 @@ explicit arguments.
 from __future__ import annotations
 
 import argparse
+import errno
 import importlib
 import json
 import logging
@@ -118,7 +119,8 @@ def cmd_router(args: argparse.Namespace) -> int:
     return 0
 
 
-BENCHMARKS = ("decode", "solver", "gateway", "peer", "rate", "recorder", "faults", "soak")
+BENCHMARKS = ("decode", "solver", "gateway", "peer", "rate", "recorder", "faults", "soak",
+              "drift")
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
@@ -129,7 +131,8 @@ def cmd_bench(args: argparse.Namespace) -> int:
               "(pip install -e '.[bench]', as make bench does)", file=sys.stderr)  # fmt: skip
         return 2
 
-    only = args.only or [b for b in BENCHMARKS if b != "soak"]  # the soak on demand
+    # the soak and the drift (10 emulated minutes, twice) on demand
+    only = args.only or [b for b in BENCHMARKS if b not in ("soak", "drift")]
     if "decode" in only:
         decode.run(seconds=args.seconds, out_dir=args.out)
     if "solver" in only:
@@ -146,6 +149,10 @@ def cmd_bench(args: argparse.Namespace) -> int:
         recorder.run(seconds=args.seconds, out_dir=args.out)
     if "faults" in only:
         faults.run(out_dir=args.out, repeat=args.repeat)
+    if "drift" in only:
+        from bodynet.bench import drift
+
+        drift.run(out_dir=args.out, minutes=args.drift_minutes)
     if "soak" in only:
         result = soak.run(minutes=args.minutes, out_dir=args.out)
         if not result["pass"]:
@@ -212,7 +219,10 @@ def add_bench_args(p: argparse.ArgumentParser) -> None:
                    default=[1, 2, 4],
                    help="numbers of gateway processes sharing the bodies (--share)")  # fmt: skip
     p.add_argument("--only", action="append", choices=BENCHMARKS,
-                   help="run only this benchmark (repeatable; default all but soak)")  # fmt: skip
+                   help="run only this benchmark (repeatable; default all but soak and "
+                        "drift)")  # fmt: skip
+    p.add_argument("--drift-minutes", type=argtypes.bounded_float(0.5, 120.0, "minutes"),
+                   default=10.0, help="emulated minutes of the drift benchmark (default 10)")
     p.add_argument("--rate-hz", type=argtypes.RATE_HZ, default=1000.0,
                    help="per-node rate of the `rate` benchmark (default 1000)")  # fmt: skip
     p.add_argument("--repeat", type=argtypes.positive_int(100, "runs"), default=3,
@@ -332,10 +342,26 @@ def main(argv: Sequence[str] | None = None) -> int:
     func = getattr(args, "func", None) or resolve(args.command_run)
     try:
         code: int = func(args)
+        if sys.stdout is not None:
+            sys.stdout.flush()
     except SessionError as exc:
         print(f"bodynet {args.command}: {exc}", file=sys.stderr)
         return 2
+    except OSError as exc:
+        # stdout gone or full (a closed pipe, > /dev/full): the command's output is
+        # lost; say so in one line instead of a traceback (other errors go on up)
+        if exc.filename is not None or exc.errno not in _STREAM_ERRNOS:
+            raise
+        _stdout_gone()
+        print(f"bodynet {args.command}: cannot write its output: {exc.strerror or exc}",
+              file=sys.stderr)  # fmt: skip
+        return 1
     return code
+
+
+#: Errors of writing to a stream (stdout): a closed pipe, a full device, a
+#: closed descriptor.
+_STREAM_ERRNOS = {errno.EPIPE, errno.ENOSPC, errno.EBADF, errno.EIO}
 
 
 if __name__ == "__main__":

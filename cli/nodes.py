@@ -154,9 +154,12 @@ def _emulation_args(p: argparse.ArgumentParser) -> None:
                    metavar="DEG",
                    help="where the subject faces in the tags' shared frame (a magnetometer "
                         "suit: x to north), deg about the vertical (default 0: +X)")  # fmt: skip
-    p.add_argument("--tag-headings", choices=("shared", "independent"), default="shared",
+    p.add_argument("--tag-headings", choices=("shared", "independent", "drifting"),
+                   default="shared",
                    help="shared: one earth frame for all tags (magnetometer-based); "
-                        "independent: 6-axis tags, each starting with a heading of its own")
+                        "independent: 6-axis tags, each starting with a heading of its own; "
+                        "drifting: 6-axis tags reset together, each drifting at its own "
+                        "--drift rate")  # fmt: skip
     p.add_argument("--noise-deg", type=argtypes.non_negative_float(30.0, "deg"), default=0.3,
                    help="orientation noise, deg")  # fmt: skip
     p.add_argument("--aligned-mounts", action="store_true",

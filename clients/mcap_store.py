@@ -39,6 +39,7 @@ created readable by the owner only: this is health data.
 from __future__ import annotations
 
 import ctypes
+import errno
 import functools
 import io
 import json
@@ -497,7 +498,8 @@ def _damaged(path: Path, f: IO[bytes], exc: BaseException) -> StoreError:
                 where = f" (in the chunk at byte {ci.chunk_start_offset})"
     except (*_READ_ERRORS, OSError, ValueError):
         pass
-    if isinstance(exc, OSError) and not isinstance(exc, EOFError) and exc.errno is not None:
+    # a read that fails (not a seek before the start of a file cut short: EINVAL)
+    if isinstance(exc, OSError) and exc.errno is not None and exc.errno != errno.EINVAL:
         return StoreError(f"{path}: cannot read it ({exc.strerror}){where}")
     return StoreError(
         f"{path}: not a complete MCAP file ({_short(exc)}){where}; "

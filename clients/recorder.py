@@ -77,6 +77,8 @@ class Recorder:
         self._lock = threading.Lock()
         self._closed = False
         self._last_seq: dict[str, tuple[int, int]] = {}  # topic -> (seq, t_ns) last written
+        #: the write error that stopped the recording (a full disk), if one did
+        self.error: OSError | None = None
         self.gaps = 0  # gap records written (each is in the file, not kept here)
         self.missing = 0  # messages they say are missing
         # Raw samples come from the bridges' advanced publishers: an advanced subscriber
@@ -142,6 +144,11 @@ class Recorder:
         except DecodeError as exc:
             self.rejected[exc.reason] += 1
             log.debug("recorder: refused a message on %s: %s", key, exc)
+        except OSError as exc:  # a full disk: the file ends here (what is flushed is salvageable)
+            with self._lock:
+                if self.error is None:
+                    self.error = exc
+                self._closed = True
 
     def _note_seq(self, topic: str, seq: int, t_ns: int) -> None:
         """Write a gap record if ``seq`` skips numbers after the topic's last one.
@@ -160,7 +167,10 @@ class Recorder:
             sub.undeclare()
         with self._lock:
             self._closed = True
-            self._sink.close()
+            try:
+                self._sink.close()
+            except OSError as exc:  # the footer cannot be written either
+                self.error = self.error or exc
 
 
 _POSE, _TRUTH, _TOPOLOGY, _HEALTH, _RAW = "pose", "truth", "topology", "health", "raw"

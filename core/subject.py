@@ -118,8 +118,9 @@ class Profile:
         return self.heading == "fixed" or key in self.imu_headings
 
     def heading_of(self, key: str) -> float:
-        """The tag's heading reference (deg; 0 when unknown or ``fixed``)."""
-        return 0.0 if self.heading == "fixed" else self.imu_headings.get(key, 0.0)
+        """The tag's heading reference (deg; 0 when unknown, or ``fixed`` and not
+        corrected since: a yaw reset, a drift correction)."""
+        return self.imu_headings.get(key, 0.0)
 
     def with_tracker(self, tracker: str, site: str) -> Profile:
         """``tracker`` (its canonical id) sits at ``site`` (``left-arm/upperarm``);

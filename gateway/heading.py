@@ -90,6 +90,26 @@ def _matrix(q: Sequence[float]) -> np.ndarray:
     return Rotation.from_quat([x, y, z, w]).as_matrix()  # type: ignore[no-any-return]
 
 
+def _quat_matrix(q: Sequence[float]) -> np.ndarray:
+    """The rotation matrix of a unit quaternion (w, x, y, z)."""
+    w, x, y, z = q
+    n = math.sqrt(w * w + x * x + y * y + z * z) or 1.0
+    w, x, y, z = w / n, x / n, y / n, z / n
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+    ])  # fmt: skip
+
+
+def _rotvec(rot: np.ndarray) -> np.ndarray:
+    """Rotation vector (rad) of a rotation matrix, accurate below 180 deg."""
+    vee = np.array([rot[2, 1] - rot[1, 2], rot[0, 2] - rot[2, 0], rot[1, 0] - rot[0, 1]])
+    sin2 = float(np.linalg.norm(vee))  # 2 sin(angle)
+    angle = math.atan2(sin2 / 2.0, (float(np.trace(rot)) - 1.0) / 2.0)
+    return vee * (0.5 if sin2 < 1e-12 else angle / sin2)  # type: ignore[no-any-return]
+
+
 def _wxyz(rot: np.ndarray) -> QuatWxyz:
     x, y, z, w = Rotation.from_matrix(rot).as_quat(canonical=True)
     return (float(w), float(x), float(y), float(z))
@@ -356,9 +376,10 @@ class HingeHeading:
             p, c = orientations.get(h.parent_key), orientations.get(h.child_key)
             if p is None or c is None:
                 continue
-            rp = _matrix(p)
-            change = rp.T @ _matrix(c) @ h.relative0.T  # about the axis, in the parent tag
-            rotvec = Rotation.from_matrix(change).as_rotvec()
+            # plain arithmetic: scipy's Rotation costs tens of microseconds a call, and
+            # this runs every tick of a body until its heading is found
+            change = _quat_matrix(p).T @ _quat_matrix(c) @ h.relative0.T  # in the parent tag
+            rotvec = _rotvec(change)
             angle = math.degrees(float(np.linalg.norm(rotvec)))
             if angle > 5.0 and h.first_move_t is None:
                 h.first_move_t = t_s
@@ -466,4 +487,133 @@ def yaw_reset(profile: Profile, output: Any) -> tuple[Profile, float]:
         raise ValueError("no tag on the pelvis, thorax or head to say where the body faces")
     turn = yaw_deg(_matrix(output.segments[facing][1]))
     headings = {k: _wrap(profile.heading_of(k) + turn) for k in profile.imu_mounts}
-    return replace(profile, heading="auto", imu_headings=MappingProxyType(headings)), turn
+    return replace(profile, imu_headings=MappingProxyType(headings)), turn
+
+
+#: The joints whose constraint shows a child tag's heading drift against its
+#: parent's: (joint, parent, child, parent axis, child axis, how they relate).
+#: A hinge (knee): the axes are the same line. Two dofs (ankle, elbow, wrist):
+#: the second dof's axis, fixed in the child, stays perpendicular to the first,
+#: fixed in the parent (Laidig et al. 2017's 1D and 2D joints).
+DRIFT_JOINTS = (
+    ("knee", "thigh", "shank", 1, 1, "parallel"),
+    ("ankle", "shank", "foot", 1, 0, "perpendicular"),
+    ("elbow", "upperarm", "forearm", 1, 2, "perpendicular"),
+    ("wrist", "forearm", "hand", 0, 1, "perpendicular"),
+)
+#: a perpendicular constraint's grip on the heading (|d(c.p)/d heading| at the
+#: answer) below this: the child's heading is not seen at that instant
+PERPENDICULAR_MIN = 0.3
+
+
+class JointDrift:
+    """Heading drift of tags, held by the joints' constraints.
+
+    6-axis tags drift about the vertical, each its own way. Where a joint allows
+    fewer than three dofs its axes are bound to the two segments: a knee turns
+    about one axis, the thigh's lateral axis, which is the shank's too; an ankle,
+    elbow or wrist turns about an axis fixed in the parent and one fixed in the
+    child that stay perpendicular. In the body's frame a child tag whose
+    heading drifted turns its axis about the vertical away from where the
+    constraint wants it, at every instant (no movement needed) when the axes
+    are not vertical: the angle that puts it back is the child tag's heading
+    error against its parent's. :meth:`update` takes a tick's samples and
+    returns the small turns to add to the child tags' headings (each error
+    low-passed with ``tau_s``, so noise and soft tissue average out). Chained
+    (thigh, shank, foot; upper arm, forearm, hand), each tag is held to its
+    parent. What it cannot see: the three-dof joints (hips, shoulders, lumbar,
+    neck), so a drift of the thighs, upper arms, trunk and head against each
+    other stays."""
+
+    #: it looks at most this often (drift is slow; a gateway solves 100 ticks a second)
+    INTERVAL_S = 0.1
+    #: and turns a tag's heading once the turn due to it has grown to this (each turn
+    #: costs the solver its sites' set-up)
+    MIN_TURN_DEG = 0.05
+
+    def __init__(self, profile: Profile, tau_s: float = 5.0) -> None:
+        by_segment: dict[str, str] = {}
+        for key, seg in _segments_of(profile.imu_mounts).items():
+            by_segment.setdefault(seg, key)
+        self.tau_s = tau_s
+        self.pending = dict[str, float]()
+        #: child key -> (joint name, parent key, parent axis, child axis, kind)
+        self.pairs: dict[str, tuple[str, str, int, int, str]] = {}
+        for joint, parent, child, p_axis, c_axis, kind in DRIFT_JOINTS:
+            for side in ("left", "right"):
+                p, c = by_segment.get(f"{side}_{parent}"), by_segment.get(f"{side}_{child}")
+                if p is not None and c is not None:
+                    self.pairs[c] = (f"{side}_{joint}", p, p_axis, c_axis, kind)
+        self.error_deg = dict.fromkeys(self.pairs, 0.0)  # filtered, per child tag
+        self.corrected_deg = dict.fromkeys(self.pairs, 0.0)  # in all
+        self._last_t: float | None = None
+
+    def update(self, t_s: float, samples: Mapping[Site, Any],
+               profile: Profile) -> dict[str, float]:  # fmt: skip
+        """The turns (deg) to add to child tags' headings after the tick at ``t_s``
+        whose samples (site -> RawSample) are ``samples``, solved with ``profile``
+        (the segments as the tags measure them: the solver's output has the
+        joints' dofs already imposed)."""
+        if self._last_t is not None and t_s - self._last_t < self.INTERVAL_S - 1e-6:
+            return {}
+        dt = 0.0 if self._last_t is None else t_s - self._last_t
+        self._last_t = t_s
+        gain = min(1.0, dt / self.tau_s)
+        tags = {site.raw_key: s.reading.wxyz for site, s in samples.items()
+                if hasattr(s.reading, "wxyz")}  # fmt: skip
+        turns: dict[str, float] = {}
+        for key, (_, parent_key, p_axis, c_axis, kind) in self.pairs.items():
+            if key not in tags or parent_key not in tags:
+                continue
+            p = self._segment(profile, parent_key, tags[parent_key])[:, p_axis]
+            c = self._segment(profile, key, tags[key])[:, c_axis]
+            error = _parallel_error(p, c) if kind == "parallel" else _perpendicular_error(p, c)
+            if error is None:
+                continue
+            self.error_deg[key] += gain * (error - self.error_deg[key])
+            turn = self.pending.get(key, 0.0) + gain * self.error_deg[key]
+            if abs(turn) >= self.MIN_TURN_DEG:
+                turns[key] = turn
+                self.corrected_deg[key] += turn
+                turn = 0.0
+            self.pending[key] = turn
+        return turns
+
+    @staticmethod
+    def _segment(profile: Profile, key: str, wxyz: QuatWxyz) -> np.ndarray:
+        """The segment's orientation (body frame) as its tag measures it (plain
+        arithmetic: a scipy Rotation costs tens of microseconds a call)."""
+        mount = _quat_matrix(profile.imu_mounts[key])
+        return rz(-profile.heading_of(key)) @ _quat_matrix(wxyz) @ mount.T  # type: ignore[no-any-return]
+
+
+def _parallel_error(p: np.ndarray, c: np.ndarray) -> float | None:
+    """The child's heading error (deg) when its axis ``c`` should lie along ``p``."""
+    if math.hypot(p[0], p[1]) * math.hypot(c[0], c[1]) < HORIZONTAL_MIN:
+        return None  # the axis near vertical: nothing to see
+    return _wrap(math.degrees(math.atan2(c[1], c[0]) - math.atan2(p[1], p[0])))
+
+
+def _perpendicular_error(p: np.ndarray, c: np.ndarray) -> float | None:
+    """The child's heading error (deg) when its axis ``c`` should stay perpendicular
+    to ``p``: the turn ``e`` about the vertical with ``(Rz(-e) c) . p = 0``,
+    nearest 0, when the constraint has a grip on it."""
+    a = c[0] * p[0] + c[1] * p[1]
+    b = c[1] * p[0] - c[0] * p[1]
+    r = math.hypot(a, b)
+    if r < 1e-9:
+        return None
+    base = math.atan2(b, a)
+    spread = math.acos(max(-1.0, min(1.0, -c[2] * p[2] / r)))
+    e = min((_wrap(math.degrees(base + sign * spread)) for sign in (1, -1)), key=abs)
+    grip = abs(-a * math.sin(math.radians(e)) + b * math.cos(math.radians(e)))
+    return e if grip >= PERPENDICULAR_MIN else None
+
+
+def turned_headings(profile: Profile, turns: Mapping[str, float]) -> Profile:
+    """``profile`` with these tags' heading references turned by ``turns`` (deg),
+    their mounts kept (a drift of the reference, not of the tag on the segment)."""
+    headings = dict(profile.imu_headings)
+    for key, turn in turns.items():
+        headings[key] = _wrap(profile.heading_of(key) + turn)
+    return replace(profile, imu_headings=MappingProxyType(headings))

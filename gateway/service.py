@@ -47,7 +47,14 @@ from bodynet.core.keys import BRANCHES, Branch, Site
 from bodynet.core.messages import Quat, RawSample, source_name
 from bodynet.core.subject import Profile, ProfileError, QuatWxyz
 from bodynet.gateway.frames import branch_views, pose_frame
-from bodynet.gateway.heading import BodyHeading, CalibrationRefused, calibrate_window, yaw_reset
+from bodynet.gateway.heading import (
+    BodyHeading,
+    CalibrationRefused,
+    JointDrift,
+    calibrate_window,
+    turned_headings,
+    yaw_reset,
+)
 from bodynet.gateway.shards import Share
 from bodynet.gateway.solver import BodyOutput, BodySolver, solve_bodies
 from bodynet.session import profile_file
@@ -102,6 +109,7 @@ class _Body:
         self.profile_path = profile_path
         self.solver = BodySolver(profile)
         self.heading = BodyHeading(profile)  # the tags' heading: known, or being found
+        self.drift: JointDrift | None = JointDrift(profile) if profile.imu_mounts else None
         self.last_output: BodyOutput | None = None
         self.latest: dict[Site, _Site] = {}
         self.alive: set[str] = set()
@@ -250,6 +258,7 @@ class _Body:
         """A new calibration: a new solver, heading state and, if it has a file, saved."""
         self.solver = BodySolver(profile)
         self.heading = heading or BodyHeading(profile)
+        self.drift = JointDrift(profile) if profile.imu_mounts else None
         if self.profile_path is not None:
             profile_file.save(profile, self.profile_path)
 
@@ -592,9 +601,16 @@ class Gateway:
     def _find_headings(self, work: Sequence[tuple[_Body, dict[Site, RawSample], object, object]],
                        now: float) -> None:  # fmt: skip
         """Feed the bodies whose tags' heading is still unknown their tick; take a
-        heading once found (a new solver, the profile saved)."""
+        heading once found (a new solver, the profile saved). Once known, the knees'
+        and the 2-dof joints' constraints keep the child tags' headings from drifting
+        (JointDrift)."""
         for body, latest, _, _ in work:
             if not body.heading.unknown:
+                if body.drift is not None and body.drift.pairs:  # 6-axis drift (JointDrift)
+                    turns = body.drift.update(now, latest, body.solver.profile)
+                    if turns:
+                        with self._lock:
+                            body.solver.set_profile(turned_headings(body.solver.profile, turns))
                 continue
             found = body.heading.update(now, latest)
             if found is not None:
@@ -767,8 +783,18 @@ class Gateway:
             out["share"] = {"gateway": self.share.id, "members": sorted(self.share.members),
                             "foreign_samples": self.foreign_samples}  # fmt: skip
         if body is not None:
-            out["body"] = {"samples": body.samples, "ticks": body.ticks,
-                           "heading": body.heading.state()}  # fmt: skip
+            heading = body.heading.state()
+            if body.drift is not None and body.drift.pairs:
+                # how far the joints' constraints have turned each child tag's heading
+                # since calibration (6-axis drift); the other tags' drift is not corrected
+                heading["drift_corrected_deg"] = {k: round(v, 2) for k, v
+                                                  in body.drift.corrected_deg.items()}  # fmt: skip
+                # how well each tag's heading is held: by a joint's constraint, or not
+                # (a 6-axis tag's then drifts freely since calibration)
+                heading["held_by"] = {k: pair[0] for k, pair in body.drift.pairs.items()}
+                heading["not_held"] = sorted(set(body.solver.profile.imu_mounts)
+                                             - set(body.drift.pairs))  # fmt: skip
+            out["body"] = {"samples": body.samples, "ticks": body.ticks, "heading": heading}
             # sites by the source they come through, ids this version has no name for too
             with self._lock:
                 kinds = Counter(source_name(s.sample.source) for s in body.latest.values())

@@ -476,6 +476,15 @@ class BodySolver:
                     if UNOBSERVED not in tick.reasons.get(name, ()):
                         tick.reasons.setdefault(name, set()).add(UNCALIBRATED)
 
+    def set_profile(self, profile: Profile) -> None:
+        """Take a profile of the same body (lengths, calibration pose) whose mounts or
+        headings changed, keeping the body's memory (the last angles...): a heading
+        that drifts is corrected tick by tick without starting the body again."""
+        if profile.lengths != self.profile.lengths or profile.pose != self.profile.pose:
+            raise ValueError("set_profile keeps the body: new lengths or pose need a new solver")
+        self.profile = profile
+        self._sites.clear()
+
     def solve(self, samples: Mapping[Site, RawSample]) -> BodyOutput:
         """Angles and poses from the latest sample of each site."""
         return BodySolver.solve_many([(self, samples)])[0]

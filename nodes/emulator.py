@@ -76,6 +76,7 @@ class Headings(StrEnum):
 
     SHARED = "shared"  # one earth frame (magnetometer-based sensors): z up, x to north
     INDEPENDENT = "independent"  # 6-axis tags: each its own heading, drawn at random
+    DRIFTING = "drifting"  # 6-axis tags reset together: one heading at first, then their own
 
 
 @dataclass(frozen=True, slots=True)
@@ -87,7 +88,8 @@ class Realism:
     it (0: +X, as the solver's ``fixed`` heading assumes); the whole frame drifts
     at ``yaw_drift_deg_per_min``. With ``INDEPENDENT`` headings each sensor's
     frame has a random heading of its own and drifts at a rate drawn within
-    +/- ``yaw_drift_deg_per_min``. The truth stays in the body's frame."""
+    +/- ``yaw_drift_deg_per_min``; ``DRIFTING`` tags start as ``SHARED`` ones and
+    drift as ``INDEPENDENT`` ones. The truth stays in the body's frame."""
 
     accel_noise_g: float = 0.01
     accel_bias_g: float = 0.02  # bias of each axis drawn within +/- this
@@ -161,11 +163,18 @@ class BodyEmulator:
         if r.headings is Headings.INDEPENDENT:
             headings = rng.uniform(-180.0, 180.0, k)
             drift: float | np.ndarray = rng.uniform(-1.0, 1.0, k) * r.yaw_drift_deg_per_min
+        elif r.headings is Headings.DRIFTING:
+            headings = np.full(k, r.facing_deg)
+            drift = rng.uniform(-1.0, 1.0, k) * r.yaw_drift_deg_per_min
         else:
             headings, drift = np.full(k, r.facing_deg), r.yaw_drift_deg_per_min
         #: each orientation sensor's reference heading (deg) at t = 0, by node number
         self.headings_deg = {self.sensors[i].node: float(h)
                              for i, h in zip(quat_idx, headings, strict=True)}  # fmt: skip
+        #: and how fast it drifts (deg/min), by node number
+        rates = np.broadcast_to(drift, (k,))
+        self.drift_deg_per_min = {self.sensors[i].node: float(d)
+                                  for i, d in zip(quat_idx, rates, strict=True)}  # fmt: skip
         self._quat = QuatBank(
             Rotation.from_quat(np.array(quat_mounts).reshape(-1, 4)),
             r.quat_noise_deg,

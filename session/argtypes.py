@@ -187,7 +187,7 @@ def number_list(lo: int, hi: int) -> Callable[[str], tuple[int, ...]]:
         out: list[int] = []
         for part in text.split(","):
             a, dash, b = part.strip().partition("-")
-            if not re.fullmatch(r"\d{1,6}", a) or (dash and not re.fullmatch(r"\d{1,6}", b)):
+            if not re.fullmatch(r"\d{1,12}", a) or (dash and not re.fullmatch(r"\d{1,12}", b)):
                 fail(f"{_shown(text)} is not a list like 1-3,7")
             first, last = int(a), int(b) if dash else int(a)
             if first > last or first < lo or last > hi:
@@ -415,17 +415,26 @@ _KEY_CHUNK = re.compile(r"\*\*|[^/*$?#\s]*(?:\$\*[^/*$?#\s]*)*|\*")
 def key_expr(text: str) -> str:
     """A Zenoh key expression: ``/``-separated non-empty chunks, ``*`` and ``**``
     as whole chunks (or ``$*`` inside one), no ``?``, ``#`` or spaces, no
-    leading, trailing or doubled ``/``. (The same rules as Zenoh's ``KeyExpr``,
-    checked without loading Zenoh.)"""
+    leading, trailing or doubled ``/``, in Zenoh's canonical form (``*/**``, not
+    ``**/*``). These are Zenoh's ``KeyExpr`` rules, checked without loading
+    Zenoh; white space, which Zenoh allows, is refused here as a typo."""
     if not text:
         fail("an empty key expression")
     if text.startswith("/") or text.endswith("/") or "//" in text:
         fail(f"{_shown(text)}: a key expression has no empty chunk (no leading, "
              "trailing or doubled '/')")  # fmt: skip
+    previous = ""
     for chunk in text.split("/"):
         if not chunk.isprintable() or not _KEY_CHUNK.fullmatch(chunk):
             fail(f"{_shown(text)}: chunk {_shown(chunk)} is not valid (use * or ** as "
                  "whole chunks; no ?, # or spaces)")  # fmt: skip
+        if chunk == "$*" or "$*$*" in chunk:
+            fail(f"{_shown(text)}: write {_shown(chunk)} as {_shown(chunk.replace('$*$*', '$*'))}"
+                 if chunk != "$*" else f"{_shown(text)}: a chunk that is only $* is written *")
+        if previous == "**" and chunk in ("*", "**"):
+            fail(f"{_shown(text)}: write {previous}/{chunk} as "
+                 f"{'*/**' if chunk == '*' else '**'} (Zenoh's canonical form)")
+        previous = chunk
     return text
 
 

@@ -16,10 +16,10 @@ import argparse
 import contextlib
 import hashlib
 import io
+import json
 import os
 import random
 import re
-import resource
 import signal
 import subprocess
 import sys
@@ -563,10 +563,10 @@ def test_a_garbled_can_log_line_costs_only_itself(
 # -- full disks and closed descriptors (a process of their own) -------------------------
 
 
-def _small_files() -> None:
-    """A file system that fills at 20 kB, for this process only."""
-    signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # a write past it fails, not the process
-    resource.setrlimit(resource.RLIMIT_FSIZE, (20_000, 20_000))
+#: Run a command as if its file system filled at 20-40 kB (``ulimit -f`` counts
+#: 512- or 1024-byte blocks); SIGXFSZ ignored, so a write past it fails with
+#: EFBIG instead of killing the process.
+SMALL_DISK = ["sh", "-c", "trap '' XFSZ; ulimit -f 40; exec \"$0\" \"$@\"", str(BODYNET)]
 
 
 def test_a_full_disk_names_the_output_and_leaves_no_half_file(
@@ -575,15 +575,16 @@ def test_a_full_disk_names_the_output_and_leaves_no_half_file(
     out = tmp_path / "big.csv"
     out.write_text("an earlier export\n")
     with unchanged(corpus["recording"], out):
-        result = run("export", "csv", "-q", corpus["recording"], "-o", out,
-                     preexec_fn=_small_files)  # fmt: skip
+        result = subprocess.run([*SMALL_DISK, "export", "csv", "-q", str(corpus["recording"]),
+                                 "-o", str(out)], capture_output=True, text=True, timeout=60,
+                                check=False)  # fmt: skip
     assert result.returncode == 2, result.stderr
     assert f"bodynet export: cannot write {out}: File too large" in result.stderr
     assert "Traceback" not in result.stderr
     assert [p.name for p in tmp_path.iterdir()] == ["big.csv"]  # no temporary file left
 
 
-def test_a_full_or_closed_stdout_is_an_error(corpus: dict[str, Path]) -> None:
+def test_a_full_or_closed_stdout_is_an_error(corpus: dict[str, Path], tmp_path: Path) -> None:
     capture = corpus["smartsuit_arm.log"]
     with open("/dev/full", "w") as full:
         result = subprocess.run([str(BODYNET), "decode", "--format", "can-log", str(capture)],
@@ -593,6 +594,12 @@ def test_a_full_or_closed_stdout_is_an_error(corpus: dict[str, Path]) -> None:
     assert "cannot write the samples to stdout: No space left on device" in result.stderr
     assert "Traceback" not in result.stderr
     assert "Exception ignored" not in result.stderr
+    with open("/dev/full", "w") as full:  # any command whose report goes to stdout
+        result = subprocess.run([str(BODYNET), "certs", str(tmp_path / "certs")],
+                                stdout=full, stderr=subprocess.PIPE, text=True, timeout=60,
+                                check=False)  # fmt: skip
+    assert result.returncode == 1
+    assert result.stderr == "bodynet certs: cannot write its output: No space left on device\n"
     closed = subprocess.run(f"'{BODYNET}' decode --format can-log '{capture}' >&-", shell=True,
                             capture_output=True, text=True, timeout=60, check=False)  # fmt: skip
     assert closed.returncode == 2
@@ -619,3 +626,75 @@ def test_a_terminated_write_leaves_the_earlier_file_and_no_half_file(tmp_path: P
     assert out.read_text() == "an earlier export\n"
     assert list(tmp_path.iterdir()) == [out]
     assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL  # as it was
+
+
+@settings(max_examples=5000 if LONG else 500)
+@given(text=st.text(alphabet="ab/*$?#@-", min_size=1, max_size=12))
+def test_key_expressions_are_checked_as_zenoh_checks_them(text: str) -> None:
+    """``argtypes.key_expr`` (no Zenoh loaded) agrees with Zenoh's own ``KeyExpr``."""
+    import zenoh
+
+    try:
+        zenoh.KeyExpr(text)
+        zenoh_takes = True
+    except zenoh.ZError:
+        zenoh_takes = False
+    try:
+        argtypes.key_expr(text)
+        we_take = True
+    except argparse.ArgumentTypeError:
+        we_take = False
+    assert we_take == zenoh_takes, text
+
+
+def test_a_recording_onto_a_full_disk_stops_and_says_so(
+    tmp_path: Path, router_endpoint: str
+) -> None:
+    from zenoh_helpers import client
+
+    out = tmp_path / "r.mcap"
+    recorder = subprocess.Popen([*SMALL_DISK, "record", "body/@health/**", "-o", str(out),
+                                 "-e", router_endpoint], stderr=subprocess.PIPE,
+                                text=True)  # fmt: skip
+    session = client(router_endpoint)
+    try:
+        publisher = session.declare_publisher("body/@health/filler")
+        t_ns = 1
+        while recorder.poll() is None and t_ns < 100_000:  # until the disk is full
+            t_ns += 1
+            publisher.put(json.dumps({"source": "filler", "t_ns": t_ns, "pad": "x" * 2000}))
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                recorder.wait(timeout=0.01)
+        code = recorder.wait(timeout=60)
+    finally:
+        session.close()
+        if recorder.poll() is None:
+            recorder.kill()
+    told = recorder.stderr.read() if recorder.stderr else ""
+    assert code == 1, told
+    assert f"bodynet record: cannot write {out}: File too large" in told
+    assert f"bodynet record --salvage {out}" in told
+    assert "Traceback" not in told
+
+
+def test_an_export_of_mostly_repeated_frames_is_refused(
+    corpus: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Two poses an hour apart at 1 kHz would be 3.6 million frames of two poses."""
+    from bodynet.core.codecs import pose
+
+    sparse = tmp_path / "sparse.mcap"
+    frames = [frame for _, frame in read_poses(corpus["recording"])][:2]
+    with sparse.open("wb") as f:
+        writer = Writer(f)
+        writer.start()
+        schema = writer.register_schema("bodynet.PoseFrame", "jsonschema", b"{}")
+        channel = writer.register_channel("body/pose", "json", schema)
+        for t, frame in zip((10**9, 3601 * 10**9), frames, strict=True):
+            writer.add_message(channel, t, pose.encode(frame), t)
+        writer.finish()
+    out = tmp_path / "x.c3d"
+    code, err = cli(capsys, "export", "c3d", "-q", sparse, "--rate-hz", "1000", "-o", out)
+    assert code == 2
+    assert "choose a lower rate" in err
+    assert not out.exists()

@@ -333,16 +333,18 @@ def test_a_new_session_saves_the_old_one_and_starts_a_file_of_its_own(tmp_path: 
 @pytest.mark.parametrize(
     ("args", "told"),
     [
-        (["--http-port", "99999"], "--http-port: a port is 1 to 65535"),
-        (["--http-port", "-1"], "--http-port: a port is 1 to 65535"),
-        (["--http-port", "http"], "--http-port: a port is a whole number"),
-        (["--radius-cm", "nan"], "--radius-cm: must be a finite number above 0"),
-        (["--radius-cm", "0"], "--radius-cm: must be a finite number above 0"),
-        (["--target-timeout", "inf"], "--target-timeout: must be a finite number above 0"),
-        (["--target-timeout", "1e300"], "--target-timeout: must be at most"),
-        (["--trials", "0"], "--trials: must be a finite number above 0"),
-        (["--practice", "-1"], "--practice: invalid choice"),
+        (["--http-port", "99999"], "--http-port: '99999' is outside 0..65535"),
+        (["--http-port", "-1"], "--http-port: '-1' is outside 0..65535"),
+        (["--http-port", "http"], "--http-port: 'http' is not a whole number"),
+        (["--radius-cm", "nan"], "--radius-cm: 'nan' is not a finite number"),
+        (["--radius-cm", "0"], "--radius-cm: '0' is outside [1, 100] (cm)"),
+        (["--target-timeout", "inf"], "--target-timeout: 'inf' is not a finite number"),
+        (["--target-timeout", "1e300"], "--target-timeout: '1e300' is outside [1, 3600]"),
+        (["--trials", "0"], "--trials: '0' is outside 1..1000"),
+        (["--practice", "-1"], "--practice: '-1' is outside 0..10"),
         (["--patient", "Jane Doe"], "--patient: a patient id is"),
+        (["-e", "foo"], "-e/--connect: 'foo' is not a Zenoh endpoint"),
+        (["--http-host", "bad..host"], "--http-host: 'bad..host' is neither a host name"),
     ],
 )
 def test_bad_options_are_refused_with_one_line(
@@ -375,16 +377,20 @@ def test_a_bad_endpoint_a_taken_port_or_unwritable_results_are_told_at_once(
             assert len(out.err.strip().splitlines()) == 1, out.err
             assert ".rs:" not in out.err
             assert out.out == ""
-    # a bad endpoint: argparse's refusal of the option, where it enters
-    with pytest.raises(SystemExit) as exited:
-        bodynet_main(["game", "-e", "foo", "--http-port", "0"])
-    assert exited.value.code == 2
-    assert "argument -e/--connect: 'foo' is not a Zenoh endpoint" in capsys.readouterr().err
-    # the real executable, once
-    out = subprocess.run([*BODYNET, "game", "-e", "foo"], capture_output=True, text=True,
-                         timeout=60, check=False)  # fmt: skip
+    # an endpoint of the right shape that Zenoh still refuses: one line, no traceback
+    assert bodynet_main(["game", "-e", "tcp/127.0.0.1:7447?", "--http-port", "0",
+                         "--results", str(tmp_path / "r")]) == 2  # fmt: skip
+    err = capsys.readouterr().err
+    assert err.startswith("bodynet game: bad Zenoh session option: Endpoints must be of the form")
+    assert len(err.strip().splitlines()) == 1, err
+    assert ".rs:" not in err
+    # the real executable, once: no router within --connect-timeout
+    out = subprocess.run([*BODYNET, "game", "-e", no_router, "--http-port", "0", "--results",
+                          str(tmp_path / "r"), "--connect-timeout", "0.2"],
+                         capture_output=True, text=True, timeout=60, check=False)  # fmt: skip
     assert out.returncode == 2
-    assert "bodynet game: error: argument -e/--connect: 'foo' is not a Zenoh endpoint" in out.stderr
+    last = out.stderr.strip().splitlines()[-1]  # after the session's "waiting for ..."
+    assert last.startswith("bodynet game: no router answered at tcp/127.0.0.1:1"), out
     assert "Traceback" not in out.stderr
 
 

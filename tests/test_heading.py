@@ -239,3 +239,74 @@ def test_emulated_tags_report_in_frames_of_their_own() -> None:
         _, magnetic = readings(Realism(0, 0, 0, 0, 0, True, facing_deg=-110.0), t)
         shared = (magnetic * base.inv()).as_rotvec(degrees=True)
         np.testing.assert_allclose(shared[:, 2], -110.0, atol=1e-6)
+
+
+def test_joint_constraints_hold_the_shank_and_foot_tags_drift() -> None:
+    """6-axis tags reset together, then each drifting at its own rate (up to
+    5 deg/min): walking 40 s, the knees' hinge turns each shank tag's heading by
+    its drift against the thigh's, the ankles' two dofs each foot tag's against
+    the shank's, and the ankles stay within 3 deg; without it they do not."""
+    from bodynet.gateway.heading import JointDrift, turned_headings
+    from bodynet.nodes.motion import ROUTINES
+
+    realism = Realism(yaw_drift_deg_per_min=5.0, headings=Headings.DRIFTING)
+    walk = ROUTINES["walk"].angles
+    still = dict(CALIBRATION_POSES["tpose"])
+    routine = Routine("pose-then-walk", "", lambda t: still if t < 1.0 else walk(t - 1.0))
+    body = BodyEmulator(routine, imu_tags(), realism=realism, seed=5)
+    profile = calibrate_window(_window(body, 0.2, 0.95), Profile(heading="fixed"),
+                               "tpose").apply(Profile(heading="fixed"))  # fmt: skip
+    solvers = {"plain": BodySolver(profile), "held": BodySolver(profile)}
+    knees = JointDrift(profile)
+    worst = {"plain": 0.0, "held": 0.0}
+    for t in np.arange(1.0, 41.0, 0.1):
+        samples, truth = _samples(body, float(t))
+        for name, solver in solvers.items():
+            out = solver.solve(samples)
+            errors = _errors(out.angles_deg, out.flags, truth)
+            if t > 20.0:
+                worst[name] = max(worst[name], *(e for n, e in errors.items() if "ankle" in n))
+        turns = knees.update(float(t), samples, solvers["held"].profile)
+        if turns:
+            solvers["held"].set_profile(turned_headings(solvers["held"].profile, turns))
+    rates = body.drift_deg_per_min
+    for side, thigh, shank, foot in (("left", 10, 12, 14), ("right", 11, 13, 15)):
+        drifted = (rates[shank] - rates[thigh]) * 40.0 / 60.0
+        got = knees.corrected_deg[f"body/leg/{side}/shank/raw"]
+        assert got == pytest.approx(drifted, abs=0.6), side
+        drifted = (rates[foot] - rates[thigh]) * 40.0 / 60.0  # to the shank, held to the thigh
+        got = knees.corrected_deg[f"body/leg/{side}/foot/raw"]
+        assert got == pytest.approx(drifted, abs=0.8), side
+    assert worst["held"] <= 3.0, worst
+    assert worst["plain"] > worst["held"], worst
+
+
+def test_yaw_reset_turns_the_body_to_face_forward() -> None:
+    """Calibrated facing +X, the subject then faces 40 deg away (the same suit in a
+    frame turned by 40): the yaw reset turns every tag's heading so the body faces
+    +X again, mounts and joint angles unchanged; refused while the heading is unknown."""
+    from bodynet.gateway.heading import yaw_deg, yaw_reset
+
+    ideal = Realism(0, 0, 0, 0, 0, True)
+    body = BodyEmulator(_motion("tpose"), imu_tags(), realism=ideal, seed=6)
+    turned = BodyEmulator(_motion("tpose"), imu_tags(), realism=Realism(
+        0, 0, 0, 0, 0, True, facing_deg=40.0), seed=6)  # fmt: skip
+    profile = calibrate_window(_window(body, 0.1, 0.9), Profile(heading="fixed"),
+                               "tpose").apply(Profile(heading="fixed"))  # fmt: skip
+    samples, truth = _samples(turned, 2.0)
+    before = BodySolver(profile).solve(samples)
+    pelvis = before.segments["pelvis"][1]
+    from scipy.spatial.transform import Rotation
+
+    assert yaw_deg(Rotation.from_quat(pelvis, scalar_first=True).as_matrix()) == pytest.approx(
+        40.0, abs=1e-3)  # fmt: skip
+    reset, turn = yaw_reset(profile, before)
+    assert turn == pytest.approx(40.0, abs=1e-3)
+    assert reset.imu_mounts == profile.imu_mounts
+    after = BodySolver(reset).solve(samples)
+    pelvis = Rotation.from_quat(after.segments["pelvis"][1], scalar_first=True).as_matrix()
+    assert yaw_deg(pelvis) == pytest.approx(0.0, abs=1e-3)
+    assert max(_errors(after.angles_deg, after.flags, truth).values()) < 1e-3
+    unknown = calibrate_window(_window(body, 0.1, 0.9), Profile(), "tpose").apply(Profile())
+    with pytest.raises(ValueError, match="not known yet"):
+        yaw_reset(unknown, before)

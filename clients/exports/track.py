@@ -30,6 +30,8 @@ from bodynet.session.outputs import atomic_path
 
 #: Frame rate of a recording with a single pose, where none can be measured.
 DEFAULT_RATE_HZ = 100.0
+#: How many held angles a note names (the count covers them all).
+NOTE_ANGLES = 8
 
 
 @dataclass(frozen=True)
@@ -201,5 +203,8 @@ def held_note(track: PoseTrack) -> tuple[str, ...]:
         return ()
     per_angle = held.sum(axis=0)
     names = [f"{track.angles[i]} ({per_angle[i]})" for i in np.flatnonzero(per_angle)]
+    shown = ", ".join(names[:NOTE_ANGLES])
+    if len(names) > NOTE_ANGLES:
+        shown += f" and {len(names) - NOTE_ANGLES} more"
     return (f"{int(held.sum())} values of {len(names)} joint angles had no measurement behind "
-            f"them and hold their last measured value: {', '.join(names)}",)  # fmt: skip
+            f"them and hold their last measured value: {shown}",)  # fmt: skip

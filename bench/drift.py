@@ -1,0 +1,180 @@
+"""Calibration on real frames, measured on emulated suits (``bench --only drift``).
+
+Two parts, no network (the gateway's own calibration, heading search, drift
+correction and solver, called directly on emulated samples with a truth):
+
+- **headings**: tags sharing one earth frame (magnetometer-based), the subject
+  facing every 30 deg around the circle; a still T-pose, then a knee bends.
+  Per facing: the heading found, the time from the first hinge movement to it,
+  and the joints' error against the truth from then on.
+- **drift**: 6-axis tags reset together, each then drifting at its own rate
+  within +/- ``drift`` deg/min; the subject walks for ``minutes``. The joints'
+  error against the truth, minute by minute, with and without the knee's hinge
+  correction (:class:`~bodynet.gateway.heading.JointDrift`), and each joint
+  group's fitted slope (deg/min) of its error.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from bodynet.core.messages import RawSample
+from bodynet.core.skeleton import CALIBRATION_POSES
+from bodynet.core.subject import Profile
+from bodynet.gateway.heading import (
+    BodyHeading,
+    JointDrift,
+    calibrate_window,
+    turned_headings,
+)
+from bodynet.gateway.solver import BodySolver
+from bodynet.nodes.emulator import BodyEmulator, Headings, Realism, imu_tags
+from bodynet.nodes.motion import ROUTINES, Routine, keyframes
+
+#: joint groups whose error is reported (dofs by name stem)
+GROUPS = {
+    "knee": ("knee_flexion",),
+    "ankle": ("ankle_flexion", "ankle_inversion"),
+    "elbow, wrist": ("elbow", "wrist"),
+    "hip": ("hip_flexion", "hip_abduction", "hip_rotation"),
+    "shoulder": ("shoulder",),
+    "trunk": ("lumbar", "neck"),
+}
+
+
+def _samples(body: BodyEmulator, t: float) -> dict[Any, RawSample]:
+    readings, _ = body.sample(t)
+    return {s.site: RawSample(r, 0, round(t * 1e9))
+            for s, r in zip(body.sensors, readings, strict=True)}  # fmt: skip
+
+
+def _calibrated(body: BodyEmulator, profile: Profile, start: float, end: float,
+                rate_hz: float) -> Profile:  # fmt: skip
+    window: dict[Any, list[Any]] = {}
+    for t in np.arange(start, end, 1 / rate_hz):
+        for site, sample in _samples(body, float(t)).items():
+            window.setdefault(site, []).append((float(t), sample.reading.wxyz))  # type: ignore[union-attr]
+    return calibrate_window(window, profile, "tpose").apply(profile, "tpose")
+
+
+def _errors(angles: Mapping[str, float], flags: Mapping[str, str],
+            truth: Mapping[str, float]) -> dict[str, float]:  # fmt: skip
+    """Measured dofs' errors, but a shoulder's flexion and rotation near its gimbal
+    lock (abduction past 50 deg: one axis, split anyhow by noise)."""
+    locked = {f"{side}_shoulder_{dof}_deg" for side in ("left", "right") for dof in
+              ("flexion", "rotation") if truth.get(f"{side}_shoulder_abduction_deg", 0) > 50}
+    return {n: abs(v - truth.get(n, 0.0)) for n, v in angles.items()
+            if n not in locked and flags.get(n, "clamped") == "clamped"}  # fmt: skip
+
+
+def headings(step_deg: int = 30, rate_hz: float = 50.0, seed: int = 4) -> list[dict[str, Any]]:
+    """The subject facing every ``step_deg`` (tags sharing one frame): per facing,
+    the heading found and the joints' error after it."""
+    held = dict(CALIBRATION_POSES["tpose"])
+    move = {"left_knee_flexion_deg": 60.0, "left_hip_flexion_deg": 30.0,
+            "left_shoulder_abduction_deg": 30.0, "right_shoulder_abduction_deg": 30.0,
+            "lumbar_flexion_deg": 15.0, "right_elbow_flexion_deg": 40.0}  # fmt: skip
+    routine = Routine("pose-then-knee", "", keyframes(
+        [(0.0, held), (1.0, held), (2.0, move), (3.5, {"left_knee_flexion_deg": 10.0})],
+        loop=False))  # fmt: skip
+    rows = []
+    for facing in range(0, 360, step_deg):
+        body = BodyEmulator(routine, imu_tags(), realism=Realism(facing_deg=float(facing)),
+                            seed=seed)  # fmt: skip
+        heading = BodyHeading(_calibrated(body, Profile(), 0.2, 0.95, rate_hz))
+        solver = BodySolver(heading.profile)
+        errors: list[float] = []
+        for t in np.arange(1.0, 3.5, 1 / rate_hz):
+            samples = _samples(body, float(t))
+            found = heading.update(float(t), samples)
+            if found is not None:
+                solver = BodySolver(found)
+            out = solver.solve(samples)
+            if heading.how == "found":
+                errors += _errors(out.angles_deg, out.flags, body.angles(float(t))).values()
+        state = heading.state()
+        rows.append({
+            "facing_deg": facing, "state": state["state"],
+            "heading_error_deg": None if state["deg"] is None
+            else round(abs((state["deg"] - facing + 180) % 360 - 180), 2),
+            "found_after_s": None if state.get("found_t") is None
+            else round(state["found_t"] - state["first_move_t"], 2),
+            "max_error_deg": round(max(errors), 2) if errors else None,
+            "rms_error_deg": round(math.sqrt(float(np.mean(np.square(errors)))), 2)
+            if errors else None,
+        })  # fmt: skip
+    return rows
+
+
+def drift(minutes: float = 10.0, drift_deg_per_min: float = 5.0, rate_hz: float = 10.0,
+          seed: int = 5, correct: bool = True) -> dict[str, Any]:
+    """6-axis tags drifting apart while the subject walks: the joints' error
+    against the truth by minute, and each group's fitted slope (deg/min)."""
+    walk = ROUTINES["walk"].angles
+    held = dict(CALIBRATION_POSES["tpose"])
+    routine = Routine("pose-then-walk", "", lambda t: held if t < 1.0 else walk(t - 1.0))
+    realism = Realism(yaw_drift_deg_per_min=drift_deg_per_min, headings=Headings.DRIFTING)
+    body = BodyEmulator(routine, imu_tags(), realism=realism, seed=seed)
+    # reset together facing +X of their first frame: the start heading is known
+    profile = _calibrated(body, Profile(heading="fixed"), 0.2, 0.95, 50.0)
+    solver = BodySolver(profile)
+    knees = JointDrift(profile) if correct else None
+    times, groups = [], {g: [] for g in GROUPS}  # type: ignore[var-annotated]
+    for t in np.arange(1.0, 1.0 + 60.0 * minutes, 1 / rate_hz):
+        samples = _samples(body, float(t))
+        out = solver.solve(samples)
+        errors = _errors(out.angles_deg, out.flags, body.angles(float(t)))
+        times.append((float(t) - 1.0) / 60.0)
+        for group, stems in GROUPS.items():
+            mine = [e for n, e in errors.items() if any(s in n for s in stems)]
+            groups[group].append(max(mine) if mine else math.nan)
+        if knees is not None:
+            turns = knees.update(float(t), samples, solver.profile)
+            if turns:
+                solver.set_profile(turned_headings(solver.profile, turns))
+    minutes_at = np.array(times)
+    out_groups = {}
+    for group, errs in groups.items():
+        e = np.array(errs)
+        per_minute = [round(float(np.nanmax(e[(minutes_at >= m) & (minutes_at < m + 1)])), 2)
+                      for m in range(math.ceil(minutes))]  # fmt: skip
+        slope = float(np.polyfit(minutes_at, e, 1)[0]) if np.isfinite(e).all() else math.nan
+        out_groups[group] = {"max_by_minute_deg": per_minute, "slope_deg_per_min": round(slope, 3)}
+    return {"corrected": correct, "minutes": minutes, "drift_deg_per_min": drift_deg_per_min,
+            "groups": out_groups}  # fmt: skip
+
+
+def run(out_dir: Path, minutes: float = 10.0) -> dict[str, Any]:
+    """Both parts; ``drift.json`` and ``drift.md`` in ``out_dir``."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    result = {"headings": headings(),
+              "drift": [drift(minutes, correct=False), drift(minutes, correct=True)]}
+    (out_dir / "drift.json").write_text(json.dumps(result, indent=2))
+    lines = ["Subject facing every 30 deg, tags sharing one frame (T-pose, then a knee bends):",
+             "", "| facing | heading error | found after first hinge movement | "
+             "joint error max / RMS after |", "|---|---|---|---|"]  # fmt: skip
+    for r in result["headings"]:
+        lines.append(f"| {r['facing_deg']} deg | {r['heading_error_deg']} deg | "
+                     f"{r['found_after_s']} s | {r['max_error_deg']} / {r['rms_error_deg']} deg |")
+    rate = result["drift"][0]["drift_deg_per_min"]
+    lines += ["", f"6-axis tags drifting apart (each within +/- {rate} deg/min), walking "
+              f"{minutes:g} min: worst error per group, first and last "
+              "minute, and the fitted slope of the error:", "",
+              "| group | without correction | with the joints' constraints "
+              "(knee, ankle, elbow, wrist) |", "|---|---|---|"]
+    plain, fixed = result["drift"]
+    for group in GROUPS:
+        a, b = plain["groups"][group], fixed["groups"][group]
+        lines.append(
+            f"| {group} | {a['max_by_minute_deg'][0]} -> {a['max_by_minute_deg'][-1]} deg, "
+            f"{a['slope_deg_per_min']} deg/min | {b['max_by_minute_deg'][0]} -> "
+            f"{b['max_by_minute_deg'][-1]} deg, {b['slope_deg_per_min']} deg/min |")
+    (out_dir / "drift.md").write_text("\n".join(lines) + "\n")
+    print("\n".join(lines))
+    return result
