@@ -31,7 +31,7 @@ depends on the forearm's roll, so those two stops are reached by their angle;
 the ball still marks the key pose.
 
 Only measured movement counts. A dof of the pose is *measured* when the
-gateway does not flag it, or flags it only ``clamped`` (``is_measured``); any
+gateway does not flag it, or flags it only ``clamped`` (``pose.is_measured``); any
 other flag (``unobserved``, ``held``, ``uncalibrated``) means no measurement
 is behind the number. A target *needs* dofs: its gate's angle, or for a
 touch the ones that place the hand tip (``TOUCH_DOFS``). A target is reached
@@ -80,7 +80,7 @@ from typing import Any
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from bodynet.core.codecs.pose import PoseFrame
+from bodynet.core.codecs.pose import PoseFrame, is_measured
 from bodynet.core.skeleton import ARM_DOFS, DEFAULT_LENGTHS, build_skeleton
 
 STALE_S = 1.0
@@ -114,12 +114,6 @@ def check_patient(text: str) -> str:
             "patient",
         )
     return text
-
-
-def is_measured(frame: PoseFrame, angle: str) -> bool:
-    """Is there a measurement behind ``frame``'s value of ``angle``? (the team's
-    convention: no flag, or ``clamped``). Same test as ``core.codecs.pose.is_measured``."""
-    return angle in frame.angles_deg and frame.flags.get(angle, "clamped") == "clamped"
 
 
 @dataclass(frozen=True, slots=True)

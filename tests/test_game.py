@@ -741,11 +741,11 @@ def test_browser_plays_the_real_chain_and_the_ranges_match_the_motion(
     # within the routine's truth (nodes/motion.py's reach); which of its peaks fall in
     # the trial depends on the phase at Start and on the load (a starved node skips
     # them), so only the envelope is checked here, the exact ranges with poses
-    # published by the test. Forearm pronation and wrist deviation are left out: the
-    # solver of this version swings a still forearm's pronation (the honest-dofs issue).
+    # published by the test. Wrist deviation is left out: this gateway's SmartSuit
+    # arm shows up to 10 deg of it, measured, where the routine has none.
     truth = {"shoulder_flexion": (0, 90), "shoulder_abduction": (0, 90),
              "shoulder_rotation": (0, 0), "elbow_flexion": (0, 90),
-             "wrist_flexion": (0, 60)}  # fmt: skip
+             "wrist_flexion": (0, 60), "elbow_pronation": (-60, 60)}  # fmt: skip
     rom = trial["rom_deg"]
     for dof, (lo, hi) in truth.items():
         assert rom[dof]["samples"] > 100, rom[dof]
