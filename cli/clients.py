@@ -14,6 +14,16 @@ EXPORT_RATE_HZ = argtypes.bounded_float(0.1, 1000.0, "frames per second, 0.1 to 
 ROTATE_S = argtypes.bounded_float(0.0, 7 * 86_400.0, "seconds, 0 for never, at most a week")
 
 
+#: Frames an export may make of each recorded pose: resampling far above the
+#: recording's own rate only repeats it (and costs memory: a C3D at 1 MHz of a
+#: one-second recording took 10 GB).
+MAX_EXPORT_FRAMES = 100
+
+
+class _TooMany(Exception):
+    """An export that would be mostly repeated frames."""
+
+
 def cmd_export(args: argparse.Namespace) -> int:
     """``export <format>``: the recording's poses through the format's writer."""
     from bodynet.clients.exports import writer
@@ -34,9 +44,15 @@ def cmd_export(args: argparse.Namespace) -> int:
             options["skeleton"] = build_skeleton(profile_file.load(options["profile"]).lengths)
         track = load_track(args.recording, progress=not args.quiet, every_tick=not entry.regular)
         if entry.regular:
-            track = resample(track, args.rate_hz or track.measured_rate_hz())
+            rate = args.rate_hz or track.measured_rate_hz()
+            frames = (int(track.t_ns[-1] - track.t_ns[0]) / 1e9 * rate + 1) if len(track) else 0
+            if frames > MAX_EXPORT_FRAMES * max(1, len(track)):
+                raise _TooMany(f"--rate-hz {rate:g} makes {frames:.0f} frames of "
+                               f"{len(track)} poses: no more than {MAX_EXPORT_FRAMES} a pose; "
+                               "choose a lower rate")  # fmt: skip
+            track = resample(track, rate)
         written = entry.write(track, out, options)
-    except (StoreError, ProfileError, OSError) as exc:
+    except (StoreError, ProfileError, OSError, _TooMany) as exc:
         print(f"bodynet export: {exc}", file=sys.stderr)
         return 2
     for note in written.notes:

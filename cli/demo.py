@@ -45,16 +45,30 @@ def _say_where(endpoint: str, record: Path, routine: str, address: str, rrd: Pat
     if rrd is not None:
         print(f"  live view saved to {rrd} (open it with: .venv/bin/rerun {rrd})")
     print(f"  emulated body: T-pose for {TPOSE_S:g} s (the gateway calibrates), then {routine!r}")
+    print("  table: 'uncal' not calibrated yet, 'held' gravity cannot see it now (last value held),"
+          " '--' not measured")
     print(
         f"  poses: {keys.pose_key()} and {keys.all_poses()}; from another machine: "
         f"-e {endpoint.replace('127.0.0.1', '<this-host>')} (gateway -l tcp/0.0.0.0:7447)"
     )
 
 
+#: What the table prints instead of a number with no measurement behind it.
+MARKS = {pose.UNCALIBRATED: "uncal", pose.UNOBSERVED: "--", pose.HELD: "held"}
+
+
+def _cell(frame: pose.PoseFrame, name: str) -> str:
+    """One angle of the table: its number if measured, else a mark saying why not."""
+    if name not in frame.angles_deg:
+        return f"{'--':>6}"
+    if not pose.is_measured(frame, name):
+        flag = frame.flags[name]
+        return f"{MARKS.get(flag, flag[:6]):>6}"
+    return f"{frame.angles_deg[name]:6.1f}"
+
+
 def _status_line(elapsed: float, frame: pose.PoseFrame, recorded: int) -> str:
-    cells = "  ".join(
-        f"{n.removesuffix('_deg')} {frame.angles_deg.get(n, 0.0):6.1f}" for n in SHOWN
-    )
+    cells = "  ".join(f"{n.removesuffix('_deg')} {_cell(frame, n)}" for n in SHOWN)
     return (
         f"-- t {elapsed:5.1f} s  tick {frame.seq:6d}  sources {len(frame.sources):2d}  "
         f"stale {len(frame.stale)}  recorded {recorded}\n   {cells}"

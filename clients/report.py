@@ -16,7 +16,15 @@ plots (PNG, beside the report):
   channel cut at the same instants; or, given several recordings, each
   recording is one trial. Trials are time-normalised to 101 points;
 - Type A uncertainty over a still window (``still`` in seconds from the
-  start, else the ``still_s`` seconds in which the angles moved least).
+  start, else the ``still_s`` seconds after calibration in which the angles
+  moved least).
+
+Only measured samples count (``pose.is_measured``: no flag, or ``clamped``):
+a sample flagged ``uncalibrated``, ``unobserved`` or ``held`` is left out of
+range of motion, RMS and correlation, trials, ICC and Type A, and the report
+says per joint angle how many it left out and why. Trials and the still
+window come from after the T-pose calibration (after the last pose with a dof
+flagged ``uncalibrated``).
 
 Nothing is written until every figure is computed; the report file appears
 complete or not at all (its plots are moved in place just before it).
@@ -42,6 +50,7 @@ import pandas as pd
 from bodynet.clients import stats
 from bodynet.clients.mcap_store import StoreError, read_poses, read_truth
 from bodynet.core import metrics
+from bodynet.core.codecs import pose
 
 #: At most this many channels get a panel of their own in a plot.
 MAX_PANELS = 12
@@ -67,19 +76,32 @@ class Series:
 
 @dataclass
 class Recording(Series):
-    observed: list[str] = field(default_factory=list)  # never flagged unobserved
+    """A recording's poses; ``angles`` holds NaN where a sample was not measured."""
+
+    observed: list[str] = field(default_factory=list)  # measured in 2 or more poses
+    left_out: dict[str, dict[str, int]] = field(default_factory=dict)  # channel -> flag -> n
+    calibrated_at: int = 0  # the pose after the last one with a dof flagged uncalibrated
 
 
 def load_recording(path: Path) -> Recording:
-    """The poses of a recording; channels flagged ``unobserved`` are left out."""
+    """The poses of a recording, each sample with no measurement behind it (any
+    flag but ``clamped``) left out (NaN) and counted by its flag."""
     times: list[int] = []
     rows: list[dict[str, float]] = []
-    unobserved: set[str] = set()
+    left_out: dict[str, dict[str, int]] = {}
+    calibrated_at: int | None = None
     try:
         for log_time, frame in read_poses(path):
             times.append(log_time)
-            rows.append(dict(frame.angles_deg))
-            unobserved.update(n for n, f in frame.flags.items() if f == "unobserved")
+            row = dict(frame.angles_deg)
+            for n, f in frame.flags.items():
+                if n in row and not pose.is_measured(frame, n):
+                    row[n] = math.nan
+                    counts = left_out.setdefault(n, {})
+                    counts[f] = counts.get(f, 0) + 1
+            if pose.UNCALIBRATED in frame.flags.values():
+                calibrated_at = len(rows) + 1  # after the last uncalibrated pose
+            rows.append(row)
     except StoreError as exc:
         raise ReportError(str(exc)) from None
     except ValueError as exc:  # a body/pose message that is not a pose
@@ -90,9 +112,10 @@ def load_recording(path: Path) -> Recording:
             "(record while the gateway runs, or `bodynet process` a capture)"
         )
     angles = pd.DataFrame(rows)
-    observed = [c for c in angles.columns if c not in unobserved]
+    observed = [c for c in angles.columns if int(angles[c].notna().sum()) >= 2]
     t = np.asarray(times, dtype=float) / 1e9
-    return Recording(str(path), t, angles, observed)
+    return Recording(str(path), t, angles, observed, left_out,
+                     min(calibrated_at or 0, len(rows) - 1))  # fmt: skip
 
 
 def _truth(path: Path) -> Series | None:
@@ -214,7 +237,23 @@ class Analysis:
 
 
 def _moving(rec: Recording) -> list[str]:
-    return [c for c in rec.observed if float(np.ptp(rec.angles[c])) >= stats.REP_MIN_PROMINENCE_DEG]
+    """Channels measured throughout after calibration that move enough to repeat."""
+    after = rec.angles.iloc[rec.calibrated_at :]
+    return [c for c in rec.observed if len(after) >= 2 and bool(after[c].notna().all())
+            and float(np.ptp(after[c])) >= stats.REP_MIN_PROMINENCE_DEG]  # fmt: skip
+
+
+def left_out_table(rec: Recording) -> pd.DataFrame:
+    """Per joint angle, how many samples the report left out (not measured) and why."""
+    rows = []
+    for c in rec.angles.columns:
+        counts = rec.left_out.get(c, {})
+        if not counts:
+            continue
+        why = ", ".join(f"{n} {f}" for f, n in sorted(counts.items(), key=lambda kv: -kv[1]))
+        rows.append({"channel": c, "left out": sum(counts.values()), "of": len(rec.angles),
+                     "why": why})  # fmt: skip
+    return pd.DataFrame(rows, columns=["channel", "left out", "of", "why"])
 
 
 def clinical_table(path: Path) -> pd.DataFrame:
@@ -240,8 +279,9 @@ def clinical_table(path: Path) -> pd.DataFrame:
 def rom_table(rec: Recording) -> pd.DataFrame:
     rows = []
     for c in rec.observed:
-        rom = stats.range_of_motion(rec.angles[c])
-        reps = len(stats.repetitions(rec.angles[c]))
+        x = rec.angles[c].dropna()
+        rom = stats.range_of_motion(x)
+        reps = len(stats.repetitions(x))
         rows.append({"channel": c, "min (deg)": rom.minimum, "max (deg)": rom.maximum,
                      "span (deg)": rom.span, "repetitions": reps})  # fmt: skip
     return pd.DataFrame(rows)
@@ -265,11 +305,15 @@ def accuracy(rec: Recording, ref: Series) -> Accuracy:
         x = rec.angles[c].to_numpy(float)[inside]
         y = np.interp(t, ref.t_s[known], ref.angles[c].to_numpy(float)[known])
         measured[c], expected[c] = x, y
+        ok = np.isfinite(x)  # measured samples only
+        if ok.sum() < 2:
+            continue
         try:
-            r: float | None = stats.correlation(x, y)
+            r: float | None = stats.correlation(x[ok], y[ok])
         except stats.StatsError:
             r = None  # a constant channel: correlation undefined
-        rows.append({"channel": c, "samples": len(t), "RMS error (deg)": stats.rms_error(x, y),
+        rows.append({"channel": c, "samples": int(ok.sum()),
+                     "RMS error (deg)": stats.rms_error(x[ok], y[ok]),
                      "correlation r": r})  # fmt: skip
     return Accuracy(ref.source, pd.DataFrame(rows), t, pd.DataFrame(measured),
                     pd.DataFrame(expected))  # fmt: skip
@@ -287,7 +331,10 @@ def default_driver(rec: Recording, channels: Sequence[str]) -> str:
 
 
 def trials_of(recs: Sequence[Recording], joint: str | None) -> Trials:
-    """Trials of the moving channels, with their repeatability and ICC."""
+    """Trials of the moving channels (measured throughout, after calibration),
+    with their repeatability and ICC."""
+    start_s = recs[0].t_s[0]
+    recs = [_after_calibration(r) for r in recs]
     if len(recs) > 1:
         channels = [c for c in _moving(recs[0]) if all(c in _moving(r) for r in recs[1:])]
         how = f"each of the {len(recs)} recordings is one trial"
@@ -312,7 +359,7 @@ def trials_of(recs: Sequence[Recording], joint: str | None) -> Trials:
             [(rec.t_s[a : b + 1], rec.angles[c].to_numpy(float)[a : b + 1]) for a, b in cuts]
             for c in channels
         ]
-        bounds = [(rec.t_rel[a], rec.t_rel[b]) for a, b in cuts]
+        bounds = [(rec.t_s[a] - start_s, rec.t_s[b] - start_s) for a, b in cuts]
     if not channels or len(segments[0]) < 2:
         n = len(segments[0]) if channels else 0
         raise ReportError(
@@ -344,14 +391,29 @@ def trials_of(recs: Sequence[Recording], joint: str | None) -> Trials:
     return Trials(how, per_channel, bounds, rep_table, pd.DataFrame(icc_rows), form)
 
 
+def _after_calibration(rec: Recording) -> Recording:
+    """The part of a recording from its calibration on (its time base kept)."""
+    a = rec.calibrated_at
+    if a == 0:
+        return rec
+    return Recording(rec.source, rec.t_s[a:], rec.angles.iloc[a:].reset_index(drop=True),
+                     rec.observed, rec.left_out, 0)  # fmt: skip
+
+
 def uncertainty(rec: Recording, still: tuple[float, float] | None, still_s: float) -> Uncertainty:
-    """Type A evaluation of every observed channel over the still window."""
+    """Type A evaluation over the still window (from after calibration) of every
+    channel measured throughout it."""
     t = rec.t_rel
-    channels = rec.observed
+    start = min(rec.calibrated_at, len(t) - 1)
+    after = rec.angles.iloc[start:]
+    # the window is chosen on the channels measured throughout after calibration
+    steady = [c for c in rec.observed if bool(after[c].notna().all())] or rec.observed
     try:
         if still is None:
-            a, b = stats.still_window(t, rec.angles[channels].to_numpy(float), still_s)
-            how = f"auto: the {still_s:g} s in which the angles moved least"
+            a, b = stats.still_window(t[start:], after[steady].to_numpy(float), still_s)
+            a, b = a + start, b + start
+            how = (f"auto: the {still_s:g} s in which the angles moved least"
+                   + (" after calibration" if start else ""))  # fmt: skip
         else:
             a = int(np.searchsorted(t, still[0], side="left"))
             b = int(np.searchsorted(t, still[1], side="right"))
@@ -361,8 +423,11 @@ def uncertainty(rec: Recording, still: tuple[float, float] | None, still_s: floa
     if b - a < 2:
         raise ReportError(f"{rec.source}: the still window holds {max(b - a, 0)} poses, 2 needed")
     rows = []
-    for c in channels:
-        ta = stats.type_a(rec.angles[c].to_numpy(float)[a:b])
+    for c in steady:  # the channels the window was chosen on: still in it
+        window = rec.angles[c].to_numpy(float)[a:b]
+        if not np.isfinite(window).all():
+            continue  # not measured throughout the window
+        ta = stats.type_a(window)
         rows.append({"channel": c, "n": ta.n, "best estimate q̄ (deg)": ta.mean,
                      "s²(q_k) (deg²)": ta.variance, "s(q_k) (deg)": ta.sd,
                      "s²(q̄) (deg²)": ta.variance_of_mean, "s(q̄) (deg)": ta.sd_of_mean})  # fmt: skip
@@ -405,8 +470,18 @@ def _blocks(an: Analysis, images: dict[str, str]) -> list[Block]:
     first = an.recordings[0]
     out: list[Block] = [("h1", f"bodynet report: {', '.join(r.source for r in an.recordings)}")]
     for rec in an.recordings:
+        never = [c for c in rec.angles.columns if c not in rec.observed]
         out.append(("p", f"{rec.source}: {len(rec.t_s)} poses over {rec.t_rel[-1]:.2f} s, "
-                         f"{len(rec.observed)} observed joint angles."))  # fmt: skip
+                         f"{len(rec.observed)} joint angles measured; "
+                         f"{len(never)} never measured"
+                         + (f" ({', '.join(never)})" if never else "") + "."))  # fmt: skip
+        table = left_out_table(rec)
+        if len(table):
+            out += [("p", "Samples with no measurement behind them, left out of every figure "
+                          "below (uncalibrated: before the T-pose calibration; unobserved: no "
+                          "sensor measures it; held: gravity cannot see it in that posture, "
+                          "its last value held):"),
+                    ("table", table)]  # fmt: skip
     out += [("h2", "Range of motion and repetitions"),
             ("p", "Smallest and largest value of each observed joint angle. A repetition is a "
                   f"peak (scipy.signal.find_peaks) standing out by at least "
@@ -437,6 +512,12 @@ def _blocks(an: Analysis, images: dict[str, str]) -> list[Block]:
         out.append(("p", "Left out (--no-trials)."))
     else:
         tr = an.trials
+        gaps = [c for c in first.observed if c not in tr.channel_trials
+                and float(np.nanmax(first.angles[c]) - np.nanmin(first.angles[c]))
+                >= stats.REP_MIN_PROMINENCE_DEG]  # fmt: skip
+        if gaps:
+            out.append(("p", "Moving joint angles not measured throughout after calibration, "
+                             f"left out of the trials: {', '.join(gaps)}."))  # fmt: skip
         out += [("p", f"Trials: {tr.how}; each time-normalised to {stats.TRIAL_POINTS} points. "
                       "Range and SD (n - 1) of the trial means (eq. 28-31); the last row "
                       "averages the channels, as the seed's average range and SD."),
@@ -453,7 +534,9 @@ def _blocks(an: Analysis, images: dict[str, str]) -> list[Block]:
     out += [("h2", "Type A standard uncertainty of a still sensor (003 seed, ch. 8.4)"),
             ("p", f"Still window {un.window_s[0]:.2f}-{un.window_s[1]:.2f} s of {first.source} "
                   f"({un.how}). Best estimate q̄ (eq. 8.1), experimental variance and SD "
-                  "(eq. 8.2, n - 1), variance and SD of the mean (eq. 8.3)."),
+                  "(eq. 8.2, n - 1), variance and SD of the mean (eq. 8.3). Joint angles not "
+                  "measured throughout the recording after calibration are left out (the "
+                  "window is chosen where the others are still)."),
             ("table", un.table)]  # fmt: skip
     return out
 

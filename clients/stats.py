@@ -256,6 +256,10 @@ def still_window(t: Array, channels: Array, seconds: float) -> tuple[int, int]:
     width = round(seconds / dt) + 1
     if width > tt.size:
         raise StatsError(f"still window: the recording is shorter than {seconds:g} s")
-    spread = pd.DataFrame(m).rolling(width).std(ddof=1).sum(axis=1, min_count=1).to_numpy()
+    # a window counts only where every channel was measured throughout (NaN: not)
+    spread = pd.DataFrame(m).rolling(width).std(ddof=1).sum(axis=1, min_count=m.shape[1])
+    spread = spread.to_numpy()
+    if np.isnan(spread).all():
+        raise StatsError(f"still window: no {seconds:g} s in which every channel was measured")
     stop = int(np.nanargmin(spread)) + 1
     return stop - width, stop

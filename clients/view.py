@@ -3,7 +3,10 @@
 A 3D stick figure (the segments of the 000 seed's stick figure, joints as
 points), every joint angle as a time series, a gauge panel of chosen joints
 (the seed's 3x3 gauge matrix: dials over each dof's range of motion) and the topology and health as
-text, laid out by a default blueprint. Poses are logged in batches (columns
+text, laid out by a default blueprint. A dof with no measurement behind its
+number (``pose.is_measured``) is left out of its time series (a gap), its
+gauge's needle is grey with the reason instead of a reading, and the panel
+"Not measured" says for each such dof why. Poses are logged in batches (columns
 of angles, the latest figure per batch), never one ``rr.log`` per sample.
 """
 
@@ -65,17 +68,35 @@ def gauge_faces() -> tuple[list[np.ndarray], list[np.ndarray], np.ndarray, list[
     return arcs, ticks, where, names
 
 
-def gauge_needles(values: Sequence[float]) -> tuple[list[np.ndarray], list[str]]:
+#: The needle of a measured dof, and of one with no measurement behind it (grey).
+NEEDLE, NEEDLE_UNMEASURED = (230, 90, 40), (160, 160, 160)
+#: What a gauge reads instead of a number, by flag.
+MARKS = {pose.UNCALIBRATED: "uncal.", pose.UNOBSERVED: "n/m", pose.HELD: "held"}
+
+
+def gauge_needles(
+    values: Sequence[float], flags: Sequence[str] | None = None
+) -> tuple[list[np.ndarray], list[str]]:
     """Each gauge's needle at its value (held at the end of the range outside it)
-    and its reading, from the values of ``GAUGES``."""
+    and its reading, from the values of ``GAUGES``; a gauge whose flag (``flags``,
+    "" for a measured one) says no measurement reads its mark, not a number."""
     needles, readings = [], []
     for i, (angle, value) in enumerate(zip(GAUGES, values, strict=True)):
         lo, hi = rom(angle)
         fraction = min(max((value - lo) / (hi - lo), 0.0), 1.0)
         centre = (GAUGE_PITCH * (i % 3), GAUGE_PITCH * (i // 3))
         needles.append(np.array([centre, _dial_point(i, fraction, 0.8)]))
-        readings.append(f"{value:.0f}°")
+        flag = flags[i] if flags else ""
+        readings.append(MARKS.get(flag, flag) if flag else f"{value:.0f}°")
     return needles, readings
+
+
+def unmeasured_text(frame: pose.PoseFrame) -> str:
+    """The "Not measured" panel: each dof with no measurement behind its number,
+    and why (the pose's reasons in words)."""
+    rows = [f"- **{n.removesuffix('_deg')}**: {frame.why(n)}"
+            for n in frame.angles_deg if not pose.is_measured(frame, n)]  # fmt: skip
+    return "\n".join(rows) if rows else "Every joint angle is measured."
 
 log = logging.getLogger(__name__)
 
@@ -87,7 +108,10 @@ def blueprint() -> rrb.Blueprint:
             rrb.Vertical(
                 rrb.TimeSeriesView(origin="angles", name="Joint angles (deg)"),
                 rrb.Spatial2DView(origin="gauges", name="Gauges (degrees)"),
-                rrb.TextDocumentView(origin="status", name="Topology and health"),
+                rrb.Tabs(
+                    rrb.TextDocumentView(origin="status", name="Topology and health"),
+                    rrb.TextDocumentView(origin="unmeasured", name="Not measured"),
+                ),
                 rrb.TextDocumentView(origin="metrics", name="Clinical metrics"),
             ),
         ),
@@ -187,8 +211,10 @@ class Drawing:
     t_ns: int  # within int64, as Rerun's timestamps are
     strips: list[np.ndarray]  # each (n >= 2, 3), finite
     joints: np.ndarray  # (n, 3), finite
-    angles: dict[str, float]  # entity path -> degrees (NaN: not a number)
+    angles: dict[str, float]  # entity path -> degrees (NaN: not a number, or not measured)
     gauges: list[float]  # one per ``GAUGES``, finite (0: absent or not a number)
+    gauge_flags: list[str]  # one per ``GAUGES``: "" if measured, else its flag
+    unmeasured: str  # the "Not measured" panel
 
 
 def drawing(frame: pose.PoseFrame, skeleton: Skeleton) -> Drawing | None:
@@ -200,11 +226,13 @@ def drawing(frame: pose.PoseFrame, skeleton: Skeleton) -> Drawing | None:
     angles = {}
     for name, value in frame.angles_deg.items():
         path = angle_path(name)
-        if path is not None:
-            angles[path] = _number(value)
+        if path is not None:  # no measurement: a gap in its time series
+            angles[path] = _number(value) if pose.is_measured(frame, name) else math.nan
     gauges = [frame.angles_deg.get(g, 0.0) for g in GAUGES]
+    flags = ["" if pose.is_measured(frame, g) else frame.flags[g] for g in GAUGES]
     return Drawing(frame.t_ns, strips, joints, angles,
-                   [g if math.isfinite(g) else 0.0 for g in gauges])  # fmt: skip
+                   [g if math.isfinite(g) else 0.0 for g in gauges], flags,
+                   unmeasured_text(frame))  # fmt: skip
 
 
 def _show(v: object) -> str:
@@ -365,9 +393,12 @@ class Viewer:
             rec.set_time("time", timestamp=t_ns[-1])
             rec.log("body/figure", rr.LineStrips3D(last.strips, radii=0.01))
             rec.log("body/joints", rr.Points3D(last.joints, radii=0.02))
-            needles, readings = gauge_needles(last.gauges)
+            needles, readings = gauge_needles(last.gauges, last.gauge_flags)
+            colors = [NEEDLE_UNMEASURED if f else NEEDLE for f in last.gauge_flags]
             rec.log("gauges/needles", rr.LineStrips2D(
-                needles, radii=0.05, colors=(230, 90, 40), labels=readings, show_labels=True))
+                needles, radii=0.05, colors=colors, labels=readings, show_labels=True))
+            rec.log("unmeasured", rr.TextDocument(last.unmeasured,
+                                                  media_type=rr.MediaType.MARKDOWN))
         self.shown += len(drawn)
         return len(drawn)
 

@@ -44,6 +44,7 @@ def pose_frame(output: BodyOutput, seq: int, stale: Sequence[str]) -> pose.PoseF
     n_p, n_q = output.positions.size, output.quats.size
     flat = np.round(np.concatenate([output.positions.ravel(), output.quats.ravel(),
                                     output.angles, output.rel]), 6).tolist()  # fmt: skip
+    unc = np.round(output.unc, 3).tolist()  # NaN: no measurement (null in the message)
     p, q = iter(flat[:n_p]), iter(flat[n_p : n_p + n_q])
     positions = list(zip(p, p, p, strict=True))
     segments = zip(positions, zip(q, q, q, q, strict=True), strict=True)
@@ -57,4 +58,6 @@ def pose_frame(output: BodyOutput, seq: int, stale: Sequence[str]) -> pose.PoseF
         output.flags,
         output.sources,
         list(stale),
+        output.reasons,
+        dict(zip(names.angles, unc, strict=True)),
     )

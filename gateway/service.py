@@ -200,6 +200,7 @@ class _Body:
         )  # fmt: skip
         self.published_stale = set(stale)
         self.first_new = None
+        self.solver.expect(self.alive)
         return latest, stale, self.solver
 
     def listened(self) -> tuple[bool, list[Branch]]:

@@ -12,6 +12,19 @@ Per joint, the angles come from the best source at hand:
    4.3.2, solved in closed form against the parent segment's vertical).
 3. Otherwise the dof is unobserved: it holds 0 and is flagged.
 
+Every dof comes with an uncertainty (degrees, about two standard deviations)
+and, where its number is no plain measurement, its reasons (the pose
+message's vocabulary, :mod:`bodynet.core.codecs.pose`): ``uncalibrated`` (an
+orientation sensor it rests on has no T-pose mount yet), ``unobserved``
+(nothing measures it, or an expected sensor above it has not delivered),
+``held`` (gravity does not determine this tilt dof in this posture: its last
+measured value, held) and ``clamped``. How well gravity determines a tilt dof
+is geometric: how far the accelerometers' "up" moves per radian of that dof,
+the others free (000 seed, section 3.3: an accelerometer cannot see rotation
+about the vertical); the encoders and the chain model decide which dofs that
+leaves to gravity (the seed's compensation, section 4.3). See
+docs/observability.md.
+
 Angles are split with continuity: at a gimbal lock (the middle dof at +/-90
 degrees) or where the tilt has no unique answer (the segment along the
 vertical), the ambiguous dof holds its last value instead of jumping. Angles
@@ -24,7 +37,7 @@ body's lowest point (a heel or a toe, standing) at z = 0.
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -32,6 +45,8 @@ import numpy as np
 import pinocchio as pin
 from scipy.spatial.transform import Rotation
 
+from bodynet.core import keys
+from bodynet.core.codecs.pose import CLAMPED, HELD, UNCALIBRATED, UNOBSERVED, primary
 from bodynet.core.keys import Site
 from bodynet.core.messages import OleAccel, Quat, RawSample
 from bodynet.core.profile import OLE_DOF, mount
@@ -39,9 +54,34 @@ from bodynet.core.skeleton import CALIBRATION_POSES, TPOSE, Joint, build_skeleto
 from bodynet.core.subject import Profile, QuatWxyz
 from bodynet.kinematics.model import BodyModel, accel_axes
 
+_REASON_ORDER = {r: i for i, r in enumerate((UNCALIBRATED, UNOBSERVED, HELD, CLAMPED))}
 GIMBAL_COS = 1e-3  # |cos(middle angle)| below this is a gimbal lock
 TILT_MIN = 0.05  # |component| below this: the tilt has no unique answer
 MISS = 0.05  # a gravity fit further off than this (about 3 degrees) is no fit
+
+#: Stated uncertainties (deg, about two standard deviations) of each kind of source.
+UNC_TAG_DEG = 2.0  # a dof split from orientation sensors (what good IMUs claim; not per tick)
+UNC_OLE_DEG = 0.5  # an encoder's dof: 0.1 mm of travel is at most 0.23 deg, plus slack
+#: a module's filtered "up": the accelerometer's bias and noise (about 0.03), and the
+#: body's own acceleration up to about 0.07 g (a 90 degree lift of the arm in 3 s, at the
+#: hand); faster movement errs by more where its acceleration is across gravity, which an
+#: accelerometer cannot tell from tilt (see docs/observability.md)
+UP_UNC_RAD = 0.1
+DYN_FREE, DYN_GAIN = 0.05, 2.0  # beyond 5 % off 1 g, the body's own acceleration adds this much
+UNC_MAX_DEG = 20.0  # a tilt dof gravity determines less well than this is not measured
+SLEW_DEG = 5.0  # a held dof goes back to its measurement at most this far a tick
+#: A body with no trunk sensor known is measured against the upright model only
+#: after this long (source time): its other nodes announce themselves first.
+SETTLE_NS = 1_000_000_000
+HARM_FLOOR_RAD = 0.02  # a held dof's pull below this (the sensors' noise) tilts nothing below
+#: Gauss-Newton's damping, (rad^-1)^2 in degree units: a dof whose "up" moves less
+#: than about 0.1 per radian barely steps.
+DAMPING = 0.01 * (math.pi / 180.0) ** 2
+
+_UP = np.array([0.0, 0.0, 1.0])
+_NOTHING: frozenset[str] = frozenset()
+_UNCAL = frozenset({UNCALIBRATED})
+_UNOBS = frozenset({UNOBSERVED})
 
 
 # Per-tick maths uses Pinocchio's rotation functions: scipy's Rotation objects cost
@@ -282,10 +322,12 @@ class BodyOutput:
     names: OutputNames
     angles: np.ndarray  # (angles,) degrees
     rel: np.ndarray  # (joints,) each joint's total rotation (deg) from the calibration pose
-    flags: Mapping[str, str]  # angle -> "clamped" or "unobserved"
+    flags: Mapping[str, str]  # angle -> its first reason (pose.primary)
     positions: np.ndarray  # (segments, 3) metres
     quats: np.ndarray  # (segments, 4) unit quaternions w, x, y, z, w >= 0
     sources: Mapping[str, int]  # raw key -> source t_ns of the sample used
+    reasons: Mapping[str, tuple[str, ...]]  # angle -> every reason, in pose.REASONS order
+    unc: np.ndarray  # (angles,) uncertainty (deg), NaN where no measurement stands behind it
 
     @property
     def angles_deg(self) -> dict[str, float]:
@@ -311,16 +353,19 @@ class BodyOutput:
 class _Memory:
     last: np.ndarray | None = None  # the angle vector of the last tick (None before one)
     up: dict[str, np.ndarray] = field(default_factory=dict)  # filtered "up" of each accelerometer
-    tilt: dict[str, np.ndarray] = field(default_factory=dict)  # (pronation, deviation) per wrist
+    held: set[str] = field(default_factory=set)  # tilt dofs held (or unobserved) last tick
+    seen: set[str] = field(default_factory=set)  # tilt dofs gravity has determined at least once
+    expected: set[str] = field(default_factory=set)  # segments an orientation sensor is on
+    first_t_ns: int = -1  # the body's first tick (source time)
 
 
 class _Tick:
     """One body's working state during one solve: plain data that its
     :class:`BodySolver` fills (:meth:`BodySolver._gather`) and reads."""
 
-    __slots__ = ("angles", "direct_rot", "direct_rows", "flags", "last", "lefts", "measured",
-                 "modules", "mounts", "plan", "quats", "rel", "segs", "solver", "sources", "t_ns",
-                 "unknown")  # fmt: skip
+    __slots__ = ("angles", "direct_rot", "direct_rows", "harm", "held_tilt", "last", "lefts",
+                 "measured", "modules", "mounts", "plan", "quats", "reasons", "rel", "rests",
+                 "segs", "solver", "sources", "t_ns", "unc", "uncal", "unknown")  # fmt: skip
 
     def __init__(self, solver: BodySolver, last: np.ndarray | None) -> None:
         self.solver = solver
@@ -328,6 +373,7 @@ class _Tick:
         self.segs: list[str] = []  # segments with an orientation sensor (the first one wins)
         self.quats: list[QuatWxyz] = []
         self.mounts: list[np.ndarray] = []
+        self.uncal: set[str] = set()  # segments whose orientation sensor has no mount yet
         self.lefts: list[np.ndarray] = []  # each sensor's turn into the body's heading
         self.unknown: set[str] = set()  # segments whose sensor's heading is not known
         self.modules: dict[str, tuple[Site, OleAccel]] = {}  # SmartSuit modules by segment
@@ -341,7 +387,12 @@ class _Tick:
         self.direct_rot: np.ndarray = np.zeros((0, 3, 3))
         self.angles = np.zeros(0)  # the skeleton's angle vector (+1: see angle_index)
         self.rel = np.zeros(0)
-        self.flags: dict[str, str] = {}
+        self.unc = np.zeros(0)  # each angle's uncertainty (deg), NaN: none
+        self.reasons: dict[str, set[str]] = {}  # angle -> why it is no plain measurement
+        self.rests: dict[str, frozenset[str]] = {}  # segment -> what its orientation rests on
+        # segment -> how far (rad) held dofs above it may tilt it from what gravity says
+        self.harm: dict[str, float] = {}
+        self.held_tilt = 0.0  # the harm of the dofs held in the joint being solved
 
 
 def solve_bodies(work: Sequence[tuple[BodySolver, Mapping[Site, RawSample]]]) -> list[BodyOutput]:
@@ -383,23 +434,32 @@ class BodySolver:
         for joint, start in zip(self.skeleton.joints, self._batch.angle_index[:, 0].tolist(),
                                 strict=True):  # fmt: skip
             self._slices[joint.name] = slice(start, start + len(joint.dofs))
+        self._angle_at = {n: i for i, n in enumerate(self.names.angles)}
+        self._by_child = {j.child: j for j in self.skeleton.joints}
+        # a SmartSuit accelerometer's axes on each segment (its joint's flexion axis)
+        self._accel_axes = {j.child: accel_axes(np.array(self.skeleton.directions[j.child]),
+                                                self.axes[j.name].axes[0])
+                            for j in self.skeleton.joints}  # fmt: skip
         self._memory = _Memory()
-        self._sites: dict[Site, tuple[str, np.ndarray, str, bool, np.ndarray, bool]] = {}
+        self._all_mounted = False  # assume_calibrated
+        self._sites: dict[Site, tuple[str, np.ndarray, str, bool, np.ndarray, bool, bool]] = {}
         self._plans: dict[tuple[str, ...], tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
 
-    def _site(self, site: Site) -> tuple[str, np.ndarray, str, bool, np.ndarray, bool]:
+    def _site(self, site: Site) -> tuple[str, np.ndarray, str, bool, np.ndarray, bool, bool]:
         """The segment a sensor rides on, its mount's inverse (for orientation
         sensors), its raw key, whether it is a SmartSuit module, the turn from its
-        reference frame to the body's (``Rz(-heading)``, see gateway/heading.py) and
-        whether that heading is known."""
+        reference frame to the body's (``Rz(-heading)``, see gateway/heading.py),
+        whether that heading is known, and whether its mount is calibrated (an
+        orientation sensor's T-pose mount exists)."""
         known = self._sites.get(site)
         if known is None:
             key = site.raw_key
-            w, x, y, z = self.profile.imu_mounts.get(key, (1.0, 0.0, 0.0, 0.0))
+            mounts = self.profile.imu_mounts
+            w, x, y, z = mounts.get(key, (1.0, 0.0, 0.0, 0.0))
             known = self._sites[site] = (
                 mount(site).segment, _matrix((w, x, y, z)).T, key, site.name in OLE_DOF,
                 _rot(np.array([0.0, 0.0, 1.0]), -math.radians(self.profile.heading_of(key))),
-                self.profile.heading_known(key),
+                self.profile.heading_known(key), self._all_mounted or key in mounts,
             )  # fmt: skip
         return known
 
@@ -413,8 +473,8 @@ class BodySolver:
                 if joint.child not in measured:
                     tainted.add(joint.child)
                 for name in self.axes[joint.name].names:
-                    if tick.flags.get(name) != "unobserved":
-                        tick.flags[name] = "uncalibrated"
+                    if UNOBSERVED not in tick.reasons.get(name, ()):
+                        tick.reasons.setdefault(name, set()).add(UNCALIBRATED)
 
     def set_profile(self, profile: Profile) -> None:
         """Take a profile of the same body (lengths, calibration pose) whose mounts or
@@ -447,8 +507,9 @@ class BodySolver:
         first = work[0][0]
         angles = np.zeros((len(ticks), len(first.names.angles) + 1))
         rel = np.zeros((len(ticks), len(first.names.joints)))
+        unc = np.full((len(ticks), len(first.names.angles) + 1), math.nan)
         for b, tick in enumerate(ticks):
-            tick.angles, tick.rel = angles[b], rel[b]
+            tick.angles, tick.rel, tick.unc = angles[b], rel[b], unc[b]
         quats = [q for t in ticks for q in t.quats]
         if quats:
             sensors = Rotation.from_quat(np.array(quats), scalar_first=True).as_matrix()
@@ -473,7 +534,8 @@ class BodySolver:
         seen: set[str] = set()
         known, t_ns = self._sites, 0
         for site, sample in samples.items():
-            seg, mount_inv, key, module, left, heading_known = known.get(site) or self._site(site)
+            seg, mount_inv, key, module, left, heading_known, calibrated = (
+                known.get(site) or self._site(site))  # fmt: skip
             sources[key] = t = sample.t_ns
             t_ns = max(t_ns, t)
             r = sample.reading
@@ -486,12 +548,40 @@ class BodySolver:
                     tick.lefts.append(left)
                     if not heading_known:
                         tick.unknown.add(seg)
+                    if not calibrated:
+                        tick.uncal.add(seg)
             elif module:
                 tick.modules[seg] = (site, r)  # type: ignore[assignment]
         tick.t_ns = t_ns
+        if self._memory.first_t_ns == -1:
+            self._memory.first_t_ns = t_ns
         if tick.segs:
             tick.plan = self._direct_plan(tuple(tick.segs))
+            self._memory.expected.update(tick.segs)
         return tick
+
+    def assume_calibrated(self) -> None:
+        """Take every orientation sensor's orientation as its segment's, calibrated
+        (the profile's mount, else none): for orientations given per segment, such
+        as OpenSense files processed without a T-pose. Call before the first solve."""
+        self._all_mounted = True
+        self._sites.clear()
+
+    def expect(self, raw_keys: Iterable[str], complete: bool = False) -> None:
+        """Orientation sensors this body has (the gateway's topology: nodes whose
+        liveliness token is up), delivering or not. Until one delivers, what rests
+        on its segment is flagged rather than taken from an assumed upright pose.
+        ``complete``: these are all the body's sensors (a capture's), so a body
+        with no trunk sensor is measured against the upright model at once."""
+        if complete:
+            self._memory.first_t_ns = -(2**62)
+        for key in raw_keys:
+            try:
+                site, _ = keys.parse(key)
+            except keys.KeySpaceError:
+                continue
+            if site.name not in OLE_DOF:
+                self._memory.expected.add(mount(site).segment)
 
     def _solve_direct(self, ticks: Sequence[_Tick], segments: np.ndarray, angles: np.ndarray,
                       rel: np.ndarray) -> None:  # fmt: skip
@@ -524,15 +614,26 @@ class BodySolver:
             relative,
         )
         angles[owner[:, None], index] = values
+        for b, tick in enumerate(ticks):
+            tick.unc[index[owner == b]] = UNC_TAG_DEG
         angles[:, -1] = 0.0  # the absent dofs' column
         rel[owner, rows] = total
         start = 0
-        for tick, (mine, _, _) in zip(ticks, plans, strict=True):
+        for tick, (mine, parent_at, child_at) in zip(ticks, plans, strict=True):
             tick.direct_rows, tick.direct_rot = mine, matrices[start : start + len(mine)]
             start += len(mine)
+            # what the joints rest on: an uncalibrated sensor, an expected pelvis sensor missing
+            solver = tick.solver
+            rests = [solver._rests(tick.segs[p] if p >= 0 else "pelvis", tick)
+                     for p in parent_at.tolist()]  # fmt: skip
+            for row, c, rest in zip(mine.tolist(), child_at.tolist(), rests, strict=True):
+                why = rest | solver._rests(tick.segs[c], tick)
+                if why:
+                    for name in batch.names[row]:
+                        tick.reasons[name] = set(why)
         clamped &= ~batch.unused[rows]
         for r, d in zip(*np.nonzero(clamped), strict=True):
-            ticks[owner[r]].flags[batch.names[rows[r]][d]] = "clamped"
+            ticks[owner[r]].reasons.setdefault(batch.names[rows[r]][d], set()).add(CLAMPED)
 
     def _outputs(self, ticks: Sequence[_Tick]) -> list[BodyOutput]:
         """Forward kinematics of each body's angles (Pinocchio), then, for every body
@@ -550,9 +651,21 @@ class BodySolver:
         quats = poses[:, :, [6, 3, 4, 5]]  # x, y, z, w -> w, x, y, z
         quats /= np.linalg.norm(quats, axis=2, keepdims=True)
         quats *= np.where(quats[:, :, :1] < 0, -1.0, 1.0)
-        return [BodyOutput(t.t_ns, t.solver.names, t.angles[:-1], t.rel, t.flags, p[:, :3], q,
-                           t.sources)
-                for t, p, q in zip(ticks, poses, quats, strict=True)]  # fmt: skip
+        return [t.solver._output(t, p, q) for t, p, q in zip(ticks, poses, quats, strict=True)]
+
+    def _output(self, tick: _Tick, poses: np.ndarray, quats: np.ndarray) -> BodyOutput:
+        """One body's output: flags (each dof's first reason) and uncertainties
+        (none where a reason other than ``clamped`` says no measurement)."""
+        order = _REASON_ORDER
+        reasons = {n: tuple(sorted(r, key=lambda x: order.get(x, len(order))))
+                   for n, r in tick.reasons.items() if r}  # fmt: skip
+        flags = {n: primary(r) for n, r in reasons.items()}
+        unc = tick.unc[:-1]
+        for n, f in flags.items():
+            if f != CLAMPED:
+                unc[self._angle_at[n]] = math.nan
+        return BodyOutput(tick.t_ns, self.names, tick.angles[:-1], tick.rel, flags, poses[:, :3],
+                          quats, tick.sources, reasons, unc)  # fmt: skip
 
     def _direct_plan(self, measured: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """For segments ``measured`` (in this order), the joints between two of them
@@ -573,57 +686,134 @@ class BodySolver:
         return plan  # type: ignore[return-value]
 
     def _solve_rest(self, tick: _Tick) -> None:
-        """The joints not split from two orientation sensors: SmartSuit modules
-        (scalar code, in chain order, each from its parent's world orientation),
-        or unobserved."""
-        if len(tick.direct_rows) == len(self.skeleton.joints):
+        """The joints not split from two orientation sensors: from one sensor and
+        the chain above it, from SmartSuit modules (scalar code, in chain order,
+        each from its parent's world orientation), or unobserved; and where a
+        module rides a segment an orientation sensor measures, the better
+        determined of the two gives each dof.
+
+        Each segment's world orientation carries what it rests on besides
+        measurements (``rests``): an uncalibrated sensor, or an expected sensor
+        that has not delivered (the pelvis or trunk assumed upright). The tilt
+        dofs of modules below it inherit those reasons."""
+        measured, modules = tick.measured, tick.modules
+        if len(tick.direct_rows) == len(self.skeleton.joints) and not modules:
             return
         direct = dict(zip([self.names.joints[r] for r in tick.direct_rows.tolist()],
                           tick.direct_rot, strict=True))  # fmt: skip
-        world: dict[str, np.ndarray] = {"pelvis": tick.measured.get("pelvis", np.eye(3))}
-        by_child = {j.child: j for j in self.skeleton.joints}
-        measured, modules = tick.measured, tick.modules
-        last = tick.last
+        expected = self._memory.expected
+        world: dict[str, np.ndarray] = {"pelvis": measured.get("pelvis", np.eye(3))}
+        rests, harm, last = tick.rests, tick.harm, tick.last
+        rests["pelvis"], harm["pelvis"] = self._rests("pelvis", tick), 0.0
         for joint in self.skeleton.joints:
-            if joint.name in direct:
-                world[joint.child] = world[joint.parent] @ direct[joint.name]
-                continue
+            child = joint.child
             ax = self.axes[joint.name]
+            names = ax.names
             parent = world[joint.parent]
             previous = last[self._slices[joint.name]] if last is not None else None
-            names = ax.names
-            relative = None
-            if joint.child in measured:
-                relative = parent.T @ measured[joint.child]
+            inherited = rests[joint.parent]
+            harm[child] = 0.0 if child in measured else harm[joint.parent]
+            if joint.name in direct:
+                world[child] = parent @ direct[joint.name]
+                rests[child] = self._rests(child, tick)
+                if child in modules:  # a module on the same segment: dof by dof
+                    self._merge_module(tick, world, joint, parent, previous, inherited)
+                continue
+            if child in measured:
+                relative = parent.T @ measured[child]
                 values = ax.split(relative, previous)
-            elif joint.child in modules:
-                site, reading = modules[joint.child]
-                values = self._from_module(joint, ax, parent, site, reading, previous, tick.flags)
-                if len(names) == 2 and reading is not None:  # wrist, ankle: the distal tilt
-                    upstream = by_child[joint.parent]
-                    chained = (
-                        joint.parent not in measured
-                        and joint.parent in modules
-                        and len(upstream.dofs) == 2  # the elbow: its pronation is unknown too
-                    )
-                    values = self._distal_tilt(joint, values, upstream if chained else None,
-                                               world, site, reading, tick)  # fmt: skip
+                unc = np.full(len(names), UNC_TAG_DEG)
+                own = self._rests(child, tick)
+                why = [set(inherited | own) for _ in names]
+                rests[child] = own
+                self._commit(tick, world, joint, values, unc, why, relative)
+                if child in modules:
+                    self._merge_module(tick, world, joint, parent, previous, inherited)
+                continue
+            if child in modules:
+                site, reading = modules[child]
+                tick.held_tilt = 0.0
+                values, unc, why = self._from_module(joint, parent, site, reading, previous,
+                                                     inherited, tick)  # fmt: skip
+                rests[child] = inherited
+                if len(names) == 2:  # elbow, wrist, ankle: the second dof from gravity
+                    self._distal_tilt(joint, values, unc, why, world, site, reading, tick)
+                harm[child] += tick.held_tilt
+                if len(names) == 2:
+                    continue
             else:
                 values = np.zeros(len(names))
-                tick.flags.update(dict.fromkeys(names, "unobserved"))
-            self._commit(tick, world, joint, values, relative)
+                unc = np.full(len(names), math.nan)
+                why = [{UNOBSERVED} for _ in names]
+                # nothing measures this segment: the model's rest pose, which is what
+                # the chain below rests on only where a sensor is expected here
+                rests[child] = inherited | ({UNOBSERVED} if child in expected else frozenset())
+            self._commit(tick, world, joint, values, unc, why)
+
+    def _rests(self, segment: str, tick: _Tick) -> frozenset[str]:
+        """What a segment's own orientation rests on besides measurement: its
+        sensor uncalibrated, or (the pelvis) expected but not delivering."""
+        if segment in tick.measured:
+            return _UNCAL if segment in tick.uncal else _NOTHING
+        if segment == "pelvis":
+            memory = self._memory
+            if segment in memory.expected:
+                return _UNOBS
+            # no trunk sensor known: the upright model, once the topology has had
+            # time to show one (the nodes of a suit announce themselves within it)
+            if not memory.expected and tick.t_ns - memory.first_t_ns < SETTLE_NS:
+                return _UNOBS
+        return _NOTHING
+
+    def _merge_module(self, tick: _Tick, world: dict[str, np.ndarray], joint: Joint,
+                      parent: np.ndarray, previous: np.ndarray | None,
+                      inherited: frozenset[str]) -> None:  # fmt: skip
+        """A joint an orientation sensor gave, whose child also carries a SmartSuit
+        module: each dof from the source that determines it better (the smaller
+        uncertainty, a measured value before a flagged one). The segment's world
+        orientation stays the orientation sensor's."""
+        site, reading = tick.modules[joint.child]
+        sl = self._slices[joint.name]
+        values, unc, why = self._from_module(joint, parent, site, reading, previous, inherited,
+                                             tick)  # fmt: skip
+        if len(values) == 2:
+            values[1], unc[1], why[1] = self._gravity_dof(joint, values, world, site, reading,
+                                                          previous, tick)  # fmt: skip
+            why[1] |= inherited
+        ax = self.axes[joint.name]
+        have = tick.angles[sl].copy()
+        have_unc = tick.unc[sl].copy()
+        have_why = [set(tick.reasons.get(n, ())) - {CLAMPED} for n in ax.names]
+        for i, name in enumerate(ax.names):
+            mine_ok = not (why[i] - {CLAMPED})
+            have_ok = not have_why[i]
+            if (mine_ok, -unc[i] if mine_ok else 0.0) > (have_ok, -have_unc[i] if have_ok else 0.0):
+                have[i], have_unc[i], have_why[i] = values[i], unc[i], why[i] - {CLAMPED}
+            tick.reasons.pop(name, None)
+        saved = world[joint.child]
+        self._commit(tick, world, joint, have, have_unc, have_why)
+        world[joint.child] = saved
 
     def _commit(self, tick: _Tick, world: dict[str, np.ndarray], joint: Joint,
-                values: np.ndarray, relative: np.ndarray | None = None) -> None:  # fmt: skip
-        """Clamp to the range of motion, record, and carry the chain on. The total
-        rotation from the calibration pose is the measured ``relative`` rotation's
-        when there is one (see :meth:`_SplitBatch.commit`)."""
+                values: np.ndarray, unc: np.ndarray, why: Sequence[set[str] | frozenset[str]],
+                relative: np.ndarray | None = None) -> None:  # fmt: skip
+        """Clamp to the range of motion, record with each dof's uncertainty and
+        reasons, and carry the chain on. The total rotation from the calibration
+        pose is the measured ``relative`` rotation's when there is one (see
+        :meth:`_SplitBatch.commit`)."""
         ax = self.axes[joint.name]
         for i, (name, (lo, hi)) in enumerate(zip(ax.names, ax.limits, strict=True)):
+            reasons = set(why[i])
             if not lo <= values[i] <= hi:
                 values[i] = min(max(values[i], lo), hi)
-                tick.flags[name] = "clamped"
-        tick.angles[self._slices[joint.name]] = values
+                reasons.add(CLAMPED)
+            if reasons:
+                tick.reasons[name] = reasons
+            else:
+                tick.reasons.pop(name, None)
+        sl = self._slices[joint.name]
+        tick.angles[sl] = values
+        tick.unc[sl] = unc
         joint_rot = ax.matrix(values)
         world[joint.child] = world[joint.parent] @ joint_rot
         tick.rel[self._batch.index[joint.name]] = _angle_deg(
@@ -640,97 +830,258 @@ class BodySolver:
     def _from_module(
         self,
         joint: Joint,
-        ax: JointAxes,
         parent: np.ndarray,
         site: Site,
         reading: OleAccel,
         previous: np.ndarray | None,
-        flags: dict[str, str],
-    ) -> np.ndarray:
-        names = self.axes[joint.name].names
+        inherited: frozenset[str],
+        tick: _Tick,
+    ) -> tuple[np.ndarray, np.ndarray, list[set[str]]]:
+        """A module's joint: the encoder's dof, and at the shoulders and hips
+        flexion and abduction from the accelerometer's tilt; the second dof of
+        an elbow, wrist or ankle is left to :meth:`_distal_tilt` (its last value
+        until then). Values, uncertainties (deg) and reasons."""
+        ax = self.axes[joint.name]
+        names = ax.names
         values = previous.copy() if previous is not None else np.zeros(len(names))
+        unc = np.full(len(names), math.nan)
+        why: list[set[str]] = [set() for _ in names]
         ole_name = f"{site.branch.side}_{site.name}_{OLE_DOF[site.name]}_deg"
         ole_index = names.index(ole_name)
         cal = self.profile.ole.get(ole_name)
         if cal is not None:
             values[ole_index] = float(cal.angle_deg(reading.encoder))
-        if len(names) == 3 and ole_index == 2:  # shoulder, hip: flexion and abduction from tilt
-            up_sensor = np.array(reading.accel, dtype=float)
-            norm = np.linalg.norm(up_sensor)
-            if norm > 0.1 * self.profile.accel_counts_per_g:  # not in free fall
-                up = self._filtered_up(site.raw_key, up_sensor / norm)
-                values[:2] = self._tilt(ax, parent, up, values, joint)
+            unc[ole_index] = UNC_OLE_DEG
         else:
-            for i, name in enumerate(names):
-                if i != ole_index:
-                    flags[name] = "unobserved"
-                    values[i] = 0.0
-        return values
+            why[ole_index].add(UNCALIBRATED)
+        if len(names) == 3 and ole_index == 2:  # shoulder, hip: flexion and abduction from tilt
+            up = self._up(site, reading)
+            prev = previous[:2] if previous is not None else None
+            if up is None:  # in free fall: nothing to see
+                values[:2], unc[:2], why[:2] = self._settle(names[:2], values[:2],
+                                                            np.zeros(2), prev, 1.0)  # fmt: skip
+            else:
+                fit = values.copy()
+                fit[:2] = self._tilt(ax, parent, up[0], values, joint)
+                rot = values[2]
+
+                def predict(x: np.ndarray) -> np.ndarray:
+                    return (parent @ ax.matrix(np.array([x[0], x[1], rot]))).T @ _UP  # type: ignore[no-any-return]
+
+                strength = _strengths(predict, fit[:2])
+                noise = up[1] + tick.harm[joint.parent]
+                values[:2], unc[:2], why[:2] = self._settle(names[:2], fit[:2], strength, prev,
+                                                            noise, tick)  # fmt: skip
+                seg_axes = self._accel_axes[joint.child]
+                values[:2] = _refit(predict, values[:2], why[:2], seg_axes @ up[0])
+            for i in (0, 1):
+                why[i] |= inherited
+        else:
+            for i in range(len(names)):
+                if i != ole_index:  # decided by _distal_tilt
+                    why[i].add(UNOBSERVED)
+        return values, unc, why
+
+    def _up(self, site: Site, reading: OleAccel) -> tuple[np.ndarray, float] | None:
+        """A module's filtered "up" in its sensor frame and that direction's
+        uncertainty (rad): the sensor's own, growing with how far the
+        acceleration's size is from 1 g (the body's own acceleration adds to
+        gravity). ``None`` in free fall."""
+        a = np.array(reading.accel, dtype=float)
+        norm = float(np.linalg.norm(a))
+        g = self.profile.accel_counts_per_g
+        if norm <= 0.1 * g:
+            return None
+        dynamic = DYN_GAIN * max(0.0, abs(norm / g - 1.0) - DYN_FREE)
+        return self._filtered_up(site.raw_key, a / norm), UP_UNC_RAD + dynamic
 
     def _distal_tilt(
         self,
         joint: Joint,
         values: np.ndarray,
-        upstream: Joint | None,
+        unc: np.ndarray,
+        why: list[set[str]],
         world: dict[str, np.ndarray],
         site: Site,
         reading: OleAccel,
         tick: _Tick,
-    ) -> np.ndarray:
-        """The second dof of a wrist or ankle (deviation, inversion) from the
-        accelerometer on the hand or foot, and with ``upstream`` (an elbow
-        measured by its encoder only) that joint's second dof too (pronation):
-        the angles that put the sensor's measured "up" on the world vertical,
-        found by Gauss-Newton from the last values, so a direction gravity
-        cannot see keeps its value instead of jumping (000 seed, eq. 21-23)."""
-        up_sensor = np.array(reading.accel, dtype=float)
-        norm = float(np.linalg.norm(up_sensor))
-        if norm <= 0.1 * self.profile.accel_counts_per_g:
-            return values
-        ax = self.axes[joint.name]
-        seg = joint.child
-        mount_axes = accel_axes(np.array(self.skeleton.directions[seg]), ax.axes[0])
-        target = mount_axes @ self._filtered_up(site.raw_key, up_sensor / norm)
-        up_world = np.array([0.0, 0.0, 1.0])
-        if upstream is None:
-            fixed = world[joint.parent] @ ax.dof(0, values[0])
+    ) -> None:
+        """The second dof of an elbow, wrist or ankle (pronation, deviation,
+        inversion) from the accelerometer on the forearm, hand or foot, and at a
+        wrist whose elbow a module measures (encoder only) that elbow's pronation
+        too, from both accelerometers: the angles that put the sensors' measured
+        "up" on the world vertical, found by Gauss-Newton from the last values
+        (000 seed, eq. 21-23). Then committed. An elbow whose wrist carries a
+        module leaves its pronation to the wrist (committed as it was for now)."""
+        by_child = self._by_child
+        modules, measured = tick.modules, tick.measured
+        hand = next((j.child for j in self.skeleton.joints if j.parent == joint.child), None)
+        if (len(self.axes[joint.name].names) == 2 and hand is not None and hand in modules
+                and hand not in measured and OLE_DOF.get(site.name) == "flexion"
+                and site.name == "elbow"):  # fmt: skip
+            self._commit(tick, world, joint, values, unc, why)  # the wrist decides pronation
+            return
+        upstream = by_child.get(joint.parent)
+        chained = (
+            upstream is not None
+            and joint.parent not in measured
+            and joint.parent in modules
+            and len(upstream.dofs) == 2  # the elbow: its pronation is unknown too
+        )
+        if not chained or upstream is None:
+            last = tick.last[self._slices[joint.name]] if tick.last is not None else None
+            values[1], unc[1], why[1] = self._gravity_dof(joint, values, world, site, reading,
+                                                          last, tick)  # fmt: skip
+            why[1] |= self._inherited(joint.parent, tick)
+            self._commit(tick, world, joint, values, unc, why)
+            return
+        self._wrist_and_elbow(joint, upstream, values, unc, why, world, site, reading, tick)
 
-            def predict(x: np.ndarray) -> np.ndarray:
-                return (fixed @ ax.dof(1, x[0])).T @ up_world  # type: ignore[no-any-return]
-
-            (values[1],) = _gauss_newton(predict, np.array([values[1]]), target)
-            tick.flags.pop(self.axes[joint.name].names[1], None)
-            return values
-        up_ax = self.axes[upstream.name]
-        up_values = tick.angles[self._slices[upstream.name]].copy()  # committed this tick
+    def _wrist_and_elbow(
+        self,
+        joint: Joint,
+        upstream: Joint,
+        values: np.ndarray,
+        unc: np.ndarray,
+        why: list[set[str]],
+        world: dict[str, np.ndarray],
+        site: Site,
+        reading: OleAccel,
+        tick: _Tick,
+    ) -> None:
+        """A wrist's deviation and its elbow's pronation together, from the hand's
+        and the forearm's accelerometers (the elbow measured by its encoder only),
+        both committed."""
+        modules = tick.modules
+        ax, up_ax = self.axes[joint.name], self.axes[upstream.name]
+        up_sl = self._slices[upstream.name]
+        up_values = tick.angles[up_sl].copy()  # committed this tick, pronation as it was
+        up_unc = tick.unc[up_sl].copy()
+        up_why = [set(tick.reasons.get(n, ())) - {CLAMPED, UNOBSERVED} for n in up_ax.names]
         fixed = world[upstream.parent] @ up_ax.dof(0, up_values[0])
         wrist_flexion = ax.dof(0, values[0])
+        hand_up = self._up(site, reading)
+        fore_site, fore_reading = modules[joint.parent]
+        fore_up = self._up(fore_site, fore_reading)
+        preds, targets, noise = [], [], []
+        if hand_up is not None:
+            hand_axes = self._accel_axes[joint.child]
 
-        def predict2(x: np.ndarray) -> np.ndarray:
-            chain = fixed @ up_ax.dof(1, x[0]) @ wrist_flexion @ ax.dof(1, x[1])
-            return chain.T @ up_world  # type: ignore[no-any-return]
+            def hand_pred(x: np.ndarray) -> np.ndarray:
+                chain = fixed @ up_ax.dof(1, x[0]) @ wrist_flexion @ ax.dof(1, x[1])
+                return chain.T @ _UP  # type: ignore[no-any-return]
 
-        prev = self._memory.tilt.get(joint.name, np.zeros(2))
-        names = (self.axes[upstream.name].names[1], self.axes[joint.name].names[1])
+            preds.append(hand_pred)
+            targets.append(hand_axes @ hand_up[0])
+            noise.append(hand_up[1])
+        if fore_up is not None:
+            fore_axes = self._accel_axes[joint.parent]
 
-        def rank(x: np.ndarray) -> tuple[bool, float, float]:
-            miss = float(np.linalg.norm(predict2(x) - target)) > MISS
-            outside = sum(
-                max(0.0, lo - v, v - hi) for v, (lo, hi) in zip(x, map(rom, names), strict=True)
-            )
-            return miss, outside, float(np.abs(x - prev).sum())
+            def fore_pred(x: np.ndarray) -> np.ndarray:
+                return (fixed @ up_ax.dof(1, x[0])).T @ _UP  # type: ignore[no-any-return]
 
-        fits = [_gauss_newton(predict2, prev, target)]
-        if rank(fits[0])[:2] != (False, 0.0):  # no good fit near the last answer: try neutral
-            fits.append(_gauss_newton(predict2, np.zeros(2), target))
+            preds.append(fore_pred)
+            targets.append(fore_axes @ fore_up[0])
+            noise.append(fore_up[1])
+        names = (up_ax.names[1], ax.names[1])
+        prev = np.array([up_values[1], values[1]])
+        if tick.last is None:
+            prev = np.zeros(2)
+        if preds:
+            def predict(x: np.ndarray) -> np.ndarray:
+                return np.concatenate([p(x) for p in preds])
 
-        solution = min(fits, key=rank)
-        self._memory.tilt[joint.name] = solution
-        up_values[1], values[1] = solution
-        tick.flags.pop(self.axes[upstream.name].names[1], None)
-        tick.flags.pop(self.axes[joint.name].names[1], None)
-        self._commit(tick, world, upstream, up_values)
-        return values
+            target = np.concatenate(targets)
+            fit, strength = _gravity_fit(predict, prev, target, names)
+            sol, sol_unc, sol_why = self._settle(names, fit, strength,
+                                                 prev if tick.last is not None else None,
+                                                 max(noise) + tick.harm[upstream.parent],
+                                                 tick)  # fmt: skip
+            sol = _refit(predict, sol, sol_why, target)
+        else:
+            sol, sol_unc, sol_why = self._settle(names, prev, np.zeros(2), prev, 1.0)
+        inherited_up = self._inherited(upstream.parent, tick)
+        up_values[1], up_unc[1], up_why[1] = sol[0], sol_unc[0], sol_why[0] | inherited_up
+        values[1], unc[1], why[1] = sol[1], sol_unc[1], sol_why[1] | inherited_up
+        self._commit(tick, world, upstream, up_values, up_unc, up_why)
+        self._commit(tick, world, joint, values, unc, why)
+
+    def _inherited(self, segment: str, tick: _Tick) -> frozenset[str]:
+        return tick.rests.get(segment, _NOTHING)
+
+    def _gravity_dof(self, joint: Joint, values: np.ndarray, world: dict[str, np.ndarray],
+                     site: Site, reading: OleAccel, previous: np.ndarray | None,
+                     tick: _Tick) -> tuple[float, float, set[str]]:  # fmt: skip
+        """The second dof of a two-dof joint from its child's accelerometer alone,
+        with its uncertainty and reasons."""
+        ax = self.axes[joint.name]
+        name = ax.names[1]
+        prev = None if previous is None else np.array([previous[1]])
+        up = self._up(site, reading)
+        if up is None:
+            v, u, w = self._settle((name,), np.array([values[1]]), np.zeros(1), prev, 1.0)
+            return float(v[0]), float(u[0]), w[0]
+        seg_axes = self._accel_axes[joint.child]
+        target = seg_axes @ up[0]
+        fixed = world[joint.parent] @ ax.dof(0, values[0])
+
+        def predict(x: np.ndarray) -> np.ndarray:
+            return (fixed @ ax.dof(1, x[0])).T @ _UP  # type: ignore[no-any-return]
+
+        start = prev if prev is not None else np.zeros(1)
+        fit, strength = _gravity_fit(predict, start, target, (name,))
+        noise = up[1] + tick.harm[joint.parent]
+        v, u, w = self._settle((name,), fit, strength, prev, noise, tick)
+        return float(v[0]), float(u[0]), w[0]
+
+    def _settle(
+        self,
+        names: Sequence[str],
+        fit: np.ndarray,
+        strength: np.ndarray,
+        previous: np.ndarray | None,
+        up_unc_rad: float,
+        tick: _Tick | None = None,
+    ) -> tuple[np.ndarray, np.ndarray, list[set[str]]]:
+        """Tilt dofs from a gravity fit and how strongly gravity determines each
+        (``strength``: how far the sensors' "up" moves per radian of the dof, the
+        others free). Uncertainty = the "up"'s uncertainty / strength. A dof
+        determined within ``UNC_MAX_DEG`` takes the fit; one that is not keeps its
+        last value, flagged ``held`` (``unobserved`` if it never was determined),
+        and when it is determined again it moves back to the fit at most
+        ``SLEW_DEG`` a tick, still flagged, so it never jumps."""
+        memory = self._memory
+        out = fit.astype(float).copy()
+        unc = np.full(len(names), math.nan)
+        why: list[set[str]] = [set() for _ in names]
+        for i, name in enumerate(names):
+            s = float(strength[i])
+            u = math.degrees(up_unc_rad / s) if s > 1e-9 else math.inf
+            if u <= UNC_MAX_DEG:
+                if previous is not None and name in memory.held and \
+                        abs(fit[i] - previous[i]) > max(u, SLEW_DEG):  # fmt: skip
+                    step = min(max(fit[i] - previous[i], -SLEW_DEG), SLEW_DEG)
+                    out[i] = previous[i] + step
+                    why[i].add(HELD)
+                    if tick is not None:  # how far this may tilt what lies below
+                        tick.held_tilt += self._harm(fit[i], out[i], s)
+                    continue
+                memory.held.discard(name)
+                memory.seen.add(name)
+                unc[i] = u
+            else:  # its last value, or the model's rest value if it never had one
+                out[i] = previous[i] if previous is not None else 0.0
+                why[i].add(HELD if name in memory.seen else UNOBSERVED)
+                if tick is not None:
+                    tick.held_tilt += self._harm(fit[i], out[i], s)
+                memory.held.add(name)
+        return out, unc, why
+
+    @staticmethod
+    def _harm(fit: float, held: float, strength: float) -> float:
+        """How far (rad) a dof held at ``held`` while gravity, with ``strength``,
+        puts it at ``fit`` may tilt the segments below it (beyond the noise)."""
+        return max(0.0, math.radians(abs(fit - held)) * strength - HARM_FLOOR_RAD)
 
     def _filtered_up(self, key: str, up: np.ndarray) -> np.ndarray:
         """Light low-pass filtering of an accelerometer's direction (exponential,
@@ -757,7 +1108,7 @@ class BodySolver:
         last value wins), then the Y-Z plane gives a.
         """
         seg = joint.child
-        m = accel_axes(np.array(self.skeleton.directions[seg]), ax.axes[0])
+        m = self._accel_axes[seg]
         u_seg = m @ up_sensor
         v = _rot(ax.axes[2], math.radians(values[2])) @ u_seg
         u_p = parent.T @ np.array([0.0, 0.0, 1.0])
@@ -795,13 +1146,74 @@ def _gauss_newton(predict: Any, x0: np.ndarray, target: np.ndarray, iters: int =
         y = predict(x)
         r = y - target
         jac = np.column_stack([(predict(x + h * e) - y) / h for e in eye])
-        # damped normal equations: a direction gravity cannot see gets no step
+        # damped normal equations (an absolute damping, per radian): a direction
+        # gravity cannot see gets no step, instead of a huge one that its noise sets
         jtj = jac.T @ jac
-        step = np.linalg.solve(jtj + 1e-6 * np.trace(jtj) * eye + 1e-12 * eye, -jac.T @ r)
+        step = np.linalg.solve(jtj + DAMPING * eye, -jac.T @ r)
         x += np.clip(step, -30.0, 30.0)
         if float(np.abs(step).max()) < 1e-3:  # degrees: far below the sensors' resolution
             break
     return np.array([_wrap(v) for v in x])
+
+
+def _jacobian(predict: Any, x: np.ndarray, h: float = 1e-3) -> np.ndarray:
+    """d predict / dx (per degree), by forward differences."""
+    y = predict(x)
+    return np.column_stack([(predict(x + h * e) - y) / h for e in np.eye(len(x))])
+
+
+def _strengths(predict: Any, x: np.ndarray) -> np.ndarray:
+    """How far the predicted "up"s move per radian of each dof, the other dofs
+    free to make up for it: 1 / sqrt of the diagonal of (J^T J)^-1. 0 for a dof
+    gravity cannot see (about the vertical, or one another dof already covers)."""
+    jac = _jacobian(predict, x) * (180.0 / math.pi)
+    jtj = jac.T @ jac
+    try:
+        inv = np.linalg.inv(jtj + 1e-12 * np.eye(len(x)))
+    except np.linalg.LinAlgError:
+        return np.zeros(len(x))
+    return 1.0 / np.sqrt(np.maximum(np.diag(inv), 1e-300))  # type: ignore[no-any-return]
+
+
+def _gravity_fit(predict: Any, x0: np.ndarray, target: np.ndarray,
+                 names: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    """Angles (deg) near ``x0`` that put the predicted "up"s on ``target``, and
+    each dof's strength there (:func:`_strengths`). Damped steps that a dof
+    gravity cannot see does not take, so it stays where it was; if no good fit
+    is near ``x0``, one from neutral is tried too (inside the range of motion
+    and nearest ``x0`` wins among good fits)."""
+
+    def rank(x: np.ndarray) -> tuple[bool, float, float]:
+        miss = float(np.linalg.norm(predict(x) - target)) > MISS * math.sqrt(len(target) / 3)
+        outside = sum(
+            max(0.0, lo - v, v - hi) for v, (lo, hi) in zip(x, map(rom, names), strict=True)
+        )
+        return miss, outside, float(np.abs(x - x0).sum())
+
+    fits = [_gauss_newton(predict, x0, target)]
+    if rank(fits[0])[:2] != (False, 0.0):  # no good fit near the last answer: try neutral
+        fits.append(_gauss_newton(predict, np.zeros(len(x0)), target))
+    best = min(fits, key=rank)
+    return best, _strengths(predict, best)
+
+
+def _refit(predict: Any, values: np.ndarray, why: Sequence[set[str]],
+           target: np.ndarray) -> np.ndarray:  # fmt: skip
+    """With some of a fit's dofs held, the others fitted again around them (a
+    held dof's value is not the fit's, and the others must agree with it)."""
+    held = np.array([bool(w & {HELD, UNOBSERVED}) for w in why])
+    if not held.any() or held.all():
+        return values
+    free = np.flatnonzero(~held)
+    base = values.astype(float).copy()
+
+    def partial(x: np.ndarray) -> np.ndarray:
+        full = base.copy()
+        full[free] = x
+        return predict(full)  # type: ignore[no-any-return]
+
+    base[free] = _gauss_newton(partial, base[free], target)
+    return base
 
 
 def _wrap(deg: float) -> float:

@@ -110,6 +110,29 @@ def _ticks(samples: Iterator[CapturedSample], period_s: float) -> Iterator[list[
         yield tick
 
 
+def _survey(path: Path, fmt: str, rate_hz: float | None, options: Mapping[str, Any] | None,
+            profile: Profile) -> tuple[set[str], set[Site]]:  # fmt: skip
+    """Every site of a capture (the solver's expected sensors), and its orientation
+    sensors with no mount in the profile."""
+    topology: set[str] = set()
+    uncalibrated: set[Site] = set()
+    for _, site, reading in recorded_samples(path, fmt, CaptureStats(), rate_hz, options):
+        topology.add(site.raw_key)
+        if isinstance(reading, Quat) and site.raw_key not in profile.imu_mounts:
+            uncalibrated.add(site)
+    return topology, uncalibrated
+
+
+def _solver(profile: Profile, topology: set[str], as_given: bool) -> BodySolver:
+    """The capture's solver: its whole topology known; ``as_given``: the orientations
+    are calibrated as they are (no T-pose)."""
+    solver = BodySolver(profile)
+    solver.expect(topology, complete=True)
+    if as_given:
+        solver.assume_calibrated()
+    return solver
+
+
 def process(path: Path, fmt: str, out: Path, profile: Profile | None = None,
             rate_hz: float | None = None, tick_hz: float = 100.0,
             tpose_s: float = 3.0, options: Mapping[str, Any] | None = None,
@@ -126,12 +149,11 @@ def process(path: Path, fmt: str, out: Path, profile: Profile | None = None,
     (``ProcessResult.refused`` says why)."""
     source = sources.by_format(fmt).from_options(options or {})
     profile = profile or Profile()
-    uncalibrated = {
-        site for _, site, reading in recorded_samples(path, fmt, CaptureStats(), rate_hz, options)
-        if isinstance(reading, Quat) and site.raw_key not in profile.imu_mounts
-    }  # fmt: skip
+    topology, uncalibrated = _survey(path, fmt, rate_hz, options, profile)
+    # no calibration window: the orientations are the segments' own, as given
+    as_given = bool(uncalibrated) and tpose_s <= 0 and window is None and calibration is None
     calibrated, refused = None, None
-    if uncalibrated and tpose_s <= 0 and window is None and calibration is None:
+    if as_given:
         # no calibration window: the orientations are the segments' own, in the body's
         # frame (as bodynet exports them), so their mounts are none and heading 0
         profile = replace(profile, imu_headings=MappingProxyType(
@@ -160,7 +182,7 @@ def process(path: Path, fmt: str, out: Path, profile: Profile | None = None,
                 latest[s.site] = RawSample(s.reading, 0, 0)
             if heading.update(tick[-1].t_s, latest) is not None:
                 break
-    solver = BodySolver(heading.profile)
+    solver = _solver(heading.profile, topology, as_given)
     stats = CaptureStats()
     sink = McapSink(out)
     latest: dict[Site, RawSample] = {}

@@ -675,3 +675,26 @@ def test_a_recording_onto_a_full_disk_stops_and_says_so(
     assert f"bodynet record: cannot write {out}: File too large" in told
     assert f"bodynet record --salvage {out}" in told
     assert "Traceback" not in told
+
+
+def test_an_export_of_mostly_repeated_frames_is_refused(
+    corpus: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Two poses an hour apart at 1 kHz would be 3.6 million frames of two poses."""
+    from bodynet.core.codecs import pose
+
+    sparse = tmp_path / "sparse.mcap"
+    frames = [frame for _, frame in read_poses(corpus["recording"])][:2]
+    with sparse.open("wb") as f:
+        writer = Writer(f)
+        writer.start()
+        schema = writer.register_schema("bodynet.PoseFrame", "jsonschema", b"{}")
+        channel = writer.register_channel("body/pose", "json", schema)
+        for t, frame in zip((10**9, 3601 * 10**9), frames, strict=True):
+            writer.add_message(channel, t, pose.encode(frame), t)
+        writer.finish()
+    out = tmp_path / "x.c3d"
+    code, err = cli(capsys, "export", "c3d", "-q", sparse, "--rate-hz", "1000", "-o", out)
+    assert code == 2
+    assert "choose a lower rate" in err
+    assert not out.exists()

@@ -731,7 +731,9 @@ def test_browser_plays_the_real_chain_and_the_ranges_match_the_motion(
     outcomes = {x["outcome"] for x in trial["targets"]}
     assert outcomes <= {"reached", "missed", "not measured"}
     for x in trial["targets"]:  # only a measured target is reached or missed
-        assert (x["outcome"] == "not measured") == bool(x["waited_for"]), x
+        # a "not measured" stop waited for some dof; a reached one may have waited a
+        # moment too (a tilt held near the vertical, measured again: issue 22)
+        assert x["outcome"] != "not measured" or x["waited_for"], x
         assert x["reached"] == (x["outcome"] == "reached") == (x["time_to_target_s"] is not None)
     # which stops the arm meets in time depends on the routine's phase at Start
     assert sum(x["reached"] for x in trial["targets"]) >= 2, trial["targets"]

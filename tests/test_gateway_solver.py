@@ -163,11 +163,14 @@ def test_hybrid_body_imu_at_the_shoulder() -> None:
         for name in (
             "left_shoulder_flexion_deg",
             "left_shoulder_abduction_deg",
-            "left_shoulder_rotation_deg",
             "lumbar_flexion_deg",
         ):
             assert angles[name] == pytest.approx(pose.get(name, 0.0), abs=1e-6), name
-        for name in ("left_elbow_flexion_deg", "left_wrist_flexion_deg"):
+        # the tag and the shoulder module ride the upper arm: dof by dof, the better
+        # determined source wins (issue 22), and for the rotation that is the encoder
+        assert "left_shoulder_rotation_deg" not in out["flags"]
+        for name in ("left_shoulder_rotation_deg", "left_elbow_flexion_deg",
+                     "left_wrist_flexion_deg"):  # fmt: skip
             assert angles[name] == pytest.approx(pose.get(name, 0.0), abs=SMARTSUIT_TOL), name
 
 
@@ -294,12 +297,15 @@ def test_bodies_solved_together_match_each_solved_alone() -> None:
         for b, ((_, samples), got) in enumerate(zip(work, batch, strict=True)):
             want = alone[b].solve(samples)
             assert got.flags == want.flags, (tick, b)
+            assert got.reasons == want.reasons, (tick, b)
+            np.testing.assert_array_equal(got.unc, want.unc)
             assert got.sources == want.sources
             assert got.t_ns == want.t_ns
             for name in ("angles", "rel", "positions", "quats"):
                 np.testing.assert_allclose(getattr(got, name), getattr(want, name), atol=1e-12,
                                            err_msg=f"tick {tick}, body {b}, {name}")  # fmt: skip
-    assert any(f == "clamped" for out in batch for f in out.flags.values())  # the test bites
+    # the test bites (a dof's flag is its first reason: clamped may sit behind another)
+    assert any("clamped" in r for out in batch for r in out.reasons.values())
 
 
 def test_one_body_solve_reads_like_before() -> None:

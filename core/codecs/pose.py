@@ -1,12 +1,14 @@
 """The gateway's output message: one body's joint angles and segment poses.
 
-JSON (UTF-8), version 1, one object per tick, for clients in any language:
+JSON (UTF-8), version 2, one object per tick, for clients in any language:
 
 ```json
-{"v": 1, "seq": 118, "t_ns": 1700000000000000000,
+{"v": 2, "seq": 118, "t_ns": 1700000000000000000,
  "angles_deg": {"left_elbow_flexion_deg": 42.1, ...},
  "rel_deg": {"left_elbow": 42.1, ...},
- "flags": {"left_elbow_pronation_deg": "unobserved"},
+ "flags": {"left_elbow_pronation_deg": "held"},
+ "reasons": {"left_elbow_pronation_deg": ["uncalibrated", "held"]},
+ "unc_deg": {"left_elbow_flexion_deg": 0.5, "left_elbow_pronation_deg": null, ...},
  "segments": {"left_forearm": {"p": [0.0, 0.22, 1.17], "q": [0.93, 0.0, -0.36, 0.0]}, ...},
  "joints_m": {"left_elbow": [0.0, 0.22, 1.17], ...},
  "sources": {"body/arm/left/elbow/raw": 1700000000000000000, ...},
@@ -17,10 +19,22 @@ World frame +X forward, +Y left, +Z up, metres; ``q`` is a unit quaternion
 w, x, y, z. ``t_ns`` is the newest source timestamp that went into the tick;
 ``sources`` gives each sample's own. A branch view (``body/arm/left/pose``)
 has the same shape, limited to that branch's joints and segments.
+
+Quality of each dof (new in version 2): ``reasons`` lists every reason a dof
+is not a plain measurement (``uncalibrated``, ``unobserved``, ``held``,
+``clamped``: :data:`REASONS`); ``flags`` keeps one of them per dof, the first in
+that order, as version 1 did. ``unc_deg`` is each measured dof's uncertainty
+(degrees, an error bound of about two standard deviations), ``null`` where no
+measurement stands behind the number. A dof is *measured* when it has no flag
+or only ``clamped`` (:func:`is_measured`); any other flag means the number is
+no measurement (held from the last one, a model's rest value, or uncalibrated)
+and clients show a mark instead. :func:`decode` reads versions 1 and 2; a
+version 1 message has no uncertainties, and its flags are its reasons.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from functools import lru_cache
@@ -30,7 +44,28 @@ import orjson
 
 from ..errors import DecodeError, Reason
 
-VERSION = 1
+VERSION = 2
+VERSIONS = (1, 2)  # what decode reads
+
+#: Why a dof's number is not a plain measurement, most telling first: the flag
+#: of a dof with several reasons is the first of these it has.
+UNCALIBRATED = "uncalibrated"  # its sensors' calibration (the T-pose) does not exist yet
+UNOBSERVED = "unobserved"  # nothing measures it: the model's rest value (or what it last was)
+HELD = "held"  # not determined now (a tilt along gravity): its last measured value, held
+CLAMPED = "clamped"  # measured, then clamped to the range of motion
+REASONS: Mapping[str, str] = {
+    UNCALIBRATED: "not calibrated yet (waiting for the T-pose)",
+    UNOBSERVED: "no sensor measures it now",
+    HELD: "gravity cannot see it in this posture: held at its last measured value",
+    CLAMPED: "measured beyond the range of motion, clamped to it",
+}
+
+
+def primary(reasons: Sequence[str] | set[str] | frozenset[str]) -> str:
+    """The flag of a dof with these reasons: the first of :data:`REASONS` it has
+    (an unknown reason comes after them, in name order)."""
+    order = list(REASONS)
+    return min(reasons, key=lambda r: (order.index(r) if r in REASONS else len(order), r))
 
 Vec3 = tuple[float, float, float]
 QuatWxyz = tuple[float, float, float, float]
@@ -47,6 +82,17 @@ class PoseFrame:
     flags: Mapping[str, str] = field(default_factory=dict)
     sources: Mapping[str, int] = field(default_factory=dict)
     stale: Sequence[str] = ()
+    #: every reason of each flagged dof (version 1: its flag)
+    reasons: Mapping[str, Sequence[str]] = field(default_factory=dict)
+    #: each dof's uncertainty (deg), NaN where no measurement stands behind it
+    unc_deg: Mapping[str, float] = field(default_factory=dict)
+
+    def why(self, dof: str) -> str:
+        """Why a dof's number is not a measurement, in words ("" if it is one)."""
+        if is_measured(self, dof):
+            return ""
+        reasons = self.reasons.get(dof) or [self.flags[dof]]
+        return "; ".join(REASONS.get(r, r) for r in reasons if r != CLAMPED)
 
     def subset(self, joints: Sequence[str], segments: Sequence[str], keys_prefix: str) -> PoseFrame:
         """The view of one branch: its joints, segments and sources."""
@@ -61,7 +107,16 @@ class PoseFrame:
             {n: f for n, f in self.flags.items() if _joint_of(n) in js},
             {k: t for k, t in self.sources.items() if k.startswith(keys_prefix)},
             [k for k in self.stale if k.startswith(keys_prefix)],
+            {n: r for n, r in self.reasons.items() if _joint_of(n) in js},
+            {n: u for n, u in self.unc_deg.items() if _joint_of(n) in js},
         )
+
+
+def is_measured(frame: PoseFrame, dof: str) -> bool:
+    """Whether a measurement stands behind ``frame``'s number for ``dof``: it has
+    no flag, or only ``clamped`` (the team's one test of it)."""
+    flag = frame.flags.get(dof)
+    return flag is None or flag == CLAMPED
 
 
 @lru_cache(maxsize=1024)
@@ -86,6 +141,8 @@ def encode(frame: PoseFrame) -> bytes:
             "joints_m": frame.joints_m,
             "sources": frame.sources,
             "stale": list(frame.stale),
+            "reasons": frame.reasons,
+            "unc_deg": frame.unc_deg,  # NaN goes out as null
         },
         option=orjson.OPT_SERIALIZE_NUMPY,
     )
@@ -104,6 +161,12 @@ def _floats(v: Any, n: int) -> Any:
     return tuple(float(c) for c in v)
 
 
+def _strings(v: Any) -> list[str]:
+    if not isinstance(v, list):
+        raise DecodeError(Reason.GARBAGE, f"expected a list of reasons, got {v!r:.60}")
+    return [str(r) for r in v]
+
+
 def _int(v: Any) -> int:
     if isinstance(v, bool) or not isinstance(v, int | float):
         raise DecodeError(Reason.GARBAGE, f"expected an integer, got {v!r:.60}")
@@ -119,8 +182,17 @@ def decode(payload: bytes | bytearray) -> PoseFrame:
         d: dict[str, Any] = orjson.loads(payload)
         if not isinstance(d, dict):
             raise DecodeError(Reason.GARBAGE, "not a JSON object")
-        if d.get("v") != VERSION:
-            raise DecodeError(Reason.BAD_VERSION, f"version {d.get('v')!r:.60}")
+        version = d.get("v")
+        if isinstance(version, bool) or version not in VERSIONS:
+            raise DecodeError(Reason.BAD_VERSION, f"version {version!r:.60}")
+        flags = {str(k): str(v) for k, v in d.get("flags", {}).items()}
+        if version == 1:
+            reasons: dict[str, tuple[str, ...]] = {k: (f,) for k, f in flags.items()}
+            unc: dict[str, float] = {}
+        else:
+            reasons = {str(k): tuple(_strings(v)) for k, v in d.get("reasons", {}).items()}
+            unc = {str(k): math.nan if v is None else float(v)
+                   for k, v in d.get("unc_deg", {}).items()}  # fmt: skip
         return PoseFrame(
             _int(d["seq"]),
             _int(d["t_ns"]),
@@ -128,9 +200,11 @@ def decode(payload: bytes | bytearray) -> PoseFrame:
             {str(k): float(v) for k, v in d["rel_deg"].items()},
             {str(s): (_floats(v["p"], 3), _floats(v["q"], 4)) for s, v in d["segments"].items()},
             {str(j): _floats(p, 3) for j, p in d["joints_m"].items()},
-            {str(k): str(v) for k, v in d.get("flags", {}).items()},
+            flags,
             {str(k): _int(v) for k, v in d.get("sources", {}).items()},
             [str(k) for k in d.get("stale", [])],
+            reasons,
+            unc,
         )
     except DecodeError:
         raise
