@@ -538,9 +538,18 @@ class BodyHeading:
         else:
             self.how = "declared" if profile.heading_reference is not None else "found"
 
+    @property
+    def searching(self) -> bool:
+        """Whether a heading may still be found (the search has not ended)."""
+        if not self.unknown:
+            return False
+        if self.pairs is not None:
+            return len(self.pairs.done) < len(self.pairs.pairs)
+        return self.finder is not None
+
     def update(self, t_s: float, samples: Mapping[Site, Any]) -> Profile | None:
         """Take one tick's samples (site -> RawSample); the profile with the heading
-        once it is found (then never again)."""
+        once it is found (then never again; in ``independent`` mode, once per knee)."""
         if not self.unknown or (self.finder is None and self.pairs is None):
             return None
         orientations = {site.raw_key: s.reading.wxyz for site, s in samples.items()
@@ -681,6 +690,8 @@ class JointDrift:
         for key, (_, parent_key, p_axis, c_axis, kind) in self.pairs.items():
             if key not in tags or parent_key not in tags:
                 continue
+            if not (profile.heading_known(key) and profile.heading_known(parent_key)):
+                continue  # a heading not known yet is found, not held
             p = self._segment(profile, parent_key, tags[parent_key])[:, p_axis]
             c = self._segment(profile, key, tags[key])[:, c_axis]
             error = _parallel_error(p, c) if kind == "parallel" else _perpendicular_error(p, c)
@@ -731,5 +742,6 @@ def turned_headings(profile: Profile, turns: Mapping[str, float]) -> Profile:
     their mounts kept (a drift of the reference, not of the tag on the segment)."""
     headings = dict(profile.imu_headings)
     for key, turn in turns.items():
-        headings[key] = _wrap(profile.heading_of(key) + turn)
+        if profile.heading_known(key):  # turning an unknown heading would make it "known"
+            headings[key] = _wrap(profile.heading_of(key) + turn)
     return replace(profile, imu_headings=MappingProxyType(headings))

@@ -351,3 +351,11 @@ def test_independent_headings_of_the_knee_tags_are_found_from_the_walk(seed: int
     for key, psi in heading.pairs.found.items():
         assert (psi - truth_headings[key] + 180) % 360 - 180 == pytest.approx(0.0, abs=1.0), key
     assert 0.0 < worst <= 2.0
+    # the joints' drift correction holds what is known and makes nothing else "known"
+    from bodynet.gateway.heading import JointDrift, turned_headings
+
+    profile, drift = heading.profile, JointDrift(heading.profile)
+    for t in np.arange(5.0, 8.0, 0.1):
+        profile = turned_headings(profile, drift.update(float(t), _samples(body, float(t))[0],
+                                                        profile))  # fmt: skip
+    assert set(profile.imu_headings) == set(heading.profile.imu_headings)
