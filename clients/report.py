@@ -446,6 +446,15 @@ def analyse(
     if not paths:
         raise ReportError("no recording given")
     recs = [load_recording(p) for p in paths]
+    for rec in recs:
+        if not rec.observed:  # every sample of every joint angle flagged
+            counts: dict[str, int] = {}
+            for by_flag in rec.left_out.values():
+                for flag, n in by_flag.items():
+                    counts[flag] = counts.get(flag, 0) + n
+            why = ", ".join(f"{n} {f}" for f, n in sorted(counts.items(), key=lambda kv: -kv[1]))
+            raise ReportError(f"{rec.source}: no joint angle was measured in it (every sample "
+                              f"has a flag: {why}); a report needs measured samples")  # fmt: skip
     first = recs[0]
     if reference is not None:
         ref: Series | None = load_reference(reference)

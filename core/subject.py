@@ -58,8 +58,10 @@ POSES = ("tpose", "npose")
 #: one reference (magnetometer-based sensors) and the subject faced anywhere: the
 #: heading is found from the motion after calibration, or declared. ``fixed``: the
 #: subject faced +X of the shared reference during calibration (emulators, captures
-#: turned by hand).
-HEADING_MODES = ("auto", "fixed")
+#: turned by hand). ``independent``: 6-axis tags, each its own reference: each
+#: thigh and shank tag's heading is found from the knee's motion, the others stay
+#: unknown (flagged).
+HEADING_MODES = ("auto", "fixed", "independent")
 #: Sensor axes a declared heading reference may name.
 AXES = ("+x", "-x", "+y", "-y", "+z", "-z")
 

@@ -39,7 +39,7 @@ from scipy.spatial.transform import Rotation
 
 from bodynet.core.keys import Site
 from bodynet.core.profile import mount
-from bodynet.core.skeleton import CALIBRATION_POSES, build_skeleton
+from bodynet.core.skeleton import CALIBRATION_POSES, build_skeleton, rom
 from bodynet.core.subject import Profile, QuatWxyz
 from bodynet.kinematics.model import BodyModel
 
@@ -409,6 +409,112 @@ class HingeHeading:
         return None
 
 
+class KneePairs:
+    """Finds the heading of each thigh and shank tag with a reference of its own
+    (6-axis tags, ``independent`` mode) from the knees' motion.
+
+    Each tag's rotation since calibration, in its own reference frame, is the
+    segment's turned by the tag's unknown heading ``psi`` (``Rz(psi) R Rz(-psi)``).
+    For the right pair of headings the thigh-to-shank rotation is a turn about
+    the knee's axis alone: the two headings are found by a search over both
+    (every 10 deg, then every degree) minimising the rotation off that axis, the
+    knee flexing positively (the pair turned by 180 deg fits as well, flexing
+    the wrong way). Needs both segments to move (a swing, a walk): taken once
+    ``PAIR_SAMPLES`` samples have the knee past 15 deg, each segment past 10.
+    The other tags' headings stay unknown (their joints have three dofs, or
+    reach no knee), and their dofs stay flagged."""
+
+    PAIR_SAMPLES = 40
+
+    def __init__(self, profile: Profile) -> None:
+        by_segment: dict[str, str] = {}
+        for key, seg in _segments_of(profile.imu_mounts).items():
+            by_segment.setdefault(seg, key)
+        segments = pose_segments(profile)
+        self.pairs: dict[str, tuple[str, str, np.ndarray, np.ndarray]] = {}
+        for side in ("left", "right"):
+            p, c = by_segment.get(f"{side}_thigh"), by_segment.get(f"{side}_shank")
+            if p is None or c is None:
+                continue
+            # the tags' orientations at calibration (mounts computed for a heading of 0)
+            p0 = segments[f"{side}_thigh"] @ _quat_matrix(profile.imu_mounts[p])
+            c0 = segments[f"{side}_shank"] @ _quat_matrix(profile.imu_mounts[c])
+            self.pairs[side] = (p, c, p0, c0)
+        self.samples: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {s: [] for s in self.pairs}
+        self.found: dict[str, float] = {}
+        self.done: set[str] = set()
+
+    def update(self, orientations: Mapping[str, QuatWxyz]) -> dict[str, float]:
+        """Take one tick's tag orientations; the headings found at this tick."""
+        out: dict[str, float] = {}
+        for side, (p, c, p0, c0) in self.pairs.items():
+            if side in self.done or p not in orientations or c not in orientations:
+                continue
+            a_p = _quat_matrix(orientations[p]) @ p0.T  # each tag's turn since calibration
+            a_c = _quat_matrix(orientations[c]) @ c0.T
+            moved_p = np.linalg.norm(_rotvec(a_p))
+            knee = np.linalg.norm(_rotvec(a_p.T @ a_c))
+            if moved_p < math.radians(10) or knee < math.radians(15):
+                continue
+            self.samples[side].append((a_p, a_c))
+            if len(self.samples[side]) >= self.PAIR_SAMPLES:
+                found = _knee_pair_headings(self.samples[side])
+                self.done.add(side)
+                if found is not None:
+                    out[p], out[c] = found
+        self.found.update(out)
+        return out
+
+
+def _knee_pair_headings(samples: Sequence[tuple[np.ndarray, np.ndarray]]
+                        ) -> tuple[float, float] | None:  # fmt: skip
+    """The thigh's and shank's tag headings (deg) that make every sample's knee a
+    positive turn about the thighs' lateral axis; None when no pair fits."""
+    a_p = np.array([a for a, _ in samples])
+    a_c = np.array([b for _, b in samples])
+
+    lo, hi = rom("left_knee_flexion_deg")
+
+    def cost(psi_p: np.ndarray, psi_c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Per candidate: the rotation off the knee's axis, and how far its knee
+        angles fall outside the knee's range of motion (both summed over samples)."""
+        rp, rc = _rz_batch(psi_p), _rz_batch(psi_c)  # (k, 3, 3)
+        # segments' turns in the body's frame: Rz(-psi) A Rz(psi)
+        b_p = np.einsum("kji,njl,klm->knim", rp, a_p, rp)
+        b_c = np.einsum("kji,njl,klm->knim", rc, a_c, rc)
+        rel = np.einsum("knji,knjl->knil", b_p, b_c)
+        vee = np.stack([rel[..., 2, 1] - rel[..., 1, 2], rel[..., 0, 2] - rel[..., 2, 0],
+                        rel[..., 1, 0] - rel[..., 0, 1]], axis=-1)  # fmt: skip
+        off = vee[..., 0] ** 2 + vee[..., 2] ** 2  # off the lateral (y) axis
+        knee = np.degrees(np.arctan2(vee[..., 1] / 2, (np.trace(rel, axis1=-2, axis2=-1) - 1) / 2))
+        outside = np.maximum(0.0, np.maximum(lo - knee, knee - hi)).sum(axis=1)
+        return off.sum(axis=1), outside
+
+    # in a plane motion each tag's heading fits turned by 180 deg too (its turns'
+    # axis is a line): the knee's range of motion picks the pair, then the hinge
+    grid = np.radians(np.arange(0.0, 360.0, 10.0))
+    gp, gc = (g.ravel() for g in np.meshgrid(grid, grid, indexing="ij"))
+    off, outside = cost(gp, gc)
+    best = int(np.lexsort((off, np.round(outside, 0)))[0])
+    fine = np.radians(np.arange(-10.0, 10.5, 0.5))
+    fp, fc = (g.ravel() for g in np.meshgrid(gp[best] + fine, gc[best] + fine, indexing="ij"))
+    off, outside = cost(fp, fc)
+    k = int(np.lexsort((off, np.round(outside, 0)))[0])
+    off_deg = math.degrees(math.sqrt(off[k] / len(samples)) / 2)  # mean turn off the axis
+    if off_deg > 5.0 or outside[k] > 5.0 * len(samples):  # not a knee's motion
+        return None
+    return _wrap(math.degrees(fp[k])), _wrap(math.degrees(fc[k]))
+
+
+def _rz_batch(psi: np.ndarray) -> np.ndarray:
+    """Rotations (k, 3, 3) about the vertical by ``psi`` (rad, (k,))."""
+    c, s = np.cos(psi), np.sin(psi)
+    out = np.zeros((len(psi), 3, 3))
+    out[:, 0, 0], out[:, 0, 1], out[:, 1, 0], out[:, 1, 1] = c, -s, s, c
+    out[:, 2, 2] = 1.0
+    return out
+
+
 class BodyHeading:
     """A body's heading between calibration and the solver.
 
@@ -420,7 +526,9 @@ class BodyHeading:
     def __init__(self, profile: Profile) -> None:
         self.profile = profile
         self.unknown = sorted(k for k in profile.imu_mounts if not profile.heading_known(k))
-        self.finder = HingeHeading(profile) if self.unknown else None
+        independent = profile.heading == "independent"
+        self.finder = HingeHeading(profile) if self.unknown and not independent else None
+        self.pairs = KneePairs(profile) if self.unknown and independent else None
         if profile.heading == "fixed":
             self.how = "fixed"
         elif not profile.imu_mounts:
@@ -430,13 +538,30 @@ class BodyHeading:
         else:
             self.how = "declared" if profile.heading_reference is not None else "found"
 
+    @property
+    def searching(self) -> bool:
+        """Whether a heading may still be found (the search has not ended)."""
+        if not self.unknown:
+            return False
+        if self.pairs is not None:
+            return len(self.pairs.done) < len(self.pairs.pairs)
+        return self.finder is not None
+
     def update(self, t_s: float, samples: Mapping[Site, Any]) -> Profile | None:
         """Take one tick's samples (site -> RawSample); the profile with the heading
-        once it is found (then never again)."""
-        if self.finder is None or not self.unknown:
+        once it is found (then never again; in ``independent`` mode, once per knee)."""
+        if not self.unknown or (self.finder is None and self.pairs is None):
             return None
         orientations = {site.raw_key: s.reading.wxyz for site, s in samples.items()
                         if hasattr(s.reading, "wxyz")}  # fmt: skip
+        if self.pairs is not None:  # each tag its own: the knees' tags, pair by pair
+            found = self.pairs.update(orientations)
+            if not found:
+                return None
+            self.profile = with_headings(self.profile, found)
+            self.unknown = [k for k in self.unknown if k not in found]
+            self.how = "partly found" if self.unknown else "found"
+            return self.profile
         psi = self.finder.update(t_s, orientations)
         if psi is None:
             return None
@@ -565,6 +690,8 @@ class JointDrift:
         for key, (_, parent_key, p_axis, c_axis, kind) in self.pairs.items():
             if key not in tags or parent_key not in tags:
                 continue
+            if not (profile.heading_known(key) and profile.heading_known(parent_key)):
+                continue  # a heading not known yet is found, not held
             p = self._segment(profile, parent_key, tags[parent_key])[:, p_axis]
             c = self._segment(profile, key, tags[key])[:, c_axis]
             error = _parallel_error(p, c) if kind == "parallel" else _perpendicular_error(p, c)
@@ -615,5 +742,6 @@ def turned_headings(profile: Profile, turns: Mapping[str, float]) -> Profile:
     their mounts kept (a drift of the reference, not of the tag on the segment)."""
     headings = dict(profile.imu_headings)
     for key, turn in turns.items():
-        headings[key] = _wrap(profile.heading_of(key) + turn)
+        if profile.heading_known(key):  # turning an unknown heading would make it "known"
+            headings[key] = _wrap(profile.heading_of(key) + turn)
     return replace(profile, imu_headings=MappingProxyType(headings))

@@ -605,7 +605,7 @@ class Gateway:
         and the 2-dof joints' constraints keep the child tags' headings from drifting
         (JointDrift)."""
         for body, latest, _, _ in work:
-            if not body.heading.unknown:
+            if not body.heading.searching:
                 if body.drift is not None and body.drift.pairs:  # 6-axis drift (JointDrift)
                     turns = body.drift.update(now, latest, body.solver.profile)
                     if turns:

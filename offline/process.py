@@ -180,7 +180,8 @@ def process(path: Path, fmt: str, out: Path, profile: Profile | None = None,
         for tick in _ticks(source.read(path, fmt, CaptureStats(), rate_hz), 1.0 / tick_hz):
             for s in tick:
                 latest[s.site] = RawSample(s.reading, 0, 0)
-            if heading.update(tick[-1].t_s, latest) is not None:
+            heading.update(tick[-1].t_s, latest)
+            if not heading.searching:
                 break
     solver = _solver(heading.profile, topology, as_given)
     stats = CaptureStats()

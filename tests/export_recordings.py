@@ -12,7 +12,6 @@ import pytest
 from bodynet.cli.main import main
 from bodynet.clients.mcap_store import McapSink, read_poses
 from bodynet.core import keys
-from bodynet.core.codecs import pose
 
 WINDOW = range(100, 121)  # frames (25 Hz) in the moving part of ``body_mcap``
 FLAGS = {
@@ -20,11 +19,6 @@ FLAGS = {
     "left_knee_flexion_deg": "uncalibrated",
     "right_elbow_flexion_deg": "clamped",  # measured: a value at a limit
 }
-
-
-def measured(frame: pose.PoseFrame, angle: str) -> bool:
-    """The team's convention: no flag, or only ``clamped``."""
-    return frame.flags.get(angle, "clamped") == "clamped"
 
 
 def write_flagged(source: Path, out: Path) -> None:

@@ -11,11 +11,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from export_recordings import WINDOW, export, measured
+from export_recordings import WINDOW, export
 from scipy.spatial.transform import Rotation
 
 from bodynet.clients.mcap_store import read_poses
 from bodynet.core.codecs import pose
+from bodynet.core.codecs.pose import is_measured as measured
 from bodynet.core.skeleton import build_skeleton
 
 # bodynet (+X forward, +Y left, +Z up) -> the file's axes with --up y

@@ -12,10 +12,11 @@ from pathlib import Path
 import ezc3d
 import numpy as np
 import pytest
-from export_recordings import WINDOW, export, measured
+from export_recordings import WINDOW, export
 
 from bodynet.clients.mcap_store import read_poses
 from bodynet.core.codecs import pose
+from bodynet.core.codecs.pose import is_measured as measured
 
 
 @pytest.fixture(scope="module")

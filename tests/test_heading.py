@@ -310,3 +310,52 @@ def test_yaw_reset_turns_the_body_to_face_forward() -> None:
     unknown = calibrate_window(_window(body, 0.1, 0.9), Profile(), "tpose").apply(Profile())
     with pytest.raises(ValueError, match="not known yet"):
         yaw_reset(unknown, before)
+
+
+@pytest.mark.parametrize("seed", [1, 3])
+def test_independent_headings_of_the_knee_tags_are_found_from_the_walk(seed: int) -> None:
+    """6-axis tags each with a random heading of its own (independent mode): the
+    walk after the T-pose gives each thigh and shank tag's heading (within 1 deg),
+    and the knees are then within 2 deg of the truth; every dof that a tag of
+    unknown heading drives (hips, ankles, trunk, arms) stays flagged uncalibrated."""
+    from bodynet.nodes.motion import ROUTINES
+
+    walk = ROUTINES["walk"].angles
+    still = dict(CALIBRATION_POSES["tpose"])
+    routine = Routine("pose-then-walk", "", lambda t: still if t < 1.0 else walk(t - 1.0))
+    body = BodyEmulator(routine, imu_tags(), realism=Realism(headings=Headings.INDEPENDENT),
+                        seed=seed)  # fmt: skip
+    independent = Profile(heading="independent")
+    heading = BodyHeading(calibrate_window(_window(body, 0.2, 0.95), independent,
+                                           "tpose").apply(independent))  # fmt: skip
+    solver = BodySolver(heading.profile)
+    found_t, worst = None, 0.0
+    for t in np.arange(1.0, 5.0, 1 / RATE_HZ):
+        samples, truth = _samples(body, float(t))
+        found = heading.update(float(t), samples)
+        if found is not None:
+            solver, found_t = BodySolver(found), found_t or float(t)
+        out = solver.solve(samples)
+        measured = _errors(out.angles_deg, out.flags, truth)
+        if found_t is None:
+            assert not measured
+        elif len(heading.unknown) == 15 - 4:
+            assert set(measured) == {"left_knee_flexion_deg", "right_knee_flexion_deg"}
+            worst = max(worst, *measured.values())
+    assert heading.state()["state"] == "partly found"
+    assert found_t is not None
+    assert found_t - 1.0 <= 3.0
+    truth_headings = {s.site.raw_key: body.headings_deg[s.node] for s in body.sensors}
+    assert heading.pairs is not None
+    assert len(heading.pairs.found) == 4
+    for key, psi in heading.pairs.found.items():
+        assert (psi - truth_headings[key] + 180) % 360 - 180 == pytest.approx(0.0, abs=1.0), key
+    assert 0.0 < worst <= 2.0
+    # the joints' drift correction holds what is known and makes nothing else "known"
+    from bodynet.gateway.heading import JointDrift, turned_headings
+
+    profile, drift = heading.profile, JointDrift(heading.profile)
+    for t in np.arange(5.0, 8.0, 0.1):
+        profile = turned_headings(profile, drift.update(float(t), _samples(body, float(t))[0],
+                                                        profile))  # fmt: skip
+    assert set(profile.imu_headings) == set(heading.profile.imu_headings)

@@ -5,9 +5,11 @@ and what gravity cannot see is held, never flipped (000 seed, sections 3.3 and
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -188,3 +190,35 @@ def test_pose_versions_decode_and_is_measured(version: int) -> None:
     if version == 2:
         assert math.isnan(back.unc_deg["left_elbow_flexion_deg"])
     assert np.isnan(out.unc).all()
+
+
+def test_report_leaves_unmeasured_samples_out_and_says_so(tmp_path: Path) -> None:
+    """``bodynet report``'s figures take measured samples only: a held dof's
+    samples are out of its range of motion and counted with their flag; a
+    recording with no measured sample at all is refused with the count."""
+    from bodynet.clients import report
+    from bodynet.clients.mcap_store import McapSink
+    from bodynet.core import keys
+
+    out = BodySolver(Profile()).solve({})
+    path = tmp_path / "flagged.mcap"
+    sink = McapSink(path)
+    for k in range(50):
+        frame = pose_frame(out, k, [])
+        angles = dict(frame.angles_deg, left_elbow_flexion_deg=float(k))
+        flags = {} if k < 40 else {"left_elbow_flexion_deg": pose.HELD}
+        frame = dataclasses.replace(frame, angles_deg=angles, flags=flags)
+        sink.write_pose(keys.pose_key(), frame, (k + 1) * 10_000_000)
+    sink.close()
+    rec = report.load_recording(path)
+    assert rec.left_out["left_elbow_flexion_deg"] == {pose.HELD: 10}
+    rom = report.rom_table(rec).set_index("channel")
+    assert rom.loc["left_elbow_flexion_deg", "max (deg)"] == 39.0  # the held 40-49 left out
+    assert "left out" in report.left_out_table(rec).columns
+    everything = tmp_path / "nothing.mcap"
+    sink = McapSink(everything)
+    for k in range(5):
+        sink.write_pose(keys.pose_key(), pose_frame(out, k, []), (k + 1) * 10_000_000)
+    sink.close()
+    with pytest.raises(report.ReportError, match="no joint angle was measured"):
+        report.analyse([everything], with_trials=False)

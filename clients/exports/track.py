@@ -24,7 +24,7 @@ from tqdm import tqdm
 
 from bodynet.clients.mcap_store import StoreError, count_messages, read_poses
 from bodynet.core import keys
-from bodynet.core.codecs.pose import PoseFrame
+from bodynet.core.codecs.pose import is_measured
 from bodynet.core.skeleton import build_skeleton
 from bodynet.session.outputs import atomic_path
 
@@ -69,12 +69,6 @@ class PoseTrack:
         if len(self) < 2:
             return DEFAULT_RATE_HZ
         return round(1e9 / float(np.median(np.diff(self.t_ns))), 2)
-
-
-def is_measured(frame: PoseFrame, angle: str) -> bool:
-    """A measurement is behind ``angle``: no flag, or only ``clamped`` (the
-    team's convention; ``core.codecs.pose.is_measured`` once it lands)."""
-    return frame.flags.get(angle, "clamped") == "clamped"
 
 
 def load_track(recording: Path, progress: bool = True, every_tick: bool = False) -> PoseTrack:
