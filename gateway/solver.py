@@ -472,8 +472,15 @@ class BodySolver:
             if joint.parent in tainted or joint.child in unknown:
                 if joint.child not in measured:
                     tainted.add(joint.child)
+                module = tick.modules.get(joint.child)
+                # an encoder measures its dof whatever the heading of the segments around it
+                absolute = (
+                    f"{module[0].branch.side}_{module[0].name}_{OLE_DOF[module[0].name]}_deg"
+                    if module is not None and joint.child not in unknown
+                    else None
+                )
                 for name in self.axes[joint.name].names:
-                    if UNOBSERVED not in tick.reasons.get(name, ()):
+                    if name != absolute and UNOBSERVED not in tick.reasons.get(name, ()):
                         tick.reasons.setdefault(name, set()).add(UNCALIBRATED)
 
     def set_profile(self, profile: Profile) -> None:

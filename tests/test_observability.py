@@ -222,3 +222,25 @@ def test_report_leaves_unmeasured_samples_out_and_says_so(tmp_path: Path) -> Non
     sink.close()
     with pytest.raises(report.ReportError, match="no joint angle was measured"):
         report.analyse([everything], with_trials=False)
+
+
+def test_an_unknown_heading_leaves_the_encoders_measured() -> None:
+    """Calibrated tags whose heading is not found yet flag the tilt dofs of the
+    SmartSuit arm below the chest (its frame turns with the heading), never the
+    dofs its encoders measure: an encoder's angle needs no heading."""
+    from bodynet.core.skeleton import TPOSE
+    from bodynet.gateway.solver import tpose_mounts
+
+    arm = smartsuit_sensors([LEFT_ARM])
+    tags = [t for t in imu_tags() if t.site.name in ("chest", "sacrum")]
+    body = BodyEmulator(still(dict(TPOSE)), [*arm, *tags], realism=Realism(), seed=1)
+    readings, _ = body.sample(0.0)
+    samples = {s.site: RawSample(r, 0, 0) for s, r in zip(body.sensors, readings, strict=True)}
+    window = {t.site: [samples[t.site].reading.wxyz] for t in tags}  # type: ignore[union-attr]
+    profile = dataclasses.replace(Profile(), heading="auto").with_mounts(tpose_mounts(window))
+    out = BodySolver(profile).solve(samples)
+    assert out.flags["lumbar_flexion_deg"] == pose.UNCALIBRATED  # heading not found yet
+    assert out.flags["left_shoulder_flexion_deg"] == pose.UNCALIBRATED  # a tilt below the chest
+    for encoder in ("left_shoulder_rotation_deg", "left_elbow_flexion_deg",
+                    "left_wrist_flexion_deg"):  # fmt: skip
+        assert pose.UNCALIBRATED not in out.reasons.get(encoder, ()), encoder
