@@ -572,6 +572,7 @@ def still_arm_trial(page: Any, publisher: PosePublisher, tmp_path: Path) -> None
                               "document.getElementById('flash').dataset.i === '4'")
     # the wrist's measurement is held: the game waits for one, then moves on
     wait_text(page, "#cue", "t === 'Waiting for a measurement of wrist flexion'")
+    assert text(page, "#unmeasured") == "not measured now: wrist flexion"
     wait_text(page, "#flash", "t === 'Not measured (wrist flexion)'")
     assert text(page, "#file").startswith("not saved yet")
     page.click("#stop")

@@ -83,6 +83,9 @@ function onState(msg) {
   $("done").textContent = `${msg.done} / ${msg.of}`;
   $("arm-state").textContent = signalText(msg);
   $("arm-state").className = live ? "ok" : "bad";
+  const unmeasured = msg.arm ? msg.arm.unmeasured : [];
+  $("unmeasured").textContent = unmeasured.length
+    ? `not measured now: ${unmeasured.join(", ").replaceAll("_", " ")}` : "";
   const cue = $("cue"), countdown = $("countdown");
   cue.className = "";
   countdown.className = "";
