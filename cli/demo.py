@@ -15,6 +15,7 @@ import json
 import os
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 from bodynet.clients.recorder import Recorder
@@ -24,7 +25,7 @@ from bodynet.core.codecs import pose
 from bodynet.core.errors import DecodeError
 from bodynet.core.skeleton import TPOSE
 from bodynet.gateway.service import Gateway
-from bodynet.nodes.motion import ROUTINES, Routine
+from bodynet.nodes.motion import ROUTINES, Routine, keyframes
 from bodynet.nodes.services import EmulationOptions, body_plan, run_node
 from bodynet.session import open_session, session_config
 
@@ -44,7 +45,8 @@ def _say_where(endpoint: str, record: Path, routine: str, address: str, rrd: Pat
         print(f"  live view: the web viewer at {address}")
     if rrd is not None:
         print(f"  live view saved to {rrd} (open it with: .venv/bin/rerun {rrd})")
-    print(f"  emulated body: T-pose for {TPOSE_S:g} s (the gateway calibrates), then {routine!r}")
+    print(f"  emulated body: T-pose for {TPOSE_S:g} s (the gateway calibrates), a knee bend "
+          f"(it finds where the subject faces), then {routine!r}")  # fmt: skip
     print("  table: 'uncal' not calibrated yet, 'held' gravity cannot see it now (last value held),"
           " '--' not measured")
     print(
@@ -75,6 +77,29 @@ def _status_line(elapsed: float, frame: pose.PoseFrame, recorded: int) -> str:
     )
 
 
+#: After the T-pose, a knee bend and back, arms still out: a hinge's motion is what
+#: tells the gateway where the subject faces (docs/calibration.md), as a clinician
+#: would ask of a patient after the calibration pose.
+KNEE_BEND = keyframes([(0.0, {}), (1.0, {"left_knee_flexion_deg": 45.0,
+                                        "right_knee_flexion_deg": 45.0,
+                                        "left_hip_flexion_deg": 20.0,
+                                        "right_hip_flexion_deg": 20.0}), (2.0, {})], loop=False)
+KNEE_BEND_S = 2.0
+
+
+def demo_motion(moves: Callable[[float], dict[str, float]]) -> Callable[[float], dict[str, float]]:
+    """The demo's script: T-pose for ``TPOSE_S``, the knee bend, then ``moves``."""
+
+    def angles(t: float) -> dict[str, float]:
+        if t < TPOSE_S:
+            return dict(TPOSE)
+        if t < TPOSE_S + KNEE_BEND_S:
+            return {**TPOSE, **KNEE_BEND(t - TPOSE_S)}
+        return moves(t - TPOSE_S - KNEE_BEND_S)
+
+    return angles
+
+
 def run_demo(endpoint: str, routine: str, seconds: float | None, record: Path,
              stop: threading.Event, viewer_mode: str = "auto", rrd: Path | None = None,
              web_port: int | None = None) -> int:  # fmt: skip
@@ -85,8 +110,7 @@ def run_demo(endpoint: str, routine: str, seconds: float | None, record: Path,
         viewer_mode = "native" if os.environ.get("DISPLAY") else "web"
     if viewer_mode != "native" and rrd is None:
         rrd = record.with_suffix(".rrd")
-    moves = ROUTINES[routine].angles
-    scripted = Routine("demo", "", lambda t: dict(TPOSE) if t < TPOSE_S else moves(t - TPOSE_S))
+    scripted = Routine("demo", "", demo_motion(ROUTINES[routine].angles))
     gw_session = open_session(session_config("router", listen=[endpoint]))
     gateway = Gateway(gw_session)
     gw_thread = threading.Thread(target=gateway.run, args=(stop,), daemon=True)

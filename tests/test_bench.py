@@ -50,7 +50,7 @@ def test_demo_runs_the_live_body_network(tmp_path: Path) -> None:
             str(bodynet),
             "demo",
             "--seconds",
-            "5",
+            "9",
             "-l",
             endpoint,
             "--record",
@@ -70,6 +70,9 @@ def test_demo_runs_the_live_body_network(tmp_path: Path) -> None:
     last = result.stdout.split("-- t")[-1]
     assert "sources 15" in last
     assert "stale 0" in last
+    # the knee bend after the T-pose told the gateway where the subject faces: the
+    # table shows numbers, no longer 'uncal'
+    assert "uncal" not in last, last
     poses = list(read_poses(record))  # the recorder's file is complete and readable
     assert len(poses) > 10
     assert len(poses[-1][1].sources) == 15
