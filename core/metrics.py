@@ -43,7 +43,7 @@ import numpy as np
 import numpy.typing as npt
 
 from . import keys
-from .codecs.pose import PoseFrame
+from .codecs.pose import PoseFrame, is_measured
 from .profile import mount
 from .skeleton import build_skeleton
 
@@ -59,12 +59,6 @@ MIN_MOVEMENT_S = 0.1
 MAX_DOFS = 64
 
 FloatArray = npt.NDArray[np.float64]
-
-
-def is_measured(frame: PoseFrame, angle: str) -> bool:
-    """Is there a measurement behind ``frame``'s value of ``angle`` (a
-    ``<joint>_<dof>_deg`` name)? The team's convention: no flag, or ``clamped``."""
-    return frame.flags.get(angle, "clamped") == "clamped"
 
 
 @lru_cache(maxsize=64)

@@ -502,12 +502,12 @@ def test_calibrate_and_report_keep_good_rows_and_refuse_bad_files(
         out = tmp_path / "r.md"
         code, err = cli(capsys, "report", corpus["recording"], "--reference",
                         corpus["ref-header"], "-o", out, "--no-trials",
-                        "--still-s", "0.2")  # fmt: skip
+                        "--still", "0.1:0.6")  # fmt: skip
         assert code == 2
         assert "no usable row" in err
         code, err = cli(capsys, "report", corpus["recording"], "--reference",
                         corpus["ref-ragged"], "-o", out, "--no-trials",
-                        "--still-s", "0.2")  # fmt: skip
+                        "--still", "0.1:0.6")  # fmt: skip
         assert code == 0, err
         assert "line 41 left out: 3 fields, the header has 2" in err
         assert "line 61 left out: t_s 'abc' is not a finite number" in err
