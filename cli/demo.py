@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import math
 import os
 import threading
 import time
@@ -85,17 +86,24 @@ KNEE_BEND = keyframes([(0.0, {}), (1.0, {"left_knee_flexion_deg": 45.0,
                                         "left_hip_flexion_deg": 20.0,
                                         "right_hip_flexion_deg": 20.0}), (2.0, {})], loop=False)
 KNEE_BEND_S = 2.0
+EASE_S = 1.0  # from the T-pose into the routine: a limb moves, it does not jump
 
 
 def demo_motion(moves: Callable[[float], dict[str, float]]) -> Callable[[float], dict[str, float]]:
-    """The demo's script: T-pose for ``TPOSE_S``, the knee bend, then ``moves``."""
+    """The demo's script: T-pose for ``TPOSE_S``, the knee bend, then ``moves``,
+    eased into from the T-pose over ``EASE_S``."""
 
     def angles(t: float) -> dict[str, float]:
         if t < TPOSE_S:
             return dict(TPOSE)
         if t < TPOSE_S + KNEE_BEND_S:
             return {**TPOSE, **KNEE_BEND(t - TPOSE_S)}
-        return moves(t - TPOSE_S - KNEE_BEND_S)
+        t -= TPOSE_S + KNEE_BEND_S
+        now = moves(t)
+        if t >= EASE_S:
+            return now
+        w = 0.5 - 0.5 * math.cos(math.pi * t / EASE_S)
+        return {n: (1 - w) * TPOSE.get(n, 0.0) + w * now.get(n, 0.0) for n in {*TPOSE, *now}}
 
     return angles
 

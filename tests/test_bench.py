@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import json
 import subprocess
 import sys
@@ -140,3 +141,17 @@ def test_realistic_feed_is_not_phase_locked() -> None:
     gaps = np.diff([o for o, _ in serial])
     assert np.allclose(gaps, min(LINE_S, period / 15))  # lines one after another
     assert all(0 <= o < 2 * period for o, _ in real)
+
+
+def test_the_demo_script_moves_as_a_body_can() -> None:
+    """The demo's emulated subject never jumps: T-pose, knee bend and the routine
+    join smoothly (a jump in the script is a jump in the poses, unflagged)."""
+    from bodynet.cli.demo import demo_motion
+    from bodynet.nodes.motion import ROUTINES
+
+    script = demo_motion(ROUTINES["reach"].angles)
+    frames = [script(k * 0.01) for k in range(4000)]
+    steps = [max(abs(b.get(n, 0.0) - a.get(n, 0.0)) for n in {*a, *b})
+             for a, b in itertools.pairwise(frames)]  # fmt: skip
+    assert max(steps) < 5.0  # degrees in 10 ms
+    assert max(frames[450].values()) > 20  # and it does move: the knee bend
