@@ -67,8 +67,12 @@ def _errors(angles: Mapping[str, float], flags: Mapping[str, str],
             truth: Mapping[str, float]) -> dict[str, float]:  # fmt: skip
     """Measured dofs' errors, but a shoulder's flexion and rotation near its gimbal
     lock (abduction past 50 deg: one axis, split anyhow by noise)."""
-    locked = {f"{side}_shoulder_{dof}_deg" for side in ("left", "right") for dof in
-              ("flexion", "rotation") if truth.get(f"{side}_shoulder_abduction_deg", 0) > 50}
+    locked = {
+        f"{side}_shoulder_{dof}_deg"
+        for side in ("left", "right")
+        for dof in ("flexion", "rotation")
+        if truth.get(f"{side}_shoulder_abduction_deg", 0) > 50
+    }
     return {n: abs(v - truth.get(n, 0.0)) for n, v in angles.items()
             if n not in locked and flags.get(n, "clamped") == "clamped"}  # fmt: skip
 
@@ -112,8 +116,13 @@ def headings(step_deg: int = 30, rate_hz: float = 50.0, seed: int = 4) -> list[d
     return rows
 
 
-def drift(minutes: float = 10.0, drift_deg_per_min: float = 5.0, rate_hz: float = 10.0,
-          seed: int = 5, correct: bool = True) -> dict[str, Any]:
+def drift(
+    minutes: float = 10.0,
+    drift_deg_per_min: float = 5.0,
+    rate_hz: float = 10.0,
+    seed: int = 5,
+    correct: bool = True,
+) -> dict[str, Any]:
     """6-axis tags drifting apart while the subject walks: the joints' error
     against the truth by minute, and each group's fitted slope (deg/min)."""
     walk = ROUTINES["walk"].angles
@@ -153,28 +162,37 @@ def drift(minutes: float = 10.0, drift_deg_per_min: float = 5.0, rate_hz: float 
 def run(out_dir: Path, minutes: float = 10.0) -> dict[str, Any]:
     """Both parts; ``drift.json`` and ``drift.md`` in ``out_dir``."""
     out_dir.mkdir(parents=True, exist_ok=True)
-    result = {"headings": headings(),
-              "drift": [drift(minutes, correct=False), drift(minutes, correct=True)]}
+    result = {
+        "headings": headings(),
+        "drift": [drift(minutes, correct=False), drift(minutes, correct=True)],
+    }
     (out_dir / "drift.json").write_text(json.dumps(result, indent=2))
     lines = ["Subject facing every 30 deg, tags sharing one frame (T-pose, then a knee bends):",
              "", "| facing | heading error | found after first hinge movement | "
              "joint error max / RMS after |", "|---|---|---|---|"]  # fmt: skip
     for r in result["headings"]:
-        lines.append(f"| {r['facing_deg']} deg | {r['heading_error_deg']} deg | "
-                     f"{r['found_after_s']} s | {r['max_error_deg']} / {r['rms_error_deg']} deg |")
+        lines.append(
+            f"| {r['facing_deg']} deg | {r['heading_error_deg']} deg | "
+            f"{r['found_after_s']} s | {r['max_error_deg']} / {r['rms_error_deg']} deg |"
+        )
     rate = result["drift"][0]["drift_deg_per_min"]
-    lines += ["", f"6-axis tags drifting apart (each within +/- {rate} deg/min), walking "
-              f"{minutes:g} min: worst error per group, first and last "
-              "minute, and the fitted slope of the error:", "",
-              "| group | without correction | with the joints' constraints "
-              "(knee, ankle, elbow, wrist) |", "|---|---|---|"]
+    lines += [
+        "",
+        f"6-axis tags drifting apart (each within +/- {rate} deg/min), walking "
+        f"{minutes:g} min: worst error per group, first and last "
+        "minute, and the fitted slope of the error:",
+        "",
+        "| group | without correction | with the joints' constraints (knee, ankle, elbow, wrist) |",
+        "|---|---|---|",
+    ]
     plain, fixed = result["drift"]
     for group in GROUPS:
         a, b = plain["groups"][group], fixed["groups"][group]
         lines.append(
             f"| {group} | {a['max_by_minute_deg'][0]} -> {a['max_by_minute_deg'][-1]} deg, "
             f"{a['slope_deg_per_min']} deg/min | {b['max_by_minute_deg'][0]} -> "
-            f"{b['max_by_minute_deg'][-1]} deg, {b['slope_deg_per_min']} deg/min |")
+            f"{b['max_by_minute_deg'][-1]} deg, {b['slope_deg_per_min']} deg/min |"
+        )
     (out_dir / "drift.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
     return result

@@ -92,8 +92,9 @@ def run(trackers: int = 30, rate_hz: float = 200.0, seconds: float = 10.0) -> di
         procs.append(bridge)
         session = open_session(session_config("client", connect=[endpoint]))
         health: list[dict[str, object]] = []
-        session.declare_subscriber("body/@health/bench",
-                                   lambda s: health.append(json.loads(s.payload.to_bytes())))
+        session.declare_subscriber(
+            "body/@health/bench", lambda s: health.append(json.loads(s.payload.to_bytes()))
+        )
         socks = [_connect(mac, udp) for mac in macs]
         cpu = psutil.Process(bridge.pid)
         cpu.cpu_percent()

@@ -162,8 +162,12 @@ def add_export_args(p: argparse.ArgumentParser) -> None:
     for entry in WRITERS.values():
         e = esub.add_parser(entry.name, help=entry.help)
         e.add_argument("recording", type=argtypes.input_file, help="an MCAP file with poses")
-        e.add_argument("-o", "--output", type=argtypes.output_file,
-                       help=f"the file to write (default: the recording's name, {entry.suffix})")
+        e.add_argument(
+            "-o",
+            "--output",
+            type=argtypes.output_file,
+            help=f"the file to write (default: the recording's name, {entry.suffix})",
+        )
         if entry.regular:
             e.add_argument("--rate-hz", type=EXPORT_RATE_HZ, default=None,
                            help="frame rate (default: the recording's own tick rate)")  # fmt: skip

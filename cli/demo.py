@@ -48,8 +48,10 @@ def _say_where(endpoint: str, record: Path, routine: str, address: str, rrd: Pat
         print(f"  live view saved to {rrd} (open it with: .venv/bin/rerun {rrd})")
     print(f"  emulated body: T-pose for {TPOSE_S:g} s (the gateway calibrates), a knee bend "
           f"(it finds where the subject faces), then {routine!r}")  # fmt: skip
-    print("  table: 'uncal' not calibrated yet, 'held' gravity cannot see it now (last value held),"
-          " '--' not measured")
+    print(
+        "  table: 'uncal' not calibrated yet, 'held' gravity cannot see it now (last value held),"
+        " '--' not measured"
+    )
     print(
         f"  poses: {keys.pose_key()} and {keys.all_poses()}; from another machine: "
         f"-e {endpoint.replace('127.0.0.1', '<this-host>')} (gateway -l tcp/0.0.0.0:7447)"
@@ -81,10 +83,22 @@ def _status_line(elapsed: float, frame: pose.PoseFrame, recorded: int) -> str:
 #: After the T-pose, a knee bend and back, arms still out: a hinge's motion is what
 #: tells the gateway where the subject faces (docs/calibration.md), as a clinician
 #: would ask of a patient after the calibration pose.
-KNEE_BEND = keyframes([(0.0, {}), (1.0, {"left_knee_flexion_deg": 45.0,
-                                        "right_knee_flexion_deg": 45.0,
-                                        "left_hip_flexion_deg": 20.0,
-                                        "right_hip_flexion_deg": 20.0}), (2.0, {})], loop=False)
+KNEE_BEND = keyframes(
+    [
+        (0.0, {}),
+        (
+            1.0,
+            {
+                "left_knee_flexion_deg": 45.0,
+                "right_knee_flexion_deg": 45.0,
+                "left_hip_flexion_deg": 20.0,
+                "right_hip_flexion_deg": 20.0,
+            },
+        ),
+        (2.0, {}),
+    ],
+    loop=False,
+)
 KNEE_BEND_S = 2.0
 EASE_S = 1.0  # from the T-pose into the routine: a limb moves, it does not jump
 

@@ -148,8 +148,13 @@ def add_heading_args(p: argparse.ArgumentParser) -> None:
                         "the pose; fixed: the subject faced +X of the tags' frame; "
                         "independent: 6-axis tags each with its own (the knees' tags found "
                         "from a walk or leg swing) (default: the profile's, auto)")  # fmt: skip
-    p.add_argument("--heading-reference", type=_reference_arg, default=None, metavar="TAG:AXIS",
-                   help="declared: this tag's axis pointed forward in the pose, e.g. sacrum:+z")
+    p.add_argument(
+        "--heading-reference",
+        type=_reference_arg,
+        default=None,
+        metavar="TAG:AXIS",
+        help="declared: this tag's axis pointed forward in the pose, e.g. sacrum:+z",
+    )
 
 
 def with_heading_args(profile: Profile, args: argparse.Namespace) -> Profile:
@@ -268,8 +273,12 @@ def add_calibrate_args(cal: argparse.ArgumentParser) -> None:
     p.add_argument("--window", type=argtypes.time_window, default=None, metavar="START:END",
                    help="with --from: the still window, seconds from the recording's start "
                         "(default 0:--seconds)")  # fmt: skip
-    p.add_argument("--format", choices=formats(), default=None,
-                   help="with --from: the capture's format (an .mcap needs none)")
+    p.add_argument(
+        "--format",
+        choices=formats(),
+        default=None,
+        help="with --from: the capture's format (an .mcap needs none)",
+    )
     add_capture_args(p)
     p.add_argument("--profile", type=argtypes.input_or_new_file,
                    help="with --from: the profile to write")  # fmt: skip
@@ -398,19 +407,23 @@ def cmd_process(args: argparse.Namespace) -> int:
         print(f"bodynet process: {exc}", file=sys.stderr)
         return 2
     heading = result.heading or {}
-    note = {"found": f"heading found ({heading.get('deg')} deg, {heading.get('hinge')})",
-            "declared": f"heading declared ({heading.get('deg')} deg)",
-            "fixed": "heading fixed (the subject faced +X)",
-            "partly found": "headings found for the knees' tags only (independent tags): the "
-                            "other tags' dofs are flagged uncalibrated",
-            "unknown": "heading NOT found (no knee or elbow moved): the tags' dofs are "
-                       "flagged uncalibrated; bend a knee after the pose, or pass "
-                       "--heading-reference or --heading fixed"}.get(heading.get("state"), "")
+    note = {
+        "found": f"heading found ({heading.get('deg')} deg, {heading.get('hinge')})",
+        "declared": f"heading declared ({heading.get('deg')} deg)",
+        "fixed": "heading fixed (the subject faced +X)",
+        "partly found": "headings found for the knees' tags only (independent tags): the "
+        "other tags' dofs are flagged uncalibrated",
+        "unknown": "heading NOT found (no knee or elbow moved): the tags' dofs are "
+        "flagged uncalibrated; bend a knee after the pose, or pass "
+        "--heading-reference or --heading fixed",
+    }.get(heading.get("state"), "")
     calibrated = (f"calibrated {len(result.calibrated)} sensors ({result.calibration['pose']})"
                   if result.calibration else "calibration from the profile")  # fmt: skip
     if result.refused:
-        calibrated = (f"NOT calibrated: {result.refused} (the tags' dofs are flagged "
-                      "uncalibrated; say where the still pose is with --window START:END)")
+        calibrated = (
+            f"NOT calibrated: {result.refused} (the tags' dofs are flagged "
+            "uncalibrated; say where the still pose is with --window START:END)"
+        )
     print(f"{result.ticks} ticks from {result.samples} samples -> {args.output}; "
           f"{calibrated}; {note}; {result.stats.summary()}", file=sys.stderr)  # fmt: skip
     return 0

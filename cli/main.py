@@ -119,8 +119,7 @@ def cmd_router(args: argparse.Namespace) -> int:
     return 0
 
 
-BENCHMARKS = ("decode", "solver", "gateway", "peer", "rate", "recorder", "faults", "soak",
-              "drift")
+BENCHMARKS = ("decode", "solver", "gateway", "peer", "rate", "recorder", "faults", "soak", "drift")
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
@@ -221,8 +220,12 @@ def add_bench_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--only", action="append", choices=BENCHMARKS,
                    help="run only this benchmark (repeatable; default all but soak and "
                         "drift)")  # fmt: skip
-    p.add_argument("--drift-minutes", type=argtypes.bounded_float(0.5, 120.0, "minutes"),
-                   default=10.0, help="emulated minutes of the drift benchmark (default 10)")
+    p.add_argument(
+        "--drift-minutes",
+        type=argtypes.bounded_float(0.5, 120.0, "minutes"),
+        default=10.0,
+        help="emulated minutes of the drift benchmark (default 10)",
+    )
     p.add_argument("--rate-hz", type=argtypes.RATE_HZ, default=1000.0,
                    help="per-node rate of the `rate` benchmark (default 1000)")  # fmt: skip
     p.add_argument("--repeat", type=argtypes.positive_int(100, "runs"), default=3,

@@ -63,6 +63,8 @@ log = logging.getLogger(__name__)
 
 WEB_DIR = Path(__file__).parent / "game_web"
 FRAME_S = 0.04  # state to the browsers at 25 Hz
+
+
 def write_private(path: Path, text: str) -> None:
     """Write ``text`` to ``path`` atomically, readable by the owner only."""
     tmp = path.with_name(path.name + ".part")
@@ -162,6 +164,7 @@ def session_history(directory: Path) -> dict[str, Any]:
         except (OSError, ValueError, KeyError, TypeError, AttributeError) as exc:
             unreadable.append(f"{path.name}: {exc}")
     sessions.sort(key=lambda s: s["started_utc"], reverse=True)
+
     def new_day() -> dict[str, Any]:
         return {"sessions": 0, "trials": 0, "reached": 0, "targets": 0, "times": [], "rom_deg": {}}
 
@@ -445,4 +448,3 @@ def run_game(conf: zenoh.Config, stop: threading.Event, options: GameOptions,
         if server.session is not None:
             server.session.close()
     return server
-

@@ -83,8 +83,10 @@ POSE_SCHEMA = {
         "joints_m": {"type": "object"},
         "sources": {"type": "object"},
         "stale": {"type": "array", "items": {"type": "string"}},
-        "reasons": {"type": "object",
-                    "additionalProperties": {"type": "array", "items": {"type": "string"}}},
+        "reasons": {
+            "type": "object",
+            "additionalProperties": {"type": "array", "items": {"type": "string"}},
+        },
         "unc_deg": {"type": "object", "additionalProperties": {"type": ["number", "null"]}},
     },
 }

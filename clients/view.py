@@ -98,6 +98,7 @@ def unmeasured_text(frame: pose.PoseFrame) -> str:
             for n in frame.angles_deg if not pose.is_measured(frame, n)]  # fmt: skip
     return "\n".join(rows) if rows else "Every joint angle is measured."
 
+
 log = logging.getLogger(__name__)
 
 
@@ -304,6 +305,7 @@ def metrics_text(message: object) -> str:
         return "No measured joint angle yet."
     lines = ["| dof | min | max | range (deg) | reps | SPARC |", "|---|---|---|---|---|---|"]
     for name, d in sorted(dofs.items()):
+
         def get(key: str, d: object = d) -> str:
             v = d.get(key) if isinstance(d, dict) else None
             if v is None and key == "sparc":
@@ -365,8 +367,11 @@ class Viewer:
             arcs, ticks, where, names = gauge_faces()
             for rec in recs:
                 rec.log("body", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
-                rec.log("gauges/faces", rr.LineStrips2D([*arcs, *ticks], radii=0.03,
-                                                        colors=(150, 150, 150)), static=True)
+                rec.log(
+                    "gauges/faces",
+                    rr.LineStrips2D([*arcs, *ticks], radii=0.03, colors=(150, 150, 150)),
+                    static=True,
+                )
                 rec.log("gauges/names", rr.Points2D(where, radii=0.01, labels=names,
                                                     show_labels=True), static=True)  # fmt: skip
         except BaseException:
@@ -395,10 +400,15 @@ class Viewer:
             rec.log("body/joints", rr.Points3D(last.joints, radii=0.02))
             needles, readings = gauge_needles(last.gauges, last.gauge_flags)
             colors = [NEEDLE_UNMEASURED if f else NEEDLE for f in last.gauge_flags]
-            rec.log("gauges/needles", rr.LineStrips2D(
-                needles, radii=0.05, colors=colors, labels=readings, show_labels=True))
-            rec.log("unmeasured", rr.TextDocument(last.unmeasured,
-                                                  media_type=rr.MediaType.MARKDOWN))
+            rec.log(
+                "gauges/needles",
+                rr.LineStrips2D(
+                    needles, radii=0.05, colors=colors, labels=readings, show_labels=True
+                ),
+            )
+            rec.log(
+                "unmeasured", rr.TextDocument(last.unmeasured, media_type=rr.MediaType.MARKDOWN)
+            )
         self.shown += len(drawn)
         return len(drawn)
 

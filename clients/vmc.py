@@ -240,4 +240,3 @@ class VmcOutput(LiveOutput):
 
     def close(self) -> None:
         self._sock.close()
-

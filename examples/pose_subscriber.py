@@ -1,7 +1,7 @@
 """Print the elbows' angles from every whole-body pose the gateway publishes.
 
-    make demo                                        # in another terminal, or any gateway
-    .venv/bin/python examples/pose_subscriber.py     # -e tcp/HOST:7447 for a remote router
+make demo                                        # in another terminal, or any gateway
+.venv/bin/python examples/pose_subscriber.py     # -e tcp/HOST:7447 for a remote router
 """
 
 import argparse

@@ -585,8 +585,9 @@ class BodyHeading:
             out["first_move_t"] = finder.first_move_t
             out["found_t"] = finder.found_t
             if self.unknown:
-                out["waiting_for"] = finder.informative or "no hinge with both tags: " \
-                    "declare a heading reference"
+                out["waiting_for"] = (
+                    finder.informative or "no hinge with both tags: declare a heading reference"
+                )
         return out
 
 

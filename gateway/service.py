@@ -548,8 +548,11 @@ class Gateway:
         except (CalibrationRefused, ValueError, ProfileError) as exc:
             log.warning("calibration refused: %s", str(exc))
             report = exc.report if isinstance(exc, CalibrationRefused) else {}
-            return {"ok": False, "error": str(exc), **{k: v for k, v in report.items()
-                                                        if k not in ("ok", "error")}}
+            return {
+                "ok": False,
+                "error": str(exc),
+                **{k: v for k, v in report.items() if k not in ("ok", "error")},
+            }
         profile = result.apply(profile, pose)
         with self._lock:
             body.set_profile(profile)
@@ -685,8 +688,10 @@ class Gateway:
         body = self._body(subject)
         if body is None:
             foreign = self._foreign_alive
-            if self.share is not None and not self.share.owns(subject) and (
-                subject in foreign or len(foreign) < MAX_SUBJECTS * len(self.share.members)
+            if (
+                self.share is not None
+                and not self.share.owns(subject)
+                and (subject in foreign or len(foreign) < MAX_SUBJECTS * len(self.share.members))
             ):
                 alive = foreign.setdefault(subject, set())
                 (alive.add if token.alive else alive.discard)(token.key)

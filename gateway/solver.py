@@ -281,7 +281,10 @@ class _SplitBatch:
         return chosen  # type: ignore[no-any-return]
 
     def commit(
-        self, rows: np.ndarray, values: np.ndarray, calibration_inv: np.ndarray,
+        self,
+        rows: np.ndarray,
+        values: np.ndarray,
+        calibration_inv: np.ndarray,
         relative: np.ndarray,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """What committing a joint does, for many at once: angles (m, 3) clamped to
@@ -617,7 +620,9 @@ class BodySolver:
         # each body's own calibration pose (T or N): the total rotations are from it
         calibration_inv = np.stack([t.solver._calibration_inv for t in ticks])[owner, rows]
         values, clamped, matrices, total = batch.commit(
-            rows, batch.split(rows, relative, last[owner[:, None], index]), calibration_inv,
+            rows,
+            batch.split(rows, relative, last[owner[:, None], index]),
+            calibration_inv,
             relative,
         )
         angles[owner[:, None], index] = values
@@ -995,6 +1000,7 @@ class BodySolver:
         if tick.last is None:
             prev = np.zeros(2)
         if preds:
+
             def predict(x: np.ndarray) -> np.ndarray:
                 return np.concatenate([p(x) for p in preds])
 

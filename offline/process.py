@@ -156,15 +156,22 @@ def process(path: Path, fmt: str, out: Path, profile: Profile | None = None,
     if as_given:
         # no calibration window: the orientations are the segments' own, in the body's
         # frame (as bodynet exports them), so their mounts are none and heading 0
-        profile = replace(profile, imu_headings=MappingProxyType(
-            {**profile.imu_headings, **{s.raw_key: 0.0 for s in uncalibrated}}))
+        profile = replace(
+            profile,
+            imu_headings=MappingProxyType(
+                {**profile.imu_headings, **{s.raw_key: 0.0 for s in uncalibrated}}
+            ),
+        )
     elif uncalibrated or window is not None or calibration is not None:
         where, where_fmt = calibration or (path, fmt)
         asked = window is not None or calibration is not None
         try:
             calibrated = calibrate_recording(
-                recorded_samples(where, where_fmt, CaptureStats(), rate_hz, options), profile,
-                window or (0.0, tpose_s), pose, strict=window is not None,
+                recorded_samples(where, where_fmt, CaptureStats(), rate_hz, options),
+                profile,
+                window or (0.0, tpose_s),
+                pose,
+                strict=window is not None,
             )
         except CalibrationRefused as exc:
             if asked:
@@ -209,6 +216,13 @@ def process(path: Path, fmt: str, out: Path, profile: Profile | None = None,
     finally:
         sink.close()
     span = 0.0 if first_t is None else last_t - first_t
-    return ProcessResult(ticks, stats.decoded, sorted(calibrated.mounts) if calibrated else [],
-                         stats, calibrated.report if calibrated else None, heading.state(),
-                         refused, span)
+    return ProcessResult(
+        ticks,
+        stats.decoded,
+        sorted(calibrated.mounts) if calibrated else [],
+        stats,
+        calibrated.report if calibrated else None,
+        heading.state(),
+        refused,
+        span,
+    )

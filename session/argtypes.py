@@ -234,7 +234,7 @@ def _path(text: str) -> Path:
 
 
 def _kind(path: Path) -> str:
-    """"dir", "file", "other" (a device, a pipe...), or "none" (nothing there)."""
+    """ "dir", "file", "other" (a device, a pipe...), or "none" (nothing there)."""
     try:
         mode = path.stat().st_mode
     except OSError:
@@ -429,11 +429,16 @@ def key_expr(text: str) -> str:
             fail(f"{_shown(text)}: chunk {_shown(chunk)} is not valid (use * or ** as "
                  "whole chunks; no ?, # or spaces)")  # fmt: skip
         if chunk == "$*" or "$*$*" in chunk:
-            fail(f"{_shown(text)}: write {_shown(chunk)} as {_shown(chunk.replace('$*$*', '$*'))}"
-                 if chunk != "$*" else f"{_shown(text)}: a chunk that is only $* is written *")
+            fail(
+                f"{_shown(text)}: write {_shown(chunk)} as {_shown(chunk.replace('$*$*', '$*'))}"
+                if chunk != "$*"
+                else f"{_shown(text)}: a chunk that is only $* is written *"
+            )
         if previous == "**" and chunk in ("*", "**"):
-            fail(f"{_shown(text)}: write {previous}/{chunk} as "
-                 f"{'*/**' if chunk == '*' else '**'} (Zenoh's canonical form)")
+            fail(
+                f"{_shown(text)}: write {previous}/{chunk} as "
+                f"{'*/**' if chunk == '*' else '**'} (Zenoh's canonical form)"
+            )
         previous = chunk
     return text
 

@@ -114,7 +114,8 @@ def test_n_pose_from_a_recording_then_the_heading_from_the_knee(tmp_path: Path) 
     assert heading.state()["deg"] == pytest.approx(-100.0, abs=1.5)
     readings, _ = body.sample(2.8)
     out = BodySolver(heading.profile).solve(
-        {s.site: RawSample(r, 0, 0) for s, r in zip(body.sensors, readings, strict=True)})
+        {s.site: RawSample(r, 0, 0) for s, r in zip(body.sensors, readings, strict=True)}
+    )
     truth = body.angles(2.8)
     assert not out.flags
     for name, value in out.angles_deg.items():

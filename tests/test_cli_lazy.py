@@ -79,8 +79,10 @@ def test_every_command_runs_a_function_or_gives_its_subcommands_one() -> None:
 
 def test_bench_without_its_extra_says_what_to_install() -> None:
     """psutil comes with the `bench` extra only; without it `bodynet bench` says so."""
-    code = ("import sys; sys.modules['psutil'] = None\n"  # as if it were not installed
-            "from bodynet.cli.main import main; sys.exit(main(['bench', '--only', 'decode']))")
+    code = (
+        "import sys; sys.modules['psutil'] = None\n"  # as if it were not installed
+        "from bodynet.cli.main import main; sys.exit(main(['bench', '--only', 'decode']))"
+    )
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                           timeout=60, check=False)  # fmt: skip
     assert done.returncode == 2, done.stderr

@@ -566,7 +566,7 @@ def test_a_garbled_can_log_line_costs_only_itself(
 #: Run a command as if its file system filled at 20-40 kB (``ulimit -f`` counts
 #: 512- or 1024-byte blocks); SIGXFSZ ignored, so a write past it fails with
 #: EFBIG instead of killing the process.
-SMALL_DISK = ["sh", "-c", "trap '' XFSZ; ulimit -f 40; exec \"$0\" \"$@\"", str(BODYNET)]
+SMALL_DISK = ["sh", "-c", 'trap \'\' XFSZ; ulimit -f 40; exec "$0" "$@"', str(BODYNET)]
 
 
 def test_a_full_disk_names_the_output_and_leaves_no_half_file(
@@ -606,10 +606,6 @@ def test_a_full_or_closed_stdout_is_an_error(corpus: dict[str, Path], tmp_path: 
     assert "stdout is closed" in closed.stderr
     assert "Traceback" not in closed.stderr
     assert sha(capture) == sha(DATA / "smartsuit_arm.log")
-
-
-
-
 
 
 def test_a_terminated_write_leaves_the_earlier_file_and_no_half_file(tmp_path: Path) -> None:

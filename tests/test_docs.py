@@ -151,6 +151,8 @@ def test_every_command_shown_parses(
 
 def test_the_command_check_reads_shell_blocks(tmp_path: Path) -> None:
     page = tmp_path / "a.md"
-    page.write_text("```sh\n.venv/bin/bodynet view -e tcp/h:7447   # a comment\n"
-                    "bodynet record -o x.mcap\nls\n```\n\n    bodynet not-in-a-block\n")
+    page.write_text(
+        "```sh\n.venv/bin/bodynet view -e tcp/h:7447   # a comment\n"
+        "bodynet record -o x.mcap\nls\n```\n\n    bodynet not-in-a-block\n"
+    )
     assert _command_lines(page) == ["view -e tcp/h:7447", "record -o x.mcap"]

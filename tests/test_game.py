@@ -302,7 +302,9 @@ def test_results_are_owner_only_and_the_history_reads_them_back(tmp_path: Path) 
     by_patient = sorted(history["sessions"], key=lambda s: s["patient"])
     assert [s["trials"][0]["rom_deg"]["shoulder_flexion"] for s in by_patient] == [10.0, 30.0]
     assert {(d["patient"], d["sessions"], d["trials"]) for d in history["days"]} == {
-        ("p1", 1, 0), ("p2", 1, 0)}  # fmt: skip  (the stopped trials are not complete)
+        ("p1", 1, 0),
+        ("p2", 1, 0),
+    }  # fmt: skip  (the stopped trials are not complete)
     assert len(history["unreadable"]) == 1
     assert "rehab-left-arm-broken.json" in history["unreadable"][0]
 
@@ -551,8 +553,11 @@ def still_arm_trial(page: Any, publisher: PosePublisher, tmp_path: Path) -> None
     assert saved(tmp_path) == []
     page.click("#start")
     # "1 / 9: Lift your arm forward" and the instruction: the label says what the cue says
-    wait_text(page, "#target", "t.includes(' / 9: ') && "
-                               "t.endsWith(': ' + document.getElementById('cue').textContent)")
+    wait_text(
+        page,
+        "#target",
+        "t.includes(' / 9: ') && t.endsWith(': ' + document.getElementById('cue').textContent)",
+    )
     wait_text(page, "#countdown", "/^[0-9]+ s$/.test(t)")  # the countdown, in seconds
     wait_text(page, "#flash", "t === 'Missed'")
     page.screenshot(path=str(tmp_path / "missed.png"))
@@ -568,8 +573,9 @@ def still_arm_trial(page: Any, publisher: PosePublisher, tmp_path: Path) -> None
     page.wait_for_selector("#arm-state.ok")
     page.wait_for_selector("#cue:not(.lost)")
     # the still arm at a rest stop it is already at: not reached, missed
-    wait_text(page, "#flash", "t === 'Missed' && "
-                              "document.getElementById('flash').dataset.i === '4'")
+    wait_text(
+        page, "#flash", "t === 'Missed' && document.getElementById('flash').dataset.i === '4'"
+    )
     # the wrist's measurement is held: the game waits for one, then moves on
     wait_text(page, "#cue", "t === 'Waiting for a measurement of wrist flexion'")
     assert text(page, "#unmeasured") == "not measured now: wrist flexion"

@@ -88,8 +88,10 @@ def test_gateway_calibrates_tracks_and_flags_stale(
     current["pose"] = dict(TARGET)
     # the tags' heading is unknown until a hinge moves (the left knee bends in TARGET):
     # until then the dofs the tags drive are flagged uncalibrated
-    seen = poses.wait_for(lambda s: close_to(s[-1][1], TARGET, 0.3)
-                          and "uncalibrated" not in s[-1][1].flags.values(), timeout=20)
+    seen = poses.wait_for(
+        lambda s: close_to(s[-1][1], TARGET, 0.3) and "uncalibrated" not in s[-1][1].flags.values(),
+        timeout=20,
+    )
     frame = seen[-1][1]
     assert frame.flags.get("left_elbow_flexion_deg") is None
     assert frame.stale == []

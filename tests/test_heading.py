@@ -74,8 +74,12 @@ def _errors(angles: Mapping[str, float], flags: Mapping[str, str],
     """Each measured dof's error, but a shoulder's flexion and rotation when it is
     abducted past 50 deg: near its gimbal lock (the T-pose itself) they are one
     axis, and noise splits them anyhow (the total rotation is checked there)."""
-    locked = {f"{side}_shoulder_{dof}_deg" for side in ("left", "right") for dof in
-              ("flexion", "rotation") if truth.get(f"{side}_shoulder_abduction_deg", 0) > 50}
+    locked = {
+        f"{side}_shoulder_{dof}_deg"
+        for side in ("left", "right")
+        for dof in ("flexion", "rotation")
+        if truth.get(f"{side}_shoulder_abduction_deg", 0) > 50
+    }
     return {n: abs(v - truth.get(n, 0.0)) for n, v in angles.items()
             if n not in locked and flags.get(n, "clamped") == "clamped"}  # fmt: skip
 
@@ -143,7 +147,7 @@ def test_fixed_heading_is_right_only_when_the_subject_faced_x() -> None:
 
 
 def test_a_declared_reference_gives_the_heading_at_once() -> None:
-    """"The sacrum tag's +z pointed forward": the emulated sacrum tag is mounted so."""
+    """ "The sacrum tag's +z pointed forward": the emulated sacrum tag is mounted so."""
     realism = Realism(facing_deg=130.0, random_tag_mounts=False)  # tags' axes = segments'
     profile = Profile(heading_reference=("body/trunk/mid/sacrum/raw", "+x"))
     heading, ticks = _run(realism, "tpose", profile)

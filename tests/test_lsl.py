@@ -175,7 +175,8 @@ def check_stream(rec: Recorder, sid: str, frames: list[pose.PoseFrame], offset: 
     first = int(np.argmin(np.abs(mapped - samples[0][1])))
     expected = frames[first:]
     assert len(samples) == len(expected), (
-        f"{sid}: {len(samples)} samples for {len(expected)} poses from the first received")
+        f"{sid}: {len(samples)} samples for {len(expected)} poses from the first received"
+    )
     for (values, stamp), f, m in zip(samples, expected, mapped[first:], strict=True):
         assert abs(stamp - m) < 1e-3, f"{sid}: seq {f.seq} stamped {(stamp - m) * 1e3:.3f} ms off"
         np.testing.assert_array_equal(values, expected_angles(f, labels))
@@ -321,7 +322,6 @@ def test_two_subjects_give_two_streams_each_and_raw_samples(router_endpoint: str
         v, t = by_seq[r.seq]
         assert v == [r.seq, r.reading.encoder, *r.reading.accel]  # type: ignore[union-attr]
         assert abs(t - (r.t_ns * 1e-9 + offset)) < 1e-3
-
 
 
 def test_bodynet_lsl_restarted_is_picked_up_again_by_its_source_id(router_endpoint: str) -> None:

@@ -234,8 +234,19 @@ def test_the_report_has_the_same_clinical_metrics(tmp_path: Path) -> None:
 def test_the_views_metrics_panel_shows_what_it_can() -> None:
     from bodynet.clients.view import metrics_text
 
-    text = metrics_text({"dofs": {"left_knee_flexion_deg": {
-        "min_deg": 1.5, "max_deg": 61.25, "range_deg": 59.75, "repetitions": 2, "sparc": None}}})
+    text = metrics_text(
+        {
+            "dofs": {
+                "left_knee_flexion_deg": {
+                    "min_deg": 1.5,
+                    "max_deg": 61.25,
+                    "range_deg": 59.75,
+                    "repetitions": 2,
+                    "sparc": None,
+                }
+            }
+        }
+    )
     assert "| left_knee_flexion | 1.5 | 61.25 | 59.75 | 2 |  |" in text
     for hostile in (None, [], {"dofs": []}, {"dofs": {}}):
         assert metrics_text(hostile) == "No measured joint angle yet."
@@ -299,8 +310,10 @@ def test_a_recordings_view_shows_its_last_metrics(tmp_path: Path) -> None:
     finally:
         viewer.close()
     last = body.snapshot()["dofs"]["left_elbow_flexion_deg"]
-    assert f"| left_elbow_flexion | 10 | 100 | 90 | {last['repetitions']} |" in rrd_texts(
-        rrd, "/metrics")[-1]
+    assert (
+        f"| left_elbow_flexion | 10 | 100 | 90 | {last['repetitions']} |"
+        in rrd_texts(rrd, "/metrics")[-1]
+    )
 
 
 def test_a_publisher_inventing_dofs_cannot_grow_a_body_without_end() -> None:

@@ -93,8 +93,15 @@ def test_mot_read_by_opensim(
         row = index * 7
         angles = [np.radians(got[c][row]) for c in ("pelvis_tilt", "pelvis_list",
                                                      "pelvis_rotation")]  # fmt: skip
-        r = osim.Rotation(osim.BodyRotationSequence, angles[0], osim.CoordinateAxis(2),
-                          angles[1], osim.CoordinateAxis(0), angles[2], osim.CoordinateAxis(1))
+        r = osim.Rotation(
+            osim.BodyRotationSequence,
+            angles[0],
+            osim.CoordinateAxis(2),
+            angles[1],
+            osim.CoordinateAxis(0),
+            angles[2],
+            osim.CoordinateAxis(1),
+        )
         matrix = np.array([[r.get(i, j) for j in range(3)] for i in range(3)])
         pelvis = Rotation.from_quat(frame.segments["pelvis"][1], scalar_first=True)
         want = (TO_OPENSIM * pelvis * TO_OPENSIM.inv()).as_matrix()
@@ -129,6 +136,7 @@ def test_sto_read_by_opensim(
         want = TO_OPENSIM * world * TO_OPENSIM.inv()
         error = Rotation.from_quat(q, scalar_first=True) * want.inv()
         assert np.degrees(error.magnitude()).max() < 1e-4, label
+
     # OpenSim's frame is Y up: in the T-pose (the first frame) the trunk's long
     # axis is ground +Y, the right arm points to +Z (the right), the left to -Z,
     # the thighs down (each segment's long axis is its -Y in OpenSim's axes)

@@ -150,9 +150,10 @@ def test_our_sto_reader_agrees_with_opensims(body_mcap: Path, tmp_path: Path) ->
         for r, (_, _, quats) in enumerate(ours.rows):
             theirs = [float(part[r]) for part in parts]
             if c in quats:
-                diff = Rotation.from_quat(theirs, scalar_first=True) * Rotation.from_quat(
-                    quats[c], scalar_first=True
-                ).inv()
+                diff = (
+                    Rotation.from_quat(theirs, scalar_first=True)
+                    * Rotation.from_quat(quats[c], scalar_first=True).inv()
+                )
                 assert diff.magnitude() < 1e-6, (label, r)
             else:
                 assert all(math.isnan(v) for v in theirs), (label, r)
@@ -185,7 +186,9 @@ def test_calibrated_from_another_file_of_the_session(tmp_path: Path) -> None:
         out = tmp_path / f"trial{len(calibration)}.mcap"
         assert main(["process", str(tmp_path / "trial.csv"), "--tpose-s", "1", *calibration,
                      "-o", str(out)]) == 0  # fmt: skip
-        errors = [abs(frame.angles_deg[name] - motion.angles(t_ns / 1e9).get(name, 0.0))
-                  for t_ns, frame in read_poses(out)
-                  for name in ("left_shoulder_abduction_deg", "right_elbow_flexion_deg")]
+        errors = [
+            abs(frame.angles_deg[name] - motion.angles(t_ns / 1e9).get(name, 0.0))
+            for t_ns, frame in read_poses(out)
+            for name in ("left_shoulder_abduction_deg", "right_elbow_flexion_deg")
+        ]
         assert (max(errors) < 0.01) is close, max(errors)

@@ -127,7 +127,9 @@ class Watch:
 
 @pytest.mark.timeout(180)
 def test_gateways_on_two_hosts_share_the_subjects_and_take_over_a_dead_one(
-    hosts: Hosts, services: Services, tmp_path: Path  # noqa: F811
+    hosts: Hosts,  # noqa: F811
+    services: Services,  # noqa: F811
+    tmp_path: Path,
 ) -> None:
     port = free_port()
     router_ns = hosts.add("rt")
@@ -150,8 +152,16 @@ def test_gateways_on_two_hosts_share_the_subjects_and_take_over_a_dead_one(
         watch.wait(lambda: all(set(m) == both for m in watch.members.values())
                    and set(watch.members) == both)  # fmt: skip
         settled = time.monotonic()
-        watch.wait(lambda: set(SUBJECTS) <= {
-            s for s, seen in watch.served_by.items() if any(w > settled + 1.5 for w, _ in seen)})
+        watch.wait(
+            lambda: (
+                set(SUBJECTS)
+                <= {
+                    s
+                    for s, seen in watch.served_by.items()
+                    if any(w > settled + 1.5 for w, _ in seen)
+                }
+            )
+        )
         owners = watch.owners_since(settled + 1.0)
         expected = {s: owner(both, s) for s in SUBJECTS}
         assert {s: owners[s] for s in SUBJECTS} == {s: {expected[s]} for s in SUBJECTS}
@@ -169,8 +179,10 @@ def test_gateways_on_two_hosts_share_the_subjects_and_take_over_a_dead_one(
                                for s in moved))  # fmt: skip
         with watch.lock:
             first_pose = max(min(w for w, _ in watch.seqs[s] if w > killed) for s in moved)
-        print(f"takeover: every subject of the killed gateway posed again "
-              f"{first_pose - killed:.3f} s after the kill")
+        print(
+            f"takeover: every subject of the killed gateway posed again "
+            f"{first_pose - killed:.3f} s after the kill"
+        )
     finally:
         feed.close()
         watch.close()

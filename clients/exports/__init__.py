@@ -126,8 +126,7 @@ WRITERS: Mapping[str, Writer] = {
         Writer(
             "amc",
             ".amc",
-            "Acclaim motion (.amc) and skeleton (.asf, written beside it), as the CMU "
-            "database's",
+            "Acclaim motion (.amc) and skeleton (.asf, written beside it), as the CMU database's",
             "amc",
             options=(UP, UNITS, PROFILE),
         ),

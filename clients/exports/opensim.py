@@ -22,8 +22,7 @@ def header(lines: Sequence[str], columns: Sequence[str]) -> str:
 def format_rows(time_s: np.ndarray, cells: Sequence[Sequence[str]]) -> str:
     """Tab-separated rows: the time (s), then each row's cells."""
     return "".join(
-        f"{t:.6f}\t" + "\t".join(row) + "\n"
-        for t, row in zip(time_s.tolist(), cells, strict=True)
+        f"{t:.6f}\t" + "\t".join(row) + "\n" for t, row in zip(time_s.tolist(), cells, strict=True)
     )
 
 

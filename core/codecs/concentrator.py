@@ -51,7 +51,6 @@ _EXT_START = frozenset(b"0123456789+-")
 _SPACE = frozenset(b"\r\n \t")
 
 
-
 def request(node: int) -> bytes:
     """The request character that polls ``node``."""
     if not 1 <= node <= MAX_NODES:

@@ -67,6 +67,7 @@ def primary(reasons: Sequence[str] | set[str] | frozenset[str]) -> str:
     order = list(REASONS)
     return min(reasons, key=lambda r: (order.index(r) if r in REASONS else len(order), r))
 
+
 Vec3 = tuple[float, float, float]
 QuatWxyz = tuple[float, float, float, float]
 

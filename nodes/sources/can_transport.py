@@ -93,8 +93,13 @@ def can_log_messages(path: Path, stats: CaptureStats) -> Iterator[can.Message]:
         return
     reader_type = _TEXT_READERS.get(suffix)
     if reader_type is None:
-        stats.count(Rejected(Reason.TRUNCATED, f"{path.name}: not a CAN log python-can "
-                               f"reads (.log, .asc, .trc, .csv, .blf): {suffix or 'no suffix'}"))
+        stats.count(
+            Rejected(
+                Reason.TRUNCATED,
+                f"{path.name}: not a CAN log python-can "
+                f"reads (.log, .asc, .trc, .csv, .blf): {suffix or 'no suffix'}",
+            )
+        )
         return
     with path.open(encoding="ascii", errors="replace", newline=None) as f:
         lines = _Lines(f)

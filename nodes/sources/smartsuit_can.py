@@ -45,6 +45,7 @@ def can_interface(text: str) -> str:
         argtypes.fail(f"{text!r} is not a python-can interface name")
     return text
 
+
 class FrameDecoder:
     """Frames in, the SmartSuit readings (or rejections) they carry out."""
 
