@@ -526,8 +526,12 @@ class Gateway:
         (still in ``pose``: the profile's by default); the calibration report, or a
         refusal (``ok`` false, ``error`` why) that leaves the profile as it was.
         Asked before every sensor has ``seconds`` of history (right after the
-        sensors start), it waits for the window to fill, up to ``2 seconds + 2 s``
-        (the worker may be behind the samples Zenoh holds for it)."""
+        sensors start), it waits for the window to fill while sensors deliver, up
+        to ``2 seconds + 2 s`` (the worker may be behind the samples Zenoh holds
+        for it). ``seconds`` must be within the history kept (``HISTORY_S``)."""
+        if not 0 < seconds <= HISTORY_S:  # NaN too: a window the history cannot hold
+            return {"ok": False, "error": f"seconds must be above 0 and at most {HISTORY_S:g} "
+                    f"(the history the gateway keeps), not {seconds!r}"}  # fmt: skip
         body = self._bodies.get(subject)
         if body is None:
             return {"ok": False, "error": "no samples of this subject"}
@@ -536,7 +540,9 @@ class Gateway:
             now = time.monotonic()
             with self._lock:
                 reach = body.history_s()
-            filled = reach is None or reach >= seconds
+                # only live sensors fill a window: with every one stale, waiting is no use
+                filling = any(now - k.arrived < STALE_S for k in body.latest.values() if k.history)
+            filled = reach is None or reach >= seconds or not filling
             if filled or now >= deadline:
                 break
             time.sleep(0.02)

@@ -17,7 +17,7 @@ import zenoh
 from zenoh_helpers import Collector, Running, client
 
 from bodynet.core import keys
-from bodynet.core.codecs import pose
+from bodynet.core.codecs import pose, raw_sample
 from bodynet.core.keys import LEFT_ARM
 from bodynet.core.messages import RawSample, Source
 from bodynet.core.profile import IMU_SITES
@@ -507,4 +507,30 @@ def test_housekeeping_takes_one_body_a_round(router_endpoint: str) -> None:
         assert sum(b is not None and b.next_housekeeping == now + 2.0 for b in bodies) == 1
     finally:
         gw.close()
+        session.close()
+
+
+def test_a_calibration_window_no_history_holds_is_refused_at_once(
+    gateway: Gateway, router_endpoint: str
+) -> None:
+    """``seconds`` past the history (or not a number, or infinite) is refused at
+    once: waiting for such a window to fill held the query's thread for ever."""
+    session = client(router_endpoint)
+    try:
+        pub = session.declare_publisher(IMU_SITES[2].raw_key)
+        quat = BodyEmulator(ROUTINES["tpose"], imu_tags()[:1]).sample(0.0)[0][0]
+        deadline = time.monotonic() + 20
+        while gateway.samples == 0:
+            assert time.monotonic() < deadline, "the gateway never took a sample"
+            pub.put(raw_sample.encode(RawSample(quat, 0, time.time_ns(), Source.IMU_CENTRAL)))
+            threading.Event().wait(0.05)
+        for seconds in (float("inf"), 9.0, float("nan"), -1.0):
+            answers: queue.Queue[dict[str, object]] = queue.Queue()
+            threading.Thread(
+                target=lambda s=seconds, q=answers: q.put(gateway.calibrate_tpose(s)), daemon=True
+            ).start()
+            answer = answers.get(timeout=10)  # Empty: still waiting for the window
+            assert answer["ok"] is False
+            assert "at most 5" in str(answer["error"])
+    finally:
         session.close()

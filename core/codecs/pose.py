@@ -159,7 +159,12 @@ def _floats(v: Any, n: int) -> Any:
     """Exactly ``n`` numbers, as floats (a vector or a quaternion)."""
     if not isinstance(v, list) or len(v) != n:
         raise DecodeError(Reason.BAD_LENGTH, f"expected {n} numbers, got {v!r:.60}")
-    return tuple(float(c) for c in v)
+    return tuple(map(float, v))
+
+
+def _float_map(m: Any) -> dict[str, float]:
+    """A JSON object of numbers, as floats (JSON keys are strings already)."""
+    return dict(zip(m, map(float, m.values()), strict=True))
 
 
 def _strings(v: Any) -> list[str]:
@@ -192,15 +197,14 @@ def decode(payload: bytes | bytearray) -> PoseFrame:
             unc: dict[str, float] = {}
         else:
             reasons = {str(k): tuple(_strings(v)) for k, v in d.get("reasons", {}).items()}
-            unc = {str(k): math.nan if v is None else float(v)
-                   for k, v in d.get("unc_deg", {}).items()}  # fmt: skip
+            unc = {k: math.nan if v is None else float(v) for k, v in d.get("unc_deg", {}).items()}
         return PoseFrame(
             _int(d["seq"]),
             _int(d["t_ns"]),
-            {str(k): float(v) for k, v in d["angles_deg"].items()},
-            {str(k): float(v) for k, v in d["rel_deg"].items()},
-            {str(s): (_floats(v["p"], 3), _floats(v["q"], 4)) for s, v in d["segments"].items()},
-            {str(j): _floats(p, 3) for j, p in d["joints_m"].items()},
+            _float_map(d["angles_deg"]),
+            _float_map(d["rel_deg"]),
+            {s: (_floats(v["p"], 3), _floats(v["q"], 4)) for s, v in d["segments"].items()},
+            {j: _floats(p, 3) for j, p in d["joints_m"].items()},
             flags,
             {str(k): _int(v) for k, v in d.get("sources", {}).items()},
             [str(k) for k in d.get("stale", [])],
