@@ -63,7 +63,7 @@ def _calibrated(body: BodyEmulator, profile: Profile, start: float, end: float,
     return calibrate_window(window, profile, "tpose").apply(profile, "tpose")
 
 
-def _errors(angles: Mapping[str, float], flags: Mapping[str, str],
+def measured_errors(angles: Mapping[str, float], flags: Mapping[str, str],
             truth: Mapping[str, float]) -> dict[str, float]:  # fmt: skip
     """Measured dofs' errors, but a shoulder's flexion and rotation near its gimbal
     lock (abduction past 50 deg: one axis, split anyhow by noise)."""
@@ -101,7 +101,7 @@ def headings(step_deg: int = 30, rate_hz: float = 50.0, seed: int = 4) -> list[d
                 solver = BodySolver(found)
             out = solver.solve(samples)
             if heading.how == "found":
-                errors += _errors(out.angles_deg, out.flags, body.angles(float(t))).values()
+                errors += measured_errors(out.angles_deg, out.flags, body.angles(float(t))).values()
         state = heading.state()
         rows.append({
             "facing_deg": facing, "state": state["state"],
@@ -138,7 +138,7 @@ def drift(
     for t in np.arange(1.0, 1.0 + 60.0 * minutes, 1 / rate_hz):
         samples = _samples(body, float(t))
         out = solver.solve(samples)
-        errors = _errors(out.angles_deg, out.flags, body.angles(float(t)))
+        errors = measured_errors(out.angles_deg, out.flags, body.angles(float(t)))
         times.append((float(t) - 1.0) / 60.0)
         for group, stems in GROUPS.items():
             mine = [e for n, e in errors.items() if any(s in n for s in stems)]

@@ -13,6 +13,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 import pytest
 
+from bodynet.bench.drift import measured_errors
 from bodynet.core.keys import Site
 from bodynet.core.messages import RawSample
 from bodynet.core.skeleton import CALIBRATION_POSES
@@ -69,21 +70,6 @@ def _window(body: BodyEmulator, start: float, end: float
     return window
 
 
-def _errors(angles: Mapping[str, float], flags: Mapping[str, str],
-            truth: Mapping[str, float]) -> dict[str, float]:  # fmt: skip
-    """Each measured dof's error, but a shoulder's flexion and rotation when it is
-    abducted past 50 deg: near its gimbal lock (the T-pose itself) they are one
-    axis, and noise splits them anyhow (the total rotation is checked there)."""
-    locked = {
-        f"{side}_shoulder_{dof}_deg"
-        for side in ("left", "right")
-        for dof in ("flexion", "rotation")
-        if truth.get(f"{side}_shoulder_abduction_deg", 0) > 50
-    }
-    return {n: abs(v - truth.get(n, 0.0)) for n, v in angles.items()
-            if n not in locked and flags.get(n, "clamped") == "clamped"}  # fmt: skip
-
-
 def _run(realism: Realism, pose: str, profile: Profile, seed: int = 4
          ) -> tuple[BodyHeading, list[tuple[float, dict[str, float], dict[str, str]]]]:  # fmt: skip
     """Calibrate from the still pose, then follow the motion: the heading search and
@@ -99,7 +85,7 @@ def _run(realism: Realism, pose: str, profile: Profile, seed: int = 4
         if found is not None:
             solver = BodySolver(found)
         out = solver.solve(samples)
-        ticks.append((float(t), _errors(out.angles_deg, out.flags, truth), dict(out.flags)))
+        ticks.append((float(t), measured_errors(out.angles_deg, out.flags, truth), dict(out.flags)))
     return heading, ticks
 
 
@@ -267,7 +253,7 @@ def test_joint_constraints_hold_the_shank_and_foot_tags_drift() -> None:
         samples, truth = _samples(body, float(t))
         for name, solver in solvers.items():
             out = solver.solve(samples)
-            errors = _errors(out.angles_deg, out.flags, truth)
+            errors = measured_errors(out.angles_deg, out.flags, truth)
             if t > 20.0:
                 worst[name] = max(worst[name], *(e for n, e in errors.items() if "ankle" in n))
         turns = knees.update(float(t), samples, solvers["held"].profile)
@@ -310,7 +296,7 @@ def test_yaw_reset_turns_the_body_to_face_forward() -> None:
     after = BodySolver(reset).solve(samples)
     pelvis = Rotation.from_quat(after.segments["pelvis"][1], scalar_first=True).as_matrix()
     assert yaw_deg(pelvis) == pytest.approx(0.0, abs=1e-3)
-    assert max(_errors(after.angles_deg, after.flags, truth).values()) < 1e-3
+    assert max(measured_errors(after.angles_deg, after.flags, truth).values()) < 1e-3
     unknown = calibrate_window(_window(body, 0.1, 0.9), Profile(), "tpose").apply(Profile())
     with pytest.raises(ValueError, match="not known yet"):
         yaw_reset(unknown, before)
@@ -340,7 +326,7 @@ def test_independent_headings_of_the_knee_tags_are_found_from_the_walk(seed: int
         if found is not None:
             solver, found_t = BodySolver(found), found_t or float(t)
         out = solver.solve(samples)
-        measured = _errors(out.angles_deg, out.flags, truth)
+        measured = measured_errors(out.angles_deg, out.flags, truth)
         if found_t is None:
             assert not measured
         elif len(heading.unknown) == 15 - 4:
