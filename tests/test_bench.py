@@ -155,3 +155,17 @@ def test_the_demo_script_moves_as_a_body_can() -> None:
              for a, b in itertools.pairwise(frames)]  # fmt: skip
     assert max(steps) < 5.0  # degrees in 10 ms
     assert max(frames[450].values()) > 20  # and it does move: the knee bend
+
+
+def test_tiny_drift_benchmark_writes_its_tables(tmp_path: Path) -> None:
+    """`bench --only drift` runs (a few emulated seconds here, ten minutes for real):
+    every facing around the circle, and the drift with and without correction."""
+    from bodynet.bench import drift
+
+    result = drift.run(tmp_path, minutes=0.1)
+    assert len(result["headings"]) == 12  # every 30 deg
+    assert [d["corrected"] for d in result["drift"]] == [False, True]
+    assert all(d["groups"] for d in result["drift"])
+    table = (tmp_path / "drift.md").read_text()
+    assert table.startswith("Subject facing every 30 deg")
+    assert json.loads((tmp_path / "drift.json").read_text())["headings"] == result["headings"]
