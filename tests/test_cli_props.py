@@ -560,6 +560,103 @@ def test_a_garbled_can_log_line_costs_only_itself(
     assert "skipped garbled " + stats.bad_places[0] in err
 
 
+def _frames_log(suffix: str, path: Path) -> tuple[list[can.Message], list[str]]:
+    """A log of the arm capture's frames in a python-can text format: the frames and
+    the file's lines."""
+    from bodynet.nodes.captures import CaptureStats, can_log_messages
+
+    good = [m for m in can_log_messages(DATA / "smartsuit_arm.log", CaptureStats())
+            if not m.is_error_frame and not m.is_remote_frame][:40]  # fmt: skip
+    with can.Logger(path) as w:
+        for m in good:
+            w.on_message_received(m)
+    return good, path.read_text().splitlines(keepends=True)
+
+
+def _frame_key(m: can.Message) -> tuple[int, bytes]:
+    return m.arbitration_id, bytes(m.data)
+
+
+@settings(max_examples=400 if LONG else 60, deadline=None)
+@given(suffix=st.sampled_from([".log", ".asc", ".trc", ".csv"]), data=st.data())
+def test_any_garbled_can_log_line_is_counted_or_kept_and_costs_only_itself(
+    suffix: str, data: st.DataObject, tmp_path_factory: pytest.TempPathFactory
+) -> None:
+    """python-can's .asc and .trc readers pass over a line that does not look like a
+    frame without a word: any damage to one frame line (a character changed, added,
+    removed, the line cut) leaves every other frame, and the damaged line is a frame,
+    counted by its number, or one of the format's own non-frame lines."""
+    from bodynet.nodes.captures import CaptureStats, can_log_messages
+    from bodynet.nodes.sources import can_transport
+
+    log = tmp_path_factory.mktemp("garbled") / f"arm{suffix}"
+    good, lines = _frames_log(suffix, log)
+    ids = {f"{m.arbitration_id:X}" for m in good}
+    frame_lines = [i for i, line in enumerate(lines)
+                   if any(x in line.upper() for x in ids)]  # fmt: skip
+    assert len(frame_lines) == len(good)
+    at = data.draw(st.sampled_from(frame_lines[1:-1] or frame_lines), label="line")
+    text = lines[at].rstrip("\n")
+    i = data.draw(st.integers(0, len(text)), label="where")
+    how = data.draw(st.sampled_from(["change", "insert", "delete", "cut"]), label="how")
+    char = data.draw(st.characters(exclude_characters="\r\n\x0b\x0c\x1c\x1d\x1e\x85\u2028\u2029"),
+                     label="char")  # fmt: skip
+    damaged = {"change": text[:i] + char + text[i + 1 :], "insert": text[:i] + char + text[i:],
+               "delete": text[:i] + text[i + 1 :], "cut": text[:i]}[how]  # fmt: skip
+    lines[at] = damaged + "\n"
+    log.write_text("".join(lines), encoding="utf-8")
+    stats = CaptureStats()
+    kept = [_frame_key(m) for m in can_log_messages(log, stats)]
+    others = [_frame_key(m) for m in good]
+    # the damaged line's own frame, if it still reads as one, is somewhere in kept
+    assert len(kept) in (len(good) - 1, len(good)), (damaged, stats.summary())
+    missing = list(others)
+    for k in kept:
+        if k in missing:
+            missing.remove(k)
+    assert len(missing) <= 1, (damaged, stats.summary())  # only the damaged line's frame
+    if len(kept) == len(good) - 1:  # the damaged line gave no frame: told, or not a frame
+        reader = can.TRCReader(io.StringIO(log.read_text(encoding="ascii", errors="replace")))
+        if suffix == ".trc":
+            reader._extract_header()
+        known = {
+            ".asc": lambda line: can_transport._asc_known(line, None),
+            ".trc": lambda line: can_transport._trc_known(line, reader),
+            ".log": lambda line: not line.strip(),
+            ".csv": lambda line: False,
+        }[suffix]
+        assert stats.bad_places == [f"line {at + 1}"] or (
+            not stats.bad_places and known(damaged.encode("ascii", "replace").decode())
+        ), (damaged, stats.summary())
+    else:
+        assert stats.bad_places == [], (damaged, stats.summary())
+
+
+def test_an_asc_log_s_events_pass_and_its_garbled_frames_are_told(tmp_path: Path) -> None:
+    """A Vector .asc log with no "internal events logged" line (python-can's reader
+    drops the first frame after such a header), bus events that are not frames, and
+    frame lines garbled past python-can's recognition (silently skipped by it)."""
+    from bodynet.nodes.captures import CaptureStats, can_log_messages
+
+    frame = " 0.0{}0000 1  6FF0{}x          Rx   d 8 00 01 02 03 04 05 06 07\n"
+    log = tmp_path / "vector.asc"
+    log.write_text("date Thu Dec 03 21:18:51.770 2026\nbase hex  timestamps absolute\n"
+                   + frame.format(0, 1) + frame.format(1, 2)
+                   + " 0.020000 1 Statistic: D 0 R 0 XD 0 XR 0 E 0 O 0 B 0.00%\n"
+                   + " 0.020000 CAN 1 Status:chip status error active\n"
+                   + " 0.030000 SV: 2 0 1 ::a::b = 3\n"
+                   + frame.format(4, 3).replace("Rx", "Rq")  # line 8
+                   + frame.format(5, 4).replace("0.050000", "0.05Z000")  # line 9
+                   + frame.format(6, 5).replace(" 1  ", " I  ")  # line 10
+                   + frame.format(7, 6) + "End TriggerBlock\n")  # fmt: skip
+    assert len(list(can.ASCReader(str(log)))) == 2  # python-can's own reader alone
+    stats = CaptureStats()
+    kept = [m.arbitration_id for m in can_log_messages(log, stats)]
+    assert kept == [0x6FF01, 0x6FF02, 0x6FF06]
+    assert stats.bad_places == ["line 8", "line 9", "line 10"]
+    assert "skipped garbled line 8, line 9, line 10" in stats.summary()
+
+
 # -- full disks and closed descriptors (a process of their own) -------------------------
 
 
