@@ -136,7 +136,7 @@ def _reference_arg(text: str) -> tuple[str, str]:
 
 def add_heading_args(p: argparse.ArgumentParser) -> None:
     """The calibration pose and what is known of the tags' heading (profile overrides)."""
-    from bodynet.core.subject import HEADING_MODES, POSES
+    from bodynet.core.subject import DRIFT_MODES, HEADING_MODES, POSES
 
     p.add_argument("--pose", choices=POSES, default=None,
                    help="the still calibration pose: tpose (arms out, palms down) or npose "
@@ -155,6 +155,11 @@ def add_heading_args(p: argparse.ArgumentParser) -> None:
         metavar="TAG:AXIS",
         help="declared: this tag's axis pointed forward in the pose, e.g. sacrum:+z",
     )
+    p.add_argument("--drift", choices=DRIFT_MODES, default=None,
+                   help="which joints hold drifting tags' headings: hinges (knees, ankles, "
+                        "elbows, wrists), joints (and the hips', shoulders', lumbar's and "
+                        "neck's twist: 6-axis tags), off; auto: joints with --heading "
+                        "independent, else hinges (default: the profile's, auto)")  # fmt: skip
 
 
 def with_heading_args(profile: Profile, args: argparse.Namespace) -> Profile:
@@ -168,6 +173,8 @@ def with_heading_args(profile: Profile, args: argparse.Namespace) -> Profile:
         changes["heading_reference"] = args.heading_reference
     if getattr(args, "pose", None):
         changes["pose"] = args.pose
+    if getattr(args, "drift", None):
+        changes["drift"] = args.drift
     return replace(profile, **changes) if changes else profile  # type: ignore[arg-type]
 
 

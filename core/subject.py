@@ -19,6 +19,7 @@ sf = [1.0, 1.0, 1.007, 1.084, 1.161, 1.261]
 
 pose = "tpose"         # the calibration pose: tpose or npose
 heading = "auto"       # auto: found from motion; fixed: the subject faced +X of the tags' frame
+drift = "auto"         # which joints hold drifting tags' headings: auto, joints, hinges, off
 
 [imu_mounts]           # sensor orientation in its segment (w, x, y, z), from calibration
 "body/arm/left/upperarm/raw" = [1.0, 0.0, 0.0, 0.0]
@@ -62,6 +63,15 @@ POSES = ("tpose", "npose")
 #: thigh and shank tag's heading is found from the knee's motion, the others stay
 #: unknown (flagged).
 HEADING_MODES = ("auto", "fixed", "independent")
+#: Which joints hold the tags' headings against drift (gateway/heading.py,
+#: ``JointDrift``). ``hinges``: the knees', ankles', elbows' and wrists'
+#: constraints (they hold at every instant). ``joints``: those and the three-dof
+#: joints' (hips, shoulders, lumbar, neck: their twist held at rest, averaging to
+#: the calibration pose's while moving, an assumption). ``auto``: ``joints`` for tags
+#: with references of their own (``independent`` heading: 6-axis tags, which drift),
+#: else ``hinges`` (tags sharing a reference do not drift apart: give ``joints`` for
+#: 6-axis tags reset together). ``off``: none.
+DRIFT_MODES = ("auto", "joints", "hinges", "off")
 #: Sensor axes a declared heading reference may name.
 AXES = ("+x", "-x", "+y", "-y", "+z", "-z")
 
@@ -97,6 +107,7 @@ class Profile:
     imu_headings: Mapping[str, float] = field(default_factory=dict)
     #: declared: (raw key, sensor axis such as "+z") that pointed forward in calibration
     heading_reference: tuple[str, str] | None = None
+    drift: str = "auto"  # DRIFT_MODES
     version: int = VERSION
 
     def __post_init__(self) -> None:
@@ -106,6 +117,8 @@ class Profile:
             raise ProfileError(
                 f"heading must be one of {', '.join(HEADING_MODES)}, not {self.heading!r}"
             )
+        if self.drift not in DRIFT_MODES:
+            raise ProfileError(f"drift must be one of {', '.join(DRIFT_MODES)}, not {self.drift!r}")
         if self.heading_reference is not None and self.heading_reference[1] not in AXES:
             raise ProfileError(
                 f"heading_reference axis must be one of {', '.join(AXES)}, "
@@ -118,6 +131,14 @@ class Profile:
     def heading_known(self, key: str) -> bool:
         """Whether the dofs a tag drives can be trusted about the vertical."""
         return self.heading == "fixed" or key in self.imu_headings
+
+    @property
+    def drift_joints(self) -> tuple[bool, bool]:
+        """Whether the hinge (and two-dof) joints, and the three-dof joints, hold
+        the tags' headings against drift (``drift``, see ``DRIFT_MODES``)."""
+        if self.drift == "auto":
+            return True, self.heading == "independent"
+        return self.drift != "off", self.drift == "joints"
 
     def heading_of(self, key: str) -> float:
         """The tag's heading reference (deg; 0 when unknown, or ``fixed`` and not
@@ -147,6 +168,7 @@ class Profile:
             "imu_mounts": {k: list(q) for k, q in sorted(self.imu_mounts.items())},
             "pose": self.pose,
             "heading": self.heading,
+            **({"drift": self.drift} if self.drift != "auto" else {}),
             "imu_headings": dict(sorted(self.imu_headings.items())),
             "trackers": dict(sorted(self.trackers.items())),
             **({"heading_reference": {"key": self.heading_reference[0],
@@ -192,6 +214,7 @@ class Profile:
             return cls(
                 pose=str(data.get("pose", "tpose")),
                 heading=str(data.get("heading", "auto")),
+                drift=str(data.get("drift", "auto")),
                 imu_headings=MappingProxyType(
                     {str(k): float(v) for k, v in data.get("imu_headings", {}).items()}
                 ),

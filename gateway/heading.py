@@ -525,6 +525,8 @@ class BodyHeading:
 
     def __init__(self, profile: Profile) -> None:
         self.profile = profile
+        #: the joints' hold on drifting tags' headings, once they are known
+        self.drift: JointDrift | None = JointDrift(profile) if profile.imu_mounts else None
         self.unknown = sorted(k for k in profile.imu_mounts if not profile.heading_known(k))
         independent = profile.heading == "independent"
         self.finder = HingeHeading(profile) if self.unknown and not independent else None
@@ -569,6 +571,23 @@ class BodyHeading:
         self.unknown = []
         self.how = "found"
         return self.profile
+
+    def step(self, t_s: float, samples: Mapping[Site, Any],
+             current: Profile) -> tuple[str, Profile] | None:  # fmt: skip
+        """One solved tick (site -> RawSample; ``current``: the profile it was solved
+        with), the same for the live gateway and ``bodynet process``: while the
+        heading is searched, ``("found", profile)`` once it is (a new calibration:
+        a new solver, the profile saved); once known, ``("turned", profile)`` when
+        the joints' constraints turn drifting tags' headings (the same body:
+        ``BodySolver.set_profile``); else None."""
+        if self.searching:
+            found = self.update(t_s, samples)
+            return None if found is None else ("found", found)
+        if self.drift is not None and self.drift.pairs:
+            turns = self.drift.update(t_s, samples, current)
+            if turns:
+                return "turned", turned_headings(current, turns)
+        return None
 
     def state(self) -> dict[str, Any]:
         """Where the heading stands: ``state`` (fixed, declared, found, unknown or
@@ -627,9 +646,26 @@ DRIFT_JOINTS = (
     ("elbow", "upperarm", "forearm", 1, 2, "perpendicular"),
     ("wrist", "forearm", "hand", 0, 1, "perpendicular"),
 )
+#: The three-dof joints (joint, parent segment, child segment; "left_"/"right_" are
+#: put before the sided ones), each child tag held to its parent's by the joint's
+#: twist about the vertical (:class:`JointDrift`). The pelvis is the root: its tag's
+#: drift turns the whole body about the vertical, which no joint angle sees.
+TWIST_JOINTS = (
+    ("hip", "pelvis", "thigh"),
+    ("lumbar", "pelvis", "thorax"),
+    ("neck", "thorax", "head"),
+    ("shoulder", "thorax", "upperarm"),
+)
 #: a perpendicular constraint's grip on the heading (|d(c.p)/d heading| at the
 #: answer) below this: the child's heading is not seen at that instant
 PERPENDICULAR_MIN = 0.3
+#: how each kind of constraint holds a child tag's heading (health's words)
+HOLD_WORDS = {
+    "parallel": "hinge axis",
+    "perpendicular": "two-dof joint's axes",
+    "twist": "three-dof joint's mean twist",
+    "rest": "three-dof joint held at rest",
+}
 
 
 class JointDrift:
@@ -643,36 +679,99 @@ class JointDrift:
     heading drifted turns its axis about the vertical away from where the
     constraint wants it, at every instant (no movement needed) when the axes
     are not vertical: the angle that puts it back is the child tag's heading
-    error against its parent's. :meth:`update` takes a tick's samples and
-    returns the small turns to add to the child tags' headings (each error
-    low-passed with ``tau_s``, so noise and soft tissue average out). Chained
-    (thigh, shank, foot; upper arm, forearm, hand), each tag is held to its
-    parent. What it cannot see: the three-dof joints (hips, shoulders, lumbar,
-    neck), so a drift of the thighs, upper arms, trunk and head against each
-    other stays."""
+    error against its parent's. Chained (thigh, shank, foot; upper arm,
+    forearm, hand), each tag is held to its parent.
+
+    A three-dof joint (hip, shoulder, lumbar, neck) allows every relative
+    orientation, so at one instant nothing tells its twist about the vertical
+    from the child tag's drift. Two things do over time (``TWIST_JOINTS``):
+
+    - **at rest** (both tags still for ``REST_S``), the joint does not move, so
+      whatever its twist, it stays: the twist at the start of the rest is held
+      (what turns it is drift), as qmt's heading correction does in stillness;
+    - **while moving**, the joint's twist about the vertical (the turn about the
+      vertical that best lays the child's axes onto the parent's, against that
+      in the calibration pose) averages out to the pose's: a gait, reaching or
+      bending swings the joints about horizontal axes and twists them both
+      ways. The child tag's heading follows that mean through a second-order
+      loop (``TWIST_TAU_S``) that also learns the tag's drift rate, so a steady
+      drift leaves no lag. What it cannot tell: a twist held while moving for
+      longer than about ``TWIST_TAU_S`` (walking with the head turned), which
+      it slowly takes for drift; health says which tags rest on this
+      assumption.
+
+    :meth:`update` takes a tick's samples and returns the small turns to add to
+    the child tags' headings."""
 
     #: it looks at most this often (drift is slow; a gateway solves 100 ticks a second)
     INTERVAL_S = 0.1
     #: and turns a tag's heading once the turn due to it has grown to this (each turn
     #: costs the solver its sites' set-up)
     MIN_TURN_DEG = 0.05
+    #: the three-dof joints' loop: its time constant (1 / natural frequency, critically
+    #: damped), and the low-pass of the twist it follows (a gait's twists average out)
+    TWIST_TAU_S = 30.0
+    TWIST_FILTER_S = 2.0
+    REST_FILTER_S = 0.5  # at rest: nothing to average out but the tags' noise
+    #: a tag that turned less than this in ``REST_S`` is at rest
+    REST_DEG = 2.0
+    REST_S = 1.0
+    #: the twist of a joint whose axes are this close to one another across the
+    #: vertical (|best-fit grip| below) is not seen
+    TWIST_GRIP_MIN = 0.5
 
-    def __init__(self, profile: Profile, tau_s: float = 5.0) -> None:
+    def __init__(self, profile: Profile, tau_s: float = 5.0, twist: bool | None = None) -> None:
+        """Which joints hold which tags: the profile's ``drift`` says (``twist``, when
+        given, whether the three-dof joints do, whatever it says)."""
         by_segment: dict[str, str] = {}
         for key, seg in _segments_of(profile.imu_mounts).items():
             by_segment.setdefault(seg, key)
+        hinges, twists = profile.drift_joints
+        twist = twists if twist is None else twist
         self.tau_s = tau_s
         self.pending = dict[str, float]()
         #: child key -> (joint name, parent key, parent axis, child axis, kind)
         self.pairs: dict[str, tuple[str, str, int, int, str]] = {}
-        for joint, parent, child, p_axis, c_axis, kind in DRIFT_JOINTS:
+        for joint, parent, child, p_axis, c_axis, kind in DRIFT_JOINTS if hinges else ():
             for side in ("left", "right"):
                 p, c = by_segment.get(f"{side}_{parent}"), by_segment.get(f"{side}_{child}")
                 if p is not None and c is not None:
                     self.pairs[c] = (f"{side}_{joint}", p, p_axis, c_axis, kind)
+        #: child key -> the joint's twist (deg) in the calibration pose
+        self.twist0: dict[str, float] = {}
+        if twist and profile.imu_mounts:
+            segments = pose_segments(profile)
+            for joint, parent, child in TWIST_JOINTS:
+                sided = child in ("thigh", "upperarm")
+                for side in ("left", "right") if sided else ("",):
+                    name = f"{side}_{child}" if sided else child
+                    p, c = by_segment.get(parent), by_segment.get(name)
+                    if p is None or c is None or c in self.pairs:
+                        continue
+                    self.pairs[c] = (f"{side}_{joint}" if sided else joint, p, -1, -1, "twist")
+                    self.twist0[c] = _twist(segments[parent], segments[name]) or 0.0
         self.error_deg = dict.fromkeys(self.pairs, 0.0)  # filtered, per child tag
         self.corrected_deg = dict.fromkeys(self.pairs, 0.0)  # in all
+        self.spread_deg = dict.fromkeys(self.pairs, 0.0)  # RMS of the error seen (filtered)
+        self.rate_deg_s = dict.fromkeys(self.twist0, 0.0)  # a twist-held tag's drift, learnt
+        self.holding = {k: kind for k, (_, _, _, _, kind) in self.pairs.items()}
+        self._rest_ref: dict[str, float] = {}  # child key -> the twist held at rest
+        #: tag -> (since, its orientation then, at rest)
+        self._anchor: dict[str, tuple[float, np.ndarray, bool]] = {}
         self._last_t: float | None = None
+
+    def _still(self, key: str, t_s: float, rot: np.ndarray) -> bool:
+        """Whether the tag ``key`` (its orientation ``rot`` in its own frame) is at
+        rest: it took ``REST_S`` or longer to turn its last ``REST_DEG`` (a drift of
+        its reference is no movement)."""
+        since, anchor, still = self._anchor.get(key, (t_s, rot, False))
+        if float(np.trace(anchor.T @ rot)) < 1 + 2 * math.cos(math.radians(self.REST_DEG)):
+            still = t_s - since >= self.REST_S - 1e-6
+            since, anchor = t_s, rot
+        elif t_s - since >= self.REST_S - 1e-6:
+            still = True
+        self._anchor[key] = (since, anchor, still)
+        return still
 
     def update(self, t_s: float, samples: Mapping[Site, Any],
                profile: Profile) -> dict[str, float]:  # fmt: skip
@@ -687,19 +786,36 @@ class JointDrift:
         gain = min(1.0, dt / self.tau_s)
         tags = {site.raw_key: s.reading.wxyz for site, s in samples.items()
                 if hasattr(s.reading, "wxyz")}  # fmt: skip
+        rots = {k: _quat_matrix(q) for k, q in tags.items()}
+        still = {k: self._still(k, t_s, r) for k, r in rots.items()} if self.twist0 else {}
         turns: dict[str, float] = {}
         for key, (_, parent_key, p_axis, c_axis, kind) in self.pairs.items():
             if key not in tags or parent_key not in tags:
                 continue
             if not (profile.heading_known(key) and profile.heading_known(parent_key)):
                 continue  # a heading not known yet is found, not held
-            p = self._segment(profile, parent_key, tags[parent_key])[:, p_axis]
-            c = self._segment(profile, key, tags[key])[:, c_axis]
-            error = _parallel_error(p, c) if kind == "parallel" else _perpendicular_error(p, c)
-            if error is None:
-                continue
-            self.error_deg[key] += gain * (error - self.error_deg[key])
-            turn = self.pending.get(key, 0.0) + gain * self.error_deg[key]
+            p = self._segment(profile, parent_key, rots[parent_key])
+            c = self._segment(profile, key, rots[key])
+            if kind == "twist":
+                turn = self._twist_turn(key, p, c, still[key] and still[parent_key], dt)
+                if turn is None:
+                    continue
+                turn += self.pending.get(key, 0.0)
+            else:
+                if kind == "parallel":
+                    error = _parallel_error(p[:, p_axis], c[:, c_axis])
+                else:
+                    error = _perpendicular_error(p[:, p_axis], c[:, c_axis])
+                if error is None and self.twist0 and still[key] and still[parent_key]:
+                    # the axes vertical: no grip; but at rest the joint holds its twist
+                    error = self._rest_error(key, p, c)
+                else:
+                    self._rest_ref.pop(key, None)
+                if error is None:
+                    continue
+                self.error_deg[key] += gain * (error - self.error_deg[key])
+                self.spread_deg[key] += gain * (error**2 - self.spread_deg[key])
+                turn = self.pending.get(key, 0.0) + gain * self.error_deg[key]
             if abs(turn) >= self.MIN_TURN_DEG:
                 turns[key] = turn
                 self.corrected_deg[key] += turn
@@ -707,12 +823,89 @@ class JointDrift:
             self.pending[key] = turn
         return turns
 
+    def _rest_error(self, key: str, p: np.ndarray, c: np.ndarray) -> float | None:
+        """A joint at rest: its twist's turn since the rest began (drift)."""
+        twist = _twist(p, c)
+        if twist is None:
+            return None
+        return _wrap(twist - self._rest_ref.setdefault(key, twist))
+
+    def _twist_turn(self, key: str, p: np.ndarray, c: np.ndarray, rest: bool,
+                    dt: float) -> float | None:  # fmt: skip
+        """A three-dof joint's turn of its child tag's heading over ``dt``: its
+        twist against the one held at rest, or (moving) the calibration pose's,
+        low-passed, through the loop that also learns the tag's drift rate."""
+        twist = _twist(p, c)
+        if twist is None:
+            return None
+        if rest:
+            ref = self._rest_ref.setdefault(key, twist)
+            self.holding[key] = "rest"
+        else:
+            self._rest_ref.pop(key, None)
+            ref = self.twist0[key]
+            self.holding[key] = "twist"
+        error = _wrap(twist - ref)
+        a = min(1.0, dt / (self.REST_FILTER_S if rest else self.TWIST_FILTER_S))
+        self.error_deg[key] += a * (error - self.error_deg[key])
+        self.spread_deg[key] += min(1.0, dt / self.TWIST_TAU_S) * (error**2 - self.spread_deg[key])
+        # critically damped: 2 w on the error, w^2 on its sum; at rest what it follows
+        # is no assumption, and it follows faster
+        w = 1.0 / (self.tau_s if rest else self.TWIST_TAU_S)
+        self.rate_deg_s[key] += w * w * self.error_deg[key] * dt
+        return (2.0 * w * self.error_deg[key] + self.rate_deg_s[key]) * dt
+
     @staticmethod
-    def _segment(profile: Profile, key: str, wxyz: QuatWxyz) -> np.ndarray:
+    def _segment(profile: Profile, key: str, rot: np.ndarray) -> np.ndarray:
         """The segment's orientation (body frame) as its tag measures it (plain
         arithmetic: a scipy Rotation costs tens of microseconds a call)."""
         mount = _quat_matrix(profile.imu_mounts[key])
-        return rz(-profile.heading_of(key)) @ _quat_matrix(wxyz) @ mount.T  # type: ignore[no-any-return]
+        return rz(-profile.heading_of(key)) @ rot @ mount.T  # type: ignore[no-any-return]
+
+    def segments(self, profile: Profile) -> dict[str, dict[str, Any]]:
+        """How well each tag's heading is known against the body's, by segment: the
+        joint and constraint that hold it (``held_by``, ``how``), ``unc_deg`` (about
+        two standard deviations: the error seen around the constraint, summed in
+        quadrature up the chain to the root; None where nothing holds the tag, whose
+        6-axis heading then drifts freely since calibration) and ``corrected_deg``."""
+        by_key = _segments_of(profile.imu_mounts)
+        unc: dict[str, float | None] = {}
+
+        def chain(key: str, depth: int = 0) -> float | None:
+            if key in unc:
+                return unc[key]
+            pair = self.pairs.get(key)
+            if pair is None or depth > 8:
+                # the root (the pelvis' tag, or a tag no joint reaches): nothing to
+                # hold it to; the pelvis' is the body's own heading
+                unc[key] = 0.0 if by_key.get(key) == "pelvis" else None
+                return unc[key]
+            up = chain(pair[1], depth + 1)
+            own = 2.0 * math.sqrt(max(self.spread_deg[key], 0.0))
+            unc[key] = None if up is None else round(math.hypot(up, max(own, 0.5)), 2)
+            return unc[key]
+
+        out: dict[str, dict[str, Any]] = {}
+        for key, seg in sorted(by_key.items(), key=lambda kv: kv[1]):
+            pair = self.pairs.get(key)
+            how = ("root" if seg == "pelvis" else "not held") if pair is None else (
+                HOLD_WORDS[self.holding[key]])  # fmt: skip
+            out[seg] = {"tag": key, "held_by": pair[0] if pair else None, "how": how,
+                        "unc_deg": chain(key),
+                        "corrected_deg": round(self.corrected_deg.get(key, 0.0), 2)}  # fmt: skip
+        return out
+
+
+def _twist(p: np.ndarray, c: np.ndarray) -> float | None:
+    """The twist (deg) about the vertical between two segment orientations: the
+    turn about the vertical that best lays ``c``'s axes onto ``p``'s (the
+    rotation nearest the horizontal block of ``c p^T``); None where that block
+    is near singular (the segments' axes across the vertical from one another)."""
+    m = c @ p.T
+    num, den = m[1, 0] - m[0, 1], m[0, 0] + m[1, 1]
+    if math.hypot(num, den) < JointDrift.TWIST_GRIP_MIN:
+        return None
+    return math.degrees(math.atan2(num, den))
 
 
 def _parallel_error(p: np.ndarray, c: np.ndarray) -> float | None:

@@ -51,9 +51,7 @@ from bodynet.gateway.frames import branch_views, pose_frame
 from bodynet.gateway.heading import (
     BodyHeading,
     CalibrationRefused,
-    JointDrift,
     calibrate_window,
-    turned_headings,
     yaw_reset,
 )
 from bodynet.gateway.shards import Share
@@ -116,8 +114,8 @@ class _Body:
         self.prefix = prefix
         self.profile_path = profile_path
         self.solver = BodySolver(profile)
-        self.heading = BodyHeading(profile)  # the tags' heading: known, or being found
-        self.drift: JointDrift | None = JointDrift(profile) if profile.imu_mounts else None
+        # the tags' heading: known, or being found; then held against drift
+        self.heading = BodyHeading(profile)
         self.last_output: BodyOutput | None = None
         self.latest: dict[Site, _Site] = {}
         self.alive: set[str] = set()
@@ -267,7 +265,6 @@ class _Body:
         """A new calibration: a new solver, heading state and, if it has a file, saved."""
         self.solver = BodySolver(profile)
         self.heading = heading or BodyHeading(profile)
-        self.drift = JointDrift(profile) if profile.imu_mounts else None
         if self.profile_path is not None:
             profile_file.save(profile, self.profile_path)
 
@@ -667,22 +664,22 @@ class Gateway:
 
     def _find_headings(self, work: Sequence[tuple[_Body, dict[Site, RawSample], object, object]],
                        now: float) -> None:  # fmt: skip
-        """Feed the bodies whose tags' heading is still unknown their tick; take a
-        heading once found (a new solver, the profile saved). Once known, the knees'
-        and the 2-dof joints' constraints keep the child tags' headings from drifting
-        (JointDrift)."""
+        """Each body's solved tick to its heading (``BodyHeading.step``, as
+        ``bodynet process`` does): while unknown, a heading once found (a new
+        solver, the profile saved); once known, the joints' constraints keep the
+        tags' headings from drifting (JointDrift: the hinge and two-dof joints,
+        and the three-dof joints' twist where the profile's ``drift`` says)."""
         for body, latest, _, _ in work:
-            if not body.heading.searching:
-                if body.drift is not None and body.drift.pairs:  # 6-axis drift (JointDrift)
-                    turns = body.drift.update(now, latest, body.solver.profile)
-                    if turns:
-                        with self._lock:
-                            body.solver.set_profile(turned_headings(body.solver.profile, turns))
+            step = body.heading.step(now, latest, body.solver.profile)
+            if step is None:
                 continue
-            found = body.heading.update(now, latest)
-            if found is not None:
-                with self._lock:
-                    body.set_profile(found, body.heading)
+            what, profile = step
+            with self._lock:
+                if what == "found":
+                    body.set_profile(profile, body.heading)
+                else:  # the joints' constraints turned drifting tags' headings
+                    body.solver.set_profile(profile)
+            if what == "found":
                 log.info("heading found: %s", body.heading.state())
 
     # --- the work loop -----------------------------------------------------------------
@@ -879,16 +876,19 @@ class Gateway:
                             "foreign_samples": self.foreign_samples}  # fmt: skip
         if body is not None:
             heading = body.heading.state()
-            if body.drift is not None and body.drift.pairs:
+            drift = body.heading.drift
+            if drift is not None and drift.pairs:
                 # how far the joints' constraints have turned each child tag's heading
                 # since calibration (6-axis drift); the other tags' drift is not corrected
                 heading["drift_corrected_deg"] = {k: round(v, 2) for k, v
-                                                  in body.drift.corrected_deg.items()}  # fmt: skip
+                                                  in drift.corrected_deg.items()}  # fmt: skip
                 # how well each tag's heading is held: by a joint's constraint, or not
                 # (a 6-axis tag's then drifts freely since calibration)
-                heading["held_by"] = {k: pair[0] for k, pair in body.drift.pairs.items()}
+                heading["held_by"] = {k: pair[0] for k, pair in drift.pairs.items()}
                 heading["not_held"] = sorted(set(body.solver.profile.imu_mounts)
-                                             - set(body.drift.pairs))  # fmt: skip
+                                             - set(drift.pairs))  # fmt: skip
+                # per segment: what holds its tag's heading and how well it is known
+                heading["segments"] = drift.segments(body.solver.profile)
             out["body"] = {"samples": body.samples, "ticks": body.ticks, "heading": heading}
             # sites by the source they come through, ids this version has no name for too
             with self._lock:

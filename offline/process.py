@@ -15,7 +15,9 @@ which the subject moved, too short, or missing a tag is refused
 (:class:`~bodynet.gateway.heading.CalibrationRefused`). Where the tags'
 heading is unknown (``auto``), a first pass finds it from a hinge's motion
 (gateway/heading.py), so that every tick is solved with it; if no hinge moves,
-the dofs the tags drive stay flagged ``uncalibrated``.
+the dofs the tags drive stay flagged ``uncalibrated``. Once known, the tags'
+headings are held against drift by the joints' constraints tick by tick, the
+same step as the live gateway's (``BodyHeading.step``).
 """
 
 from __future__ import annotations
@@ -133,6 +135,26 @@ def _solver(profile: Profile, topology: set[str], as_given: bool) -> BodySolver:
     return solver
 
 
+def _find_heading(heading: BodyHeading, ticks: Iterator[list[CapturedSample]]) -> None:
+    """The first pass: the tags' heading from a hinge's motion, if one moves."""
+    latest: dict[Site, RawSample] = {}
+    for tick in ticks:
+        for s in tick:
+            latest[s.site] = RawSample(s.reading, 0, 0)
+        heading.update(tick[-1].t_s, latest)
+        if not heading.searching:
+            break
+
+
+def _hold_drift(heading: BodyHeading, t_s: float, latest: Mapping[Site, RawSample],
+                solver: BodySolver) -> None:  # fmt: skip
+    """The tags' headings held against drift after a solved tick, the live gateway's
+    own step (the heading's search had the whole capture in the first pass)."""
+    step = None if heading.searching else heading.step(t_s, latest, solver.profile)
+    if step is not None and step[0] == "turned":
+        solver.set_profile(step[1])
+
+
 def process(path: Path, fmt: str, out: Path, profile: Profile | None = None,
             rate_hz: float | None = None, tick_hz: float = 100.0,
             tpose_s: float = 3.0, options: Mapping[str, Any] | None = None,
@@ -183,13 +205,8 @@ def process(path: Path, fmt: str, out: Path, profile: Profile | None = None,
             profile = calibrated.apply(profile, pose)
     heading = BodyHeading(profile)
     if heading.unknown:  # a first pass: the heading from a hinge's motion, if one moves
-        latest: dict[Site, RawSample] = {}
-        for tick in _ticks(source.read(path, fmt, CaptureStats(), rate_hz), 1.0 / tick_hz):
-            for s in tick:
-                latest[s.site] = RawSample(s.reading, 0, 0)
-            heading.update(tick[-1].t_s, latest)
-            if not heading.searching:
-                break
+        _find_heading(heading, _ticks(source.read(path, fmt, CaptureStats(), rate_hz),
+                                      1.0 / tick_hz))  # fmt: skip
     solver = _solver(heading.profile, topology, as_given)
     stats = CaptureStats()
     sink = McapSink(out)
@@ -210,6 +227,7 @@ def process(path: Path, fmt: str, out: Path, profile: Profile | None = None,
             ticks += 1
             t_ns = round(tick[-1].t_s * 1e9)
             frame = pose_frame(solver.solve(latest), ticks, [])
+            _hold_drift(heading, tick[-1].t_s, latest, solver)
             sink.write_pose(keys.pose_key(), frame, t_ns)
             for branch, view in branch_views(frame, BRANCHES).items():
                 sink.write_pose(keys.pose_key(branch), view, t_ns)

@@ -159,12 +159,13 @@ def test_the_demo_script_moves_as_a_body_can() -> None:
 
 def test_tiny_drift_benchmark_writes_its_tables(tmp_path: Path) -> None:
     """`bench --only drift` runs (a few emulated seconds here, ten minutes for real):
-    every facing around the circle, and the drift with and without correction."""
+    every facing around the circle, and the drift without correction, with the hinge
+    and two-dof joints', and with the three-dof joints' too."""
     from bodynet.bench import drift
 
     result = drift.run(tmp_path, minutes=0.1)
     assert len(result["headings"]) == 12  # every 30 deg
-    assert [d["corrected"] for d in result["drift"]] == [False, True]
+    assert [d["corrected"] for d in result["drift"]] == [False, "hinges", True]
     assert all(d["groups"] for d in result["drift"])
     table = (tmp_path / "drift.md").read_text()
     assert table.startswith("Subject facing every 30 deg")

@@ -247,7 +247,7 @@ def test_joint_constraints_hold_the_shank_and_foot_tags_drift() -> None:
     profile = calibrate_window(_window(body, 0.2, 0.95), Profile(heading="fixed"),
                                "tpose").apply(Profile(heading="fixed"))  # fmt: skip
     solvers = {"plain": BodySolver(profile), "held": BodySolver(profile)}
-    knees = JointDrift(profile)
+    knees = JointDrift(profile, twist=False)  # the hinge and two-dof joints alone
     worst = {"plain": 0.0, "held": 0.0}
     for t in np.arange(1.0, 41.0, 0.1):
         samples, truth = _samples(body, float(t))
@@ -349,3 +349,104 @@ def test_independent_headings_of_the_knee_tags_are_found_from_the_walk(seed: int
         profile = turned_headings(profile, drift.update(float(t), _samples(body, float(t))[0],
                                                         profile))  # fmt: skip
     assert set(profile.imu_headings) == set(heading.profile.imu_headings)
+
+
+#: the three-dof joints' dofs (by name stem) and the tags they hold, by node number
+THREE_DOF = ("hip_", "shoulder_", "lumbar_", "neck_")
+SACRUM, CHEST, FOREHEAD, R_ARM, L_THIGH = 9, 2, 1, 4, 10
+
+
+def _drifting_run(routine: Routine, seconds: float, drift_per_min: float,
+                  drifts: Mapping[str, object]
+                  ) -> tuple[BodyEmulator, dict[str, float], dict[str, BodySolver]]:  # fmt: skip
+    """6-axis tags reset together, then drifting apart (each within +/- ``drift_per_min``):
+    each of ``drifts`` (name -> a JointDrift, or None) holds its own solver's tags
+    after every tick (10 Hz); the worst three-dof joint error after 20 s, by name."""
+    from bodynet.gateway.heading import turned_headings
+
+    realism = Realism(yaw_drift_deg_per_min=drift_per_min, headings=Headings.DRIFTING)
+    body = BodyEmulator(routine, imu_tags(), realism=realism, seed=5)
+    profile = calibrate_window(_window(body, 0.2, 0.95), Profile(heading="fixed"),
+                               "tpose").apply(Profile(heading="fixed"))  # fmt: skip
+    solvers = {name: BodySolver(profile) for name in drifts}
+    worst = dict.fromkeys(drifts, 0.0)
+    for t in np.arange(1.0, 1.0 + seconds, 0.1):
+        samples, truth = _samples(body, float(t))
+        for name, solver in solvers.items():
+            out = solver.solve(samples)
+            errors = measured_errors(out.angles_deg, out.flags, truth)
+            if t > 20.0:
+                mine = [e for n, e in errors.items() if n.startswith(THREE_DOF)]
+                worst[name] = max(worst[name], *mine)
+            drift = drifts[name]
+            if drift is not None:
+                turns = drift.update(float(t), samples, solver.profile)  # type: ignore[attr-defined]
+                if turns:
+                    solver.set_profile(turned_headings(solver.profile, turns))
+    return body, worst, solvers
+
+
+def test_three_dof_joints_hold_their_tags_drift_while_walking() -> None:
+    """Walking 90 s with 6-axis tags drifting apart (up to 5 deg/min each): the
+    hips', shoulders', lumbar's and neck's twist holds each thigh, upper arm,
+    chest and head tag to its parent's heading, the loop learning each tag's
+    drift rate against its parent (the emulator's truth), and the three-dof
+    joints stay within 3 deg; with the hinges alone they do not."""
+    from bodynet.gateway.heading import JointDrift
+    from bodynet.nodes.motion import ROUTINES
+
+    walk = ROUTINES["walk"].angles
+    still = dict(CALIBRATION_POSES["tpose"])
+    routine = Routine("pose-then-walk", "", lambda t: still if t < 1.0 else walk(t - 1.0))
+    profile = Profile(heading="fixed", drift="joints")
+    body = BodyEmulator(routine, imu_tags(), realism=Realism(), seed=5)
+    cal = calibrate_window(_window(body, 0.2, 0.95), profile, "tpose").apply(profile)
+    held, hinges = JointDrift(cal), JointDrift(cal, twist=False)
+    assert {p[0] for p in held.pairs.values()} >= {"left_hip", "right_shoulder", "lumbar", "neck"}
+    body, worst, _ = _drifting_run(routine, 90.0, 5.0, {"held": held, "hinges": hinges})
+    assert worst["held"] <= 3.0, worst
+    assert worst["hinges"] > 2 * worst["held"], worst
+    rates = body.drift_deg_per_min
+    # each tag is held to its parent's, which is held to its own: to the pelvis' in the end
+    for child, key in ((L_THIGH, "body/leg/left/thigh/raw"),
+                       (R_ARM, "body/arm/right/upperarm/raw"),
+                       (CHEST, "body/trunk/mid/chest/raw"),
+                       (FOREHEAD, "body/trunk/mid/forehead/raw")):  # fmt: skip
+        relative = rates[child] - rates[SACRUM]  # deg/min, the truth
+        # the rate, learnt slowly by design (a 30 s loop): most of it after 90 s
+        learnt = held.rate_deg_s[key] * 60.0
+        assert learnt == pytest.approx(relative, abs=0.3 + 0.3 * abs(relative)), key
+        assert held.corrected_deg[key] == pytest.approx(1.5 * relative, abs=1.0), key  # 90 s
+    segments = held.segments(cal)
+    assert segments["pelvis"]["how"] == "root"
+    assert segments["left_thigh"]["held_by"] == "left_hip"
+    assert segments["left_shank"]["held_by"] == "left_knee"
+    assert 0.0 < segments["left_thigh"]["unc_deg"] <= segments["left_shank"]["unc_deg"]
+
+
+def test_a_twist_held_at_rest_is_kept_while_the_tags_drift() -> None:
+    """The subject turns the trunk, head and arms and stands still for a minute, the
+    6-axis tags drifting at up to 10 deg/min: at rest a three-dof joint does not
+    move, so its twist is held as it was and the drift is taken out (within
+    3 deg); without that (the mean twist alone) the held twist is taken for drift."""
+    from bodynet.gateway.heading import JointDrift
+
+    still = dict(CALIBRATION_POSES["tpose"])
+    twisted = {"lumbar_rotation_deg": 25.0, "neck_rotation_deg": 35.0,
+               "left_hip_rotation_deg": 15.0, "left_shoulder_rotation_deg": 30.0}  # fmt: skip
+    routine = Routine("pose-then-twist", "", keyframes(
+        [(0.0, still), (1.0, still), (3.0, twisted)], loop=False))  # fmt: skip
+    profile = Profile(heading="fixed", drift="joints")
+    body = BodyEmulator(routine, imu_tags(), realism=Realism(), seed=5)
+    cal = calibrate_window(_window(body, 0.2, 0.95), profile, "tpose").apply(profile)
+
+    class MeanTwistOnly(JointDrift):
+        REST_S = math.inf
+
+    held = JointDrift(cal)
+    _, worst, _ = _drifting_run(routine, 60.0, 10.0, {"held": held, "mean": MeanTwistOnly(cal),
+                                                      "none": None})  # fmt: skip
+    assert worst["held"] <= 3.0, worst
+    assert worst["mean"] > 10.0, worst
+    assert worst["none"] > 5.0, worst
+    assert held.holding["body/trunk/mid/chest/raw"] == "rest"

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 import struct
 import threading
 import time
@@ -34,24 +35,30 @@ def frame_of(msg: can.Message) -> CanFrame:
 
 
 class _Lines:
-    """A text file's lines for a python-can reader, numbered, so that a line
-    the reader cannot parse is reported by its number; ``again`` hands out a
-    line once more without counting it (a reader that skips a header line)."""
+    """A text file's lines for a python-can reader, numbered. Every line handed
+    out waits in ``pending`` until the reader yields a message (that line gave
+    it; the ones before were skipped) or raises (that line was bad): so a line
+    a reader passes over without a word is still seen. ``again`` hands a line
+    out once more (a reader that swallowed it while looking for its header)."""
 
     def __init__(self, f: IO[str]) -> None:
         self._f = f
         self.number = 0
-        self.again: str | None = None
+        self.again: tuple[int, str] | None = None
+        self.pending: list[tuple[int, str]] = []
 
     def __iter__(self) -> _Lines:
         return self
 
     def __next__(self) -> str:
         if self.again is not None:
-            line, self.again = self.again, None
+            self.pending.append(self.again)
+            line = self.again[1]
+            self.again = None
             return line
         line = next(self._f)
         self.number += 1
+        self.pending.append((self.number, line))
         return line
 
     def readline(self) -> str:
@@ -59,6 +66,12 @@ class _Lines:
             return next(self)
         except StopIteration:
             return ""
+
+    def take(self, last_used: bool) -> list[tuple[int, str]]:
+        """The lines handed out since the last call that gave no message (all
+        but the last one when ``last_used``: it gave a message or was bad)."""
+        pending, self.pending = self.pending, []
+        return pending[:-1] if last_used and pending else pending
 
     def close(self) -> None:
         self._f.close()
@@ -78,10 +91,82 @@ _TEXT_READERS: dict[str, type] = {
     ".csv": can.CSVReader,
 }
 
+# -- lines a reader passes over: the format's own non-frame lines, or garbled ---------
+#
+# python-can's .asc and .trc readers skip, without a word, every line that is
+# not a frame they read: comments and events of the format (bus statistics, a
+# chip status, a system variable...), but also a frame line garbled past
+# recognition (a timestamp "1.0Z0", a direction "Rq"). Each line a reader
+# passed over is looked at here: one of the format's own non-frame lines is
+# left alone; any other is counted as garbled, with its line number.
+
+_ASC_HEADER = re.compile(  # the header lines python-can's ASCReader looks for, and comments
+    r"(date\s+\w+\s|base\s+(hex|dec)|(no)?\s*internal\s+events\s+logged|//"
+    r"|end\s+triggerblock)",
+    re.IGNORECASE,
+)
+_ASC_EVENT_TIME = re.compile(r"\d+\.\d+\s+(?P<rest>.*)", re.ASCII)
+#: an event on a CAN channel that is not a frame: "1 Statistic: D 0 R 0 ...", "1 Status:..."
+_ASC_CHANNEL_EVENT = re.compile(r"\d+\s+([A-Za-z]\w*:|OverloadFrame\b)", re.ASCII)
+#: the shape of a frame: "<channel> <id> Rx|Tx ..."
+_ASC_FRAME_SHAPE = re.compile(r"\S+\s+\S+\s+(Rx|Tx)\b", re.ASCII)
+
+
+def _asc_known(line: str, reader: object) -> bool:
+    """An .asc line python-can skips on purpose: blank, a comment, a header or
+    trigger block line, the start of measurement, a bus's event that is not a
+    frame (statistics, a status), or an event of something else than a CAN
+    channel (a system variable "SV:", "J1939TP", a log trigger, LIN...)."""
+    text = line.strip()
+    if not text or _ASC_HEADER.match(text) or can.io.asc.ASC_TRIGGER_REGEX.match(text):
+        return True
+    timed = _ASC_EVENT_TIME.match(text)
+    if timed is None:
+        return False
+    rest = timed["rest"]
+    if rest.startswith("Start of measurement") or _ASC_CHANNEL_EVENT.match(rest):
+        return True
+    # an event of no CAN channel: a word first, unless the line is frame-shaped
+    first = rest.split(None, 1)[0] if rest else ""
+    return first[:1].isalpha() and first != "CANFD" and not _ASC_FRAME_SHAPE.match(rest)
+
+
+#: PCAN trace record types that are not frames (PEAK's TRC format 1.1 to 2.1):
+#: error frames, error counter and status changes, events, bus warnings
+_TRC_NOT_FRAMES = {"ER", "EC", "ST", "EV", "Warng", "Error"}
+
+
+def _trc_known(line: str, reader: can.TRCReader) -> bool:
+    """A .trc line python-can skips on purpose: blank, a ``;`` comment, or a
+    record of a type that is not a frame (``ST``, ``ER``...), or a 1.0 bus
+    information line (id FFFFFFFF)."""
+    text = line.strip()
+    if not text or text.startswith(";"):
+        return True
+    cols = text.split()
+    version = reader.file_version
+    try:
+        if version >= can.io.trc.TRCFileVersion.V2_0:
+            kind = cols[reader.columns["T"]]
+        elif version == can.io.trc.TRCFileVersion.V1_3:
+            kind = cols[3]
+        elif version == can.io.trc.TRCFileVersion.V1_1:
+            kind = cols[2]
+        else:
+            return cols[2] == "FFFFFFFF"
+    except (IndexError, KeyError):
+        return False
+    return kind in _TRC_NOT_FRAMES
+
+
+def _csv_known(line: str, number: int) -> bool:
+    return number == 1  # its header
+
 
 def can_log_messages(path: Path, stats: CaptureStats) -> Iterator[can.Message]:
     """python-can's messages of a log (candump ``.log``, ``.asc``, ``.trc``,
-    ``.csv``, ``.blf``); a line (or BLF object) it cannot parse is counted with
+    ``.csv``, ``.blf``); a line (or BLF object) it cannot parse, or passes over
+    when it is not one of its format's own non-frame lines, is counted with
     its line number (byte offset) and skipped, and the lines after it are read.
 
     python-can's readers stop at the first line they cannot parse: here the
@@ -106,11 +191,37 @@ def can_log_messages(path: Path, stats: CaptureStats) -> Iterator[can.Message]:
         reader = reader_type(lines)
         if suffix == ".trc":  # its own parser drops a short line silently: count it
             reader._parse_line = _strict_trc(reader)
+        if suffix == ".asc":
+            reader._extract_header = _asc_header(reader, lines)
+
+        def passed_over(skipped: list[tuple[int, str]]) -> None:
+            for number, line in skipped:
+                if not number:
+                    continue  # a line handed out again: not the file's
+                if suffix == ".asc" and _asc_known(line, reader):
+                    continue
+                if suffix == ".trc" and _trc_known(line, reader):
+                    continue
+                if suffix == ".csv" and _csv_known(line, number):
+                    continue
+                if suffix == ".log" and not line.strip():
+                    continue
+                where = f"line {number}"
+                shown = line.strip()[:60]
+                stats.count(Rejected(Reason.GARBAGE,
+                                     f"{path.name} {where}: not a frame python-can "
+                                     f"reads: {shown!r}"))  # fmt: skip
+                stats.bad_places.append(where)
+
         while True:
             try:
-                yield from reader
+                for msg in reader:
+                    passed_over(lines.take(last_used=True))
+                    yield msg
+                passed_over(lines.take(last_used=False))
                 return
             except _PARSE_ERRORS as exc:
+                passed_over(lines.take(last_used=True))
                 where = f"line {lines.number}" if lines.number else "its header"
                 stats.count(Rejected(Reason.GARBAGE, f"{path.name} {where}: {exc}"))
                 stats.bad_places.append(where)
@@ -119,7 +230,23 @@ def can_log_messages(path: Path, stats: CaptureStats) -> Iterator[can.Message]:
             # on again from the next line, without reading a header again
             reader._extract_header = lambda: None
             if suffix == ".csv":
-                lines.again = "header\n"  # the reader skips a first (header) line
+                lines.again = (0, "header\n")  # the reader skips a first (header) line
+
+
+def _asc_header(reader: can.ASCReader, lines: _Lines):  # type: ignore[no-untyped-def]
+    """python-can's header reader, but the first line after the header (which
+    it reads to know the header has ended, and drops) is handed out again."""
+    extract = reader._extract_header
+
+    def header() -> None:
+        extract()
+        if lines.pending:
+            number, line = lines.pending[-1]
+            if not re.match(r"(no)?\s*internal\s+events\s+logged", line.strip(), re.I):
+                lines.pending.pop()
+                lines.again = (number, line)
+
+    return header
 
 
 def _strict_trc(reader: can.TRCReader):  # type: ignore[no-untyped-def]

@@ -1,0 +1,92 @@
+"""What a long recording keeps in memory (docs/benchmarks.md, "Memory over an hour")."""
+
+from __future__ import annotations
+
+import io
+from pathlib import Path
+
+import numpy as np
+import pytest
+from mcap.reader import make_reader
+from mcap.writer import CompressionType, Writer
+from scipy.spatial.transform import Rotation
+
+from bodynet.clients.mcap_store import McapSink, PackedChunkIndexes, pack_chunk_indexes, read_raw
+from bodynet.core.messages import Quat, RawSample, Source
+
+
+def _write(pack: bool) -> tuple[bytes, PackedChunkIndexes | None]:
+    out = io.BytesIO()
+    writer = Writer(out, chunk_size=400, compression=CompressionType.ZSTD)
+    packed = pack_chunk_indexes(writer) if pack else None
+    writer.start(profile="", library="test")
+    schema = writer.register_schema("s", "jsonschema", b"{}")
+    channels = [writer.register_channel(f"body/t{k}/raw", "json", schema) for k in range(5)]
+    for i in range(300):
+        writer.add_message(channels[i * 7 % 5], 1000 + i, b'{"n": %d}' % i, 1000 + i)
+    writer.finish()
+    return out.getvalue(), packed
+
+
+def test_packed_chunk_indexes_write_the_same_file() -> None:
+    """The summary made from packed chunk indexes is the writer's own, byte for byte."""
+    plain, _ = _write(pack=False)
+    packed_file, packed = _write(pack=True)
+    assert packed is not None
+    assert packed_file == plain
+    summary = make_reader(io.BytesIO(packed_file)).get_summary()
+    assert summary is not None
+    assert len(summary.chunk_indexes) == len(packed) > 10
+    messages = list(make_reader(io.BytesIO(packed_file)).iter_messages(log_time_order=False))
+    assert len(messages) == 300
+
+
+def test_packing_refuses_a_writer_that_has_started_chunks() -> None:
+    out = io.BytesIO()
+    writer = Writer(out, chunk_size=10)
+    writer.start()
+    schema = writer.register_schema("s", "jsonschema", b"{}")
+    channel = writer.register_channel("t", "json", schema)
+    writer.add_message(channel, 1, b"x" * 20, 1)
+    writer.add_message(channel, 2, b"y" * 20, 2)  # the first chunk is closed
+    assert pack_chunk_indexes(writer) is None  # its index would be lost from the summary
+    writer.finish()
+
+
+def test_the_recorders_sink_packs_its_chunk_indexes(tmp_path: Path) -> None:
+    path = tmp_path / "a.mcap"
+    sink = McapSink(path, chunk_size=1024)
+    for i in range(200):
+        sample = RawSample(Quat(3, (1.0, 0.0, 0.0, 0.0)), i, 10**9 + i * 10**7, Source.IMU_CENTRAL)
+        sink.write_raw("body/trunk/center/sacrum/raw", sample, sample.t_ns)
+    sink.close()
+    assert sink.chunk_indexes is not None
+    with path.open("rb") as f:
+        summary = make_reader(f).get_summary()
+    assert summary is not None
+    assert len(summary.chunk_indexes) == len(sink.chunk_indexes) > 1
+    assert [s.seq for _, _, s in read_raw(path)] == list(range(200))
+
+
+def test_the_solver_hands_pinocchio_column_major_matrices(monkeypatch: pytest.MonkeyPatch) -> None:
+    """eigenpy copies a row-major (C-ordered) matrix for ``pin.Quaternion`` and never
+    frees the copy (80 bytes a call, once a tick: the gateway's growth over an hour);
+    the solver's quaternions come from column-major matrices, with the same values."""
+    import pinocchio as pin
+
+    from bodynet.gateway import solver
+
+    rots = Rotation.random(50, random_state=3).as_matrix()  # (50, 3, 3), C-ordered
+    expected = [tuple(np.roll(r.as_quat(canonical=True), 1)) for r in Rotation.from_matrix(rots)]
+    made = pin.Quaternion
+    given: list[bool] = []
+
+    def quaternion(*args: object) -> object:
+        if len(args) == 1:
+            given.append(bool(np.asarray(args[0]).flags.f_contiguous))
+        return made(*args)
+
+    monkeypatch.setattr(pin, "Quaternion", quaternion)
+    got = [solver._quat_wxyz(r) for r in rots]  # slices of a C-ordered stack, as in a tick
+    assert given == [True] * len(rots)
+    np.testing.assert_allclose(got, expected, atol=1e-12)
