@@ -34,6 +34,9 @@ def _profile(path: Path | None) -> Profile:
 
 
 def cmd_gateway(args: argparse.Namespace) -> int:
+    from bodynet.session.memory import limit_malloc_arenas
+
+    limit_malloc_arenas()  # before any thread (numpy's, Zenoh's) takes an arena of its own
     from bodynet.cli.nodes import stop_on_signals
     from bodynet.gateway.service import Gateway
 
