@@ -916,30 +916,41 @@ class JointDrift:
         """How well each tag's heading is known against the body's, by segment: the
         joint and constraint that hold it (``held_by``, ``how``), ``unc_deg`` (about
         two standard deviations: the error seen around the constraint, summed in
-        quadrature up the chain to the root; None where nothing holds the tag, whose
-        6-axis heading then drifts freely since calibration) and ``corrected_deg``."""
+        quadrature up the chain to the root) and ``corrected_deg``. The root is the
+        pelvis' tag, or every tag no joint holds where the tags share a reference
+        that does not drift (the profile's ``drift`` holds no three-dof joint):
+        known to 0 against the body's frame they define. Where tags drift (6-axis),
+        a tag no joint holds drifts freely since calibration: ``unc_deg`` None; and
+        None for a tag whose heading is not known yet."""
         by_key = _segments_of(profile.imu_mounts)
+        shared = not profile.drift_joints[1]
         unc: dict[str, float | None] = {}
 
         def chain(key: str, depth: int = 0) -> float | None:
             if key in unc:
                 return unc[key]
             pair = self.pairs.get(key)
-            if pair is None or depth > 8:
-                # the root (the pelvis' tag, or a tag no joint reaches): nothing to
-                # hold it to; the pelvis' is the body's own heading
-                unc[key] = 0.0 if by_key.get(key) == "pelvis" else None
-                return unc[key]
-            up = chain(pair[1], depth + 1)
-            own = 2.0 * math.sqrt(max(self.spread_deg[key], 0.0))
-            unc[key] = None if up is None else round(math.hypot(up, max(own, 0.5)), 2)
+            if not profile.heading_known(key):
+                unc[key] = None
+            elif pair is None or depth > 8:
+                unc[key] = 0.0 if shared or by_key.get(key) == "pelvis" else None
+            else:
+                up = chain(pair[1], depth + 1)
+                own = 2.0 * math.sqrt(max(self.spread_deg[key], 0.0))
+                unc[key] = None if up is None else round(math.hypot(up, max(own, 0.5)), 2)
             return unc[key]
 
         out: dict[str, dict[str, Any]] = {}
         for key, seg in sorted(by_key.items(), key=lambda kv: kv[1]):
             pair = self.pairs.get(key)
-            how = ("root" if seg == "pelvis" else "not held") if pair is None else (
-                HOLD_WORDS[self.holding[key]])  # fmt: skip
+            if not profile.heading_known(key):
+                how = "heading unknown"
+            elif pair is not None:
+                how = HOLD_WORDS[self.holding[key]]
+            elif seg == "pelvis":
+                how = "root"
+            else:
+                how = "shared reference" if shared else "not held"
             out[seg] = {"tag": key, "held_by": pair[0] if pair else None, "how": how,
                         "unc_deg": chain(key),
                         "corrected_deg": round(self.corrected_deg.get(key, 0.0), 2)}  # fmt: skip
