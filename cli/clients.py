@@ -115,7 +115,11 @@ def cmd_view(args: argparse.Namespace) -> int:
                 session.close()
         complete = True
     finally:
-        viewer.close(keep=complete)
+        try:
+            viewer.close(keep=complete)
+        except OSError as exc:  # the .rrd could not be put in place (a full disk)
+            print(f"bodynet view: {exc}", file=sys.stderr)
+            return 1
     bad = f", {viewer.bad} bad messages not shown" if viewer.bad else ""
     print(f"bodynet view: {n} poses{bad}" + (f", saved to {args.save}" if args.save else ""),
           file=sys.stderr)  # fmt: skip

@@ -12,10 +12,12 @@ explicit arguments.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import errno
 import importlib
 import json
 import logging
+import signal
 import sys
 from collections.abc import Callable, Collection, Sequence
 from dataclasses import dataclass
@@ -344,9 +346,17 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     func = getattr(args, "func", None) or resolve(args.command_run)
     try:
-        code: int = func(args)
+        with _offline_signals(args):
+            code: int = func(args)
         if sys.stdout is not None:
             sys.stdout.flush()
+    except (KeyboardInterrupt, SystemExit) as exc:  # SystemExit: outputs.Interrupted
+        signum = signal.SIGINT if isinstance(exc, KeyboardInterrupt) else getattr(exc, "signum", 0)
+        if not signum or not _is_offline(args):
+            raise
+        print(f"bodynet {args.command}: interrupted by {signal.Signals(signum).name}: "
+              "stopped; no output file is left half-written", file=sys.stderr)  # fmt: skip
+        return 128 + signum
     except SessionError as exc:
         print(f"bodynet {args.command}: {exc}", file=sys.stderr)
         return 2
@@ -360,6 +370,28 @@ def main(argv: Sequence[str] | None = None) -> int:
               file=sys.stderr)  # fmt: skip
         return 1
     return code
+
+
+def _is_offline(args: argparse.Namespace) -> bool:
+    """A command that works through files and stops when they are done (an
+    interrupt is not its way to end, as it is a live service's)."""
+    if args.command == "record":
+        return getattr(args, "salvage", None) is not None
+    if args.command == "view":
+        return getattr(args, "recording", None) is not None
+    return args.command in _OFFLINE
+
+
+_OFFLINE = {"decode", "process", "export", "report"}
+
+
+def _offline_signals(args: argparse.Namespace) -> contextlib.AbstractContextManager[None]:
+    """An offline command ends on SIGTERM as on Ctrl-C: unwinding, told."""
+    if not _is_offline(args):
+        return contextlib.nullcontext()
+    from bodynet.session.outputs import terminate_unwinds
+
+    return terminate_unwinds()
 
 
 #: Errors of writing to a stream (stdout): a closed pipe, a full device, a

@@ -15,9 +15,7 @@ from __future__ import annotations
 import json
 import logging
 import math
-import os
 import queue
-import tempfile
 import threading
 import time
 from collections import deque
@@ -34,6 +32,7 @@ from bodynet.core import keys
 from bodynet.core.codecs import pose
 from bodynet.core.errors import DecodeError
 from bodynet.core.skeleton import Skeleton, build_skeleton, rom
+from bodynet.session.outputs import PendingOutput
 
 GAUGES = (
     "left_shoulder_flexion_deg", "left_elbow_flexion_deg", "left_wrist_flexion_deg",
@@ -360,7 +359,7 @@ class Viewer:
     skeleton: Skeleton
     address: str = ""  # the web viewer's address, in web mode
     save: Path | None = None  # the .rrd, there once complete
-    part: Path | None = None  # where the .rrd is written meanwhile
+    part: PendingOutput | None = None  # the .rrd, until it is whole
     bad: int = 0  # messages not shown: not a pose, or a pose that cannot be drawn
     shown: int = 0  # poses logged
 
@@ -376,11 +375,8 @@ class Viewer:
         recs: list[rr.RecordingStream] = []
         address = ""
         part = None
-        if save is not None:  # mkstemp: a fresh file, mode 0600, that Rerun then fills
-            fd, name = tempfile.mkstemp(prefix=f".{save.name}.", suffix=".part",
-                                        dir=save.parent)  # fmt: skip
-            os.close(fd)
-            part = Path(name)
+        if save is not None:  # a fresh file, mode 0600, nameless until it is whole
+            part = PendingOutput(save)
         try:
             if mode != "none":
                 rec = rr.RecordingStream("bodynet", recording_id=recording_id)
@@ -395,7 +391,7 @@ class Viewer:
                 recs.append(rec)
             if part is not None:
                 rec = rr.RecordingStream("bodynet", recording_id=recording_id)
-                rec.save(part, default_blueprint=bp)
+                rec.save(part.path, default_blueprint=bp)
                 recs.append(rec)
             arcs, ticks, where, names = gauge_faces()
             for rec in recs:
@@ -409,7 +405,7 @@ class Viewer:
                                                     show_labels=True), static=True)  # fmt: skip
         except BaseException:
             if part is not None:
-                part.unlink(missing_ok=True)
+                part.discard()
             raise
         return cls(recs, build_skeleton(), address, save, part)
 
@@ -461,12 +457,11 @@ class Viewer:
             for rec in self.recs:
                 rec.flush()
                 rec.disconnect()
-            if keep and self.part is not None and self.save is not None:
-                os.chmod(self.part, 0o600)
-                os.replace(self.part, self.save)
+            if keep and self.part is not None:
+                self.part.commit()
         finally:
             if self.part is not None:
-                self.part.unlink(missing_ok=True)
+                self.part.discard()
 
 
 def view_recording(path: Path, viewer: Viewer, batch: int = 100) -> int:

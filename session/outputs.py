@@ -7,9 +7,12 @@ open file: CSV, BVH, Markdown). Both
 
 - refuse an output that is one of the command's inputs (the same path, or the
   same file by another name: a link), a folder, a device, or an empty name;
-- write to a temporary file in the output's folder and rename it over the
-  output only when the writer has finished, so a failed or interrupted run
-  leaves any earlier file of that name as it was and no half file;
+- write to a new file in the output's folder that has no name until the
+  writer has finished (Linux's ``O_TMPFILE``), then link it over the output,
+  so a failed or interrupted run, even one killed by SIGKILL, leaves any
+  earlier file of that name as it was and no half file; where a file must
+  have a name while it is written, a later run removes the one a killed run
+  left (:func:`remove_stale`);
 - turn an error while writing (a full disk, a file too large) into
   :class:`OutputError`, whose message names the output, not the input.
 """
@@ -17,9 +20,12 @@ open file: CSV, BVH, Markdown). Both
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
+import secrets
 import signal
 import stat
+import sys
 import tempfile
 import threading
 from collections.abc import Iterable, Iterator
@@ -64,31 +70,50 @@ def _why(exc: OSError) -> str:
 
 @contextlib.contextmanager
 def atomic_path(
-    output: Path, inputs: Iterable[Path | None] = (), suffix: str = ".part"
+    output: Path,
+    inputs: Iterable[Path | None] = (),
+    suffix: str = ".part",
+    named: bool = False,
 ) -> Iterator[Path]:
     """A temporary path beside ``output`` (a new file, the owner's only: this
-    is health data) for a writer to fill; renamed over ``output`` when the
-    block ends without error, removed otherwise.
+    is health data) for a writer to fill; it becomes ``output`` when the block
+    ends without error, and is removed otherwise.
+
+    The file has no name while it is written (``/proc/self/fd/N`` of an
+    ``O_TMPFILE`` file): a run killed even by SIGKILL leaves nothing. A writer
+    that must name its file (with ``suffix``: ezc3d adds ".c3d" to any other
+    name) gets ``named``: ``.<output name>.<pid>.<random><suffix>``, which a
+    later run writing the same output removes once its process is gone.
 
     An ``OSError`` raised in the block about the temporary file, or by the
     final rename, becomes ``OutputError`` naming ``output``."""
     check_output(output, inputs)
-    with _terminate_unwinds():
-        yield from _atomic(output, suffix)
+    with terminate_unwinds():
+        yield from _atomic(output, suffix, named)
+
+
+class Interrupted(SystemExit):
+    """A SIGTERM while an output is written (or an offline command runs): the
+    process ends as on Ctrl-C, unwinding, so nothing half-written is left;
+    ``code`` is 128 + the signal's number, as a shell reports a killed process."""
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(128 + signum)
+        self.signum = signum
 
 
 @contextlib.contextmanager
-def _terminate_unwinds() -> Iterator[None]:
-    """SIGTERM (a ``kill``, a service manager) ends the process through
-    ``SystemExit`` while an output is being written, so that the temporary file
-    is removed as on Ctrl-C (only where SIGTERM would otherwise kill at once)."""
+def terminate_unwinds() -> Iterator[None]:
+    """SIGTERM (a ``kill``, a service manager) raises :class:`Interrupted` in
+    the block, so that temporary files are removed as on Ctrl-C (only where
+    SIGTERM would otherwise kill at once, in the main thread)."""
     main = threading.current_thread() is threading.main_thread()
     if not main or signal.getsignal(signal.SIGTERM) is not signal.SIG_DFL:
         yield
         return
 
     def terminate(signum: int, _frame: object) -> None:
-        raise SystemExit(128 + signum)
+        raise Interrupted(signum)
 
     signal.signal(signal.SIGTERM, terminate)
     try:
@@ -97,30 +122,151 @@ def _terminate_unwinds() -> Iterator[None]:
         signal.signal(signal.SIGTERM, signal.SIG_DFL)
 
 
-def _atomic(output: Path, suffix: str) -> Iterator[Path]:
-    try:
-        fd, name = tempfile.mkstemp(prefix=f".{output.name}.", suffix=suffix, dir=output.parent)
-    except OSError as exc:
-        raise OutputError(f"cannot write {output}: {_why(exc)}") from None
-    os.close(fd)
-    tmp = Path(name)
+def _atomic(output: Path, suffix: str, named: bool) -> Iterator[Path]:
+    pending = PendingOutput(output, suffix, named)
     try:
         try:
-            yield tmp
+            yield pending.path
         except OSError as exc:
-            if isinstance(exc, OutputError) or exc.filename not in (name, str(tmp), None):
-                raise
-            if exc.filename is None and exc.errno not in _WRITE_ERRNOS:
+            if isinstance(exc, OutputError) or not pending.is_about(exc):
                 raise
             raise OutputError(f"cannot write {output}: {_why(exc)}") from None
-        try:
-            with open(tmp, "rb+") as f:  # the data on disk before the name points to it
-                os.fsync(f.fileno())
-            os.replace(tmp, output)
-        except OSError as exc:
-            raise OutputError(f"cannot write {output}: {_why(exc)}") from None
+        pending.commit()
     finally:
-        tmp.unlink(missing_ok=True)
+        pending.discard()
+
+
+class PendingOutput:
+    """An output being written: ``path``, a new file the owner's only (health
+    data), becomes ``output`` on :meth:`commit`; :meth:`discard` (always call
+    it) removes it if it was not committed. For a writer whose file stays open
+    across calls (a viewer's ``.rrd``); see :func:`atomic_path`."""
+
+    def __init__(self, output: Path, suffix: str = ".part", named: bool = False) -> None:
+        remove_stale(output)
+        self.output = output
+        self._fd = None if named else _anonymous(output)
+        if self._fd is not None:
+            self.path = Path(f"/proc/self/fd/{self._fd}")
+            return
+        try:
+            fd, name = tempfile.mkstemp(prefix=_stale_prefix(output) + f"{os.getpid()}.",
+                                        suffix=suffix, dir=output.parent)  # fmt: skip
+        except OSError as exc:
+            raise OutputError(f"cannot write {output}: {_why(exc)}") from None
+        os.close(fd)
+        self.path = Path(name)
+
+    def is_about(self, exc: OSError) -> bool:
+        """Is ``exc`` an error of writing this output (not of reading an input)?"""
+        if exc.filename is None:
+            return exc.errno in _WRITE_ERRNOS
+        return str(exc.filename) == str(self.path)
+
+    def commit(self) -> None:
+        """The file becomes the output (its data on disk first); ``OutputError``
+        naming the output if it cannot."""
+        try:
+            if self._fd is not None:  # nameless until now: linked under the output's name
+                os.fsync(self._fd)
+                _link(self._fd, self.output)
+            else:
+                with open(self.path, "rb+") as f:
+                    os.fsync(f.fileno())
+                os.replace(self.path, self.output)
+        except OSError as exc:
+            raise OutputError(f"cannot write {self.output}: {_why(exc)}") from None
+
+    def discard(self) -> None:
+        """Remove the file if it was not committed; release it."""
+        if self._fd is not None:
+            os.close(self._fd)
+            self._fd = None
+        else:
+            self.path.unlink(missing_ok=True)
+
+
+def _anonymous(output: Path) -> int | None:
+    """A new file with no name in the output's folder (Linux's ``O_TMPFILE``):
+    a process killed while it is written leaves nothing behind. ``None`` where
+    the system or its file system has none (then a named temporary file)."""
+    flag = getattr(os, "O_TMPFILE", None)
+    if flag is None or not os.path.isdir("/proc/self/fd"):
+        return None
+    try:
+        return os.open(output.parent, flag | os.O_RDWR, 0o600)
+    except OSError as exc:
+        if exc.errno in (errno.EOPNOTSUPP, errno.EISDIR, errno.EINVAL, errno.ENOENT):
+            return None  # a file system without it (or a kernel before 3.11)
+        raise OutputError(f"cannot write {output}: {_why(exc)}") from None
+
+
+def _link(fd: int, output: Path) -> None:
+    """Give the nameless file ``fd`` the name ``output`` (over any file of that
+    name: the old file stays whole until the new one replaces it)."""
+    src = f"/proc/self/fd/{fd}"
+    folder = os.open(output.parent, os.O_RDONLY | os.O_DIRECTORY)
+    try:
+        # with a folder's descriptor Python calls linkat(AT_SYMLINK_FOLLOW), which
+        # follows the /proc link to the file (a plain link() would not)
+        def link(name: str) -> None:
+            os.link(src, name, src_dir_fd=folder, dst_dir_fd=folder, follow_symlinks=True)
+
+        try:
+            link(output.name)  # no file of that name: done
+            return
+        except FileExistsError:
+            pass
+        tmp = f"{_stale_prefix(output)}{os.getpid()}.{secrets.token_hex(4)}.part"
+        link(tmp)
+        try:
+            os.replace(tmp, output.name, src_dir_fd=folder, dst_dir_fd=folder)
+        except BaseException:
+            os.unlink(tmp, dir_fd=folder)
+            raise
+    finally:
+        os.close(folder)
+
+
+def _stale_prefix(output: Path) -> str:
+    """The start of the name of a temporary file of ``output``, before the
+    writing process's id: ``.rec.c3d.<pid>.``."""
+    return f".{output.name}."
+
+
+def remove_stale(output: Path) -> list[Path]:
+    """Remove the temporary files of ``output`` (``.<name>.<pid>.*.part*``)
+    that a killed run left in its folder (their process is gone), saying so on
+    stderr; returns them."""
+    prefix = _stale_prefix(output)
+    removed = []
+    try:
+        names = [n for n in os.listdir(output.parent) if n.startswith(prefix) and ".part" in n]
+    except OSError:
+        return []
+    for name in names:
+        pid_text = name[len(prefix) :].split(".", 1)[0]
+        if not pid_text.isdigit() or _alive(int(pid_text)):
+            continue
+        stale = output.parent / name
+        try:
+            stale.unlink()
+        except OSError:
+            continue
+        removed.append(stale)
+        print(f"bodynet: removed {stale}, a temporary file of {output.name} left by an "
+              f"interrupted run (process {pid_text})", file=sys.stderr)  # fmt: skip
+    return removed
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except (PermissionError, OverflowError):
+        return True
+    return True
 
 
 #: Errors that come from writing, whatever file the library names.

@@ -791,3 +791,175 @@ def test_an_export_of_mostly_repeated_frames_is_refused(
     assert code == 2
     assert "choose a lower rate" in err
     assert not out.exists()
+
+
+# -- an export killed or interrupted mid-write (real processes, real signals) ----------
+
+
+def _writing(pid: int, folder: Path) -> bool:
+    """Has process ``pid`` a temporary file of its output open in ``folder``: a
+    nameless one (``O_TMPFILE``, shown as ``folder/#inode (deleted)``) or a
+    named ``.part`` one?"""
+    try:
+        fds = os.listdir(f"/proc/{pid}/fd")
+    except OSError:
+        return False
+    for fd in fds:
+        with contextlib.suppress(OSError):
+            link = os.readlink(f"/proc/{pid}/fd/{fd}")
+            if link.startswith(f"{folder}/#") or (link.startswith(f"{folder}/.")
+                                                   and ".part" in link):  # fmt: skip
+                return True
+    return False
+
+
+def _stopped(pid: int) -> bool:
+    with open(f"/proc/{pid}/stat") as f:
+        return f.read().rsplit(")", 1)[1].split()[0] in ("T", "t")
+
+
+def _stop_mid_write(args: list[str], folder: Path, attempts: int = 5) -> subprocess.Popen[str]:
+    """``bodynet ARGS`` started and stopped (SIGSTOP) while it writes its output
+    in ``folder`` (its temporary file open, not yet in place); started again
+    if it finished before it could be caught."""
+    for _ in range(attempts):
+        proc = subprocess.Popen([str(BODYNET), *args], stderr=subprocess.PIPE, text=True)
+        while proc.poll() is None:
+            if not _writing(proc.pid, folder):
+                continue
+            os.kill(proc.pid, signal.SIGSTOP)
+            while proc.poll() is None and not _stopped(proc.pid):
+                with contextlib.suppress(subprocess.TimeoutExpired):
+                    proc.wait(timeout=0.001)
+            if proc.poll() is None and _writing(proc.pid, folder):
+                return proc  # stopped mid-write
+            os.kill(proc.pid, signal.SIGCONT)
+        proc.communicate(timeout=60)
+        for p in folder.iterdir():  # it finished: as before, and again
+            if p.name not in ("earlier.bvh", "arm.mcap"):
+                p.unlink()
+    raise AssertionError(f"never caught writing in {attempts} runs: {args}")
+
+
+@pytest.fixture
+def export_dir(corpus: dict[str, Path], tmp_path: Path) -> Path:
+    """A folder with a recording and an earlier export of it."""
+    (tmp_path / "arm.mcap").write_bytes(corpus["recording"].read_bytes())
+    (tmp_path / "earlier.bvh").write_text("an earlier export\n")
+    return tmp_path
+
+
+@pytest.mark.parametrize("kind", ["bvh", "c3d"])
+def test_an_export_killed_mid_write_leaves_nothing(kind: str, export_dir: Path) -> None:
+    """SIGKILL cannot be caught: the file being written has no name until it is
+    whole (O_TMPFILE), so nothing is left; C3D's writer must name its file, so
+    the next run removes the one the killed run left, and says so."""
+    rec, out = export_dir / "arm.mcap", export_dir / f"earlier.{kind}"
+    out.write_text("an earlier export\n")
+    before = sorted(p.name for p in export_dir.iterdir())
+    with unchanged(rec, out):
+        proc = _stop_mid_write(["export", kind, "-q", str(rec), "--rate-hz", "400", "-o",
+                                str(out)], export_dir)  # fmt: skip
+        proc.kill()
+        assert proc.wait(timeout=60) == -signal.SIGKILL
+        proc.communicate()
+    left = sorted(p.name for p in export_dir.iterdir())
+    if kind != "c3d":
+        assert left == before
+        return
+    stale = [n for n in left if n not in before]
+    assert len(stale) == 1
+    assert stale[0].startswith(f".{out.name}.{proc.pid}.")
+    result = run("export", kind, "-q", rec, "-o", out)
+    assert result.returncode == 0, result.stderr
+    told = f"bodynet: removed {export_dir / stale[0]}, a temporary file of {out.name} left by"
+    assert told in result.stderr
+    assert sorted(p.name for p in export_dir.iterdir()) == before
+
+
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
+def test_an_export_interrupted_mid_write_says_so_and_leaves_nothing(
+    signum: int, export_dir: Path
+) -> None:
+    rec, out = export_dir / "arm.mcap", export_dir / "earlier.bvh"
+    before = sorted(p.name for p in export_dir.iterdir())
+    with unchanged(rec, out):
+        proc = _stop_mid_write(["export", "bvh", "-q", str(rec), "--rate-hz", "400", "-o",
+                                str(out)], export_dir)  # fmt: skip
+        os.kill(proc.pid, signum)
+        os.kill(proc.pid, signal.SIGCONT)
+        _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 128 + signum, err
+    name = signal.Signals(signum).name
+    assert err == (f"bodynet export: interrupted by {name}: stopped; no output file is left "
+                   "half-written\n")  # fmt: skip
+    assert sorted(p.name for p in export_dir.iterdir()) == before
+
+
+# -- every export onto a file system that fills (a real tmpfs, in a mount namespace) --
+
+#: Run in a mount namespace of its own: an 8 KiB tmpfs on the folder given, then
+#: each export of the recording into it (after an earlier small file of that name),
+#: in one process; prints what each answered and left.
+FULL_DISK = r"""
+import contextlib, io, json, os, subprocess, sys
+folder, rec, kinds = sys.argv[1], sys.argv[2], sys.argv[3:]
+subprocess.run(["mount", "-t", "tmpfs", "-o", "size=8k,mode=0755", "tmpfs", folder],
+               check=True)
+from bodynet.cli.main import main
+results = {}
+for kind in kinds:
+    out = os.path.join(folder, "out." + kind)
+    with open(out, "w") as f:
+        f.write("earlier\n")
+    err = io.StringIO()
+    with contextlib.redirect_stderr(err):
+        code = main(["export", kind, "-q", rec, "-o", out])
+    with open(out) as f:
+        kept = f.read()
+    results[kind] = {"code": code, "err": err.getvalue(), "left": sorted(os.listdir(folder)),
+                     "kept": kept}
+    os.unlink(out)
+print(json.dumps(results))
+"""
+
+
+def _in_mount_namespace() -> list[str]:
+    """The command prefix that runs a process in a new mount namespace where it
+    may mount, or skip the test if this machine lets none be made."""
+    import shutil
+
+    unshare = shutil.which("unshare")
+    if unshare is None:
+        pytest.skip("no unshare (util-linux) to make a mount namespace")
+    prefix = [unshare, "--mount"] if os.geteuid() == 0 else [
+        unshare, "--user", "--map-root-user", "--mount"]  # fmt: skip
+    probe = subprocess.run([*prefix, "true"], capture_output=True, text=True, check=False)
+    if probe.returncode != 0:
+        pytest.skip(f"cannot make a mount namespace here: {probe.stderr.strip()}")
+    return prefix
+
+
+def test_every_export_onto_a_full_disk_names_the_output_and_leaves_nothing(
+    corpus: dict[str, Path], tmp_path: Path
+) -> None:
+    from bodynet.clients.exports import WRITERS
+
+    prefix = _in_mount_namespace()
+    disk = tmp_path / "disk"
+    disk.mkdir()
+    with unchanged(corpus["recording"]):
+        result = subprocess.run([*prefix, sys.executable, "-c", FULL_DISK, str(disk),
+                                 str(corpus["recording"]), *WRITERS], capture_output=True,
+                                text=True, timeout=300, check=False)  # fmt: skip
+    assert result.returncode == 0, result.stderr
+    answers = json.loads(result.stdout.splitlines()[-1])
+    assert set(answers) == set(WRITERS)
+    for kind, answer in answers.items():
+        out = disk / f"out.{kind}"
+        assert answer["code"] == 2, (kind, answer)
+        assert answer["err"].startswith(f"bodynet export: cannot write {out}"), (kind, answer)
+        assert "No space left on device" in answer["err"], (kind, answer)
+        assert "Traceback" not in answer["err"]
+        assert answer["left"] == [out.name], (kind, answer)  # no half file beside it
+        assert answer["kept"] == "earlier\n", (kind, answer)  # the earlier file whole

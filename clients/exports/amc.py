@@ -189,9 +189,11 @@ def write(track: PoseTrack, out: Path, options: Mapping[str, Any]) -> Written:
         lines.append("root " + " ".join(f"{v + 0.0:.6f}" for v in values))
         lines += [f"{name} " + " ".join(f"{v + 0.0:.6f}" for v in xyz[f, index[name]])
                   for name in moving]  # fmt: skip
-    with output_file(asf) as tmp, tmp.open("w") as f:
-        f.write(asf_text(bone_list, m, scale, units))
-    with output_file(out) as tmp, tmp.open("w") as f:
-        f.write("\n".join(lines) + "\n")
+    # both files whole, or neither: the skeleton is put in place after the motion
+    with output_file(asf) as asf_tmp, output_file(out) as amc_tmp:
+        with asf_tmp.open("w") as f:
+            f.write(asf_text(bone_list, m, scale, units))
+        with amc_tmp.open("w") as f:
+            f.write("\n".join(lines) + "\n")
     notes = (f"skeleton -> {asf}", *held_note(track))
     return Written(len(track), notes=notes)

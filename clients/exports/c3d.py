@@ -28,6 +28,8 @@ invalid, C3D's way (residual -1, all its coordinates NaN).
 
 from __future__ import annotations
 
+import os
+import struct
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -39,6 +41,7 @@ from bodynet.clients.body_tree import ROOT_SEGMENT
 from bodynet.clients.exports import Written
 from bodynet.clients.exports.track import PoseTrack, output_file
 from bodynet.core.skeleton import build_skeleton
+from bodynet.session.outputs import OutputError
 
 ANGLE_SUFFIX = "_angles"
 
@@ -90,6 +93,31 @@ def write(track: PoseTrack, out: Path, options: Mapping[str, Any]) -> Written:
     c3d.add_parameter("POINT", "ANGLES", [lab for lab in labels if lab.endswith(ANGLE_SUFFIX)])
     c3d.add_parameter("POINT", "ANGLE_UNITS", ["deg"])
     # ezc3d adds ".c3d" to a name without it: the temporary file has it already
-    with output_file(out, ".part.c3d") as tmp:
+    # (so it has a name: one a killed run leaves is removed by the next run)
+    with output_file(out, ".part.c3d", named=True) as tmp:
         c3d.write(str(tmp))
+        _check_written(tmp, out, len(track))
     return Written(len(track))
+
+
+def _check_written(path: Path, out: Path, frames: int) -> None:
+    """ezc3d says nothing when it cannot write (a full disk leaves a short
+    file), and reading a short file back crashes it: the size is checked
+    against the file's own C3D header (data start block, points, analog
+    values, float or integer storage), the data padded to 512-byte blocks.
+    ``OutputError`` naming ``out`` if the file is not whole."""
+    size = path.stat().st_size
+    with path.open("rb") as f:
+        head = f.read(512)
+    expected = None
+    if len(head) == 512 and head[1] == 0x50:  # the C3D key
+        words = struct.unpack("<256H", head)
+        scale = struct.unpack_from("<f", head, 12)[0]
+        values = words[1] * 4 + words[2]  # x, y, z, residual of each point; analog
+        data = (words[8] - 1) * 512 + frames * values * (4 if scale < 0 else 2)
+        expected = -(-data // 512) * 512
+    if size == expected:
+        return
+    full = os.statvfs(path.parent).f_bavail == 0
+    why = "No space left on device" if full else "the file came out short"
+    raise OutputError(f"cannot write {out}: {why} ({size} of {expected or '?'} bytes written)")

@@ -160,11 +160,12 @@ def resample(track: PoseTrack, rate_hz: float) -> PoseTrack:
 
 
 @contextlib.contextmanager
-def output_file(out: Path, suffix: str = ".part") -> Iterator[Path]:
+def output_file(out: Path, suffix: str = ".part", named: bool = False) -> Iterator[Path]:
     """A temporary file beside ``out`` (readable by the owner only: health
     data) that becomes ``out`` when the block ends without an exception, and
-    is removed otherwise: nothing half-written is left under ``out``."""
-    with atomic_path(out, suffix=suffix) as tmp:
+    is removed otherwise: nothing half-written is left under ``out`` (see
+    :func:`~bodynet.session.outputs.atomic_path`)."""
+    with atomic_path(out, suffix=suffix, named=named) as tmp:
         yield tmp
 
 
