@@ -53,6 +53,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import IO, Any
 
+import numpy as np
 import orjson
 import zstandard
 from mcap.data_stream import ReadDataStream, RecordBuilder
@@ -63,7 +64,8 @@ from mcap.records import Channel, Chunk, ChunkIndex, Message, MessageIndex, Sche
 from mcap.stream_reader import breakup_chunk
 from mcap.writer import CompressionType, Writer
 
-from bodynet.clients.body_tree import frame_transforms, segment_parents
+from bodynet.clients.body_tree import Transforms, segment_parents
+from bodynet.clients.mcap_writer import LeanWriter
 from bodynet.core import keys
 from bodynet.core.codecs import pose
 from bodynet.core.errors import DecodeError, Reason
@@ -425,7 +427,9 @@ class McapSink:
     def __init__(self, path: Path, chunk_size: int = CHUNK_BYTES, max_chunk_s: float = 0.5) -> None:
         fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
         self._stream = os.fdopen(fd, "wb")
-        self._writer = Writer(self._stream, chunk_size=chunk_size, compression=CompressionType.ZSTD)
+        self._writer = LeanWriter(
+            self._stream, chunk_size=chunk_size, compression=CompressionType.ZSTD
+        )
         #: the writer's chunk indexes for the summary, packed (None: as the writer keeps them)
         self.chunk_indexes = pack_chunk_indexes(self._writer)
         self._writer.start(profile="", library="bodynet")
@@ -447,13 +451,16 @@ class McapSink:
             "metrics": self._writer.register_schema("bodynet.Metrics", "jsonschema",
                                                     json.dumps(METRICS_SCHEMA).encode()),
         }  # fmt: skip
-        self._parents = segment_parents()
+        self._transforms = Transforms(segment_parents(), WORLD_FRAME)
         self._channels: dict[str, int] = {}
         self._sequence: dict[int, int] = {}
         self.messages = 0
         self._max_chunk_s = max_chunk_s
         self._chunk_opened = time.monotonic()
-        self._tf_pending: list[tuple[int, Any]] = []  # whole-body poses awaiting transforms
+        # whole-body poses awaiting their transforms: (time, the message or None, its
+        # segments' text or (names, rows))
+        self._tf_pending: list[tuple[int, bytes | None, Any]] = []
+        self._segments_at = 0  # where the last pose's segments began: looked at first
 
     def _next(self, channel: int) -> int:
         """The channel's next message sequence number (1, 2, 3...): salvage
@@ -476,21 +483,82 @@ class McapSink:
         check_time(log_time_ns)  # before the pose: its transforms share its time
         data = pose.encode(frame) if data is None else data
         if topic == keys.pose_key():
-            # its transforms are made with the next ones' (at most TF_BATCH), and
-            # before the writer closes a chunk on time, so salvage keeps them
-            self._tf_pending.append((log_time_ns, frame.segments))
-            if len(self._tf_pending) >= TF_BATCH:
-                self._write_transforms()
+            rows = [[*p, *q] for p, q in frame.segments.values()]
+            self._pending(log_time_ns, None, (tuple(frame.segments), rows))
         self._add(self._channel(topic, "pose"), log_time_ns, data)
+
+    def write_pose_message(self, topic: str, data: bytes) -> tuple[int, int]:
+        """A pose message as received, stored as it is; returns its sequence
+        number and its log time (its ``t_ns``; when that is 0, now).
+
+        Only what the file needs is read of it: the header (``pose.glance``)
+        and, for the whole-body pose, its segments, for the transforms, read
+        with the next ones' (see :class:`~bodynet.clients.body_tree.Transforms`).
+        A message laid out otherwise than the gateway lays it out is decoded
+        whole (``DecodeError`` if it is no pose). So a message that starts as a
+        pose does but is none past its header is stored as it came (a reader
+        then names it, see :func:`read_poses`), and a whole-body pose whose
+        segments do not read gets no transforms (an empty message)."""
+        whole = topic == keys.pose_key()
+        head = pose.glance(data, segments=whole, hint=self._segments_at)
+        if head is None:
+            frame = pose.decode(data)
+            seq, t_ns, segments = frame.seq, frame.t_ns, frame.segments
+        else:
+            seq, t_ns, segments = head.seq, head.t_ns, None
+        t = check_time(t_ns or time.time_ns())
+        if whole:
+            if head is not None:
+                self._segments_at = head.at
+                self._pending(t, data, head.segments)
+            else:
+                rows = [[*p, *q] for p, q in segments.values()]  # type: ignore[union-attr]
+                self._pending(t, None, (tuple(segments), rows))  # type: ignore[arg-type]
+        self._add(self._channel(topic, "pose"), t, data)
+        return seq, t
+
+    def _pending(self, t_ns: int, data: bytes | None, segments: Any) -> None:
+        # its transforms are made with the next ones' (at most TF_BATCH), and
+        # before the writer closes a chunk on time, so salvage keeps them
+        self._tf_pending.append((t_ns, data, segments))
+        if len(self._tf_pending) >= TF_BATCH:
+            self._write_transforms()
 
     def _write_transforms(self) -> None:
         pending, self._tf_pending = self._tf_pending, []
+        texts = [s for _, _, s in pending if isinstance(s, bytes)]
+        try:
+            names, flat = pose.segment_numbers(texts)
+        except DecodeError:  # one of them holds no numbers: each on its own
+            names, flat = [], []
+            for text in texts:
+                try:
+                    one, numbers = pose.segment_numbers([text])
+                except DecodeError:
+                    one, numbers = [None], []
+                names += one
+                flat += numbers
+        rows = np.asarray(flat, dtype=float).reshape(-1, 7)
+        read, at = iter(names), 0
+        poses: list[tuple[int, Any, Any]] = []
+        for t_ns, data, given in pending:
+            segments = given
+            if isinstance(given, bytes):
+                these = next(read)
+                if these is None:  # not as the gateway writes them: the whole message
+                    segments = _decoded_rows(data)
+                else:
+                    segments = (these, rows[at : at + len(these)])
+                    at += len(these)
+            poses.append((t_ns, *segments))
         channel = self._channel(keys.TRANSFORMS, "tf")
-        for (t_ns, _), tf in zip(
-            pending, frame_transforms(pending, self._parents, WORLD_FRAME), strict=True
-        ):
-            self._writer.add_message(channel, t_ns, tf, t_ns, self._next(channel))
-            self.messages += 1
+        messages = self._transforms.messages(poses)
+        first = self._sequence.get(channel, 0) + 1  # numbered as _next numbers them
+        self._sequence[channel] = first + len(messages) - 1
+        self._writer.add_messages(
+            channel, [(t, m, t) for (t, _, _), m in zip(poses, messages, strict=True)], first
+        )
+        self.messages += len(messages)
 
     def write_raw(self, topic: str, sample: RawSample, log_time_ns: int) -> None:
         try:
@@ -535,6 +603,15 @@ class McapSink:
             self._write_transforms()
         self._writer.finish()
         self._stream.close()
+
+
+def _decoded_rows(data: bytes | None) -> tuple[tuple[str, ...], list[list[float]]]:
+    """The segment names and rows of a pose message (none if it is no pose)."""
+    try:
+        segments = pose.decode(data or b"").segments
+    except DecodeError:
+        return (), []
+    return tuple(segments), [[*p, *q] for p, q in segments.values()]
 
 
 def read_poses(path: Path, topic: str = "body/pose") -> Iterator[tuple[int, pose.PoseFrame]]:

@@ -291,9 +291,42 @@ def status_text(topology: object, health: Mapping[str, object], bad: int = 0) ->
                 f" {_show(field(n, 'samples'))} samples, {_show(field(n, 'gaps'))} gaps,"
                 f" rejected {_counts(field(n, 'rejected'))}"
             )
+    lines += calibration_lines(health)
     if bad:
         lines.append(f"- **viewer**: {bad} bad messages, not shown")
     return "\n".join(lines)
+
+
+def calibration_lines(health: Mapping[str, object]) -> list[str]:
+    """The calibration state per segment, from the gateway's health (its body's
+    ``heading``: the state of the tags' heading, and per segment what holds its
+    tag's heading against drift and how well it is known, ``unc_deg``); none
+    when no health says it. Any other shape shows as ``?``."""
+
+    def field(d: object, key: str) -> object:
+        return d.get(key) if isinstance(d, dict) else None
+
+    lines: list[str] = []
+    for source, h in sorted(health.items()):
+        heading = field(field(h, "body"), "heading")
+        if not isinstance(heading, dict):
+            continue
+        deg = field(heading, "deg")
+        lines.append(f"\n## Calibration ({source})")
+        lines.append(f"- heading **{_show(field(heading, 'state'))}**"
+                     + (f", {_show(deg)} deg" if deg is not None else ""))  # fmt: skip
+        segments = field(heading, "segments")
+        for segment, seg in sorted(segments.items() if isinstance(segments, dict) else ()):
+            unc = field(seg, "unc_deg")
+            held = field(seg, "held_by")
+            lines.append(
+                f"  - {segment}: {_show(field(seg, 'how'))}"
+                + (f" ({_show(held)})" if held is not None else "")
+                + (f", heading known to {_show(unc)} deg" if unc is not None
+                   else ", heading not known")
+                + f", turned {_show(field(seg, 'corrected_deg'))} deg"
+            )  # fmt: skip
+    return lines
 
 
 def metrics_text(message: object) -> str:

@@ -38,7 +38,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from bodynet.core.keys import Site
-from bodynet.core.profile import mount
+from bodynet.core.profile import OLE_DOF, mount
 from bodynet.core.skeleton import CALIBRATION_POSES, build_skeleton, rom
 from bodynet.core.subject import Profile, QuatWxyz
 from bodynet.kinematics.model import BodyModel
@@ -665,6 +665,7 @@ HOLD_WORDS = {
     "perpendicular": "two-dof joint's axes",
     "twist": "three-dof joint's mean twist",
     "rest": "three-dof joint held at rest",
+    "encoder": "SmartSuit encoder's absolute angle",
 }
 
 
@@ -719,6 +720,9 @@ class JointDrift:
     #: the twist of a joint whose axes are this close to one another across the
     #: vertical (|best-fit grip| below) is not seen
     TWIST_GRIP_MIN = 0.5
+    #: an encoder's dof turning less than this a degree of the child tag's heading
+    #: (the joint's rotation axis near horizontal) does not say the heading
+    ENCODER_GRIP_MIN = 0.3
 
     def __init__(self, profile: Profile, tau_s: float = 5.0, twist: bool | None = None) -> None:
         """Which joints hold which tags: the profile's ``drift`` says (``twist``, when
@@ -750,6 +754,19 @@ class JointDrift:
                         continue
                     self.pairs[c] = (f"{side}_{joint}" if sided else joint, p, -1, -1, "twist")
                     self.twist0[c] = _twist(segments[parent], segments[name]) or 0.0
+        #: child key -> (the SmartSuit module's site name, its encoder's angle name, the
+        #: joint's axes, the encoder dof's index): the hybrid suit's absolute angle
+        self.encoders: dict[str, tuple[str, str, Any, int]] = {}
+        if self.twist0:
+            from bodynet.gateway.solver import JointAxes  # the solver's own split
+
+            joints = {j.name: j for j in build_skeleton(profile.lengths).joints}
+            for key, (joint, _, _, _, _) in self.pairs.items():
+                side, _, name = joint.partition("_")
+                if name in OLE_DOF and joint in joints:
+                    axes = JointAxes.of(joints[joint])
+                    angle = f"{joint}_{OLE_DOF[name]}_deg"
+                    self.encoders[key] = (f"{side}/{name}", angle, axes, axes.names.index(angle))
         self.error_deg = dict.fromkeys(self.pairs, 0.0)  # filtered, per child tag
         self.corrected_deg = dict.fromkeys(self.pairs, 0.0)  # in all
         self.spread_deg = dict.fromkeys(self.pairs, 0.0)  # RMS of the error seen (filtered)
@@ -786,6 +803,9 @@ class JointDrift:
         gain = min(1.0, dt / self.tau_s)
         tags = {site.raw_key: s.reading.wxyz for site, s in samples.items()
                 if hasattr(s.reading, "wxyz")}  # fmt: skip
+        encoders = {f"{site.branch.side}/{site.name}": s.reading.encoder
+                    for site, s in samples.items() if hasattr(s.reading, "encoder")
+                    } if self.encoders else {}  # fmt: skip
         rots = {k: _quat_matrix(q) for k, q in tags.items()}
         still = {k: self._still(k, t_s, r) for k, r in rots.items()} if self.twist0 else {}
         turns: dict[str, float] = {}
@@ -797,7 +817,8 @@ class JointDrift:
             p = self._segment(profile, parent_key, rots[parent_key])
             c = self._segment(profile, key, rots[key])
             if kind == "twist":
-                turn = self._twist_turn(key, p, c, still[key] and still[parent_key], dt)
+                target = self._encoder_twist(key, p, c, encoders, profile)
+                turn = self._twist_turn(key, p, c, still[key] and still[parent_key], dt, target)
                 if turn is None:
                     continue
                 turn += self.pending.get(key, 0.0)
@@ -830,15 +851,44 @@ class JointDrift:
             return None
         return _wrap(twist - self._rest_ref.setdefault(key, twist))
 
+    def _encoder_twist(self, key: str, p: np.ndarray, c: np.ndarray,
+                       encoders: Mapping[str, int], profile: Profile) -> float | None:  # fmt: skip
+        """The hybrid suit: where a SmartSuit encoder spans the joint (a hip's or a
+        shoulder's rotation), the twist the joint has when the tags' rotation dof is
+        the encoder's absolute angle (None: no encoder, or its dof has no grip on
+        the child tag's heading at this pose)."""
+        spec = self.encoders.get(key)
+        if spec is None or spec[0] not in encoders:
+            return None
+        _, angle, axes, index = spec
+        cal = profile.ole.get(angle)
+        if cal is None:
+            return None
+        want = float(cal.angle_deg(encoders[spec[0]]))
+
+        def dof(turn: float) -> float:
+            return float(axes.split(p.T @ rz(-turn) @ c, None)[index])
+
+        now, grip = dof(0.0), (dof(1.0) - dof(-1.0)) / 2.0  # its change a degree of turn
+        twist = _twist(p, c)
+        if abs(grip) < self.ENCODER_GRIP_MIN or twist is None:
+            return None
+        return twist - max(-30.0, min(30.0, _wrap(want - now) / grip))
+
     def _twist_turn(self, key: str, p: np.ndarray, c: np.ndarray, rest: bool,
-                    dt: float) -> float | None:  # fmt: skip
+                    dt: float, target: float | None = None) -> float | None:  # fmt: skip
         """A three-dof joint's turn of its child tag's heading over ``dt``: its
-        twist against the one held at rest, or (moving) the calibration pose's,
-        low-passed, through the loop that also learns the tag's drift rate."""
+        twist against ``target`` (where an encoder measures the joint), the one
+        held at rest, or (moving) the calibration pose's, low-passed, through
+        the loop that also learns the tag's drift rate."""
         twist = _twist(p, c)
         if twist is None:
             return None
-        if rest:
+        if target is not None:  # measured: followed as fast as at rest
+            self._rest_ref.pop(key, None)
+            ref, rest = target, True
+            self.holding[key] = "encoder"
+        elif rest:
             ref = self._rest_ref.setdefault(key, twist)
             self.holding[key] = "rest"
         else:
@@ -866,30 +916,41 @@ class JointDrift:
         """How well each tag's heading is known against the body's, by segment: the
         joint and constraint that hold it (``held_by``, ``how``), ``unc_deg`` (about
         two standard deviations: the error seen around the constraint, summed in
-        quadrature up the chain to the root; None where nothing holds the tag, whose
-        6-axis heading then drifts freely since calibration) and ``corrected_deg``."""
+        quadrature up the chain to the root) and ``corrected_deg``. The root is the
+        pelvis' tag, or every tag no joint holds where the tags share a reference
+        that does not drift (the profile's ``drift`` holds no three-dof joint):
+        known to 0 against the body's frame they define. Where tags drift (6-axis),
+        a tag no joint holds drifts freely since calibration: ``unc_deg`` None; and
+        None for a tag whose heading is not known yet."""
         by_key = _segments_of(profile.imu_mounts)
+        shared = not profile.drift_joints[1]
         unc: dict[str, float | None] = {}
 
         def chain(key: str, depth: int = 0) -> float | None:
             if key in unc:
                 return unc[key]
             pair = self.pairs.get(key)
-            if pair is None or depth > 8:
-                # the root (the pelvis' tag, or a tag no joint reaches): nothing to
-                # hold it to; the pelvis' is the body's own heading
-                unc[key] = 0.0 if by_key.get(key) == "pelvis" else None
-                return unc[key]
-            up = chain(pair[1], depth + 1)
-            own = 2.0 * math.sqrt(max(self.spread_deg[key], 0.0))
-            unc[key] = None if up is None else round(math.hypot(up, max(own, 0.5)), 2)
+            if not profile.heading_known(key):
+                unc[key] = None
+            elif pair is None or depth > 8:
+                unc[key] = 0.0 if shared or by_key.get(key) == "pelvis" else None
+            else:
+                up = chain(pair[1], depth + 1)
+                own = 2.0 * math.sqrt(max(self.spread_deg[key], 0.0))
+                unc[key] = None if up is None else round(math.hypot(up, max(own, 0.5)), 2)
             return unc[key]
 
         out: dict[str, dict[str, Any]] = {}
         for key, seg in sorted(by_key.items(), key=lambda kv: kv[1]):
             pair = self.pairs.get(key)
-            how = ("root" if seg == "pelvis" else "not held") if pair is None else (
-                HOLD_WORDS[self.holding[key]])  # fmt: skip
+            if not profile.heading_known(key):
+                how = "heading unknown"
+            elif pair is not None:
+                how = HOLD_WORDS[self.holding[key]]
+            elif seg == "pelvis":
+                how = "root"
+            else:
+                how = "shared reference" if shared else "not held"
             out[seg] = {"tag": key, "held_by": pair[0] if pair else None, "how": how,
                         "unc_deg": chain(key),
                         "corrected_deg": round(self.corrected_deg.get(key, 0.0), 2)}  # fmt: skip

@@ -117,7 +117,11 @@ def _angles_deg(rot: np.ndarray) -> np.ndarray:
 
 
 def _quat_wxyz(rot: np.ndarray) -> QuatWxyz:
-    q = pin.Quaternion(rot)
+    # column-major: given a row-major (numpy's C-ordered) matrix, eigenpy 3.13 copies
+    # it for pinocchio's Eigen::Ref<const Matrix3d> argument and never frees the copy,
+    # 80 bytes a call; once a tick, that was the gateway's steady growth (0.45 MB a
+    # minute, docs/benchmarks.md "Memory over an hour")
+    q = pin.Quaternion(np.asfortranarray(rot))
     q.normalize()
     w, x, y, z = q.w, q.x, q.y, q.z
     if w < 0:  # canonical: w >= 0

@@ -450,3 +450,57 @@ def test_a_twist_held_at_rest_is_kept_while_the_tags_drift() -> None:
     assert worst["mean"] > 10.0, worst
     assert worst["none"] > 5.0, worst
     assert held.holding["body/trunk/mid/chest/raw"] == "rest"
+
+
+def test_hybrid_suit_encoders_hold_the_thigh_tags_drift() -> None:
+    """The hybrid suit: IMU tags and the legs' SmartSuit modules. Walking toes out
+    (each hip turned out 20 deg the whole time) with 6-axis tags drifting (up to
+    5 deg/min): the mean twist alone takes the held turn for drift, while the hip
+    module's encoder, the hip's absolute rotation, holds each thigh tag's heading
+    and the hips within 3 deg of the truth."""
+    from bodynet.core.keys import LEFT_LEG, RIGHT_LEG
+    from bodynet.gateway.heading import JointDrift
+    from bodynet.nodes.emulator import smartsuit_sensors
+    from bodynet.nodes.motion import ROUTINES
+
+    walk = ROUTINES["walk"].angles
+    still = dict(CALIBRATION_POSES["tpose"])
+    out = {"left_hip_rotation_deg": 20.0, "right_hip_rotation_deg": 20.0}
+    routine = Routine("toes-out", "", lambda t: still if t < 1.0 else {**walk(t - 1.0), **out})
+    tags = imu_tags()
+    realism = Realism(yaw_drift_deg_per_min=5.0, headings=Headings.DRIFTING)
+    body = BodyEmulator(routine, [*tags, *smartsuit_sensors([LEFT_LEG, RIGHT_LEG])],
+                        realism=realism, seed=5)  # fmt: skip
+    window: dict[Site, list[tuple[float, QuatWxyz]]] = {}
+    for t in np.arange(0.2, 0.95, 1 / RATE_HZ):
+        for site, sample in _samples(body, float(t))[0].items():
+            if hasattr(sample.reading, "wxyz"):
+                window.setdefault(site, []).append((float(t), sample.reading.wxyz))
+    profile = Profile(heading="fixed", drift="joints")
+    cal = calibrate_window(window, profile, "tpose").apply(profile)
+    from bodynet.gateway.heading import turned_headings
+
+    encoder, mean = JointDrift(cal), JointDrift(cal)
+    mean.encoders.clear()  # the same loop without the encoders' angle
+    solvers = {"encoder": BodySolver(cal), "mean": BodySolver(cal)}
+    worst = {"encoder": 0.0, "mean": 0.0}
+    tag_only = {s.site for s in tags}
+    for t in np.arange(1.0, 61.0, 0.1):
+        samples, truth = _samples(body, float(t))
+        for name, drift in (("encoder", encoder), ("mean", mean)):
+            solver = solvers[name]
+            solver.solve(samples)
+            if t > 20.0 and round(t * 10) % 10 == 0:  # once a second: a new solver
+                # the thigh tags' own hip rotation (the encoder's wins in the pose)
+                own = BodySolver(solver.profile).solve(
+                    {s: v for s, v in samples.items() if s in tag_only}
+                )
+                hips = [abs(own.angles_deg[n] - truth.get(n, 0.0))
+                        for n in ("left_hip_rotation_deg", "right_hip_rotation_deg")]  # fmt: skip
+                worst[name] = max(worst[name], *hips)
+            turns = drift.update(float(t), samples, solver.profile)
+            if turns:
+                solver.set_profile(turned_headings(solver.profile, turns))
+    assert encoder.holding["body/leg/left/thigh/raw"] == "encoder"
+    assert worst["encoder"] <= 3.0, worst
+    assert worst["mean"] > 10.0, worst

@@ -5,8 +5,11 @@ from __future__ import annotations
 import io
 from pathlib import Path
 
+import numpy as np
+import pytest
 from mcap.reader import make_reader
 from mcap.writer import CompressionType, Writer
+from scipy.spatial.transform import Rotation
 
 from bodynet.clients.mcap_store import McapSink, PackedChunkIndexes, pack_chunk_indexes, read_raw
 from bodynet.core.messages import Quat, RawSample, Source
@@ -63,3 +66,27 @@ def test_the_recorders_sink_packs_its_chunk_indexes(tmp_path: Path) -> None:
     assert summary is not None
     assert len(summary.chunk_indexes) == len(sink.chunk_indexes) > 1
     assert [s.seq for _, _, s in read_raw(path)] == list(range(200))
+
+
+def test_the_solver_hands_pinocchio_column_major_matrices(monkeypatch: pytest.MonkeyPatch) -> None:
+    """eigenpy copies a row-major (C-ordered) matrix for ``pin.Quaternion`` and never
+    frees the copy (80 bytes a call, once a tick: the gateway's growth over an hour);
+    the solver's quaternions come from column-major matrices, with the same values."""
+    import pinocchio as pin
+
+    from bodynet.gateway import solver
+
+    rots = Rotation.random(50, random_state=3).as_matrix()  # (50, 3, 3), C-ordered
+    expected = [tuple(np.roll(r.as_quat(canonical=True), 1)) for r in Rotation.from_matrix(rots)]
+    made = pin.Quaternion
+    given: list[bool] = []
+
+    def quaternion(*args: object) -> object:
+        if len(args) == 1:
+            given.append(bool(np.asarray(args[0]).flags.f_contiguous))
+        return made(*args)
+
+    monkeypatch.setattr(pin, "Quaternion", quaternion)
+    got = [solver._quat_wxyz(r) for r in rots]  # slices of a C-ordered stack, as in a tick
+    assert given == [True] * len(rots)
+    np.testing.assert_allclose(got, expected, atol=1e-12)
