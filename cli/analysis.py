@@ -43,7 +43,12 @@ def cmd_report(args: argparse.Namespace) -> int:
         print(f"bodynet report: {exc}", file=sys.stderr)
         return 2
     except OSError as exc:
-        print(f"bodynet report: cannot write {out}: {exc.strerror or exc}", file=sys.stderr)
+        why = (
+            str(exc)
+            if isinstance(exc, OutputError)
+            else f"cannot write {out}: {exc.strerror or exc}"
+        )
+        print(f"bodynet report: {why}", file=sys.stderr)
         return 2
     print(f"bodynet report: {files[0]} ({len(files) - 1} plots beside it)", file=sys.stderr)
     return 0

@@ -963,7 +963,7 @@ def _stop_mid_write(args: list[str], folder: Path, attempts: int = 5) -> subproc
             os.kill(proc.pid, signal.SIGCONT)
         proc.communicate(timeout=60)
         for p in folder.iterdir():  # it finished: as before, and again
-            if p.name not in ("earlier.bvh", "arm.mcap"):
+            if not p.name.startswith(("earlier.", "arm.")):
                 p.unlink()
     raise AssertionError(f"never caught writing in {attempts} runs: {args}")
 
@@ -976,32 +976,39 @@ def export_dir(corpus: dict[str, Path], tmp_path: Path) -> Path:
     return tmp_path
 
 
-@pytest.mark.parametrize("kind", ["bvh", "c3d"])
+@pytest.mark.parametrize("kind", ["bvh", "c3d", "report"])
 def test_an_export_killed_mid_write_leaves_nothing(kind: str, export_dir: Path) -> None:
     """SIGKILL cannot be caught: the file being written has no name until it is
-    whole (O_TMPFILE), so nothing is left; C3D's writer must name its file, so
-    the next run removes the one the killed run left, and says so."""
-    rec, out = export_dir / "arm.mcap", export_dir / f"earlier.{kind}"
+    whole (O_TMPFILE), so nothing is left; C3D's writer must name its file, and
+    a report makes its plots in a folder of its own, so the next run removes
+    what the killed run left, and says so."""
+    rec = export_dir / "arm.mcap"
+    if kind == "report":
+        out = export_dir / "earlier.md"
+        args = ["report", str(rec), "-o", str(out), "--no-trials", "--still", "0.1:0.6"]
+    else:
+        out = export_dir / f"earlier.{kind}"
+        args = ["export", kind, "-q", str(rec), "--rate-hz", "400", "-o", str(out)]
     out.write_text("an earlier export\n")
     before = sorted(p.name for p in export_dir.iterdir())
     with unchanged(rec, out):
-        proc = _stop_mid_write(["export", kind, "-q", str(rec), "--rate-hz", "400", "-o",
-                                str(out)], export_dir)  # fmt: skip
+        proc = _stop_mid_write(args, export_dir)
         proc.kill()
         assert proc.wait(timeout=60) == -signal.SIGKILL
         proc.communicate()
     left = sorted(p.name for p in export_dir.iterdir())
-    if kind != "c3d":
+    if kind == "bvh":
         assert left == before
         return
     stale = [n for n in left if n not in before]
-    assert len(stale) == 1
+    assert len(stale) == 1, left
     assert stale[0].startswith(f".{out.name}.{proc.pid}.")
-    result = run("export", kind, "-q", rec, "-o", out)
+    result = run(*args)
     assert result.returncode == 0, result.stderr
     told = f"bodynet: removed {export_dir / stale[0]}, a temporary file of {out.name} left by"
     assert told in result.stderr
-    assert sorted(p.name for p in export_dir.iterdir()) == before
+    assert not (export_dir / stale[0]).exists()
+    assert not [n for n in os.listdir(export_dir) if n.startswith(".")]
 
 
 @pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
