@@ -34,7 +34,7 @@ from hypothesis import strategies as st
 from mcap.writer import CompressionType, Writer
 
 from bodynet.cli.main import build_parser, main
-from bodynet.clients.mcap_store import read_poses
+from bodynet.clients.mcap_store import MCAP_MAGIC, read_poses
 from bodynet.session import argtypes
 
 BODYNET = Path(sys.executable).with_name("bodynet")
@@ -92,7 +92,8 @@ def files(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
 
 
 def _candidates(files: dict[str, Path]) -> list[str]:
-    return ["1", "0.5", "115200", str(files["file"]), str(files["new"]), "tcp/127.0.0.1:7447",
+    return ["1", "0.5", "115200", str(files["file"]), str(files["new"]),
+            str(files["new"].with_suffix(".md")), "tcp/127.0.0.1:7447",
             "body/**", "left_elbow", "x=left-arm/upperarm", "left-arm/upperarm",
             "aabbccddeeff-0", "aabbccddeeff-0=left-arm/upperarm", "127.0.0.1:6969", "0:1",
             "rerun+http://127.0.0.1:9876/proxy", "sacrum:+z", "x"]  # fmt: skip
@@ -329,6 +330,7 @@ def corpus(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
             writer.add_message(channel, t, pose.encode(frame), t)
         writer.finish()
     c["chunked"] = chunked
+    c["numbered"] = _as_recorded(c["recording"], d / "numbered.mcap")
     data = bytearray(chunked.read_bytes())
     chunks = _chunk_offsets(bytes(data))
     assert len(chunks) > 10
@@ -357,6 +359,19 @@ def corpus(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     lines[60] = "abc,3"
     c["ref-ragged"].write_text("\n".join(lines) + "\n")
     return c
+
+
+def _as_recorded(src: Path, dst: Path) -> Path:
+    """``src``'s poses as bodynet's recorder writes them (numbered, with their
+    transforms), in small chunks."""
+    from bodynet.clients.mcap_store import McapSink
+    from bodynet.core import keys
+
+    sink = McapSink(dst, chunk_size=4096)
+    for t, frame in read_poses(src):
+        sink.write_pose(keys.pose_key(), frame, t)
+    sink.close()
+    return dst
 
 
 def _chunk_offsets(data: bytes) -> list[int]:
@@ -452,7 +467,7 @@ def test_salvage_skips_a_corrupt_chunk_and_keeps_the_chunks_after_it(
     lost = whole - len(kept)
     assert 0 < lost < whole // 10  # one chunk's worth, not everything after it
     assert max(t for t, _ in kept) == last_t  # the chunks after the bad one are there
-    assert f"lost {lost} messages: byte" in err, err
+    assert f"lost {lost} message{'' if lost == 1 else 's'}: byte" in err, err
     code, err = cli(capsys, "record", "--salvage", corpus["cut"], "-o", out)
     assert code == 0
     assert "the file ends inside this record" in err
@@ -460,6 +475,114 @@ def test_salvage_skips_a_corrupt_chunk_and_keeps_the_chunks_after_it(
     assert code == 2
     assert "not an MCAP recording" in err
     assert not (tmp_path / "r.mcap").exists()
+
+
+def _garbled_framing(src: Path, dst: Path, keep_summary: bool) -> int:
+    """``src`` with the framing of a chunk in its middle garbled (its opcode and
+    length overwritten), cut before its summary unless ``keep_summary``; the
+    garbled chunk's offset."""
+    data = bytearray(src.read_bytes())
+    chunks = _chunk_offsets(bytes(data))
+    at = chunks[len(chunks) // 2]
+    data[at : at + 9] = b"\xee" * 9
+    dst.write_bytes(bytes(data if keep_summary else data[: chunks[-1]]))
+    return at
+
+
+def _headline(err: str) -> tuple[int, int | None]:
+    """The bounds salvage told of the messages it lost: (low, high or None)."""
+    m = re.search(r"lost (at least )?(\d+)(?: to (\d+))? messages?:", err)
+    assert m is not None, err
+    low = int(m[2])
+    return low, None if m[1] else int(m[3] or low)
+
+
+def test_salvage_counts_what_garbled_framing_cost_where_it_can_be_known(
+    corpus: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Garbled framing hides where records begin: the messages it held are
+    counted from the file's summary (exact), else from the message sequence
+    numbers around it (bodynet's recorder numbers them), else told unknown and
+    why; a cut chunk is bounded by its size."""
+    out = tmp_path / "saved.mcap"
+    total = {"chunked": sum(1 for _ in read_poses(corpus["chunked"]))}
+    from bodynet.clients.mcap_store import count_messages
+
+    total["numbered"] = count_messages(corpus["numbered"])
+    for name, keep_summary, told in (
+        ("chunked", True, "message"),  # a summary: exact
+        ("numbered", True, "message"),
+        ("numbered", False, "at least"),  # no summary: the sequence numbers
+        ("chunked", False, "an unknown number of messages: its "),  # neither
+    ):
+        bad = tmp_path / f"{name}-{keep_summary}.mcap"
+        at = _garbled_framing(corpus[name], bad, keep_summary)
+        with unchanged(bad):
+            code, err = cli(capsys, "record", "--salvage", bad, "-o", out)
+        assert code == 0, err
+        kept = count_messages(out)
+        low, high = _headline(err)
+        lost = total[name] - kept if keep_summary else None
+        assert f"byte {at} to " in err, err  # where the garbled bytes start and end
+        if keep_summary:
+            assert (low, high) == (lost, lost), err  # exact
+            assert "at least" not in err, err
+            assert "unknown" not in err, err
+        elif told == "at least":
+            assert f"(at least {low} message" in err, err
+            assert low >= 1
+        else:
+            assert "the file has no summary to count it by, nor message sequence numbers" in err
+        assert told in err, err
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(corpus["numbered"].read_bytes()[: _chunk_offsets(
+        corpus["numbered"].read_bytes())[-1] + 200])  # fmt: skip
+    code, err = cli(capsys, "record", "--salvage", cut, "-o", out)
+    assert code == 0, err
+    low, high = _headline(err)  # what came after the cut: unknowable from the file
+    assert high is None, err
+    assert low <= total["numbered"] - count_messages(out), err
+    assert re.search(r"\(at most \d+ messages; the file ends inside this record; whatever "
+                     r"came after it is not in the file\)", err), err  # fmt: skip
+
+
+@settings(max_examples=200 if LONG else 25, deadline=None)
+@given(data=st.data())
+def test_salvage_of_any_damage_tells_bounds_that_hold(
+    data: st.DataObject, corpus: dict[str, Path], tmp_path_factory: pytest.TempPathFactory
+) -> None:
+    """Any bytes of a recording overwritten (or the file cut): salvage keeps what
+    reads, and the count of what it lost that it tells (exact, a range or a lower
+    bound) holds against the truth."""
+    from bodynet.clients.mcap_store import StoreError, count_messages, salvage_report
+
+    name = data.draw(st.sampled_from(["numbered", "chunked"]), label="file")
+    whole = corpus[name].read_bytes()
+    total = count_messages(corpus[name])
+    damaged = bytearray(whole)
+    at = data.draw(st.integers(len(MCAP_MAGIC), len(whole) - 1), label="at")
+    if data.draw(st.booleans(), label="cut"):
+        damaged = damaged[:at]
+    else:
+        junk = data.draw(st.binary(min_size=1, max_size=64), label="junk")
+        damaged[at : at + len(junk)] = junk
+    d = tmp_path_factory.mktemp("salvage")
+    bad, out = d / "bad.mcap", d / "out.mcap"
+    bad.write_bytes(bytes(damaged))
+    try:
+        saved = salvage_report(bad, out)
+    except StoreError:
+        assert not out.exists()
+        return
+    lost = total - count_messages(out)
+    assert saved.messages == total - lost
+    text = saved.summary()
+    if lost and text == "nothing lost":
+        raise AssertionError(f"{lost} lost, nothing told")
+    if text != "nothing lost":
+        low, high = _headline(text)
+        assert low <= lost, text
+        assert high is None or lost <= high, text
 
 
 def test_no_output_overwrites_an_input(
@@ -470,6 +593,7 @@ def test_no_output_overwrites_an_input(
     rec = tmp_path / "arm.mcap"
     rec.write_bytes(corpus["recording"].read_bytes())
     (tmp_path / "link.mcap").hardlink_to(rec)
+    (tmp_path / "link.md").hardlink_to(rec)  # a report's name, the recording's file
     (tmp_path / "sym.log").symlink_to(capture)
     with unchanged(capture, rec):
         for args in (
@@ -479,7 +603,7 @@ def test_no_output_overwrites_an_input(
             ["export", "bvh", rec, "-o", tmp_path / "link.mcap"],
             ["view", rec, "--viewer", "none", "--save", rec],
             ["record", "--salvage", rec, "-o", tmp_path / "link.mcap"],
-            ["report", rec, "-o", rec],
+            ["report", rec, "-o", tmp_path / "link.md"],
         ):
             code, err = cli(capsys, *args)
             assert code == 2, (args, err)
@@ -505,6 +629,9 @@ def test_calibrate_and_report_keep_good_rows_and_refuse_bad_files(
                         "--still", "0.1:0.6")  # fmt: skip
         assert code == 2
         assert "no usable row" in err
+        code, err = cli(capsys, "report", corpus["recording"], "-o", tmp_path / "rep")
+        assert code == 2  # a report named without its format
+        assert "rep' is neither .md nor .html: the report is Markdown (rep.md)" in err
         code, err = cli(capsys, "report", corpus["recording"], "--reference",
                         corpus["ref-ragged"], "-o", out, "--no-trials",
                         "--still", "0.1:0.6")  # fmt: skip
@@ -836,7 +963,7 @@ def _stop_mid_write(args: list[str], folder: Path, attempts: int = 5) -> subproc
             os.kill(proc.pid, signal.SIGCONT)
         proc.communicate(timeout=60)
         for p in folder.iterdir():  # it finished: as before, and again
-            if p.name not in ("earlier.bvh", "arm.mcap"):
+            if not p.name.startswith(("earlier.", "arm.")):
                 p.unlink()
     raise AssertionError(f"never caught writing in {attempts} runs: {args}")
 
@@ -849,32 +976,39 @@ def export_dir(corpus: dict[str, Path], tmp_path: Path) -> Path:
     return tmp_path
 
 
-@pytest.mark.parametrize("kind", ["bvh", "c3d"])
+@pytest.mark.parametrize("kind", ["bvh", "c3d", "report"])
 def test_an_export_killed_mid_write_leaves_nothing(kind: str, export_dir: Path) -> None:
     """SIGKILL cannot be caught: the file being written has no name until it is
-    whole (O_TMPFILE), so nothing is left; C3D's writer must name its file, so
-    the next run removes the one the killed run left, and says so."""
-    rec, out = export_dir / "arm.mcap", export_dir / f"earlier.{kind}"
+    whole (O_TMPFILE), so nothing is left; C3D's writer must name its file, and
+    a report makes its plots in a folder of its own, so the next run removes
+    what the killed run left, and says so."""
+    rec = export_dir / "arm.mcap"
+    if kind == "report":
+        out = export_dir / "earlier.md"
+        args = ["report", str(rec), "-o", str(out), "--no-trials", "--still", "0.1:0.6"]
+    else:
+        out = export_dir / f"earlier.{kind}"
+        args = ["export", kind, "-q", str(rec), "--rate-hz", "400", "-o", str(out)]
     out.write_text("an earlier export\n")
     before = sorted(p.name for p in export_dir.iterdir())
     with unchanged(rec, out):
-        proc = _stop_mid_write(["export", kind, "-q", str(rec), "--rate-hz", "400", "-o",
-                                str(out)], export_dir)  # fmt: skip
+        proc = _stop_mid_write(args, export_dir)
         proc.kill()
         assert proc.wait(timeout=60) == -signal.SIGKILL
         proc.communicate()
     left = sorted(p.name for p in export_dir.iterdir())
-    if kind != "c3d":
+    if kind == "bvh":
         assert left == before
         return
     stale = [n for n in left if n not in before]
-    assert len(stale) == 1
+    assert len(stale) == 1, left
     assert stale[0].startswith(f".{out.name}.{proc.pid}.")
-    result = run("export", kind, "-q", rec, "-o", out)
+    result = run(*args)
     assert result.returncode == 0, result.stderr
     told = f"bodynet: removed {export_dir / stale[0]}, a temporary file of {out.name} left by"
     assert told in result.stderr
-    assert sorted(p.name for p in export_dir.iterdir()) == before
+    assert not (export_dir / stale[0]).exists()
+    assert not [n for n in os.listdir(export_dir) if n.startswith(".")]
 
 
 @pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
