@@ -163,7 +163,7 @@ def drift(
             groups[group].append(max(mine) if mine else math.nan)
         step = heading.step(float(t), samples, solver.profile)
         if step is not None:
-            solver.set_profile(step[1])
+            heading.hold(solver, step[1])
     minutes_at = np.array(times)
     out_groups = {}
     for group, errs in groups.items():

@@ -589,6 +589,14 @@ class BodyHeading:
                 return "turned", turned_headings(current, turns)
         return None
 
+    def hold(self, solver: Any, profile: Profile) -> None:
+        """A ``("turned", profile)`` step applied to the body's ``solver`` (a
+        ``BodySolver``, kept): the tags' headings, and how well the three-dof
+        joints' holds know them (``unc_deg``)."""
+        solver.set_profile(profile)
+        if self.drift is not None and self.drift.twist0:
+            solver.set_heading_unc(self.drift.link_unc())
+
     def state(self) -> dict[str, Any]:
         """Where the heading stands: ``state`` (fixed, declared, found, unknown or
         uncalibrated), ``deg`` (the tags' shared heading against the body's
@@ -911,6 +919,17 @@ class JointDrift:
         arithmetic: a scipy Rotation costs tens of microseconds a call)."""
         mount = _quat_matrix(profile.imu_mounts[key])
         return rz(-profile.heading_of(key)) @ rot @ mount.T  # type: ignore[no-any-return]
+
+    def link_unc(self) -> dict[str, float]:
+        """Per segment whose tag a three-dof joint holds (its mean twist, at rest, or
+        an encoder), how well its heading is known against its parent's (deg, about
+        two standard deviations: the spread of the twist around what it is held
+        to); the joints above these segments carry it in the pose's ``unc_deg``.
+        The hinge and two-dof joints' holds are geometric, and left out."""
+        by_key = _segments_of(self.pairs)
+        return {by_key[k]: round(max(2.0 * math.sqrt(max(self.spread_deg[k], 0.0)), 0.5), 2)
+                for k, (_, _, _, _, kind) in self.pairs.items()
+                if kind == "twist" and k in by_key}  # fmt: skip
 
     def segments(self, profile: Profile) -> dict[str, dict[str, Any]]:
         """How well each tag's heading is known against the body's, by segment: the

@@ -152,7 +152,7 @@ def _hold_drift(heading: BodyHeading, t_s: float, latest: Mapping[Site, RawSampl
     own step (the heading's search had the whole capture in the first pass)."""
     step = None if heading.searching else heading.step(t_s, latest, solver.profile)
     if step is not None and step[0] == "turned":
-        solver.set_profile(step[1])
+        heading.hold(solver, step[1])
 
 
 def process(path: Path, fmt: str, out: Path, profile: Profile | None = None,
