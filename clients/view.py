@@ -32,7 +32,7 @@ from bodynet.core import keys
 from bodynet.core.codecs import pose
 from bodynet.core.errors import DecodeError
 from bodynet.core.skeleton import Skeleton, build_skeleton, rom
-from bodynet.session.outputs import PendingOutput
+from bodynet.session.outputs import OutputError, PendingOutput
 
 GAUGES = (
     "left_shoulder_flexion_deg", "left_elbow_flexion_deg", "left_wrist_flexion_deg",
@@ -455,13 +455,25 @@ class Viewer:
         that name as it was."""
         try:
             for rec in self.recs:
-                rec.flush()
-                rec.disconnect()
+                try:
+                    rec.flush(timeout_sec=FLUSH_S)
+                except RuntimeError as exc:  # its writer stopped (a full disk) or hung
+                    if self.part is None or rec is not self.recs[-1]:
+                        raise
+                    keep = False  # the .rrd (the last sink) is not whole: not kept
+                    raise OutputError(f"cannot write {self.save}: Rerun could not write "
+                                      f"it ({exc}; a full disk?)") from None  # fmt: skip
+                finally:
+                    rec.disconnect()
             if keep and self.part is not None:
                 self.part.commit()
         finally:
             if self.part is not None:
                 self.part.discard()
+
+
+#: How long closing waits for Rerun to write what it was given.
+FLUSH_S = 60.0
 
 
 def view_recording(path: Path, viewer: Viewer, batch: int = 100) -> int:

@@ -26,6 +26,7 @@ import sys
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import can
 import pytest
@@ -1041,30 +1042,54 @@ def test_an_export_interrupted_mid_write_says_so_and_leaves_nothing(
 
 # -- every export onto a file system that fills (a real tmpfs, in a mount namespace) --
 
-#: Run in a mount namespace of its own: an 8 KiB tmpfs on the folder given, then
-#: each export of the recording into it (after an earlier small file of that name),
-#: in one process; prints what each answered and left.
+#: Run in a mount namespace of its own: a tmpfs of the size given on the folder
+#: given, then each command line (JSON; "OUT" is its output in that folder) in
+#: one process, after an earlier small file of the output's name; prints what
+#: each answered and left.
 FULL_DISK = r"""
 import contextlib, io, json, os, subprocess, sys
-folder, rec, kinds = sys.argv[1], sys.argv[2], sys.argv[3:]
-subprocess.run(["mount", "-t", "tmpfs", "-o", "size=8k,mode=0755", "tmpfs", folder],
+folder, size, cases = sys.argv[1], sys.argv[2], json.loads(sys.argv[3])
+subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size},mode=0755", "tmpfs", folder],
                check=True)
 from bodynet.cli.main import main
-results = {}
-for kind in kinds:
-    out = os.path.join(folder, "out." + kind)
+results = []
+for out_name, args in cases:
+    out = os.path.join(folder, out_name)
     with open(out, "w") as f:
         f.write("earlier\n")
     err = io.StringIO()
     with contextlib.redirect_stderr(err):
-        code = main(["export", kind, "-q", rec, "-o", out])
+        code = main([out if a == "OUT" else a for a in args])
     with open(out) as f:
         kept = f.read()
-    results[kind] = {"code": code, "err": err.getvalue(), "left": sorted(os.listdir(folder)),
-                     "kept": kept}
-    os.unlink(out)
+    results.append({"out": out, "code": code, "err": err.getvalue(),
+                    "left": sorted(os.listdir(folder)), "kept": kept})
+    for name in os.listdir(folder):
+        os.unlink(os.path.join(folder, name))
 print(json.dumps(results))
 """
+
+
+def _onto_a_full_disk(size: str, cases: list[tuple[str, list[str]]], folder: Path
+                      ) -> list[dict[str, Any]]:  # fmt: skip
+    """Each case's command run with its output on a tmpfs of ``size`` that fills."""
+    prefix = _in_mount_namespace()
+    folder.mkdir()
+    result = subprocess.run([*prefix, sys.executable, "-c", FULL_DISK, str(folder), size,
+                             json.dumps(cases)], capture_output=True, text=True, timeout=300,
+                            check=False)  # fmt: skip
+    assert result.returncode == 0, result.stderr
+    answers: list[dict[str, Any]] = json.loads(result.stdout.splitlines()[-1])
+    return answers
+
+
+def _told_the_disk_is_full(answer: dict[str, Any], command: str) -> None:
+    assert answer["code"] in (1, 2), answer
+    assert answer["err"].startswith(f"bodynet {command}: cannot write {answer['out']}"), answer
+    assert "No space left on device" in answer["err"] or "a full disk" in answer["err"], answer
+    assert "Traceback" not in answer["err"], answer
+    assert answer["left"] == [Path(answer["out"]).name], answer  # no half file beside it
+    assert answer["kept"] == "earlier\n", answer  # the earlier file whole
 
 
 def _in_mount_namespace() -> list[str]:
@@ -1088,21 +1113,33 @@ def test_every_export_onto_a_full_disk_names_the_output_and_leaves_nothing(
 ) -> None:
     from bodynet.clients.exports import WRITERS
 
-    prefix = _in_mount_namespace()
-    disk = tmp_path / "disk"
-    disk.mkdir()
+    rec = str(corpus["recording"])
     with unchanged(corpus["recording"]):
-        result = subprocess.run([*prefix, sys.executable, "-c", FULL_DISK, str(disk),
-                                 str(corpus["recording"]), *WRITERS], capture_output=True,
-                                text=True, timeout=300, check=False)  # fmt: skip
-    assert result.returncode == 0, result.stderr
-    answers = json.loads(result.stdout.splitlines()[-1])
-    assert set(answers) == set(WRITERS)
-    for kind, answer in answers.items():
-        out = disk / f"out.{kind}"
-        assert answer["code"] == 2, (kind, answer)
-        assert answer["err"].startswith(f"bodynet export: cannot write {out}"), (kind, answer)
-        assert "No space left on device" in answer["err"], (kind, answer)
-        assert "Traceback" not in answer["err"]
-        assert answer["left"] == [out.name], (kind, answer)  # no half file beside it
-        assert answer["kept"] == "earlier\n", (kind, answer)  # the earlier file whole
+        answers = _onto_a_full_disk("8k", [(f"out.{kind}", ["export", kind, "-q", rec, "-o",
+                                                             "OUT"]) for kind in WRITERS],
+                                    tmp_path / "disk")  # fmt: skip
+    assert len(answers) == len(WRITERS)
+    for answer in answers:
+        _told_the_disk_is_full(answer, "export")
+
+
+def test_every_other_file_output_onto_a_full_disk_names_it_and_leaves_nothing(
+    corpus: dict[str, Path], tmp_path: Path
+) -> None:
+    """process, salvage, report and a saved view (64 KiB: Rerun's own writer
+    hangs for ever when the disk fills while it opens the file)."""
+    inputs = [corpus[n] for n in ("smartsuit_arm.log", "recording", "numbered")]
+    log, rec, numbered = map(str, inputs)
+    with unchanged(*inputs):
+        answers = _onto_a_full_disk("8k", [
+            ("p.mcap", ["process", log, "-o", "OUT"]),
+            ("s.mcap", ["record", "--salvage", numbered, "-o", "OUT"]),
+            ("r.md", ["report", rec, "-o", "OUT", "--no-trials", "--still", "0.1:0.6"]),
+        ], tmp_path / "disk")  # fmt: skip
+        answers += _onto_a_full_disk(
+            "64k",
+            [("v.rrd", ["view", rec, "--viewer", "none", "--save", "OUT"])],
+            tmp_path / "disk2",
+        )
+    for answer, command in zip(answers, ["process", "record", "report", "view"], strict=True):
+        _told_the_disk_is_full(answer, command)
