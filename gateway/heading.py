@@ -466,6 +466,105 @@ class KneePairs:
         return out
 
 
+class ChildHeadings:
+    """Finds the heading of a tag with a reference of its own (``independent``) whose
+    parent's is known, across a two-dof joint (a foot's below its shank, a hand's
+    below its forearm).
+
+    As for the knees, the tag's turn since calibration, in its own reference, is
+    its segment's turned by its unknown heading; for the right heading the
+    joint's second axis (fixed in the child) stays perpendicular to its first
+    (fixed in the parent, known). In a swing that holds for four headings 90 deg
+    apart (the joint's axes stay perpendicular whichever way the child's turn is
+    laid); of those, the one whose joint turns least from the pose wins (the
+    others put the segment's swing across its joint: 30-40 deg of ankle against
+    5 in a walk). Taken once ``SAMPLES`` samples have the child turned past
+    ``MOVED_DEG`` since calibration; one try per tag."""
+
+    SAMPLES = 40
+    MOVED_DEG = 10.0
+
+    def __init__(self, profile: Profile) -> None:
+        by_segment: dict[str, str] = {}
+        for key, seg in _segments_of(profile.imu_mounts).items():
+            by_segment.setdefault(seg, key)
+        segments = pose_segments(profile)
+        #: child key -> (parent key, parent axis, child axis, parent's and child's
+        #: segment in the pose, the child tag at calibration for a heading of 0)
+        self.joints: dict[str, tuple[str, int, int, np.ndarray, np.ndarray, np.ndarray]] = {}
+        for _, parent, child, p_axis, c_axis, kind in DRIFT_JOINTS:
+            for side in ("left", "right"):
+                p, c = by_segment.get(f"{side}_{parent}"), by_segment.get(f"{side}_{child}")
+                if p is None or c is None or kind != "perpendicular":
+                    continue
+                seg_c = segments[f"{side}_{child}"]
+                self.joints[c] = (p, p_axis, c_axis, segments[f"{side}_{parent}"], seg_c,
+                                  seg_c @ _quat_matrix(profile.imu_mounts[c]))  # fmt: skip
+        self.samples: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {c: [] for c in self.joints}
+        self.done: set[str] = set()
+        self.found: dict[str, float] = {}
+
+    def pending(self, profile: Profile, coming: Iterable[str] = ()) -> bool:
+        """Whether a tag may still be found: its heading unknown, not tried yet, and
+        its parent's known (or among ``coming``, being found)."""
+        soon = set(coming)
+        return any(c not in self.done and not profile.heading_known(c)
+                   and (profile.heading_known(p) or p in soon)
+                   for c, (p, *_) in self.joints.items())  # fmt: skip
+
+    def update(self, orientations: Mapping[str, QuatWxyz], profile: Profile) -> dict[str, float]:
+        """Take one tick's tag orientations (``profile``: the known headings so far);
+        the headings found at this tick."""
+        out: dict[str, float] = {}
+        for c, (p, p_axis, c_axis, seg_p, seg_c, c0) in self.joints.items():
+            if c in self.done or profile.heading_known(c) or not profile.heading_known(p):
+                continue
+            if p not in orientations or c not in orientations:
+                continue
+            a_c = _quat_matrix(orientations[c]) @ c0.T  # the tag's turn since calibration
+            if np.linalg.norm(_rotvec(a_c)) < math.radians(self.MOVED_DEG):
+                continue
+            parent = JointDrift._segment(profile, p, _quat_matrix(orientations[p]))
+            self.samples[c].append((parent, a_c))
+            if len(self.samples[c]) >= self.SAMPLES:
+                self.done.add(c)
+                psi = _child_heading(self.samples[c], seg_p, seg_c, p_axis, c_axis)
+                if psi is not None:
+                    out[c] = psi
+        self.found.update(out)
+        return out
+
+
+def _child_heading(samples: Sequence[tuple[np.ndarray, np.ndarray]], seg_p: np.ndarray,
+                   seg_c: np.ndarray, p_axis: int, c_axis: int) -> float | None:  # fmt: skip
+    """The child tag's heading (deg) that keeps the joint's axes perpendicular and
+    turns the joint least from the pose; None when no heading keeps them so."""
+    parents = np.array([p for p, _ in samples])  # the parent segment, body frame
+    turns = np.array([a for _, a in samples])
+    pose_rel = seg_p.T @ seg_c
+
+    def cost(psi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        rc = _rz_batch(psi)
+        child = np.einsum("kji,njl,klm->knim", rc, turns, rc) @ seg_c  # (k, n, 3, 3)
+        perp = np.einsum("ni,kni->kn", parents[:, :, p_axis], child[:, :, :, c_axis])
+        rel = np.einsum("nji,knjl->knil", parents, child)  # parent^T child
+        off = np.einsum("ji,knjl->knil", pose_rel, rel)  # the joint's turn from the pose
+        angle = np.arccos(np.clip((np.trace(off, axis1=-2, axis2=-1) - 1) / 2, -1.0, 1.0))
+        return np.sqrt((perp**2).mean(axis=1)), np.degrees(angle).mean(axis=1)
+
+    grid = np.radians(np.arange(0.0, 360.0, 5.0))
+    perp, turn = cost(grid)
+    # the perpendicular fits (within twice the best), then the least turned joint
+    fits = np.flatnonzero(perp <= 2 * perp.min() + 1e-3)
+    best = grid[fits[np.argmin(turn[fits])]]
+    fine = best + np.radians(np.arange(-5.0, 5.25, 0.25))
+    perp, turn = cost(fine)
+    k = int(np.argmin(perp))
+    if math.degrees(math.asin(min(1.0, perp[k]))) > 3.0:  # not this joint's motion
+        return None
+    return _wrap(math.degrees(fine[k]))
+
+
 def _knee_pair_headings(samples: Sequence[tuple[np.ndarray, np.ndarray]]
                         ) -> tuple[float, float] | None:  # fmt: skip
     """The thigh's and shank's tag headings (deg) that make every sample's knee a
@@ -531,6 +630,7 @@ class BodyHeading:
         independent = profile.heading == "independent"
         self.finder = HingeHeading(profile) if self.unknown and not independent else None
         self.pairs = KneePairs(profile) if self.unknown and independent else None
+        self.children = ChildHeadings(profile) if self.unknown and independent else None
         if profile.heading == "fixed":
             self.how = "fixed"
         elif not profile.imu_mounts:
@@ -546,18 +646,24 @@ class BodyHeading:
         if not self.unknown:
             return False
         if self.pairs is not None:
-            return len(self.pairs.done) < len(self.pairs.pairs)
+            knees = {k for side, (p, c, _, _) in self.pairs.pairs.items()
+                     if side not in self.pairs.done for k in (p, c)}  # fmt: skip
+            return bool(knees) or (self.children is not None
+                                   and self.children.pending(self.profile, knees))  # fmt: skip
         return self.finder is not None
 
     def update(self, t_s: float, samples: Mapping[Site, Any]) -> Profile | None:
         """Take one tick's samples (site -> RawSample); the profile with the heading
-        once it is found (then never again; in ``independent`` mode, once per knee)."""
+        once it is found (then never again; in ``independent`` mode, once per knee
+        and once per foot or hand whose parent's is known)."""
         if not self.unknown or (self.finder is None and self.pairs is None):
             return None
         orientations = {site.raw_key: s.reading.wxyz for site, s in samples.items()
                         if hasattr(s.reading, "wxyz")}  # fmt: skip
-        if self.pairs is not None:  # each tag its own: the knees' tags, pair by pair
+        if self.pairs is not None:  # each tag its own: the knees' tags, pair by pair,
             found = self.pairs.update(orientations)
+            if self.children is not None:  # then the feet's below the shanks'
+                found.update(self.children.update(orientations, self.profile))
             if not found:
                 return None
             self.profile = with_headings(self.profile, found)

@@ -504,3 +504,44 @@ def test_hybrid_suit_encoders_hold_the_thigh_tags_drift() -> None:
     assert encoder.holding["body/leg/left/thigh/raw"] == "encoder"
     assert worst["encoder"] <= 3.0, worst
     assert worst["mean"] > 10.0, worst
+
+
+@pytest.mark.parametrize("seed", [1, 3])
+def test_independent_foot_tags_are_found_below_the_shanks(seed: int) -> None:
+    """Independent 6-axis tags, walking: once the knees give each shank tag's
+    heading, each foot tag's is found across the ankle (its axes perpendicular,
+    the joint turning least), within 1.5 deg of the emulator's truth, and the
+    ankles are then measured within 2.5 deg; the trunk's and arms' tags stay
+    unknown (flagged), their joints having three dofs and no heading known above."""
+    from bodynet.nodes.motion import ROUTINES
+
+    walk = ROUTINES["walk"].angles
+    still = dict(CALIBRATION_POSES["tpose"])
+    routine = Routine("pose-then-walk", "", lambda t: still if t < 1.0 else walk(t - 1.0))
+    body = BodyEmulator(routine, imu_tags(), realism=Realism(headings=Headings.INDEPENDENT),
+                        seed=seed)  # fmt: skip
+    independent = Profile(heading="independent")
+    heading = BodyHeading(calibrate_window(_window(body, 0.2, 0.95), independent,
+                                           "tpose").apply(independent))  # fmt: skip
+    solver = BodySolver(heading.profile)
+    worst, measured = 0.0, set()
+    for t in np.arange(1.0, 7.0, 1 / RATE_HZ):
+        samples, truth = _samples(body, float(t))
+        step = heading.step(float(t), samples, solver.profile)
+        if step is not None and step[0] == "found":
+            solver = BodySolver(step[1])
+        out = solver.solve(samples)
+        errors = measured_errors(out.angles_deg, out.flags, truth)
+        measured |= set(errors)
+        feet = heading.children.found if heading.children is not None else {}
+        if len(feet) == 2:
+            worst = max(worst, *(e for n, e in errors.items() if "ankle" in n))
+    truth_headings = {s.site.raw_key: body.headings_deg[s.node] for s in body.sensors}
+    assert heading.children is not None
+    assert set(heading.children.found) == {"body/leg/left/foot/raw", "body/leg/right/foot/raw"}
+    for key, psi in heading.children.found.items():
+        assert (psi - truth_headings[key] + 180) % 360 - 180 == pytest.approx(0.0, abs=1.5), key
+    assert 0.0 < worst <= 2.5
+    assert {"left_ankle_flexion_deg", "right_ankle_inversion_deg"} <= measured
+    assert not any(n.startswith(("lumbar", "neck", "left_shoulder", "left_hip")) for n in measured)
+    assert heading.state()["state"] == "partly found"
