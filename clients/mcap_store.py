@@ -901,7 +901,10 @@ def salvage_report(src: Path, dst: Path) -> Salvaged:
         gaps = _SequenceGaps()
         read_chunks: set[int] = set()
         with atomic_file(dst, [src], "wb") as out:
-            records = _walk(f, size, losses, read_chunks)
+            indexed = (
+                {c.chunk_start_offset: c.chunk_length for c in summary.chunks} if summary else None
+            )
+            records = _walk(f, size, losses, read_chunks, indexed)
             count, orphans = _copy_complete(gaps.watch(records, losses), out, summary)
         losses = _counted(f, size, losses, gaps, count + sum(orphans.values()), summary,
                           read_chunks)  # fmt: skip
@@ -1090,22 +1093,31 @@ _KNOWN_OPCODES = {int(op) for op in Opcode}
 
 
 def _walk(f: IO[bytes], size: int, losses: list[Loss],  # noqa: PLR0915
-          read_chunks: set[int] | None = None) -> Iterator[Any]:  # fmt: skip
+          read_chunks: set[int] | None = None,
+          indexed: Mapping[int, int] | None = None) -> Iterator[Any]:  # fmt: skip
     """The schemas, channels and messages of an MCAP file's data section, record
     by record; a chunk that does not read is added to ``losses`` (with the
     messages its index lists) and skipped; framing that makes no sense is
-    skipped up to the next chunk that reads."""
+    skipped up to the next chunk that reads. ``indexed``: the chunks the file's
+    summary lists (start -> length), read by their index where their own
+    framing is garbled, and where reading goes on after garbled bytes."""
     pos = len(MCAP_MAGIC)
     bad: Loss | None = None  # the last unreadable chunk, until its indexes are counted
+    starts = sorted(indexed or ())
     while pos + 9 <= size:
         f.seek(pos)
         opcode, length = f.read(1)[0], int.from_bytes(f.read(8), "little")
+        if indexed and pos in indexed and indexed[pos] <= size - pos:
+            opcode, length = Opcode.CHUNK, indexed[pos] - 9  # as the summary says
         end = pos + 9 + length
         if opcode not in _KNOWN_OPCODES or end > size:
             if bad is not None:
                 losses.append(bad)
                 bad = None
             nxt = _next_chunk(f, pos + 1, size)
+            later = [at for at in starts if at > pos]
+            if later and (nxt is None or later[0] < nxt):
+                nxt = later[0]
             if opcode in _KNOWN_OPCODES and nxt is None:
                 losses.append(Loss(pos, None, f"the file ends inside this record; {_CUT}"))
                 return
