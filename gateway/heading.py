@@ -535,6 +535,102 @@ class ChildHeadings:
         return out
 
 
+class ElbowPairs:
+    """Finds the heading of each upper arm and forearm tag with a reference of its
+    own (``independent``) from the elbow's motion, as :class:`KneePairs` does the
+    knees': for the right pair of headings the elbow's axes stay perpendicular
+    (its flexion axis, fixed in the upper arm, and its pronation axis, fixed in the
+    forearm) and its flexion stays within its range of motion (which settles the
+    pair turned by 180 deg). The elbow's flexion axis must be horizontal in the
+    calibration pose (an N-pose; in a T-pose it is vertical and the pair's common
+    heading does not show). The samples are taken every ``EVERY_S`` once the
+    forearm has turned past ``MOVED_DEG`` since calibration (how far the elbow
+    bends cannot be told before the headings are known), ``SAMPLES`` of them (a
+    reach: the arm lifted, the elbow bent); one try per arm."""
+
+    SAMPLES = 40
+    MOVED_DEG = 10.0
+    EVERY_S = 0.1
+
+    def __init__(self, profile: Profile) -> None:
+        by_segment: dict[str, str] = {}
+        for key, seg in _segments_of(profile.imu_mounts).items():
+            by_segment.setdefault(seg, key)
+        segments = pose_segments(profile)
+        self.pairs: dict[str, tuple[str, str, np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = {}
+        for side in ("left", "right"):
+            p, c = by_segment.get(f"{side}_upperarm"), by_segment.get(f"{side}_forearm")
+            seg_p, seg_c = segments[f"{side}_upperarm"], segments[f"{side}_forearm"]
+            if p is None or c is None or math.hypot(seg_p[0, 1], seg_p[1, 1]) < HORIZONTAL_MIN:
+                continue
+            p0 = seg_p @ _quat_matrix(profile.imu_mounts[p])
+            c0 = seg_c @ _quat_matrix(profile.imu_mounts[c])
+            self.pairs[side] = (p, c, p0, c0, seg_p, seg_c)
+        self.samples: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {s: [] for s in self.pairs}
+        self.found: dict[str, float] = {}
+        self.done: set[str] = set()
+        self._last: dict[str, float] = {}
+
+    @property
+    def coming(self) -> set[str]:
+        """The tags whose heading may still be found here."""
+        return {k for side, (p, c, *_) in self.pairs.items() if side not in self.done
+                for k in (p, c)}  # fmt: skip
+
+    def update(self, t_s: float, orientations: Mapping[str, QuatWxyz]) -> dict[str, float]:
+        """Take one tick's tag orientations; the headings found at this tick."""
+        out: dict[str, float] = {}
+        for side, (p, c, p0, c0, seg_p, seg_c) in self.pairs.items():
+            if side in self.done or p not in orientations or c not in orientations:
+                continue
+            if t_s - self._last.get(side, -math.inf) < self.EVERY_S - 1e-6:
+                continue
+            a_p = _quat_matrix(orientations[p]) @ p0.T  # each tag's turn since calibration
+            a_c = _quat_matrix(orientations[c]) @ c0.T
+            if np.linalg.norm(_rotvec(a_c)) < math.radians(self.MOVED_DEG):
+                continue
+            self._last[side] = t_s
+            self.samples[side].append((a_p, a_c))
+            if len(self.samples[side]) >= self.SAMPLES:
+                self.done.add(side)
+                found = _elbow_pair_headings(self.samples[side], seg_p, seg_c)
+                if found is not None:
+                    out[p], out[c] = found
+        self.found.update(out)
+        return out
+
+
+def _elbow_pair_headings(samples: Sequence[tuple[np.ndarray, np.ndarray]], seg_p: np.ndarray,
+                         seg_c: np.ndarray) -> tuple[float, float] | None:  # fmt: skip
+    """The upper arm's and forearm's tag headings (deg) that keep the elbow's axes
+    perpendicular with its flexion in range; None when no pair does."""
+    a_p = np.array([a for a, _ in samples])
+    a_c = np.array([b for _, b in samples])
+    lo, hi = rom("left_elbow_flexion_deg")
+
+    def cost(psi_p: np.ndarray, psi_c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        rp, rc = _rz_batch(psi_p), _rz_batch(psi_c)
+        b_p = np.einsum("kji,njl,klm->knim", rp, a_p, rp) @ seg_p  # the segments, body frame
+        b_c = np.einsum("kji,njl,klm->knim", rc, a_c, rc) @ seg_c
+        perp = np.sqrt((np.einsum("kni,kni->kn", b_p[..., :, 1], b_c[..., :, 2]) ** 2).mean(1))
+        rel = np.einsum("knji,knjl->knil", b_p, b_c)  # the forearm in the upper arm
+        flexion = np.degrees(np.arctan2(rel[..., 2, 0], rel[..., 0, 0]))  # about -y
+        outside = np.maximum(0.0, np.maximum(lo - 10 - flexion, flexion - hi - 10)).sum(axis=1)
+        return perp, outside
+
+    grid = np.radians(np.arange(0.0, 360.0, 5.0))
+    gp, gc = (g.ravel() for g in np.meshgrid(grid, grid, indexing="ij"))
+    perp, outside = cost(gp, gc)
+    best = int(np.lexsort((perp, np.round(outside, 0)))[0])
+    fine = np.radians(np.arange(-5.0, 5.5, 0.5))
+    fp, fc = (g.ravel() for g in np.meshgrid(gp[best] + fine, gc[best] + fine, indexing="ij"))
+    perp, outside = cost(fp, fc)
+    k = int(np.lexsort((perp, np.round(outside, 0)))[0])
+    if math.degrees(math.asin(min(1.0, perp[k]))) > 3.0 or outside[k] > 5.0 * len(samples):
+        return None  # not an elbow's motion
+    return _wrap(math.degrees(fp[k])), _wrap(math.degrees(fc[k]))
+
+
 def _child_heading(samples: Sequence[tuple[np.ndarray, np.ndarray]], seg_p: np.ndarray,
                    seg_c: np.ndarray, p_axis: int, c_axis: int) -> float | None:  # fmt: skip
     """The child tag's heading (deg) that keeps the joint's axes perpendicular and
@@ -631,6 +727,7 @@ class BodyHeading:
         self.finder = HingeHeading(profile) if self.unknown and not independent else None
         self.pairs = KneePairs(profile) if self.unknown and independent else None
         self.children = ChildHeadings(profile) if self.unknown and independent else None
+        self.elbows = ElbowPairs(profile) if self.unknown and independent else None
         if profile.heading == "fixed":
             self.how = "fixed"
         elif not profile.imu_mounts:
@@ -648,6 +745,8 @@ class BodyHeading:
         if self.pairs is not None:
             knees = {k for side, (p, c, _, _) in self.pairs.pairs.items()
                      if side not in self.pairs.done for k in (p, c)}  # fmt: skip
+            if self.elbows is not None:
+                knees |= self.elbows.coming
             return bool(knees) or (self.children is not None
                                    and self.children.pending(self.profile, knees))  # fmt: skip
         return self.finder is not None
@@ -662,7 +761,9 @@ class BodyHeading:
                         if hasattr(s.reading, "wxyz")}  # fmt: skip
         if self.pairs is not None:  # each tag its own: the knees' tags, pair by pair,
             found = self.pairs.update(orientations)
-            if self.children is not None:  # then the feet's below the shanks'
+            if self.elbows is not None:  # and the arms' from the elbows' (after an N-pose)
+                found.update(self.elbows.update(t_s, orientations))
+            if self.children is not None:  # then the feet's and hands' below them
                 found.update(self.children.update(orientations, self.profile))
             if not found:
                 return None
