@@ -546,7 +546,9 @@ class ElbowPairs:
     heading does not show). The samples are taken every ``EVERY_S`` once the
     forearm has turned past ``MOVED_DEG`` since calibration (how far the elbow
     bends cannot be told before the headings are known), ``SAMPLES`` of them (a
-    reach: the arm lifted, the elbow bent); one try per arm."""
+    reach: the arm lifted, the elbow bent); while another pair far from the best
+    fits as well (the elbow barely bent, as in a walk) nothing is taken, and the
+    older half of the samples make way for new ones."""
 
     SAMPLES = 40
     MOVED_DEG = 10.0
@@ -592,10 +594,12 @@ class ElbowPairs:
             self._last[side] = t_s
             self.samples[side].append((a_p, a_c))
             if len(self.samples[side]) >= self.SAMPLES:
-                self.done.add(side)
                 found = _elbow_pair_headings(self.samples[side], seg_p, seg_c)
-                if found is not None:
-                    out[p], out[c] = found
+                if found is None:  # not telling yet: the next samples may (a reach)
+                    del self.samples[side][: self.SAMPLES // 2]
+                    continue
+                self.done.add(side)
+                out[p], out[c] = found
         self.found.update(out)
         return out
 
@@ -622,6 +626,12 @@ def _elbow_pair_headings(samples: Sequence[tuple[np.ndarray, np.ndarray]], seg_p
     gp, gc = (g.ravel() for g in np.meshgrid(grid, grid, indexing="ij"))
     perp, outside = cost(gp, gc)
     best = int(np.lexsort((perp, np.round(outside, 0)))[0])
+    # a motion that fits a pair far from the best as well (within 20 deg of it in
+    # neither heading, as much inside the range) tells nothing: the elbow barely bent
+    far = np.maximum(np.abs(_wrap_rad(gp - gp[best])), np.abs(_wrap_rad(gc - gc[best])))
+    rivals = (far > math.radians(20.0)) & (np.round(outside, 0) <= round(float(outside[best])))
+    if rivals.any() and perp[rivals].min() < 2.0 * perp[best]:
+        return None
     fine = np.radians(np.arange(-5.0, 5.5, 0.5))
     fp, fc = (g.ravel() for g in np.meshgrid(gp[best] + fine, gc[best] + fine, indexing="ij"))
     perp, outside = cost(fp, fc)
@@ -701,6 +711,11 @@ def _knee_pair_headings(samples: Sequence[tuple[np.ndarray, np.ndarray]]
     return _wrap(math.degrees(fp[k])), _wrap(math.degrees(fc[k]))
 
 
+def _wrap_rad(a: np.ndarray) -> np.ndarray:
+    """Angles (rad) wrapped into [-pi, pi)."""
+    return (a + math.pi) % (2 * math.pi) - math.pi  # type: ignore[no-any-return]
+
+
 def _rz_batch(psi: np.ndarray) -> np.ndarray:
     """Rotations (k, 3, 3) about the vertical by ``psi`` (rad, (k,))."""
     c, s = np.cos(psi), np.sin(psi)
@@ -724,6 +739,7 @@ class BodyHeading:
         self.drift: JointDrift | None = JointDrift(profile) if profile.imu_mounts else None
         self.unknown = sorted(k for k in profile.imu_mounts if not profile.heading_known(k))
         independent = profile.heading == "independent"
+        self.ended = False  # the search was ended (end_search)
         self.finder = HingeHeading(profile) if self.unknown and not independent else None
         self.pairs = KneePairs(profile) if self.unknown and independent else None
         self.children = ChildHeadings(profile) if self.unknown and independent else None
@@ -740,7 +756,7 @@ class BodyHeading:
     @property
     def searching(self) -> bool:
         """Whether a heading may still be found (the search has not ended)."""
-        if not self.unknown:
+        if not self.unknown or self.ended:
             return False
         if self.pairs is not None:
             knees = {k for side, (p, c, _, _) in self.pairs.pairs.items()
@@ -755,8 +771,8 @@ class BodyHeading:
         """Take one tick's samples (site -> RawSample); the profile with the heading
         once it is found (then never again; in ``independent`` mode, once per knee
         and once per foot or hand whose parent's is known)."""
-        if not self.unknown or (self.finder is None and self.pairs is None):
-            return None
+        if not self.searching:
+            return None  # nothing more to find
         orientations = {site.raw_key: s.reading.wxyz for site, s in samples.items()
                         if hasattr(s.reading, "wxyz")}  # fmt: skip
         if self.pairs is not None:  # each tag its own: the knees' tags, pair by pair,
@@ -788,13 +804,21 @@ class BodyHeading:
         the joints' constraints turn drifting tags' headings (the same body:
         ``BodySolver.set_profile``); else None."""
         if self.searching:
+            self.profile = current  # the known tags' headings as held so far
             found = self.update(t_s, samples)
-            return None if found is None else ("found", found)
+            if found is not None:
+                return "found", found
+        # the known tags are held while others' are still searched (they are skipped)
         if self.drift is not None and self.drift.pairs:
             turns = self.drift.update(t_s, samples, current)
             if turns:
                 return "turned", turned_headings(current, turns)
         return None
+
+    def end_search(self) -> None:
+        """No heading is searched any more (``bodynet process``: its first pass had
+        the whole capture); the tags still unknown stay so, and flagged."""
+        self.ended = True
 
     def hold(self, solver: Any, profile: Profile) -> None:
         """A ``("turned", profile)`` step applied to the body's ``solver`` (a

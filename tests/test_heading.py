@@ -590,3 +590,35 @@ def test_independent_arm_tags_are_found_from_a_reach_after_an_n_pose(seed: int) 
     assert 0.0 < worst <= 3.0
     assert {"left_elbow_flexion_deg", "right_wrist_flexion_deg"} <= measured
     assert not any(n.startswith(("left_shoulder", "right_shoulder", "lumbar")) for n in measured)
+
+
+def test_a_walk_after_an_n_pose_finds_no_arm_heading_and_holds_the_known_ones() -> None:
+    """In a walk the elbows barely bend: every pair of arm headings fits as well as
+    another, so none is taken (never a wrong one), the search for them goes on,
+    and meanwhile the tags already known (the legs') are held against drift."""
+    from bodynet.nodes.motion import ROUTINES
+
+    walk = ROUTINES["walk"].angles
+    still = dict(CALIBRATION_POSES["npose"])
+    routine = Routine("pose-then-walk", "", lambda t: still if t < 1.0 else walk(t - 1.0))
+    realism = Realism(yaw_drift_deg_per_min=10.0, headings=Headings.INDEPENDENT)
+    body = BodyEmulator(routine, imu_tags(), realism=realism, seed=1)
+    independent = Profile(heading="independent", pose="npose")
+    heading = BodyHeading(calibrate_window(_window(body, 0.2, 0.95), independent,
+                                           "npose").apply(independent, "npose"))  # fmt: skip
+    solver = BodySolver(heading.profile)
+    turned = 0
+    for t in np.arange(1.0, 13.0, 1 / RATE_HZ):
+        samples, _ = _samples(body, float(t))
+        step = heading.step(float(t), samples, solver.profile)
+        if step is not None and step[0] == "found":
+            solver = BodySolver(step[1])
+        elif step is not None:
+            heading.hold(solver, step[1])
+            turned += 1
+    assert heading.elbows is not None
+    assert not heading.elbows.found
+    assert heading.searching  # the arms' may still come, from a reach
+    assert "body/leg/left/foot/raw" in heading.profile.imu_headings
+    assert turned > 0
+    assert abs(heading.drift.corrected_deg["body/leg/left/shank/raw"]) > 0.0  # type: ignore[union-attr]
