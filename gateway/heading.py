@@ -808,7 +808,9 @@ class BodyHeading:
             found = self.update(t_s, samples)
             if found is not None:
                 return "found", found
-        # the known tags are held while others' are still searched (they are skipped)
+            if self.pairs is None:  # one shared heading: nothing is known until found
+                return None
+        # tags of their own: the known ones are held while others' are still searched
         if self.drift is not None and self.drift.pairs:
             turns = self.drift.update(t_s, samples, current)
             if turns:
