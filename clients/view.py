@@ -20,7 +20,7 @@ import threading
 import time
 from collections import deque
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -215,6 +215,7 @@ class Drawing:
     gauges: list[float]  # one per ``GAUGES``, finite (0: absent or not a number)
     gauge_flags: list[str]  # one per ``GAUGES``: "" if measured, else its flag
     unmeasured: str  # the "Not measured" panel
+    origins: dict[str, np.ndarray] = field(default_factory=dict)  # segment -> its origin
 
 
 def drawing(frame: pose.PoseFrame, skeleton: Skeleton) -> Drawing | None:
@@ -230,9 +231,11 @@ def drawing(frame: pose.PoseFrame, skeleton: Skeleton) -> Drawing | None:
             angles[path] = _number(value) if pose.is_measured(frame, name) else math.nan
     gauges = [frame.angles_deg.get(g, 0.0) for g in GAUGES]
     flags = ["" if pose.is_measured(frame, g) else frame.flags[g] for g in GAUGES]
+    origins = {name: o for name, pq in frame.segments.items()
+               if (o := _point(pq[0] if len(pq) else None)) is not None}  # fmt: skip
     return Drawing(frame.t_ns, strips, joints, angles,
                    [g if math.isfinite(g) else 0.0 for g in gauges], flags,
-                   unmeasured_text(frame))  # fmt: skip
+                   unmeasured_text(frame), origins)  # fmt: skip
 
 
 def _show(v: object) -> str:
@@ -329,6 +332,34 @@ def calibration_lines(health: Mapping[str, object]) -> list[str]:
     return lines
 
 
+#: the calibration marks' colours: a heading held by a measurement or a joint's
+#: geometry, by an assumption (a three-dof joint's mean twist), or not at all
+CALIBRATION_COLOURS = {"held": (60, 180, 75), "assumed": (245, 170, 30), "not": (220, 50, 47)}
+_ASSUMED = ("three-dof joint's mean twist",)
+_NOT_HELD = ("not held", "heading unknown")
+
+
+def calibration_marks(health: Mapping[str, object]) -> dict[str, tuple[tuple[int, int, int], str]]:
+    """Per segment, the colour and label of its calibration state (the gateway's
+    health: what holds its tag's heading, how well it is known); any other
+    shape of health gives no mark."""
+    out: dict[str, tuple[tuple[int, int, int], str]] = {}
+    for _, h in sorted(health.items()):
+        body = h.get("body") if isinstance(h, dict) else None
+        heading = body.get("heading") if isinstance(body, dict) else None
+        segments = heading.get("segments") if isinstance(heading, dict) else None
+        for segment, seg in segments.items() if isinstance(segments, dict) else ():
+            if not isinstance(seg, dict):
+                continue
+            how, unc = seg.get("how"), seg.get("unc_deg")
+            kind = "not" if how in _NOT_HELD or unc is None else (
+                "assumed" if how in _ASSUMED else "held")  # fmt: skip
+            label = f"{segment}: {_show(how)}" + (f" +/-{_show(unc)} deg" if unc is not None
+                                                   else "")  # fmt: skip
+            out[str(segment)] = (CALIBRATION_COLOURS[kind], label)
+    return out
+
+
 def metrics_text(message: object) -> str:
     """The clinical-metrics panel from a ``body/@metrics`` message (JSON): one row
     per observed dof; what is not as documented shows as ``?``."""
@@ -362,6 +393,9 @@ class Viewer:
     part: PendingOutput | None = None  # the .rrd, until it is whole
     bad: int = 0  # messages not shown: not a pose, or a pose that cannot be drawn
     shown: int = 0  # poses logged
+    #: segment -> (colour, label): the calibration state per segment (health), drawn
+    #: at each segment's origin in the 3D view
+    calibration: dict[str, tuple[tuple[int, int, int], str]] = field(default_factory=dict)
 
     @classmethod
     def start(cls, mode: str, save: Path | None = None, url: str | None = None,
@@ -427,6 +461,12 @@ class Viewer:
             rec.set_time("time", timestamp=t_ns[-1])
             rec.log("body/figure", rr.LineStrips3D(last.strips, radii=0.01))
             rec.log("body/joints", rr.Points3D(last.joints, radii=0.02))
+            marks = [(last.origins[seg], *mark) for seg, mark in sorted(self.calibration.items())
+                     if seg in last.origins]  # fmt: skip
+            if marks:
+                rec.log("body/calibration", rr.Points3D(
+                    [m[0] for m in marks], radii=0.03, colors=[m[1] for m in marks],
+                    labels=[m[2] for m in marks], show_labels=False))  # fmt: skip
             needles, readings = gauge_needles(last.gauges, last.gauge_flags)
             colors = [NEEDLE_UNMEASURED if f else NEEDLE for f in last.gauge_flags]
             rec.log(
@@ -543,6 +583,7 @@ def view_live(session: zenoh.Session, viewer: Viewer, stop: threading.Event) -> 
                     log.exception("bodynet view: a batch of %d poses failed", len(frames))
             if changed or viewer.bad != bad:
                 viewer.log_status(status_text(topology, health, viewer.bad))
+                viewer.calibration = calibration_marks(health)
     finally:
         for sub in subs:
             sub.undeclare()
