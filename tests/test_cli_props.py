@@ -963,6 +963,8 @@ def _stop_mid_write(args: list[str], folder: Path, attempts: int = 5) -> subproc
         proc = subprocess.Popen([str(BODYNET), *args], stderr=subprocess.PIPE, text=True)
         while proc.poll() is None:
             if not _writing(proc.pid, folder):
+                with contextlib.suppress(subprocess.TimeoutExpired):  # a breath, not a spin
+                    proc.wait(timeout=0.001)
                 continue
             os.kill(proc.pid, signal.SIGSTOP)
             while proc.poll() is None and not _stopped(proc.pid):
