@@ -1089,6 +1089,53 @@ def _cut_chunk_bound(f: IO[bytes], offset: int, size: int) -> int | None:
     return uncompressed // _SMALLEST_MESSAGE
 
 
+def _cut_chunk(f: IO[bytes], pos: int, size: int) -> tuple[list[Any], int] | None:
+    """The whole records at the start of a chunk the file ends inside (its
+    compression undone as far as the bytes go; no CRC to check them by: they
+    are the writer's, only fewer), and at most how many messages the rest
+    held; None if its header is cut or its compression unknown."""
+    f.seek(pos + 9)
+    raw = f.read(size - pos - 9)
+    stream = ReadDataStream(io.BytesIO(raw))
+    try:
+        stream.read8()  # message start time
+        stream.read8()  # message end time
+        uncompressed = stream.read8()
+        stream.read4()  # the CRC of what is not all here
+        compression = stream.read_prefixed_string()
+        stream.read8()  # the records' length
+        data = raw[stream.count :]  # what the file holds of them
+        if compression == "zstd":
+            data = zstandard.ZstdDecompressor().decompressobj().decompress(data)
+        elif compression == "lz4":
+            import lz4.frame
+
+            data = lz4.frame.LZ4FrameDecompressor().decompress(data)
+        elif compression:
+            return None
+    except (McapError, ValueError, EOFError, struct.error, UnicodeDecodeError, OverflowError,
+            MemoryError, zstandard.ZstdError, RuntimeError):  # fmt: skip
+        return None
+    records: list[Any] = []
+    at = 0
+    while at + 9 <= len(data):
+        opcode, length = data[at], int.from_bytes(data[at + 1 : at + 9], "little")
+        if at + 9 + length > len(data):
+            break
+        body = ReadDataStream(io.BytesIO(data[at + 9 : at + 9 + length]))
+        try:
+            if opcode == Opcode.MESSAGE:
+                records.append(Message.read(body, length))
+            elif opcode == Opcode.SCHEMA:
+                records.append(Schema.read(body))
+            elif opcode == Opcode.CHANNEL:
+                records.append(Channel.read(body))
+        except (McapError, ValueError, EOFError, struct.error, UnicodeDecodeError):
+            break
+        at += 9 + length
+    return records, max(0, uncompressed - at) // _SMALLEST_MESSAGE
+
+
 _KNOWN_OPCODES = {int(op) for op in Opcode}
 
 
@@ -1119,6 +1166,21 @@ def _walk(f: IO[bytes], size: int, losses: list[Loss],  # noqa: PLR0915
             if later and (nxt is None or later[0] < nxt):
                 nxt = later[0]
             if opcode in _KNOWN_OPCODES and nxt is None:
+                cut = _cut_chunk(f, pos, size) if opcode == Opcode.CHUNK else None
+                if cut is not None and cut[0]:  # the records of its start that were written
+                    records, most = cut
+                    yield from records
+                    n = sum(isinstance(r, Message) for r in records)
+                    losses.append(
+                        Loss(
+                            pos,
+                            most,
+                            f"the file ends inside this chunk (its first "
+                            f"{_n_messages(n)} read); {_CUT}",
+                            counted="at most",
+                        )
+                    )
+                    return
                 losses.append(Loss(pos, None, f"the file ends inside this record; {_CUT}"))
                 return
             losses.append(Loss(pos, None, "not a record (garbled bytes)", nxt))

@@ -555,6 +555,35 @@ def test_salvage_counts_what_garbled_framing_cost_where_it_can_be_known(
                      r"came after it is not in the file\)", err), err  # fmt: skip
 
 
+def test_salvage_reads_the_start_of_a_chunk_the_file_ends_inside(
+    corpus: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A big chunk (zstd blocks of 128 KiB) cut short: the messages of its whole
+    blocks are kept, in order, and the rest is bounded by the chunk's size."""
+    from bodynet.clients.mcap_store import McapSink, count_messages, read_raw
+
+    whole = tmp_path / "big.mcap"
+    sink = McapSink(whole, chunk_size=4 << 20, max_chunk_s=1e9)  # one chunk
+    raw = list(read_raw(corpus["recording"]))
+    for i in range(3000):
+        topic, _, sample = raw[i % len(raw)]
+        sink.write_raw(topic, sample, 10**9 + i * 10**6)
+    sink.close()
+    data = whole.read_bytes()
+    (chunk,) = _chunk_offsets(data)
+    cut = tmp_path / "cut.mcap"
+    length = int.from_bytes(data[chunk + 1 : chunk + 9], "little")
+    cut.write_bytes(data[: chunk + length * 9 // 10])
+    out = tmp_path / "saved.mcap"
+    code, err = cli(capsys, "record", "--salvage", cut, "-o", out)
+    assert code == 0, err
+    kept = [t for _, t, _ in read_raw(out)]
+    assert 0 < len(kept) < 3000
+    assert kept == [10**9 + i * 10**6 for i in range(len(kept))]  # the first ones, in order
+    assert f"the file ends inside this chunk (its first {len(kept)} messages read)" in err
+    assert count_messages(out) == len(kept)
+
+
 @settings(max_examples=200 if LONG else 25, deadline=None)
 @given(data=st.data())
 def test_salvage_of_any_damage_tells_bounds_that_hold(
