@@ -11,6 +11,7 @@ segment to its child segment.
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
+from typing import Any
 
 import numpy as np
 import orjson
@@ -60,58 +61,156 @@ def frame_transforms(
     world_frame: str = "world",
 ) -> list[bytes]:
     """One ``foxglove.FrameTransforms`` message (JSON bytes) for each pose
-    ``(t_ns, segments)``, in order: the root segment in ``world_frame``, every
-    other segment in its parent segment. Segments whose parent the pose lacks
-    (a branch view) are left out.
+    ``(t_ns, segments)``, in order: see :class:`Transforms`."""
+    rows = [(t, tuple(segs), [[*p, *q] for p, q in segs.values()]) for t, segs in poses]
+    return Transforms(parents, world_frame).messages(rows)
+
+
+class Transforms:
+    """``foxglove.FrameTransforms`` messages (JSON bytes) of whole-body poses:
+    the root segment in ``world_frame``, every other segment in its parent
+    segment (``parents``). Segments whose chain to the root the pose lacks (a
+    branch view) are left out.
 
     A recorder makes one of these per whole-body pose, so the work is done for
-    many poses at once: poses with the same segments go through one array pass,
-    and the JSON is one template per segment set filled with numbers that orjson
-    writes (building a dict per transform cost several times the maths)."""
-    groups: dict[tuple[str, ...], list[int]] = {}
-    for i, (_, segments) in enumerate(poses):
-        names = tuple(n for n in segments if n == ROOT_SEGMENT or parents.get(n) in segments)
-        groups.setdefault(names, []).append(i)
-    out = [b'{"transforms":[]}'] * len(poses)
-    for names, members in groups.items():
-        if not names:
-            continue
-        pos = np.array([[poses[i][1][n][0] for n in names] for i in members], dtype=float)
-        quat = np.array([[poses[i][1][n][1] for n in names] for i in members], dtype=float)
-        index = {n: k for k, n in enumerate(names)}
-        parent_index = [index[parents[n]] if n in parents else -1 for n in names]
-        translations, rotations = local_poses(pos, quat, parent_index)
-        turns = rotations.as_quat().reshape(len(members), len(names), 4)
-        # 0.1 µm and 1e-9 are below what the pose carries; + 0.0 turns -0.0 into 0.0
-        numbers = np.concatenate([np.round(translations, 7), np.round(turns, 9)], axis=2) + 0.0
-        template = _transforms_template(names, [parents.get(n, world_frame) for n in names])
-        for row, i in zip(numbers.reshape(len(members), -1).tolist(), members, strict=True):
-            sec, nsec = divmod(poses[i][0], 1_000_000_000)
-            stamped = template % ((b"%d" % sec, b"%d" % nsec) * len(names))
-            out[i] = stamped % tuple(orjson.dumps(row)[1:-1].split(b","))
-    return out
+    many poses at once: poses with the same segments are one numpy pass
+    (quaternion algebra on arrays, no rotation objects), and their JSON is one
+    template per segment set, filled with the numbers orjson writes for the whole
+    batch (a dict per transform cost several times the maths)."""
+
+    def __init__(self, parents: Mapping[str, str], world_frame: str = "world") -> None:
+        self._parents = dict(parents)
+        self._world = world_frame
+        self._plans: dict[tuple[str | bytes, ...], _Plan | None] = {}
+
+    def messages(self, poses: Sequence[tuple[int, Sequence[str | bytes], Any]]) -> list[bytes]:
+        """One message per pose ``(t_ns, segment names, rows)``, in order; a row is
+        a segment's world pose ``[x, y, z, qw, qx, qy, qz]`` (the rows: a sequence
+        of them or an array). Names may be UTF-8 bytes. A pose whose rows are not
+        that (or not finite numbers) gets a message with no transforms."""
+        groups: dict[tuple[str | bytes, ...], list[int]] = {}
+        for i, (_, names, _) in enumerate(poses):
+            groups.setdefault(tuple(names), []).append(i)
+        out = [_NO_TRANSFORMS] * len(poses)
+        for names, members in groups.items():
+            plan = self._plan(names)
+            if plan is None:
+                continue
+            try:
+                values = np.array([poses[i][2] for i in members], dtype=float)
+                good = values.shape == (len(members), len(names), 7)
+                good = good and bool(np.isfinite(values).all())
+            except (ValueError, TypeError):
+                good = False
+            if not good:  # one bad pose spoils the group's array: each on its own
+                if len(members) > 1:
+                    for i in members:
+                        out[i] = self.messages([poses[i]])[0]
+                continue
+            times = [poses[i][0] for i in members]
+            for i, message in zip(members, plan.fill(times, values), strict=True):
+                out[i] = message
+        return out
+
+    def _plan(self, names: tuple[str | bytes, ...]) -> _Plan | None:
+        if names not in self._plans:
+            try:
+                text = tuple(n.decode() if isinstance(n, bytes) else n for n in names)
+            except UnicodeDecodeError:
+                self._plans[names] = None
+            else:
+                if len(self._plans) >= 64:  # a stream of odd segment sets: keep a few
+                    self._plans.clear()
+                self._plans[names] = _Plan.make(text, self._parents, self._world)
+        return self._plans[names]
 
 
-def _transforms_template(names: Sequence[str], frames_of: Sequence[str]) -> bytes:
-    """The message with ``%s`` for each stamp's sec and nsec and ``%%s`` for each
-    number (x, y, z of the translation, x, y, z, w of the rotation)."""
+_NO_TRANSFORMS = b'{"transforms":[]}'
+
+
+class _Plan:
+    """The transforms of one set of segment names: which columns, their parents'
+    columns and the message template around the numbers."""
+
+    def __init__(self, columns: list[int], parent_of: list[int], parts: list[bytes]) -> None:
+        self.columns = np.asarray(columns)
+        parent = np.asarray(parent_of)
+        self.root = parent < 0
+        self.parent = np.where(self.root, 0, parent)
+        self.parts = parts
+
+    @staticmethod
+    def make(names: tuple[str, ...], parents: Mapping[str, str], world: str) -> _Plan | None:
+        present = set(names)
+
+        def rooted(name: str) -> bool:
+            seen = set()
+            while name != ROOT_SEGMENT:
+                name = parents.get(name, "")
+                if name not in present or name in seen:
+                    return False
+                seen.add(name)
+            return True
+
+        kept = [n for n in names if rooted(n)]
+        if not kept:
+            return None
+        where = {n: k for k, n in enumerate(kept)}
+        parent_of = [where[parents[n]] if n != ROOT_SEGMENT else -1 for n in kept]
+        columns = [names.index(n) for n in kept]
+        frames = [parents[n] if n != ROOT_SEGMENT else world for n in kept]
+        return _Plan(columns, parent_of, _template_parts(kept, frames))
+
+    def fill(self, times: list[int], values: np.ndarray) -> list[bytes]:
+        """The messages of poses at ``times`` whose rows are ``values`` (B, S, 7)."""
+        v = values[:, self.columns]
+        p, q = v[..., :3], v[..., 3:]
+        q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+        # each segment's parent pose (the world's for the root): a = parent^-1
+        aw = np.where(self.root[:, None], 1.0, q[:, self.parent, :1])
+        av = np.where(self.root[:, None], 0.0, -q[:, self.parent, 1:])
+        d = p - np.where(self.root[:, None], 0.0, p[:, self.parent])
+        bw, bv = q[..., :1], q[..., 1:]
+        # rotation a * b (Hamilton product), translation a applied to d
+        w = aw * bw - (av * bv).sum(axis=-1, keepdims=True)
+        vec = aw * bv + bw * av + _cross(av, bv)
+        c = _cross(av, d)
+        t = d + 2.0 * (aw * c + _cross(av, c))
+        # 0.1 um and 1e-9 are below what the pose carries; + 0.0 turns -0.0 into 0.0
+        numbers = np.concatenate([np.round(t, 7), np.round(vec, 9), np.round(w, 9)], axis=2) + 0.0
+        text = orjson.dumps(numbers.reshape(len(times), -1), option=orjson.OPT_SERIALIZE_NUMPY)
+        rows = text[2:-2].split(b"],[")
+        parts = self.parts
+        return [
+            (b'%d,"nsec":%d' % divmod(t_ns, 1_000_000_000)).join(parts) % tuple(row.split(b","))
+            for t_ns, row in zip(times, rows, strict=True)
+        ]
+
+
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """a x b over the last axis (np.cross costs more for these small vectors)."""
+    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
+    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
+    return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
+
+
+def _template_parts(names: Sequence[str], frames_of: Sequence[str]) -> list[bytes]:
+    """The message in the pieces between its time stamps (``sec``, then
+    ``"nsec":``): joined with a stamp, it has ``%s`` for each number (x, y, z of
+    the translation, x, y, z, w of the rotation)."""
 
     def text(name: str) -> bytes:
-        return orjson.dumps(name).replace(b"%", b"%%%%")  # through two formattings
+        return orjson.dumps(name).replace(b"%", b"%%")
 
-    numbers = (
-        b'"translation":{"x":%%s,"y":%%s,"z":%%s},"rotation":{"x":%%s,"y":%%s,"z":%%s,"w":%%s}}'
-    )
-    return (
+    numbers = b'"translation":{"x":%s,"y":%s,"z":%s},"rotation":{"x":%s,"y":%s,"z":%s,"w":%s}}'
+    stamp = b"\0STAMP\0"  # no JSON text holds a NUL byte: orjson escapes it
+    whole = (
         b'{"transforms":['
         + b",".join(
-            b'{"timestamp":{"sec":%s,"nsec":%s},"parent_frame_id":'
-            + text(parent)
-            + b',"child_frame_id":'
-            + text(name)
-            + b","
-            + numbers
+            b'{"timestamp":{"sec":' + stamp + b'},"parent_frame_id":' + text(parent)
+            + b',"child_frame_id":' + text(name) + b"," + numbers
             for name, parent in zip(names, frames_of, strict=True)
         )
         + b"]}"
-    )
+    )  # fmt: skip
+    return whole.split(stamp)

@@ -7,9 +7,10 @@ the start (the gateway publishes it on change), so a recording begins with it.
 
 A message that cannot be stored is refused and counted by reason
 (:attr:`Recorder.rejected`), and the recording goes on: one that does not
-decode (``raw_sample``, ``pose``; topology and health must be JSON objects),
-or whose time MCAP cannot hold (a negative ``t_ns``, or past ``2**64 - 1``:
-``out_of_range``).
+decode (``raw_sample``; topology and health must be JSON objects; a pose is
+stored as it came, with only its header and segments read, see
+``McapSink.write_pose_message``), or whose time MCAP cannot hold (a negative
+``t_ns``, or past ``2**64 - 1``: ``out_of_range``).
 
 Nothing is lost to a router restart where it can be fetched again: the
 subscriptions that can carry raw samples are Zenoh advanced subscribers with
@@ -42,7 +43,7 @@ import zenoh.ext
 
 from bodynet.clients.mcap_store import Gap, McapSink, check_time, keep_large_buffers_off_heap
 from bodynet.core import keys
-from bodynet.core.codecs import pose, raw_sample
+from bodynet.core.codecs import raw_sample
 from bodynet.core.errors import DecodeError, Reason, RejectCounts
 
 log = logging.getLogger(__name__)
@@ -124,11 +125,9 @@ class Recorder:
                     return
                 self._rotate_if_due()
                 kind = _kind(key)
-                if kind == _POSE:
-                    frame = pose.decode(data)
-                    t_ns = check_time(frame.t_ns or time.time_ns())
-                    self._note_seq(key, frame.seq, t_ns)
-                    self._sink.write_pose(key, frame, t_ns, data)
+                if kind == _POSE:  # stored as it came: only its header is read (and segments)
+                    seq, t_ns = self._sink.write_pose_message(key, data)
+                    self._note_seq(key, seq, t_ns)
                 elif kind == _TRUTH:
                     self._sink.write_truth(key, data, _truth_time(data))
                 elif kind == _TOPOLOGY:

@@ -35,6 +35,7 @@ version 1 message has no uncertainties, and its flags are its reasons.
 from __future__ import annotations
 
 import math
+import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from functools import lru_cache
@@ -216,3 +217,91 @@ def decode(payload: bytes | bytearray) -> PoseFrame:
     # RecursionError: JSON nested deeper than the parser goes; OverflowError: int(1e999)
     except (ValueError, TypeError, KeyError, AttributeError, OverflowError, RecursionError) as exc:
         raise DecodeError(Reason.GARBAGE, f"not a pose message: {exc!s:.200}") from None
+
+
+# -- what a recorder reads of a pose: its header and segments, not the rest --------------
+
+#: The start of a message as :func:`encode` lays it out: version, sequence number, time.
+_HEAD = re.compile(
+    rb'\{"v":([12]),"seq":(-?(?:0|[1-9][0-9]{0,19})),"t_ns":(-?(?:0|[1-9][0-9]{0,19})),'
+)
+_SEGMENTS = b',"segments":{'
+_SEGMENTS_END = b"]}}"  # the last segment's "q", the segment, the segments
+
+
+@dataclass(frozen=True, slots=True)
+class Glance:
+    """What :func:`glance` reads of a pose message: its version, sequence
+    number and time, and the JSON text of its ``segments`` object as it stands
+    in the message (``b""`` where it was not asked for), found at ``at``."""
+
+    version: int
+    seq: int
+    t_ns: int
+    segments: bytes = b""
+    at: int = 0
+
+
+def glance(payload: bytes, segments: bool = False, hint: int = 0) -> Glance | None:
+    """The header of a pose message laid out as :func:`encode` lays it out
+    (``{"v":2,"seq":..,"t_ns":..,``), and with ``segments`` the text of its
+    ``segments`` object (``hint``: where it started in the last message, the
+    place looked at first); ``None`` for any other layout (then :func:`decode`
+    it). Nothing else of the message is read, so nothing else is checked: what
+    stores a message as it came reads this much of it, at a fraction of
+    :func:`decode`'s cost. The numbers in the header are checked as decode
+    checks them (``DecodeError`` past 64 bits)."""
+    m = _HEAD.match(payload)
+    if m is None:
+        return None
+    seq, t_ns = int(m[2]), int(m[3])
+    for n in (seq, t_ns):
+        if not -(2**63) <= n < 2**64:
+            raise DecodeError(Reason.GARBAGE, f"integer out of 64-bit range: {n}")
+    if not segments:
+        return Glance(int(m[1]), seq, t_ns)
+    at = hint if payload.startswith(_SEGMENTS, hint) else payload.find(_SEGMENTS, m.end())
+    if at < 0:
+        return None
+    start = at + len(_SEGMENTS) - 1
+    if payload.startswith(b"{}", start):
+        end = start + 2
+    else:
+        end = payload.find(_SEGMENTS_END, start)
+        if end < 0:
+            return None
+        end += len(_SEGMENTS_END)
+    return Glance(int(m[1]), seq, t_ns, payload[start:end], at)
+
+
+def segment_numbers(texts: Sequence[bytes]) -> tuple[list[tuple[bytes, ...] | None], list[float]]:
+    """The segments texts of :func:`glance` read in one pass of the JSON parser:
+    each text's segment names (as they stand in the JSON text, escapes
+    included), ``None`` for a text not laid out as :func:`encode` lays it
+    out, and the numbers of the others one after another, seven per segment
+    (``p`` x, y, z then ``q`` w, x, y, z), in the order of the texts and of
+    their segments. ``DecodeError`` if a text that looked so holds something
+    else than numbers where they stand."""
+    names: list[tuple[bytes, ...] | None] = []
+    numbers: list[bytes] = []
+    for text in texts:
+        # {"name":{"p":[x,y,z],"q":[w,x,y,z]},...}: between the quotes, the names,
+        # the "p" and "q", and between those the numbers with their brackets
+        parts = text.split(b'"')
+        n = len(parts) // 6
+        if (len(parts) != 6 * n + 1 or parts[3::6].count(b"p") != n
+                or parts[5::6].count(b"q") != n or b"\\" in text):  # fmt: skip
+            names.append(None)
+            continue
+        names.append(tuple(parts[1::6]))
+        if n:
+            numbers.append(b"".join(parts[2::2]))
+    if not numbers:
+        return names, []
+    try:
+        flat = orjson.loads(b"[" + b",".join(numbers).translate(None, b":{}[]") + b"]")
+    except orjson.JSONDecodeError as exc:
+        raise DecodeError(Reason.GARBAGE, f"segments that are not numbers: {exc}") from None
+    if len(flat) != 7 * sum(len(n) for n in names if n is not None):
+        raise DecodeError(Reason.BAD_LENGTH, "segments without 3 + 4 numbers each")
+    return names, flat
