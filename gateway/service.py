@@ -678,7 +678,7 @@ class Gateway:
                 if what == "found":
                     body.set_profile(profile, body.heading)
                 else:  # the joints' constraints turned drifting tags' headings
-                    body.solver.set_profile(profile)
+                    body.heading.hold(body.solver, profile)
             if what == "found":
                 log.info("heading found: %s", body.heading.state())
 

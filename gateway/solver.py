@@ -497,6 +497,9 @@ class BodySolver:
                                 strict=True):  # fmt: skip
             self._slices[joint.name] = slice(start, start + len(joint.dofs))
         self._angle_at = {n: i for i, n in enumerate(self.names.angles)}
+        #: per angle (and the absent column), how well the tags' headings are known
+        #: where a three-dof joint's assumption holds them (deg; None: nowhere)
+        self._heading_unc: np.ndarray | None = None
         self._by_child = {j.child: j for j in self.skeleton.joints}
         # a SmartSuit accelerometer's axes on each segment (its joint's flexion axis)
         self._accel_axes = {j.child: accel_axes(np.array(self.skeleton.directions[j.child]),
@@ -554,6 +557,20 @@ class BodySolver:
             raise ValueError("set_profile keeps the body: new lengths or pose need a new solver")
         self.profile = profile
         self._sites.clear()
+
+    def set_heading_unc(self, by_segment: Mapping[str, float]) -> None:
+        """How well each segment's tag heading is known against its parent's (deg,
+        about two standard deviations; ``JointDrift.link_unc``): the dofs of the
+        joint above each such segment carry it, with the tags' own, in ``unc``."""
+        if not by_segment:
+            self._heading_unc = None
+            return
+        extra = np.zeros(len(self.names.angles) + 1)
+        for joint in self.skeleton.joints:
+            if joint.child in by_segment:
+                for name in self.axes[joint.name].names:
+                    extra[self._angle_at[name]] = by_segment[joint.child]
+        self._heading_unc = extra
 
     def solve(self, samples: Mapping[Site, RawSample]) -> BodyOutput:
         """Angles and poses from the latest sample of each site."""
@@ -684,8 +701,10 @@ class BodySolver:
             prep,
         )
         angles[owner[:, None], index] = values
-        for tick, unc_index in zip(ticks, layout.unc_index, strict=True):
-            tick.unc[unc_index] = UNC_TAG_DEG
+        for tick, at in zip(ticks, layout.unc_index, strict=True):
+            extra = tick.solver._heading_unc
+            # a tag whose heading a three-dof joint holds (gateway/heading.py) widens them
+            tick.unc[at] = UNC_TAG_DEG if extra is None else np.hypot(UNC_TAG_DEG, extra[at])
         angles[:, -1] = 0.0  # the absent dofs' column
         rel[owner, rows] = total
         start = 0
