@@ -11,7 +11,10 @@ correction and solver, called directly on emulated samples with a truth):
   within +/- ``drift`` deg/min; the subject walks for ``minutes``. The joints'
   error against the truth, minute by minute, with and without the knee's hinge
   correction (:class:`~bodynet.gateway.heading.JointDrift`), and each joint
-  group's fitted slope (deg/min) of its error.
+  group's fitted slope (deg/min) of its error; then with the three-dof joints'
+  twist held too (hips, shoulders, lumbar, neck); and walking with twists held
+  throughout (toes out, the head turned), IMU tags alone against the hybrid
+  suit (the SmartSuit encoders at the hips and shoulders).
 """
 
 from __future__ import annotations
@@ -25,12 +28,13 @@ from typing import Any
 
 import numpy as np
 
+from bodynet.core.keys import LEFT_ARM, LEFT_LEG, RIGHT_ARM, RIGHT_LEG
 from bodynet.core.messages import RawSample
 from bodynet.core.skeleton import CALIBRATION_POSES
 from bodynet.core.subject import Profile
 from bodynet.gateway.heading import BodyHeading, calibrate_window
 from bodynet.gateway.solver import BodySolver
-from bodynet.nodes.emulator import BodyEmulator, Headings, Realism, imu_tags
+from bodynet.nodes.emulator import BodyEmulator, Headings, Realism, imu_tags, smartsuit_sensors
 from bodynet.nodes.motion import ROUTINES, Routine, keyframes
 
 #: joint groups whose error is reported (dofs by name stem)
@@ -44,6 +48,11 @@ GROUPS = {
 }
 
 
+#: held through the twisted walk: toes out, the head turned
+TWISTS = {"left_hip_rotation_deg": 15.0, "right_hip_rotation_deg": 15.0,
+          "neck_rotation_deg": 20.0}  # fmt: skip
+
+
 def _samples(body: BodyEmulator, t: float) -> dict[Any, RawSample]:
     readings, _ = body.sample(t)
     return {s.site: RawSample(r, 0, round(t * 1e9))
@@ -55,7 +64,8 @@ def _calibrated(body: BodyEmulator, profile: Profile, start: float, end: float,
     window: dict[Any, list[Any]] = {}
     for t in np.arange(start, end, 1 / rate_hz):
         for site, sample in _samples(body, float(t)).items():
-            window.setdefault(site, []).append((float(t), sample.reading.wxyz))  # type: ignore[union-attr]
+            if hasattr(sample.reading, "wxyz"):  # a hybrid suit's encoders need none
+                window.setdefault(site, []).append((float(t), sample.reading.wxyz))
     return calibrate_window(window, profile, "tpose").apply(profile, "tpose")
 
 
@@ -118,16 +128,24 @@ def drift(
     rate_hz: float = 10.0,
     seed: int = 5,
     correct: bool | str = True,
+    twisted: bool = False,
+    hybrid: bool = False,
 ) -> dict[str, Any]:
     """6-axis tags drifting apart while the subject walks: the joints' error
     against the truth by minute, and each group's fitted slope (deg/min).
     ``correct``: False (none), "hinges" (the knees', ankles', elbows' and wrists'
-    constraints only) or True (those and the three-dof joints' twist)."""
+    constraints only) or True (those and the three-dof joints' twist).
+    ``twisted``: walking with twists held throughout (``TWISTS``: toes out, the
+    head turned), which the three-dof joints' mean twist takes for drift;
+    ``hybrid``: the limbs' SmartSuit modules too (hips' and shoulders' encoders)."""
     walk = ROUTINES["walk"].angles
     held = dict(CALIBRATION_POSES["tpose"])
-    routine = Routine("pose-then-walk", "", lambda t: held if t < 1.0 else walk(t - 1.0))
+    twists = TWISTS if twisted else {}
+    routine = Routine("pose-then-walk", "",
+                      lambda t: held if t < 1.0 else {**walk(t - 1.0), **twists})  # fmt: skip
     realism = Realism(yaw_drift_deg_per_min=drift_deg_per_min, headings=Headings.DRIFTING)
-    body = BodyEmulator(routine, imu_tags(), realism=realism, seed=seed)
+    modules = smartsuit_sensors([LEFT_ARM, RIGHT_ARM, LEFT_LEG, RIGHT_LEG]) if hybrid else []
+    body = BodyEmulator(routine, [*imu_tags(), *modules], realism=realism, seed=seed)
     # reset together facing +X of their first frame: the start heading is known
     profile = _calibrated(body, Profile(heading="fixed"), 0.2, 0.95, 50.0)
     drift_mode = {False: "off", "hinges": "hinges", True: "joints"}[correct]
@@ -145,7 +163,7 @@ def drift(
             groups[group].append(max(mine) if mine else math.nan)
         step = heading.step(float(t), samples, solver.profile)
         if step is not None:
-            solver.set_profile(step[1])
+            heading.hold(solver, step[1])
     minutes_at = np.array(times)
     out_groups = {}
     for group, errs in groups.items():
@@ -155,11 +173,11 @@ def drift(
         slope = float(np.polyfit(minutes_at, e, 1)[0]) if np.isfinite(e).all() else math.nan
         out_groups[group] = {"max_by_minute_deg": per_minute, "slope_deg_per_min": round(slope, 3)}
     return {"corrected": correct, "minutes": minutes, "drift_deg_per_min": drift_deg_per_min,
-            "groups": out_groups}  # fmt: skip
+            "twisted": twisted, "hybrid": hybrid, "groups": out_groups}  # fmt: skip
 
 
 def run(out_dir: Path, minutes: float = 10.0) -> dict[str, Any]:
-    """Both parts; ``drift.json`` and ``drift.md`` in ``out_dir``."""
+    """Every part; ``drift.json`` and ``drift.md`` in ``out_dir``."""
     out_dir.mkdir(parents=True, exist_ok=True)
     result = {
         "headings": headings(),
@@ -167,6 +185,10 @@ def run(out_dir: Path, minutes: float = 10.0) -> dict[str, Any]:
             drift(minutes, correct=False),
             drift(minutes, correct="hinges"),
             drift(minutes, correct=True),
+        ],
+        "twisted": [
+            drift(minutes, correct=True, twisted=True),
+            drift(minutes, correct=True, twisted=True, hybrid=True),
         ],
     }
     (out_dir / "drift.json").write_text(json.dumps(result, indent=2))
@@ -194,6 +216,22 @@ def run(out_dir: Path, minutes: float = 10.0) -> dict[str, Any]:
             f"{g['max_by_minute_deg'][0]} -> {g['max_by_minute_deg'][-1]} deg, "
             f"{g['slope_deg_per_min']} deg/min"
             for g in (run["groups"][group] for run in result["drift"])
+        ]
+        lines.append(f"| {group} | " + " | ".join(cells) + " |")
+    lines += [
+        "",
+        "Walking with twists held throughout (hips turned out "
+        f"{TWISTS['left_hip_rotation_deg']:g} deg, the head turned "
+        f"{TWISTS['neck_rotation_deg']:g} deg), every joint's hold on:",
+        "",
+        "| group | IMU tags | hybrid suit (the limbs' SmartSuit encoders too) |",
+        "|---|---|---|",
+    ]
+    for group in GROUPS:
+        cells = [
+            f"{g['max_by_minute_deg'][0]} -> {g['max_by_minute_deg'][-1]} deg, "
+            f"{g['slope_deg_per_min']} deg/min"
+            for g in (run["groups"][group] for run in result["twisted"])
         ]
         lines.append(f"| {group} | " + " | ".join(cells) + " |")
     (out_dir / "drift.md").write_text("\n".join(lines) + "\n")

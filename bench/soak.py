@@ -10,6 +10,12 @@ loss (every sample sent is counted by the gateway, ``body/@health/gateway``,
 and is in the recording) and memory growth under 5%: the resident set size of
 the gateway and of the recorder, sampled each second, at the end (median of
 the last 10 samples) against the end of the warm-up (median of its last 10).
+A feed that sent nothing, or whose process failed, does not pass. The machine's
+load average is sampled with the memory (``load_1min``): on a shared machine a
+loss may be the load's, and the result says how loaded it was.
+A feed that sent nothing, or whose process failed, does not pass. The machine's
+load average is sampled with the memory (``load_1min``): on a shared machine a
+loss may be the load's, and the result says how loaded it was.
 
     .venv/bin/bodynet bench --only soak --minutes 10
 """
@@ -19,6 +25,7 @@ from __future__ import annotations
 import contextlib
 import json
 import multiprocessing as mp
+import os
 import signal
 import statistics
 import tempfile
@@ -93,15 +100,25 @@ def run(minutes: float = 10.0, out_dir: Path = Path("bench-results"),
         feeder.start()
         watched = {"gateway": psutil.Process(gw.pid), "recorder": psutil.Process(rec.pid)}
         rss: dict[str, list[int]] = {name: [] for name in watched}
+        load: list[float] = []
         tick = threading.Event()
         threading.Event().wait(2.0)  # the feeder has imported and declared its publishers
         ready.set()
         start = time.monotonic()
+        cpu0 = {name: sum(p.cpu_times()[:2]) for name, p in watched.items()}
         while feeder.is_alive():
             for name, p in watched.items():
                 rss[name].append(p.memory_info().rss)
+            load.append(os.getloadavg()[0])
+            if len(load) % 60 == 0:  # a long soak says how it goes, a line a minute
+                print(f"soak: {len(load) // 60} min, RSS gateway "
+                      f"{rss['gateway'][-1] / 2**20:.1f} MB, recorder "
+                      f"{rss['recorder'][-1] / 2**20:.1f} MB, {sent.value} samples sent, "
+                      f"load average {load[-1]:.1f}", flush=True)  # fmt: skip
             tick.wait(max(0.0, start + len(rss["gateway"]) - time.monotonic()))
         feeder.join()
+        fed_s = time.monotonic() - start
+        cpu = {name: (sum(p.cpu_times()[:2]) - cpu0[name]) / fed_s for name, p in watched.items()}
         counted = 0
 
         def all_counted(key: str, value: Any) -> bool:
@@ -122,28 +139,35 @@ def run(minutes: float = 10.0, out_dir: Path = Path("bench-results"),
         "minutes": minutes,
         "warmup_s": warmup_s,
         "sent": sent.value,
+        "feeder_exitcode": feeder.exitcode,
         "gateway_counted": counted,
         "recorded": recorded,
         "lost_gateway": sent.value - counted,
         "lost_recorder": sent.value - recorded,
         "memory": {name: _growth(v, warmup) for name, v in rss.items()},
+        "cpu_s_per_s": {name: round(v, 3) for name, v in cpu.items()},
+        "load_1min": {"median": statistics.median(load or [0.0]), "max": max(load or [0.0])},
         "rss_mb": {name: [round(x / 2**20, 2) for x in v] for name, v in rss.items()},
     }
     result["pass"] = (
-        result["lost_gateway"] == 0
+        sent.value > 0
+        and feeder.exitcode == 0
+        and result["lost_gateway"] == 0
         and result["lost_recorder"] == 0
         and all(m["growth"] < GROWTH_LIMIT for m in result["memory"].values())
     )
     mem = result["memory"]
     table = (
         "| minutes | samples sent | lost at gateway | lost in recording | gateway RSS MB "
-        "(warm -> end) | recorder RSS MB (warm -> end) | pass |\n"
-        "|---:|---:|---:|---:|---|---|---|\n"
+        "(warm -> end) | recorder RSS MB (warm -> end) | load average (median, max) | pass |\n"
+        "|---:|---:|---:|---:|---|---|---|---|\n"
         f"| {minutes:g} | {sent.value} | {result['lost_gateway']} | {result['lost_recorder']} | "
         f"{mem['gateway']['baseline_mb']:.1f} -> {mem['gateway']['end_mb']:.1f} "
         f"({100 * mem['gateway']['growth']:+.1f}%) | "
         f"{mem['recorder']['baseline_mb']:.1f} -> {mem['recorder']['end_mb']:.1f} "
-        f"({100 * mem['recorder']['growth']:+.1f}%) | {'yes' if result['pass'] else 'NO'} |\n"
+        f"({100 * mem['recorder']['growth']:+.1f}%) | "
+        f"{result['load_1min']['median']:.1f}, {result['load_1min']['max']:.1f} | "
+        f"{'yes' if result['pass'] else 'NO'} |\n"
     )
     print(f"\nSoak, one body (15 nodes x 100 Hz) through gateway and recorder "
           f"({machine.line(result['machine'])})\n\n{table}")  # fmt: skip

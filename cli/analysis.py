@@ -4,11 +4,25 @@ from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
 
 from bodynet.session import argtypes
 
 #: ``START:END`` in seconds from the recording's start.
 still_range = argtypes.time_window
+
+#: The report's formats, by the output's suffix.
+REPORT_SUFFIXES = (".md", ".html", ".htm")
+
+
+def report_output(text: str) -> Path:
+    """``-o``: a Markdown (``.md``) or HTML (``.html``) file; any other name is
+    refused (a report named ``rep`` would be Markdown no viewer recognises)."""
+    path = argtypes.output_file_new_folder(text)
+    if path.suffix.lower() not in REPORT_SUFFIXES:
+        argtypes.fail(f"{text[:200]!r} is neither .md nor .html: the report is Markdown "
+                      f"({path.name}.md) or HTML ({path.name}.html)")  # fmt: skip
+    return path
 
 
 def cmd_report(args: argparse.Namespace) -> int:
@@ -29,7 +43,12 @@ def cmd_report(args: argparse.Namespace) -> int:
         print(f"bodynet report: {exc}", file=sys.stderr)
         return 2
     except OSError as exc:
-        print(f"bodynet report: cannot write {out}: {exc.strerror or exc}", file=sys.stderr)
+        why = (
+            str(exc)
+            if isinstance(exc, OutputError)
+            else f"cannot write {out}: {exc.strerror or exc}"
+        )
+        print(f"bodynet report: {why}", file=sys.stderr)
         return 2
     print(f"bodynet report: {files[0]} ({len(files) - 1} plots beside it)", file=sys.stderr)
     return 0
@@ -38,7 +57,7 @@ def cmd_report(args: argparse.Namespace) -> int:
 def add_report_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("recordings", type=argtypes.input_file, nargs="+",
                    help="MCAP recording(s) with poses; several: each one is a trial")  # fmt: skip
-    p.add_argument("-o", "--output", type=argtypes.output_file_new_folder,
+    p.add_argument("-o", "--output", type=report_output,
                    help="report.md or report.html, plots beside it "
                         "(default <recording>-report.md)")  # fmt: skip
     p.add_argument("--reference", type=argtypes.input_file,

@@ -184,6 +184,9 @@ def add_export_args(p: argparse.ArgumentParser) -> None:
 def cmd_record(args: argparse.Namespace) -> int:
     import time
 
+    from bodynet.session.memory import limit_malloc_arenas
+
+    limit_malloc_arenas()  # before any thread (numpy's, Zenoh's) takes an arena of its own
     from bodynet.cli.nodes import stop_on_signals
     from bodynet.clients.mcap_store import StoreError, salvage_report
     from bodynet.clients.recorder import DEFAULT_KEYS, Recorder

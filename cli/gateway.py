@@ -34,6 +34,9 @@ def _profile(path: Path | None) -> Profile:
 
 
 def cmd_gateway(args: argparse.Namespace) -> int:
+    from bodynet.session.memory import limit_malloc_arenas
+
+    limit_malloc_arenas()  # before any thread (numpy's, Zenoh's) takes an arena of its own
     from bodynet.cli.nodes import stop_on_signals
     from bodynet.gateway.service import Gateway
 
@@ -181,6 +184,14 @@ def with_heading_args(profile: Profile, args: argparse.Namespace) -> Profile:
 def cmd_calibrate_tpose(args: argparse.Namespace) -> int:
     if args.from_ is not None:
         return _calibrate_from_recording(args)
+    options = (("--heading", args.heading), ("--drift", args.drift),
+               ("--heading-reference", args.heading_reference))  # fmt: skip
+    given = [flag for flag, value in options if value]
+    if given:  # a live gateway solves with its own profile's: never silently ignored
+        print(f"bodynet calibrate tpose: {', '.join(given)} go with --from (into --profile); "
+              "a live gateway takes them from the profile it was started with",
+              file=sys.stderr)  # fmt: skip
+        return 2
     query = f"{keys.CALIBRATE_TPOSE}?seconds={args.seconds}" + (
         f";pose={args.pose}" if args.pose else "")  # fmt: skip
     session = open_session(config_from_args(args))

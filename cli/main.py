@@ -132,7 +132,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
               "(pip install -e '.[bench]', as make bench does)", file=sys.stderr)  # fmt: skip
         return 2
 
-    # the soak and the drift (10 emulated minutes, twice) on demand
+    # the soak and the drift (10 emulated minutes, five times) on demand
     only = args.only or [b for b in BENCHMARKS if b not in ("soak", "drift")]
     if "decode" in only:
         decode.run(seconds=args.seconds, out_dir=args.out)

@@ -48,8 +48,8 @@ import os
 import platform
 import struct
 import time
-from collections.abc import Iterable, Iterator
-from dataclasses import asdict, dataclass
+from collections.abc import Iterable, Iterator, Mapping
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import IO, Any
 
@@ -453,6 +453,7 @@ class McapSink:
         }  # fmt: skip
         self._transforms = Transforms(segment_parents(), WORLD_FRAME)
         self._channels: dict[str, int] = {}
+        self._sequence: dict[int, int] = {}
         self.messages = 0
         self._max_chunk_s = max_chunk_s
         self._chunk_opened = time.monotonic()
@@ -460,6 +461,12 @@ class McapSink:
         # segments' text or (names, rows))
         self._tf_pending: list[tuple[int, bytes | None, Any]] = []
         self._segments_at = 0  # where the last pose's segments began: looked at first
+
+    def _next(self, channel: int) -> int:
+        """The channel's next message sequence number (1, 2, 3...): salvage
+        counts the messages a damaged part of the file held by its gaps."""
+        seq = self._sequence[channel] = self._sequence.get(channel, 0) + 1
+        return seq
 
     def _channel(self, topic: str, kind: str) -> int:
         channel = self._channels.get(topic)
@@ -546,8 +553,10 @@ class McapSink:
             poses.append((t_ns, *segments))
         channel = self._channel(keys.TRANSFORMS, "tf")
         messages = self._transforms.messages(poses)
+        first = self._sequence.get(channel, 0) + 1  # numbered as _next numbers them
+        self._sequence[channel] = first + len(messages) - 1
         self._writer.add_messages(
-            channel, [(t, m, t) for (t, _, _), m in zip(poses, messages, strict=True)]
+            channel, [(t, m, t) for (t, _, _), m in zip(poses, messages, strict=True)], first
         )
         self.messages += len(messages)
 
@@ -560,7 +569,7 @@ class McapSink:
 
     def _add(self, channel: int, log_time_ns: int, data: bytes) -> None:
         t = check_time(log_time_ns)  # log and publish time: the writer's uint64 fields
-        self._writer.add_message(channel, t, data, t)
+        self._writer.add_message(channel, t, data, t, self._next(channel))
         self.messages += 1
         now = time.monotonic()
         if now - self._chunk_opened >= self._max_chunk_s:
@@ -782,11 +791,37 @@ MCAP_MAGIC = b"\x89MCAP0\r\n"
 @dataclass(frozen=True)
 class Loss:
     """A part of a recording salvage could not read: where it starts (byte
-    offset), how many messages it held (None: unknown) and why."""
+    offset) and where reading went on (``end``), how many messages it held
+    and how that is known (``counted``), and why it could not be read.
+
+    ``counted`` is "exact" (a chunk's message index, or the file's summary),
+    "at least" (the gaps in the message sequence numbers of the channels read
+    after it: a channel heard of only inside it cannot be seen), "at most" (a
+    cut chunk's size, over the smallest message a chunk can hold) or
+    "unknown" (``messages`` None; ``unknown`` says why)."""
 
     offset: int
     messages: int | None
     why: str
+    end: int | None = None
+    counted: str = "exact"
+    unknown: str = ""
+
+    def told(self) -> str:
+        """``byte X to Y (N messages: why)``."""
+        where = f"byte {self.offset}" + (
+            f" to {self.end}" if self.end is not None and self.end > self.offset + 1 else ""
+        )
+        if self.messages is None:
+            count = "an unknown number of messages: " + (self.unknown or "not counted")
+        else:
+            bound = "" if self.counted == "exact" else f"{self.counted} "
+            count = bound + _n_messages(self.messages)
+        return f"{where} ({count}; {self.why})"
+
+
+def _n_messages(n: int) -> str:
+    return f"{n} message{'' if n == 1 else 's'}"
 
 
 @dataclass(frozen=True)
@@ -795,20 +830,33 @@ class Salvaged:
 
     messages: int
     losses: tuple[Loss, ...]
+    #: messages read whose channel no record defines (its record lost): channel -> count
+    orphans: Mapping[int, int] = field(default_factory=dict)
 
     def summary(self) -> str:
-        """``lost N messages: a chunk at byte X (n messages, why); ...``."""
-        if not self.losses:
+        """``lost N messages: byte X (n messages; why); ...``, "at least N" where
+        a part's count is a bound or unknown."""
+        if not self.losses and not self.orphans:
             return "nothing lost"
-        known = sum(loss.messages or 0 for loss in self.losses)
-        unknown = any(loss.messages is None for loss in self.losses)
-        places = "; ".join(
-            f"byte {loss.offset} ({'?' if loss.messages is None else loss.messages} "
-            f"messages: {loss.why})"
-            for loss in self.losses[:10]
-        )
-        more = f"; and {len(self.losses) - 10} more" if len(self.losses) > 10 else ""
-        return f"lost {known}{'+' if unknown else ''} messages: {places}{more}"
+        orphans = sum(self.orphans.values())
+        low = orphans + sum(loss.messages or 0 for loss in self.losses
+                            if loss.counted != "at most")  # fmt: skip
+        high = low + sum(loss.messages or 0 for loss in self.losses if loss.counted == "at most")
+        open_ended = any(loss.counted in ("at least", "unknown") or loss.messages is None
+                         or _CUT in loss.why for loss in self.losses)  # fmt: skip
+        if open_ended:
+            lost = f"at least {_n_messages(low)}"
+        elif high > low:
+            lost = f"{low} to {high} messages"
+        else:
+            lost = _n_messages(low)
+        told = [loss.told() for loss in self.losses]
+        if orphans:
+            told.insert(0, f"{_n_messages(orphans)} of channel(s) "
+                        f"{', '.join(map(str, sorted(self.orphans)))}, whose channel record "
+                        "was lost with the part that held it")  # fmt: skip
+        more = f"; and {len(told) - 10} more" if len(told) > 10 else ""
+        return f"lost {lost}: {'; '.join(told[:10])}{more}"
 
 
 def salvage(src: Path, dst: Path) -> int:
@@ -822,7 +870,10 @@ def salvage_report(src: Path, dst: Path) -> Salvaged:
     or a damaged one (a corrupt chunk) into a complete file: each chunk that
     cannot be read is skipped, counted (from its message index) and the
     chunks after it are read; a file cut short keeps everything before the
-    cut.
+    cut. A part whose count its own index does not give is counted from the
+    file's summary (chunk and message indexes, statistics) when the file has
+    one, else bounded by the message sequence numbers around it, else by a
+    cut chunk's size; :class:`Loss` says which.
 
     ``StoreError`` if ``src`` cannot be read or is no MCAP file at all; then,
     as on any other failure, nothing is left at ``dst`` (written aside and
@@ -845,45 +896,305 @@ def salvage_report(src: Path, dst: Path) -> Salvaged:
             raise StoreError(f"{src}: not an MCAP recording (it does not start as MCAP files "
                              "do): nothing to salvage")  # fmt: skip
         losses: list[Loss] = []
+        size = os.fstat(f.fileno()).st_size
+        summary = _summary_counts(f, size)
+        gaps = _SequenceGaps()
+        read_chunks: set[int] = set()
         with atomic_file(dst, [src], "wb") as out:
-            count = _copy_complete(_walk(f, os.fstat(f.fileno()).st_size, losses), out)
-    return Salvaged(count, tuple(losses))
+            indexed = (
+                {c.chunk_start_offset: c.chunk_length for c in summary.chunks} if summary else None
+            )
+            records = _walk(f, size, losses, read_chunks, indexed)
+            count, orphans = _copy_complete(gaps.watch(records, losses), out, summary)
+        losses = _counted(f, size, losses, gaps, count + sum(orphans.values()), summary,
+                          read_chunks)  # fmt: skip
+    return Salvaged(count, tuple(losses), orphans)
+
+
+class _SequenceGaps:
+    """The message sequence numbers on either side of each loss, channel by
+    channel (a writer that numbers its messages, as bodynet's recorder does,
+    1, 2, 3... per channel): how many messages are missing between them."""
+
+    def __init__(self) -> None:
+        self.last: dict[int, int] = {}  # channel -> the last sequence number read
+        self.before: dict[int, dict[int, int]] = {}  # loss -> channel -> last before it
+        self.after: dict[int, dict[int, int]] = {}  # loss -> channel -> first after it
+        self._open: list[int] = []  # losses still waiting for a channel's first number
+        self.numbered = True
+
+    def watch(self, records: Iterator[Any], losses: list[Loss]) -> Iterator[Any]:
+        seen = 0
+        for record in records:
+            if seen < len(losses):  # losses found before this record: the ones before
+                self._open = []  # them are closed (a gap past a later loss is not theirs)
+            while seen < len(losses):
+                self.before[seen] = dict(self.last)
+                self.after[seen] = {}
+                self._open.append(seen)
+                seen += 1
+            if isinstance(record, Message):
+                self._message(record.channel_id, record.sequence)
+            yield record
+        while seen < len(losses):
+            self.before[seen], self.after[seen] = dict(self.last), {}
+            seen += 1
+
+    def _message(self, channel: int, seq: int) -> None:
+        if seq == 0:
+            self.numbered = False
+        for i in list(self._open):
+            after = self.after[i]
+            if channel not in after:
+                after[channel] = seq
+                if set(self.before[i]) <= set(after):  # every channel heard again
+                    self._open.remove(i)
+        self.last[channel] = seq
+
+    def missing(self, i: int) -> int | None:
+        """Messages missing at loss ``i``, of the channels read after it (None:
+        none read after it, or the messages are not numbered)."""
+        if not self.numbered or not self.after.get(i):
+            return None
+        before = self.before[i]
+        return sum(max(0, first - before.get(ch, 0) - 1) for ch, first in self.after[i].items())
+
+
+def _counted(f: IO[bytes], size: int, losses: list[Loss], gaps: _SequenceGaps,
+             read: int, summary: _Summary | None, read_chunks: set[int]) -> list[Loss]:  # fmt: skip
+    """The losses, each unknown count made exact from the file's summary where
+    it has one, else bounded by sequence numbers or a cut chunk's size, else
+    said why not."""
+    from dataclasses import replace
+
+    out = []
+    by_summary = summary.unread(f, read_chunks, losses, size) if summary is not None else {}
+    for i, loss in enumerate(losses):
+        if loss.messages is not None:
+            out.append(loss)
+            continue
+        end = size if loss.end is None else loss.end
+        n = by_summary.get(i, 0 if summary is not None and summary.chunks else None)
+        if n is not None:
+            out.append(replace(loss, messages=n, counted="exact"))
+            continue
+        n = gaps.missing(i)
+        if n is not None:
+            out.append(replace(loss, messages=n, counted="at least"))
+            continue
+        most = _cut_chunk_bound(f, loss.offset, size) if loss.end is None else None
+        if most is not None:
+            out.append(replace(loss, messages=most, counted="at most"))
+            continue
+        if loss.end is None and loss.offset + 9 > size:
+            why = "nothing is left of the file to count by"
+        else:
+            why = ("the file ends inside it, and " if loss.end is None else
+                   f"its {end - loss.offset} bytes hide where records begin, and ")  # fmt: skip
+            why += ("the file has no summary to count it by"
+                    + ("" if gaps.numbered else ", nor message sequence numbers"))  # fmt: skip
+        out.append(replace(loss, counted="unknown", unknown=why))
+    if summary is not None and summary.total is not None:  # the statistics: all but one known
+        unknown = [i for i, loss in enumerate(out) if loss.counted != "exact"]
+        if len(unknown) == 1:
+            others = sum(loss.messages or 0 for loss in out if loss.counted == "exact")
+            lost = summary.total - read - others
+            if lost >= 0:
+                out[unknown[0]] = replace(out[unknown[0]], messages=lost, counted="exact",
+                                          unknown="")  # fmt: skip
+    return out
+
+
+@dataclass
+class _Summary:
+    """A damaged file's summary section, if it kept one: its chunk indexes and
+    the total of its statistics."""
+
+    chunks: list[ChunkIndex]
+    total: int | None
+    schemas: dict[int, Schema]
+    channels: dict[int, Channel]
+
+    def unread(self, f: IO[bytes], read: set[int], losses: list[Loss],
+               size: int) -> dict[int, int | None]:  # fmt: skip
+        """For each loss (by index) whose count is not known, the messages of
+        the indexed chunks that were not read and that lie in it (or after it,
+        before the next one), from their message indexes (None: one of them
+        cannot be read)."""
+        counts: dict[int, int | None] = {}
+        open_losses = [i for i, loss in enumerate(losses) if loss.messages is None]
+        for chunk in self.chunks:
+            if chunk.chunk_start_offset in read:
+                continue
+            start, end = chunk.chunk_start_offset, chunk.chunk_start_offset + chunk.chunk_length
+            at = [i for i in open_losses if losses[i].offset < end]
+            if not at:
+                continue
+            over = [i for i in at if (losses[i].end or size) > start]
+            i = over[0] if over else at[-1]
+            n = _indexed_messages(f, chunk)
+            counts[i] = None if n is None or counts.get(i, 0) is None else (counts.get(i) or 0) + n
+        return counts
+
+
+def _indexed_messages(f: IO[bytes], chunk: ChunkIndex) -> int | None:
+    """A chunk's messages, from its message index records (None if one of them
+    does not read)."""
+    count = 0
+    for offset in chunk.message_index_offsets.values():
+        try:
+            f.seek(offset)
+            if f.read(1) != bytes([Opcode.MESSAGE_INDEX]):
+                return None
+            length = int.from_bytes(f.read(8), "little")
+            index = MessageIndex.read(ReadDataStream(io.BytesIO(f.read(length))))
+        except (McapError, ValueError, EOFError, struct.error, OSError, OverflowError,
+                MemoryError):  # fmt: skip
+            return None
+        count += len(index.records)
+    return count
+
+
+def _summary_counts(f: IO[bytes], size: int) -> _Summary | None:
+    """The file's summary, if its footer and summary read (a file damaged in
+    the middle keeps them), else None."""
+    from mcap.reader import SeekingReader
+
+    try:
+        f.seek(0)
+        summary = SeekingReader(f).get_summary()
+    except (McapError, ValueError, EOFError, struct.error, OSError, StopIteration,
+            zstandard.ZstdError, UnicodeDecodeError, MemoryError):  # fmt: skip
+        return None
+    if summary is None:
+        return None
+    stats = summary.statistics
+    return _Summary(list(summary.chunk_indexes), stats.message_count if stats else None,
+                    dict(summary.schemas), dict(summary.channels))  # fmt: skip
+
+
+#: The smallest message record (opcode, length, channel id, sequence, two
+#: times; no data): a chunk of N bytes holds at most N // this many.
+_SMALLEST_MESSAGE = 1 + 8 + 2 + 4 + 8 + 8
+
+
+def _cut_chunk_bound(f: IO[bytes], offset: int, size: int) -> int | None:
+    """At most how many messages a chunk the file ends inside held (from its
+    header's uncompressed size), None if it is no chunk or its header is cut."""
+    f.seek(offset)
+    head = f.read(9 + 8 * 3)
+    if len(head) < 9 + 24 or head[0] != Opcode.CHUNK:
+        return None
+    uncompressed = int.from_bytes(head[9 + 16 : 9 + 24], "little")
+    return uncompressed // _SMALLEST_MESSAGE
+
+
+def _cut_chunk(f: IO[bytes], pos: int, size: int) -> tuple[list[Any], int] | None:
+    """The whole records at the start of a chunk the file ends inside (its
+    compression undone as far as the bytes go; no CRC to check them by: they
+    are the writer's, only fewer), and at most how many messages the rest
+    held; None if its header is cut or its compression unknown."""
+    f.seek(pos + 9)
+    raw = f.read(size - pos - 9)
+    stream = ReadDataStream(io.BytesIO(raw))
+    try:
+        stream.read8()  # message start time
+        stream.read8()  # message end time
+        uncompressed = stream.read8()
+        stream.read4()  # the CRC of what is not all here
+        compression = stream.read_prefixed_string()
+        stream.read8()  # the records' length
+        data = raw[stream.count :]  # what the file holds of them
+        if compression == "zstd":
+            data = zstandard.ZstdDecompressor().decompressobj().decompress(data)
+        elif compression == "lz4":
+            import lz4.frame
+
+            data = lz4.frame.LZ4FrameDecompressor().decompress(data)
+        elif compression:
+            return None
+    except (McapError, ValueError, EOFError, struct.error, UnicodeDecodeError, OverflowError,
+            MemoryError, zstandard.ZstdError, RuntimeError):  # fmt: skip
+        return None
+    records: list[Any] = []
+    at = 0
+    while at + 9 <= len(data):
+        opcode, length = data[at], int.from_bytes(data[at + 1 : at + 9], "little")
+        if at + 9 + length > len(data):
+            break
+        body = ReadDataStream(io.BytesIO(data[at + 9 : at + 9 + length]))
+        try:
+            if opcode == Opcode.MESSAGE:
+                records.append(Message.read(body, length))
+            elif opcode == Opcode.SCHEMA:
+                records.append(Schema.read(body))
+            elif opcode == Opcode.CHANNEL:
+                records.append(Channel.read(body))
+        except (McapError, ValueError, EOFError, struct.error, UnicodeDecodeError):
+            break
+        at += 9 + length
+    return records, max(0, uncompressed - at) // _SMALLEST_MESSAGE
 
 
 _KNOWN_OPCODES = {int(op) for op in Opcode}
 
 
-def _walk(f: IO[bytes], size: int, losses: list[Loss]) -> Iterator[Any]:  # noqa: PLR0915
+def _walk(f: IO[bytes], size: int, losses: list[Loss],  # noqa: PLR0915
+          read_chunks: set[int] | None = None,
+          indexed: Mapping[int, int] | None = None) -> Iterator[Any]:  # fmt: skip
     """The schemas, channels and messages of an MCAP file's data section, record
     by record; a chunk that does not read is added to ``losses`` (with the
     messages its index lists) and skipped; framing that makes no sense is
-    skipped up to the next chunk that reads."""
+    skipped up to the next chunk that reads. ``indexed``: the chunks the file's
+    summary lists (start -> length), read by their index where their own
+    framing is garbled, and where reading goes on after garbled bytes."""
     pos = len(MCAP_MAGIC)
     bad: Loss | None = None  # the last unreadable chunk, until its indexes are counted
+    starts = sorted(indexed or ())
     while pos + 9 <= size:
         f.seek(pos)
         opcode, length = f.read(1)[0], int.from_bytes(f.read(8), "little")
+        if indexed and pos in indexed and indexed[pos] <= size - pos:
+            opcode, length = Opcode.CHUNK, indexed[pos] - 9  # as the summary says
         end = pos + 9 + length
         if opcode not in _KNOWN_OPCODES or end > size:
             if bad is not None:
                 losses.append(bad)
                 bad = None
             nxt = _next_chunk(f, pos + 1, size)
+            later = [at for at in starts if at > pos]
+            if later and (nxt is None or later[0] < nxt):
+                nxt = later[0]
             if opcode in _KNOWN_OPCODES and nxt is None:
-                losses.append(Loss(pos, None, "the file ends inside this record"))
+                cut = _cut_chunk(f, pos, size) if opcode == Opcode.CHUNK else None
+                if cut is not None and cut[0]:  # the records of its start that were written
+                    records, most = cut
+                    yield from records
+                    n = sum(isinstance(r, Message) for r in records)
+                    losses.append(
+                        Loss(
+                            pos,
+                            most,
+                            f"the file ends inside this chunk (its first "
+                            f"{_n_messages(n)} read); {_CUT}",
+                            counted="at most",
+                        )
+                    )
+                    return
+                losses.append(Loss(pos, None, f"the file ends inside this record; {_CUT}"))
                 return
-            losses.append(Loss(pos, None, "not a record (garbled bytes)"))
+            losses.append(Loss(pos, None, "not a record (garbled bytes)", nxt))
             if nxt is None:
                 return
             pos = nxt
             continue
         body = f.read(length)
         if opcode == Opcode.MESSAGE_INDEX and bad is not None:
-            with_counts = bad.messages or 0
             try:
                 index = MessageIndex.read(ReadDataStream(io.BytesIO(body)))
-                bad = Loss(bad.offset, with_counts + len(index.records), bad.why)
-            except (McapError, ValueError, struct.error):
+                bad = Loss(bad.offset, (bad.messages or 0) + len(index.records), bad.why,
+                           bad.end)  # fmt: skip
+            except (McapError, ValueError, struct.error, OverflowError):
                 pass
             pos = end
             continue
@@ -896,6 +1207,8 @@ def _walk(f: IO[bytes], size: int, losses: list[Loss]) -> Iterator[Any]:  # noqa
             if opcode == Opcode.CHUNK:
                 chunk = Chunk.read(ReadDataStream(io.BytesIO(body)))
                 records: list[Any] = breakup_chunk(chunk, validate_crc=True)
+                if read_chunks is not None:
+                    read_chunks.add(pos)
             elif opcode == Opcode.SCHEMA:
                 records = [Schema.read(ReadDataStream(io.BytesIO(body)))]
             elif opcode == Opcode.CHANNEL:
@@ -905,9 +1218,10 @@ def _walk(f: IO[bytes], size: int, losses: list[Loss]) -> Iterator[Any]:  # noqa
             else:
                 records = []
         except (McapError, ValueError, EOFError, struct.error, zstandard.ZstdError,
-                UnicodeDecodeError, MemoryError) as exc:  # fmt: skip
+                UnicodeDecodeError, MemoryError, OverflowError) as exc:  # fmt: skip
             what = "a chunk that does not read" if opcode == Opcode.CHUNK else "a bad record"
-            bad = Loss(pos, 0 if opcode == Opcode.CHUNK else 1, f"{what}: {_short(exc)}")
+            # a chunk's count: from the message indexes after it (none: unknown)
+            bad = Loss(pos, None if opcode == Opcode.CHUNK else 1, f"{what}: {_short(exc)}", end)
             if opcode != Opcode.CHUNK:
                 losses.append(bad)
                 bad = None
@@ -917,6 +1231,12 @@ def _walk(f: IO[bytes], size: int, losses: list[Loss]) -> Iterator[Any]:  # noqa
         pos = end
     if bad is not None:
         losses.append(bad)
+    # no footer: the file was cut short here (a recorder killed, a copy cut)
+    losses.append(Loss(pos, None, f"the file ends here, before its footer; {_CUT}"))
+
+
+#: What a file cut short says of what came after the cut.
+_CUT = "whatever came after it is not in the file"
 
 
 def _short(exc: BaseException) -> str:
@@ -942,33 +1262,65 @@ def _next_chunk(f: IO[bytes], start: int, size: int) -> int | None:
                     known = chunk.compression in ("zstd", "lz4", "")
                     if known and chunk.uncompressed_size < 1 << 31:
                         return here
-                except (McapError, ValueError, EOFError, struct.error, UnicodeDecodeError):
+                except (
+                    McapError,
+                    ValueError,
+                    EOFError,
+                    struct.error,
+                    UnicodeDecodeError,
+                    OverflowError,
+                    MemoryError,
+                ):
                     pass
             i = block.find(b"\x06", i + 1)
         at += step
     return None
 
 
-def _copy_complete(records: Iterator[Any], out: IO[bytes]) -> int:
+def _copy_complete(records: Iterator[Any], out: IO[bytes],
+                   summary: _Summary | None = None) -> tuple[int, dict[int, int]]:  # fmt: skip
     """Schemas, channels and messages of ``records`` into a new file on ``out``
-    until the records end; returns how many messages."""
+    until the records end; a channel whose record was lost is taken from the
+    file's summary (which repeats them) if it has one. Returns how many
+    messages, and how many of each channel that no record defines (lost)."""
     count = 0
+    orphans: dict[int, int] = {}
     writer = Writer(out, chunk_size=CHUNK_BYTES, compression=CompressionType.ZSTD)
     writer.start(profile="", library="bodynet salvage")
     schemas: dict[int, int] = {}
     channels: dict[int, int] = {}
+
+    def schema(record: Schema) -> None:
+        if record.id not in schemas:
+            schemas[record.id] = writer.register_schema(record.name, record.encoding, record.data)
+
+    def channel(record: Channel) -> None:
+        if record.id in channels:
+            return
+        known = summary.schemas.get(record.schema_id) if summary is not None else None
+        if record.schema_id not in schemas and known is not None:
+            schema(known)
+        channels[record.id] = writer.register_channel(
+            record.topic, record.message_encoding, schemas.get(record.schema_id, 0),
+            dict(record.metadata),
+        )  # fmt: skip
+
     for record in records:
         # the summary section repeats schemas and channels: once each is enough
-        if isinstance(record, Schema) and record.id not in schemas:
-            schemas[record.id] = writer.register_schema(record.name, record.encoding, record.data)
-        elif isinstance(record, Channel) and record.id not in channels:
-            channels[record.id] = writer.register_channel(
-                record.topic, record.message_encoding, schemas.get(record.schema_id, 0),
-                dict(record.metadata),
-            )  # fmt: skip
-        elif isinstance(record, Message) and record.channel_id in channels:
+        if isinstance(record, Schema):
+            schema(record)
+        elif isinstance(record, Channel):
+            channel(record)
+        elif isinstance(record, Message):
+            if record.channel_id not in channels and summary is not None:
+                known_channel = summary.channels.get(record.channel_id)
+                if known_channel is not None:
+                    channel(known_channel)
+            if record.channel_id not in channels:
+                orphans[record.channel_id] = orphans.get(record.channel_id, 0) + 1
+                continue
             writer.add_message(channels[record.channel_id], record.log_time, record.data,
-                               record.publish_time)  # fmt: skip
+                               record.publish_time, record.sequence)  # fmt: skip
             count += 1
     writer.finish()
-    return count
+    return count, orphans

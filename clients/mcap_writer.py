@@ -84,14 +84,17 @@ class LeanWriter(Writer):
             return
         self._put(channel_id, ((log_time, data, publish_time),), sequence)
 
-    def add_messages(self, channel_id: int, messages: Iterable[tuple[int, bytes, int]]) -> None:
+    def add_messages(self, channel_id: int, messages: Iterable[tuple[int, bytes, int]],
+                     first_sequence: int = 0) -> None:  # fmt: skip
         """Messages of one channel ``(log_time, data, publish_time)``, in order, as
-        that many ``add_message`` calls write them."""
+        that many ``add_message`` calls write them; numbered from
+        ``first_sequence`` on, one by one (0: all 0, not numbered)."""
         if not self.lean:
-            for log_time, data, publish_time in messages:
-                super().add_message(channel_id, log_time, data, publish_time)
+            for i, (log_time, data, publish_time) in enumerate(messages):
+                sequence = first_sequence + i if first_sequence else 0
+                super().add_message(channel_id, log_time, data, publish_time, sequence)
             return
-        self._put(channel_id, messages, 0)
+        self._put(channel_id, messages, first_sequence)
 
     def _put(self, channel_id: int, messages: Iterable[tuple[int, bytes, int]],
              sequence: int) -> None:  # fmt: skip
@@ -109,6 +112,8 @@ class LeanWriter(Writer):
                 log_time,
                 publish_time,
             )
+            if sequence:  # numbered: the next one's number
+                sequence += 1
             # the statistics and the chunk's times, as the library keeps them
             if stats.message_count == 0 or log_time < stats.message_start_time:
                 stats.message_start_time = log_time

@@ -38,7 +38,6 @@ import math
 import os
 import shutil
 import sys
-import tempfile
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -51,6 +50,7 @@ from bodynet.clients import stats
 from bodynet.clients.mcap_store import StoreError, read_poses, read_truth
 from bodynet.core import metrics
 from bodynet.core.codecs import pose
+from bodynet.session.outputs import scratch_folder
 
 #: At most this many channels get a panel of their own in a plot.
 MAX_PANELS = 12
@@ -673,7 +673,7 @@ def write_report(an: Analysis, out: Path) -> list[Path]:
     beside it; returns every file written, the report first."""
     folder = out.parent
     folder.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=folder))
+    tmp = scratch_folder(out)  # one a killed run left is removed by the next
     try:
         images = _plots(an, tmp, out.stem)
         blocks = _blocks(an, images)

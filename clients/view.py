@@ -20,7 +20,7 @@ import threading
 import time
 from collections import deque
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -32,7 +32,7 @@ from bodynet.core import keys
 from bodynet.core.codecs import pose
 from bodynet.core.errors import DecodeError
 from bodynet.core.skeleton import Skeleton, build_skeleton, rom
-from bodynet.session.outputs import PendingOutput
+from bodynet.session.outputs import OutputError, PendingOutput
 
 GAUGES = (
     "left_shoulder_flexion_deg", "left_elbow_flexion_deg", "left_wrist_flexion_deg",
@@ -215,6 +215,7 @@ class Drawing:
     gauges: list[float]  # one per ``GAUGES``, finite (0: absent or not a number)
     gauge_flags: list[str]  # one per ``GAUGES``: "" if measured, else its flag
     unmeasured: str  # the "Not measured" panel
+    origins: dict[str, np.ndarray] = field(default_factory=dict)  # segment -> its origin
 
 
 def drawing(frame: pose.PoseFrame, skeleton: Skeleton) -> Drawing | None:
@@ -230,9 +231,11 @@ def drawing(frame: pose.PoseFrame, skeleton: Skeleton) -> Drawing | None:
             angles[path] = _number(value) if pose.is_measured(frame, name) else math.nan
     gauges = [frame.angles_deg.get(g, 0.0) for g in GAUGES]
     flags = ["" if pose.is_measured(frame, g) else frame.flags[g] for g in GAUGES]
+    origins = {name: o for name, pq in frame.segments.items()
+               if (o := _point(pq[0] if len(pq) else None)) is not None}  # fmt: skip
     return Drawing(frame.t_ns, strips, joints, angles,
                    [g if math.isfinite(g) else 0.0 for g in gauges], flags,
-                   unmeasured_text(frame))  # fmt: skip
+                   unmeasured_text(frame), origins)  # fmt: skip
 
 
 def _show(v: object) -> str:
@@ -291,9 +294,70 @@ def status_text(topology: object, health: Mapping[str, object], bad: int = 0) ->
                 f" {_show(field(n, 'samples'))} samples, {_show(field(n, 'gaps'))} gaps,"
                 f" rejected {_counts(field(n, 'rejected'))}"
             )
+    lines += calibration_lines(health)
     if bad:
         lines.append(f"- **viewer**: {bad} bad messages, not shown")
     return "\n".join(lines)
+
+
+def calibration_lines(health: Mapping[str, object]) -> list[str]:
+    """The calibration state per segment, from the gateway's health (its body's
+    ``heading``: the state of the tags' heading, and per segment what holds its
+    tag's heading against drift and how well it is known, ``unc_deg``); none
+    when no health says it. Any other shape shows as ``?``."""
+
+    def field(d: object, key: str) -> object:
+        return d.get(key) if isinstance(d, dict) else None
+
+    lines: list[str] = []
+    for source, h in sorted(health.items()):
+        heading = field(field(h, "body"), "heading")
+        if not isinstance(heading, dict):
+            continue
+        deg = field(heading, "deg")
+        lines.append(f"\n## Calibration ({source})")
+        lines.append(f"- heading **{_show(field(heading, 'state'))}**"
+                     + (f", {_show(deg)} deg" if deg is not None else ""))  # fmt: skip
+        segments = field(heading, "segments")
+        for segment, seg in sorted(segments.items() if isinstance(segments, dict) else ()):
+            unc = field(seg, "unc_deg")
+            held = field(seg, "held_by")
+            lines.append(
+                f"  - {segment}: {_show(field(seg, 'how'))}"
+                + (f" ({_show(held)})" if held is not None else "")
+                + (f", heading known to {_show(unc)} deg" if unc is not None
+                   else ", heading not known")
+                + f", turned {_show(field(seg, 'corrected_deg'))} deg"
+            )  # fmt: skip
+    return lines
+
+
+#: the calibration marks' colours: a heading held by a measurement or a joint's
+#: geometry, by an assumption (a three-dof joint's mean twist), or not at all
+CALIBRATION_COLOURS = {"held": (60, 180, 75), "assumed": (245, 170, 30), "not": (220, 50, 47)}
+_ASSUMED = ("three-dof joint's mean twist",)
+_NOT_HELD = ("not held", "heading unknown")
+
+
+def calibration_marks(health: Mapping[str, object]) -> dict[str, tuple[tuple[int, int, int], str]]:
+    """Per segment, the colour and label of its calibration state (the gateway's
+    health: what holds its tag's heading, how well it is known); any other
+    shape of health gives no mark."""
+    out: dict[str, tuple[tuple[int, int, int], str]] = {}
+    for _, h in sorted(health.items()):
+        body = h.get("body") if isinstance(h, dict) else None
+        heading = body.get("heading") if isinstance(body, dict) else None
+        segments = heading.get("segments") if isinstance(heading, dict) else None
+        for segment, seg in segments.items() if isinstance(segments, dict) else ():
+            if not isinstance(seg, dict):
+                continue
+            how, unc = seg.get("how"), seg.get("unc_deg")
+            kind = "not" if how in _NOT_HELD or unc is None else (
+                "assumed" if how in _ASSUMED else "held")  # fmt: skip
+            label = f"{segment}: {_show(how)}" + (f" +/-{_show(unc)} deg" if unc is not None
+                                                   else "")  # fmt: skip
+            out[str(segment)] = (CALIBRATION_COLOURS[kind], label)
+    return out
 
 
 def metrics_text(message: object) -> str:
@@ -329,6 +393,9 @@ class Viewer:
     part: PendingOutput | None = None  # the .rrd, until it is whole
     bad: int = 0  # messages not shown: not a pose, or a pose that cannot be drawn
     shown: int = 0  # poses logged
+    #: segment -> (colour, label): the calibration state per segment (health), drawn
+    #: at each segment's origin in the 3D view
+    calibration: dict[str, tuple[tuple[int, int, int], str]] = field(default_factory=dict)
 
     @classmethod
     def start(cls, mode: str, save: Path | None = None, url: str | None = None,
@@ -394,6 +461,12 @@ class Viewer:
             rec.set_time("time", timestamp=t_ns[-1])
             rec.log("body/figure", rr.LineStrips3D(last.strips, radii=0.01))
             rec.log("body/joints", rr.Points3D(last.joints, radii=0.02))
+            marks = [(last.origins[seg], *mark) for seg, mark in sorted(self.calibration.items())
+                     if seg in last.origins]  # fmt: skip
+            if marks:
+                rec.log("body/calibration", rr.Points3D(
+                    [m[0] for m in marks], radii=0.03, colors=[m[1] for m in marks],
+                    labels=[m[2] for m in marks], show_labels=False))  # fmt: skip
             needles, readings = gauge_needles(last.gauges, last.gauge_flags)
             colors = [NEEDLE_UNMEASURED if f else NEEDLE for f in last.gauge_flags]
             rec.log(
@@ -422,13 +495,25 @@ class Viewer:
         that name as it was."""
         try:
             for rec in self.recs:
-                rec.flush()
-                rec.disconnect()
+                try:
+                    rec.flush(timeout_sec=FLUSH_S)
+                except RuntimeError as exc:  # its writer stopped (a full disk) or hung
+                    if self.part is None or rec is not self.recs[-1]:
+                        raise
+                    keep = False  # the .rrd (the last sink) is not whole: not kept
+                    raise OutputError(f"cannot write {self.save}: Rerun could not write "
+                                      f"it ({exc}; a full disk?)") from None  # fmt: skip
+                finally:
+                    rec.disconnect()
             if keep and self.part is not None:
                 self.part.commit()
         finally:
             if self.part is not None:
                 self.part.discard()
+
+
+#: How long closing waits for Rerun to write what it was given.
+FLUSH_S = 60.0
 
 
 def view_recording(path: Path, viewer: Viewer, batch: int = 100) -> int:
@@ -498,6 +583,7 @@ def view_live(session: zenoh.Session, viewer: Viewer, stop: threading.Event) -> 
                     log.exception("bodynet view: a batch of %d poses failed", len(frames))
             if changed or viewer.bad != bad:
                 viewer.log_status(status_text(topology, health, viewer.bad))
+                viewer.calibration = calibration_marks(health)
     finally:
         for sub in subs:
             sub.undeclare()

@@ -38,7 +38,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from bodynet.core.keys import Site
-from bodynet.core.profile import mount
+from bodynet.core.profile import OLE_DOF, mount
 from bodynet.core.skeleton import CALIBRATION_POSES, build_skeleton, rom
 from bodynet.core.subject import Profile, QuatWxyz
 from bodynet.kinematics.model import BodyModel
@@ -466,6 +466,211 @@ class KneePairs:
         return out
 
 
+class ChildHeadings:
+    """Finds the heading of a tag with a reference of its own (``independent``) whose
+    parent's is known, across a two-dof joint (a foot's below its shank, a hand's
+    below its forearm).
+
+    As for the knees, the tag's turn since calibration, in its own reference, is
+    its segment's turned by its unknown heading; for the right heading the
+    joint's second axis (fixed in the child) stays perpendicular to its first
+    (fixed in the parent, known). In a swing that holds for four headings 90 deg
+    apart (the joint's axes stay perpendicular whichever way the child's turn is
+    laid); of those, the one whose joint turns least from the pose wins (the
+    others put the segment's swing across its joint: 30-40 deg of ankle against
+    5 in a walk). Taken once ``SAMPLES`` samples have the child turned past
+    ``MOVED_DEG`` since calibration; one try per tag."""
+
+    SAMPLES = 40
+    MOVED_DEG = 10.0
+
+    def __init__(self, profile: Profile) -> None:
+        by_segment: dict[str, str] = {}
+        for key, seg in _segments_of(profile.imu_mounts).items():
+            by_segment.setdefault(seg, key)
+        segments = pose_segments(profile)
+        #: child key -> (parent key, parent axis, child axis, parent's and child's
+        #: segment in the pose, the child tag at calibration for a heading of 0)
+        self.joints: dict[str, tuple[str, int, int, np.ndarray, np.ndarray, np.ndarray]] = {}
+        for _, parent, child, p_axis, c_axis, kind in DRIFT_JOINTS:
+            for side in ("left", "right"):
+                p, c = by_segment.get(f"{side}_{parent}"), by_segment.get(f"{side}_{child}")
+                if p is None or c is None or kind != "perpendicular":
+                    continue
+                seg_c = segments[f"{side}_{child}"]
+                self.joints[c] = (p, p_axis, c_axis, segments[f"{side}_{parent}"], seg_c,
+                                  seg_c @ _quat_matrix(profile.imu_mounts[c]))  # fmt: skip
+        self.samples: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {c: [] for c in self.joints}
+        self.done: set[str] = set()
+        self.found: dict[str, float] = {}
+
+    def pending(self, profile: Profile, coming: Iterable[str] = ()) -> bool:
+        """Whether a tag may still be found: its heading unknown, not tried yet, and
+        its parent's known (or among ``coming``, being found)."""
+        soon = set(coming)
+        return any(c not in self.done and not profile.heading_known(c)
+                   and (profile.heading_known(p) or p in soon)
+                   for c, (p, *_) in self.joints.items())  # fmt: skip
+
+    def update(self, orientations: Mapping[str, QuatWxyz], profile: Profile) -> dict[str, float]:
+        """Take one tick's tag orientations (``profile``: the known headings so far);
+        the headings found at this tick."""
+        out: dict[str, float] = {}
+        for c, (p, p_axis, c_axis, seg_p, seg_c, c0) in self.joints.items():
+            if c in self.done or profile.heading_known(c) or not profile.heading_known(p):
+                continue
+            if p not in orientations or c not in orientations:
+                continue
+            a_c = _quat_matrix(orientations[c]) @ c0.T  # the tag's turn since calibration
+            if np.linalg.norm(_rotvec(a_c)) < math.radians(self.MOVED_DEG):
+                continue
+            parent = JointDrift._segment(profile, p, _quat_matrix(orientations[p]))
+            self.samples[c].append((parent, a_c))
+            if len(self.samples[c]) >= self.SAMPLES:
+                self.done.add(c)
+                psi = _child_heading(self.samples[c], seg_p, seg_c, p_axis, c_axis)
+                if psi is not None:
+                    out[c] = psi
+        self.found.update(out)
+        return out
+
+
+class ElbowPairs:
+    """Finds the heading of each upper arm and forearm tag with a reference of its
+    own (``independent``) from the elbow's motion, as :class:`KneePairs` does the
+    knees': for the right pair of headings the elbow's axes stay perpendicular
+    (its flexion axis, fixed in the upper arm, and its pronation axis, fixed in the
+    forearm) and its flexion stays within its range of motion (which settles the
+    pair turned by 180 deg). The elbow's flexion axis must be horizontal in the
+    calibration pose (an N-pose; in a T-pose it is vertical and the pair's common
+    heading does not show). The samples are taken every ``EVERY_S`` once the
+    forearm has turned past ``MOVED_DEG`` since calibration (how far the elbow
+    bends cannot be told before the headings are known), ``SAMPLES`` of them (a
+    reach: the arm lifted, the elbow bent); while another pair far from the best
+    fits as well (the elbow barely bent, as in a walk) nothing is taken, and the
+    older half of the samples make way for new ones."""
+
+    SAMPLES = 40
+    MOVED_DEG = 10.0
+    EVERY_S = 0.1
+
+    def __init__(self, profile: Profile) -> None:
+        by_segment: dict[str, str] = {}
+        for key, seg in _segments_of(profile.imu_mounts).items():
+            by_segment.setdefault(seg, key)
+        segments = pose_segments(profile)
+        self.pairs: dict[str, tuple[str, str, np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = {}
+        for side in ("left", "right"):
+            p, c = by_segment.get(f"{side}_upperarm"), by_segment.get(f"{side}_forearm")
+            seg_p, seg_c = segments[f"{side}_upperarm"], segments[f"{side}_forearm"]
+            if p is None or c is None or math.hypot(seg_p[0, 1], seg_p[1, 1]) < HORIZONTAL_MIN:
+                continue
+            p0 = seg_p @ _quat_matrix(profile.imu_mounts[p])
+            c0 = seg_c @ _quat_matrix(profile.imu_mounts[c])
+            self.pairs[side] = (p, c, p0, c0, seg_p, seg_c)
+        self.samples: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {s: [] for s in self.pairs}
+        self.found: dict[str, float] = {}
+        self.done: set[str] = set()
+        self._last: dict[str, float] = {}
+
+    @property
+    def coming(self) -> set[str]:
+        """The tags whose heading may still be found here."""
+        return {k for side, (p, c, *_) in self.pairs.items() if side not in self.done
+                for k in (p, c)}  # fmt: skip
+
+    def update(self, t_s: float, orientations: Mapping[str, QuatWxyz]) -> dict[str, float]:
+        """Take one tick's tag orientations; the headings found at this tick."""
+        out: dict[str, float] = {}
+        for side, (p, c, p0, c0, seg_p, seg_c) in self.pairs.items():
+            if side in self.done or p not in orientations or c not in orientations:
+                continue
+            if t_s - self._last.get(side, -math.inf) < self.EVERY_S - 1e-6:
+                continue
+            a_p = _quat_matrix(orientations[p]) @ p0.T  # each tag's turn since calibration
+            a_c = _quat_matrix(orientations[c]) @ c0.T
+            if np.linalg.norm(_rotvec(a_c)) < math.radians(self.MOVED_DEG):
+                continue
+            self._last[side] = t_s
+            self.samples[side].append((a_p, a_c))
+            if len(self.samples[side]) >= self.SAMPLES:
+                found = _elbow_pair_headings(self.samples[side], seg_p, seg_c)
+                if found is None:  # not telling yet: the next samples may (a reach)
+                    del self.samples[side][: self.SAMPLES // 2]
+                    continue
+                self.done.add(side)
+                out[p], out[c] = found
+        self.found.update(out)
+        return out
+
+
+def _elbow_pair_headings(samples: Sequence[tuple[np.ndarray, np.ndarray]], seg_p: np.ndarray,
+                         seg_c: np.ndarray) -> tuple[float, float] | None:  # fmt: skip
+    """The upper arm's and forearm's tag headings (deg) that keep the elbow's axes
+    perpendicular with its flexion in range; None when no pair does."""
+    a_p = np.array([a for a, _ in samples])
+    a_c = np.array([b for _, b in samples])
+    lo, hi = rom("left_elbow_flexion_deg")
+
+    def cost(psi_p: np.ndarray, psi_c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        rp, rc = _rz_batch(psi_p), _rz_batch(psi_c)
+        b_p = np.einsum("kji,njl,klm->knim", rp, a_p, rp) @ seg_p  # the segments, body frame
+        b_c = np.einsum("kji,njl,klm->knim", rc, a_c, rc) @ seg_c
+        perp = np.sqrt((np.einsum("kni,kni->kn", b_p[..., :, 1], b_c[..., :, 2]) ** 2).mean(1))
+        rel = np.einsum("knji,knjl->knil", b_p, b_c)  # the forearm in the upper arm
+        flexion = np.degrees(np.arctan2(rel[..., 2, 0], rel[..., 0, 0]))  # about -y
+        outside = np.maximum(0.0, np.maximum(lo - 10 - flexion, flexion - hi - 10)).sum(axis=1)
+        return perp, outside
+
+    grid = np.radians(np.arange(0.0, 360.0, 5.0))
+    gp, gc = (g.ravel() for g in np.meshgrid(grid, grid, indexing="ij"))
+    perp, outside = cost(gp, gc)
+    best = int(np.lexsort((perp, np.round(outside, 0)))[0])
+    # a motion that fits a pair far from the best as well (within 20 deg of it in
+    # neither heading, as much inside the range) tells nothing: the elbow barely bent
+    far = np.maximum(np.abs(_wrap_rad(gp - gp[best])), np.abs(_wrap_rad(gc - gc[best])))
+    rivals = (far > math.radians(20.0)) & (np.round(outside, 0) <= round(float(outside[best])))
+    if rivals.any() and perp[rivals].min() < 2.0 * perp[best]:
+        return None
+    fine = np.radians(np.arange(-5.0, 5.5, 0.5))
+    fp, fc = (g.ravel() for g in np.meshgrid(gp[best] + fine, gc[best] + fine, indexing="ij"))
+    perp, outside = cost(fp, fc)
+    k = int(np.lexsort((perp, np.round(outside, 0)))[0])
+    if math.degrees(math.asin(min(1.0, perp[k]))) > 3.0 or outside[k] > 5.0 * len(samples):
+        return None  # not an elbow's motion
+    return _wrap(math.degrees(fp[k])), _wrap(math.degrees(fc[k]))
+
+
+def _child_heading(samples: Sequence[tuple[np.ndarray, np.ndarray]], seg_p: np.ndarray,
+                   seg_c: np.ndarray, p_axis: int, c_axis: int) -> float | None:  # fmt: skip
+    """The child tag's heading (deg) that keeps the joint's axes perpendicular and
+    turns the joint least from the pose; None when no heading keeps them so."""
+    parents = np.array([p for p, _ in samples])  # the parent segment, body frame
+    turns = np.array([a for _, a in samples])
+    pose_rel = seg_p.T @ seg_c
+
+    def cost(psi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        rc = _rz_batch(psi)
+        child = np.einsum("kji,njl,klm->knim", rc, turns, rc) @ seg_c  # (k, n, 3, 3)
+        perp = np.einsum("ni,kni->kn", parents[:, :, p_axis], child[:, :, :, c_axis])
+        rel = np.einsum("nji,knjl->knil", parents, child)  # parent^T child
+        off = np.einsum("ji,knjl->knil", pose_rel, rel)  # the joint's turn from the pose
+        angle = np.arccos(np.clip((np.trace(off, axis1=-2, axis2=-1) - 1) / 2, -1.0, 1.0))
+        return np.sqrt((perp**2).mean(axis=1)), np.degrees(angle).mean(axis=1)
+
+    grid = np.radians(np.arange(0.0, 360.0, 5.0))
+    perp, turn = cost(grid)
+    # the perpendicular fits (within twice the best), then the least turned joint
+    fits = np.flatnonzero(perp <= 2 * perp.min() + 1e-3)
+    best = grid[fits[np.argmin(turn[fits])]]
+    fine = best + np.radians(np.arange(-5.0, 5.25, 0.25))
+    perp, turn = cost(fine)
+    k = int(np.argmin(perp))
+    if math.degrees(math.asin(min(1.0, perp[k]))) > 3.0:  # not this joint's motion
+        return None
+    return _wrap(math.degrees(fine[k]))
+
+
 def _knee_pair_headings(samples: Sequence[tuple[np.ndarray, np.ndarray]]
                         ) -> tuple[float, float] | None:  # fmt: skip
     """The thigh's and shank's tag headings (deg) that make every sample's knee a
@@ -506,6 +711,11 @@ def _knee_pair_headings(samples: Sequence[tuple[np.ndarray, np.ndarray]]
     return _wrap(math.degrees(fp[k])), _wrap(math.degrees(fc[k]))
 
 
+def _wrap_rad(a: np.ndarray) -> np.ndarray:
+    """Angles (rad) wrapped into [-pi, pi)."""
+    return (a + math.pi) % (2 * math.pi) - math.pi  # type: ignore[no-any-return]
+
+
 def _rz_batch(psi: np.ndarray) -> np.ndarray:
     """Rotations (k, 3, 3) about the vertical by ``psi`` (rad, (k,))."""
     c, s = np.cos(psi), np.sin(psi)
@@ -529,8 +739,11 @@ class BodyHeading:
         self.drift: JointDrift | None = JointDrift(profile) if profile.imu_mounts else None
         self.unknown = sorted(k for k in profile.imu_mounts if not profile.heading_known(k))
         independent = profile.heading == "independent"
+        self.ended = False  # the search was ended (end_search)
         self.finder = HingeHeading(profile) if self.unknown and not independent else None
         self.pairs = KneePairs(profile) if self.unknown and independent else None
+        self.children = ChildHeadings(profile) if self.unknown and independent else None
+        self.elbows = ElbowPairs(profile) if self.unknown and independent else None
         if profile.heading == "fixed":
             self.how = "fixed"
         elif not profile.imu_mounts:
@@ -543,21 +756,31 @@ class BodyHeading:
     @property
     def searching(self) -> bool:
         """Whether a heading may still be found (the search has not ended)."""
-        if not self.unknown:
+        if not self.unknown or self.ended:
             return False
         if self.pairs is not None:
-            return len(self.pairs.done) < len(self.pairs.pairs)
+            knees = {k for side, (p, c, _, _) in self.pairs.pairs.items()
+                     if side not in self.pairs.done for k in (p, c)}  # fmt: skip
+            if self.elbows is not None:
+                knees |= self.elbows.coming
+            return bool(knees) or (self.children is not None
+                                   and self.children.pending(self.profile, knees))  # fmt: skip
         return self.finder is not None
 
     def update(self, t_s: float, samples: Mapping[Site, Any]) -> Profile | None:
         """Take one tick's samples (site -> RawSample); the profile with the heading
-        once it is found (then never again; in ``independent`` mode, once per knee)."""
-        if not self.unknown or (self.finder is None and self.pairs is None):
-            return None
+        once it is found (then never again; in ``independent`` mode, once per knee
+        and once per foot or hand whose parent's is known)."""
+        if not self.searching:
+            return None  # nothing more to find
         orientations = {site.raw_key: s.reading.wxyz for site, s in samples.items()
                         if hasattr(s.reading, "wxyz")}  # fmt: skip
-        if self.pairs is not None:  # each tag its own: the knees' tags, pair by pair
+        if self.pairs is not None:  # each tag its own: the knees' tags, pair by pair,
             found = self.pairs.update(orientations)
+            if self.elbows is not None:  # and the arms' from the elbows' (after an N-pose)
+                found.update(self.elbows.update(t_s, orientations))
+            if self.children is not None:  # then the feet's and hands' below them
+                found.update(self.children.update(orientations, self.profile))
             if not found:
                 return None
             self.profile = with_headings(self.profile, found)
@@ -581,13 +804,31 @@ class BodyHeading:
         the joints' constraints turn drifting tags' headings (the same body:
         ``BodySolver.set_profile``); else None."""
         if self.searching:
+            self.profile = current  # the known tags' headings as held so far
             found = self.update(t_s, samples)
-            return None if found is None else ("found", found)
+            if found is not None:
+                return "found", found
+            if self.pairs is None:  # one shared heading: nothing is known until found
+                return None
+        # tags of their own: the known ones are held while others' are still searched
         if self.drift is not None and self.drift.pairs:
             turns = self.drift.update(t_s, samples, current)
             if turns:
                 return "turned", turned_headings(current, turns)
         return None
+
+    def end_search(self) -> None:
+        """No heading is searched any more (``bodynet process``: its first pass had
+        the whole capture); the tags still unknown stay so, and flagged."""
+        self.ended = True
+
+    def hold(self, solver: Any, profile: Profile) -> None:
+        """A ``("turned", profile)`` step applied to the body's ``solver`` (a
+        ``BodySolver``, kept): the tags' headings, and how well the three-dof
+        joints' holds know them (``unc_deg``)."""
+        solver.set_profile(profile)
+        if self.drift is not None and self.drift.twist0:
+            solver.set_heading_unc(self.drift.link_unc())
 
     def state(self) -> dict[str, Any]:
         """Where the heading stands: ``state`` (fixed, declared, found, unknown or
@@ -665,6 +906,7 @@ HOLD_WORDS = {
     "perpendicular": "two-dof joint's axes",
     "twist": "three-dof joint's mean twist",
     "rest": "three-dof joint held at rest",
+    "encoder": "SmartSuit encoder's absolute angle",
 }
 
 
@@ -719,6 +961,9 @@ class JointDrift:
     #: the twist of a joint whose axes are this close to one another across the
     #: vertical (|best-fit grip| below) is not seen
     TWIST_GRIP_MIN = 0.5
+    #: an encoder's dof turning less than this a degree of the child tag's heading
+    #: (the joint's rotation axis near horizontal) does not say the heading
+    ENCODER_GRIP_MIN = 0.3
 
     def __init__(self, profile: Profile, tau_s: float = 5.0, twist: bool | None = None) -> None:
         """Which joints hold which tags: the profile's ``drift`` says (``twist``, when
@@ -750,6 +995,19 @@ class JointDrift:
                         continue
                     self.pairs[c] = (f"{side}_{joint}" if sided else joint, p, -1, -1, "twist")
                     self.twist0[c] = _twist(segments[parent], segments[name]) or 0.0
+        #: child key -> (the SmartSuit module's site name, its encoder's angle name, the
+        #: joint's axes, the encoder dof's index): the hybrid suit's absolute angle
+        self.encoders: dict[str, tuple[str, str, Any, int]] = {}
+        if self.twist0:
+            from bodynet.gateway.solver import JointAxes  # the solver's own split
+
+            joints = {j.name: j for j in build_skeleton(profile.lengths).joints}
+            for key, (joint, _, _, _, _) in self.pairs.items():
+                side, _, name = joint.partition("_")
+                if name in OLE_DOF and joint in joints:
+                    axes = JointAxes.of(joints[joint])
+                    angle = f"{joint}_{OLE_DOF[name]}_deg"
+                    self.encoders[key] = (f"{side}/{name}", angle, axes, axes.names.index(angle))
         self.error_deg = dict.fromkeys(self.pairs, 0.0)  # filtered, per child tag
         self.corrected_deg = dict.fromkeys(self.pairs, 0.0)  # in all
         self.spread_deg = dict.fromkeys(self.pairs, 0.0)  # RMS of the error seen (filtered)
@@ -786,6 +1044,9 @@ class JointDrift:
         gain = min(1.0, dt / self.tau_s)
         tags = {site.raw_key: s.reading.wxyz for site, s in samples.items()
                 if hasattr(s.reading, "wxyz")}  # fmt: skip
+        encoders = {f"{site.branch.side}/{site.name}": s.reading.encoder
+                    for site, s in samples.items() if hasattr(s.reading, "encoder")
+                    } if self.encoders else {}  # fmt: skip
         rots = {k: _quat_matrix(q) for k, q in tags.items()}
         still = {k: self._still(k, t_s, r) for k, r in rots.items()} if self.twist0 else {}
         turns: dict[str, float] = {}
@@ -797,7 +1058,8 @@ class JointDrift:
             p = self._segment(profile, parent_key, rots[parent_key])
             c = self._segment(profile, key, rots[key])
             if kind == "twist":
-                turn = self._twist_turn(key, p, c, still[key] and still[parent_key], dt)
+                target = self._encoder_twist(key, p, c, encoders, profile)
+                turn = self._twist_turn(key, p, c, still[key] and still[parent_key], dt, target)
                 if turn is None:
                     continue
                 turn += self.pending.get(key, 0.0)
@@ -830,15 +1092,44 @@ class JointDrift:
             return None
         return _wrap(twist - self._rest_ref.setdefault(key, twist))
 
+    def _encoder_twist(self, key: str, p: np.ndarray, c: np.ndarray,
+                       encoders: Mapping[str, int], profile: Profile) -> float | None:  # fmt: skip
+        """The hybrid suit: where a SmartSuit encoder spans the joint (a hip's or a
+        shoulder's rotation), the twist the joint has when the tags' rotation dof is
+        the encoder's absolute angle (None: no encoder, or its dof has no grip on
+        the child tag's heading at this pose)."""
+        spec = self.encoders.get(key)
+        if spec is None or spec[0] not in encoders:
+            return None
+        _, angle, axes, index = spec
+        cal = profile.ole.get(angle)
+        if cal is None:
+            return None
+        want = float(cal.angle_deg(encoders[spec[0]]))
+
+        def dof(turn: float) -> float:
+            return float(axes.split(p.T @ rz(-turn) @ c, None)[index])
+
+        now, grip = dof(0.0), (dof(1.0) - dof(-1.0)) / 2.0  # its change a degree of turn
+        twist = _twist(p, c)
+        if abs(grip) < self.ENCODER_GRIP_MIN or twist is None:
+            return None
+        return twist - max(-30.0, min(30.0, _wrap(want - now) / grip))
+
     def _twist_turn(self, key: str, p: np.ndarray, c: np.ndarray, rest: bool,
-                    dt: float) -> float | None:  # fmt: skip
+                    dt: float, target: float | None = None) -> float | None:  # fmt: skip
         """A three-dof joint's turn of its child tag's heading over ``dt``: its
-        twist against the one held at rest, or (moving) the calibration pose's,
-        low-passed, through the loop that also learns the tag's drift rate."""
+        twist against ``target`` (where an encoder measures the joint), the one
+        held at rest, or (moving) the calibration pose's, low-passed, through
+        the loop that also learns the tag's drift rate."""
         twist = _twist(p, c)
         if twist is None:
             return None
-        if rest:
+        if target is not None:  # measured: followed as fast as at rest
+            self._rest_ref.pop(key, None)
+            ref, rest = target, True
+            self.holding[key] = "encoder"
+        elif rest:
             ref = self._rest_ref.setdefault(key, twist)
             self.holding[key] = "rest"
         else:
@@ -862,34 +1153,56 @@ class JointDrift:
         mount = _quat_matrix(profile.imu_mounts[key])
         return rz(-profile.heading_of(key)) @ rot @ mount.T  # type: ignore[no-any-return]
 
+    def link_unc(self) -> dict[str, float]:
+        """Per segment whose tag a three-dof joint holds (its mean twist, at rest, or
+        an encoder), how well its heading is known against its parent's (deg, about
+        two standard deviations: the spread of the twist around what it is held
+        to); the joints above these segments carry it in the pose's ``unc_deg``.
+        The hinge and two-dof joints' holds are geometric, and left out."""
+        by_key = _segments_of(self.pairs)
+        return {by_key[k]: round(max(2.0 * math.sqrt(max(self.spread_deg[k], 0.0)), 0.5), 2)
+                for k, (_, _, _, _, kind) in self.pairs.items()
+                if kind == "twist" and k in by_key}  # fmt: skip
+
     def segments(self, profile: Profile) -> dict[str, dict[str, Any]]:
         """How well each tag's heading is known against the body's, by segment: the
         joint and constraint that hold it (``held_by``, ``how``), ``unc_deg`` (about
         two standard deviations: the error seen around the constraint, summed in
-        quadrature up the chain to the root; None where nothing holds the tag, whose
-        6-axis heading then drifts freely since calibration) and ``corrected_deg``."""
+        quadrature up the chain to the root) and ``corrected_deg``. The root is the
+        pelvis' tag, or every tag no joint holds where the tags share a reference
+        that does not drift (the profile's ``drift`` holds no three-dof joint):
+        known to 0 against the body's frame they define. Where tags drift (6-axis),
+        a tag no joint holds drifts freely since calibration: ``unc_deg`` None; and
+        None for a tag whose heading is not known yet."""
         by_key = _segments_of(profile.imu_mounts)
+        shared = not profile.drift_joints[1]
         unc: dict[str, float | None] = {}
 
         def chain(key: str, depth: int = 0) -> float | None:
             if key in unc:
                 return unc[key]
             pair = self.pairs.get(key)
-            if pair is None or depth > 8:
-                # the root (the pelvis' tag, or a tag no joint reaches): nothing to
-                # hold it to; the pelvis' is the body's own heading
-                unc[key] = 0.0 if by_key.get(key) == "pelvis" else None
-                return unc[key]
-            up = chain(pair[1], depth + 1)
-            own = 2.0 * math.sqrt(max(self.spread_deg[key], 0.0))
-            unc[key] = None if up is None else round(math.hypot(up, max(own, 0.5)), 2)
+            if not profile.heading_known(key):
+                unc[key] = None
+            elif pair is None or depth > 8:
+                unc[key] = 0.0 if shared or by_key.get(key) == "pelvis" else None
+            else:
+                up = chain(pair[1], depth + 1)
+                own = 2.0 * math.sqrt(max(self.spread_deg[key], 0.0))
+                unc[key] = None if up is None else round(math.hypot(up, max(own, 0.5)), 2)
             return unc[key]
 
         out: dict[str, dict[str, Any]] = {}
         for key, seg in sorted(by_key.items(), key=lambda kv: kv[1]):
             pair = self.pairs.get(key)
-            how = ("root" if seg == "pelvis" else "not held") if pair is None else (
-                HOLD_WORDS[self.holding[key]])  # fmt: skip
+            if not profile.heading_known(key):
+                how = "heading unknown"
+            elif pair is not None:
+                how = HOLD_WORDS[self.holding[key]]
+            elif seg == "pelvis":
+                how = "root"
+            else:
+                how = "shared reference" if shared else "not held"
             out[seg] = {"tag": key, "held_by": pair[0] if pair else None, "how": how,
                         "unc_deg": chain(key),
                         "corrected_deg": round(self.corrected_deg.get(key, 0.0), 2)}  # fmt: skip

@@ -79,6 +79,7 @@ HARM_FLOOR_RAD = 0.02  # a held dof's pull below this (the sensors' noise) tilts
 DAMPING = 0.01 * (math.pi / 180.0) ** 2
 
 _UP = np.array([0.0, 0.0, 1.0])
+_EYE = np.eye(3)
 _NOTHING: frozenset[str] = frozenset()
 _UNCAL = frozenset({UNCALIBRATED})
 _UNOBS = frozenset({UNOBSERVED})
@@ -252,25 +253,30 @@ class _SplitBatch:
         self.angle_index = np.where(self.unused, int(self.n.sum()),
                                     starts[:, None] + np.arange(3)[None, :])  # fmt: skip
 
-    def split(self, rows: np.ndarray, rel: np.ndarray, previous: np.ndarray) -> np.ndarray:
+    def prepare(self, rows: np.ndarray) -> _Rows:
+        """What :meth:`split` and :meth:`commit` take of the batch for joints
+        ``rows``: worked out once for a set of rows that comes back tick after tick."""
+        return _Rows(self, rows)
+
+    def split(self, rows: np.ndarray, rel: np.ndarray, previous: np.ndarray,
+              prep: _Rows | None = None) -> np.ndarray:  # fmt: skip
         """Angles (deg, (m, 3), absent dofs 0) of joints ``rows`` for relative
         rotations ``rel`` (m, 3, 3), continuous with ``previous`` (m, 3)."""
-        m = np.arange(len(rows))
-        i, j, k, e = self.i[rows], self.j[rows], self.k[rows], self.e[rows]
+        p = prep or self.prepare(rows)
+        m, i, j, k, e = p.m, p.i, p.j, p.k, p.e
         b = np.arcsin(np.clip(e * rel[m, i, k], -1.0, 1.0))
         a = np.arctan2(-e * rel[m, j, k], rel[m, k, k])
         c = np.arctan2(-e * rel[m, i, j], rel[m, i, i])
         euler = np.degrees(np.column_stack([a, b, c]))
         other = (np.column_stack([euler[:, 0] + 180, 180 - euler[:, 1], euler[:, 2] + 180])
                  + 180.0) % 360.0 - 180.0  # fmt: skip
-        signs = self.signs[rows]
+        signs = p.signs
         first, second = euler * signs, other * signs
-        n = self.n[rows]
-        unused = self.unused[rows]
+        unused = p.unused
         # fewer than three dofs: the candidate whose unused angles vanish
         pick_two = np.abs(second * unused).sum(1) < np.abs(first * unused).sum(1)
         # three dofs: inside the range of motion, then nearest the previous angles
-        lo, hi = self.lo[rows], self.hi[rows]
+        lo, hi = p.lo, p.hi
 
         def outside(cand: np.ndarray) -> np.ndarray:
             return np.maximum(0.0, np.maximum(lo - cand, cand - hi)).sum(1)  # type: ignore[no-any-return]
@@ -278,9 +284,9 @@ class _SplitBatch:
         out1, out2 = outside(first), outside(second)
         d1, d2 = np.abs(first - previous).sum(1), np.abs(second - previous).sum(1)
         pick_three = (out2 < out1) | ((out2 == out1) & (d2 < d1))
-        chosen = np.where(np.where(n == 3, pick_three, pick_two)[:, None], second, first)
+        chosen = np.where(np.where(p.three, pick_three, pick_two)[:, None], second, first)
         chosen[unused] = 0.0
-        for r in np.flatnonzero((n == 3) & (np.abs(np.cos(b)) < GIMBAL_COS)).tolist():
+        for r in np.flatnonzero(p.three & (np.abs(np.cos(b)) < GIMBAL_COS)).tolist():
             chosen[r] = self.axes[rows[r]].split(rel[r], previous[r])
         return chosen  # type: ignore[no-any-return]
 
@@ -290,6 +296,7 @@ class _SplitBatch:
         values: np.ndarray,
         calibration_inv: np.ndarray,
         relative: np.ndarray,
+        prep: _Rows | None = None,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """What committing a joint does, for many at once: angles (m, 3) clamped to
         the range of motion, which were clamped, the joint rotations (m, 3, 3) and
@@ -297,16 +304,64 @@ class _SplitBatch:
         there inverted: ``calibration_inv``, (m, 3, 3)), taken from the measured
         relative rotations ``relative`` (m, 3, 3), not from the clamped dofs: how a
         rotation splits into dofs is ambiguous at a gimbal lock, the rotation is not."""
-        lo, hi = self.lo[rows], self.hi[rows]
+        p = prep or self.prepare(rows)
+        lo, hi = p.lo, p.hi
         clamped = (values < lo) | (values > hi)
         values = np.clip(values, lo, hi)
         # every dof's rotation in one call, then R = R_dof0 R_dof1 R_dof2 (an absent
         # dof adds nothing)
-        dofs = _axis_rotations(self.axis[rows].reshape(-1, 3),
-                               np.radians(values).ravel()).reshape(-1, 3, 3, 3)  # fmt: skip
+        dofs = _axis_rotations(p.axis, np.radians(values).ravel()).reshape(-1, 3, 3, 3)
         matrices = dofs[:, 0] @ dofs[:, 1] @ dofs[:, 2]
         total = _angles_deg(calibration_inv @ relative)
         return values, clamped, matrices, total
+
+
+class _Rows:
+    """The batch's constants gathered for some joint rows (:meth:`_SplitBatch.prepare`)."""
+
+    __slots__ = ("axis", "e", "hi", "i", "j", "k", "lo", "m", "n", "signs", "three", "unused")
+
+    def __init__(self, batch: _SplitBatch, rows: np.ndarray) -> None:
+        self.m = np.arange(len(rows))
+        self.i, self.j, self.k, self.e = batch.i[rows], batch.j[rows], batch.k[rows], batch.e[rows]
+        self.signs, self.n, self.unused = batch.signs[rows], batch.n[rows], batch.unused[rows]
+        self.lo, self.hi = batch.lo[rows], batch.hi[rows]
+        self.three = self.n == 3
+        self.axis = batch.axis[rows].reshape(-1, 3)
+
+
+class _Layout:
+    """Where the direct joints of a set of bodies' ticks sit in the batch arrays
+    (:meth:`BodySolver._solve_direct`): which sensors deliver changes rarely, so
+    this is worked out once for the same solvers and plans and then reused."""
+
+    __slots__ = ("cal_inv", "children", "index", "keys", "owner", "parents", "prep", "rows",
+                 "unc_index")  # fmt: skip
+
+    def __init__(self, ticks: Sequence[_Tick], batch: _SplitBatch) -> None:
+        self.keys = [(t.solver, t.plan) for t in ticks]
+        plans = [t.plan for t in ticks]
+        counts = [len(p[0]) for p in plans]
+        owner = np.repeat(np.arange(len(ticks)), counts)
+        offsets = np.repeat(np.cumsum([0, *(len(t.segs) for t in ticks[:-1])]), counts)
+        rows = np.concatenate([p[0] for p in plans])
+        parents = np.concatenate([p[1] for p in plans])
+        self.children = np.concatenate([p[2] for p in plans]) + offsets
+        # an unmeasured pelvis (-1) is the identity, put after every measured segment
+        measured = sum(len(t.segs) for t in ticks)
+        self.parents = np.where(parents >= 0, parents + offsets, measured)
+        self.owner, self.rows = owner, rows
+        self.index = batch.angle_index[rows]
+        # each body's own calibration pose (T or N): the total rotations are from it
+        self.cal_inv = np.stack([t.solver._calibration_inv for t in ticks])[owner, rows]
+        self.prep = batch.prepare(rows)
+        self.unc_index = [self.index[owner == b] for b in range(len(ticks))]
+
+    def fits(self, ticks: Sequence[_Tick]) -> bool:
+        return len(ticks) == len(self.keys) and all(
+            t.solver is solver and t.plan is plan
+            for t, (solver, plan) in zip(ticks, self.keys, strict=True)
+        )
 
 
 @dataclass(frozen=True)
@@ -442,6 +497,9 @@ class BodySolver:
                                 strict=True):  # fmt: skip
             self._slices[joint.name] = slice(start, start + len(joint.dofs))
         self._angle_at = {n: i for i, n in enumerate(self.names.angles)}
+        #: per angle (and the absent column), how well the tags' headings are known
+        #: where a three-dof joint's assumption holds them (deg; None: nowhere)
+        self._heading_unc: np.ndarray | None = None
         self._by_child = {j.child: j for j in self.skeleton.joints}
         # a SmartSuit accelerometer's axes on each segment (its joint's flexion axis)
         self._accel_axes = {j.child: accel_axes(np.array(self.skeleton.directions[j.child]),
@@ -451,6 +509,7 @@ class BodySolver:
         self._all_mounted = False  # assume_calibrated
         self._sites: dict[Site, tuple[str, np.ndarray, str, bool, np.ndarray, bool, bool]] = {}
         self._plans: dict[tuple[str, ...], tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+        self._layouts: dict[tuple[tuple[int, int], ...], _Layout] = {}  # see _solve_direct
 
     def _site(self, site: Site) -> tuple[str, np.ndarray, str, bool, np.ndarray, bool, bool]:
         """The segment a sensor rides on, its mount's inverse (for orientation
@@ -498,6 +557,20 @@ class BodySolver:
             raise ValueError("set_profile keeps the body: new lengths or pose need a new solver")
         self.profile = profile
         self._sites.clear()
+
+    def set_heading_unc(self, by_segment: Mapping[str, float]) -> None:
+        """How well each segment's tag heading is known against its parent's (deg,
+        about two standard deviations; ``JointDrift.link_unc``): the dofs of the
+        joint above each such segment carry it, with the tags' own, in ``unc``."""
+        if not by_segment:
+            self._heading_unc = None
+            return
+        extra = np.zeros(len(self.names.angles) + 1)
+        for joint in self.skeleton.joints:
+            if joint.child in by_segment:
+                for name in self.axes[joint.name].names:
+                    extra[self._angle_at[name]] = by_segment[joint.child]
+        self._heading_unc = extra
 
     def solve(self, samples: Mapping[Site, RawSample]) -> BodyOutput:
         """Angles and poses from the latest sample of each site."""
@@ -606,32 +679,32 @@ class BodySolver:
         clamped to its range of motion does not move its child's."""
         batch = self._batch
         plans = [tick.plan for tick in ticks]
-        counts = [len(p[0]) for p in plans]
-        if not sum(counts):
+        if not any(len(p[0]) for p in plans):
             return
-        owner = np.repeat(np.arange(len(ticks)), counts)
-        offsets = np.repeat(np.cumsum([0, *(len(t.segs) for t in ticks[:-1])]), counts)
-        rows = np.concatenate([p[0] for p in plans])
-        parents = np.concatenate([p[1] for p in plans])
-        children = np.concatenate([p[2] for p in plans]) + offsets
-        # an unmeasured pelvis (-1) is the identity, put after every measured segment
-        segments = np.concatenate([segments, np.eye(3)[None]])
-        parents = np.where(parents >= 0, parents + offsets, len(segments) - 1)
-        relative = np.einsum("nji,njk->nik", segments[parents], segments[children])
-        index = batch.angle_index[rows]
+        key = tuple((id(t.solver), id(t.plan)) for t in ticks)
+        layout = self._layouts.get(key)
+        if layout is None or not layout.fits(ticks):
+            if len(self._layouts) >= 32:  # batches of unsynchronised bodies vary
+                self._layouts.clear()
+            layout = self._layouts[key] = _Layout(ticks, batch)
+        owner, rows, index = layout.owner, layout.rows, layout.index
+        segments = np.concatenate([segments, _EYE[None]])
+        relative = np.einsum("nji,njk->nik", segments[layout.parents], segments[layout.children])
         nothing = np.zeros(angles.shape[1])  # a body's first tick: no previous angles
         last = np.stack([t.last if t.last is not None else nothing for t in ticks])
-        # each body's own calibration pose (T or N): the total rotations are from it
-        calibration_inv = np.stack([t.solver._calibration_inv for t in ticks])[owner, rows]
+        prep = layout.prep
         values, clamped, matrices, total = batch.commit(
             rows,
-            batch.split(rows, relative, last[owner[:, None], index]),
-            calibration_inv,
+            batch.split(rows, relative, last[owner[:, None], index], prep),
+            layout.cal_inv,
             relative,
+            prep,
         )
         angles[owner[:, None], index] = values
-        for b, tick in enumerate(ticks):
-            tick.unc[index[owner == b]] = UNC_TAG_DEG
+        for tick, at in zip(ticks, layout.unc_index, strict=True):
+            extra = tick.solver._heading_unc
+            # a tag whose heading a three-dof joint holds (gateway/heading.py) widens them
+            tick.unc[at] = UNC_TAG_DEG if extra is None else np.hypot(UNC_TAG_DEG, extra[at])
         angles[:, -1] = 0.0  # the absent dofs' column
         rel[owner, rows] = total
         start = 0
@@ -647,7 +720,7 @@ class BodySolver:
                 if why:
                     for name in batch.names[row]:
                         tick.reasons[name] = set(why)
-        clamped &= ~batch.unused[rows]
+        clamped &= ~prep.unused
         for r, d in zip(*np.nonzero(clamped), strict=True):
             ticks[owner[r]].reasons.setdefault(batch.names[rows[r]][d], set()).add(CLAMPED)
 

@@ -149,10 +149,10 @@ def _find_heading(heading: BodyHeading, ticks: Iterator[list[CapturedSample]]) -
 def _hold_drift(heading: BodyHeading, t_s: float, latest: Mapping[Site, RawSample],
                 solver: BodySolver) -> None:  # fmt: skip
     """The tags' headings held against drift after a solved tick, the live gateway's
-    own step (the heading's search had the whole capture in the first pass)."""
-    step = None if heading.searching else heading.step(t_s, latest, solver.profile)
+    own step (the heading's search ended with the first pass)."""
+    step = heading.step(t_s, latest, solver.profile)
     if step is not None and step[0] == "turned":
-        solver.set_profile(step[1])
+        heading.hold(solver, step[1])
 
 
 def process(path: Path, fmt: str, out: Path, profile: Profile | None = None,
@@ -207,6 +207,7 @@ def process(path: Path, fmt: str, out: Path, profile: Profile | None = None,
     if heading.unknown:  # a first pass: the heading from a hinge's motion, if one moves
         _find_heading(heading, _ticks(source.read(path, fmt, CaptureStats(), rate_hz),
                                       1.0 / tick_hz))  # fmt: skip
+        heading.end_search()  # it had the whole capture
     solver = _solver(heading.profile, topology, as_given)
     stats = CaptureStats()
     sink = McapSink(out)

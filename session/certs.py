@@ -13,8 +13,6 @@ from __future__ import annotations
 
 import datetime as dt
 import ipaddress
-import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -163,17 +161,17 @@ def cert_hosts(cert: x509.Certificate) -> tuple[str, ...]:
 
 
 def write_private(path: Path, data: bytes) -> None:
-    """Write ``data`` to ``path`` readable by the owner only, whole or not at all."""
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")  # created 0600
+    """Write ``data`` to ``path`` readable by the owner only, whole or not at all
+    (a nameless file until it is whole: a killed run leaves nothing)."""
+    from bodynet.session.outputs import PendingOutput
+
+    pending = PendingOutput(path)  # created 0600
     try:
-        with os.fdopen(fd, "wb") as f:
+        with open(pending.path, "wb") as f:
             f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+        pending.commit()
+    finally:
+        pending.discard()
 
 
 def save(pair: KeyPair, cert_path: Path, key_path: Path) -> None:

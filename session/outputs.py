@@ -23,6 +23,7 @@ import contextlib
 import errno
 import os
 import secrets
+import shutil
 import signal
 import stat
 import sys
@@ -250,13 +251,29 @@ def remove_stale(output: Path) -> list[Path]:
             continue
         stale = output.parent / name
         try:
-            stale.unlink()
+            if stale.is_dir() and not stale.is_symlink():  # a scratch folder
+                shutil.rmtree(stale)
+            else:
+                stale.unlink()
         except OSError:
             continue
         removed.append(stale)
         print(f"bodynet: removed {stale}, a temporary file of {output.name} left by an "
               f"interrupted run (process {pid_text})", file=sys.stderr)  # fmt: skip
     return removed
+
+
+def scratch_folder(output: Path) -> Path:
+    """A new folder beside ``output`` (the owner's only) for a writer that makes
+    several files before they go into place; named as temporary files are
+    (``.<name>.<pid>.*.part``), so a later run removes one a killed run left.
+    The caller removes it when done."""
+    remove_stale(output)
+    try:
+        return Path(tempfile.mkdtemp(prefix=f"{_stale_prefix(output)}{os.getpid()}.",
+                                     suffix=".part", dir=output.parent))  # fmt: skip
+    except OSError as exc:
+        raise OutputError(f"cannot write {output}: {_why(exc)}") from None
 
 
 def _alive(pid: int) -> bool:

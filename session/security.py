@@ -22,7 +22,6 @@ from __future__ import annotations
 import json
 import secrets
 import shutil
-import tempfile
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from enum import StrEnum
@@ -32,6 +31,7 @@ from typing import Any
 from bodynet.core import keys
 from bodynet.core.keys import KeySpaceError
 from bodynet.session import certs
+from bodynet.session.outputs import scratch_folder
 
 PORT = 7447
 MANIFEST = "bodynet-certs.json"
@@ -397,7 +397,7 @@ def make_certs(
         return made
     # a new directory is made beside its place and renamed into it when whole
     root.parent.mkdir(parents=True, exist_ok=True)
-    work = Path(tempfile.mkdtemp(dir=root.parent, prefix=f".{root.name}."))  # 0700
+    work = scratch_folder(root)  # 0700; one a killed run left is removed by the next
     try:
         _fill(Layout(work), root, made, hosts, all_hosts, users, port, router_path, days)
         if root.exists():

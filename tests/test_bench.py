@@ -160,13 +160,15 @@ def test_the_demo_script_moves_as_a_body_can() -> None:
 def test_tiny_drift_benchmark_writes_its_tables(tmp_path: Path) -> None:
     """`bench --only drift` runs (a few emulated seconds here, ten minutes for real):
     every facing around the circle, and the drift without correction, with the hinge
-    and two-dof joints', and with the three-dof joints' too."""
+    and two-dof joints', and with the three-dof joints' too; the twisted walk with IMU
+    tags and with the hybrid suit."""
     from bodynet.bench import drift
 
     result = drift.run(tmp_path, minutes=0.1)
     assert len(result["headings"]) == 12  # every 30 deg
     assert [d["corrected"] for d in result["drift"]] == [False, "hinges", True]
     assert all(d["groups"] for d in result["drift"])
+    assert [d["hybrid"] for d in result["twisted"]] == [False, True]
     table = (tmp_path / "drift.md").read_text()
     assert table.startswith("Subject facing every 30 deg")
     assert json.loads((tmp_path / "drift.json").read_text())["headings"] == result["headings"]

@@ -120,3 +120,14 @@ def test_n_pose_from_a_recording_then_the_heading_from_the_knee(tmp_path: Path) 
     assert not out.flags
     for name, value in out.angles_deg.items():
         assert value == pytest.approx(truth.get(name, 0.0), abs=2.0), name
+
+
+def test_live_calibration_refuses_heading_options_it_cannot_apply(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """The live gateway solves with its own profile: `--drift` or `--heading`
+    without `--from` is refused with the reason (exit 2), never ignored."""
+    assert main(["calibrate", "tpose", "--drift", "joints", "--heading", "fixed"]) == 2
+    err = capsys.readouterr().err
+    assert "--heading, --drift go with --from" in err
+    assert "Traceback" not in err

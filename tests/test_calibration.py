@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -65,6 +66,10 @@ def test_profile_toml_round_trip(tmp_path: Path) -> None:
     assert path.stat().st_mode & 0o777 == 0o600  # health data: owner only
     assert profile_file.load(path) == profile
     assert "[ole.left_elbow_flexion_deg]" in path.read_text()
+    assert "drift" not in path.read_text()  # the default (auto) is not written
+    held = replace(profile, drift="joints")  # which joints hold drifting tags' headings
+    profile_file.save(held, path)
+    assert profile_file.load(path) == held
 
 
 @pytest.mark.parametrize(
@@ -74,6 +79,7 @@ def test_profile_toml_round_trip(tmp_path: Path) -> None:
         ("version = 1\n[ole.left_elbow_flexion_deg]\nradius_mm = -1\n", "radius"),
         ("version = 1\n[imu_mounts]\n'body/arm/left/upperarm/raw' = [1, 0]\n", "4 numbers"),
         ("version = [\n", "not valid TOML"),
+        ("version = 1\ndrift = 'sometimes'\n", "drift must be one of auto, joints, hinges, off"),
     ],
 )
 def test_bad_profiles_say_why(tmp_path: Path, text: str, message: str) -> None:

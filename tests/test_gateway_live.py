@@ -16,6 +16,7 @@ import pytest
 import zenoh
 from zenoh_helpers import Collector, Running, client
 
+from bodynet.clients.view import status_text
 from bodynet.core import keys
 from bodynet.core.codecs import pose, raw_sample
 from bodynet.core.keys import LEFT_ARM
@@ -95,6 +96,20 @@ def test_gateway_calibrates_tracks_and_flags_stale(
     frame = seen[-1][1]
     assert frame.flags.get("left_elbow_flexion_deg") is None
     assert frame.stale == []
+    # the calibration state per segment: in the body's health, and in the viewer
+    health = Collector(zsession, keys.health_key("gateway"), json.loads)
+    state = health.wait_for(lambda s: bool(s) and s[-1][1]["body"]["heading"]["state"] == "found",
+                            timeout=10)[-1][1]  # fmt: skip
+    segments = state["body"]["heading"]["segments"]
+    assert segments["right_shank"]["held_by"] == "right_knee"
+    # tags sharing one reference (found from the knee) do not drift apart: hinges only
+    assert segments["thorax"] == {"tag": "body/trunk/mid/chest/raw", "held_by": None,
+                                  "how": "shared reference", "unc_deg": 0.0,
+                                  "corrected_deg": 0.0}  # fmt: skip
+    text = status_text(None, {"gateway": state})
+    assert "## Calibration (gateway)" in text
+    assert "- heading **found**" in text
+    assert "right_shank: hinge axis (right_knee), heading known to" in text
     assert frame.segments["left_hand"][0][0] > 0.1  # the bent left arm reaches forward
     view = left.wait_for(bool)[-1][1]
     assert {n.rsplit("_", 2)[0] for n in view.angles_deg} == {

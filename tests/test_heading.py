@@ -450,3 +450,175 @@ def test_a_twist_held_at_rest_is_kept_while_the_tags_drift() -> None:
     assert worst["mean"] > 10.0, worst
     assert worst["none"] > 5.0, worst
     assert held.holding["body/trunk/mid/chest/raw"] == "rest"
+
+
+def test_hybrid_suit_encoders_hold_the_thigh_tags_drift() -> None:
+    """The hybrid suit: IMU tags and the legs' SmartSuit modules. Walking toes out
+    (each hip turned out 20 deg the whole time) with 6-axis tags drifting (up to
+    5 deg/min): the mean twist alone takes the held turn for drift, while the hip
+    module's encoder, the hip's absolute rotation, holds each thigh tag's heading
+    and the hips within 3 deg of the truth."""
+    from bodynet.core.keys import LEFT_LEG, RIGHT_LEG
+    from bodynet.gateway.heading import JointDrift
+    from bodynet.nodes.emulator import smartsuit_sensors
+    from bodynet.nodes.motion import ROUTINES
+
+    walk = ROUTINES["walk"].angles
+    still = dict(CALIBRATION_POSES["tpose"])
+    out = {"left_hip_rotation_deg": 20.0, "right_hip_rotation_deg": 20.0}
+    routine = Routine("toes-out", "", lambda t: still if t < 1.0 else {**walk(t - 1.0), **out})
+    tags = imu_tags()
+    realism = Realism(yaw_drift_deg_per_min=5.0, headings=Headings.DRIFTING)
+    body = BodyEmulator(routine, [*tags, *smartsuit_sensors([LEFT_LEG, RIGHT_LEG])],
+                        realism=realism, seed=5)  # fmt: skip
+    window: dict[Site, list[tuple[float, QuatWxyz]]] = {}
+    for t in np.arange(0.2, 0.95, 1 / RATE_HZ):
+        for site, sample in _samples(body, float(t))[0].items():
+            if hasattr(sample.reading, "wxyz"):
+                window.setdefault(site, []).append((float(t), sample.reading.wxyz))
+    profile = Profile(heading="fixed", drift="joints")
+    cal = calibrate_window(window, profile, "tpose").apply(profile)
+    from bodynet.gateway.heading import turned_headings
+
+    encoder, mean = JointDrift(cal), JointDrift(cal)
+    mean.encoders.clear()  # the same loop without the encoders' angle
+    solvers = {"encoder": BodySolver(cal), "mean": BodySolver(cal)}
+    worst = {"encoder": 0.0, "mean": 0.0}
+    tag_only = {s.site for s in tags}
+    for t in np.arange(1.0, 61.0, 0.1):
+        samples, truth = _samples(body, float(t))
+        for name, drift in (("encoder", encoder), ("mean", mean)):
+            solver = solvers[name]
+            solver.solve(samples)
+            if t > 20.0 and round(t * 10) % 10 == 0:  # once a second: a new solver
+                # the thigh tags' own hip rotation (the encoder's wins in the pose)
+                own = BodySolver(solver.profile).solve(
+                    {s: v for s, v in samples.items() if s in tag_only}
+                )
+                hips = [abs(own.angles_deg[n] - truth.get(n, 0.0))
+                        for n in ("left_hip_rotation_deg", "right_hip_rotation_deg")]  # fmt: skip
+                worst[name] = max(worst[name], *hips)
+            turns = drift.update(float(t), samples, solver.profile)
+            if turns:
+                solver.set_profile(turned_headings(solver.profile, turns))
+    assert encoder.holding["body/leg/left/thigh/raw"] == "encoder"
+    assert worst["encoder"] <= 3.0, worst
+    assert worst["mean"] > 10.0, worst
+
+
+@pytest.mark.parametrize("seed", [1, 3])
+def test_independent_foot_tags_are_found_below_the_shanks(seed: int) -> None:
+    """Independent 6-axis tags, walking: once the knees give each shank tag's
+    heading, each foot tag's is found across the ankle (its axes perpendicular,
+    the joint turning least), within 1.5 deg of the emulator's truth, and the
+    ankles are then measured within 2.5 deg; the trunk's and arms' tags stay
+    unknown (flagged), their joints having three dofs and no heading known above."""
+    from bodynet.nodes.motion import ROUTINES
+
+    walk = ROUTINES["walk"].angles
+    still = dict(CALIBRATION_POSES["tpose"])
+    routine = Routine("pose-then-walk", "", lambda t: still if t < 1.0 else walk(t - 1.0))
+    body = BodyEmulator(routine, imu_tags(), realism=Realism(headings=Headings.INDEPENDENT),
+                        seed=seed)  # fmt: skip
+    independent = Profile(heading="independent")
+    heading = BodyHeading(calibrate_window(_window(body, 0.2, 0.95), independent,
+                                           "tpose").apply(independent))  # fmt: skip
+    solver = BodySolver(heading.profile)
+    worst, measured = 0.0, set()
+    for t in np.arange(1.0, 7.0, 1 / RATE_HZ):
+        samples, truth = _samples(body, float(t))
+        step = heading.step(float(t), samples, solver.profile)
+        if step is not None and step[0] == "found":
+            solver = BodySolver(step[1])
+        out = solver.solve(samples)
+        errors = measured_errors(out.angles_deg, out.flags, truth)
+        measured |= set(errors)
+        feet = heading.children.found if heading.children is not None else {}
+        if len(feet) == 2:
+            worst = max(worst, *(e for n, e in errors.items() if "ankle" in n))
+    truth_headings = {s.site.raw_key: body.headings_deg[s.node] for s in body.sensors}
+    assert heading.children is not None
+    assert set(heading.children.found) == {"body/leg/left/foot/raw", "body/leg/right/foot/raw"}
+    for key, psi in heading.children.found.items():
+        assert (psi - truth_headings[key] + 180) % 360 - 180 == pytest.approx(0.0, abs=1.5), key
+    assert 0.0 < worst <= 2.5
+    assert {"left_ankle_flexion_deg", "right_ankle_inversion_deg"} <= measured
+    assert not any(n.startswith(("lumbar", "neck", "left_shoulder", "left_hip")) for n in measured)
+    assert heading.state()["state"] == "partly found"
+
+
+@pytest.mark.parametrize("seed", [1, 3])
+def test_independent_arm_tags_are_found_from_a_reach_after_an_n_pose(seed: int) -> None:
+    """Independent 6-axis tags, calibrated in an N-pose (the elbows' axes horizontal),
+    then reaching with both arms: each elbow's motion gives its upper arm and forearm tags'
+    headings (the axes perpendicular, the flexion in range), within 2 deg of the
+    emulator's truth, then each hand's below its forearm's; the elbows and wrists
+    are then measured within 3 deg, the shoulders stay flagged (the chest's
+    heading is not known)."""
+    from bodynet.nodes.motion import reach
+
+    left, right = reach("left"), reach("right")
+    still = dict(CALIBRATION_POSES["npose"])
+    routine = Routine("pose-then-reach", "", lambda t: still if t < 1.0
+                      else {**left(t - 1.0), **right(t - 1.0)})  # fmt: skip
+    body = BodyEmulator(routine, imu_tags(), realism=Realism(headings=Headings.INDEPENDENT),
+                        seed=seed)  # fmt: skip
+    independent = Profile(heading="independent", pose="npose")
+    heading = BodyHeading(calibrate_window(_window(body, 0.2, 0.95), independent,
+                                           "npose").apply(independent, "npose"))  # fmt: skip
+    solver = BodySolver(heading.profile)
+    worst, measured = 0.0, set()
+    for t in np.arange(1.0, 9.0, 1 / RATE_HZ):
+        samples, truth = _samples(body, float(t))
+        step = heading.step(float(t), samples, solver.profile)
+        if step is not None and step[0] == "found":
+            solver = BodySolver(step[1])
+        out = solver.solve(samples)
+        errors = measured_errors(out.angles_deg, out.flags, truth)
+        measured |= set(errors)
+        worst = max(worst, *(e for n, e in errors.items() if "elbow" in n or "wrist" in n), 0.0)
+    truth_headings = {s.site.raw_key: body.headings_deg[s.node] for s in body.sensors}
+    assert heading.elbows is not None
+    assert heading.children is not None
+    found = {**heading.elbows.found, **heading.children.found}
+    arms = {f"body/arm/{side}/{seg}/raw" for side in ("left", "right")
+            for seg in ("upperarm", "forearm", "hand")}  # fmt: skip
+    assert arms <= set(found), sorted(found)
+    for key in arms:
+        assert (found[key] - truth_headings[key] + 180) % 360 - 180 == pytest.approx(
+            0.0, abs=2.0), key  # fmt: skip
+    assert 0.0 < worst <= 3.0
+    assert {"left_elbow_flexion_deg", "right_wrist_flexion_deg"} <= measured
+    assert not any(n.startswith(("left_shoulder", "right_shoulder", "lumbar")) for n in measured)
+
+
+def test_a_walk_after_an_n_pose_finds_no_arm_heading_and_holds_the_known_ones() -> None:
+    """In a walk the elbows barely bend: every pair of arm headings fits as well as
+    another, so none is taken (never a wrong one), the search for them goes on,
+    and meanwhile the tags already known (the legs') are held against drift."""
+    from bodynet.nodes.motion import ROUTINES
+
+    walk = ROUTINES["walk"].angles
+    still = dict(CALIBRATION_POSES["npose"])
+    routine = Routine("pose-then-walk", "", lambda t: still if t < 1.0 else walk(t - 1.0))
+    realism = Realism(yaw_drift_deg_per_min=10.0, headings=Headings.INDEPENDENT)
+    body = BodyEmulator(routine, imu_tags(), realism=realism, seed=1)
+    independent = Profile(heading="independent", pose="npose")
+    heading = BodyHeading(calibrate_window(_window(body, 0.2, 0.95), independent,
+                                           "npose").apply(independent, "npose"))  # fmt: skip
+    solver = BodySolver(heading.profile)
+    turned = 0
+    for t in np.arange(1.0, 13.0, 1 / RATE_HZ):
+        samples, _ = _samples(body, float(t))
+        step = heading.step(float(t), samples, solver.profile)
+        if step is not None and step[0] == "found":
+            solver = BodySolver(step[1])
+        elif step is not None:
+            heading.hold(solver, step[1])
+            turned += 1
+    assert heading.elbows is not None
+    assert not heading.elbows.found
+    assert heading.searching  # the arms' may still come, from a reach
+    assert "body/leg/left/foot/raw" in heading.profile.imu_headings
+    assert turned > 0
+    assert abs(heading.drift.corrected_deg["body/leg/left/shank/raw"]) > 0.0  # type: ignore[union-attr]

@@ -3,6 +3,10 @@
 from __future__ import annotations
 
 import io
+import os
+import platform
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -90,3 +94,20 @@ def test_the_solver_hands_pinocchio_column_major_matrices(monkeypatch: pytest.Mo
     got = [solver._quat_wxyz(r) for r in rots]  # slices of a C-ordered stack, as in a tick
     assert given == [True] * len(rots)
     np.testing.assert_allclose(got, expected, atol=1e-12)
+
+
+def _arenas_limited(env: dict[str, str]) -> str:
+    code = ("from bodynet.session.memory import limit_malloc_arenas as f; "
+            "print(f(), f())")  # fmt: skip
+    done = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True,
+                          text=True, timeout=60, check=True)  # fmt: skip
+    return done.stdout.strip()
+
+
+def test_services_cap_the_allocators_arenas() -> None:
+    """Two glibc arenas for a gateway or recorder (once per process); a user's own
+    MALLOC_ARENA_MAX stands."""
+    env = {k: v for k, v in os.environ.items() if k != "MALLOC_ARENA_MAX"}
+    glibc = sys.platform == "linux" and platform.libc_ver()[0] == "glibc"
+    assert _arenas_limited(env) == ("True True" if glibc else "False False")
+    assert _arenas_limited({**env, "MALLOC_ARENA_MAX": "4"}) == "False False"

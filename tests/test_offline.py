@@ -115,3 +115,48 @@ def test_export_refuses_what_it_cannot_read(tmp_path: Path, data_dir: Path) -> N
     assert "Traceback" not in result.stderr
     assert not out.exists()
     assert not out.with_name("x.csv.part").exists()
+
+
+def test_process_holds_drifting_tags_as_the_gateway_does(tmp_path: Path) -> None:
+    """A capture of 6-axis tags drifting apart (up to 10 deg/min each), the subject
+    walking: `bodynet process` applies the live gateway's drift step
+    (BodyHeading.step), so the hips', shoulders', lumbar's and neck's errors
+    against the truth stay small where, with ``drift = "off"``, they grow; the
+    pose's uncertainty of a joint held by its mean twist is wider than a tag's."""
+
+    from bodynet.bench.drift import measured_errors
+    from bodynet.clients.mcap_store import read_poses
+    from bodynet.core.subject import Profile
+    from bodynet.gateway.solver import UNC_TAG_DEG
+    from bodynet.nodes.emulator import Headings
+    from bodynet.offline.process import process
+
+    walk = ROUTINES["walk"].angles
+    motion = Routine("capture", "", lambda t: dict(TPOSE) if t < 2.0 else walk(t - 2.0))
+    realism = Realism(yaw_drift_deg_per_min=10.0, headings=Headings.DRIFTING)
+    body = BodyEmulator(motion, imu_tags(), realism=realism, seed=5)
+    capture = tmp_path / "walk.txt"
+    with capture.open("wb") as f:
+        for tick in range(25 * 50):
+            readings, _ = body.sample(tick / 25)
+            f.write(b"".join(imu_matrix.encode_line(r) for r in readings if isinstance(r, Quat)))
+    worst, unc = {}, {}
+    for mode in ("joints", "off"):
+        out = tmp_path / f"{mode}.mcap"
+        profile = Profile(heading="fixed", drift=mode)  # reset together, facing +X
+        result = process(capture, "imu-central", out, profile, tpose_s=1.5)
+        assert result.calibrated
+        worst[mode] = 0.0
+        for _, frame in read_poses(out):
+            t = frame.t_ns / 1e9
+            if t > 35.0:
+                errors = measured_errors(frame.angles_deg, frame.flags, motion.angles(t))
+                worst[mode] = max(worst[mode], *(e for n, e in errors.items() if n.startswith(
+                    ("hip_", "left_hip", "right_hip", "lumbar", "neck", "left_shoulder",
+                     "right_shoulder"))))  # fmt: skip
+                unc[mode] = dict(frame.unc_deg)
+    assert worst["joints"] <= 4.0, worst
+    assert worst["off"] > 2 * worst["joints"], worst
+    assert unc["off"]["lumbar_rotation_deg"] == UNC_TAG_DEG
+    assert unc["joints"]["lumbar_rotation_deg"] > UNC_TAG_DEG
+    assert unc["joints"]["left_knee_flexion_deg"] == UNC_TAG_DEG  # a hinge: geometric

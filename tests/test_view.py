@@ -20,6 +20,7 @@ from zenoh_helpers import client, free_port
 from bodynet.clients.view import Viewer, view_live
 from bodynet.core import keys
 from bodynet.core.codecs import pose
+from bodynet.core.messages import RawSample
 from bodynet.core.skeleton import build_skeleton
 from bodynet.kinematics.model import BodyModel
 
@@ -273,3 +274,43 @@ def test_gauge_panel_is_a_three_by_three_matrix_of_dials() -> None:
     mid = gauge_needles([(lo + hi) / 2 for lo, hi in zip(lows, highs, strict=True)])[0]
     assert all(abs(n[1][0] - n[0][0]) < 1e-9 for n in mid)  # halfway: straight up
     assert all(n[1][1] < n[0][1] for n in mid)
+
+
+def test_the_calibration_state_is_drawn_per_segment(tmp_path: Path) -> None:
+    """The gateway's health says per segment what holds its tag's heading; the view
+    marks each segment in the 3D figure (green: a joint's geometry or a
+    measurement; amber: a three-dof joint's mean twist; red: not held), read back
+    from the saved .rrd with Rerun's own reader."""
+    from bodynet.clients.view import CALIBRATION_COLOURS, calibration_marks
+    from bodynet.core.subject import Profile
+    from bodynet.gateway.frames import pose_frame
+    from bodynet.gateway.heading import JointDrift, calibrate_window
+    from bodynet.gateway.solver import BodySolver
+    from bodynet.nodes.emulator import BodyEmulator, Realism, imu_tags
+    from bodynet.nodes.motion import ROUTINES
+
+    body = BodyEmulator(ROUTINES["tpose"], imu_tags(), realism=Realism(), seed=3)
+    window: dict[object, list[tuple[float, tuple[float, float, float, float]]]] = {}
+    samples = {}
+    for t in np.arange(0.0, 1.0, 0.02):
+        readings, _ = body.sample(float(t))
+        for s, r in zip(body.sensors, readings, strict=True):
+            window.setdefault(s.site, []).append((float(t), r.wxyz))  # type: ignore[union-attr]
+            samples[s.site] = RawSample(r, 0, round(t * 1e9))
+    profile = Profile(heading="fixed", drift="joints")
+    profile = calibrate_window(window, profile, "tpose").apply(profile)  # type: ignore[arg-type]
+    segments = JointDrift(profile).segments(profile)
+    marks = calibration_marks({"gateway": {"body": {"heading": {"segments": segments}}}})
+    assert marks["left_shank"][0] == CALIBRATION_COLOURS["held"]  # the knee's hinge
+    assert marks["thorax"][0] == CALIBRATION_COLOURS["assumed"]  # the lumbar's mean twist
+    assert marks["left_thigh"][1].startswith("left_thigh: three-dof joint's mean twist +/-")
+    assert calibration_marks({"gateway": {"body": {"heading": {"segments": [1, 2]}}}}) == {}
+    rrd = tmp_path / "c.rrd"
+    viewer = Viewer.start("none", save=rrd)
+    viewer.calibration = marks
+    frame = pose_frame(BodySolver(profile).solve(samples), 1, [])
+    assert viewer.log_poses([frame]) == 1
+    viewer.close()
+    printed = subprocess.run([str(RERUN), "rrd", "print", str(rrd)], capture_output=True, text=True,
+                             timeout=60, check=True).stdout  # fmt: skip
+    assert "- /body/calibration -" in printed
