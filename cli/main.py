@@ -147,7 +147,8 @@ def cmd_bench(args: argparse.Namespace) -> int:
         gateway.run(seconds=args.gateway_seconds, out_dir=args.out, bodies=(1,),
                     rate_hz=args.rate_hz, name="rate")  # fmt: skip
     if "recorder" in only:
-        recorder.run(seconds=args.seconds, out_dir=args.out)
+        recorder.run(seconds=args.seconds, out_dir=args.out,
+                     gateway_seconds=args.gateway_seconds)  # fmt: skip
     if "faults" in only:
         faults.run(out_dir=args.out, repeat=args.repeat)
     if "drift" in only:

@@ -29,12 +29,19 @@ def test_rate_parameter_feeds_faster(tmp_path: Path) -> None:
 
 
 def test_recorder_benchmark_against_the_bare_writer(tmp_path: Path) -> None:
-    result = recorder.run(seconds=0.05, out_dir=tmp_path)
+    # and the row of twenty bodies recorded beside the gateway, small: 2 bodies, 2 s
+    result = recorder.run(seconds=0.05, out_dir=tmp_path, bodies=2, gateway_seconds=2.0)
     assert [r["bodynet_per_s"] > 0 and r["baseline_per_s"] > 0 for r in result["rows"]] == [
         True,
         True,
     ]
     assert result["recorder_live"]["messages"] > 0
+    row = result["with_gateway"]
+    assert row["bodies"] == 2
+    for counted in ("raw_sent", "poses_published", "raw_recorded", "poses_recorded", "admin_seen"):
+        assert row[counted] > 0, counted
+    assert row["lost"] == row["raw_lost"] + row["poses_lost"] + row["admin_lost"]
+    assert "raw samples sent / in file" in (tmp_path / "recorder.md").read_text()
     report.write(tmp_path)  # the summary and the plot from what is there
     summary = (tmp_path / "summary.md").read_text()
     assert "## Recorder against the bare mcap writer" in summary
