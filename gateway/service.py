@@ -27,7 +27,6 @@ Nothing one subject sends reaches another's output.
 
 from __future__ import annotations
 
-import contextlib
 import gc
 import json
 import logging
@@ -69,22 +68,15 @@ HISTORY_STEP_S = 0.02
 #: Bodies one gateway takes on; samples of further subjects are counted, not served
 #: (a publisher inventing subject names must not exhaust the gateway).
 MAX_SUBJECTS = 64
+#: Raw samples Zenoh queues for the gateway's worker (some 2 s of 20 bodies); when
+#: full, Zenoh waits (the publishers' congestion control decides what follows).
+INTAKE_DEPTH = 1 << 16
 #: Raw keys of subjects another sharing gateway serves, remembered so that their
 #: samples are skipped before decoding (past this many they are still skipped).
 MAX_FOREIGN_KEYS = 1 << 14
-#: Raw samples Zenoh queues for the gateway (some 2 s of 20 bodies); when full, Zenoh
-#: waits (the publishers' congestion control decides what follows).
-INTAKE_DEPTH = 1 << 16
-#: Samples the intake thread takes in one go (holding the GIL) before it looks again.
-INTAKE_BATCH = 256
-#: The longest the worker waits for work before it looks at the clock and ``stop``.
-WAIT_S = 0.05
-#: Rounds of solves start at least this far apart: bodies whose frames complete in
-#: between are solved together in the next round (one body alone costs about three
-#: times as much as one of five solved together, see docs/benchmarks.md). Twenty
-#: unsynchronised bodies complete a frame every half millisecond or so; a round every
-#: 2.5 ms solves them about five at a time. One body is never held back by it.
-ROUND_S = 0.0025
+#: How long the idle worker sleeps before it looks again: while samples flow, and
+#: after a second without any.
+IDLE_S, IDLE_QUIET_S = 0.0003, 0.005
 
 
 class _Site:
@@ -127,7 +119,6 @@ class _Body:
         self.ticks = 0
         self.unsolved_sites = 0  # sites whose latest sample is not in a solved tick yet
         self.first_new: float | None = None  # when the oldest unsolved sample came
-        self.queued = False  # handed to the worker as maybe complete, not looked at yet
         self.next_housekeeping = 0.0  # monotonic: when its topology and health go out next
         cc = zenoh.CongestionControl.BLOCK
         self.body_pub = session.declare_publisher(prefix + keys.pose_key(), congestion_control=cc)
@@ -310,10 +301,8 @@ class Gateway:
         self._foreign: set[str] = set()  # their raw keys, skipped undecoded
         self._foreign_alive: dict[str | None, set[str]] = {}  # their live nodes' keys
         self._members: queue.SimpleQueue[tuple[str, bool]] = queue.SimpleQueue()
-        # what Zenoh's threads hand the worker, and what wakes it: a body that may have
-        # a whole frame, a liveliness token that came or went (subject, token), a raw
-        # key's first sample (key, payload, arrival), or None (just look)
-        self._wake: queue.SimpleQueue[_Body | tuple[object, ...] | None] = queue.SimpleQueue()
+        # liveliness tokens that came or went (on Zenoh's threads), for the worker
+        self._events: queue.SimpleQueue[tuple[str | None, _Token]] = queue.SimpleQueue()
         self._lock = threading.RLock()
         self._bodies: dict[str | None, _Body] = {}
         self._routes: dict[str, tuple[_Body, _Site]] = {}  # raw key -> where its samples go
@@ -322,10 +311,6 @@ class Gateway:
                                        self.branches)  # fmt: skip
         prefixes = ("", keys.ANY_SUBJECT + "/") if all_subjects else ("",)
         inner = [keys.all_raw()] if branches is None else [f"{b.key}/*/raw" for b in branches]
-        # samples queue in Zenoh until an intake thread (one per subscriber, see
-        # _intake) takes them, every one that waits in one go; it wakes the worker only
-        # when a body may have a whole frame (the worker neither polls nor wakes for
-        # every sample)
         self._subs = [session.declare_subscriber(p + sel, zenoh.handlers.FifoChannel(INTAKE_DEPTH))
                       for p in prefixes for sel in inner]  # fmt: skip
         self._live = [
@@ -366,94 +351,52 @@ class Gateway:
             return list(self._bodies)
 
     # --- input ------------------------------------------------------------------------
-    def _intake(self, handler: zenoh.handlers.Handler[zenoh.Sample], stop: threading.Event) -> None:
-        """An intake thread: wait for samples without the GIL (Zenoh's ``recv``),
-        then take every one that waits, up to ``INTAKE_BATCH``, in one go. Ends
-        when ``stop`` is set (at its next sample) or its subscriber is undeclared."""
-        try:
-            while not stop.is_set():
-                self._on_raw(handler.recv())
-                for _ in range(INTAKE_BATCH - 1):
-                    sample = handler.try_recv()
-                    if sample is None:
-                        break
-                    self._on_raw(sample)
-        except zenoh.ZError:  # undeclared: the gateway is closing
-            return
-
-    def _on_raw(self, sample: zenoh.Sample) -> None:  # an intake thread
-        """Take one raw sample in: decoded and kept as its site's latest, or counted
-        as a rejection; a body that may now have a whole frame is handed to the
-        worker. A raw key's first sample makes its route (after that a sample
-        costs one look-up); a new subject's body is made by the worker."""
-        key = str(sample.key_expr)
-        route = self._routes.get(key)
-        if route is None:
-            self._take_new(key, sample.payload.to_bytes(), time.monotonic(), False)
-            return
-        try:
-            raw = raw_sample.decode(sample.payload.to_bytes())
-        except DecodeError as exc:
-            with self._lock:
-                self.rejected[exc.reason] += 1
-            return
-        body, kept = route
+    def _take_pending(self, now: float) -> tuple[int, set[_Body]]:
+        """Take the raw samples waiting in the subscribers' queues (the worker's
+        thread), for at most a period: each is decoded and kept as its site's
+        latest, or counted as a rejection. Taking comes before solving, so no
+        sample waits behind solves: under load bodies are solved less often.
+        Returns how many were taken and the bodies they went to."""
+        taken, touched = 0, set()
+        until = now + self.period_s  # a flood (of garbage, say) still leaves time to solve
+        routes, foreign, share = self._routes, self._foreign, self.share
         with self._lock:
-            body.take_into(kept, raw, time.monotonic())
-            if (
-                body.unsolved_sites >= len(body.latest) - len(body.published_stale)
-                and not body.queued
-                and body.ticks
-                and len(body.alive) <= len(body.latest)
-            ):  # what frame_complete asks first; the worker asks the rest
-                body.queued = True
-                self._wake.put(body)
-
-    def _take_new(self, key: str, payload: bytes, now: float, make: bool) -> _Body | None:
-        """A sample of a raw key with no route yet: taken through a new route to its
-        subject's body, or counted (a rejection, another sharing gateway's subject).
-        A subject with no body yet is the worker's to make (``make``, its thread):
-        from an intake thread the sample is handed to the worker. The body the sample
-        went to, if any."""
-        with self._lock:
-            route = self._routes.get(key)
-            if route is not None:  # an earlier sample of the key made its route
-                try:
-                    route[0].take_into(route[1], raw_sample.decode(payload), now)
-                except DecodeError as exc:
-                    self.rejected[exc.reason] += 1
-                    return None
-                return route[0]
-            if key in self._foreign:
-                self.foreign_samples += 1
-                return None
-            try:
-                subject, body_key = keys.split_subject(key)
-                site, _ = keys.parse(body_key)
-            except keys.KeySpaceError:
-                self.rejected[Reason.UNKNOWN_NODE] += 1
-                return None
-            share = self.share
-            if share is not None and not share.owns(subject):
-                if len(self._foreign) < MAX_FOREIGN_KEYS:
-                    self._foreign.add(key)
-                self.foreign_samples += 1
-                return None
-            try:
-                raw = raw_sample.decode(payload)
-            except DecodeError as exc:
-                self.rejected[exc.reason] += 1
-                return None
-            body = self._bodies.get(subject)
-            if body is None and not make and len(self._bodies) < MAX_SUBJECTS:
-                self._wake.put((key, payload, now))  # a new subject: the worker makes its body
-                return None
-        if body is None and (body := self._body(subject)) is None:
-            return None
-        with self._lock:
-            # at most MAX_SUBJECTS times the key space's sites
-            self._routes[key] = (body, body.take(site, raw, now))
-        return body
+            for sub in self._subs:
+                while (taken % 256 or time.monotonic() < until) and (
+                    (sample := sub.try_recv()) is not None
+                ):
+                    taken += 1
+                    key = str(sample.key_expr)
+                    try:
+                        route = routes.get(key)
+                        if route is None:
+                            if key in foreign:
+                                self.foreign_samples += 1
+                                continue
+                            subject, body_key = keys.split_subject(key)
+                            site, _ = keys.parse(body_key)
+                            if share is not None and not share.owns(subject):
+                                if len(foreign) < MAX_FOREIGN_KEYS:
+                                    foreign.add(key)
+                                self.foreign_samples += 1
+                                continue
+                        raw = raw_sample.decode(sample.payload.to_bytes())
+                    except DecodeError as exc:
+                        self.rejected[exc.reason] += 1
+                        continue
+                    except keys.KeySpaceError:
+                        self.rejected[Reason.UNKNOWN_NODE] += 1
+                        continue
+                    if route is None:  # a key's first good sample: its body is made now
+                        if (body := self._body(subject)) is None:
+                            continue
+                        # at most MAX_SUBJECTS times the key space's sites
+                        routes[key] = (body, body.take(site, raw, now))
+                    else:
+                        body = route[0]
+                        body.take_into(route[1], raw, now)
+                    touched.add(body)
+        return taken, touched
 
     def _join_share(self, share: Share) -> None:
         """Declare this gateway's token and learn the members already there
@@ -464,7 +407,6 @@ class Gateway:
         def on_member(sample: zenoh.Sample) -> None:  # Zenoh's thread
             member = str(sample.key_expr).rsplit("/", 1)[-1]
             self._members.put((member, sample.kind == zenoh.SampleKind.PUT))
-            self._wake.put(None)
 
         liveliness = self.session.liveliness()
         self._share_decls = [
@@ -511,7 +453,7 @@ class Gateway:
             subject, key = keys.split_subject(str(sample.key_expr))
         except keys.KeySpaceError:
             return
-        self._wake.put((subject, _Token(key, sample.kind == zenoh.SampleKind.PUT)))
+        self._events.put((subject, _Token(key, sample.kind == zenoh.SampleKind.PUT)))
 
     def _body(self, subject: str | None) -> _Body | None:
         """The subject's body, made on first sight (a refusal is counted); None
@@ -684,81 +626,55 @@ class Gateway:
 
     # --- the work loop -----------------------------------------------------------------
     def run(self, stop: threading.Event) -> None:
-        """Solve every body that has a whole frame of its sources (every live site
-        has delivered since its last solve: the lowest latency), or that has waited
-        ``period_s`` since its first new sample (sources of different rates), all
-        together; in between, wait for the intake threads to hand over work.
+        """Take the samples waiting in Zenoh's queues, then solve every body that
+        has a whole frame of its sources (every live site has delivered since its
+        last solve: the lowest latency), or that has waited ``period_s`` since its
+        first new sample (sources of different rates), all together.
 
-        Samples are taken in by intake threads (:meth:`_intake`), which
-        wakes this worker only when a body may have a whole frame: the worker
-        does not wake for every sample, nor poll. While it solves, the samples
-        that come are taken in and the bodies they complete wait for the next
-        round, which solves them all together (under load bodies are solved
-        in larger batches, cheaper per body, each with its newest samples); no
-        sample is lost and none waits behind a backlog of solves."""
+        One thread does all the Python work, so it never waits for the GIL
+        behind Zenoh's callbacks: samples queue up in Zenoh (``INTAKE_DEPTH``)
+        while it solves, and the next round takes them all. Under load bodies
+        are solved less often, in larger batches (cheaper per body), each with
+        its newest samples; no sample is lost and none waits behind a backlog
+        of solves."""
         # What exists before serving (modules, models) is left out of the cyclic
         # collector's full passes, which otherwise paused this loop for tens of ms.
         gc.freeze()
-        intake = [threading.Thread(target=self._intake, args=(sub.handler, stop), daemon=True,
-                                   name="gateway-intake") for sub in self._subs]  # fmt: skip
-        for thread in intake:
-            thread.start()
-        wake, period = self._wake, self.period_s
-        items: list[_Body | tuple[object, ...] | None] = []
-        due: dict[_Body, bool] = {}  # body -> solve even with nothing new
-        next_round = 0.0  # monotonic: no round of solves starts before this (ROUND_S)
+        last_sample = time.monotonic()
+        next_due = float("inf")  # no body can be due before this (its oldest unsolved sample)
         while not stop.is_set():
             now = time.monotonic()
-            events = self._reshare() if self.share is not None else 0
-            maybe: list[_Body] = []
-            for item in items:
-                if type(item) is _Body:
-                    maybe.append(item)
-                elif item is None:
-                    events += 1
-                elif len(item) == 3:  # a raw key's first sample
-                    body = self._take_new(*item, True)  # type: ignore[arg-type, misc]
-                    if body is not None:
-                        maybe.append(body)
-                else:  # a liveliness token
-                    events += 1
-                    body = self._token(*item)  # type: ignore[arg-type]
-                    if body is not None and body.latest:
-                        due[body] = True  # the topology changed: a tick that says so
+            taken, touched = self._take_pending(now)
+            due: dict[_Body, bool] = {}  # body -> solve even with nothing new
             with self._lock:
-                for body in maybe:
-                    body.queued = False
+                for body in touched:
                     if body.frame_complete(now):
+                        due[body] = False
+                    elif body.first_new is not None:
+                        next_due = min(next_due, body.first_new + self.period_s)
+            events = self._reshare() if self.share is not None else 0
+            while True:
+                try:
+                    subject, token = self._events.get_nowait()
+                except queue.Empty:
+                    break
+                events += 1
+                if (body := self._token(subject, token)) is not None and body.latest:
+                    due[body] = True  # the topology changed: a tick that says so
+            if now >= next_due:  # bodies whose slowest source has kept them waiting a period
+                for body in list(self._bodies.values()):
+                    if body.first_new is not None and now - body.first_new >= self.period_s:
                         due.setdefault(body, False)
-                # bodies whose slowest source has kept them waiting a period
-                for body in self._bodies.values():
-                    if body.first_new is not None and now - body.first_new >= period:
-                        due.setdefault(body, False)
-            if due and now >= next_round:
-                next_round = now + ROUND_S
-                self._solve_and_publish(due, now)
-                due = {}
+                firsts = [b.first_new for b in self._bodies.values()
+                          if b.first_new is not None and b not in due]  # fmt: skip
+                next_due = min(firsts, default=float("inf")) + self.period_s
+            self._solve_and_publish(due, now)
             self._housekeeping(now)
-            items = []
-            # bodies due wait for the round (more may come due meanwhile)
-            timeout = (next_round if due else self._next_deadline()) - time.monotonic()
-            if timeout > 0 and wake.empty():
-                with contextlib.suppress(queue.Empty):
-                    items.append(wake.get(timeout=min(timeout, WAIT_S)))
-            while not wake.empty():  # this thread is the only one that takes
-                items.append(wake.get())
-
-    def _next_deadline(self) -> float:
-        """When the worker must look again with no new work: a body's period since
-        its oldest unsolved sample, or its housekeeping; within a period when a body
-        has no unsolved sample (its next first one may come any time)."""
-        period = self.period_s
-        out = time.monotonic() + WAIT_S
-        for body in self._bodies.values():
-            first = body.first_new  # set by an intake thread: read once
-            out = min(out, body.next_housekeeping,
-                      time.monotonic() + period if first is None else first + period)  # fmt: skip
-        return out
+            if taken:
+                last_sample = now
+            elif not due and not events:  # nothing to do: poll again soon (sooner while busy)
+                idle = IDLE_S if now - last_sample < 1.0 else IDLE_QUIET_S
+                time.sleep(max(0.0, min(idle, next_due - now)))
 
     def _token(self, subject: str | None, token: _Token) -> _Body | None:
         """Apply a token's coming or going to its subject's body; that body (to
