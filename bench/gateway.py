@@ -143,7 +143,8 @@ def _relay(endpoint: str, stop: Any, cpu: Any) -> None:
 
 
 def _gateway(endpoint: str, stop: Any, samples: Any, cpu: Any, all_subjects: bool,
-             share: str | None = None, serving: Any = None) -> None:  # fmt: skip
+             share: str | None = None, serving: Any = None,
+             solves: Any = None) -> None:  # fmt: skip
     import threading
 
     from bodynet.gateway.service import Gateway
@@ -163,6 +164,9 @@ def _gateway(endpoint: str, stop: Any, samples: Any, cpu: Any, all_subjects: boo
     thread.join()
     with samples.get_lock():
         samples.value += gateway.samples
+    if solves is not None:
+        with solves.get_lock():
+            solves.value += gateway.solves
     gateway.close()
     session.close()
 
@@ -192,14 +196,15 @@ def run_once(bodies: int, seconds: float, rate_hz: float = RATE_HZ,
     endpoint = f"tcp/127.0.0.1:{port}"
     router = open_session(session_config("router", listen=[endpoint]))
     ctx = mp.get_context("spawn")
-    sent, gw_samples = ctx.Value("q", 0), ctx.Value("q", 0)
+    sent, gw_samples, gw_solves = ctx.Value("q", 0), ctx.Value("q", 0), ctx.Value("q", 0)
     relay_cpu, gw_cpu = ctx.Value("d", 0.0), ctx.Value("d", 0.0)
     stop, ready = ctx.Event(), ctx.Event()
     relay = ctx.Process(target=_relay, args=(endpoint, stop, relay_cpu))
     share = (lambda k: f"bench-{k}") if gateways > 1 else (lambda k: None)
     serving = [ctx.Event() for _ in range(gateways)]
     procs = [ctx.Process(target=_gateway, args=(endpoint, stop, gw_samples, gw_cpu,
-                                                bodies > 1 or gateways > 1, share(k), serving[k]))
+                                                bodies > 1 or gateways > 1, share(k), serving[k],
+                                                gw_solves))
              for k in range(gateways)]  # fmt: skip
     # one feeder process per 10 bodies, so the feed keeps its rate
     feeders = [
@@ -242,6 +247,8 @@ def run_once(bodies: int, seconds: float, rate_hz: float = RATE_HZ,
         "gateway": {**g, "samples_received": gw_samples.value,
                     "lost": sent.value - gw_samples.value, "poses": len(pose_lat),
                     "pose_rate": len(pose_lat) / expected_poses,
+                    # body-ticks per batched solve (the poses of bodies solved together)
+                    "mean_batch": len(pose_lat) / gw_solves.value if gw_solves.value else None,
                     "cpu_ms_per_body_s": 1e3 * gw_cpu.value / seconds / bodies},
         "p50_ratio": g["p50_ms"] / r["p50_ms"] if r["n"] and g["n"] else None,
         "p99_ratio": g["p99_ms"] / r["p99_ms"] if r["n"] and g["n"] else None,
@@ -309,20 +316,22 @@ def run(
     }  # fmt: skip
     lines = [
         "| bodies | feed | path | sent | lost | poses/s per body | p50 ms | p99 ms | p99 ratio "
-        "| CPU ms per body-second |",
-        "|---:|---|---|---:|---:|---:|---:|---:|---:|---:|",
+        "| CPU ms per body-second | bodies per solve |",
+        "|---:|---|---|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for row in rows:
         r, g, f = row["relay"], row["gateway"], row["feed"]
         lines.append(
             f"| {row['bodies']} | {f} | bare relay (raw -> raw) | {row['sent']} | {r['lost']} "
-            f"| | {r['p50_ms']:.2f} | {r['p99_ms']:.2f} | | {r['cpu_ms_per_body_s']:.0f} |"
+            f"| | {r['p50_ms']:.2f} | {r['p99_ms']:.2f} | | {r['cpu_ms_per_body_s']:.0f} | |"
         )
         ratio = f"{row['p99_ratio']:.2f}" if row["p99_ratio"] else "-"
         path = "gateway" if row["gateways"] == 1 else f"{row['gateways']} gateways sharing"
+        batch = f"{g['mean_batch']:.1f}" if g["mean_batch"] else "-"
         lines.append(f"| {row['bodies']} | {f} | {path} (raw -> pose) | {row['sent']} "
                      f"| {g['lost']} | {g['pose_rate'] * RATE_HZ:.0f} | {g['p50_ms']:.2f} "
-                     f"| {g['p99_ms']:.2f} | {ratio} | {g['cpu_ms_per_body_s']:.0f} |")  # fmt: skip
+                     f"| {g['p99_ms']:.2f} | {ratio} | {g['cpu_ms_per_body_s']:.0f} "
+                     f"| {batch} |")  # fmt: skip
     table = "\n".join(lines) + (
         f"\n\nSustained with zero loss ({feeds[0]} feed): relay {best['relay']} bodies, "
         f"gateway {best['gateway']} bodies (at least {TICKS_GOAL:.0%} of ticks delivered)"

@@ -83,12 +83,16 @@ class _Site:
     """What the gateway keeps of one site: its latest sample, and for orientation
     sensors the recent history (T-pose calibration)."""
 
-    __slots__ = ("arrived", "fresh", "history", "sample")
+    __slots__ = ("arrived", "fresh", "history", "owed", "sample")
 
     def __init__(self, sample: RawSample, arrived: float) -> None:
         self.sample = sample
         self.arrived = arrived  # monotonic
         self.fresh = False  # not yet in a solved tick
+        # how many of the body's frames this site has delivered for, counted from the
+        # last solve (at most 2): a sample taken before a solve that the frame being
+        # solved did not need counts for the next one (see _Body.snapshot)
+        self.owed = 0
         # (arrival, w, x, y, z): tuples of floats only, which Python's cyclic collector
         # stops tracking, so seconds of history do not lengthen its full passes
         self.history: deque[tuple[float, float, float, float, float]] | None = None
@@ -118,6 +122,7 @@ class _Body:
         self.samples = 0
         self.ticks = 0
         self.unsolved_sites = 0  # sites whose latest sample is not in a solved tick yet
+        self.ready_sites = 0  # sites that have delivered for the next frame (owed)
         self.first_new: float | None = None  # when the oldest unsolved sample came
         self.next_housekeeping = 0.0  # monotonic: when its topology and health go out next
         cc = zenoh.CongestionControl.BLOCK
@@ -157,6 +162,11 @@ class _Body:
         self.samples += 1
         if not kept.fresh:
             self.unsolved_sites += 1
+        owed = kept.owed
+        if not owed:
+            self.ready_sites += 1
+        if owed < 2:
+            kept.owed = owed + 1
         kept.sample, kept.arrived, kept.fresh = sample, now, True
         reading = sample.reading
         if type(reading) is Quat:
@@ -174,24 +184,39 @@ class _Body:
             self.first_new = now
 
     def frame_complete(self, now: float) -> bool:
-        """Has every site that is not stale delivered since the last solve (and
-        every node whose token is up delivered at all)?"""
-        if len(self.alive) > len(self.latest) or not self.ticks:
+        """Has every site that is not stale delivered for the next frame (and every
+        node whose token is up delivered at all), with something new since the last
+        solve?"""
+        if len(self.alive) > len(self.latest) or not self.ticks or not self.unsolved_sites:
             return False  # a node's first sample is on its way; a new body waits a period
-        if self.unsolved_sites < len(self.latest) - len(self.published_stale):
+        if self.ready_sites < len(self.latest) - len(self.published_stale):
             return False  # some live site has not delivered yet: the common, cheap answer
-        return all(v.fresh or now - v.arrived > STALE_S for v in self.latest.values())
+        return all(v.owed or now - v.arrived > STALE_S for v in self.latest.values())
 
     def newly_stale(self, now: float) -> bool:
         return any(now - v.arrived > STALE_S and s.raw_key not in self.published_stale
                    for s, v in self.latest.items())  # fmt: skip
 
     def snapshot(self, now: float) -> tuple[dict[Site, RawSample], list[str], BodySolver]:
-        """What the next solve needs; marks every sample as used."""
+        """What the next solve needs; marks every sample as used.
+
+        The solve takes each site's newest sample. Where a site delivered twice
+        since the last solve (nodes at their own phases, the solve a few ms after
+        the frame was whole), its second sample counts for the next frame too: the
+        next frame is whole when the others deliver again, not a period after
+        that site's next sample (which cost one tick in three at twenty
+        unsynchronised bodies). A body a whole frame behind starts afresh."""
         latest = {site: s.sample for site, s in self.latest.items()}
-        for s in self.latest.values():
+        kept = self.latest.values()
+        behind = all(s.owed > 1 or now - s.arrived > STALE_S for s in kept)
+        ready = 0
+        for s in kept:
             s.fresh = False
+            if s.owed:
+                s.owed = 0 if behind else s.owed - 1
+                ready += s.owed
         self.unsolved_sites = 0
+        self.ready_sites = ready
         stale = sorted(
             s.raw_key for s, v in self.latest.items()
             if now - v.arrived > STALE_S or s.raw_key in self.gone
@@ -295,6 +320,7 @@ class Gateway:
         self.rejected = RejectCounts()
         self.solver_errors = 0
         self.refused_subjects = 0
+        self.solves = 0  # batched solves: ticks / solves is the mean batch
         # --share: the gateways that share the subjects, and what is not this one's
         self.share = Share(share) if share is not None and all_subjects else None
         self.foreign_samples = 0  # samples of subjects another gateway serves
@@ -743,6 +769,7 @@ class Gateway:
                     work.append((body, *body.snapshot(now)))
         if not work:
             return
+        self.solves += 1
         try:
             outputs = solve_bodies([(solver, latest) for _, latest, _, solver in work])
         except Exception:  # one body's bad tick must not cost the others theirs
@@ -783,6 +810,7 @@ class Gateway:
         """Counters of the gateway (and of one body's share of it)."""
         out: dict[str, object] = {"source": "gateway", "t_ns": time.time_ns(),
                                   "samples": self.samples, "ticks": self.ticks,
+                                  "solves": self.solves,
                                   "solver_errors": self.solver_errors,
                                   "rejected": dict(self.rejected),
                                   "subjects": len(self._bodies),
