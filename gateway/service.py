@@ -53,6 +53,7 @@ from bodynet.gateway.heading import (
     calibrate_window,
     yaw_reset,
 )
+from bodynet.gateway.rounds import Rounds
 from bodynet.gateway.shards import Share
 from bodynet.gateway.solver import BodyOutput, BodySolver, solve_bodies
 from bodynet.session import profile_file
@@ -321,6 +322,7 @@ class Gateway:
         self.solver_errors = 0
         self.refused_subjects = 0
         self.solves = 0  # batched solves: ticks / solves is the mean batch
+        self.rounds = Rounds(self.period_s)  # when whole frames are solved (batching)
         # --share: the gateways that share the subjects, and what is not this one's
         self.share = Share(share) if share is not None and all_subjects else None
         self.foreign_samples = 0  # samples of subjects another gateway serves
@@ -668,14 +670,19 @@ class Gateway:
         gc.freeze()
         last_sample = time.monotonic()
         next_due = float("inf")  # no body can be due before this (its oldest unsolved sample)
+        rounds = self.rounds
+        # bodies whose frame is whole, waiting for the round (-> since when), oldest first
+        held: dict[_Body, float] = {}
         while not stop.is_set():
             now = time.monotonic()
             taken, touched = self._take_pending(now)
             due: dict[_Body, bool] = {}  # body -> solve even with nothing new
             with self._lock:
                 for body in touched:
+                    if body in held:
+                        continue
                     if body.frame_complete(now):
-                        due[body] = False
+                        held[body] = now
                     elif body.first_new is not None:
                         next_due = min(next_due, body.first_new + self.period_s)
             events = self._reshare() if self.share is not None else 0
@@ -694,13 +701,24 @@ class Gateway:
                 firsts = [b.first_new for b in self._bodies.values()
                           if b.first_new is not None and b not in due]  # fmt: skip
                 next_due = min(firsts, default=float("inf")) + self.period_s
+            wake = next_due
+            if held:
+                since = next(iter(held.values()))
+                if due or rounds.due(now, since, len(self._bodies)):
+                    for body in held:  # the round: every whole frame in one solve
+                        due.setdefault(body, False)
+                    held.clear()
+                else:
+                    wake = min(wake, since + rounds.hold_s)
             self._solve_and_publish(due, now)
             self._housekeeping(now)
             if taken:
                 last_sample = now
             elif not due and not events:  # nothing to do: poll again soon (sooner while busy)
                 idle = IDLE_S if now - last_sample < 1.0 else IDLE_QUIET_S
-                time.sleep(max(0.0, min(idle, next_due - now)))
+                nap = max(0.0, min(idle, wake - now))
+                time.sleep(nap)
+                rounds.slept(time.monotonic() - now)
 
     def _token(self, subject: str | None, token: _Token) -> _Body | None:
         """Apply a token's coming or going to its subject's body; that body (to
