@@ -323,6 +323,9 @@ class Gateway:
         self.refused_subjects = 0
         self.solves = 0  # batched solves: ticks / solves is the mean batch
         self.rounds = Rounds(self.period_s)  # when whole frames are solved (batching)
+        # bodies whose frame is whole, waiting for the round (-> since when), oldest first
+        self._held: dict[_Body, float] = {}
+        self._next_due = float("inf")  # no body is due before this (its oldest new sample)
         # --share: the gateways that share the subjects, and what is not this one's
         self.share = Share(share) if share is not None and all_subjects else None
         self.foreign_samples = 0  # samples of subjects another gateway serves
@@ -669,56 +672,61 @@ class Gateway:
         # collector's full passes, which otherwise paused this loop for tens of ms.
         gc.freeze()
         last_sample = time.monotonic()
-        next_due = float("inf")  # no body can be due before this (its oldest unsolved sample)
-        rounds = self.rounds
-        # bodies whose frame is whole, waiting for the round (-> since when), oldest first
-        held: dict[_Body, float] = {}
         while not stop.is_set():
             now = time.monotonic()
             taken, touched = self._take_pending(now)
-            due: dict[_Body, bool] = {}  # body -> solve even with nothing new
-            with self._lock:
-                for body in touched:
-                    if body in held:
-                        continue
-                    if body.frame_complete(now):
-                        held[body] = now
-                    elif body.first_new is not None:
-                        next_due = min(next_due, body.first_new + self.period_s)
-            events = self._reshare() if self.share is not None else 0
-            while True:
-                try:
-                    subject, token = self._events.get_nowait()
-                except queue.Empty:
-                    break
-                events += 1
-                if (body := self._token(subject, token)) is not None and body.latest:
-                    due[body] = True  # the topology changed: a tick that says so
-            if now >= next_due:  # bodies whose slowest source has kept them waiting a period
-                for body in list(self._bodies.values()):
-                    if body.first_new is not None and now - body.first_new >= self.period_s:
-                        due.setdefault(body, False)
-                firsts = [b.first_new for b in self._bodies.values()
-                          if b.first_new is not None and b not in due]  # fmt: skip
-                next_due = min(firsts, default=float("inf")) + self.period_s
-            wake = next_due
-            if held:
-                since = next(iter(held.values()))
-                if due or rounds.due(now, since, len(self._bodies)):
-                    for body in held:  # the round: every whole frame in one solve
-                        due.setdefault(body, False)
-                    held.clear()
-                else:
-                    wake = min(wake, since + rounds.hold_s)
-            self._solve_and_publish(due, now)
-            self._housekeeping(now)
+            acted, wake = self._round(now, touched)
             if taken:
                 last_sample = now
-            elif not due and not events:  # nothing to do: poll again soon (sooner while busy)
+            elif not acted:  # nothing to do: poll again soon (sooner while busy)
                 idle = IDLE_S if now - last_sample < 1.0 else IDLE_QUIET_S
-                nap = max(0.0, min(idle, wake - now))
-                time.sleep(nap)
-                rounds.slept(time.monotonic() - now)
+                time.sleep(max(0.0, min(idle, wake - now)))
+                self.rounds.slept(time.monotonic() - now)
+
+    def _round(self, now: float, touched: set[_Body]) -> tuple[bool, float]:
+        """One round of the worker after taking samples (``touched``: the bodies
+        they went to): solve what is due, in one batched call (see
+        gateway/rounds.py for when a whole frame waits for the round), and one
+        body's housekeeping. Whether it solved or had events, and when it has to
+        look again at the latest (if no sample comes before)."""
+        held = self._held
+        due: dict[_Body, bool] = {}  # body -> solve even with nothing new
+        with self._lock:
+            for body in touched:
+                if body in held:
+                    continue
+                if body.frame_complete(now):
+                    held[body] = now
+                elif body.first_new is not None:
+                    self._next_due = min(self._next_due, body.first_new + self.period_s)
+        events = self._reshare() if self.share is not None else 0
+        while True:
+            try:
+                subject, token = self._events.get_nowait()
+            except queue.Empty:
+                break
+            events += 1
+            if (body := self._token(subject, token)) is not None and body.latest:
+                due[body] = True  # the topology changed: a tick that says so
+        if now >= self._next_due:  # bodies whose slowest source has kept them waiting a period
+            for body in list(self._bodies.values()):
+                if body.first_new is not None and now - body.first_new >= self.period_s:
+                    due.setdefault(body, False)
+            firsts = [b.first_new for b in self._bodies.values()
+                      if b.first_new is not None and b not in due]  # fmt: skip
+            self._next_due = min(firsts, default=float("inf")) + self.period_s
+        wake = self._next_due
+        if held:
+            since = next(iter(held.values()))
+            if due or self.rounds.due(now, since, len(self._bodies)):
+                for body in held:  # the round: every whole frame in one solve
+                    due.setdefault(body, False)
+                held.clear()
+            else:
+                wake = min(wake, since + self.rounds.hold_s)
+        self._solve_and_publish(due, now)
+        self._housekeeping(now)
+        return bool(due or events), wake
 
     def _token(self, subject: str | None, token: _Token) -> _Body | None:
         """Apply a token's coming or going to its subject's body; that body (to
