@@ -1,0 +1,128 @@
+"""When the gateway's worker solves whole frames (gateway/rounds.py), driven with
+explicit clock values: no sleeps, no timing asserted."""
+
+from __future__ import annotations
+
+import numpy as np
+import zenoh
+from zenoh_helpers import client
+
+from bodynet.core.messages import RawSample, Source
+from bodynet.gateway.rounds import Rounds
+from bodynet.gateway.service import Gateway
+from bodynet.nodes.emulator import BodyEmulator, imu_tags
+from bodynet.nodes.motion import ROUTINES
+
+PERIOD = 0.01
+STEP = 0.00025  # the worker's rounds in the driven feed
+
+
+def test_frames_wait_for_the_round_only_while_the_worker_is_busy() -> None:
+    rounds = Rounds(PERIOD, busy_on=0.5, busy_off=0.25, window_s=1.0)
+    assert rounds.hold(0.0, 20) == 0.0  # no window measured yet: at once
+    assert rounds.due(0.5, 0.5, 20)
+    assert rounds.hold(1.0, 20) == rounds.hold_s == PERIOD / 4  # a window without sleep
+    assert rounds.hold(1.0, 1) == 0.0  # one body: nothing to batch it with
+    assert not rounds.due(1.0 + rounds.hold_s / 2, 1.0, 20)
+    assert rounds.due(1.0 + rounds.hold_s, 1.0, 20)
+    rounds.slept(0.625)  # busy 0.375 of the next window: between the two, it keeps holding
+    assert rounds.hold(2.0, 20) == rounds.hold_s
+    rounds.slept(0.875)  # busy 0.125: it stops
+    assert rounds.hold(3.0, 20) == 0.0
+    rounds.slept(0.625)  # busy 0.375: not enough to start again
+    assert rounds.hold(4.0, 20) == 0.0
+    assert rounds.busy == 0.375
+
+
+def _feed(gw: Gateway, bodies: int, seconds: float) -> list[int]:
+    """Feed ``bodies`` unsynchronised bodies (every node at its own phase, as the
+    realistic feed of ``bodynet bench --only gateway`` does) to the worker's round
+    with a clock stepping 0.25 ms at a time; the ticks each body got."""
+    tags = imu_tags()
+    readings, _ = BodyEmulator(ROUTINES["walk"], tags, seed=3).sample(0.2)
+    rng = np.random.default_rng(7)
+    made = [gw._body(f"s{b}") for b in range(bodies)]
+    assert None not in made
+    # each body at its own phase, each of its nodes at its own phase after that
+    phases = rng.uniform(0, PERIOD, (bodies, 1)) + rng.uniform(0, PERIOD, (bodies, len(tags)))
+    sent = np.zeros((bodies, len(tags)), dtype=int)
+    for step in range(1, int(seconds / STEP) + 1):
+        now = step * STEP
+        touched = set()
+        for b, body in enumerate(made):
+            assert body is not None
+            for i, tag in enumerate(tags):
+                while phases[b, i] + sent[b, i] * PERIOD <= now:
+                    t_ns = round((phases[b, i] + sent[b, i] * PERIOD) * 1e9)
+                    body.take(tag.site, RawSample(readings[i], int(sent[b, i]), t_ns,
+                                                  Source.IMU_CENTRAL), now)  # fmt: skip
+                    sent[b, i] += 1
+                    touched.add(body)
+        gw._round(now, touched)
+    return [body.ticks for body in made if body is not None]
+
+
+def test_unsynchronised_bodies_get_every_tick_in_batches_when_the_worker_is_busy(
+    router_endpoint: str,
+) -> None:
+    """A busy worker holds whole frames for the round and solves them together
+    (batches of several bodies, not one by one), and still gives every body a
+    tick every period: a sample taken while a whole frame waits counts for the
+    next frame, not lost to the frame being solved."""
+    seconds, bodies = 1.0, 6
+    session = client(router_endpoint)
+    results = {}
+    try:
+        for name, busy_on in (("holding", 0.0), ("at once", 2.0)):
+            gw = Gateway(session, all_subjects=True)
+            # busy_on 0: the worker counts as busy from the first window on; 2: never
+            gw.rounds = Rounds(PERIOD, hold_s=PERIOD / 2, busy_on=busy_on, busy_off=0.0)
+            try:
+                ticks = _feed(gw, bodies, seconds)
+                results[name] = (ticks, sum(ticks) / gw.solves)
+            finally:
+                gw.close()
+    finally:
+        session.close()
+    for name, (ticks, _) in results.items():
+        # a period to start (a new body waits one), then a tick every period (a sample
+        # taken during the hold lost to the next frame cost 4 ticks in 100 here)
+        assert min(ticks) >= 0.97 * seconds / PERIOD, (name, ticks)
+    held, at_once = results["holding"][1], results["at once"][1]
+    assert at_once < 1.5, results  # bodies at their own phases come whole one by one
+    assert held >= 2.0, results  # the bodies whole within half a period, together
+
+
+def test_a_body_a_whole_frame_behind_starts_afresh(router_endpoint: str) -> None:
+    """Every site delivered twice before the solve (the worker a period late):
+    the solve takes the newest, and the next frame needs new samples of every
+    site, not a tick on the old ones."""
+    tags = imu_tags()
+    readings, _ = BodyEmulator(ROUTINES["walk"], tags, seed=4).sample(0.1)
+    session: zenoh.Session = client(router_endpoint)
+    gw = Gateway(session)
+    try:
+        body = gw._bodies[None]
+        body.ticks = 1  # past its first tick
+        for k in range(2):
+            for tag, reading in zip(tags, readings, strict=True):
+                body.take(tag.site, RawSample(reading, k, k, Source.IMU_CENTRAL), 0.001 * k)
+        assert body.frame_complete(0.002)
+        body.snapshot(0.002)
+        assert body.ready_sites == 0
+        body.take(tags[0].site, RawSample(readings[0], 2, 2, Source.IMU_CENTRAL), 0.01)
+        assert not body.frame_complete(0.01)
+        # one site twice (a node early), the others once: its second counts for the next
+        for tag, reading in zip(tags[1:], readings[1:], strict=True):
+            body.take(tag.site, RawSample(reading, 2, 2, Source.IMU_CENTRAL), 0.011)
+        body.take(tags[0].site, RawSample(readings[0], 3, 3, Source.IMU_CENTRAL), 0.012)
+        assert body.frame_complete(0.012)
+        body.snapshot(0.012)
+        assert body.ready_sites == 1
+        assert not body.frame_complete(0.013)
+        for tag, reading in zip(tags[1:], readings[1:], strict=True):
+            body.take(tag.site, RawSample(reading, 3, 3, Source.IMU_CENTRAL), 0.02)
+        assert body.frame_complete(0.02)  # tags[0] delivered for this frame already
+    finally:
+        gw.close()
+        session.close()
