@@ -55,6 +55,20 @@ from bodynet.core.subject import Profile, QuatWxyz
 from bodynet.kinematics.model import BodyModel, accel_axes
 
 _REASON_ORDER = {r: i for i, r in enumerate((UNCALIBRATED, UNOBSERVED, HELD, CLAMPED))}
+#: a dof's reasons -> (in order, its flag): the few sets that occur, each worked out once
+#: (every dof of an uncalibrated body has some, every tick)
+_ORDERED: dict[frozenset[str], tuple[tuple[str, ...], str]] = {}
+
+
+def _order(reasons: frozenset[str]) -> tuple[tuple[str, ...], str]:
+    """A dof's reasons in order, and its flag (the first); remembered (``_ORDERED``)."""
+    order = _REASON_ORDER
+    ordered = tuple(sorted(reasons, key=lambda x: (order.get(x, len(order)), x)))
+    if len(_ORDERED) < 256:  # reasons are a handful of names: a few combinations
+        _ORDERED[reasons] = (ordered, primary(ordered))
+    return ordered, primary(ordered)
+
+
 GIMBAL_COS = 1e-3  # |cos(middle angle)| below this is a gimbal lock
 TILT_MIN = 0.05  # |component| below this: the tilt has no unique answer
 MISS = 0.05  # a gravity fit further off than this (about 3 degrees) is no fit
@@ -745,10 +759,14 @@ class BodySolver:
     def _output(self, tick: _Tick, poses: np.ndarray, quats: np.ndarray) -> BodyOutput:
         """One body's output: flags (each dof's first reason) and uncertainties
         (none where a reason other than ``clamped`` says no measurement)."""
-        order = _REASON_ORDER
-        reasons = {n: tuple(sorted(r, key=lambda x: order.get(x, len(order))))
-                   for n, r in tick.reasons.items() if r}  # fmt: skip
-        flags = {n: primary(r) for n, r in reasons.items()}
+        reasons: dict[str, tuple[str, ...]] = {}
+        flags: dict[str, str] = {}
+        ordered = _ORDERED
+        for n, r in tick.reasons.items():
+            if r:
+                key = frozenset(r)
+                known = ordered.get(key) or _order(key)
+                reasons[n], flags[n] = known
         unc = tick.unc[:-1]
         for n, f in flags.items():
             if f != CLAMPED:
