@@ -12,9 +12,10 @@ MCAP tools (Foxglove, the ``mcap`` CLI) can open and plot them:
   ground truth as it publishes it (``t_ns``, ``angles_deg``, ``segment``,
   ``segment_quat_wxyz``), when the recording asked for it.
 - ``body/tf``: schema ``foxglove.FrameTransforms`` (Foxglove's well-known
-  schema, JSON), one message per ``body/pose``: the pelvis in frame ``world``,
-  every other segment in its parent segment (``body_tree``), so Foxglove's 3D
-  panel shows the skeleton's frames without any setup.
+  schema, protobuf: see ``foxglove_pb``), one message per ``body/pose``: the
+  pelvis in frame ``world``, every other segment in its parent segment
+  (``body_tree``), so Foxglove's 3D panel shows the skeleton's frames without
+  any setup.
 - ``body/@topology``: schema ``bodynet.Topology``, the gateway's topology as it
   publishes it or answers it (``t_ns``, ``branches`` -> ``nodes`` ->
   ``state``, ``node``, ``last_t_ns``);
@@ -28,6 +29,9 @@ MCAP tools (Foxglove, the ``mcap`` CLI) can open and plot them:
 - ``@gaps``: schema ``bodynet.Gap``, one record per jump in a topic's
   sequence numbers the recorder saw (``topic``, ``after_seq``, ``missing``,
   ``from_t_ns``, ``to_t_ns``): where the recording is incomplete.
+
+Chunks are zstd at level 1 (:data:`ZSTD_LEVEL`): on these messages faster than
+the library's level 3 and no larger.
 
 Log time is the sample's source time in ns (for a processed capture, the
 capture's own time base); MCAP stores it as an unsigned 64-bit number, so a
@@ -64,6 +68,7 @@ from mcap.records import Channel, Chunk, ChunkIndex, Message, MessageIndex, Sche
 from mcap.stream_reader import breakup_chunk
 from mcap.writer import CompressionType, Writer
 
+from bodynet.clients import foxglove_pb
 from bodynet.clients.body_tree import Transforms, segment_parents
 from bodynet.clients.mcap_writer import LeanWriter
 from bodynet.core import keys
@@ -202,52 +207,6 @@ HEALTH_SCHEMA = {
     },
 }  # fmt: skip
 
-_VECTOR3 = {
-    "title": "foxglove.Vector3",
-    "type": "object",
-    "properties": {a: {"type": "number"} for a in "xyz"},
-    "required": list("xyz"),
-}
-_QUATERNION = {
-    "title": "foxglove.Quaternion",
-    "type": "object",
-    "properties": {a: {"type": "number"} for a in "xyzw"},
-    "required": list("xyzw"),
-}
-#: Foxglove's ``foxglove.FrameTransforms`` in its JSON Schema form (the layout
-#: of Foxglove's published jsonschema; descriptions left out). Foxglove knows
-#: the message by the schema name and reads ``translation`` then ``rotation``
-#: as the child frame's pose in its parent.
-FRAME_TRANSFORMS_SCHEMA = {
-    "title": "foxglove.FrameTransforms",
-    "type": "object",
-    "properties": {
-        "transforms": {
-            "type": "array",
-            "items": {
-                "title": "foxglove.FrameTransform",
-                "type": "object",
-                "properties": {
-                    "timestamp": {
-                        "title": "time",
-                        "type": "object",
-                        "properties": {
-                            "sec": {"type": "integer", "minimum": 0},
-                            "nsec": {"type": "integer", "minimum": 0, "maximum": 999_999_999},
-                        },
-                    },
-                    "parent_frame_id": {"type": "string"},
-                    "child_frame_id": {"type": "string"},
-                    "translation": _VECTOR3,
-                    "rotation": _QUATERNION,
-                },
-                "required": ["timestamp", "parent_frame_id", "child_frame_id", "translation",
-                             "rotation"],
-            },
-        }
-    },
-    "required": ["transforms"],
-}  # fmt: skip
 WORLD_FRAME = "world"
 
 GAP_SCHEMA = {
@@ -318,6 +277,11 @@ def raw_json(sample: RawSample) -> dict[str, Any]:
 #: of index each as the writer keeps them, 0.3 KB packed by
 #: :class:`PackedChunkIndexes`; rotating files bounds it).
 CHUNK_BYTES = 1 << 20
+
+#: The zstd level of a recording's chunks. Level 1 against the library's 3, on
+#: 2 s of one walking body's poses and transforms: 13 against 20 us a pose, and
+#: smaller; on raw samples about as small.
+ZSTD_LEVEL = 1
 
 #: Allocations from this size up are mapped and unmapped on their own (glibc's
 #: ``M_MMAP_THRESHOLD``), see :func:`keep_large_buffers_off_heap`.
@@ -414,6 +378,21 @@ def pack_chunk_indexes(writer: Writer) -> PackedChunkIndexes | None:
 TF_BATCH = 64  # whole-body poses whose transforms are made together
 
 
+@functools.cache  # every file of a recording registers them
+def _schemas() -> dict[str, tuple[str, str, bytes]]:
+    """Each kind of message's schema: name, encoding and data."""
+
+    def described(schema: dict[str, Any]) -> tuple[str, str, bytes]:
+        return str(schema["title"]), "jsonschema", json.dumps(schema).encode()
+
+    return {"pose": described(POSE_SCHEMA), "raw": described(RAW_SCHEMA),
+            "gap": described(GAP_SCHEMA), "truth": described(TRUTH_SCHEMA),
+            "tf": (foxglove_pb.SCHEMA_NAME, foxglove_pb.SCHEMA_ENCODING,
+                   foxglove_pb.FRAME_TRANSFORMS_DESCRIPTOR),
+            "topology": described(TOPOLOGY_SCHEMA), "health": described(HEALTH_SCHEMA),
+            "metrics": described(METRICS_SCHEMA)}  # fmt: skip
+
+
 class McapSink:
     """Writes poses and raw samples to one MCAP file; each whole-body pose
     (``body/pose``) also as Foxglove frame transforms on ``body/tf``. A chunk is
@@ -427,30 +406,13 @@ class McapSink:
     def __init__(self, path: Path, chunk_size: int = CHUNK_BYTES, max_chunk_s: float = 0.5) -> None:
         fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
         self._stream = os.fdopen(fd, "wb")
-        self._writer = LeanWriter(
-            self._stream, chunk_size=chunk_size, compression=CompressionType.ZSTD
-        )
+        zstd = CompressionType.ZSTD
+        self._writer = LeanWriter(self._stream, chunk_size, zstd, zstd_level=ZSTD_LEVEL)
         #: the writer's chunk indexes for the summary, packed (None: as the writer keeps them)
         self.chunk_indexes = pack_chunk_indexes(self._writer)
         self._writer.start(profile="", library="bodynet")
-        self._schemas = {
-            "pose": self._writer.register_schema("bodynet.PoseFrame", "jsonschema",
-                                                 json.dumps(POSE_SCHEMA).encode()),
-            "raw": self._writer.register_schema("bodynet.RawSample", "jsonschema",
-                                                json.dumps(RAW_SCHEMA).encode()),
-            "gap": self._writer.register_schema("bodynet.Gap", "jsonschema",
-                                                json.dumps(GAP_SCHEMA).encode()),
-            "truth": self._writer.register_schema("bodynet.Truth", "jsonschema",
-                                                  json.dumps(TRUTH_SCHEMA).encode()),
-            "tf": self._writer.register_schema("foxglove.FrameTransforms", "jsonschema",
-                                               json.dumps(FRAME_TRANSFORMS_SCHEMA).encode()),
-            "topology": self._writer.register_schema("bodynet.Topology", "jsonschema",
-                                                     json.dumps(TOPOLOGY_SCHEMA).encode()),
-            "health": self._writer.register_schema("bodynet.Health", "jsonschema",
-                                                   json.dumps(HEALTH_SCHEMA).encode()),
-            "metrics": self._writer.register_schema("bodynet.Metrics", "jsonschema",
-                                                    json.dumps(METRICS_SCHEMA).encode()),
-        }  # fmt: skip
+        self._schemas = {kind: self._writer.register_schema(name, encoding, data)
+                          for kind, (name, encoding, data) in _schemas().items()}  # fmt: skip
         self._transforms = Transforms(segment_parents(), WORLD_FRAME)
         self._channels: dict[str, int] = {}
         self._sequence: dict[int, int] = {}
@@ -471,8 +433,9 @@ class McapSink:
     def _channel(self, topic: str, kind: str) -> int:
         channel = self._channels.get(topic)
         if channel is None:
+            encoding = foxglove_pb.MESSAGE_ENCODING if kind == "tf" else "json"
             channel = self._channels[topic] = self._writer.register_channel(
-                topic, "json", self._schemas[kind]
+                topic, encoding, self._schemas[kind]
             )
         return channel
 
