@@ -69,7 +69,12 @@ def feed_schedule(bodies: range, nodes: int, rate_hz: float, feed: str,
 
 
 def _feed(endpoint: str, seconds: float, sent: Any, ready: Any, bodies: range, total: int,
-          rate_hz: float = RATE_HZ, feed: str = "locked") -> None:  # fmt: skip
+          rate_hz: float = RATE_HZ, feed: str = "locked", finished: Any = None,
+          hold: Any = None) -> None:  # fmt: skip
+    """Publish ``bodies``' raw samples for ``seconds`` once ``ready``, counting them
+    in ``sent``. With ``hold``: once done, add one to ``finished`` and keep the
+    session open until ``hold`` is set (closing it drops what its queues still
+    hold, which a subscriber that is behind has not yet had)."""
     import heapq
 
     import zenoh
@@ -119,6 +124,10 @@ def _feed(endpoint: str, seconds: float, sent: Any, ready: Any, bodies: range, t
             heapq.heappush(due, (nxt + late, i, tick + 1))
     with sent.get_lock():
         sent.value += count
+    if hold is not None:
+        with finished.get_lock():
+            finished.value += 1
+        hold.wait(120)
     session.close()
 
 

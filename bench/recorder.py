@@ -308,6 +308,7 @@ def _record_with_gateway(tmp: Path, bodies: int, seconds: float, feed: str,
 
     ctx = mp.get_context("spawn")
     sent, ready = ctx.Value("q", 0), ctx.Event()
+    finished, hold = ctx.Value("i", 0), ctx.Event()  # the feeders done; may close
     seen: Counter[str] = Counter()
     ticks: dict[str, int] = {}
     waiting = threading.Event()
@@ -328,7 +329,7 @@ def _record_with_gateway(tmp: Path, bodies: int, seconds: float, feed: str,
         poses.undeclare()
         feeders = [ctx.Process(target=_feed, args=(endpoint, seconds, sent, ready,
                                                    range(i, min(i + 10, bodies)), bodies,
-                                                   rate_hz, feed))
+                                                   rate_hz, feed, finished, hold))
                    for i in range(0, bodies, 10)]  # fmt: skip
         for f in feeders:
             f.start()
@@ -337,6 +338,12 @@ def _record_with_gateway(tmp: Path, bodies: int, seconds: float, feed: str,
         cpu0 = {name: sum(p.cpu_times()[:2]) for name, p in watched.items()}
         since_ns = time.time_ns()
         ready.set()
+        _wait(lambda: finished.value >= len(feeders), seconds + 120, "the feeders")
+        # a recorder that is behind holds the feeders back (congestion control BLOCK):
+        # they keep their sessions until it has caught up, or what their queues
+        # hold would be dropped with them
+        _wait(_quiet(path), 120, "the recorder to catch up")
+        hold.set()
         for f in feeders:
             f.join()
         # the last (stale) ticks made, each body's count of them in its next health
@@ -357,6 +364,22 @@ def _record_with_gateway(tmp: Path, bodies: int, seconds: float, feed: str,
     topics = {k.rsplit(" ", 1)[0] for k in admin_seen}
     return {"sent": sent.value, "ticks": published, "cpu_s": cpu_s, "admin_seen": admin_seen,
             "held": _in_file(path, topics, since_ns, until_ns)}  # fmt: skip
+
+
+def _quiet(path: Path, bytes_per_s: float = 64_000, for_s: float = 1.5) -> Callable[[], bool]:
+    """A test that ``path`` (a recording) has grown by less than ``bytes_per_s``
+    for ``for_s`` (its chunks close every 0.5 s: a recorder writing a backlog of
+    raw samples adds megabytes a second, one that has caught up a few kB)."""
+    last = [path.stat().st_size if path.exists() else 0, time.monotonic(), time.monotonic()]
+
+    def done() -> bool:
+        size, now = path.stat().st_size if path.exists() else 0, time.monotonic()
+        if size - last[0] > bytes_per_s * max(now - last[1], 0.1):
+            last[2] = now  # still growing: quiet from now on, maybe
+        last[0], last[1] = size, now
+        return now - last[2] >= for_s
+
+    return done
 
 
 def _wait(done: Callable[[], bool], timeout: float, what: str) -> None:

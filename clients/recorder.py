@@ -23,6 +23,14 @@ recording says where it is incomplete; the recorder itself only counts them
 (:attr:`Recorder.gaps`, :attr:`Recorder.missing`), so what it holds in memory
 does not grow with a lossy network.
 
+Nothing is dropped on the way in either: each subscription hands its samples
+to a deep FIFO (:data:`FIFO_DEPTH`) that a thread of the recorder empties into
+the file; when the recorder falls behind, the FIFO fills and then holds Zenoh
+back (the raw publishers block rather than drop, see
+``bodynet.nodes.publisher``), instead of losing samples as a plain callback's
+small internal queue did under load. :meth:`Recorder.close` writes what the
+FIFOs still hold before it finishes the file.
+
 A recording runs for hours: the recorder fixes the C library's mmap threshold
 (``mcap_store.keep_large_buffers_off_heap``), without which the writer's
 per-chunk buffers made its resident memory grow steadily.
@@ -37,6 +45,7 @@ import time
 from collections.abc import Sequence
 from functools import lru_cache
 from pathlib import Path
+from typing import Any
 
 import zenoh
 import zenoh.ext
@@ -52,6 +61,12 @@ log = logging.getLogger(__name__)
 #: (no wildcard matches them): the admin keys are named.
 DEFAULT_KEYS = (keys.all_raw(), keys.all_poses(), keys.TOPOLOGY, keys.all_health(),
                 keys.METRICS)  # fmt: skip
+
+#: Samples each subscription holds for the recorder before Zenoh is held back:
+#: about a second of twenty bodies' raw samples.
+FIFO_DEPTH = 1 << 15
+#: How long :meth:`Recorder.close` goes on writing what the FIFOs hold, at most.
+DRAIN_S = 10.0
 
 
 class Recorder:
@@ -86,16 +101,35 @@ class Recorder:
         # fetches what a router restart made it miss. Poses, topology and health come from
         # plain publishers, with nothing to recover: a plain subscriber.
         recovery = zenoh.ext.RecoveryConfig(heartbeat=True)
-        self._subs = [
-            session.declare_subscriber(k, self._on_sample) if _kind(k) in _PLAIN
-            else zenoh.ext.declare_advanced_subscriber(session, k, self._on_sample,
-                                                       recovery=recovery)
+        self._subs: list[Any] = [
+            session.declare_subscriber(k, zenoh.handlers.FifoChannel(FIFO_DEPTH))
+            if _kind(k) in _PLAIN
+            else zenoh.ext.declare_advanced_subscriber(
+                session, k, zenoh.handlers.FifoChannel(FIFO_DEPTH), recovery=recovery)
             for k in key_exprs
         ]  # fmt: skip
+        # a thread per subscription empties its FIFO into the file (the FIFO outlives
+        # the subscription: close undeclares, then the threads write what is left)
+        self._drains = [
+            threading.Thread(target=self._drain, args=(sub.handler,), daemon=True,
+                             name=f"recorder {k}")
+            for k, sub in zip(key_exprs, self._subs, strict=True)
+        ]  # fmt: skip
+        for thread in self._drains:
+            thread.start()
         # the topology as it is now: published on change only, answered as a query
         for k in key_exprs:
             if _kind(k) == _TOPOLOGY:
                 session.get(k, self._on_reply)
+
+    def _drain(self, fifo: Any) -> None:
+        """Write what ``fifo`` receives until its subscription is undeclared and
+        it is empty."""
+        try:
+            while True:
+                self._on_sample(fifo.recv())
+        except zenoh.ZError:  # closed and empty
+            pass
 
     def _on_reply(self, reply: zenoh.Reply) -> None:
         if reply.ok is not None:
@@ -162,8 +196,13 @@ class Recorder:
             log.info("recorder: %d missing on %s after seq %d", gap.missing, topic, last[0])
 
     def close(self) -> None:
+        """Stop receiving, write what the subscriptions' FIFOs still hold (for
+        :data:`DRAIN_S` at most) and finish the file."""
         for sub in self._subs:
             sub.undeclare()
+        deadline = time.monotonic() + DRAIN_S
+        for thread in self._drains:
+            thread.join(timeout=max(0.0, deadline - time.monotonic()))
         with self._lock:
             self._closed = True
             try:
