@@ -329,7 +329,7 @@ def _record_with_gateway(tmp: Path, bodies: int, seconds: float, feed: str,
         poses.undeclare()
         feeders = [ctx.Process(target=_feed, args=(endpoint, seconds, sent, ready,
                                                    range(i, min(i + 10, bodies)), bodies,
-                                                   rate_hz, feed, finished, hold))
+                                                   rate_hz, feed, finished, hold, True))
                    for i in range(0, bodies, 10)]  # fmt: skip
         for f in feeders:
             f.start()
