@@ -123,6 +123,18 @@ class Transforms:
                 out[i] = message
         return out
 
+    def alike(self, times: Sequence[int], names: Sequence[str | bytes],
+              values: np.ndarray) -> list[bytes]:  # fmt: skip
+        """What :meth:`messages` gives for poses at ``times`` that all have the
+        segments ``names``, their rows ``values`` (B, S, 7), without sorting the
+        poses into groups first (a recording's poses: the same segments each)."""
+        plan = self._plan(tuple(names))
+        if plan is None:
+            return [_NO_TRANSFORMS] * len(times)
+        if values.shape == (len(times), len(names), 7) and bool(np.isfinite(values).all()):
+            return plan.fill(list(times), values)
+        return self.messages([(t, names, v) for t, v in zip(times, values, strict=True)])
+
     def _plan(self, names: tuple[str | bytes, ...]) -> _Plan | None:
         if names not in self._plans:
             try:

@@ -502,24 +502,34 @@ class McapSink:
                 names += one
                 flat += numbers
         rows = np.asarray(flat, dtype=float).reshape(-1, 7)
-        read, at = iter(names), 0
-        poses: list[tuple[int, Any, Any]] = []
-        for t_ns, data, given in pending:
-            segments = given
-            if isinstance(given, bytes):
-                these = next(read)
-                if these is None:  # not as the gateway writes them: the whole message
-                    segments = _decoded_rows(data)
-                else:
-                    segments = (these, rows[at : at + len(these)])
-                    at += len(these)
-            poses.append((t_ns, *segments))
+        times = [t for t, _, _ in pending]
+        if (
+            len(texts) == len(pending)
+            and names
+            and names[0]
+            and names.count(names[0]) == len(names)
+        ):
+            # the usual batch: every pose as the gateway writes it, the same segments
+            messages = self._transforms.alike(times, names[0], rows.reshape(len(times), -1, 7))
+        else:
+            read, at = iter(names), 0
+            poses: list[tuple[int, Any, Any]] = []
+            for t_ns, data, given in pending:
+                segments = given
+                if isinstance(given, bytes):
+                    these = next(read)
+                    if these is None:  # not as the gateway writes them: the whole message
+                        segments = _decoded_rows(data)
+                    else:
+                        segments = (these, rows[at : at + len(these)])
+                        at += len(these)
+                poses.append((t_ns, *segments))
+            messages = self._transforms.messages(poses)
         channel = self._channel(keys.TRANSFORMS, "tf")
-        messages = self._transforms.messages(poses)
         first = self._sequence.get(channel, 0) + 1  # numbered as _next numbers them
         self._sequence[channel] = first + len(messages) - 1
         self._writer.add_messages(
-            channel, [(t, m, t) for (t, _, _), m in zip(poses, messages, strict=True)], first
+            channel, [(t, m, t) for t, m in zip(times, messages, strict=True)], first
         )
         self.messages += len(messages)
 
