@@ -301,6 +301,11 @@ def _window_heading(profile: Profile, means: Mapping[str, np.ndarray],
         report["heading"] = {"state": "unknown", "deg": None,
                              "next": "move a knee (or, after an N-pose, an elbow): the "
                                      "heading is found from the hinge's axis"}  # fmt: skip
+        if profile.heading == "independent":
+            report["heading"]["next"] = (
+                "walk (the legs' tags), reach after an N-pose (the arms'), and bow forward "
+                "from the hips, the head following (the pelvis', chest's and head's)"
+            )
         return {}
     ref_key, axis = profile.heading_reference
     if ref_key not in means:
@@ -830,13 +835,20 @@ def _child_heading(samples: Sequence[tuple[np.ndarray, np.ndarray]], seg_p: np.n
         return np.sqrt((perp**2).mean(axis=1)), np.degrees(angle).mean(axis=1)
 
     grid = np.radians(np.arange(0.0, 360.0, 5.0))
-    perp, turn = cost(grid)
-    # the perpendicular fits (within twice the best), then the least turned joint
-    fits = np.flatnonzero(perp <= 2 * perp.min() + 1e-3)
-    best = grid[fits[np.argmin(turn[fits])]]
-    fine = best + np.radians(np.arange(-5.0, 5.25, 0.25))
+    perp, _ = cost(grid)
+    # each local minimum of the misfit, refined (on the coarse grid alone a true fit
+    # between two of its points can look worse than a rival's falling on one) ...
+    minima = np.flatnonzero((perp <= np.roll(perp, 1)) & (perp <= np.roll(perp, -1)))
+    step = np.radians(np.arange(-5.0, 5.25, 0.25))
+    fine = (grid[minima][:, None] + step[None, :]).ravel()
     perp, turn = cost(fine)
-    k = int(np.argmin(perp))
+    perp, turn, fine = (a.reshape(len(minima), len(step)) for a in (perp, turn, fine))
+    at = np.argmin(perp, axis=1)
+    rows = np.arange(len(minima))
+    perp, turn, fine = perp[rows, at], turn[rows, at], fine[rows, at]
+    # ... the perpendicular fits (within twice the best), then the least turned joint
+    fits = np.flatnonzero(perp <= 2 * perp.min() + 1e-3)
+    k = int(fits[np.argmin(turn[fits])])
     if math.degrees(math.asin(min(1.0, perp[k]))) > 3.0:  # not this joint's motion
         return None
     return _wrap(math.degrees(fine[k]))
