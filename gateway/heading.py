@@ -653,17 +653,17 @@ class TrunkBow:
             by_segment.setdefault(seg, key)
         segments = pose_segments(profile)
         #: segment -> (its tag, the tag at calibration for a heading of 0, the pose's segment)
-        self.tags: dict[str, tuple[str, np.ndarray, np.ndarray]] = {
-            seg: (by_segment[seg], segments[seg] @ _quat_matrix(profile.imu_mounts[by_segment[seg]]),
-                  segments[seg])
-            for seg in self.SEGMENTS if seg in by_segment
-        }  # fmt: skip
+        self.tags: dict[str, tuple[str, np.ndarray, np.ndarray]] = {}
+        for seg in self.SEGMENTS:
+            if seg in by_segment:
+                key = by_segment[seg]
+                tag0 = segments[seg] @ _quat_matrix(profile.imu_mounts[key])
+                self.tags[seg] = (key, tag0, segments[seg])
         self._tag0 = {key: tag0 for key, tag0, _ in self.tags.values()}
         gate = next((s for s in ("pelvis", "thorax") if s in self.tags), None)
         self.gate = self.tags[gate][0] if gate is not None else None
         self.samples: list[dict[str, np.ndarray]] = []
         self.found: dict[str, float] = {}
-        self.first_bow_t: float | None = None
         self._last = -math.inf
 
     def coming(self, profile: Profile) -> set[str]:
@@ -691,8 +691,6 @@ class TrunkBow:
             self.samples.clear()  # not (or no longer) bowing: a bow's samples are its own
             return {}
         self._last = t_s
-        if self.first_bow_t is None:
-            self.first_bow_t = t_s
         self.samples.append(rots)
         if len(self.samples) < self.SAMPLES:
             return {}

@@ -206,9 +206,7 @@ class BodyEmulator:
         """Every sensor's reading at ``t_s``, and the truth behind each."""
         angles = self.angles(t_s)
         n = len(self._frames)
-        rot, pos = self.model.frame_placements(
-            self._q(angles), self._frames + self._segment_frames
-        )
+        rot, pos = self.model.frame_placements(self._q(angles), self._frames + self._segment_frames)
         seg_rot = rot[n:]
         readings: list[Reading | None] = [None] * n
         if len(self._accel_idx):

@@ -102,8 +102,9 @@ def reach(side: str = "left") -> Callable[[float], dict[str, float]]:
     ])  # fmt: skip
 
 
-def bow(depth_deg: float = 40.0, down_s: float = 1.2, hold_s: float = 0.5,
-        **extra: float) -> Callable[[float], dict[str, float]]:
+def bow(
+    depth_deg: float = 40.0, down_s: float = 1.2, hold_s: float = 0.5, **extra: float
+) -> Callable[[float], dict[str, float]]:
     """A bow from the hips, once: the pelvis tilts forward ``depth_deg`` (the legs
     straight, so the hips flex as much), the lumbar flexes three quarters of it
     and the neck half (the head follows, looking down), held ``hold_s``, then
