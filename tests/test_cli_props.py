@@ -221,8 +221,10 @@ def test_hostile_values_parse_or_are_refused_naming_the_option(
     numbers = {"nan", "NaN", "inf", "-inf", "1e309", "9" * 5000}
     if _is_number(opt.action):  # a number: finite and bounded
         assert not accepted & numbers, f"{opt} accepts {accepted & numbers}"
+    if opt.action.type in (argtypes.input_file, argtypes.input_or_new_file):
+        assert not {str(files["dir"]), "/dev/full"} & accepted, opt  # /dev/zero: no end
     if opt.action.type is argtypes.input_file:
-        assert not {str(files["dir"]), str(files["missing"])} & accepted, opt
+        assert str(files["missing"]) not in accepted, opt
     if opt.action.type in (argtypes.output_file, argtypes.output_file_new_folder):
         assert not {str(files["dir"]), "/dev/full"} & accepted, opt
 
@@ -867,6 +869,25 @@ def test_a_full_disk_names_the_output_and_leaves_no_half_file(
     assert f"bodynet export: cannot write {out}: File too large" in result.stderr
     assert "Traceback" not in result.stderr
     assert [p.name for p in tmp_path.iterdir()] == ["big.csv"]  # no temporary file left
+
+
+def test_a_profile_that_cannot_be_written_is_told_and_left_as_it_was(tmp_path: Path) -> None:
+    """calibrate's profile is written as every output is: on a file system that
+    takes no more bytes, one line naming it, the earlier profile whole and
+    nothing beside it (a ``.tmp`` file was left here once)."""
+    pairs = tmp_path / "pairs.csv"
+    pairs.write_text("0,1000\n30,1500\n60,2000\n90,2500\n")
+    profile = tmp_path / "p.toml"
+    profile.write_text("version = 1\n")
+    before = profile.read_bytes()
+    result = subprocess.run(["sh", "-c", 'trap \'\' XFSZ; ulimit -f 0; exec "$0" "$@"',
+                             str(BODYNET), "calibrate", "ole", "--joint", "left_elbow",
+                             "--from-pairs", str(pairs), "--profile", str(profile)],
+                            capture_output=True, text=True, timeout=60, check=False)  # fmt: skip
+    assert result.returncode == 2, result.stderr
+    assert result.stderr == f"bodynet calibrate ole: cannot write {profile}: File too large\n"
+    assert profile.read_bytes() == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["p.toml", "pairs.csv"]
 
 
 def test_a_full_or_closed_stdout_is_an_error(corpus: dict[str, Path], tmp_path: Path) -> None:
