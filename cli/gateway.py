@@ -581,9 +581,8 @@ def cmd_calibrate_ole(args: argparse.Namespace) -> int:
         return 2
     try:
         profile_file.save(profile, args.profile)
-    except OSError as exc:
-        print(f"bodynet calibrate ole: cannot write {args.profile}: {exc.strerror or exc}",
-              file=sys.stderr)  # fmt: skip
+    except OSError as exc:  # OutputError names the profile
+        print(f"bodynet calibrate ole: {exc}", file=sys.stderr)
         return 2
     table = ", ".join(f"{d:g} mm: {s:.3f}" for d, s in zip(cal.sf_d_mm, cal.sf, strict=True))
     print(

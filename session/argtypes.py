@@ -255,13 +255,16 @@ def _why_not_readable(path: Path) -> str | None:
         return exc.strerror or str(exc)
     if stat.S_ISDIR(st.st_mode):
         return "a folder, not a file"
+    if stat.S_ISCHR(st.st_mode) or stat.S_ISBLK(st.st_mode):  # /dev/zero: no end to read
+        return "a device, not a file"
     if not os.access(path, os.R_OK):
         return "not readable (permission denied)"
     return None
 
 
 def input_file(text: str) -> Path:
-    """A file that exists and can be read (not a folder)."""
+    """A file that exists and can be read (not a folder or a device; a pipe,
+    ``<(...)``, is one)."""
     path = _path(text)
     why = _why_not_readable(path)
     if why:
@@ -348,7 +351,10 @@ def input_or_new_file(text: str) -> Path:
     calibration creates): a readable file, or a new name in a writable folder."""
     path = _path(text)
     if _kind(path) != "none" or os.path.islink(path):
-        return input_file(text)
+        input_file(text)
+        if _kind(path) != "file":  # it is replaced when written: a regular file only
+            fail(f"{_shown(text)} is not a regular file (a pipe?); refusing to write it")
+        return path
     _writable_folder(path, text)
     return path
 
