@@ -498,6 +498,8 @@ def _garbled(src: Path, dst: Path, keep_summary: bool, index_too: bool = False) 
 
 def _headline(err: str) -> tuple[int, int | None]:
     """The bounds salvage told of the messages it lost: (low, high or None)."""
+    if "lost an unknown number of messages:" in err:
+        return 0, None
     m = re.search(r"lost (at least )?(\d+)(?: to (\d+))? messages?:", err)
     assert m is not None, err
     low = int(m[2])
@@ -545,6 +547,10 @@ def test_salvage_counts_what_garbled_framing_cost_where_it_can_be_known(
             assert low >= 1
         else:
             assert "the file has no summary to count it by, nor message sequence numbers" in err
+            assert (low, high) == (0, None), err  # not "at least 0"
+        # a file without sequence numbers whose loss they would have counted says so
+        uncounted = f"bodynet record: {bad}: its messages carry no sequence numbers"
+        assert (uncounted in err) == (told.startswith("an unknown")), err
     cut = tmp_path / "cut.mcap"
     cut.write_bytes(corpus["numbered"].read_bytes()[: _chunk_offsets(
         corpus["numbered"].read_bytes())[-1] + 200])  # fmt: skip
