@@ -162,10 +162,10 @@ def positive_int(hi: int, why: str = "") -> Callable[[str], int]:
     return bounded_int(1, hi, why)
 
 
-#: A rate of samples, poses or frames: above 0 and at most 10 kHz (no body
-#: sensor or display runs faster; a higher value is a typo that would make
-#: millions of frames).
-RATE_HZ = positive_float(10_000.0, "a rate in Hz, at most 10 kHz")
+#: A rate of samples, poses or frames: 0.01 Hz to 10 kHz (no body sensor or
+#: display runs faster; a higher value is a typo that would make millions of
+#: frames, a lower one times past what a clock counts: 1e-300 Hz).
+RATE_HZ = bounded_float(0.01, 10_000.0, "a rate in Hz, 0.01 Hz to 10 kHz")
 #: A length of time given on the command line: above 0, at most a day.
 DURATION_S = positive_float(86_400.0, "seconds, at most a day")
 

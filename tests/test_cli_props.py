@@ -259,12 +259,32 @@ def test_the_real_executable_refuses_nonsense_in_one_line(tmp_path: Path) -> Non
         (["record", "--rotate-s", "1e-9", "-o", tmp_path / "r.mcap"], "argument --rotate-s"),
         (["certs", "--host", "é.example", tmp_path / "c"], "argument --host"),
         (["replay", "-e", "garbage", log], "argument -e/--connect"),
+        (
+            [
+                "process",
+                DATA / "imu_central.txt",
+                "--format",
+                "imu-central",
+                "--rate-hz",
+                "1e-300",
+                "-o",
+                tmp_path / "x.mcap",
+            ],
+            "argument --rate-hz",
+        ),  # its times overflowed
     ):
         result = run(*args)
         assert result.returncode == 2, (args, result.stderr)
         assert told in result.stderr, (args, result.stderr)
         assert "Traceback" not in result.stderr
     assert list(tmp_path.iterdir()) == []
+    pairs = tmp_path / "wild.csv"  # counts of 1e300: numpy's overflow warning came out too
+    pairs.write_text("0,0\n30,1e300\n60,-1e300\n")
+    result = run("calibrate", "ole", "--joint", "left_elbow", "--from-pairs", pairs,
+                 "--profile", tmp_path / "p.toml")  # fmt: skip
+    assert result.returncode == 2, result.stderr
+    assert result.stderr.startswith("bodynet calibrate ole: no usable calibration"), result.stderr
+    assert result.stderr.count("\n") == 1, result.stderr
 
 
 def test_a_client_without_its_router_says_so_and_gives_up(tmp_path: Path) -> None:
@@ -423,6 +443,8 @@ def test_unusable_captures_are_errors_naming_what_they_look_like(
                             corpus[profile], "-o", out)  # fmt: skip
             assert code == 2, (profile, err)
             assert str(corpus[profile]) in err
+            if profile == "profile-list":  # said by name, not as Python's AttributeError
+                assert "ole must be a table ([ole]), not list [1, 2]" in err, err
     assert list(tmp_path.iterdir()) == []
 
 
@@ -669,6 +691,10 @@ def test_calibrate_and_report_keep_good_rows_and_refuse_bad_files(
         code, err = cli(capsys, "calibrate", "ole", "--joint", "left_elbow", "--from-pairs",
                         corpus["pairs-bad"], "--profile", corpus["profile-list"])  # fmt: skip
         assert code == 2
+        assert err == (
+            f"bodynet calibrate ole: {corpus['profile-list']}: ole must be a table "
+            "([ole]), not list [1, 2]; nothing written\n"
+        )  # the profile, not the pairs
         out = tmp_path / "r.md"
         code, err = cli(capsys, "report", corpus["recording"], "--reference",
                         corpus["ref-header"], "-o", out, "--no-trials",
