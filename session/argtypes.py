@@ -332,7 +332,7 @@ def _output(text: str) -> Path:
             fail(f"{_shown(text)} is a folder; give a file name")
         if not stat.S_ISREG(st.st_mode):
             fail(f"{_shown(text)} is not a regular file (a device or pipe); refusing to write it")
-        if not os.access(path, os.W_OK):
+        if not os.access(path, os.W_OK) or not st.st_mode & 0o222:  # root too: made read-only
             fail(f"cannot write {_shown(text)}: it is read-only")
     return path
 

@@ -89,7 +89,16 @@ def files(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     d = tmp_path_factory.mktemp("cli")
     f = d / "a-file.txt"
     f.write_text("something\n")
-    return {"file": f, "dir": d, "missing": d / "missing" / "nothing.txt", "new": d / "new.out"}
+    ro = d / "read-only.out"
+    ro.write_text("kept\n")
+    ro.chmod(0o444)  # refused as an output, by root too
+    return {
+        "file": f,
+        "dir": d,
+        "missing": d / "missing" / "nothing.txt",
+        "new": d / "new.out",
+        "read-only": ro,
+    }
 
 
 def _candidates(files: dict[str, Path]) -> list[str]:
@@ -163,7 +172,7 @@ def _hostile(files: dict[str, Path]) -> list[str]:
     return ["nan", "NaN", "inf", "-inf", "1e309", "-1", "0", "-0", "1e-300", "9" * 5000,
             "", " ", "\udcff\udcfe", "é", "😀", "x" * 10_000, "a//b", "tcp/", "1:2:3", "-",
             "--", "/dev/full", str(files["dir"]), str(files["missing"]), "1,2,,3",
-            "$*"]  # fmt: skip
+            "$*", str(files["read-only"])]  # fmt: skip
 
 
 def test_the_parser_has_every_command_and_each_parses_with_valid_values(
@@ -226,7 +235,7 @@ def test_hostile_values_parse_or_are_refused_naming_the_option(
     if opt.action.type is argtypes.input_file:
         assert str(files["missing"]) not in accepted, opt
     if opt.action.type in (argtypes.output_file, argtypes.output_file_new_folder):
-        assert not {str(files["dir"]), "/dev/full"} & accepted, opt
+        assert not {str(files["dir"]), "/dev/full", str(files["read-only"])} & accepted, opt
 
 
 @settings(max_examples=2000 if LONG else 150)
