@@ -634,9 +634,14 @@ _READ_ERRORS = (McapError, ValueError, EOFError, OSError, struct.error, zstandar
 
 def _damaged(path: Path, f: IO[bytes], exc: BaseException) -> StoreError:
     """The error of a recording that breaks off or is damaged: where, and how
-    to recover what is intact."""
+    to recover what is intact (not salvage, for a file that is no recording)."""
     try:
         stop = f.tell()
+        f.seek(0)
+        head = f.read(len(MCAP_MAGIC))
+        if not (head.startswith(MCAP_MAGIC) or MCAP_MAGIC.startswith(head)):
+            return StoreError(f"{path}: not an MCAP recording (it does not start as MCAP files "
+                              "do); `bodynet process` makes one of a capture")  # fmt: skip
         where = f" (reading stopped at byte {stop})"
         f.seek(0)
         summary = make_reader(f).get_summary()
