@@ -301,6 +301,11 @@ def _window_heading(profile: Profile, means: Mapping[str, np.ndarray],
         report["heading"] = {"state": "unknown", "deg": None,
                              "next": "move a knee (or, after an N-pose, an elbow): the "
                                      "heading is found from the hinge's axis"}  # fmt: skip
+        if profile.heading == "independent":
+            report["heading"]["next"] = (
+                "walk (the legs' tags), reach after an N-pose (the arms'), and bow forward "
+                "from the hips, the head following (the pelvis', chest's and head's)"
+            )
         return {}
     ref_key, axis = profile.heading_reference
     if ref_key not in means:
@@ -604,6 +609,175 @@ class ElbowPairs:
         return out
 
 
+class TrunkBow:
+    """Finds the heading of the pelvis', chest's and head's tags with references of
+    their own (``independent``) from a bow.
+
+    A wrong heading only mis-states which way a tag's segment tilts (a turn about
+    the vertical is the same whatever it is), so these tags' headings show when
+    their segments tilt. Gravity seen by the tag, in the tag's reference frame at
+    calibration (``R_s0 R_s(t)^T z``), moves by ``Rz(psi)`` times where it moves in
+    the body's frame (``R_seg0 R_seg(t)^T z``), whatever the drift of the tag's
+    reference or the turns of the body since the pose; in a forward bow it moves
+    backward. So a bow is waited for: the pelvis tag (the chest's where there is
+    none) tilted past ``GATE_DEG`` from the pose, which the hips flexing give and
+    a walk, a side bend or a turn of the trunk do not. ``SAMPLES`` samples are
+    taken every ``EVERY_S`` while it lasts, then:
+
+    - the pelvis' and chest's tags: the way gravity moved in each tag's frame is
+      the body's backward (the bow is forward), taken when the samples' ways agree
+      (the mean resultant length of their directions at least ``AGREEMENT``), the
+      chest's from the samples it tilted past ``TILT_DEG`` in;
+    - the head's, once the chest's is known: the heading for which the neck turns
+      least from the pose over the samples the head tilted past ``TILT_DEG`` in
+      (the head follows the chest down, nodding or looking up as it may: its own
+      tilt's way is not trusted), when the best heading's turn is ``GRIP_DEG``
+      less than the worst's (else the head did not tilt with the chest, and the
+      next bow is waited for).
+
+    A tag not found in one bow is looked for in the next. The assumption: the
+    first tilt of the pelvis past ``GATE_DEG`` is a forward bow (sitting down
+    slumped, which tilts it backward, would be taken for one)."""
+
+    SEGMENTS = ("pelvis", "thorax", "head")
+    GATE_DEG = 20.0
+    TILT_DEG = 15.0
+    SAMPLES = 20
+    EVERY_S = 0.05
+    AGREEMENT = 0.97
+    GRIP_DEG = 10.0
+
+    def __init__(self, profile: Profile) -> None:
+        by_segment: dict[str, str] = {}
+        for key, seg in _segments_of(profile.imu_mounts).items():
+            by_segment.setdefault(seg, key)
+        segments = pose_segments(profile)
+        #: segment -> (its tag, the tag at calibration for a heading of 0, the pose's segment)
+        self.tags: dict[str, tuple[str, np.ndarray, np.ndarray]] = {}
+        for seg in self.SEGMENTS:
+            if seg in by_segment:
+                key = by_segment[seg]
+                tag0 = segments[seg] @ _quat_matrix(profile.imu_mounts[key])
+                self.tags[seg] = (key, tag0, segments[seg])
+        self._tag0 = {key: tag0 for key, tag0, _ in self.tags.values()}
+        gate = next((s for s in ("pelvis", "thorax") if s in self.tags), None)
+        self.gate = self.tags[gate][0] if gate is not None else None
+        self.samples: list[dict[str, np.ndarray]] = []
+        self.found: dict[str, float] = {}
+        self._last = -math.inf
+
+    def coming(self, profile: Profile) -> set[str]:
+        """The tags whose heading may still be found here."""
+        if self.gate is None:
+            return set()
+        return {key for key, _, _ in self.tags.values() if not profile.heading_known(key)}
+
+    def _gravity(self, key: str, rot: np.ndarray) -> np.ndarray:
+        """Where gravity is now, seen by the tag (``rot``: its orientation now), in
+        the tag's reference frame at calibration (where it was: +z)."""
+        return self._tag0[key] @ rot[2]  # type: ignore[no-any-return]
+
+    def update(self, t_s: float, orientations: Mapping[str, QuatWxyz],
+               profile: Profile) -> dict[str, float]:  # fmt: skip
+        """Take one tick's tag orientations (``profile``: the headings known so far);
+        the headings found at this tick."""
+        if self.gate is None or self.gate not in orientations or not self.coming(profile):
+            return {}
+        if t_s - self._last < self.EVERY_S - 1e-6:
+            return {}
+        rots = {key: _quat_matrix(orientations[key]) for key, _, _ in self.tags.values()
+                if key in orientations}  # fmt: skip
+        if self._gravity(self.gate, rots[self.gate])[2] > math.cos(math.radians(self.GATE_DEG)):
+            self.samples.clear()  # not (or no longer) bowing: a bow's samples are its own
+            return {}
+        self._last = t_s
+        self.samples.append(rots)
+        if len(self.samples) < self.SAMPLES:
+            return {}
+        out: dict[str, float] = {}
+        for seg in ("pelvis", "thorax"):
+            if seg in self.tags and not profile.heading_known(self.tags[seg][0]):
+                psi = self._forward(self.tags[seg][0])
+                if psi is not None:
+                    out[self.tags[seg][0]] = psi
+        if "head" in self.tags and "thorax" in self.tags:
+            head, chest = self.tags["head"][0], self.tags["thorax"][0]
+            if not profile.heading_known(head) and (profile.heading_known(chest) or chest in out):
+                psi = self._neck(profile, out.get(chest))
+                if psi is not None:
+                    out[head] = psi
+        self.samples.clear()
+        self.found.update(out)
+        return out
+
+    def _forward(self, key: str) -> float | None:
+        """The tag's heading from the way gravity moved in its frame in the samples
+        it tilted past ``TILT_DEG`` in (backward in a forward bow); None when too
+        few, or their ways do not agree."""
+        sums, units, n = np.zeros(2), np.zeros(2), 0
+        for rots in self.samples:
+            if key not in rots:
+                continue
+            g = self._gravity(key, rots[key])
+            if g[2] > math.cos(math.radians(self.TILT_DEG)):
+                continue
+            sums += g[:2]
+            units += g[:2] / np.linalg.norm(g[:2])
+            n += 1
+        if n < self.SAMPLES // 2 or np.linalg.norm(units) < self.AGREEMENT * n:
+            return None
+        return _wrap(math.degrees(math.atan2(sums[1], sums[0])) - 180.0)
+
+    def _neck(self, profile: Profile, chest_psi: float | None) -> float | None:
+        """The head tag's heading that turns the neck least from the pose over the
+        samples the head tilted past ``TILT_DEG`` in (``chest_psi``: the chest tag's,
+        just found, else the profile's)."""
+        head, head0, seg_h = self.tags["head"]
+        chest, chest0, seg_c = self.tags["thorax"]
+        parents, turns = [], []
+        for rots in self.samples:
+            if head not in rots or chest not in rots:
+                continue
+            if self._gravity(head, rots[head])[2] > math.cos(math.radians(self.TILT_DEG)):
+                continue
+            if chest_psi is None:
+                parents.append(JointDrift._segment(profile, chest, rots[chest]))
+            else:
+                turn = rz(chest_psi)
+                parents.append(turn.T @ rots[chest] @ chest0.T @ turn @ seg_c)
+            turns.append(rots[head] @ head0.T)  # the head tag's turn since calibration
+        if len(turns) < self.SAMPLES // 2:
+            return None
+        return _least_turn_heading(parents, turns, seg_c, seg_h, self.GRIP_DEG)
+
+
+def _least_turn_heading(parents: Sequence[np.ndarray], turns: Sequence[np.ndarray],
+                        seg_p: np.ndarray, seg_c: np.ndarray,
+                        grip_deg: float) -> float | None:  # fmt: skip
+    """The child tag's heading (deg) whose joint turns least from the pose over the
+    samples (the parent segment in the body's frame, the child tag's turn since
+    calibration in its own); None when the best is not ``grip_deg`` better than the
+    worst (the child did not tilt with its parent: no heading shows)."""
+    p = np.array(parents)
+    a = np.array(turns)
+    pose_rel = seg_p.T @ seg_c
+
+    def cost(psi: np.ndarray) -> np.ndarray:
+        rc = _rz_batch(psi)
+        child = np.einsum("kji,njl,klm->knim", rc, a, rc) @ seg_c  # (k, n, 3, 3)
+        rel = np.einsum("nji,knjl->knil", p, child)  # parent^T child
+        off = np.einsum("ji,knjl->knil", pose_rel, rel)  # the joint's turn from the pose
+        cos = (np.trace(off, axis1=-2, axis2=-1) - 1) / 2
+        return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))).mean(axis=1)  # type: ignore[no-any-return]
+
+    grid = np.radians(np.arange(0.0, 360.0, 5.0))
+    coarse = cost(grid)
+    if coarse.max() - coarse.min() < grip_deg:
+        return None
+    fine = grid[int(np.argmin(coarse))] + np.radians(np.arange(-5.0, 5.25, 0.25))
+    return _wrap(math.degrees(fine[int(np.argmin(cost(fine)))]))
+
+
 def _elbow_pair_headings(samples: Sequence[tuple[np.ndarray, np.ndarray]], seg_p: np.ndarray,
                          seg_c: np.ndarray) -> tuple[float, float] | None:  # fmt: skip
     """The upper arm's and forearm's tag headings (deg) that keep the elbow's axes
@@ -659,13 +833,20 @@ def _child_heading(samples: Sequence[tuple[np.ndarray, np.ndarray]], seg_p: np.n
         return np.sqrt((perp**2).mean(axis=1)), np.degrees(angle).mean(axis=1)
 
     grid = np.radians(np.arange(0.0, 360.0, 5.0))
-    perp, turn = cost(grid)
-    # the perpendicular fits (within twice the best), then the least turned joint
-    fits = np.flatnonzero(perp <= 2 * perp.min() + 1e-3)
-    best = grid[fits[np.argmin(turn[fits])]]
-    fine = best + np.radians(np.arange(-5.0, 5.25, 0.25))
+    perp, _ = cost(grid)
+    # each local minimum of the misfit, refined (on the coarse grid alone a true fit
+    # between two of its points can look worse than a rival's falling on one) ...
+    minima = np.flatnonzero((perp <= np.roll(perp, 1)) & (perp <= np.roll(perp, -1)))
+    step = np.radians(np.arange(-5.0, 5.25, 0.25))
+    fine = (grid[minima][:, None] + step[None, :]).ravel()
     perp, turn = cost(fine)
-    k = int(np.argmin(perp))
+    perp, turn, fine = (a.reshape(len(minima), len(step)) for a in (perp, turn, fine))
+    at = np.argmin(perp, axis=1)
+    rows = np.arange(len(minima))
+    perp, turn, fine = perp[rows, at], turn[rows, at], fine[rows, at]
+    # ... the perpendicular fits (within twice the best), then the least turned joint
+    fits = np.flatnonzero(perp <= 2 * perp.min() + 1e-3)
+    k = int(fits[np.argmin(turn[fits])])
     if math.degrees(math.asin(min(1.0, perp[k]))) > 3.0:  # not this joint's motion
         return None
     return _wrap(math.degrees(fine[k]))
@@ -744,6 +925,7 @@ class BodyHeading:
         self.pairs = KneePairs(profile) if self.unknown and independent else None
         self.children = ChildHeadings(profile) if self.unknown and independent else None
         self.elbows = ElbowPairs(profile) if self.unknown and independent else None
+        self.trunk = TrunkBow(profile) if self.unknown and independent else None
         if profile.heading == "fixed":
             self.how = "fixed"
         elif not profile.imu_mounts:
@@ -763,6 +945,8 @@ class BodyHeading:
                      if side not in self.pairs.done for k in (p, c)}  # fmt: skip
             if self.elbows is not None:
                 knees |= self.elbows.coming
+            if self.trunk is not None and self.trunk.coming(self.profile):
+                return True
             return bool(knees) or (self.children is not None
                                    and self.children.pending(self.profile, knees))  # fmt: skip
         return self.finder is not None
@@ -781,6 +965,8 @@ class BodyHeading:
                 found.update(self.elbows.update(t_s, orientations))
             if self.children is not None:  # then the feet's and hands' below them
                 found.update(self.children.update(orientations, self.profile))
+            if self.trunk is not None:  # and the pelvis', chest's and head's from a bow
+                found.update(self.trunk.update(t_s, orientations, self.profile))
             if not found:
                 return None
             self.profile = with_headings(self.profile, found)

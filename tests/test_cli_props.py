@@ -1084,8 +1084,9 @@ def _stop_mid_write(args: list[str], folder: Path, attempts: int = 5) -> subproc
             while proc.poll() is None and not _stopped(proc.pid):
                 with contextlib.suppress(subprocess.TimeoutExpired):
                     proc.wait(timeout=0.001)
-            if proc.poll() is None and _writing(proc.pid, folder):
-                return proc  # stopped mid-write
+            in_place = all(p.read_bytes() == data for p, data in before.items())
+            if proc.poll() is None and _writing(proc.pid, folder) and in_place:
+                return proc  # stopped mid-write (not after the output took its place)
             os.kill(proc.pid, signal.SIGCONT)
         proc.communicate(timeout=60)
         for p in folder.iterdir():  # it finished: the folder as before, and again
