@@ -444,8 +444,9 @@ def cmd_process(args: argparse.Namespace) -> int:
             f"NOT calibrated: {result.refused} (the tags' dofs are flagged "
             "uncalibrated; say where the still pose is with --window START:END)"
         )
-    print(f"{result.ticks} ticks from {result.samples} samples -> {args.output}; "
-          f"{calibrated}; {note}; {result.stats.summary()}", file=sys.stderr)  # fmt: skip
+    told = "; ".join(part for part in (calibrated, note, result.stats.summary()) if part)
+    print(f"{result.ticks} ticks from {result.samples} samples -> {args.output}; {told}",
+          file=sys.stderr)  # fmt: skip
     return 0
 
 
@@ -535,6 +536,11 @@ def cmd_calibrate_ole(args: argparse.Namespace) -> int:
     from bodynet.session import profile_file
 
     key, angle_name = _module_site(args.joint)
+    try:  # before any pose is held: a profile that cannot be updated is said at once
+        profile = _profile(args.profile)
+    except ProfileError as exc:
+        print(f"bodynet calibrate ole: {exc}; nothing written", file=sys.stderr)
+        return 2
     pairs: list[tuple[float, float]] = []
     if args.from_pairs:
         try:
@@ -574,7 +580,7 @@ def cmd_calibrate_ole(args: argparse.Namespace) -> int:
         cal, fit = fit_calibration([a for a, _ in pairs], [c for _, c in pairs])
         if not (math.isfinite(fit.radius_mm) and math.isfinite(fit.r)):
             raise ValueError(f"R = {fit.radius_mm} mm, r = {fit.r}")
-        profile = _profile(args.profile).with_ole(angle_name, cal)
+        profile = profile.with_ole(angle_name, cal)
     except ValueError as exc:  # ProfileError too
         print(f"bodynet calibrate ole: no usable calibration from these pairs ({exc}); "
               "nothing written", file=sys.stderr)  # fmt: skip

@@ -162,10 +162,10 @@ def positive_int(hi: int, why: str = "") -> Callable[[str], int]:
     return bounded_int(1, hi, why)
 
 
-#: A rate of samples, poses or frames: above 0 and at most 10 kHz (no body
-#: sensor or display runs faster; a higher value is a typo that would make
-#: millions of frames).
-RATE_HZ = positive_float(10_000.0, "a rate in Hz, at most 10 kHz")
+#: A rate of samples, poses or frames: 0.01 Hz to 10 kHz (no body sensor or
+#: display runs faster; a higher value is a typo that would make millions of
+#: frames, a lower one times past what a clock counts: 1e-300 Hz).
+RATE_HZ = bounded_float(0.01, 10_000.0, "a rate in Hz, 0.01 Hz to 10 kHz")
 #: A length of time given on the command line: above 0, at most a day.
 DURATION_S = positive_float(86_400.0, "seconds, at most a day")
 
@@ -332,7 +332,7 @@ def _output(text: str) -> Path:
             fail(f"{_shown(text)} is a folder; give a file name")
         if not stat.S_ISREG(st.st_mode):
             fail(f"{_shown(text)} is not a regular file (a device or pipe); refusing to write it")
-        if not os.access(path, os.W_OK):
+        if not os.access(path, os.W_OK) or not st.st_mode & 0o222:  # root too: made read-only
             fail(f"cannot write {_shown(text)}: it is read-only")
     return path
 

@@ -89,7 +89,16 @@ def files(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     d = tmp_path_factory.mktemp("cli")
     f = d / "a-file.txt"
     f.write_text("something\n")
-    return {"file": f, "dir": d, "missing": d / "missing" / "nothing.txt", "new": d / "new.out"}
+    ro = d / "read-only.out"
+    ro.write_text("kept\n")
+    ro.chmod(0o444)  # refused as an output, by root too
+    return {
+        "file": f,
+        "dir": d,
+        "missing": d / "missing" / "nothing.txt",
+        "new": d / "new.out",
+        "read-only": ro,
+    }
 
 
 def _candidates(files: dict[str, Path]) -> list[str]:
@@ -163,7 +172,7 @@ def _hostile(files: dict[str, Path]) -> list[str]:
     return ["nan", "NaN", "inf", "-inf", "1e309", "-1", "0", "-0", "1e-300", "9" * 5000,
             "", " ", "\udcff\udcfe", "é", "😀", "x" * 10_000, "a//b", "tcp/", "1:2:3", "-",
             "--", "/dev/full", str(files["dir"]), str(files["missing"]), "1,2,,3",
-            "$*"]  # fmt: skip
+            "$*", str(files["read-only"])]  # fmt: skip
 
 
 def test_the_parser_has_every_command_and_each_parses_with_valid_values(
@@ -226,7 +235,7 @@ def test_hostile_values_parse_or_are_refused_naming_the_option(
     if opt.action.type is argtypes.input_file:
         assert str(files["missing"]) not in accepted, opt
     if opt.action.type in (argtypes.output_file, argtypes.output_file_new_folder):
-        assert not {str(files["dir"]), "/dev/full"} & accepted, opt
+        assert not {str(files["dir"]), "/dev/full", str(files["read-only"])} & accepted, opt
 
 
 @settings(max_examples=2000 if LONG else 150)
@@ -259,12 +268,32 @@ def test_the_real_executable_refuses_nonsense_in_one_line(tmp_path: Path) -> Non
         (["record", "--rotate-s", "1e-9", "-o", tmp_path / "r.mcap"], "argument --rotate-s"),
         (["certs", "--host", "é.example", tmp_path / "c"], "argument --host"),
         (["replay", "-e", "garbage", log], "argument -e/--connect"),
+        (
+            [
+                "process",
+                DATA / "imu_central.txt",
+                "--format",
+                "imu-central",
+                "--rate-hz",
+                "1e-300",
+                "-o",
+                tmp_path / "x.mcap",
+            ],
+            "argument --rate-hz",
+        ),  # its times overflowed
     ):
         result = run(*args)
         assert result.returncode == 2, (args, result.stderr)
         assert told in result.stderr, (args, result.stderr)
         assert "Traceback" not in result.stderr
     assert list(tmp_path.iterdir()) == []
+    pairs = tmp_path / "wild.csv"  # counts of 1e300: numpy's overflow warning came out too
+    pairs.write_text("0,0\n30,1e300\n60,-1e300\n")
+    result = run("calibrate", "ole", "--joint", "left_elbow", "--from-pairs", pairs,
+                 "--profile", tmp_path / "p.toml")  # fmt: skip
+    assert result.returncode == 2, result.stderr
+    assert result.stderr.startswith("bodynet calibrate ole: no usable calibration"), result.stderr
+    assert result.stderr.count("\n") == 1, result.stderr
 
 
 def test_a_client_without_its_router_says_so_and_gives_up(tmp_path: Path) -> None:
@@ -423,6 +452,8 @@ def test_unusable_captures_are_errors_naming_what_they_look_like(
                             corpus[profile], "-o", out)  # fmt: skip
             assert code == 2, (profile, err)
             assert str(corpus[profile]) in err
+            if profile == "profile-list":  # said by name, not as Python's AttributeError
+                assert "ole must be a table ([ole]), not list [1, 2]" in err, err
     assert list(tmp_path.iterdir()) == []
 
 
@@ -498,6 +529,8 @@ def _garbled(src: Path, dst: Path, keep_summary: bool, index_too: bool = False) 
 
 def _headline(err: str) -> tuple[int, int | None]:
     """The bounds salvage told of the messages it lost: (low, high or None)."""
+    if "lost an unknown number of messages:" in err:
+        return 0, None
     m = re.search(r"lost (at least )?(\d+)(?: to (\d+))? messages?:", err)
     assert m is not None, err
     low = int(m[2])
@@ -545,6 +578,10 @@ def test_salvage_counts_what_garbled_framing_cost_where_it_can_be_known(
             assert low >= 1
         else:
             assert "the file has no summary to count it by, nor message sequence numbers" in err
+            assert (low, high) == (0, None), err  # not "at least 0"
+        # a file without sequence numbers whose loss they would have counted says so
+        uncounted = f"bodynet record: {bad}: its messages carry no sequence numbers"
+        assert (uncounted in err) == (told.startswith("an unknown")), err
     cut = tmp_path / "cut.mcap"
     cut.write_bytes(corpus["numbered"].read_bytes()[: _chunk_offsets(
         corpus["numbered"].read_bytes())[-1] + 200])  # fmt: skip
@@ -663,6 +700,10 @@ def test_calibrate_and_report_keep_good_rows_and_refuse_bad_files(
         code, err = cli(capsys, "calibrate", "ole", "--joint", "left_elbow", "--from-pairs",
                         corpus["pairs-bad"], "--profile", corpus["profile-list"])  # fmt: skip
         assert code == 2
+        assert err == (
+            f"bodynet calibrate ole: {corpus['profile-list']}: ole must be a table "
+            "([ole]), not list [1, 2]; nothing written\n"
+        )  # the profile, not the pairs
         out = tmp_path / "r.md"
         code, err = cli(capsys, "report", corpus["recording"], "--reference",
                         corpus["ref-header"], "-o", out, "--no-trials",
