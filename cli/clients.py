@@ -202,6 +202,9 @@ def cmd_record(args: argparse.Namespace) -> int:
             return 2
         print(f"bodynet record: {saved.messages} messages salvaged into {args.output}; "
               f"{saved.summary()}", file=sys.stderr)  # fmt: skip
+        uncounted = saved.uncounted()
+        if uncounted:
+            print(f"bodynet record: {args.salvage}: {uncounted}", file=sys.stderr)
         return 0
     stop = stop_on_signals()
     session = open_session(config_from_args(args))

@@ -608,9 +608,14 @@ _READ_ERRORS = (McapError, ValueError, EOFError, OSError, struct.error, zstandar
 
 def _damaged(path: Path, f: IO[bytes], exc: BaseException) -> StoreError:
     """The error of a recording that breaks off or is damaged: where, and how
-    to recover what is intact."""
+    to recover what is intact (not salvage, for a file that is no recording)."""
     try:
         stop = f.tell()
+        f.seek(0)
+        head = f.read(len(MCAP_MAGIC))
+        if not (head.startswith(MCAP_MAGIC) or MCAP_MAGIC.startswith(head)):
+            return StoreError(f"{path}: not an MCAP recording (it does not start as MCAP files "
+                              "do); `bodynet process` makes one of a capture")  # fmt: skip
         where = f" (reading stopped at byte {stop})"
         f.seek(0)
         summary = make_reader(f).get_summary()
@@ -806,6 +811,19 @@ class Salvaged:
     losses: tuple[Loss, ...]
     #: messages read whose channel no record defines (its record lost): channel -> count
     orphans: Mapping[int, int] = field(default_factory=dict)
+    #: the messages read carry no sequence numbers (a recording made before
+    #: bodynet's recorder numbered them, 2026-12-03, or by another tool)
+    unnumbered: bool = False
+
+    def uncounted(self) -> str | None:
+        """One line saying that the losses of an unnumbered file could not be
+        counted by sequence numbers, where that left one of them unknown or
+        bounded only by its size (None otherwise)."""
+        if not self.unnumbered or all(loss.counted == "exact" for loss in self.losses):
+            return None
+        return ("its messages carry no sequence numbers (recorded before bodynet's recorder "
+                "numbered them, 2026-12-03, or by another tool): what its damaged parts held "
+                "cannot be counted by them")  # fmt: skip
 
     def summary(self) -> str:
         """``lost N messages: byte X (n messages; why); ...``, "at least N" where
@@ -818,7 +836,9 @@ class Salvaged:
         high = low + sum(loss.messages or 0 for loss in self.losses if loss.counted == "at most")
         open_ended = any(loss.counted in ("at least", "unknown") or loss.messages is None
                          or _CUT in loss.why for loss in self.losses)  # fmt: skip
-        if open_ended:
+        if open_ended and not low and all(loss.messages is None for loss in self.losses):
+            lost = "an unknown number of messages"
+        elif open_ended:
             lost = f"at least {_n_messages(low)}"
         elif high > low:
             lost = f"{low} to {high} messages"
@@ -882,7 +902,7 @@ def salvage_report(src: Path, dst: Path) -> Salvaged:
             count, orphans = _copy_complete(gaps.watch(records, losses), out, summary)
         losses = _counted(f, size, losses, gaps, count + sum(orphans.values()), summary,
                           read_chunks)  # fmt: skip
-    return Salvaged(count, tuple(losses), orphans)
+    return Salvaged(count, tuple(losses), orphans, unnumbered=count > 0 and not gaps.numbered)
 
 
 class _SequenceGaps:

@@ -301,6 +301,11 @@ def _window_heading(profile: Profile, means: Mapping[str, np.ndarray],
         report["heading"] = {"state": "unknown", "deg": None,
                              "next": "move a knee (or, after an N-pose, an elbow): the "
                                      "heading is found from the hinge's axis"}  # fmt: skip
+        if profile.heading == "independent":
+            report["heading"]["next"] = (
+                "walk (the legs' tags), reach after an N-pose (the arms'), and bow forward "
+                "from the hips, the head following (the pelvis', chest's and head's)"
+            )
         return {}
     ref_key, axis = profile.heading_reference
     if ref_key not in means:
@@ -604,6 +609,121 @@ class ElbowPairs:
         return out
 
 
+class TrunkBow:
+    """Finds the heading of the pelvis', chest's and head's tags with references of
+    their own (``independent``) from a bow.
+
+    A wrong heading only mis-states which way a tag's segment tilts (a turn about
+    the vertical is the same whatever it is), so these tags' headings show when
+    their segments tilt. Gravity seen by the tag, in the tag's reference frame at
+    calibration (``R_s0 R_s(t)^T z``), moves by ``Rz(psi)`` times where it moves in
+    the body's frame (``R_seg0 R_seg(t)^T z``), whatever the drift of the tag's
+    reference or the turns of the body since the pose; in a forward bow it moves
+    backward. So a bow is waited for: the pelvis tag (the chest's where there is
+    none) tilted past ``GATE_DEG`` from the pose, which the hips flexing give and
+    a walk, a side bend or a turn of the trunk do not. ``SAMPLES`` samples are
+    taken every ``EVERY_S`` while it lasts; then each tag's heading is the one
+    that puts the way gravity moved in its frame backward in the body's (the bow
+    is forward), over the samples in which its segment tilted past ``TILT_DEG``
+    and at least as far as the pelvis (at least half of them), when their ways
+    agree (the mean resultant length of their directions at least
+    ``AGREEMENT``). A tag not found in one bow is looked for in the next.
+
+    The assumptions: the pelvis' first tilt past ``GATE_DEG`` is a forward bow
+    (sitting down slumped, which tilts it backward, would be taken for one), and
+    in it the chest and the head tilt forward too: a head looking up while the
+    chest bows, tilted back as far as the pelvis forward, would be taken turned
+    round (the neck near the end of its range). Taking the head's way from the
+    chest's instead (the neck turning least) fails the same way: a head tilted
+    back while the chest bows fits the neck better turned round."""
+
+    SEGMENTS = ("pelvis", "thorax", "head")
+    GATE_DEG = 20.0
+    TILT_DEG = 15.0
+    SAMPLES = 20
+    EVERY_S = 0.05
+    AGREEMENT = 0.97
+
+    def __init__(self, profile: Profile) -> None:
+        by_segment: dict[str, str] = {}
+        for key, seg in _segments_of(profile.imu_mounts).items():
+            by_segment.setdefault(seg, key)
+        segments = pose_segments(profile)
+        #: segment -> (its tag, the tag at calibration for a heading of 0, the pose's segment)
+        self.tags: dict[str, tuple[str, np.ndarray, np.ndarray]] = {}
+        for seg in self.SEGMENTS:
+            if seg in by_segment:
+                key = by_segment[seg]
+                tag0 = segments[seg] @ _quat_matrix(profile.imu_mounts[key])
+                self.tags[seg] = (key, tag0, segments[seg])
+        self._tag0 = {key: tag0 for key, tag0, _ in self.tags.values()}
+        gate = next((s for s in ("pelvis", "thorax") if s in self.tags), None)
+        self.gate = self.tags[gate][0] if gate is not None else None
+        self.samples: list[dict[str, np.ndarray]] = []
+        self.found: dict[str, float] = {}
+        self._last = -math.inf
+
+    def coming(self, profile: Profile) -> set[str]:
+        """The tags whose heading may still be found here."""
+        if self.gate is None:
+            return set()
+        return {key for key, _, _ in self.tags.values() if not profile.heading_known(key)}
+
+    def _gravity(self, key: str, rot: np.ndarray) -> np.ndarray:
+        """Where gravity is now, seen by the tag (``rot``: its orientation now), in
+        the tag's reference frame at calibration (where it was: +z)."""
+        return self._tag0[key] @ rot[2]  # type: ignore[no-any-return]
+
+    def update(self, t_s: float, orientations: Mapping[str, QuatWxyz],
+               profile: Profile) -> dict[str, float]:  # fmt: skip
+        """Take one tick's tag orientations (``profile``: the headings known so far);
+        the headings found at this tick."""
+        if self.gate is None or self.gate not in orientations or not self.coming(profile):
+            return {}
+        if t_s - self._last < self.EVERY_S - 1e-6:
+            return {}
+        rots = {key: _quat_matrix(orientations[key]) for key, _, _ in self.tags.values()
+                if key in orientations}  # fmt: skip
+        if self._gravity(self.gate, rots[self.gate])[2] > math.cos(math.radians(self.GATE_DEG)):
+            self.samples.clear()  # not (or no longer) bowing: a bow's samples are its own
+            return {}
+        self._last = t_s
+        self.samples.append(rots)
+        if len(self.samples) < self.SAMPLES:
+            return {}
+        out: dict[str, float] = {}
+        for key, _, _ in self.tags.values():
+            if not profile.heading_known(key):
+                psi = self._forward(key)
+                if psi is not None:
+                    out[key] = psi
+        self.samples.clear()
+        self.found.update(out)
+        return out
+
+    def _forward(self, key: str) -> float | None:
+        """The tag's heading from the way gravity moved in its frame in the samples
+        its segment tilted past ``TILT_DEG`` in, and at least as far as the pelvis
+        (backward in a forward bow); None when too few, or their ways do not agree.
+        (Above the pelvis, in a bow, the lumbar and neck flex: a chest tilted back
+        as far as the pelvis forward is out of the lumbar's range, a head so only
+        at the end of the neck's.)"""
+        sums, units, n = np.zeros(2), np.zeros(2), 0
+        tilt = math.cos(math.radians(self.TILT_DEG))
+        for rots in self.samples:
+            if key not in rots:
+                continue
+            g = self._gravity(key, rots[key])
+            if g[2] > min(tilt, self._gravity(self.gate, rots[self.gate])[2] + 1e-9):
+                continue
+            sums += g[:2]
+            units += g[:2] / np.linalg.norm(g[:2])
+            n += 1
+        if n < self.SAMPLES // 2 or np.linalg.norm(units) < self.AGREEMENT * n:
+            return None
+        return _wrap(math.degrees(math.atan2(sums[1], sums[0])) - 180.0)
+
+
 def _elbow_pair_headings(samples: Sequence[tuple[np.ndarray, np.ndarray]], seg_p: np.ndarray,
                          seg_c: np.ndarray) -> tuple[float, float] | None:  # fmt: skip
     """The upper arm's and forearm's tag headings (deg) that keep the elbow's axes
@@ -659,13 +779,20 @@ def _child_heading(samples: Sequence[tuple[np.ndarray, np.ndarray]], seg_p: np.n
         return np.sqrt((perp**2).mean(axis=1)), np.degrees(angle).mean(axis=1)
 
     grid = np.radians(np.arange(0.0, 360.0, 5.0))
-    perp, turn = cost(grid)
-    # the perpendicular fits (within twice the best), then the least turned joint
-    fits = np.flatnonzero(perp <= 2 * perp.min() + 1e-3)
-    best = grid[fits[np.argmin(turn[fits])]]
-    fine = best + np.radians(np.arange(-5.0, 5.25, 0.25))
+    perp, _ = cost(grid)
+    # each local minimum of the misfit, refined (on the coarse grid alone a true fit
+    # between two of its points can look worse than a rival's falling on one) ...
+    minima = np.flatnonzero((perp <= np.roll(perp, 1)) & (perp <= np.roll(perp, -1)))
+    step = np.radians(np.arange(-5.0, 5.25, 0.25))
+    fine = (grid[minima][:, None] + step[None, :]).ravel()
     perp, turn = cost(fine)
-    k = int(np.argmin(perp))
+    perp, turn, fine = (a.reshape(len(minima), len(step)) for a in (perp, turn, fine))
+    at = np.argmin(perp, axis=1)
+    rows = np.arange(len(minima))
+    perp, turn, fine = perp[rows, at], turn[rows, at], fine[rows, at]
+    # ... the perpendicular fits (within twice the best), then the least turned joint
+    fits = np.flatnonzero(perp <= 2 * perp.min() + 1e-3)
+    k = int(fits[np.argmin(turn[fits])])
     if math.degrees(math.asin(min(1.0, perp[k]))) > 3.0:  # not this joint's motion
         return None
     return _wrap(math.degrees(fine[k]))
@@ -744,6 +871,7 @@ class BodyHeading:
         self.pairs = KneePairs(profile) if self.unknown and independent else None
         self.children = ChildHeadings(profile) if self.unknown and independent else None
         self.elbows = ElbowPairs(profile) if self.unknown and independent else None
+        self.trunk = TrunkBow(profile) if self.unknown and independent else None
         if profile.heading == "fixed":
             self.how = "fixed"
         elif not profile.imu_mounts:
@@ -763,6 +891,8 @@ class BodyHeading:
                      if side not in self.pairs.done for k in (p, c)}  # fmt: skip
             if self.elbows is not None:
                 knees |= self.elbows.coming
+            if self.trunk is not None and self.trunk.coming(self.profile):
+                return True
             return bool(knees) or (self.children is not None
                                    and self.children.pending(self.profile, knees))  # fmt: skip
         return self.finder is not None
@@ -781,6 +911,8 @@ class BodyHeading:
                 found.update(self.elbows.update(t_s, orientations))
             if self.children is not None:  # then the feet's and hands' below them
                 found.update(self.children.update(orientations, self.profile))
+            if self.trunk is not None:  # and the pelvis', chest's and head's from a bow
+                found.update(self.trunk.update(t_s, orientations, self.profile))
             if not found:
                 return None
             self.profile = with_headings(self.profile, found)

@@ -329,7 +329,7 @@ def test_export_refuses_bad_input(
     cases = [
         (junk, "not a complete MCAP file"),
         (cut, "not a complete MCAP file"),
-        (text, "not a complete MCAP file"),
+        (text, "not an MCAP recording (it does not start as MCAP files do)"),
         (foreign, "no poses"),
         (raw_only, "no poses"),
         (garbage, "is not a bodynet pose"),

@@ -622,3 +622,156 @@ def test_a_walk_after_an_n_pose_finds_no_arm_heading_and_holds_the_known_ones() 
     assert "body/leg/left/foot/raw" in heading.profile.imu_headings
     assert turned > 0
     assert abs(heading.drift.corrected_deg["body/leg/left/shank/raw"]) > 0.0  # type: ignore[union-attr]
+
+
+TRUNK_TAGS = {"body/trunk/mid/sacrum/raw": "pelvis", "body/trunk/mid/chest/raw": "thorax",
+              "body/trunk/mid/forehead/raw": "head"}  # fmt: skip
+#: the dofs whose joints a trunk tag's heading drives (the arms' too: the shoulders)
+TRUNK_DOFS = ("left_hip", "right_hip", "lumbar", "neck", "left_shoulder", "right_shoulder")
+
+
+def _bow_protocol(pose: str, turn_deg: float, bow_first: bool = True) -> Routine:
+    """The pose held 1 s, the subject turning ``turn_deg`` about the vertical in the
+    next second; then a bow (2.9 s) and a walk with both arms reaching (9 s), in
+    this order or the other; then a second bow, twisted (the lumbar and neck turned,
+    the trunk leaning right a little)."""
+    from bodynet.nodes.motion import ROUTINES, bow, reach
+
+    still = dict(CALIBRATION_POSES[pose])
+    first, walk = bow(), ROUTINES["walk"].angles
+    left, right = reach("left"), reach("right")
+    second = bow(35.0, lumbar_rotation_deg=15.0, neck_rotation_deg=25.0, lumbar_lateral_deg=5.0)
+
+    def moving(u: float) -> dict[str, float]:
+        return {**walk(u), **left(u), **right(u)}
+
+    def bowing(u: float) -> dict[str, float]:
+        return {**still, **first(u)}
+
+    phases = (bowing, moving) if bow_first else (moving, bowing)
+    ends = (2.0 + 2.9, 2.0 + 2.9 + 9.0) if bow_first else (2.0 + 9.0, 2.0 + 9.0 + 2.9)
+
+    def angles(t: float) -> dict[str, float]:
+        turn = {"pelvis_turn_deg": turn_deg * min(1.0, max(0.0, t - 1.0))}
+        if t < 2.0:
+            return {**still, **turn}
+        if t < ends[0]:
+            return {**phases[0](t - 2.0), **turn}
+        if t < ends[1]:
+            return {**phases[1](t - ends[0]), **turn}
+        return {**second(t - ends[1]), **turn}
+
+    return Routine("pose-bow-walk-reach", "", angles)
+
+
+def _follow(body: BodyEmulator, heading: BodyHeading, end_s: float
+            ) -> list[tuple[float, dict[str, float], dict[str, float]]]:  # fmt: skip
+    """The gateway's path from 1 s (the pose's end) to ``end_s``: the heading's step
+    and the solver, tick by tick; per tick its errors, and the headings known then."""
+    solver = BodySolver(heading.profile)
+    ticks = []
+    for t in np.arange(1.0, end_s, 1 / RATE_HZ):
+        samples, truth = _samples(body, float(t))
+        step = heading.step(float(t), samples, solver.profile)
+        if step is not None and step[0] == "found":
+            solver = BodySolver(step[1])
+        elif step is not None:
+            heading.hold(solver, step[1])
+        out = solver.solve(samples)
+        errors = measured_errors(out.angles_deg, out.flags, truth)
+        ticks.append((float(t), errors, dict(heading.profile.imu_headings)))
+    return ticks
+
+
+@pytest.mark.parametrize(("seed", "turn"), [(1, 0.0), (3, 120.0), (5, -70.0)])
+def test_independent_trunk_tags_are_found_from_a_bow(seed: int, turn: float) -> None:
+    """Independent 6-axis tags, arbitrary mountings, the N-pose, the subject turning
+    anywhere, then the protocol: a bow, then walking and reaching. The bow gives
+    the pelvis', chest's and head's tags' headings (within 1 deg of the emulator's
+    truth, within 3 s of the bow's start); until then every hip, lumbar, neck and
+    shoulder dof is flagged. Once every tag is known (the legs' from the walk,
+    the arms' from the reach) all 32 dofs are measured: the hips, lumbar and neck
+    within 2 deg of the truth through the walk, the reach and a second, twisted
+    bow; the shoulders, which rest on the arms' headings too (found within 2 deg
+    by the elbows), and the rest within 2.5."""
+    body = BodyEmulator(_bow_protocol("npose", turn), imu_tags(),
+                        realism=Realism(headings=Headings.INDEPENDENT), seed=seed)  # fmt: skip
+    independent = Profile(heading="independent", pose="npose")
+    heading = BodyHeading(calibrate_window(_window(body, 0.2, 0.95), independent,
+                                           "npose").apply(independent, "npose"))  # fmt: skip
+    ticks = _follow(body, heading, 17.8)
+    truth = {s.site.raw_key: body.headings_deg[s.node] for s in body.sensors}
+    assert heading.trunk is not None
+    assert set(heading.trunk.found) == set(TRUNK_TAGS)
+    for key, psi in heading.trunk.found.items():
+        assert (psi - truth[key] + 180) % 360 - 180 == pytest.approx(0.0, abs=1.0), key
+    found_t = min(t for t, _, known in ticks if set(TRUNK_TAGS) <= set(known))
+    assert found_t - 2.0 <= 3.0  # the bow starts at 2 s
+    for t, errors, known in ticks:
+        if not set(TRUNK_TAGS) <= set(known):  # never a number that may be wrong
+            assert not any(n.startswith(TRUNK_DOFS) for n in errors), (t, errors)
+    assert not heading.unknown
+    assert not heading.searching
+    last = [errors for _, errors, known in ticks if len(known) == 15]
+    assert len(last[-1]) == 32  # every dof measured
+    worst: dict[str, float] = {}
+    for errors in last:
+        for name, e in errors.items():
+            group = "trunk" if name.startswith(TRUNK_DOFS[:4]) else "rest"
+            worst[group] = max(worst.get(group, 0.0), e)
+    assert worst["trunk"] <= 2.0, worst
+    assert worst["rest"] <= 2.5, worst
+
+
+def test_a_walk_then_a_bow_after_a_t_pose_measures_the_hips_lumbar_and_neck() -> None:
+    """The bow may come after the walk: the T-pose, walking (the legs' tags found),
+    then a bow (the trunk's): the hips, lumbar and neck are then measured within
+    2 deg; the arms' tags stay unknown after a T-pose (the elbows' axes were
+    vertical), so the shoulders stay flagged."""
+    body = BodyEmulator(_bow_protocol("tpose", 40.0, bow_first=False), imu_tags(),
+                        realism=Realism(headings=Headings.INDEPENDENT), seed=2)  # fmt: skip
+    independent = Profile(heading="independent")
+    heading = BodyHeading(calibrate_window(_window(body, 0.2, 0.95), independent,
+                                           "tpose").apply(independent))  # fmt: skip
+    ticks = _follow(body, heading, 17.8)
+    truth = {s.site.raw_key: body.headings_deg[s.node] for s in body.sensors}
+    assert heading.trunk is not None
+    assert set(heading.trunk.found) == set(TRUNK_TAGS)
+    for key, psi in heading.trunk.found.items():
+        assert (psi - truth[key] + 180) % 360 - 180 == pytest.approx(0.0, abs=1.0), key
+    found_t = min(t for t, _, known in ticks if set(TRUNK_TAGS) <= set(known))
+    assert 11.0 < found_t <= 11.0 + 3.0  # the bow starts at 11 s
+    worst, measured = 0.0, set()
+    for t, errors, _ in ticks:
+        measured |= set(errors)
+        if t > found_t:
+            worst = max(worst, *(e for n, e in errors.items() if n.startswith(TRUNK_DOFS[:4])))
+    assert 0.0 < worst <= 2.0
+    assert {"left_hip_rotation_deg", "lumbar_flexion_deg", "neck_lateral_deg"} <= measured
+    assert not any(n.startswith(("left_shoulder", "right_shoulder")) for n in measured)
+    assert sorted(heading.unknown) == sorted(f"body/arm/{side}/{seg}/raw" for side in (
+        "left", "right") for seg in ("upperarm", "forearm", "hand"))  # fmt: skip
+
+
+def test_a_head_looking_up_in_a_shallow_bow_is_not_taken() -> None:
+    """A shallow bow (the pelvis 24 deg) looking up (the neck extended 60 deg): the
+    head tilts back, which a forward bow's rule would take turned round by 180 deg.
+    It tilts less than the pelvis, so it is not taken: the neck stays flagged, and
+    the pelvis' and chest's headings are found, the lumbar measured within 2 deg."""
+    from bodynet.nodes.motion import bow
+
+    still = dict(CALIBRATION_POSES["npose"])
+    looking_up = bow(24.0, down_s=0.6, hold_s=1.5, neck_flexion_deg=-60.0)
+    routine = Routine("bow-looking-up", "", lambda t: {**still, **looking_up(max(0.0, t - 1.0))})
+    body = BodyEmulator(routine, imu_tags(), realism=Realism(headings=Headings.INDEPENDENT),
+                        seed=1)  # fmt: skip
+    independent = Profile(heading="independent", pose="npose")
+    heading = BodyHeading(calibrate_window(_window(body, 0.2, 0.95), independent,
+                                           "npose").apply(independent, "npose"))  # fmt: skip
+    ticks = _follow(body, heading, 4.5)
+    assert heading.trunk is not None
+    assert set(heading.trunk.found) == {"body/trunk/mid/sacrum/raw", "body/trunk/mid/chest/raw"}
+    lumbar = [e for _, errors, _ in ticks for n, e in errors.items() if n.startswith("lumbar")]
+    assert lumbar
+    assert max(lumbar) <= 2.0
+    assert not any(n.startswith("neck") for _, errors, _ in ticks for n in errors)

@@ -18,6 +18,14 @@ from bodynet.core.codecs import raw_sample
 from bodynet.session import open_session, session_config
 
 
+def wait_until(done: Callable[[], bool], timeout: float = 10.0, what: str = "") -> None:
+    """Poll ``done`` until it holds; fail naming ``what`` after ``timeout`` s."""
+    deadline = time.monotonic() + timeout
+    while not done():
+        assert time.monotonic() < deadline, f"timed out waiting for {what}"
+        time.sleep(0.01)
+
+
 class Running:
     """``service(stop)`` in a thread, ``stop`` a :class:`threading.Event`, as every
     bodynet service takes it; :meth:`stop` sets it and waits for the service to end."""
