@@ -244,11 +244,12 @@ def _admin_counter(seen: Counter[str], ticks: dict[str, int]) -> Callable[[Any],
 
 def _in_file(path: Path, topics: set[str], since_ns: int, until_ns: int) -> dict[str, Any]:
     """What a recording holds: raw samples per count, the sequence numbers of each
-    pose topic, and the topology and health messages (topic and time) whose time
-    lies in ``[since_ns, until_ns]``."""
+    pose topic, the topology and health messages (topic and time) whose time
+    lies in ``[since_ns, until_ns]``, and how many raw samples its gap records
+    say are missing between the ones it holds."""
     from mcap.reader import make_reader
 
-    from bodynet.clients.mcap_store import GAPS_TOPIC, channel_counts
+    from bodynet.clients.mcap_store import GAPS_TOPIC, channel_counts, read_gaps
 
     counts = channel_counts(path) or []
     raw = sum(c.messages for c in counts if c.schema == "bodynet.RawSample")
@@ -265,7 +266,8 @@ def _in_file(path: Path, topics: set[str], since_ns: int, until_ns: int) -> dict
             elif since_ns <= message.log_time <= until_ns and channel.topic in topics:
                 admin[f"{channel.topic} {message.log_time}"] += 1
     gaps = sum(c.messages for c in counts if c.topic == GAPS_TOPIC)
-    return {"raw": raw, "seqs": seqs, "admin": admin, "gaps": gaps}
+    raw_between = sum(g.missing for g in read_gaps(path) if g.topic.endswith("/raw"))
+    return {"raw": raw, "seqs": seqs, "admin": admin, "gaps": gaps, "raw_between": raw_between}
 
 
 def with_gateway(bodies: int = 20, seconds: float = 10.0, feed: str = "realistic",
@@ -298,6 +300,9 @@ def with_gateway(bodies: int = 20, seconds: float = 10.0, feed: str = "realistic
         "bodies": bodies, "seconds": seconds, "feed": feed, "rate_hz_per_node": rate_hz,
         "raw_sent": run["sent"], "raw_recorded": held["raw"],
         "raw_lost": run["sent"] - held["raw"],
+        # of those, missing between samples the file holds (its gap records); the
+        # rest before a topic's first or after its last
+        "raw_lost_between": held["raw_between"],
         "poses_published": poses_published, "poses_recorded": poses_held,
         "poses_lost": poses_lost,
         "ticks_delivered": sum(ticks.values()) / (bodies * seconds * rate_hz),
