@@ -12,10 +12,11 @@ MCAP tools (Foxglove, the ``mcap`` CLI) can open and plot them:
   ground truth as it publishes it (``t_ns``, ``angles_deg``, ``segment``,
   ``segment_quat_wxyz``), when the recording asked for it.
 - ``body/tf``: schema ``foxglove.FrameTransforms`` (Foxglove's well-known
-  schema, protobuf: see ``foxglove_pb``), one message per ``body/pose``: the
-  pelvis in frame ``world``, every other segment in its parent segment
-  (``body_tree``), so Foxglove's 3D panel shows the skeleton's frames without
-  any setup.
+  schema, protobuf: see ``foxglove_pb``), the pelvis in frame ``world``, every
+  other segment in its parent segment (``body_tree``), so Foxglove's 3D panel
+  shows the skeleton's frames without any setup: one message per ``body/pose``
+  at most every :data:`TF_MIN_GAP_NS` of source time (a display's rate; the
+  poses themselves are all there).
 - ``body/@topology``: schema ``bodynet.Topology``, the gateway's topology as it
   publishes it or answers it (``t_ns``, ``branches`` -> ``nodes`` ->
   ``state``, ``node``, ``last_t_ns``);
@@ -378,6 +379,14 @@ def pack_chunk_indexes(writer: Writer) -> PackedChunkIndexes | None:
 
 TF_BATCH = 64  # whole-body poses whose transforms are made together
 
+#: A whole-body pose gets its Foxglove transforms when the last ones are at least
+#: this much older in source time (or newer: time went back): at most about 66 a
+#: second, what a display drawing 60 frames a second uses; a 100 Hz gateway's
+#: poses get them every other pose, a 60 Hz one's each. Half the transforms of
+#: 100 Hz poses took a whole-body pose from 0.43 to 0.54 of the bare writer's
+#: rate (docs/benchmarks.md). 0: every whole-body pose.
+TF_MIN_GAP_NS = 15_000_000
+
 
 @functools.cache  # every file of a recording registers them
 def _schemas() -> dict[str, tuple[str, str, bytes]]:
@@ -404,7 +413,8 @@ class McapSink:
     raises ``DecodeError`` before anything of it is written: the file goes on
     and closes complete."""
 
-    def __init__(self, path: Path, chunk_size: int = CHUNK_BYTES, max_chunk_s: float = 0.5) -> None:
+    def __init__(self, path: Path, chunk_size: int = CHUNK_BYTES, max_chunk_s: float = 0.5,
+                 tf_min_gap_ns: int = TF_MIN_GAP_NS) -> None:  # fmt: skip
         fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
         self._stream = os.fdopen(fd, "wb")
         zstd = CompressionType.ZSTD
@@ -424,6 +434,8 @@ class McapSink:
         # segments' text or (names, rows))
         self._tf_pending: list[tuple[int, bytes | None, Any]] = []
         self._segments_at = 0  # where the last pose's segments began: looked at first
+        self._tf_min_gap_ns = tf_min_gap_ns
+        self._tf_last: int | None = None  # the time of the last pose given transforms
 
     def _next(self, channel: int) -> int:
         """The channel's next message sequence number (1, 2, 3...): salvage
@@ -446,7 +458,7 @@ class McapSink:
         pose again costs twice as much as decoding it)."""
         check_time(log_time_ns)  # before the pose: its transforms share its time
         data = pose.encode(frame) if data is None else data
-        if topic == keys.pose_key():
+        if topic == keys.pose_key() and self._tf_due(log_time_ns):
             rows = [[*p, *q] for p, q in frame.segments.values()]
             self._pending(log_time_ns, None, (tuple(frame.segments), rows))
         self._add(self._channel(topic, "pose"), log_time_ns, data)
@@ -456,34 +468,48 @@ class McapSink:
         number and its log time (its ``t_ns``; when that is 0, now).
 
         Only what the file needs is read of it: the header (``pose.glance``)
-        and, for the whole-body pose, its segments, for the transforms, read
-        with the next ones' (see :class:`~bodynet.clients.body_tree.Transforms`).
+        and, for a whole-body pose due its transforms (:data:`TF_MIN_GAP_NS`),
+        its segments, read with the next ones' (see
+        :class:`~bodynet.clients.body_tree.Transforms`).
         A message laid out otherwise than the gateway lays it out is decoded
         whole (``DecodeError`` if it is no pose). So a message that starts as a
         pose does but is none past its header is stored as it came (a reader
         then names it, see :func:`read_poses`), and a whole-body pose whose
-        segments do not read gets no transforms (an empty message)."""
-        whole = topic == keys.pose_key()
-        head = pose.glance(data, segments=whole, hint=self._segments_at)
+        segments do not read gets no transforms (an empty message); a whole-body
+        pose whose segments are not laid out so is decoded whole when its
+        transforms are due."""
+        head = pose.glance(data)
+        frame: pose.PoseFrame | None = None
         if head is None:
             frame = pose.decode(data)
-            seq, t_ns, segments = frame.seq, frame.t_ns, frame.segments
+            seq, t_ns = frame.seq, frame.t_ns
         else:
-            seq, t_ns, segments = head.seq, head.t_ns, None
+            seq, t_ns = head.seq, head.t_ns
         t = check_time(t_ns or time.time_ns())
-        if whole:
-            if head is not None:
-                self._segments_at = head.at
-                self._pending(t, data, head.segments)
-            else:
-                rows = [[*p, *q] for p, q in segments.values()]  # type: ignore[union-attr]
-                self._pending(t, None, (tuple(segments), rows))  # type: ignore[arg-type]
+        if topic == keys.pose_key() and self._tf_due(t):  # its segments, for its transforms
+            if frame is None:
+                head = pose.glance(data, segments=True, hint=self._segments_at)
+                if head is not None:
+                    self._segments_at = head.at
+                    self._pending(t, data, head.segments)
+                else:  # not laid out as the gateway lays it out past its header
+                    frame = pose.decode(data)
+            if frame is not None:
+                rows = [[*p, *q] for p, q in frame.segments.values()]
+                self._pending(t, None, (tuple(frame.segments), rows))
         self._add(self._channel(topic, "pose"), t, data)
         return seq, t
+
+    def _tf_due(self, t_ns: int) -> bool:
+        """Whether a whole-body pose at ``t_ns`` gets transforms (see
+        :data:`TF_MIN_GAP_NS`)."""
+        last = self._tf_last
+        return last is None or not last <= t_ns < last + self._tf_min_gap_ns
 
     def _pending(self, t_ns: int, data: bytes | None, segments: Any) -> None:
         # its transforms are made with the next ones' (at most TF_BATCH), and
         # before the writer closes a chunk on time, so salvage keeps them
+        self._tf_last = t_ns
         self._tf_pending.append((t_ns, data, segments))
         if len(self._tf_pending) >= TF_BATCH:
             self._write_transforms()

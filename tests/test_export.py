@@ -258,7 +258,7 @@ def test_recordings_carry_foxglove_transforms(body_mcap: Path) -> None:
 def test_only_the_whole_body_pose_gives_transforms(arm_mcap: Path, tmp_path: Path) -> None:
     """Branch views (as the recorder receives them) add no transforms."""
     out = tmp_path / "sink.mcap"
-    sink = McapSink(out)
+    sink = McapSink(out, tf_min_gap_ns=0)  # each whole-body pose its transforms
     frames = list(read_poses(arm_mcap))[:5]
     for log_time, frame in frames:
         for branch, view in branch_views(frame, BRANCHES).items():

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import io
 import json
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -26,7 +27,7 @@ from scipy.spatial.transform import Rotation
 
 from bodynet.clients import foxglove_pb
 from bodynet.clients.body_tree import Transforms, local_poses, segment_parents
-from bodynet.clients.mcap_store import McapSink, read_poses
+from bodynet.clients.mcap_store import TF_MIN_GAP_NS, McapSink, read_poses
 from bodynet.clients.mcap_writer import LeanWriter
 from bodynet.core import keys
 from bodynet.core.codecs import pose
@@ -294,7 +295,7 @@ def test_a_pose_not_laid_out_as_the_gateway_does_is_decoded(tmp_path: Path) -> N
     spaced = json.dumps(json.loads(pose.encode(frame))).encode()
     broken = pose.encode(frame).replace(b"[1.0,0.0,0.0,0.0]", b'[1.0,"x",0.0,0.0]')
     out = tmp_path / "odd.mcap"
-    sink = McapSink(out)
+    sink = McapSink(out, tf_min_gap_ns=0)  # each pose its transforms (the same time)
     assert sink.write_pose_message(keys.pose_key(), spaced) == (4, 2_000)
     with pytest.raises(DecodeError):
         sink.write_pose_message(keys.pose_key(), b'{"v": 2, "seq": 1}')
@@ -362,3 +363,23 @@ def test_the_recording_s_transforms_decode_with_their_schema(body_mcap: Path) ->
         stamp = proto.transforms[0].timestamp
         if log_time:
             assert stamp.seconds * 1_000_000_000 + stamp.nanos == log_time
+
+
+def test_transforms_at_a_display_s_rate(body_mcap: Path, tmp_path: Path) -> None:
+    """Whole-body poses get transforms when the last are at least
+    ``TF_MIN_GAP_NS`` older: every other pose at 100 Hz, each at 60 Hz, again at
+    once when time goes back; every pose is stored."""
+    data = next(d for t, d in _messages(body_mcap, keys.pose_key()) if t > 0)
+    frame = pose.decode(data)
+    times = [10_000_000 * k for k in range(1, 11)]  # 100 Hz
+    times += [times[-1] + 16_666_667 * k for k in range(1, 7)]  # 60 Hz
+    times += [5_000_000, 10_000_000]  # back in time
+    out = tmp_path / "rate.mcap"
+    sink = McapSink(out)
+    for t in times:
+        sink.write_pose_message(keys.pose_key(), pose.encode(replace(frame, t_ns=t)))
+    sink.close()
+    assert [t for t, _ in _messages(out, keys.pose_key())] == sorted(times)
+    given = [t for t, _ in _messages(out, TF)]
+    assert given == sorted([*times[0:10:2], *times[10:16], 5_000_000])
+    assert TF_MIN_GAP_NS == 15_000_000  # the rates above
