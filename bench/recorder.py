@@ -5,7 +5,9 @@ library's level) storing each message's bytes as they came off the wire, no
 decoding. bodynet's ``McapSink`` does what the recorder does per message: a raw
 sample is decoded and stored as JSON with a schema (so generic MCAP tools can
 plot it); a pose is stored as it came, with its Foxglove transforms made from
-its segments (2 s of a walking body's poses, as the gateway publishes them).
+its segments at a display's rate (``mcap_store.TF_MIN_GAP_NS``: every other
+pose of the 2 s of a walking body's 100 Hz poses, as the gateway publishes
+them).
 Both rates are per second of the thread's CPU time (the wall clock of a shared
 machine counts the other processes too). A third row is the whole recorder
 live: a feeder process publishes raw samples as fast as Zenoh takes them
@@ -193,7 +195,7 @@ def run(seconds: float = 1.0, out_dir: Path = Path("bench-results"), bodies: int
                      "baseline_per_s": bare})  # fmt: skip
         bare = _rate(_bare(f, ["body/pose"] * len(poses), poses), seconds)
         ours = _rate(_sink_pose(f, poses), seconds)
-        rows.append({"name": "whole-body poses (McapSink: as received, + transforms)",
+        rows.append({"name": "whole-body poses (McapSink: as received, + transforms at 50 Hz)",
                      "bodynet_per_s": ours, "baseline_per_s": bare})  # fmt: skip
         live = _live(max(seconds, 1.0), Path(tmp) / "live.mcap")
     for r in rows:
