@@ -959,7 +959,8 @@ class BodyHeading:
     def update(self, t_s: float, samples: Mapping[Site, Any]) -> Profile | None:
         """Take one tick's samples (site -> RawSample); the profile with the heading
         once it is found (then never again; in ``independent`` mode, once per knee
-        and once per foot or hand whose parent's is known)."""
+        or elbow, once per foot or hand whose parent's is known, and once per bow
+        that gives trunk tags' headings: :class:`TrunkBow`)."""
         if not self.searching:
             return None  # nothing more to find
         orientations = {site.raw_key: s.reading.wxyz for site, s in samples.items()
