@@ -485,6 +485,15 @@ def test_report_view_and_replay_name_a_damaged_recording(
             assert code == 2, (args, err)
             assert "record --salvage" in err, (args, err)
             assert "waiting for the router" not in err
+        for args, told in (  # no recording, and nothing to replay: told before any router wait
+            (["replay", corpus["smartsuit_arm.log"]], "not an MCAP recording"),
+            (["replay", corpus["chunked"]], "nothing to replay: "),  # poses only
+            (["replay", corpus["recording"], "--keys", "nothing/**"], "on these keys"),
+        ):
+            code, err = cli(capsys, *args, "-e", "tcp/127.0.0.1:1")
+            assert code == 2, (args, err)
+            assert told in err, (args, err)
+            assert "waiting for the router" not in err
     assert list(tmp_path.iterdir()) == []
 
 
