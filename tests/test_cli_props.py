@@ -443,6 +443,12 @@ def test_unusable_captures_are_errors_naming_what_they_look_like(
             assert code == 2, (name, err)
             assert told in err, (name, err)
             assert not out.exists()  # no empty recording
+        head = tmp_path / "head.asc"  # a log of the asked format with no frame: no hint
+        head.write_text("date Thu Dec 03 21:18:51.770 2026\nbase hex  timestamps absolute\n")
+        code, err = cli(capsys, "decode", "--format", "can-log", head)
+        assert code == 2
+        assert err.splitlines()[-1] == f"bodynet decode: no can-log samples in {head}", err
+        head.unlink()
         code, err = cli(capsys, "process", corpus["smartsuit_arm.log"], "--tpose-s", "100",
                         "-o", out)  # fmt: skip
         assert code == 2
