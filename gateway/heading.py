@@ -622,22 +622,20 @@ class TrunkBow:
     backward. So a bow is waited for: the pelvis tag (the chest's where there is
     none) tilted past ``GATE_DEG`` from the pose, which the hips flexing give and
     a walk, a side bend or a turn of the trunk do not. ``SAMPLES`` samples are
-    taken every ``EVERY_S`` while it lasts, then:
+    taken every ``EVERY_S`` while it lasts; then each tag's heading is the one
+    that puts the way gravity moved in its frame backward in the body's (the bow
+    is forward), over the samples in which its segment tilted past ``TILT_DEG``
+    and at least as far as the pelvis (at least half of them), when their ways
+    agree (the mean resultant length of their directions at least
+    ``AGREEMENT``). A tag not found in one bow is looked for in the next.
 
-    - the pelvis' and chest's tags: the way gravity moved in each tag's frame is
-      the body's backward (the bow is forward), taken when the samples' ways agree
-      (the mean resultant length of their directions at least ``AGREEMENT``), the
-      chest's from the samples it tilted past ``TILT_DEG`` in;
-    - the head's, once the chest's is known: the heading for which the neck turns
-      least from the pose over the samples the head tilted past ``TILT_DEG`` in
-      (the head follows the chest down, nodding or looking up as it may: its own
-      tilt's way is not trusted), when the best heading's turn is ``GRIP_DEG``
-      less than the worst's (else the head did not tilt with the chest, and the
-      next bow is waited for).
-
-    A tag not found in one bow is looked for in the next. The assumption: the
-    first tilt of the pelvis past ``GATE_DEG`` is a forward bow (sitting down
-    slumped, which tilts it backward, would be taken for one)."""
+    The assumptions: the pelvis' first tilt past ``GATE_DEG`` is a forward bow
+    (sitting down slumped, which tilts it backward, would be taken for one), and
+    in it the chest and the head tilt forward too: a head looking up while the
+    chest bows, tilted back as far as the pelvis forward, would be taken turned
+    round (the neck near the end of its range). Taking the head's way from the
+    chest's instead (the neck turning least) fails the same way: a head tilted
+    back while the chest bows fits the neck better turned round."""
 
     SEGMENTS = ("pelvis", "thorax", "head")
     GATE_DEG = 20.0
@@ -645,7 +643,6 @@ class TrunkBow:
     SAMPLES = 20
     EVERY_S = 0.05
     AGREEMENT = 0.97
-    GRIP_DEG = 10.0
 
     def __init__(self, profile: Profile) -> None:
         by_segment: dict[str, str] = {}
@@ -695,31 +692,29 @@ class TrunkBow:
         if len(self.samples) < self.SAMPLES:
             return {}
         out: dict[str, float] = {}
-        for seg in ("pelvis", "thorax"):
-            if seg in self.tags and not profile.heading_known(self.tags[seg][0]):
-                psi = self._forward(self.tags[seg][0])
+        for key, _, _ in self.tags.values():
+            if not profile.heading_known(key):
+                psi = self._forward(key)
                 if psi is not None:
-                    out[self.tags[seg][0]] = psi
-        if "head" in self.tags and "thorax" in self.tags:
-            head, chest = self.tags["head"][0], self.tags["thorax"][0]
-            if not profile.heading_known(head) and (profile.heading_known(chest) or chest in out):
-                psi = self._neck(profile, out.get(chest))
-                if psi is not None:
-                    out[head] = psi
+                    out[key] = psi
         self.samples.clear()
         self.found.update(out)
         return out
 
     def _forward(self, key: str) -> float | None:
         """The tag's heading from the way gravity moved in its frame in the samples
-        it tilted past ``TILT_DEG`` in (backward in a forward bow); None when too
-        few, or their ways do not agree."""
+        its segment tilted past ``TILT_DEG`` in, and at least as far as the pelvis
+        (backward in a forward bow); None when too few, or their ways do not agree.
+        (Above the pelvis, in a bow, the lumbar and neck flex: a chest tilted back
+        as far as the pelvis forward is out of the lumbar's range, a head so only
+        at the end of the neck's.)"""
         sums, units, n = np.zeros(2), np.zeros(2), 0
+        tilt = math.cos(math.radians(self.TILT_DEG))
         for rots in self.samples:
             if key not in rots:
                 continue
             g = self._gravity(key, rots[key])
-            if g[2] > math.cos(math.radians(self.TILT_DEG)):
+            if g[2] > min(tilt, self._gravity(self.gate, rots[self.gate])[2] + 1e-9):
                 continue
             sums += g[:2]
             units += g[:2] / np.linalg.norm(g[:2])
@@ -727,55 +722,6 @@ class TrunkBow:
         if n < self.SAMPLES // 2 or np.linalg.norm(units) < self.AGREEMENT * n:
             return None
         return _wrap(math.degrees(math.atan2(sums[1], sums[0])) - 180.0)
-
-    def _neck(self, profile: Profile, chest_psi: float | None) -> float | None:
-        """The head tag's heading that turns the neck least from the pose over the
-        samples the head tilted past ``TILT_DEG`` in (``chest_psi``: the chest tag's,
-        just found, else the profile's)."""
-        head, head0, seg_h = self.tags["head"]
-        chest, chest0, seg_c = self.tags["thorax"]
-        parents, turns = [], []
-        for rots in self.samples:
-            if head not in rots or chest not in rots:
-                continue
-            if self._gravity(head, rots[head])[2] > math.cos(math.radians(self.TILT_DEG)):
-                continue
-            if chest_psi is None:
-                parents.append(JointDrift._segment(profile, chest, rots[chest]))
-            else:
-                turn = rz(chest_psi)
-                parents.append(turn.T @ rots[chest] @ chest0.T @ turn @ seg_c)
-            turns.append(rots[head] @ head0.T)  # the head tag's turn since calibration
-        if len(turns) < self.SAMPLES // 2:
-            return None
-        return _least_turn_heading(parents, turns, seg_c, seg_h, self.GRIP_DEG)
-
-
-def _least_turn_heading(parents: Sequence[np.ndarray], turns: Sequence[np.ndarray],
-                        seg_p: np.ndarray, seg_c: np.ndarray,
-                        grip_deg: float) -> float | None:  # fmt: skip
-    """The child tag's heading (deg) whose joint turns least from the pose over the
-    samples (the parent segment in the body's frame, the child tag's turn since
-    calibration in its own); None when the best is not ``grip_deg`` better than the
-    worst (the child did not tilt with its parent: no heading shows)."""
-    p = np.array(parents)
-    a = np.array(turns)
-    pose_rel = seg_p.T @ seg_c
-
-    def cost(psi: np.ndarray) -> np.ndarray:
-        rc = _rz_batch(psi)
-        child = np.einsum("kji,njl,klm->knim", rc, a, rc) @ seg_c  # (k, n, 3, 3)
-        rel = np.einsum("nji,knjl->knil", p, child)  # parent^T child
-        off = np.einsum("ji,knjl->knil", pose_rel, rel)  # the joint's turn from the pose
-        cos = (np.trace(off, axis1=-2, axis2=-1) - 1) / 2
-        return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))).mean(axis=1)  # type: ignore[no-any-return]
-
-    grid = np.radians(np.arange(0.0, 360.0, 5.0))
-    coarse = cost(grid)
-    if coarse.max() - coarse.min() < grip_deg:
-        return None
-    fine = grid[int(np.argmin(coarse))] + np.radians(np.arange(-5.0, 5.25, 0.25))
-    return _wrap(math.degrees(fine[int(np.argmin(cost(fine)))]))
 
 
 def _elbow_pair_headings(samples: Sequence[tuple[np.ndarray, np.ndarray]], seg_p: np.ndarray,

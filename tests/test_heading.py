@@ -751,3 +751,27 @@ def test_a_walk_then_a_bow_after_a_t_pose_measures_the_hips_lumbar_and_neck() ->
     assert not any(n.startswith(("left_shoulder", "right_shoulder")) for n in measured)
     assert sorted(heading.unknown) == sorted(f"body/arm/{side}/{seg}/raw" for side in (
         "left", "right") for seg in ("upperarm", "forearm", "hand"))  # fmt: skip
+
+
+def test_a_head_looking_up_in_a_shallow_bow_is_not_taken() -> None:
+    """A shallow bow (the pelvis 24 deg) looking up (the neck extended 60 deg): the
+    head tilts back, which a forward bow's rule would take turned round by 180 deg.
+    It tilts less than the pelvis, so it is not taken: the neck stays flagged, and
+    the pelvis' and chest's headings are found, the lumbar measured within 2 deg."""
+    from bodynet.nodes.motion import bow
+
+    still = dict(CALIBRATION_POSES["npose"])
+    looking_up = bow(24.0, down_s=0.6, hold_s=1.5, neck_flexion_deg=-60.0)
+    routine = Routine("bow-looking-up", "", lambda t: {**still, **looking_up(max(0.0, t - 1.0))})
+    body = BodyEmulator(routine, imu_tags(), realism=Realism(headings=Headings.INDEPENDENT),
+                        seed=1)  # fmt: skip
+    independent = Profile(heading="independent", pose="npose")
+    heading = BodyHeading(calibrate_window(_window(body, 0.2, 0.95), independent,
+                                           "npose").apply(independent, "npose"))  # fmt: skip
+    ticks = _follow(body, heading, 4.5)
+    assert heading.trunk is not None
+    assert set(heading.trunk.found) == {"body/trunk/mid/sacrum/raw", "body/trunk/mid/chest/raw"}
+    lumbar = [e for _, errors, _ in ticks for n, e in errors.items() if n.startswith("lumbar")]
+    assert lumbar
+    assert max(lumbar) <= 2.0
+    assert not any(n.startswith("neck") for _, errors, _ in ticks for n in errors)
