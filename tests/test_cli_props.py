@@ -1083,13 +1083,30 @@ def _stopped(pid: int) -> bool:
         return f.read().rsplit(")", 1)[1].split()[0] in ("T", "t")
 
 
+@contextlib.contextmanager
+def _sigint_not_ignored() -> Iterator[None]:
+    """A child started in the block takes SIGINT as from a terminal's Ctrl-C, even
+    where this run was started in the background (a shell's background job has
+    SIGINT ignored, and its children inherit that; a handled signal is reset to
+    the default on exec)."""
+    ignored = signal.getsignal(signal.SIGINT) is signal.SIG_IGN
+    if ignored:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        yield
+    finally:
+        if ignored:
+            signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
 def _stop_mid_write(args: list[str], folder: Path, attempts: int = 5) -> subprocess.Popen[str]:
     """``bodynet ARGS`` started and stopped (SIGSTOP) while it writes its output
     in ``folder`` (its temporary file open, not yet in place); started again
     if it finished before it could be caught."""
     before = {p: p.read_bytes() for p in folder.iterdir()}
     for _ in range(attempts):
-        proc = subprocess.Popen([str(BODYNET), *args], stderr=subprocess.PIPE, text=True)
+        with _sigint_not_ignored():
+            proc = subprocess.Popen([str(BODYNET), *args], stderr=subprocess.PIPE, text=True)
         while proc.poll() is None:
             if not _writing(proc.pid, folder):
                 with contextlib.suppress(subprocess.TimeoutExpired):  # a breath, not a spin
