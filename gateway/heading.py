@@ -643,6 +643,10 @@ class TrunkBow:
     SAMPLES = 20
     EVERY_S = 0.05
     AGREEMENT = 0.97
+    #: how fast a 6-axis tag's reference drifts at most (deg/min), and the noise of a
+    #: joint's twist in a bow (deg): the bounds of :meth:`snap`
+    SNAP_DEG_PER_MIN = 10.0
+    SNAP_NOISE_DEG = 1.0
 
     def __init__(self, profile: Profile) -> None:
         by_segment: dict[str, str] = {}
@@ -663,6 +667,8 @@ class TrunkBow:
         self.bow: list[dict[str, np.ndarray]] = []  # the samples of the last headings found
         self.found: dict[str, float] = {}
         self._last = -math.inf
+        self._t0: float | None = None
+        self._bow_t = 0.0  # when the last headings were found
         #: the three-dof joints from the root out (parent's segment and tag, child's
         #: segment and tag, the twist in the pose), and each segment's tags and below
         self._joints: list[tuple[str, str, str, str, float]] = []
@@ -698,6 +704,8 @@ class TrunkBow:
                profile: Profile) -> dict[str, float]:  # fmt: skip
         """Take one tick's tag orientations (``profile``: the headings known so far);
         the headings found at this tick."""
+        if self._t0 is None:
+            self._t0 = t_s  # the first tick after the pose
         if self.gate is None or self.gate not in orientations or not self.coming(profile):
             return {}
         if t_s - self._last < self.EVERY_S - 1e-6:
@@ -718,7 +726,7 @@ class TrunkBow:
                 psi = self._forward(key)
                 if psi is not None:
                     out[key] = psi
-        self.bow, self.samples = self.samples, []
+        self.bow, self.samples, self._bow_t = self.samples, [], t_s
         self.found.update(out)
         return out
 
@@ -756,10 +764,14 @@ class TrunkBow:
         head and arms go with the trunk: the assumption the hold makes too), so
         each joined joint's child, and all below it, is turned at once by the
         joint's mean twist over the bow's samples against the pose's, from the
-        root out."""
+        root out, as far as two tags can have drifted apart since the pose
+        (``SNAP_DEG_PER_MIN`` each, and ``SNAP_NOISE_DEG``): a bow just after the
+        pose, twisted, is not taken for drift."""
         new = set(found)
         if not self.bow or not new or not profile.drift_joints[1]:
             return {}
+        minutes = (self._bow_t - (self._t0 if self._t0 is not None else self._bow_t)) / 60.0
+        most = self.SNAP_NOISE_DEG + 2.0 * self.SNAP_DEG_PER_MIN * minutes
         turns: dict[str, float] = {}
         for _, p_key, child, c_key, twist0 in self._joints:
             if not (profile.heading_known(p_key) and profile.heading_known(c_key)):
@@ -776,6 +788,7 @@ class TrunkBow:
             if len(offsets) < len(self.bow) // 2:
                 continue
             turn = math.degrees(math.atan2(np.sin(offsets).mean(), np.cos(offsets).mean()))
+            turn = max(-most, min(most, turn))
             keys = [k for k in self._subtree[child] if profile.heading_known(k)]
             profile = turned_headings(profile, dict.fromkeys(keys, turn))
             for k in keys:
