@@ -660,8 +660,28 @@ class TrunkBow:
         gate = next((s for s in ("pelvis", "thorax") if s in self.tags), None)
         self.gate = self.tags[gate][0] if gate is not None else None
         self.samples: list[dict[str, np.ndarray]] = []
+        self.bow: list[dict[str, np.ndarray]] = []  # the samples of the last headings found
         self.found: dict[str, float] = {}
         self._last = -math.inf
+        #: the three-dof joints from the root out (parent's segment and tag, child's
+        #: segment and tag, the twist in the pose), and each segment's tags and below
+        self._joints: list[tuple[str, str, str, str, float]] = []
+        for _, parent, child in sorted(TWIST_JOINTS, key=lambda j: TWIST_ORDER.index(j[0])):
+            sided = child in ("thigh", "upperarm")
+            for name in [f"{side}_{child}" for side in ("left", "right")] if sided else [child]:
+                if parent in by_segment and name in by_segment:
+                    twist0 = _twist(segments[parent], segments[name]) or 0.0
+                    self._joints.append((parent, by_segment[parent], name, by_segment[name],
+                                         twist0))  # fmt: skip
+        below: dict[str, list[str]] = {}
+        for j in build_skeleton(profile.lengths).joints:
+            below.setdefault(j.parent, []).append(j.child)
+
+        def subtree(seg: str) -> list[str]:
+            return [seg, *(s for c in below.get(seg, []) for s in subtree(c))]
+
+        self._subtree = {seg: [by_segment[s] for s in subtree(seg) if s in by_segment]
+                         for seg in by_segment}  # fmt: skip
 
     def coming(self, profile: Profile) -> set[str]:
         """The tags whose heading may still be found here."""
@@ -688,6 +708,7 @@ class TrunkBow:
             self.samples.clear()  # not (or no longer) bowing: a bow's samples are its own
             return {}
         self._last = t_s
+        rots.update({k: _quat_matrix(q) for k, q in orientations.items() if k not in rots})
         self.samples.append(rots)
         if len(self.samples) < self.SAMPLES:
             return {}
@@ -697,7 +718,7 @@ class TrunkBow:
                 psi = self._forward(key)
                 if psi is not None:
                     out[key] = psi
-        self.samples.clear()
+        self.bow, self.samples = self.samples, []
         self.found.update(out)
         return out
 
@@ -722,6 +743,44 @@ class TrunkBow:
         if n < self.SAMPLES // 2 or np.linalg.norm(units) < self.AGREEMENT * n:
             return None
         return _wrap(math.degrees(math.atan2(sums[1], sums[0])) - 180.0)
+
+    def snap(self, profile: Profile, found: Iterable[str]) -> dict[str, float]:
+        """The turns to add to tags' headings once ``found`` (tags just found, their
+        headings in ``profile``) join three-dof joints to tags known before.
+
+        A heading found from gravity is the tag's at calibration (its mount's),
+        while a tag's reference drifts, each its own way, from the pose on: the
+        joints the find joins would show the drift between their two tags since
+        then, until the three-dof joints' hold (:class:`JointDrift`) takes it out
+        (about 30 s). The bow twists none of them (the hips and lumbar flex, the
+        head and arms go with the trunk: the assumption the hold makes too), so
+        each joined joint's child, and all below it, is turned at once by the
+        joint's mean twist over the bow's samples against the pose's, from the
+        root out."""
+        new = set(found)
+        if not self.bow or not new or not profile.drift_joints[1]:
+            return {}
+        turns: dict[str, float] = {}
+        for _, p_key, child, c_key, twist0 in self._joints:
+            if not (profile.heading_known(p_key) and profile.heading_known(c_key)):
+                continue
+            if p_key not in new and c_key not in new:
+                continue  # joined before: the hold has it
+            offsets = []
+            for rots in self.bow:
+                if p_key in rots and c_key in rots:
+                    twist = _twist(JointDrift._segment(profile, p_key, rots[p_key]),
+                                   JointDrift._segment(profile, c_key, rots[c_key]))  # fmt: skip
+                    if twist is not None:
+                        offsets.append(math.radians(twist - twist0))
+            if len(offsets) < len(self.bow) // 2:
+                continue
+            turn = math.degrees(math.atan2(np.sin(offsets).mean(), np.cos(offsets).mean()))
+            keys = [k for k in self._subtree[child] if profile.heading_known(k)]
+            profile = turned_headings(profile, dict.fromkeys(keys, turn))
+            for k in keys:
+                turns[k] = turns.get(k, 0.0) + turn
+        return turns
 
 
 def _elbow_pair_headings(samples: Sequence[tuple[np.ndarray, np.ndarray]], seg_p: np.ndarray,
@@ -900,7 +959,8 @@ class BodyHeading:
     def update(self, t_s: float, samples: Mapping[Site, Any]) -> Profile | None:
         """Take one tick's samples (site -> RawSample); the profile with the heading
         once it is found (then never again; in ``independent`` mode, once per knee
-        and once per foot or hand whose parent's is known)."""
+        or elbow, once per foot or hand whose parent's is known, and once per bow
+        that gives trunk tags' headings: :class:`TrunkBow`)."""
         if not self.searching:
             return None  # nothing more to find
         orientations = {site.raw_key: s.reading.wxyz for site, s in samples.items()
@@ -911,11 +971,15 @@ class BodyHeading:
                 found.update(self.elbows.update(t_s, orientations))
             if self.children is not None:  # then the feet's and hands' below them
                 found.update(self.children.update(orientations, self.profile))
+            trunk: dict[str, float] = {}
             if self.trunk is not None:  # and the pelvis', chest's and head's from a bow
-                found.update(self.trunk.update(t_s, orientations, self.profile))
+                trunk = self.trunk.update(t_s, orientations, self.profile)
+                found.update(trunk)
             if not found:
                 return None
             self.profile = with_headings(self.profile, found)
+            if trunk and self.trunk is not None:  # the drift since the pose, at once
+                self.profile = turned_headings(self.profile, self.trunk.snap(self.profile, trunk))
             self.unknown = [k for k in self.unknown if k not in found]
             self.how = "partly found" if self.unknown else "found"
             return self.profile
@@ -1029,6 +1093,8 @@ TWIST_JOINTS = (
     ("neck", "thorax", "head"),
     ("shoulder", "thorax", "upperarm"),
 )
+#: the three-dof joints from the root out (a parent's before its children's)
+TWIST_ORDER = ("lumbar", "hip", "neck", "shoulder")
 #: a perpendicular constraint's grip on the heading (|d(c.p)/d heading| at the
 #: answer) below this: the child's heading is not seen at that instant
 PERPENDICULAR_MIN = 0.3

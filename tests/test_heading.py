@@ -775,3 +775,51 @@ def test_a_head_looking_up_in_a_shallow_bow_is_not_taken() -> None:
     assert lumbar
     assert max(lumbar) <= 2.0
     assert not any(n.startswith("neck") for _, errors, _ in ticks for n in errors)
+
+
+def test_tags_drifting_until_a_late_bow_are_joined_at_once() -> None:
+    """Independent 6-axis tags drifting (each within +/- 10 deg/min), the N-pose, then
+    30 s of walking and reaching before the bow: a heading found from gravity is
+    the tag's at calibration, the drift since then not in it. The bow twists no
+    joint, so the find turns each joined tag (and those below it) by its joint's
+    twist in the bow: the hips, lumbar, neck and shoulders within 2.5 deg in the 5 s
+    after the bow began; left to the three-dof joints' 30 s hold, 5 deg or more."""
+    from bodynet.nodes.motion import ROUTINES, bow, reach
+
+    still = dict(CALIBRATION_POSES["npose"])
+    down, walk, left, right = bow(), ROUTINES["walk"].angles, reach("left"), reach("right")
+
+    def angles(t: float) -> dict[str, float]:
+        if t < 1.0:
+            return dict(still)
+        if 31.0 <= t < 33.9:
+            return {**still, **down(t - 31.0)}
+        return {**walk(t), **left((t - 1.0) % 16.5), **right((t - 1.0) % 16.5)}
+
+    realism = Realism(yaw_drift_deg_per_min=10.0, headings=Headings.INDEPENDENT)
+    body = BodyEmulator(Routine("late-bow", "", angles), imu_tags(), realism=realism, seed=1)
+    independent = Profile(heading="independent", pose="npose")
+    profile = calibrate_window(_window(body, 0.2, 0.95), independent,
+                               "npose").apply(independent, "npose")  # fmt: skip
+    worst = {}
+    for snap in (True, False):
+        heading = BodyHeading(profile)
+        if not snap:
+            heading.trunk.snap = lambda profile, found: {}  # type: ignore[union-attr,method-assign]
+        solver = BodySolver(heading.profile)
+        worst[snap] = 0.0
+        for t in np.arange(1.0, 36.0, 1 / 25):
+            samples, truth = _samples(body, float(t))
+            step = heading.step(float(t), samples, solver.profile)
+            if step is not None and step[0] == "found":
+                solver = BodySolver(step[1])
+            elif step is not None:
+                heading.hold(solver, step[1])
+            out = solver.solve(samples)
+            errors = measured_errors(out.angles_deg, out.flags, truth)
+            if t >= 31.0:
+                trunk = [e for n, e in errors.items() if n.startswith(TRUNK_DOFS)]
+                worst[snap] = max(worst[snap], *trunk, 0.0)
+        assert not heading.unknown
+    assert 0.0 < worst[True] <= 2.5, worst
+    assert worst[False] >= 5.0, worst
