@@ -208,8 +208,17 @@ def cmd_record(args: argparse.Namespace) -> int:
         return 0
     stop = stop_on_signals()
     session = open_session(config_from_args(args))
-    recorder = Recorder(session, args.output, args.keys or DEFAULT_KEYS,
-                        int(args.rotate_mb * 1e6), args.rotate_s)  # fmt: skip
+    try:
+        recorder = Recorder(session, args.output, args.keys or DEFAULT_KEYS,
+                            int(args.rotate_mb * 1e6), args.rotate_s)  # fmt: skip
+    except OSError as exc:
+        session.close()
+        print(f"bodynet record: cannot write {args.output}: {exc.strerror or exc}",
+              file=sys.stderr)  # fmt: skip
+        return 2
+    if recorder.files[0] != args.output:  # an earlier recording is never emptied
+        print(f"bodynet record: {args.output} exists (kept); recording to {recorder.files[0]}",
+              file=sys.stderr)  # fmt: skip
     start = time.monotonic()
     try:
         while not stop.wait(1.0) and recorder.error is None:

@@ -146,6 +146,7 @@ def run_demo(endpoint: str, routine: str, seconds: float | None, record: Path,
     nodes.start()
     client = open_session(session_config("client", connect=[endpoint]))
     recorder = Recorder(client, record)
+    record = recorder.files[0]  # another name where that one is taken (it is kept)
     viewer = Viewer.start(viewer_mode, rrd, web_port=web_port)
     view_thread = threading.Thread(target=view_live, args=(client, viewer, stop), daemon=True)
     view_thread.start()

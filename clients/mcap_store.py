@@ -424,8 +424,11 @@ class McapSink:
     raises ``DecodeError`` before anything of it is written: the file goes on
     and closes complete."""
 
-    def __init__(self, path: Path, chunk_size: int = CHUNK_BYTES, max_chunk_s: float = 0.5) -> None:
-        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    def __init__(self, path: Path, chunk_size: int = CHUNK_BYTES, max_chunk_s: float = 0.5,
+                 exclusive: bool = False) -> None:  # fmt: skip
+        # exclusive: FileExistsError rather than a file of that name emptied
+        fd = os.open(path, os.O_WRONLY | os.O_CREAT | (os.O_EXCL if exclusive else os.O_TRUNC),
+                     0o600)  # fmt: skip
         self._stream = os.fdopen(fd, "wb")
         self._writer = LeanWriter(
             self._stream, chunk_size=chunk_size, compression=CompressionType.ZSTD
