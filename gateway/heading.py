@@ -629,13 +629,22 @@ class TrunkBow:
     agree (the mean resultant length of their directions at least
     ``AGREEMENT``). A tag not found in one bow is looked for in the next.
 
+    That rule sees the segment's own frame, so a chest or head twisted about its
+    long axis in the bow (the trunk or head turned) is taken for a heading. Above
+    the pelvis, the joint flexes in its parent's sagittal plane, twisted or not:
+    the chest's and head's heading *now* is the one that keeps the axis that was
+    vertical in the pose in that plane (:meth:`_level`). The difference between
+    the two is the tag's twist in the bow, or its drift against its parent since
+    the pose: drift as far as drift can have gone (``SNAP_DEG_PER_MIN``), the rest
+    twist; the heading at calibration (the mount's) is the level one less that
+    drift.
+
     The assumptions: the pelvis' first tilt past ``GATE_DEG`` is a forward bow
     (sitting down slumped, which tilts it backward, would be taken for one), and
-    in it the chest and the head tilt forward too: a head looking up while the
+    in it the chest and the head tilt forward too (a head looking up while the
     chest bows, tilted back as far as the pelvis forward, would be taken turned
-    round (the neck near the end of its range). Taking the head's way from the
-    chest's instead (the neck turning least) fails the same way: a head tilted
-    back while the chest bows fits the neck better turned round."""
+    round: the neck near the end of its range); the lumbar and neck do not bend
+    sideways in it (their lateral bend goes into the headings)."""
 
     SEGMENTS = ("pelvis", "thorax", "head")
     GATE_DEG = 20.0
@@ -647,6 +656,10 @@ class TrunkBow:
     #: joint's twist in a bow (deg): the bounds of :meth:`snap`
     SNAP_DEG_PER_MIN = 10.0
     SNAP_NOISE_DEG = 1.0
+    #: the chest's and head's heading now is searched this far (deg) from the forward
+    #: rule's, and taken when the worst fits this much worse (the sine of a tilt)
+    LEVEL_DEG = 45.0
+    LEVEL_GRIP = 0.2
 
     def __init__(self, profile: Profile) -> None:
         by_segment: dict[str, str] = {}
@@ -669,6 +682,9 @@ class TrunkBow:
         self._last = -math.inf
         self._t0: float | None = None
         self._bow_t = 0.0  # when the last headings were found
+        #: per tag placed against its parent at the last find: its heading now less
+        #: its heading at calibration (the drift between them since the pose)
+        self.drifted: dict[str, float] = {}
         #: the three-dof joints from the root out (parent's segment and tag, child's
         #: segment and tag, the twist in the pose), and each segment's tags and below
         self._joints: list[tuple[str, str, str, str, float]] = []
@@ -720,15 +736,77 @@ class TrunkBow:
         self.samples.append(rots)
         if len(self.samples) < self.SAMPLES:
             return {}
-        out: dict[str, float] = {}
-        for key, _, _ in self.tags.values():
-            if not profile.heading_known(key):
-                psi = self._forward(key)
-                if psi is not None:
-                    out[key] = psi
         self.bow, self.samples, self._bow_t = self.samples, [], t_s
+        out: dict[str, float] = {}
+        self.drifted, now = {}, {}  # heading now - at calibration; headings now
+        for seg, (key, _, _) in self.tags.items():
+            if profile.heading_known(key):
+                continue
+            psi = self._forward(key)
+            if psi is None:
+                continue
+            out[key] = now[key] = psi
+            parent = {"thorax": "pelvis", "head": "thorax"}.get(seg)
+            if parent is None or parent not in self.tags:
+                continue
+            p_key = self.tags[parent][0]
+            if not profile.heading_known(p_key) and p_key not in out:
+                continue
+            level = self._level(key, parent, profile, out, now, psi)
+            if level is None:
+                continue
+            # what is left of the forward rule's heading is drift since the pose, as
+            # far as two tags can have drifted apart; the rest, the bow's twist
+            most = self._most_drift()
+            drift = max(-most, min(most, _wrap(level - psi)))
+            out[key], now[key] = _wrap(level - drift), level
+            self.drifted[key] = drift
         self.found.update(out)
         return out
+
+    def _most_drift(self) -> float:
+        """How far two tags' references can have drifted apart since the pose (deg)."""
+        minutes = (self._bow_t - (self._t0 if self._t0 is not None else self._bow_t)) / 60.0
+        return 2.0 * self.SNAP_DEG_PER_MIN * minutes
+
+    def _level(self, key: str, parent: str, profile: Profile, found: Mapping[str, float],
+               now: Mapping[str, float], near: float) -> float | None:  # fmt: skip
+        """The tag's heading now, within ``LEVEL_DEG`` of ``near``, that keeps its
+        segment's axis that was vertical in the pose in its parent's sagittal plane
+        (the joint flexing, not bending sideways; a twist of the segment about that
+        axis does not move it) over the samples its segment tilted in (``found``,
+        ``now``: the headings at calibration and now of the tags found in this bow);
+        None without a grip (the two barely tilted)."""
+        p_key, p0, seg_p0 = self.tags[parent]
+        tag0 = self._tag0[key]
+        ups, sides = [], []
+        for rots in self.bow:
+            if key not in rots or p_key not in rots:
+                continue
+            g = self._gravity(key, rots[key])
+            if g[2] > min(math.cos(math.radians(self.TILT_DEG)),
+                          self._gravity(self.gate, rots[self.gate])[2] + 1e-9):  # fmt: skip
+                continue
+            if p_key in found:
+                cal, turn = rz(found[p_key]), rz(now[p_key])
+                seg_p = turn.T @ rots[p_key] @ p0.T @ cal @ seg_p0
+            else:
+                seg_p = JointDrift._segment(profile, p_key, rots[p_key])
+            sides.append(seg_p[:, 1])  # the parent's lateral axis, in the body's frame
+            ups.append(rots[key] @ tag0[2])  # the pose's vertical axis, in the tag's frame
+        if len(ups) < self.SAMPLES // 2:
+            return None
+        u, y = np.array(ups), np.array(sides)
+        psi = np.radians(near + np.arange(-self.LEVEL_DEG, self.LEVEL_DEG + 0.1, 0.1))
+        c, s = np.cos(psi)[:, None], np.sin(psi)[:, None]
+        # Rz(-psi) u . y, for each heading (rows) and sample (columns)
+        off = ((c * u[:, 0] + s * u[:, 1]) * y[:, 0] + (c * u[:, 1] - s * u[:, 0]) * y[:, 1]
+               + u[:, 2] * y[:, 2])  # fmt: skip
+        cost = (off**2).mean(axis=1)
+        k = int(np.argmin(cost))
+        if k in (0, len(psi) - 1) or cost.max() - cost[k] < self.LEVEL_GRIP**2:
+            return None  # no minimum in the window, or no grip on the heading
+        return _wrap(math.degrees(psi[k]))
 
     def _forward(self, key: str) -> float | None:
         """The tag's heading from the way gravity moved in its frame in the samples
@@ -739,7 +817,7 @@ class TrunkBow:
         at the end of the neck's.)"""
         sums, units, n = np.zeros(2), np.zeros(2), 0
         tilt = math.cos(math.radians(self.TILT_DEG))
-        for rots in self.samples:
+        for rots in self.bow:
             if key not in rots:
                 continue
             g = self._gravity(key, rots[key])
@@ -770,14 +848,13 @@ class TrunkBow:
         new = set(found)
         if not self.bow or not new or not profile.drift_joints[1]:
             return {}
-        minutes = (self._bow_t - (self._t0 if self._t0 is not None else self._bow_t)) / 60.0
-        most = self.SNAP_NOISE_DEG + 2.0 * self.SNAP_DEG_PER_MIN * minutes
+        most = self.SNAP_NOISE_DEG + self._most_drift()
         turns: dict[str, float] = {}
         for _, p_key, child, c_key, twist0 in self._joints:
             if not (profile.heading_known(p_key) and profile.heading_known(c_key)):
                 continue
-            if p_key not in new and c_key not in new:
-                continue  # joined before: the hold has it
+            if (p_key not in new and c_key not in new) or c_key in self.drifted:
+                continue  # joined before (the hold has it), or placed against its parent
             offsets = []
             for rots in self.bow:
                 if p_key in rots and c_key in rots:
@@ -992,6 +1069,7 @@ class BodyHeading:
                 return None
             self.profile = with_headings(self.profile, found)
             if trunk and self.trunk is not None:  # the drift since the pose, at once
+                self.profile = turned_headings(self.profile, self.trunk.drifted)
                 self.profile = turned_headings(self.profile, self.trunk.snap(self.profile, trunk))
             self.unknown = [k for k in self.unknown if k not in found]
             self.how = "partly found" if self.unknown else "found"

@@ -823,3 +823,31 @@ def test_tags_drifting_until_a_late_bow_are_joined_at_once() -> None:
         assert not heading.unknown
     assert 0.0 < worst[True] <= 2.5, worst
     assert worst[False] >= 5.0, worst
+
+
+def test_a_twisted_bow_still_gives_the_chest_and_head() -> None:
+    """A bow with the trunk twisted 10 deg and the head turned 20 deg: the way gravity
+    moves in the chest's and head's frames turns with them (the forward rule alone
+    is 7 deg off), but their axes that were vertical stay in the pelvis' and chest's
+    sagittal planes: the headings within 1 deg of the truth, and the lumbar and neck,
+    twist included, within 2 deg after."""
+    from bodynet.nodes.motion import bow
+
+    still = dict(CALIBRATION_POSES["npose"])
+    twisted = bow(lumbar_rotation_deg=10.0, neck_rotation_deg=20.0)
+    routine = Routine("twisted-bow", "", lambda t: {**still, **twisted(max(0.0, t - 1.0))})
+    body = BodyEmulator(routine, imu_tags(), realism=Realism(headings=Headings.INDEPENDENT),
+                        seed=4)  # fmt: skip
+    independent = Profile(heading="independent", pose="npose")
+    heading = BodyHeading(calibrate_window(_window(body, 0.2, 0.95), independent,
+                                           "npose").apply(independent, "npose"))  # fmt: skip
+    ticks = _follow(body, heading, 4.5)
+    truth = {s.site.raw_key: body.headings_deg[s.node] for s in body.sensors}
+    assert heading.trunk is not None
+    assert set(heading.trunk.found) == set(TRUNK_TAGS)
+    for key, psi in heading.trunk.found.items():
+        assert (psi - truth[key] + 180) % 360 - 180 == pytest.approx(0.0, abs=1.0), key
+    spine = [e for _, errors, _ in ticks for n, e in errors.items()
+             if n.startswith(("lumbar", "neck"))]  # fmt: skip
+    assert spine
+    assert max(spine) <= 2.0
