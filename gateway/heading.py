@@ -1135,7 +1135,26 @@ class BodyHeading:
                 out["waiting_for"] = (
                     finder.informative or "no hinge with both tags: declare a heading reference"
                 )
+        if self.pairs is not None and self.unknown:
+            out["waiting_for"] = self._motions_wanted()
         return out
+
+    def _motions_wanted(self) -> list[str]:
+        """The motions that would find the tags still unknown (``independent``)."""
+        segments = {seg.partition("_")[2] or seg for seg in _segments_of(self.unknown).values()}
+        want = []
+        if segments & {"thigh", "shank"}:
+            want.append("walk or swing a leg: the thighs' and shanks' tags")
+        if segments & {"upperarm", "forearm"}:
+            want.append("reach, the elbows bending: the arms' tags"
+                        if self.elbows is not None and self.elbows.pairs
+                        else "the arms' tags: calibrate in an N-pose, then reach")  # fmt: skip
+        if segments & {"foot", "hand"}:
+            want.append("move the feet and hands: their tags, once the legs' and arms' are known")
+        if segments & {"pelvis", "thorax", "head"}:
+            want.append("bow forward from the hips, the head following: the pelvis', chest's "
+                        "and head's tags")  # fmt: skip
+        return want
 
 
 #: Where the body faces, for the yaw reset: the first of these segments with a tag.

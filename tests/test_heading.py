@@ -711,6 +711,7 @@ def test_independent_trunk_tags_are_found_from_a_bow(seed: int, turn: float) -> 
         if not set(TRUNK_TAGS) <= set(known):  # never a number that may be wrong
             assert not any(n.startswith(TRUNK_DOFS) for n in errors), (t, errors)
     assert not heading.unknown
+    assert "waiting_for" not in heading.state()
     assert not heading.searching
     last = [errors for _, errors, known in ticks if len(known) == 15]
     assert len(last[-1]) == 32  # every dof measured
@@ -751,6 +752,9 @@ def test_a_walk_then_a_bow_after_a_t_pose_measures_the_hips_lumbar_and_neck() ->
     assert not any(n.startswith(("left_shoulder", "right_shoulder")) for n in measured)
     assert sorted(heading.unknown) == sorted(f"body/arm/{side}/{seg}/raw" for side in (
         "left", "right") for seg in ("upperarm", "forearm", "hand"))  # fmt: skip
+    wanted = " ".join(heading.state()["waiting_for"])
+    assert "N-pose" in wanted
+    assert "bow" not in wanted
 
 
 def test_a_head_looking_up_in_a_shallow_bow_is_not_taken() -> None:
@@ -771,6 +775,7 @@ def test_a_head_looking_up_in_a_shallow_bow_is_not_taken() -> None:
     ticks = _follow(body, heading, 4.5)
     assert heading.trunk is not None
     assert set(heading.trunk.found) == {"body/trunk/mid/sacrum/raw", "body/trunk/mid/chest/raw"}
+    assert any("bow" in wanted for wanted in heading.state()["waiting_for"])  # the head's
     lumbar = [e for _, errors, _ in ticks for n, e in errors.items() if n.startswith("lumbar")]
     assert lumbar
     assert max(lumbar) <= 2.0
