@@ -396,7 +396,7 @@ def cmd_process(args: argparse.Namespace) -> int:
         return 2
     from bodynet.core.errors import DecodeError
     from bodynet.gateway.heading import CalibrationRefused
-    from bodynet.nodes.captures import looks_like
+    from bodynet.nodes.captures import looks_else
     from bodynet.session.outputs import atomic_path
 
     calibration = None
@@ -410,11 +410,8 @@ def cmd_process(args: argparse.Namespace) -> int:
                              args.tick_hz, tpose_s, capture_options(args),
                              calibration, window=args.window, pose=args.pose)  # fmt: skip
             if not result.samples:  # nothing written: no empty recording is left
-                what = looks_like(args.input)
-                raise _Unusable(
-                    f"no {fmt} samples in {args.input} ({result.stats.summary()})"
-                    + (f"; it looks like {what}" if what else "")
-                )
+                raise _Unusable(f"no {fmt} samples in {args.input} ({result.stats.summary()})"
+                                + looks_else(args.input, fmt))  # fmt: skip
             too_long = args.tpose_s is not None and args.tpose_s > result.span_s
             if too_long and calibration is None and args.window is None:
                 raise _Unusable(f"--tpose-s {args.tpose_s:g} is longer than the capture "

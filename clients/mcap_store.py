@@ -414,8 +414,10 @@ class McapSink:
     and closes complete."""
 
     def __init__(self, path: Path, chunk_size: int = CHUNK_BYTES, max_chunk_s: float = 0.5,
-                 tf_min_gap_ns: int = TF_MIN_GAP_NS) -> None:  # fmt: skip
-        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+                 tf_min_gap_ns: int = TF_MIN_GAP_NS, exclusive: bool = False) -> None:  # fmt: skip
+        # exclusive: FileExistsError rather than a file of that name emptied
+        fd = os.open(path, os.O_WRONLY | os.O_CREAT | (os.O_EXCL if exclusive else os.O_TRUNC),
+                     0o600)  # fmt: skip
         self._stream = os.fdopen(fd, "wb")
         zstd = CompressionType.ZSTD
         self._writer = LeanWriter(self._stream, chunk_size, zstd, zstd_level=ZSTD_LEVEL)

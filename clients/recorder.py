@@ -72,7 +72,9 @@ DRAIN_S = 10.0
 class Recorder:
     """Writes what it receives to ``path``. With ``rotate_bytes`` / ``rotate_s``
     it goes on in ``<stem>-001.mcap``, ``-002``... once the current file is
-    that large or that old (0: never)."""
+    that large or that old (0: never). No file is emptied: a name that is
+    taken (an earlier recording, a recorder started again) is passed over for
+    the next of the series (``files`` says which were written)."""
 
     def __init__(
         self,
@@ -83,11 +85,11 @@ class Recorder:
         rotate_s: float = 0.0,
     ) -> None:
         self.path = path
-        self.files = [path]
+        self._index, first, self._sink = self._new_file(0)
+        self.files = [first]
         self.rejected = RejectCounts()
         keep_large_buffers_off_heap()  # before the first chunk's buffers
         self.rotate_bytes, self.rotate_s = rotate_bytes, rotate_s
-        self._sink = McapSink(path)
         self._opened = time.monotonic()
         self._done = 0  # messages in files already closed
         self._lock = threading.Lock()
@@ -135,6 +137,17 @@ class Recorder:
         if reply.ok is not None:
             self._on_sample(reply.ok)
 
+    def _new_file(self, index: int) -> tuple[int, Path, McapSink]:
+        """The first file of the series from ``index`` on (0: ``path`` itself,
+        else ``<stem>-NNN``) whose name is free, created, with its index."""
+        while True:
+            name = self.path if index == 0 else self.path.with_name(
+                f"{self.path.stem}-{index:03d}{self.path.suffix}")  # fmt: skip
+            try:
+                return index, name, McapSink(name, exclusive=True)
+            except FileExistsError:
+                index += 1
+
     @property
     def messages(self) -> int:
         return self._done + self._sink.messages
@@ -145,9 +158,8 @@ class Recorder:
         if too_big or too_old:
             self._sink.close()
             self._done += self._sink.messages
-            nxt = self.path.with_name(f"{self.path.stem}-{len(self.files):03d}{self.path.suffix}")
+            self._index, nxt, self._sink = self._new_file(self._index + 1)
             self.files.append(nxt)
-            self._sink = McapSink(nxt)
             self._opened = time.monotonic()
 
     def _on_sample(self, sample: zenoh.Sample) -> None:

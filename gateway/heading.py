@@ -629,13 +629,22 @@ class TrunkBow:
     agree (the mean resultant length of their directions at least
     ``AGREEMENT``). A tag not found in one bow is looked for in the next.
 
+    That rule sees the segment's own frame, so a chest or head twisted about its
+    long axis in the bow (the trunk or head turned) is taken for a heading. Above
+    the pelvis, the joint flexes in its parent's sagittal plane, twisted or not:
+    the chest's and head's heading *now* is the one that keeps the axis that was
+    vertical in the pose in that plane (:meth:`_level`). The difference between
+    the two is the tag's twist in the bow, or its drift against its parent since
+    the pose: drift as far as drift can have gone (``SNAP_DEG_PER_MIN``), the rest
+    twist; the heading at calibration (the mount's) is the level one less that
+    drift.
+
     The assumptions: the pelvis' first tilt past ``GATE_DEG`` is a forward bow
     (sitting down slumped, which tilts it backward, would be taken for one), and
-    in it the chest and the head tilt forward too: a head looking up while the
+    in it the chest and the head tilt forward too (a head looking up while the
     chest bows, tilted back as far as the pelvis forward, would be taken turned
-    round (the neck near the end of its range). Taking the head's way from the
-    chest's instead (the neck turning least) fails the same way: a head tilted
-    back while the chest bows fits the neck better turned round."""
+    round: the neck near the end of its range); the lumbar and neck do not bend
+    sideways in it (their lateral bend goes into the headings)."""
 
     SEGMENTS = ("pelvis", "thorax", "head")
     GATE_DEG = 20.0
@@ -643,6 +652,14 @@ class TrunkBow:
     SAMPLES = 20
     EVERY_S = 0.05
     AGREEMENT = 0.97
+    #: how fast a 6-axis tag's reference drifts at most (deg/min), and the noise of a
+    #: joint's twist in a bow (deg): the bounds of :meth:`snap`
+    SNAP_DEG_PER_MIN = 10.0
+    SNAP_NOISE_DEG = 1.0
+    #: the chest's and head's heading now is searched this far (deg) from the forward
+    #: rule's, and taken when the worst fits this much worse (the sine of a tilt)
+    LEVEL_DEG = 45.0
+    LEVEL_GRIP = 0.2
 
     def __init__(self, profile: Profile) -> None:
         by_segment: dict[str, str] = {}
@@ -660,8 +677,33 @@ class TrunkBow:
         gate = next((s for s in ("pelvis", "thorax") if s in self.tags), None)
         self.gate = self.tags[gate][0] if gate is not None else None
         self.samples: list[dict[str, np.ndarray]] = []
+        self.bow: list[dict[str, np.ndarray]] = []  # the samples of the last headings found
         self.found: dict[str, float] = {}
         self._last = -math.inf
+        self._t0: float | None = None
+        self._bow_t = 0.0  # when the last headings were found
+        #: per tag placed against its parent at the last find: its heading now less
+        #: its heading at calibration (the drift between them since the pose)
+        self.drifted: dict[str, float] = {}
+        #: the three-dof joints from the root out (parent's segment and tag, child's
+        #: segment and tag, the twist in the pose), and each segment's tags and below
+        self._joints: list[tuple[str, str, str, str, float]] = []
+        for _, parent, child in sorted(TWIST_JOINTS, key=lambda j: TWIST_ORDER.index(j[0])):
+            sided = child in ("thigh", "upperarm")
+            for name in [f"{side}_{child}" for side in ("left", "right")] if sided else [child]:
+                if parent in by_segment and name in by_segment:
+                    twist0 = _twist(segments[parent], segments[name]) or 0.0
+                    self._joints.append((parent, by_segment[parent], name, by_segment[name],
+                                         twist0))  # fmt: skip
+        below: dict[str, list[str]] = {}
+        for j in build_skeleton(profile.lengths).joints:
+            below.setdefault(j.parent, []).append(j.child)
+
+        def subtree(seg: str) -> list[str]:
+            return [seg, *(s for c in below.get(seg, []) for s in subtree(c))]
+
+        self._subtree = {seg: [by_segment[s] for s in subtree(seg) if s in by_segment]
+                         for seg in by_segment}  # fmt: skip
 
     def coming(self, profile: Profile) -> set[str]:
         """The tags whose heading may still be found here."""
@@ -678,6 +720,8 @@ class TrunkBow:
                profile: Profile) -> dict[str, float]:  # fmt: skip
         """Take one tick's tag orientations (``profile``: the headings known so far);
         the headings found at this tick."""
+        if self._t0 is None:
+            self._t0 = t_s  # the first tick after the pose
         if self.gate is None or self.gate not in orientations or not self.coming(profile):
             return {}
         if t_s - self._last < self.EVERY_S - 1e-6:
@@ -688,18 +732,81 @@ class TrunkBow:
             self.samples.clear()  # not (or no longer) bowing: a bow's samples are its own
             return {}
         self._last = t_s
+        rots.update({k: _quat_matrix(q) for k, q in orientations.items() if k not in rots})
         self.samples.append(rots)
         if len(self.samples) < self.SAMPLES:
             return {}
+        self.bow, self.samples, self._bow_t = self.samples, [], t_s
         out: dict[str, float] = {}
-        for key, _, _ in self.tags.values():
-            if not profile.heading_known(key):
-                psi = self._forward(key)
-                if psi is not None:
-                    out[key] = psi
-        self.samples.clear()
+        self.drifted, now = {}, {}  # heading now - at calibration; headings now
+        for seg, (key, _, _) in self.tags.items():
+            if profile.heading_known(key):
+                continue
+            psi = self._forward(key)
+            if psi is None:
+                continue
+            out[key] = now[key] = psi
+            parent = {"thorax": "pelvis", "head": "thorax"}.get(seg)
+            if parent is None or parent not in self.tags:
+                continue
+            p_key = self.tags[parent][0]
+            if not profile.heading_known(p_key) and p_key not in out:
+                continue
+            level = self._level(key, parent, profile, out, now, psi)
+            if level is None:
+                continue
+            # what is left of the forward rule's heading is drift since the pose, as
+            # far as two tags can have drifted apart; the rest, the bow's twist
+            most = self._most_drift()
+            drift = max(-most, min(most, _wrap(level - psi)))
+            out[key], now[key] = _wrap(level - drift), level
+            self.drifted[key] = drift
         self.found.update(out)
         return out
+
+    def _most_drift(self) -> float:
+        """How far two tags' references can have drifted apart since the pose (deg)."""
+        minutes = (self._bow_t - (self._t0 if self._t0 is not None else self._bow_t)) / 60.0
+        return 2.0 * self.SNAP_DEG_PER_MIN * minutes
+
+    def _level(self, key: str, parent: str, profile: Profile, found: Mapping[str, float],
+               now: Mapping[str, float], near: float) -> float | None:  # fmt: skip
+        """The tag's heading now, within ``LEVEL_DEG`` of ``near``, that keeps its
+        segment's axis that was vertical in the pose in its parent's sagittal plane
+        (the joint flexing, not bending sideways; a twist of the segment about that
+        axis does not move it) over the samples its segment tilted in (``found``,
+        ``now``: the headings at calibration and now of the tags found in this bow);
+        None without a grip (the two barely tilted)."""
+        p_key, p0, seg_p0 = self.tags[parent]
+        tag0 = self._tag0[key]
+        ups, sides = [], []
+        for rots in self.bow:
+            if key not in rots or p_key not in rots:
+                continue
+            g = self._gravity(key, rots[key])
+            if g[2] > min(math.cos(math.radians(self.TILT_DEG)),
+                          self._gravity(self.gate, rots[self.gate])[2] + 1e-9):  # fmt: skip
+                continue
+            if p_key in found:
+                cal, turn = rz(found[p_key]), rz(now[p_key])
+                seg_p = turn.T @ rots[p_key] @ p0.T @ cal @ seg_p0
+            else:
+                seg_p = JointDrift._segment(profile, p_key, rots[p_key])
+            sides.append(seg_p[:, 1])  # the parent's lateral axis, in the body's frame
+            ups.append(rots[key] @ tag0[2])  # the pose's vertical axis, in the tag's frame
+        if len(ups) < self.SAMPLES // 2:
+            return None
+        u, y = np.array(ups), np.array(sides)
+        psi = np.radians(near + np.arange(-self.LEVEL_DEG, self.LEVEL_DEG + 0.1, 0.1))
+        c, s = np.cos(psi)[:, None], np.sin(psi)[:, None]
+        # Rz(-psi) u . y, for each heading (rows) and sample (columns)
+        off = ((c * u[:, 0] + s * u[:, 1]) * y[:, 0] + (c * u[:, 1] - s * u[:, 0]) * y[:, 1]
+               + u[:, 2] * y[:, 2])  # fmt: skip
+        cost = (off**2).mean(axis=1)
+        k = int(np.argmin(cost))
+        if k in (0, len(psi) - 1) or cost.max() - cost[k] < self.LEVEL_GRIP**2:
+            return None  # no minimum in the window, or no grip on the heading
+        return _wrap(math.degrees(psi[k]))
 
     def _forward(self, key: str) -> float | None:
         """The tag's heading from the way gravity moved in its frame in the samples
@@ -710,7 +817,7 @@ class TrunkBow:
         at the end of the neck's.)"""
         sums, units, n = np.zeros(2), np.zeros(2), 0
         tilt = math.cos(math.radians(self.TILT_DEG))
-        for rots in self.samples:
+        for rots in self.bow:
             if key not in rots:
                 continue
             g = self._gravity(key, rots[key])
@@ -722,6 +829,48 @@ class TrunkBow:
         if n < self.SAMPLES // 2 or np.linalg.norm(units) < self.AGREEMENT * n:
             return None
         return _wrap(math.degrees(math.atan2(sums[1], sums[0])) - 180.0)
+
+    def snap(self, profile: Profile, found: Iterable[str]) -> dict[str, float]:
+        """The turns to add to tags' headings once ``found`` (tags just found, their
+        headings in ``profile``) join three-dof joints to tags known before.
+
+        A heading found from gravity is the tag's at calibration (its mount's),
+        while a tag's reference drifts, each its own way, from the pose on: the
+        joints the find joins would show the drift between their two tags since
+        then, until the three-dof joints' hold (:class:`JointDrift`) takes it out
+        (about 30 s). The bow twists none of them (the hips and lumbar flex, the
+        head and arms go with the trunk: the assumption the hold makes too), so
+        each joined joint's child, and all below it, is turned at once by the
+        joint's mean twist over the bow's samples against the pose's, from the
+        root out, as far as two tags can have drifted apart since the pose
+        (``SNAP_DEG_PER_MIN`` each, and ``SNAP_NOISE_DEG``): a bow just after the
+        pose, twisted, is not taken for drift."""
+        new = set(found)
+        if not self.bow or not new or not profile.drift_joints[1]:
+            return {}
+        most = self.SNAP_NOISE_DEG + self._most_drift()
+        turns: dict[str, float] = {}
+        for _, p_key, child, c_key, twist0 in self._joints:
+            if not (profile.heading_known(p_key) and profile.heading_known(c_key)):
+                continue
+            if (p_key not in new and c_key not in new) or c_key in self.drifted:
+                continue  # joined before (the hold has it), or placed against its parent
+            offsets = []
+            for rots in self.bow:
+                if p_key in rots and c_key in rots:
+                    twist = _twist(JointDrift._segment(profile, p_key, rots[p_key]),
+                                   JointDrift._segment(profile, c_key, rots[c_key]))  # fmt: skip
+                    if twist is not None:
+                        offsets.append(math.radians(twist - twist0))
+            if len(offsets) < len(self.bow) // 2:
+                continue
+            turn = math.degrees(math.atan2(np.sin(offsets).mean(), np.cos(offsets).mean()))
+            turn = max(-most, min(most, turn))
+            keys = [k for k in self._subtree[child] if profile.heading_known(k)]
+            profile = turned_headings(profile, dict.fromkeys(keys, turn))
+            for k in keys:
+                turns[k] = turns.get(k, 0.0) + turn
+        return turns
 
 
 def _elbow_pair_headings(samples: Sequence[tuple[np.ndarray, np.ndarray]], seg_p: np.ndarray,
@@ -900,7 +1049,8 @@ class BodyHeading:
     def update(self, t_s: float, samples: Mapping[Site, Any]) -> Profile | None:
         """Take one tick's samples (site -> RawSample); the profile with the heading
         once it is found (then never again; in ``independent`` mode, once per knee
-        and once per foot or hand whose parent's is known)."""
+        or elbow, once per foot or hand whose parent's is known, and once per bow
+        that gives trunk tags' headings: :class:`TrunkBow`)."""
         if not self.searching:
             return None  # nothing more to find
         orientations = {site.raw_key: s.reading.wxyz for site, s in samples.items()
@@ -911,11 +1061,16 @@ class BodyHeading:
                 found.update(self.elbows.update(t_s, orientations))
             if self.children is not None:  # then the feet's and hands' below them
                 found.update(self.children.update(orientations, self.profile))
+            trunk: dict[str, float] = {}
             if self.trunk is not None:  # and the pelvis', chest's and head's from a bow
-                found.update(self.trunk.update(t_s, orientations, self.profile))
+                trunk = self.trunk.update(t_s, orientations, self.profile)
+                found.update(trunk)
             if not found:
                 return None
             self.profile = with_headings(self.profile, found)
+            if trunk and self.trunk is not None:  # the drift since the pose, at once
+                self.profile = turned_headings(self.profile, self.trunk.drifted)
+                self.profile = turned_headings(self.profile, self.trunk.snap(self.profile, trunk))
             self.unknown = [k for k in self.unknown if k not in found]
             self.how = "partly found" if self.unknown else "found"
             return self.profile
@@ -980,7 +1135,26 @@ class BodyHeading:
                 out["waiting_for"] = (
                     finder.informative or "no hinge with both tags: declare a heading reference"
                 )
+        if self.pairs is not None and self.unknown:
+            out["waiting_for"] = self._motions_wanted()
         return out
+
+    def _motions_wanted(self) -> list[str]:
+        """The motions that would find the tags still unknown (``independent``)."""
+        segments = {seg.partition("_")[2] or seg for seg in _segments_of(self.unknown).values()}
+        want = []
+        if segments & {"thigh", "shank"}:
+            want.append("walk or swing a leg: the thighs' and shanks' tags")
+        if segments & {"upperarm", "forearm"}:
+            want.append("reach, the elbows bending: the arms' tags"
+                        if self.elbows is not None and self.elbows.pairs
+                        else "the arms' tags: calibrate in an N-pose, then reach")  # fmt: skip
+        if segments & {"foot", "hand"}:
+            want.append("move the feet and hands: their tags, once the legs' and arms' are known")
+        if segments & {"pelvis", "thorax", "head"}:
+            want.append("bow forward from the hips, the head following: the pelvis', chest's "
+                        "and head's tags")  # fmt: skip
+        return want
 
 
 #: Where the body faces, for the yaw reset: the first of these segments with a tag.
@@ -1029,6 +1203,8 @@ TWIST_JOINTS = (
     ("neck", "thorax", "head"),
     ("shoulder", "thorax", "upperarm"),
 )
+#: the three-dof joints from the root out (a parent's before its children's)
+TWIST_ORDER = ("lumbar", "hip", "neck", "shoulder")
 #: a perpendicular constraint's grip on the heading (|d(c.p)/d heading| at the
 #: answer) below this: the child's heading is not seen at that instant
 PERPENDICULAR_MIN = 0.3

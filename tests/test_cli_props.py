@@ -443,6 +443,12 @@ def test_unusable_captures_are_errors_naming_what_they_look_like(
             assert code == 2, (name, err)
             assert told in err, (name, err)
             assert not out.exists()  # no empty recording
+        head = tmp_path / "head.asc"  # a log of the asked format with no frame: no hint
+        head.write_text("date Thu Dec 03 21:18:51.770 2026\nbase hex  timestamps absolute\n")
+        code, err = cli(capsys, "decode", "--format", "can-log", head)
+        assert code == 2
+        assert err.splitlines()[-1] == f"bodynet decode: no can-log samples in {head}", err
+        head.unlink()
         code, err = cli(capsys, "process", corpus["smartsuit_arm.log"], "--tpose-s", "100",
                         "-o", out)  # fmt: skip
         assert code == 2
@@ -484,6 +490,15 @@ def test_report_view_and_replay_name_a_damaged_recording(
             code, err = cli(capsys, *args)  # replay: the file is told before any router wait
             assert code == 2, (args, err)
             assert "record --salvage" in err, (args, err)
+            assert "waiting for the router" not in err
+        for args, told in (  # no recording, and nothing to replay: told before any router wait
+            (["replay", corpus["smartsuit_arm.log"]], "not an MCAP recording"),
+            (["replay", corpus["chunked"]], "nothing to replay: "),  # poses only
+            (["replay", corpus["recording"], "--keys", "nothing/**"], "on these keys"),
+        ):
+            code, err = cli(capsys, *args, "-e", "tcp/127.0.0.1:1")
+            assert code == 2, (args, err)
+            assert told in err, (args, err)
             assert "waiting for the router" not in err
     assert list(tmp_path.iterdir()) == []
 
@@ -1068,13 +1083,30 @@ def _stopped(pid: int) -> bool:
         return f.read().rsplit(")", 1)[1].split()[0] in ("T", "t")
 
 
+@contextlib.contextmanager
+def _sigint_not_ignored() -> Iterator[None]:
+    """A child started in the block takes SIGINT as from a terminal's Ctrl-C, even
+    where this run was started in the background (a shell's background job has
+    SIGINT ignored, and its children inherit that; a handled signal is reset to
+    the default on exec)."""
+    ignored = signal.getsignal(signal.SIGINT) is signal.SIG_IGN
+    if ignored:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        yield
+    finally:
+        if ignored:
+            signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
 def _stop_mid_write(args: list[str], folder: Path, attempts: int = 5) -> subprocess.Popen[str]:
     """``bodynet ARGS`` started and stopped (SIGSTOP) while it writes its output
     in ``folder`` (its temporary file open, not yet in place); started again
     if it finished before it could be caught."""
     before = {p: p.read_bytes() for p in folder.iterdir()}
     for _ in range(attempts):
-        proc = subprocess.Popen([str(BODYNET), *args], stderr=subprocess.PIPE, text=True)
+        with _sigint_not_ignored():
+            proc = subprocess.Popen([str(BODYNET), *args], stderr=subprocess.PIPE, text=True)
         while proc.poll() is None:
             if not _writing(proc.pid, folder):
                 with contextlib.suppress(subprocess.TimeoutExpired):  # a breath, not a spin

@@ -109,6 +109,25 @@ def test_rotation_by_time(live_arm: None, router_endpoint: str, tmp_path: Path) 
     assert len(list(read_raw(tmp_path / "rot-001.mcap"))) > 0
 
 
+def test_a_recording_never_empties_an_earlier_one(
+    live_arm: None, router_endpoint: str, tmp_path: Path
+) -> None:
+    """``record -o`` a name taken (run twice, a recorder service started again):
+    the earlier files are kept whole; it goes on at the next free name."""
+    out = tmp_path / "rec.mcap"
+    earlier = {out: b"an earlier recording\n", tmp_path / "rec-001.mcap": b"its next file\n"}
+    for path, data in earlier.items():
+        path.write_bytes(data)
+    rec = start_recorder(router_endpoint, out, "--rotate-s", "0.5")
+    wait_for_size(tmp_path / "rec-003.mcap", 1)  # rotated past the taken names too
+    rec.send_signal(signal.SIGINT)
+    _, err = rec.communicate(timeout=20)
+    assert rec.returncode == 0, err
+    assert {path: path.read_bytes() for path in earlier} == earlier
+    assert f"{out} exists (kept); recording to {tmp_path / 'rec-002.mcap'}" in err
+    assert len(list(read_raw(tmp_path / "rec-002.mcap"))) > 0
+
+
 def processed_arm(tmp_path: Path, data_dir: Path) -> Path:
     """The golden SmartSuit arm capture through ``bodynet process``: 400 raw samples
     with their poses and transforms."""
