@@ -550,14 +550,22 @@ class ElbowPairs:
     calibration pose (an N-pose; in a T-pose it is vertical and the pair's common
     heading does not show). The samples are taken every ``EVERY_S`` once the
     forearm has turned past ``MOVED_DEG`` since calibration (how far the elbow
-    bends cannot be told before the headings are known), ``SAMPLES`` of them (a
-    reach: the arm lifted, the elbow bent); while another pair far from the best
-    fits as well (the elbow barely bent, as in a walk) nothing is taken, and the
-    older half of the samples make way for new ones."""
+    bends cannot be told before the headings are known). From ``MIN_SAMPLES`` on,
+    every ``TRY_EVERY`` samples, the pair is searched (every 5 deg; while another
+    pair far from the best fits as well, as in a walk with the elbows barely bent,
+    there is none) and the best refined (least squares, continuous); it is taken
+    once its uncertainty (about two standard deviations, from the misfit's spread
+    and the fit's Jacobian: how well the samples constrain the two headings) is
+    within ``MAX_UNC_DEG``: as soon as the reach has told, not after a fixed count
+    (the lift of a straight arm tells only the two headings' difference; the
+    elbow bending, both). Beyond ``MAX_SAMPLES`` the older half make way."""
 
-    SAMPLES = 50  # 5 s of a reach (40, 4 s, left an arm pair 1.9 deg off in 2 of 6 runs)
+    EVERY_S = 0.05
     MOVED_DEG = 10.0
-    EVERY_S = 0.1
+    MIN_SAMPLES = 20
+    TRY_EVERY = 4
+    MAX_SAMPLES = 120
+    MAX_UNC_DEG = 0.3
 
     def __init__(self, profile: Profile) -> None:
         by_segment: dict[str, str] = {}
@@ -575,8 +583,11 @@ class ElbowPairs:
             self.pairs[side] = (p, c, p0, c0, seg_p, seg_c)
         self.samples: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {s: [] for s in self.pairs}
         self.found: dict[str, float] = {}
+        #: per side, the uncertainty (deg) of the pair when taken
+        self.unc_deg: dict[str, float] = {}
         self.done: set[str] = set()
         self._last: dict[str, float] = {}
+        self._basin: dict[str, tuple[float, float]] = {}  # the grid's best (rad), refined on
 
     @property
     def coming(self) -> set[str]:
@@ -587,7 +598,7 @@ class ElbowPairs:
     def update(self, t_s: float, orientations: Mapping[str, QuatWxyz]) -> dict[str, float]:
         """Take one tick's tag orientations; the headings found at this tick."""
         out: dict[str, float] = {}
-        for side, (p, c, p0, c0, seg_p, seg_c) in self.pairs.items():
+        for side, (p, c, p0, c0, _, _) in self.pairs.items():
             if side in self.done or p not in orientations or c not in orientations:
                 continue
             if t_s - self._last.get(side, -math.inf) < self.EVERY_S - 1e-6:
@@ -597,16 +608,43 @@ class ElbowPairs:
             if np.linalg.norm(_rotvec(a_c)) < math.radians(self.MOVED_DEG):
                 continue
             self._last[side] = t_s
-            self.samples[side].append((a_p, a_c))
-            if len(self.samples[side]) >= self.SAMPLES:
-                found = _elbow_pair_headings(self.samples[side], seg_p, seg_c)
-                if found is None:  # not telling yet: the next samples may (a reach)
-                    del self.samples[side][: self.SAMPLES // 2]
-                    continue
-                self.done.add(side)
+            found = self.take(side, a_p, a_c)
+            if found is not None:
                 out[p], out[c] = found
         self.found.update(out)
         return out
+
+    def take(self, side: str, a_p: np.ndarray, a_c: np.ndarray) -> tuple[float, float] | None:
+        """One sample of a side (each tag's turn since calibration, in its own
+        reference frame); the pair's headings (deg) once they are known."""
+        samples = self.samples[side]
+        samples.append((a_p, a_c))
+        n = len(samples)
+        if n < self.MIN_SAMPLES or (n - self.MIN_SAMPLES) % self.TRY_EVERY:
+            return None
+        if n >= self.MAX_SAMPLES:  # not telling yet: the next samples may (a reach)
+            del samples[: n // 2]
+            self._basin.pop(side, None)
+            return None
+        seg_p, seg_c = self.pairs[side][4:]
+        start = self._basin.get(side) or _elbow_pair_grid(samples, seg_p, seg_c)
+        if start is None:
+            return None
+        fit = _elbow_pair_refine(samples, seg_p, seg_c, start)
+        if fit is None:
+            self._basin.pop(side, None)
+            return None
+        psi_p, psi_c, unc = fit
+        self._basin[side] = (psi_p, psi_c)
+        if unc > self.MAX_UNC_DEG:
+            return None
+        grid = _elbow_pair_grid(samples, seg_p, seg_c)  # still the best basin, with all samples
+        if grid is None or _apart_deg(grid, (psi_p, psi_c)) > 10.0:
+            self._basin.pop(side, None)
+            return None
+        self.done.add(side)
+        self.unc_deg[side] = round(unc, 3)
+        return _wrap(math.degrees(psi_p)), _wrap(math.degrees(psi_c))
 
 
 class TrunkBow:
@@ -873,27 +911,46 @@ class TrunkBow:
         return turns
 
 
-def _elbow_pair_headings(samples: Sequence[tuple[np.ndarray, np.ndarray]], seg_p: np.ndarray,
-                         seg_c: np.ndarray) -> tuple[float, float] | None:  # fmt: skip
-    """The upper arm's and forearm's tag headings (deg) that keep the elbow's axes
-    perpendicular with its flexion in range; None when no pair does."""
+def _elbow_pair_segments(samples: Sequence[tuple[np.ndarray, np.ndarray]], seg_p: np.ndarray,
+                         seg_c: np.ndarray, psi_p: np.ndarray, psi_c: np.ndarray
+                         ) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    """The upper arm and forearm (body frame; (k, n, 3, 3)) for each of ``k`` pairs
+    of headings (rad) and ``n`` samples (each tag's turn since calibration)."""
     a_p = np.array([a for a, _ in samples])
     a_c = np.array([b for _, b in samples])
+    rp, rc = _rz_batch(psi_p), _rz_batch(psi_c)
+    b_p = np.einsum("kji,njl,klm->knim", rp, a_p, rp) @ seg_p
+    b_c = np.einsum("kji,njl,klm->knim", rc, a_c, rc) @ seg_c
+    return b_p, b_c
+
+
+def _elbow_pair_cost(samples: Sequence[tuple[np.ndarray, np.ndarray]], seg_p: np.ndarray,
+                     seg_c: np.ndarray, psi_p: np.ndarray, psi_c: np.ndarray
+                     ) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    """Per pair of headings: the RMS of the elbow's axes' dot product (0:
+    perpendicular), and how far (deg, summed) its flexion falls outside its range."""
     lo, hi = rom("left_elbow_flexion_deg")
+    b_p, b_c = _elbow_pair_segments(samples, seg_p, seg_c, psi_p, psi_c)
+    perp = np.sqrt((np.einsum("kni,kni->kn", b_p[..., :, 1], b_c[..., :, 2]) ** 2).mean(1))
+    rel = np.einsum("knji,knjl->knil", b_p, b_c)  # the forearm in the upper arm
+    flexion = np.degrees(np.arctan2(rel[..., 2, 0], rel[..., 0, 0]))  # about -y
+    outside = np.maximum(0.0, np.maximum(lo - 10 - flexion, flexion - hi - 10)).sum(axis=1)
+    return perp, outside
 
-    def cost(psi_p: np.ndarray, psi_c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        rp, rc = _rz_batch(psi_p), _rz_batch(psi_c)
-        b_p = np.einsum("kji,njl,klm->knim", rp, a_p, rp) @ seg_p  # the segments, body frame
-        b_c = np.einsum("kji,njl,klm->knim", rc, a_c, rc) @ seg_c
-        perp = np.sqrt((np.einsum("kni,kni->kn", b_p[..., :, 1], b_c[..., :, 2]) ** 2).mean(1))
-        rel = np.einsum("knji,knjl->knil", b_p, b_c)  # the forearm in the upper arm
-        flexion = np.degrees(np.arctan2(rel[..., 2, 0], rel[..., 0, 0]))  # about -y
-        outside = np.maximum(0.0, np.maximum(lo - 10 - flexion, flexion - hi - 10)).sum(axis=1)
-        return perp, outside
 
+def _apart_deg(a: tuple[float, float], b: tuple[float, float]) -> float:
+    """How far apart (deg) two pairs of headings (rad) are, in the farther one."""
+    return max(abs(_wrap(math.degrees(x - y))) for x, y in zip(a, b, strict=True))
+
+
+def _elbow_pair_grid(samples: Sequence[tuple[np.ndarray, np.ndarray]], seg_p: np.ndarray,
+                     seg_c: np.ndarray) -> tuple[float, float] | None:  # fmt: skip
+    """The upper arm's and forearm's tag headings (rad, every 5 deg) that keep the
+    elbow's axes most nearly perpendicular with its flexion in range; None when
+    a pair far from it fits about as well (the motion does not tell)."""
     grid = np.radians(np.arange(0.0, 360.0, 5.0))
     gp, gc = (g.ravel() for g in np.meshgrid(grid, grid, indexing="ij"))
-    perp, outside = cost(gp, gc)
+    perp, outside = _elbow_pair_cost(samples, seg_p, seg_c, gp, gc)
     best = int(np.lexsort((perp, np.round(outside, 0)))[0])
     # a motion that fits a pair far from the best as well (within 20 deg of it in
     # neither heading, as much inside the range) tells nothing: the elbow barely bent
@@ -901,13 +958,37 @@ def _elbow_pair_headings(samples: Sequence[tuple[np.ndarray, np.ndarray]], seg_p
     rivals = (far > math.radians(20.0)) & (np.round(outside, 0) <= round(float(outside[best])))
     if rivals.any() and perp[rivals].min() < 2.0 * perp[best]:
         return None
-    fine = np.radians(np.arange(-5.0, 5.5, 0.5))
-    fp, fc = (g.ravel() for g in np.meshgrid(gp[best] + fine, gc[best] + fine, indexing="ij"))
-    perp, outside = cost(fp, fc)
-    k = int(np.lexsort((perp, np.round(outside, 0)))[0])
-    if math.degrees(math.asin(min(1.0, perp[k]))) > 3.0 or outside[k] > 5.0 * len(samples):
+    return float(gp[best]), float(gc[best])
+
+
+def _elbow_pair_refine(samples: Sequence[tuple[np.ndarray, np.ndarray]], seg_p: np.ndarray,
+                       seg_c: np.ndarray, start: tuple[float, float]
+                       ) -> tuple[float, float, float] | None:  # fmt: skip
+    """The pair of headings (rad) near ``start`` that keeps the elbow's axes
+    perpendicular (least squares), and its uncertainty (deg, about two standard
+    deviations: the misfit's spread through the fit's Jacobian); None when it is
+    not an elbow's motion (the axes off perpendicular by more than 3 deg, the
+    flexion out of range) or the fit left the basin (10 deg)."""
+    from scipy.optimize import least_squares
+
+    def residuals(x: np.ndarray) -> np.ndarray:
+        b_p, b_c = _elbow_pair_segments(samples, seg_p, seg_c, x[:1], x[1:])
+        return np.einsum("ni,ni->n", b_p[0, :, :, 1], b_c[0, :, :, 2])  # type: ignore[no-any-return]
+
+    fit = least_squares(residuals, np.array(start), method="lm")
+    psi_p, psi_c = (float(v) for v in fit.x)
+    if _apart_deg((psi_p, psi_c), start) > 10.0:
+        return None
+    n = len(samples)
+    perp, outside = _elbow_pair_cost(samples, seg_p, seg_c, fit.x[:1], fit.x[1:])
+    if math.degrees(math.asin(min(1.0, float(perp[0])))) > 3.0 or outside[0] > 5.0 * n:
         return None  # not an elbow's motion
-    return _wrap(math.degrees(fp[k])), _wrap(math.degrees(fc[k]))
+    jtj = fit.jac.T @ fit.jac
+    if abs(np.linalg.det(jtj)) < 1e-12:
+        return None
+    cov = float(fit.fun @ fit.fun) / max(1, n - 2) * np.linalg.inv(jtj)
+    unc = 2.0 * math.degrees(math.sqrt(max(float(np.linalg.eigvalsh(cov).max()), 0.0)))
+    return psi_p, psi_c, unc
 
 
 def _child_heading(samples: Sequence[tuple[np.ndarray, np.ndarray]], seg_p: np.ndarray,
