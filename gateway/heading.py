@@ -558,7 +558,9 @@ class ElbowPairs:
     and the fit's Jacobian: how well the samples constrain the two headings) is
     within ``MAX_UNC_DEG``: as soon as the reach has told, not after a fixed count
     (the lift of a straight arm tells only the two headings' difference; the
-    elbow bending, both). Beyond ``MAX_SAMPLES`` the older half make way."""
+    elbow bending, both; with sensors noisier than the emulator's 0.3 deg it may
+    never come that low: at ``MAX_SAMPLES`` it is taken within ``FULL_UNC_DEG``).
+    Beyond ``MAX_SAMPLES`` the older half make way."""
 
     EVERY_S = 0.05
     MOVED_DEG = 10.0
@@ -566,6 +568,7 @@ class ElbowPairs:
     TRY_EVERY = 4
     MAX_SAMPLES = 120
     MAX_UNC_DEG = 0.3
+    FULL_UNC_DEG = 1.0
 
     def __init__(self, profile: Profile) -> None:
         by_segment: dict[str, str] = {}
@@ -622,22 +625,19 @@ class ElbowPairs:
         n = len(samples)
         if n < self.MIN_SAMPLES or (n - self.MIN_SAMPLES) % self.TRY_EVERY:
             return None
-        if n >= self.MAX_SAMPLES:  # not telling yet: the next samples may (a reach)
-            del samples[: n // 2]
-            self._basin.pop(side, None)
-            return None
         seg_p, seg_c = self.pairs[side][4:]
         start = self._basin.get(side) or _elbow_pair_grid(samples, seg_p, seg_c)
-        if start is None:
-            return None
-        fit = _elbow_pair_refine(samples, seg_p, seg_c, start)
-        if fit is None:
-            self._basin.pop(side, None)
+        fit = None if start is None else _elbow_pair_refine(samples, seg_p, seg_c, start)
+        full = n >= self.MAX_SAMPLES
+        if fit is None or fit[2] > (self.FULL_UNC_DEG if full else self.MAX_UNC_DEG):
+            if fit is None or full:  # no basin (yet), or a new start
+                self._basin.pop(side, None)
+            else:  # refined on from here with the next samples
+                self._basin[side] = fit[:2]
+            if full:  # not telling yet: the next samples may (a reach)
+                del samples[: n // 2]
             return None
         psi_p, psi_c, unc = fit
-        self._basin[side] = (psi_p, psi_c)
-        if unc > self.MAX_UNC_DEG:
-            return None
         grid = _elbow_pair_grid(samples, seg_p, seg_c)  # still the best basin, with all samples
         if grid is None or _apart_deg(grid, (psi_p, psi_c)) > 10.0:
             self._basin.pop(side, None)
@@ -914,27 +914,31 @@ class TrunkBow:
 def _elbow_pair_segments(samples: Sequence[tuple[np.ndarray, np.ndarray]], seg_p: np.ndarray,
                          seg_c: np.ndarray, psi_p: np.ndarray, psi_c: np.ndarray
                          ) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
-    """The upper arm and forearm (body frame; (k, n, 3, 3)) for each of ``k`` pairs
-    of headings (rad) and ``n`` samples (each tag's turn since calibration)."""
-    a_p = np.array([a for a, _ in samples])
-    a_c = np.array([b for _, b in samples])
-    rp, rc = _rz_batch(psi_p), _rz_batch(psi_c)
-    b_p = np.einsum("kji,njl,klm->knim", rp, a_p, rp) @ seg_p
-    b_c = np.einsum("kji,njl,klm->knim", rc, a_c, rc) @ seg_c
+    """The upper arms (body frame; (kp, n, 3, 3)) for each of the ``kp`` headings
+    ``psi_p`` (rad) and ``n`` samples (each tag's turn since calibration), and the
+    forearms for each of ``psi_c``."""
+    a_p = np.array([a for a, _ in samples])[None]
+    a_c = np.array([b for _, b in samples])[None]
+    rp, rc = _rz_batch(psi_p)[:, None], _rz_batch(psi_c)[:, None]
+    b_p = rp.transpose(0, 1, 3, 2) @ a_p @ rp @ seg_p
+    b_c = rc.transpose(0, 1, 3, 2) @ a_c @ rc @ seg_c
     return b_p, b_c
 
 
 def _elbow_pair_cost(samples: Sequence[tuple[np.ndarray, np.ndarray]], seg_p: np.ndarray,
                      seg_c: np.ndarray, psi_p: np.ndarray, psi_c: np.ndarray
                      ) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
-    """Per pair of headings: the RMS of the elbow's axes' dot product (0:
-    perpendicular), and how far (deg, summed) its flexion falls outside its range."""
+    """Per pair of headings (each of ``psi_p`` with each of ``psi_c``: (kp, kc)): the
+    RMS of the elbow's axes' dot product (0: perpendicular), and how far (deg,
+    summed over the samples) its flexion falls outside its range."""
     lo, hi = rom("left_elbow_flexion_deg")
     b_p, b_c = _elbow_pair_segments(samples, seg_p, seg_c, psi_p, psi_c)
-    perp = np.sqrt((np.einsum("kni,kni->kn", b_p[..., :, 1], b_c[..., :, 2]) ** 2).mean(1))
-    rel = np.einsum("knji,knjl->knil", b_p, b_c)  # the forearm in the upper arm
-    flexion = np.degrees(np.arctan2(rel[..., 2, 0], rel[..., 0, 0]))  # about -y
-    outside = np.maximum(0.0, np.maximum(lo - 10 - flexion, flexion - hi - 10)).sum(axis=1)
+    perp = np.sqrt((np.einsum("pni,cni->pcn", b_p[..., :, 1], b_c[..., :, 2]) ** 2).mean(-1))
+    # the forearm in the upper arm: its flexion about -y
+    rel_20 = np.einsum("pni,cni->pcn", b_p[..., :, 2], b_c[..., :, 0])
+    rel_00 = np.einsum("pni,cni->pcn", b_p[..., :, 0], b_c[..., :, 0])
+    flexion = np.degrees(np.arctan2(rel_20, rel_00))
+    outside = np.maximum(0.0, np.maximum(lo - 10 - flexion, flexion - hi - 10)).sum(axis=-1)
     return perp, outside
 
 
@@ -950,7 +954,7 @@ def _elbow_pair_grid(samples: Sequence[tuple[np.ndarray, np.ndarray]], seg_p: np
     a pair far from it fits about as well (the motion does not tell)."""
     grid = np.radians(np.arange(0.0, 360.0, 5.0))
     gp, gc = (g.ravel() for g in np.meshgrid(grid, grid, indexing="ij"))
-    perp, outside = _elbow_pair_cost(samples, seg_p, seg_c, gp, gc)
+    perp, outside = (v.ravel() for v in _elbow_pair_cost(samples, seg_p, seg_c, grid, grid))
     best = int(np.lexsort((perp, np.round(outside, 0)))[0])
     # a motion that fits a pair far from the best as well (within 20 deg of it in
     # neither heading, as much inside the range) tells nothing: the elbow barely bent
@@ -981,7 +985,7 @@ def _elbow_pair_refine(samples: Sequence[tuple[np.ndarray, np.ndarray]], seg_p: 
         return None
     n = len(samples)
     perp, outside = _elbow_pair_cost(samples, seg_p, seg_c, fit.x[:1], fit.x[1:])
-    if math.degrees(math.asin(min(1.0, float(perp[0])))) > 3.0 or outside[0] > 5.0 * n:
+    if math.degrees(math.asin(min(1.0, float(perp[0, 0])))) > 3.0 or outside[0, 0] > 5.0 * n:
         return None  # not an elbow's motion
     jtj = fit.jac.T @ fit.jac
     if abs(np.linalg.det(jtj)) < 1e-12:
