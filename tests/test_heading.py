@@ -592,6 +592,55 @@ def test_independent_arm_tags_are_found_from_a_reach_after_an_n_pose(seed: int) 
     assert not any(n.startswith(("left_shoulder", "right_shoulder", "lumbar")) for n in measured)
 
 
+@pytest.mark.parametrize("seed", [2, 4, 6])
+def test_the_arms_headings_come_within_3_s_of_the_elbows_first_movement(seed: int) -> None:
+    """Independent 6-axis tags, the N-pose, then a reach (the arm lifted straight for
+    1.5 s, then the elbow bending): each pair's search is refined continuously and
+    taken once its uncertainty is low, so both arms' upper arm and forearm
+    headings are known within 3 s (emulated) of the elbow's first movement (the
+    truth's flexion past 1 deg; a fixed 50 samples every 0.1 s took 3.6 s), within
+    1 deg of the truth, and the elbows are measured within 2 deg from then on."""
+    from bodynet.nodes.motion import reach
+
+    left, right = reach("left"), reach("right")
+    still = dict(CALIBRATION_POSES["npose"])
+    routine = Routine("pose-then-reach", "", lambda t: still if t < 1.0
+                      else {**left(t - 1.0), **right(t - 1.0)})  # fmt: skip
+    body = BodyEmulator(routine, imu_tags(), realism=Realism(headings=Headings.INDEPENDENT),
+                        seed=seed)  # fmt: skip
+    independent = Profile(heading="independent", pose="npose")
+    heading = BodyHeading(calibrate_window(_window(body, 0.2, 0.95), independent,
+                                           "npose").apply(independent, "npose"))  # fmt: skip
+    solver = BodySolver(heading.profile)
+    moved: dict[str, float] = {}
+    known: dict[str, float] = {}
+    worst = 0.0
+    for t in np.arange(1.0, 6.5, 1 / RATE_HZ):
+        samples, truth = _samples(body, float(t))
+        for side in ("left", "right"):
+            if side not in moved and abs(truth.get(f"{side}_elbow_flexion_deg", 0.0)) > 1.0:
+                moved[side] = float(t)
+        step = heading.step(float(t), samples, solver.profile)
+        if step is not None and step[0] == "found":
+            solver = BodySolver(step[1])
+        for side in ("left", "right"):
+            keys = (f"body/arm/{side}/upperarm/raw", f"body/arm/{side}/forearm/raw")
+            if side not in known and all(heading.profile.heading_known(k) for k in keys):
+                known[side] = float(t)
+        out = solver.solve(samples)
+        errors = measured_errors(out.angles_deg, out.flags, truth)
+        worst = max(worst, *(e for n, e in errors.items() if "elbow" in n), 0.0)
+    assert set(known) == set(moved) == {"left", "right"}
+    for side in ("left", "right"):
+        assert 0.0 < known[side] - moved[side] <= 3.0, (side, moved, known)
+    truth_headings = {s.site.raw_key: body.headings_deg[s.node] for s in body.sensors}
+    assert heading.elbows is not None
+    assert len(heading.elbows.found) == 4
+    for key, psi in heading.elbows.found.items():
+        assert (psi - truth_headings[key] + 180) % 360 - 180 == pytest.approx(0.0, abs=1.0), key
+    assert 0.0 < worst <= 2.0
+
+
 def test_a_walk_after_an_n_pose_finds_no_arm_heading_and_holds_the_known_ones() -> None:
     """In a walk the elbows barely bend: every pair of arm headings fits as well as
     another, so none is taken (never a wrong one), the search for them goes on,
