@@ -16,12 +16,11 @@ import termios
 import time
 import warnings
 from pathlib import Path
-from typing import Any
 
 import ezc3d
 import numpy as np
 import pytest
-from foxglove_schemas_protobuf.FrameTransforms_pb2 import FrameTransforms
+from export_recordings import tf_message
 from mcap.reader import make_reader
 from mcap.writer import Writer
 from pyglm import glm
@@ -194,19 +193,6 @@ def test_c3d_read_by_ezc3d_matches_the_poses(body_mcap: Path, tmp_path: Path) ->
             np.testing.assert_allclose(got, want, atol=1e-3)
     description = point["DESCRIPTIONS"]["value"][labels.index("left_shoulder_angles")]
     assert "x flexion, y abduction, z rotation" in description
-
-
-def tf_message(data: bytes) -> dict[str, Any]:
-    """A ``foxglove.FrameTransforms`` message read with Foxglove's own class, laid
-    out as its JSON form (time as ``sec``, ``nsec``)."""
-    message = FrameTransforms()
-    message.ParseFromString(data)
-    return {"transforms": [
-        {"timestamp": {"sec": t.timestamp.seconds, "nsec": t.timestamp.nanos},
-         "parent_frame_id": t.parent_frame_id, "child_frame_id": t.child_frame_id,
-         "translation": {a: getattr(t.translation, a) for a in "xyz"},
-         "rotation": {a: getattr(t.rotation, a) for a in "xyzw"}}
-        for t in message.transforms]}  # fmt: skip
 
 
 def test_recordings_carry_foxglove_transforms(body_mcap: Path) -> None:

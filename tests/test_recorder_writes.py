@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 import orjson
 import pytest
+from export_recordings import tf_message
 from foxglove_schemas_protobuf.FrameTransforms_pb2 import FrameTransforms
 from google.protobuf import descriptor_pb2
 from hypothesis import given
@@ -34,19 +35,6 @@ from bodynet.core.codecs import pose
 from bodynet.core.errors import DecodeError
 
 TF = keys.TRANSFORMS
-
-
-def tf_message(data: bytes) -> dict[str, Any]:
-    """A ``foxglove.FrameTransforms`` message read with Foxglove's own class,
-    as the JSON form of the schema lays it out (time as ``sec``, ``nsec``)."""
-    message = FrameTransforms()
-    message.ParseFromString(data)
-    return {"transforms": [
-        {"timestamp": {"sec": t.timestamp.seconds, "nsec": t.timestamp.nanos},
-         "parent_frame_id": t.parent_frame_id, "child_frame_id": t.child_frame_id,
-         "translation": {a: getattr(t.translation, a) for a in "xyz"},
-         "rotation": {a: getattr(t.rotation, a) for a in "xyzw"}}
-        for t in message.transforms]}  # fmt: skip
 
 
 def _write(cls: type[Writer], lean: bool = True) -> bytes:
