@@ -698,6 +698,8 @@ class TrunkBow:
     #: rule's, and taken when the worst fits this much worse (the sine of a tilt)
     LEVEL_DEG = 45.0
     LEVEL_GRIP = 0.2
+    #: the drift found at a bow is taken as a rate over the time since the pose, or this
+    RATE_SINCE_S = 60.0
 
     def __init__(self, profile: Profile) -> None:
         by_segment: dict[str, str] = {}
@@ -723,6 +725,8 @@ class TrunkBow:
         #: per tag placed against its parent at the last find: its heading now less
         #: its heading at calibration (the drift between them since the pose)
         self.drifted: dict[str, float] = {}
+        #: per tag turned at the last find by its joint's twist in the bow (deg)
+        self.joined: dict[str, float] = {}
         #: the three-dof joints from the root out (parent's segment and tag, child's
         #: segment and tag, the twist in the pose), and each segment's tags and below
         self._joints: list[tuple[str, str, str, str, float]] = []
@@ -775,6 +779,7 @@ class TrunkBow:
         if len(self.samples) < self.SAMPLES:
             return {}
         self.bow, self.samples, self._bow_t = self.samples, [], t_s
+        self.joined = {}
         out: dict[str, float] = {}
         self.drifted, now = {}, {}  # heading now - at calibration; headings now
         for seg, (key, _, _) in self.tags.items():
@@ -908,7 +913,18 @@ class TrunkBow:
             profile = turned_headings(profile, dict.fromkeys(keys, turn))
             for k in keys:
                 turns[k] = turns.get(k, 0.0) + turn
+            self.joined[c_key] = turn
         return turns
+
+    def drift_rates(self) -> dict[str, float]:
+        """Per tag the last find placed against its parent (``drifted``) or turned by
+        its joint's twist (``joined``): the drift between them since the pose, as a
+        rate (deg/s) over the time since, at least ``RATE_SINCE_S`` (a bow soon after
+        the pose says little of a rate), for the three-dof joints' hold to start from
+        (:class:`JointDrift`'s loop would otherwise learn it from zero)."""
+        since = self._bow_t - (self._t0 if self._t0 is not None else self._bow_t)
+        since = max(since, self.RATE_SINCE_S)
+        return {k: v / since for k, v in {**self.drifted, **self.joined}.items()}
 
 
 def _elbow_pair_segments(samples: Sequence[tuple[np.ndarray, np.ndarray]], seg_p: np.ndarray,
@@ -1156,6 +1172,10 @@ class BodyHeading:
             if trunk and self.trunk is not None:  # the drift since the pose, at once
                 self.profile = turned_headings(self.profile, self.trunk.drifted)
                 self.profile = turned_headings(self.profile, self.trunk.snap(self.profile, trunk))
+                if self.drift is not None:  # and the rate of that drift, to hold on with
+                    for key, rate in self.trunk.drift_rates().items():
+                        if key in self.drift.rate_deg_s:
+                            self.drift.rate_deg_s[key] = rate
             self.unknown = [k for k in self.unknown if k not in found]
             self.how = "partly found" if self.unknown else "found"
             return self.profile
