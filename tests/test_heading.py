@@ -901,3 +901,50 @@ def test_a_twisted_bow_still_gives_the_chest_and_head() -> None:
              if n.startswith(("lumbar", "neck"))]  # fmt: skip
     assert spine
     assert max(spine) <= 2.0
+
+
+@pytest.mark.parametrize("seed", [1, 3])
+def test_a_bow_a_minute_after_the_pose_starts_the_hold_at_the_drift_rate(seed: int) -> None:
+    """Independent 6-axis tags drifting within +/- 5 deg/min, the N-pose, a minute of
+    walking and reaching, a bow, a minute more: the drift each join found (the
+    joint's twist in the bow, the chest's and head's placing) over the minute since
+    the pose is its rate, and the three-dof joints' hold starts from it: the hips,
+    lumbar, neck and shoulders within 2.5 deg through the minute after the bow
+    (learning the rates from zero, 2.9 and 3.4 deg)."""
+    from bodynet.nodes.motion import ROUTINES, bow, reach
+
+    still = dict(CALIBRATION_POSES["npose"])
+    down, walk, left, right = bow(), ROUTINES["walk"].angles, reach("left"), reach("right")
+
+    def angles(t: float) -> dict[str, float]:
+        if t < 1.0:
+            return dict(still)
+        if 61.0 <= t < 63.9:
+            return {**still, **down(t - 61.0)}
+        return {**walk(t), **left((t - 1.0) % 16.5), **right((t - 1.0) % 16.5)}
+
+    realism = Realism(yaw_drift_deg_per_min=5.0, headings=Headings.INDEPENDENT)
+    body = BodyEmulator(Routine("bow-at-a-minute", "", angles), imu_tags(), realism=realism,
+                        seed=seed)  # fmt: skip
+    independent = Profile(heading="independent", pose="npose")
+    heading = BodyHeading(calibrate_window(_window(body, 0.2, 0.95), independent,
+                                           "npose").apply(independent, "npose"))  # fmt: skip
+    solver = BodySolver(heading.profile)
+    worst, rates = 0.0, {}
+    for t in np.arange(1.0, 121.0, 1 / 20):
+        samples, truth = _samples(body, float(t))
+        step = heading.step(float(t), samples, solver.profile)
+        if step is not None and step[0] == "found":
+            solver = BodySolver(step[1])
+            if heading.trunk is not None and heading.trunk.found and not rates:
+                rates = heading.trunk.drift_rates()
+        elif step is not None:
+            heading.hold(solver, step[1])
+        out = solver.solve(samples)
+        errors = measured_errors(out.angles_deg, out.flags, truth)
+        if t >= 61.0:
+            worst = max(worst, *(e for n, e in errors.items() if n.startswith(TRUNK_DOFS)), 0.0)
+    assert not heading.unknown
+    assert "body/trunk/mid/chest/raw" in rates
+    assert any(abs(r) > 0.5 / 60 for r in rates.values())  # deg/s: drift was found
+    assert 0.0 < worst <= 2.5
