@@ -69,7 +69,15 @@ def feed_schedule(bodies: range, nodes: int, rate_hz: float, feed: str,
 
 
 def _feed(endpoint: str, seconds: float, sent: Any, ready: Any, bodies: range, total: int,
-          rate_hz: float = RATE_HZ, feed: str = "locked") -> None:  # fmt: skip
+          rate_hz: float = RATE_HZ, feed: str = "locked", finished: Any = None,
+          hold: Any = None, bridges: bool = False) -> None:  # fmt: skip
+    """Publish ``bodies``' raw samples for ``seconds`` once ``ready``, counting them
+    in ``sent``; with ``bridges``, through the node bridges' own publishers
+    (``bodynet.nodes.publisher``: advanced, with a cache a recovering subscriber
+    fetches what it missed from), else plain ones (both congestion control
+    BLOCK). With ``hold``: once done, add one to ``finished`` and keep the
+    session open until ``hold`` is set (closing it drops what its queues still
+    hold, which a subscriber that is behind has not yet had)."""
     import heapq
 
     import zenoh
@@ -85,12 +93,16 @@ def _feed(endpoint: str, seconds: float, sent: Any, ready: Any, bodies: range, t
     frames = [
         body.sample(k / rate_hz)[0] for k in range(int(rate_hz))
     ]  # a second of motion, looped
+    from bodynet.nodes.publisher import _raw_publisher
+
     block = zenoh.CongestionControl.BLOCK
     pubs = [
-        session.declare_publisher(subject(b, total) + t.site.raw_key, congestion_control=block)
+        _raw_publisher(session, subject(b, total) + t.site.raw_key) if bridges
+        else session.declare_publisher(subject(b, total) + t.site.raw_key,
+                                       congestion_control=block)
         for b in bodies
         for t in tags
-    ]
+    ]  # fmt: skip
     schedule = feed_schedule(bodies, len(tags), rate_hz, feed)
     rng = np.random.default_rng(bodies.start + 1)
     jitter = JITTER_S if feed == "realistic" else 0.0
@@ -119,6 +131,10 @@ def _feed(endpoint: str, seconds: float, sent: Any, ready: Any, bodies: range, t
             heapq.heappush(due, (nxt + late, i, tick + 1))
     with sent.get_lock():
         sent.value += count
+    if hold is not None:
+        with finished.get_lock():
+            finished.value += 1
+        hold.wait(120)
     session.close()
 
 

@@ -1,20 +1,25 @@
 """Recorder messages/s beside the bare ``mcap`` writer, in one run.
 
-Baseline: the ``mcap`` library's own ``Writer`` (same 1 MiB zstd chunks)
-storing each message's bytes as they came off the wire, no decoding. bodynet's
-``McapSink`` does what the recorder does per message: a raw sample is decoded
-and stored as JSON with a schema (so generic MCAP tools can plot it); a pose
-is stored as it came, with its Foxglove transforms made from its segments (2 s
-of a walking body's poses, as the gateway publishes them). A third
-row is the whole recorder live: a feeder process publishes raw samples as
-fast as Zenoh takes them (congestion control BLOCK, so nothing is dropped) and
-``Recorder`` writes them; its rate is what a recording can absorb end to end.
+Baseline: the ``mcap`` library's own ``Writer`` (same 1 MiB zstd chunks, at the
+library's level) storing each message's bytes as they came off the wire, no
+decoding. bodynet's ``McapSink`` does what the recorder does per message: a raw
+sample is decoded and stored as JSON with a schema (so generic MCAP tools can
+plot it); a pose is stored as it came, with its Foxglove transforms made from
+its segments at a display's rate (``mcap_store.TF_MIN_GAP_NS``: every other
+pose of the 2 s of a walking body's 100 Hz poses, as the gateway publishes
+them).
+Both rates are per second of the thread's CPU time (the wall clock of a shared
+machine counts the other processes too). A third row is the whole recorder
+live: a feeder process publishes raw samples as fast as Zenoh takes them
+(congestion control BLOCK, so nothing is dropped) and ``Recorder`` writes
+them; its rate (wall clock) is what a recording can absorb end to end.
 
 :func:`with_gateway` is the recording in use: ``bodynet gateway`` and
 ``bodynet record`` as processes on twenty bodies (15 nodes x 100 Hz each, the
-realistic feed of ``bench/gateway.py``), counting what the feeders sent and the
-gateway published (poses by their sequence numbers, topology and health as a
-probe saw them) against what the file holds.
+realistic feed of ``bench/gateway.py``, through the node bridges' own
+publishers), counting what the feeders sent and the gateway published (poses
+by their sequence numbers, topology and health as a probe saw them) against
+what the file holds.
 """
 
 from __future__ import annotations
@@ -32,7 +37,6 @@ from typing import Any
 from mcap.writer import CompressionType, Writer
 
 from bodynet.bench import machine
-from bodynet.bench.decode import _rate
 from bodynet.clients.mcap_store import CHUNK_BYTES, McapSink
 from bodynet.core.codecs import pose, raw_sample
 from bodynet.core.messages import RawSample, Source
@@ -73,6 +77,17 @@ def _pose_payloads(ticks: int) -> list[bytes]:
                   for t, r in zip(tags, readings, strict=True)}  # fmt: skip
         out.append(pose.encode(pose_frame(solver.solve(latest), k, [])))
     return out
+
+
+def _rate(work: Callable[[], int], seconds: float) -> float:
+    """Items per second of the thread's CPU time of ``work`` (which returns how
+    many items it did), run for ``seconds`` of it: on a shared machine the wall
+    clock counts the other processes' time too."""
+    work()  # warm up
+    done, start = 0, time.thread_time()
+    while (spent := time.thread_time() - start) < seconds:
+        done += work()
+    return done / spent
 
 
 def _bare(path: Path, topics: list[str], payloads: list[bytes]) -> Callable[[], int]:
@@ -180,7 +195,7 @@ def run(seconds: float = 1.0, out_dir: Path = Path("bench-results"), bodies: int
                      "baseline_per_s": bare})  # fmt: skip
         bare = _rate(_bare(f, ["body/pose"] * len(poses), poses), seconds)
         ours = _rate(_sink_pose(f, poses), seconds)
-        rows.append({"name": "whole-body poses (McapSink: as received, + transforms)",
+        rows.append({"name": "whole-body poses (McapSink: as received, + transforms at 50 Hz)",
                      "bodynet_per_s": ours, "baseline_per_s": bare})  # fmt: skip
         live = _live(max(seconds, 1.0), Path(tmp) / "live.mcap")
     for r in rows:
@@ -190,7 +205,8 @@ def run(seconds: float = 1.0, out_dir: Path = Path("bench-results"), bodies: int
     if bodies:
         result["with_gateway"] = with_gateway(bodies, gateway_seconds)
     table = (
-        "| messages | bodynet /s | bare mcap writer /s | ratio |\n|---|---:|---:|---:|\n"
+        "| messages (per second of the thread's CPU time) | bodynet /s | bare mcap writer /s "
+        "| ratio |\n|---|---:|---:|---:|\n"
         + "".join(
             f"| {r['name']} | {r['bodynet_per_s']:,.0f} | {r['baseline_per_s']:,.0f} | "
             f"{r['ratio']:.2f} |\n"
@@ -230,11 +246,12 @@ def _admin_counter(seen: Counter[str], ticks: dict[str, int]) -> Callable[[Any],
 
 def _in_file(path: Path, topics: set[str], since_ns: int, until_ns: int) -> dict[str, Any]:
     """What a recording holds: raw samples per count, the sequence numbers of each
-    pose topic, and the topology and health messages (topic and time) whose time
-    lies in ``[since_ns, until_ns]``."""
+    pose topic, the topology and health messages (topic and time) whose time
+    lies in ``[since_ns, until_ns]``, and how many raw samples its gap records
+    say are missing between the ones it holds."""
     from mcap.reader import make_reader
 
-    from bodynet.clients.mcap_store import GAPS_TOPIC, channel_counts
+    from bodynet.clients.mcap_store import GAPS_TOPIC, channel_counts, read_gaps
 
     counts = channel_counts(path) or []
     raw = sum(c.messages for c in counts if c.schema == "bodynet.RawSample")
@@ -251,7 +268,8 @@ def _in_file(path: Path, topics: set[str], since_ns: int, until_ns: int) -> dict
             elif since_ns <= message.log_time <= until_ns and channel.topic in topics:
                 admin[f"{channel.topic} {message.log_time}"] += 1
     gaps = sum(c.messages for c in counts if c.topic == GAPS_TOPIC)
-    return {"raw": raw, "seqs": seqs, "admin": admin, "gaps": gaps}
+    raw_between = sum(g.missing for g in read_gaps(path) if g.topic.endswith("/raw"))
+    return {"raw": raw, "seqs": seqs, "admin": admin, "gaps": gaps, "raw_between": raw_between}
 
 
 def with_gateway(bodies: int = 20, seconds: float = 10.0, feed: str = "realistic",
@@ -284,6 +302,9 @@ def with_gateway(bodies: int = 20, seconds: float = 10.0, feed: str = "realistic
         "bodies": bodies, "seconds": seconds, "feed": feed, "rate_hz_per_node": rate_hz,
         "raw_sent": run["sent"], "raw_recorded": held["raw"],
         "raw_lost": run["sent"] - held["raw"],
+        # of those, missing between samples the file holds (its gap records); the
+        # rest before a topic's first or after its last
+        "raw_lost_between": held["raw_between"],
         "poses_published": poses_published, "poses_recorded": poses_held,
         "poses_lost": poses_lost,
         "ticks_delivered": sum(ticks.values()) / (bodies * seconds * rate_hz),
@@ -308,6 +329,7 @@ def _record_with_gateway(tmp: Path, bodies: int, seconds: float, feed: str,
 
     ctx = mp.get_context("spawn")
     sent, ready = ctx.Value("q", 0), ctx.Event()
+    finished, hold = ctx.Value("i", 0), ctx.Event()  # the feeders done; may close
     seen: Counter[str] = Counter()
     ticks: dict[str, int] = {}
     waiting = threading.Event()
@@ -328,7 +350,7 @@ def _record_with_gateway(tmp: Path, bodies: int, seconds: float, feed: str,
         poses.undeclare()
         feeders = [ctx.Process(target=_feed, args=(endpoint, seconds, sent, ready,
                                                    range(i, min(i + 10, bodies)), bodies,
-                                                   rate_hz, feed))
+                                                   rate_hz, feed, finished, hold, True))
                    for i in range(0, bodies, 10)]  # fmt: skip
         for f in feeders:
             f.start()
@@ -337,6 +359,12 @@ def _record_with_gateway(tmp: Path, bodies: int, seconds: float, feed: str,
         cpu0 = {name: sum(p.cpu_times()[:2]) for name, p in watched.items()}
         since_ns = time.time_ns()
         ready.set()
+        _wait(lambda: finished.value >= len(feeders), seconds + 120, "the feeders")
+        # a recorder that is behind holds the feeders back (congestion control BLOCK):
+        # they keep their sessions until it has caught up, or what their queues
+        # hold would be dropped with them
+        _wait(_quiet(path), 120, "the recorder to catch up")
+        hold.set()
         for f in feeders:
             f.join()
         # the last (stale) ticks made, each body's count of them in its next health
@@ -357,6 +385,22 @@ def _record_with_gateway(tmp: Path, bodies: int, seconds: float, feed: str,
     topics = {k.rsplit(" ", 1)[0] for k in admin_seen}
     return {"sent": sent.value, "ticks": published, "cpu_s": cpu_s, "admin_seen": admin_seen,
             "held": _in_file(path, topics, since_ns, until_ns)}  # fmt: skip
+
+
+def _quiet(path: Path, bytes_per_s: float = 64_000, for_s: float = 1.5) -> Callable[[], bool]:
+    """A test that ``path`` (a recording) has grown by less than ``bytes_per_s``
+    for ``for_s`` (its chunks close every 0.5 s: a recorder writing a backlog of
+    raw samples adds megabytes a second, one that has caught up a few kB)."""
+    last = [path.stat().st_size if path.exists() else 0, time.monotonic(), time.monotonic()]
+
+    def done() -> bool:
+        size, now = path.stat().st_size if path.exists() else 0, time.monotonic()
+        if size - last[0] > bytes_per_s * max(now - last[1], 0.1):
+            last[2] = now  # still growing: quiet from now on, maybe
+        last[0], last[1] = size, now
+        return now - last[2] >= for_s
+
+    return done
 
 
 def _wait(done: Callable[[], bool], timeout: float, what: str) -> None:

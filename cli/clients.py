@@ -202,11 +202,23 @@ def cmd_record(args: argparse.Namespace) -> int:
             return 2
         print(f"bodynet record: {saved.messages} messages salvaged into {args.output}; "
               f"{saved.summary()}", file=sys.stderr)  # fmt: skip
+        uncounted = saved.uncounted()
+        if uncounted:
+            print(f"bodynet record: {args.salvage}: {uncounted}", file=sys.stderr)
         return 0
     stop = stop_on_signals()
     session = open_session(config_from_args(args))
-    recorder = Recorder(session, args.output, args.keys or DEFAULT_KEYS,
-                        int(args.rotate_mb * 1e6), args.rotate_s)  # fmt: skip
+    try:
+        recorder = Recorder(session, args.output, args.keys or DEFAULT_KEYS,
+                            int(args.rotate_mb * 1e6), args.rotate_s)  # fmt: skip
+    except OSError as exc:
+        session.close()
+        print(f"bodynet record: cannot write {args.output}: {exc.strerror or exc}",
+              file=sys.stderr)  # fmt: skip
+        return 2
+    if recorder.files[0] != args.output:  # an earlier recording is never emptied
+        print(f"bodynet record: {args.output} exists (kept); recording to {recorder.files[0]}",
+              file=sys.stderr)  # fmt: skip
     start = time.monotonic()
     try:
         while not stop.wait(1.0) and recorder.error is None:
@@ -235,13 +247,19 @@ def cmd_record(args: argparse.Namespace) -> int:
 def cmd_replay(args: argparse.Namespace) -> int:
     from bodynet.cli.nodes import stop_on_signals
     from bodynet.clients.mcap_store import StoreError, channel_counts
-    from bodynet.clients.replay import replay, topic_filter
+    from bodynet.clients.replay import RAW_SCHEMA_NAME, replay, topic_filter
 
+    nothing = (f"bodynet replay: nothing to replay: {args.recording} holds no raw samples"
+               + (" on these keys" if args.keys else ""))  # fmt: skip
     try:  # the file first: a mistake there is told before waiting for the router
-        topic_filter(args.keys or None)
-        channel_counts(args.recording)
+        wanted = topic_filter(args.keys or None)
+        counts = channel_counts(args.recording)
     except (ValueError, StoreError) as exc:
         print(f"bodynet replay: {exc}", file=sys.stderr)
+        return 2
+    if counts is not None and not any(c.schema == RAW_SCHEMA_NAME and c.messages
+                                      and wanted(c.topic) for c in counts):  # fmt: skip
+        print(nothing, file=sys.stderr)  # its summary says so: no router needed to tell
         return 2
     stop = stop_on_signals()
     session = open_session(config_from_args(args))
@@ -253,11 +271,10 @@ def cmd_replay(args: argparse.Namespace) -> int:
         return 2
     finally:
         session.close()
-    print(f"bodynet replay: {n} samples published", file=sys.stderr)
     if not n:
-        print(f"bodynet replay: nothing to replay: {args.recording} holds no raw samples"
-              + (" on these keys" if args.keys else ""), file=sys.stderr)  # fmt: skip
+        print(nothing, file=sys.stderr)
         return 2
+    print(f"bodynet replay: {n} samples published", file=sys.stderr)
     return 0
 
 

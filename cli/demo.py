@@ -31,10 +31,11 @@ from bodynet.nodes.services import EmulationOptions, body_plan, run_node
 from bodynet.session import open_session, session_config
 
 TPOSE_S = 4.0
-#: The demo asks the gateway to calibrate from this many still seconds, ending well
-#: before the T-pose does (the loop looks once a second): a window that took in the
-#: first movement would be refused.
+#: The demo asks the gateway to calibrate from this many still seconds, ending
+#: CALIBRATION_SLACK_S before the T-pose does (the body's clock starts with its
+#: nodes): a window that took in the first movement would be refused.
 CALIBRATION_S = 1.5
+CALIBRATION_SLACK_S = 1.0
 SHOWN = ("lumbar_flexion_deg", "left_shoulder_flexion_deg", "left_shoulder_abduction_deg",
          "left_elbow_flexion_deg", "right_shoulder_abduction_deg", "right_elbow_flexion_deg",
          "left_hip_flexion_deg", "left_knee_flexion_deg", "right_knee_flexion_deg")  # fmt: skip
@@ -143,9 +144,11 @@ def run_demo(endpoint: str, routine: str, seconds: float | None, record: Path,
         daemon=True,
         args=(node_session, stop, body_plan(), EmulationOptions(scripted)),
     )
+    start = time.monotonic()  # the emulated body's clock starts with its nodes
     nodes.start()
     client = open_session(session_config("client", connect=[endpoint]))
     recorder = Recorder(client, record)
+    record = recorder.files[0]  # another name where that one is taken (it is kept)
     viewer = Viewer.start(viewer_mode, rrd, web_port=web_port)
     view_thread = threading.Thread(target=view_live, args=(client, viewer, stop), daemon=True)
     view_thread.start()
@@ -157,11 +160,12 @@ def run_demo(endpoint: str, routine: str, seconds: float | None, record: Path,
 
     sub = client.declare_subscriber(keys.pose_key(), on_pose)
     _say_where(endpoint, record, routine, viewer.address, rrd)
-    start = time.monotonic()
     calibrated = False
-    while not stop.wait(1.0):
+    calibrate_at = TPOSE_S - CALIBRATION_SLACK_S
+    wait_s = 0.0
+    while not stop.wait(wait_s):
         elapsed = time.monotonic() - start
-        if not calibrated and elapsed >= TPOSE_S - CALIBRATION_S:
+        if not calibrated and elapsed >= calibrate_at:
             calibrated = True
             replies = list(client.get(f"{keys.CALIBRATE_TPOSE}?seconds={CALIBRATION_S}",
                                       timeout=10))  # fmt: skip
@@ -177,6 +181,10 @@ def run_demo(endpoint: str, routine: str, seconds: float | None, record: Path,
             print(_status_line(elapsed, frame, recorder.messages))
         if seconds is not None and elapsed >= seconds:
             stop.set()
+        # a line a second, and the calibration asked for on time (in the body's clock)
+        # however long the viewer took to start
+        left = calibrate_at - (time.monotonic() - start)
+        wait_s = 1.0 if calibrated else max(0.0, min(1.0, left))
     sub.undeclare()
     recorder.close()
     for thread in (view_thread, nodes, gw_thread):

@@ -149,8 +149,9 @@ def add_heading_args(p: argparse.ArgumentParser) -> None:
                    help="auto: the tags share one heading (magnetometer-based sensors) and the "
                         "subject faces anywhere: found from a knee's or elbow's motion after "
                         "the pose; fixed: the subject faced +X of the tags' frame; "
-                        "independent: 6-axis tags each with its own (the knees' tags found "
-                        "from a walk or leg swing) (default: the profile's, auto)")  # fmt: skip
+                        "independent: 6-axis tags each with its own (the legs' found from a "
+                        "walk, the arms' from a reach after an N-pose, the trunk's from a bow) "
+                        "(default: the profile's, auto)")  # fmt: skip
     p.add_argument(
         "--heading-reference",
         type=_reference_arg,
@@ -395,7 +396,7 @@ def cmd_process(args: argparse.Namespace) -> int:
         return 2
     from bodynet.core.errors import DecodeError
     from bodynet.gateway.heading import CalibrationRefused
-    from bodynet.nodes.captures import looks_like
+    from bodynet.nodes.captures import looks_else
     from bodynet.session.outputs import atomic_path
 
     calibration = None
@@ -409,11 +410,8 @@ def cmd_process(args: argparse.Namespace) -> int:
                              args.tick_hz, tpose_s, capture_options(args),
                              calibration, window=args.window, pose=args.pose)  # fmt: skip
             if not result.samples:  # nothing written: no empty recording is left
-                what = looks_like(args.input)
-                raise _Unusable(
-                    f"no {fmt} samples in {args.input} ({result.stats.summary()})"
-                    + (f"; it looks like {what}" if what else "")
-                )
+                raise _Unusable(f"no {fmt} samples in {args.input} ({result.stats.summary()})"
+                                + looks_else(args.input, fmt))  # fmt: skip
             too_long = args.tpose_s is not None and args.tpose_s > result.span_s
             if too_long and calibration is None and args.window is None:
                 raise _Unusable(f"--tpose-s {args.tpose_s:g} is longer than the capture "
@@ -429,8 +427,9 @@ def cmd_process(args: argparse.Namespace) -> int:
         "found": f"heading found ({heading.get('deg')} deg, {heading.get('hinge')})",
         "declared": f"heading declared ({heading.get('deg')} deg)",
         "fixed": "heading fixed (the subject faced +X)",
-        "partly found": "headings found for the knees' tags only (independent tags): the "
-        "other tags' dofs are flagged uncalibrated",
+        "partly found": "headings found for some tags only (independent tags: the legs' from "
+        "a walk, the arms' from a reach after an N-pose, the trunk's from a bow): the other "
+        "tags' dofs are flagged uncalibrated",
         "unknown": "heading NOT found (no knee or elbow moved): the tags' dofs are "
         "flagged uncalibrated; bend a knee after the pose, or pass "
         "--heading-reference or --heading fixed",
@@ -442,8 +441,9 @@ def cmd_process(args: argparse.Namespace) -> int:
             f"NOT calibrated: {result.refused} (the tags' dofs are flagged "
             "uncalibrated; say where the still pose is with --window START:END)"
         )
-    print(f"{result.ticks} ticks from {result.samples} samples -> {args.output}; "
-          f"{calibrated}; {note}; {result.stats.summary()}", file=sys.stderr)  # fmt: skip
+    told = "; ".join(part for part in (calibrated, note, result.stats.summary()) if part)
+    print(f"{result.ticks} ticks from {result.samples} samples -> {args.output}; {told}",
+          file=sys.stderr)  # fmt: skip
     return 0
 
 
@@ -533,6 +533,11 @@ def cmd_calibrate_ole(args: argparse.Namespace) -> int:
     from bodynet.session import profile_file
 
     key, angle_name = _module_site(args.joint)
+    try:  # before any pose is held: a profile that cannot be updated is said at once
+        profile = _profile(args.profile)
+    except ProfileError as exc:
+        print(f"bodynet calibrate ole: {exc}; nothing written", file=sys.stderr)
+        return 2
     pairs: list[tuple[float, float]] = []
     if args.from_pairs:
         try:
@@ -572,16 +577,15 @@ def cmd_calibrate_ole(args: argparse.Namespace) -> int:
         cal, fit = fit_calibration([a for a, _ in pairs], [c for _, c in pairs])
         if not (math.isfinite(fit.radius_mm) and math.isfinite(fit.r)):
             raise ValueError(f"R = {fit.radius_mm} mm, r = {fit.r}")
-        profile = _profile(args.profile).with_ole(angle_name, cal)
+        profile = profile.with_ole(angle_name, cal)
     except ValueError as exc:  # ProfileError too
         print(f"bodynet calibrate ole: no usable calibration from these pairs ({exc}); "
               "nothing written", file=sys.stderr)  # fmt: skip
         return 2
     try:
         profile_file.save(profile, args.profile)
-    except OSError as exc:
-        print(f"bodynet calibrate ole: cannot write {args.profile}: {exc.strerror or exc}",
-              file=sys.stderr)  # fmt: skip
+    except OSError as exc:  # OutputError names the profile
+        print(f"bodynet calibrate ole: {exc}", file=sys.stderr)
         return 2
     table = ", ".join(f"{d:g} mm: {s:.3f}" for d, s in zip(cal.sf_d_mm, cal.sf, strict=True))
     print(

@@ -42,7 +42,7 @@ def cmd_decode(args: argparse.Namespace) -> int:
         CaptureError,
         CaptureStats,
         capture_options,
-        looks_like,
+        looks_else,
         read_capture,
         sample_json,
     )
@@ -78,9 +78,8 @@ def cmd_decode(args: argparse.Namespace) -> int:
         return 1
     print(stats.summary(), file=sys.stderr)
     if not stats.decoded:
-        what = looks_like(args.file)
         print(f"bodynet decode: no {args.format} samples in {args.file}"
-              + (f"; it looks like {what}" if what else ""), file=sys.stderr)  # fmt: skip
+              + looks_else(args.file, args.format), file=sys.stderr)  # fmt: skip
         return 2
     return 0
 

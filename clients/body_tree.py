@@ -10,13 +10,14 @@ segment to its child segment.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
-import orjson
 from scipy.spatial.transform import Rotation
 
+from bodynet.clients import foxglove_pb
 from bodynet.core.skeleton import Skeleton, build_skeleton
 
 ROOT_SEGMENT = "pelvis"
@@ -24,7 +25,14 @@ ROOT_SEGMENT = "pelvis"
 
 def segment_parents(skeleton: Skeleton | None = None) -> dict[str, str]:
     """Parent segment of every non-root segment, parents before their children."""
-    return {j.child: j.parent for j in (skeleton or build_skeleton()).joints}
+    if skeleton is None:
+        return dict(_default_parents())
+    return {j.child: j.parent for j in skeleton.joints}
+
+
+@functools.cache  # each recording file asks for it (building the skeleton: a fraction of a ms)
+def _default_parents() -> dict[str, str]:
+    return segment_parents(build_skeleton())
 
 
 def local_poses(
@@ -60,23 +68,25 @@ def frame_transforms(
     parents: Mapping[str, str],
     world_frame: str = "world",
 ) -> list[bytes]:
-    """One ``foxglove.FrameTransforms`` message (JSON bytes) for each pose
+    """One ``foxglove.FrameTransforms`` message (protobuf bytes) for each pose
     ``(t_ns, segments)``, in order: see :class:`Transforms`."""
     rows = [(t, tuple(segs), [[*p, *q] for p, q in segs.values()]) for t, segs in poses]
     return Transforms(parents, world_frame).messages(rows)
 
 
 class Transforms:
-    """``foxglove.FrameTransforms`` messages (JSON bytes) of whole-body poses:
-    the root segment in ``world_frame``, every other segment in its parent
-    segment (``parents``). Segments whose chain to the root the pose lacks (a
-    branch view) are left out.
+    """``foxglove.FrameTransforms`` messages (protobuf bytes, see
+    ``foxglove_pb``) of whole-body poses: the root segment in ``world_frame``,
+    every other segment in its parent segment (``parents``). Segments whose
+    chain to the root the pose lacks (a branch view) are left out.
 
     A recorder makes one of these per whole-body pose, so the work is done for
     many poses at once: poses with the same segments are one numpy pass
-    (quaternion algebra on arrays, no rotation objects), and their JSON is one
-    template per segment set, filled with the numbers orjson writes for the whole
-    batch (a dict per transform cost several times the maths)."""
+    (quaternion algebra on arrays, no rotation objects), and their messages one
+    array filled from a template per segment set (and stamp length): the
+    numbers are doubles at fixed places, put there as bytes, with no Python
+    per message but its time stamp. (As JSON, formatting the 105 numbers of a
+    pose cost more than the maths, and the text twice the bytes to compress.)"""
 
     def __init__(self, parents: Mapping[str, str], world_frame: str = "world") -> None:
         self._parents = dict(parents)
@@ -86,8 +96,9 @@ class Transforms:
     def messages(self, poses: Sequence[tuple[int, Sequence[str | bytes], Any]]) -> list[bytes]:
         """One message per pose ``(t_ns, segment names, rows)``, in order; a row is
         a segment's world pose ``[x, y, z, qw, qx, qy, qz]`` (the rows: a sequence
-        of them or an array). Names may be UTF-8 bytes. A pose whose rows are not
-        that (or not finite numbers) gets a message with no transforms."""
+        of them or an array); ``t_ns`` from 0 to ``2**64 - 1``. Names may be UTF-8
+        bytes. A pose whose rows are not that (or not finite numbers) gets a
+        message with no transforms."""
         groups: dict[tuple[str | bytes, ...], list[int]] = {}
         for i, (_, names, _) in enumerate(poses):
             groups.setdefault(tuple(names), []).append(i)
@@ -112,6 +123,18 @@ class Transforms:
                 out[i] = message
         return out
 
+    def alike(self, times: Sequence[int], names: Sequence[str | bytes],
+              values: np.ndarray) -> list[bytes]:  # fmt: skip
+        """What :meth:`messages` gives for poses at ``times`` that all have the
+        segments ``names``, their rows ``values`` (B, S, 7), without sorting the
+        poses into groups first (a recording's poses: the same segments each)."""
+        plan = self._plan(tuple(names))
+        if plan is None:
+            return [_NO_TRANSFORMS] * len(times)
+        if values.shape == (len(times), len(names), 7) and bool(np.isfinite(values).all()):
+            return plan.fill(list(times), values)
+        return self.messages([(t, names, v) for t, v in zip(times, values, strict=True)])
+
     def _plan(self, names: tuple[str | bytes, ...]) -> _Plan | None:
         if names not in self._plans:
             try:
@@ -125,19 +148,22 @@ class Transforms:
         return self._plans[names]
 
 
-_NO_TRANSFORMS = b'{"transforms":[]}'
+_NO_TRANSFORMS = foxglove_pb.NO_TRANSFORMS
 
 
 class _Plan:
     """The transforms of one set of segment names: which columns, their parents'
-    columns and the message template around the numbers."""
+    columns, and the message's layout for each length of time stamp (where the
+    stamps and the numbers go in a template of the whole message)."""
 
-    def __init__(self, columns: list[int], parent_of: list[int], parts: list[bytes]) -> None:
+    def __init__(
+        self, columns: list[int], parent_of: list[int], frames: list[tuple[str, str]]
+    ) -> None:
         self.columns = np.asarray(columns)
         parent = np.asarray(parent_of)
         self.root = parent < 0
         self.parent = np.where(self.root, 0, parent)
-        self.parts = parts
+        self.frames = tuple(frames)  # (parent frame, child frame) of each transform
 
     @staticmethod
     def make(names: tuple[str, ...], parents: Mapping[str, str], world: str) -> _Plan | None:
@@ -158,8 +184,8 @@ class _Plan:
         where = {n: k for k, n in enumerate(kept)}
         parent_of = [where[parents[n]] if n != ROOT_SEGMENT else -1 for n in kept]
         columns = [names.index(n) for n in kept]
-        frames = [parents[n] if n != ROOT_SEGMENT else world for n in kept]
-        return _Plan(columns, parent_of, _template_parts(kept, frames))
+        frames = [(parents[n] if n != ROOT_SEGMENT else world, n) for n in kept]
+        return _Plan(columns, parent_of, frames)
 
     def fill(self, times: list[int], values: np.ndarray) -> list[bytes]:
         """The messages of poses at ``times`` whose rows are ``values`` (B, S, 7)."""
@@ -176,15 +202,43 @@ class _Plan:
         vec = aw * bv + bw * av + _cross(av, bv)
         c = _cross(av, d)
         t = d + 2.0 * (aw * c + _cross(av, c))
-        # 0.1 um and 1e-9 are below what the pose carries; + 0.0 turns -0.0 into 0.0
+        # 0.1 um and 1e-9 are below what the pose carries; + 0.0 turns -0.0 into 0.0;
+        # translation x, y, z then rotation x, y, z, w: the message's order
         numbers = np.concatenate([np.round(t, 7), np.round(vec, 9), np.round(w, 9)], axis=2) + 0.0
-        text = orjson.dumps(numbers.reshape(len(times), -1), option=orjson.OPT_SERIALIZE_NUMPY)
-        rows = text[2:-2].split(b"],[")
-        parts = self.parts
-        return [
-            (b'%d,"nsec":%d' % divmod(t_ns, 1_000_000_000)).join(parts) % tuple(row.split(b","))
-            for t_ns, row in zip(times, rows, strict=True)
-        ]
+        raw = numbers.astype("<f8").reshape(len(times), -1).view(np.uint8)
+        stamps = [foxglove_pb.timestamp(t_ns) for t_ns in times]
+        out: list[bytes] = [b""] * len(times)
+        for stamp_len in sorted({len(s) for s in stamps}):  # a layout each (a few lengths)
+            members = [i for i, s in enumerate(stamps) if len(s) == stamp_len]
+            template, at_stamps, at_numbers = _layout(self.frames, stamp_len)
+            rows = np.empty((len(members), template.size), np.uint8)
+            rows[:] = template
+            given = np.frombuffer(b"".join(stamps[i] for i in members), np.uint8)
+            rows[:, at_stamps] = np.tile(given.reshape(len(members), stamp_len), len(self.frames))
+            rows[:, at_numbers] = raw[members]
+            blob, size = rows.tobytes(), template.size
+            for k, i in enumerate(members):
+                out[i] = blob[k * size : (k + 1) * size]
+        return out
+
+
+@functools.lru_cache(maxsize=64)  # a few segment sets, a few stamp lengths each
+def _layout(frames: tuple[tuple[str, str], ...],
+            stamp_len: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
+    """A message of these transforms ``(parent, child)`` with stamps of
+    ``stamp_len`` bytes: its template (bytes as an array), the places of its
+    stamps' bytes and of its numbers' bytes."""
+    template, stamps, numbers = bytearray(), [], []
+    for parent, child in frames:
+        record, stamp_at, at = foxglove_pb.transform_layout(parent, child, stamp_len)
+        stamps.append(len(template) + stamp_at)
+        numbers += [len(template) + a for a in at]
+        template += record
+    return (
+        np.frombuffer(bytes(template), np.uint8),
+        (np.asarray(stamps)[:, None] + np.arange(stamp_len)).ravel(),
+        (np.asarray(numbers)[:, None] + np.arange(8)).ravel(),
+    )
 
 
 def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -192,25 +246,3 @@ def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
     b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
     return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
-
-
-def _template_parts(names: Sequence[str], frames_of: Sequence[str]) -> list[bytes]:
-    """The message in the pieces between its time stamps (``sec``, then
-    ``"nsec":``): joined with a stamp, it has ``%s`` for each number (x, y, z of
-    the translation, x, y, z, w of the rotation)."""
-
-    def text(name: str) -> bytes:
-        return orjson.dumps(name).replace(b"%", b"%%")
-
-    numbers = b'"translation":{"x":%s,"y":%s,"z":%s},"rotation":{"x":%s,"y":%s,"z":%s,"w":%s}}'
-    stamp = b"\0STAMP\0"  # no JSON text holds a NUL byte: orjson escapes it
-    whole = (
-        b'{"transforms":['
-        + b",".join(
-            b'{"timestamp":{"sec":' + stamp + b'},"parent_frame_id":' + text(parent)
-            + b',"child_frame_id":' + text(name) + b"," + numbers
-            for name, parent in zip(names, frames_of, strict=True)
-        )
-        + b"]}"
-    )  # fmt: skip
-    return whole.split(stamp)

@@ -39,7 +39,6 @@ import csv
 import io
 import json
 import logging
-import os
 import socket
 import threading
 import time
@@ -66,12 +65,13 @@ FRAME_S = 0.04  # state to the browsers at 25 Hz
 
 
 def write_private(path: Path, text: str) -> None:
-    """Write ``text`` to ``path`` atomically, readable by the owner only."""
-    tmp = path.with_name(path.name + ".part")
-    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
-    with os.fdopen(fd, "w", newline="") as f:
+    """Write ``text`` to ``path`` whole or not at all, readable by the owner
+    only (a nameless file until it is whole: a failed or killed run leaves
+    nothing beside it)."""
+    from bodynet.session.outputs import atomic_file
+
+    with atomic_file(path, newline="") as f:
         f.write(text)
-    tmp.replace(path)
 
 
 def _mean_time(trial: dict[str, Any]) -> float | None:

@@ -12,9 +12,11 @@ MCAP tools (Foxglove, the ``mcap`` CLI) can open and plot them:
   ground truth as it publishes it (``t_ns``, ``angles_deg``, ``segment``,
   ``segment_quat_wxyz``), when the recording asked for it.
 - ``body/tf``: schema ``foxglove.FrameTransforms`` (Foxglove's well-known
-  schema, JSON), one message per ``body/pose``: the pelvis in frame ``world``,
-  every other segment in its parent segment (``body_tree``), so Foxglove's 3D
-  panel shows the skeleton's frames without any setup.
+  schema, protobuf: see ``foxglove_pb``), the pelvis in frame ``world``, every
+  other segment in its parent segment (``body_tree``), so Foxglove's 3D panel
+  shows the skeleton's frames without any setup: one message per ``body/pose``
+  at most every :data:`TF_MIN_GAP_NS` of source time (a display's rate; the
+  poses themselves are all there).
 - ``body/@topology``: schema ``bodynet.Topology``, the gateway's topology as it
   publishes it or answers it (``t_ns``, ``branches`` -> ``nodes`` ->
   ``state``, ``node``, ``last_t_ns``);
@@ -28,6 +30,9 @@ MCAP tools (Foxglove, the ``mcap`` CLI) can open and plot them:
 - ``@gaps``: schema ``bodynet.Gap``, one record per jump in a topic's
   sequence numbers the recorder saw (``topic``, ``after_seq``, ``missing``,
   ``from_t_ns``, ``to_t_ns``): where the recording is incomplete.
+
+Chunks are zstd at level 1 (:data:`ZSTD_LEVEL`): on these messages about half
+the time of the library's level 3, and about as small.
 
 Log time is the sample's source time in ns (for a processed capture, the
 capture's own time base); MCAP stores it as an unsigned 64-bit number, so a
@@ -64,6 +69,7 @@ from mcap.records import Channel, Chunk, ChunkIndex, Message, MessageIndex, Sche
 from mcap.stream_reader import breakup_chunk
 from mcap.writer import CompressionType, Writer
 
+from bodynet.clients import foxglove_pb
 from bodynet.clients.body_tree import Transforms, segment_parents
 from bodynet.clients.mcap_writer import LeanWriter
 from bodynet.core import keys
@@ -202,52 +208,6 @@ HEALTH_SCHEMA = {
     },
 }  # fmt: skip
 
-_VECTOR3 = {
-    "title": "foxglove.Vector3",
-    "type": "object",
-    "properties": {a: {"type": "number"} for a in "xyz"},
-    "required": list("xyz"),
-}
-_QUATERNION = {
-    "title": "foxglove.Quaternion",
-    "type": "object",
-    "properties": {a: {"type": "number"} for a in "xyzw"},
-    "required": list("xyzw"),
-}
-#: Foxglove's ``foxglove.FrameTransforms`` in its JSON Schema form (the layout
-#: of Foxglove's published jsonschema; descriptions left out). Foxglove knows
-#: the message by the schema name and reads ``translation`` then ``rotation``
-#: as the child frame's pose in its parent.
-FRAME_TRANSFORMS_SCHEMA = {
-    "title": "foxglove.FrameTransforms",
-    "type": "object",
-    "properties": {
-        "transforms": {
-            "type": "array",
-            "items": {
-                "title": "foxglove.FrameTransform",
-                "type": "object",
-                "properties": {
-                    "timestamp": {
-                        "title": "time",
-                        "type": "object",
-                        "properties": {
-                            "sec": {"type": "integer", "minimum": 0},
-                            "nsec": {"type": "integer", "minimum": 0, "maximum": 999_999_999},
-                        },
-                    },
-                    "parent_frame_id": {"type": "string"},
-                    "child_frame_id": {"type": "string"},
-                    "translation": _VECTOR3,
-                    "rotation": _QUATERNION,
-                },
-                "required": ["timestamp", "parent_frame_id", "child_frame_id", "translation",
-                             "rotation"],
-            },
-        }
-    },
-    "required": ["transforms"],
-}  # fmt: skip
 WORLD_FRAME = "world"
 
 GAP_SCHEMA = {
@@ -318,6 +278,12 @@ def raw_json(sample: RawSample) -> dict[str, Any]:
 #: of index each as the writer keeps them, 0.3 KB packed by
 #: :class:`PackedChunkIndexes`; rotating files bounds it).
 CHUNK_BYTES = 1 << 20
+
+#: The zstd level of a recording's chunks. Level 1 against the library's 3 (thread
+#: CPU time, 2026-12-04): 2 s of one walking body's poses with their transforms,
+#: 11 against 16 us a pose, 3% larger (1.58 against 1.54 kB); raw samples, 0.27
+#: against 0.53 us a sample, 10% smaller.
+ZSTD_LEVEL = 1
 
 #: Allocations from this size up are mapped and unmapped on their own (glibc's
 #: ``M_MMAP_THRESHOLD``), see :func:`keep_large_buffers_off_heap`.
@@ -413,6 +379,29 @@ def pack_chunk_indexes(writer: Writer) -> PackedChunkIndexes | None:
 
 TF_BATCH = 64  # whole-body poses whose transforms are made together
 
+#: A whole-body pose gets its Foxglove transforms when the last ones are at least
+#: this much older in source time (or newer: time went back): at most about 66 a
+#: second, what a display drawing 60 frames a second uses; a 100 Hz gateway's
+#: poses get them every other pose, a 60 Hz one's each. Half the transforms of
+#: 100 Hz poses took a whole-body pose from 0.43 to 0.54 of the bare writer's
+#: rate (docs/benchmarks.md). 0: every whole-body pose.
+TF_MIN_GAP_NS = 15_000_000
+
+
+@functools.cache  # every file of a recording registers them
+def _schemas() -> dict[str, tuple[str, str, bytes]]:
+    """Each kind of message's schema: name, encoding and data."""
+
+    def described(schema: dict[str, Any]) -> tuple[str, str, bytes]:
+        return str(schema["title"]), "jsonschema", json.dumps(schema).encode()
+
+    return {"pose": described(POSE_SCHEMA), "raw": described(RAW_SCHEMA),
+            "gap": described(GAP_SCHEMA), "truth": described(TRUTH_SCHEMA),
+            "tf": (foxglove_pb.SCHEMA_NAME, foxglove_pb.SCHEMA_ENCODING,
+                   foxglove_pb.FRAME_TRANSFORMS_DESCRIPTOR),
+            "topology": described(TOPOLOGY_SCHEMA), "health": described(HEALTH_SCHEMA),
+            "metrics": described(METRICS_SCHEMA)}  # fmt: skip
+
 
 class McapSink:
     """Writes poses and raw samples to one MCAP file; each whole-body pose
@@ -424,33 +413,19 @@ class McapSink:
     raises ``DecodeError`` before anything of it is written: the file goes on
     and closes complete."""
 
-    def __init__(self, path: Path, chunk_size: int = CHUNK_BYTES, max_chunk_s: float = 0.5) -> None:
-        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    def __init__(self, path: Path, chunk_size: int = CHUNK_BYTES, max_chunk_s: float = 0.5,
+                 tf_min_gap_ns: int = TF_MIN_GAP_NS, exclusive: bool = False) -> None:  # fmt: skip
+        # exclusive: FileExistsError rather than a file of that name emptied
+        fd = os.open(path, os.O_WRONLY | os.O_CREAT | (os.O_EXCL if exclusive else os.O_TRUNC),
+                     0o600)  # fmt: skip
         self._stream = os.fdopen(fd, "wb")
-        self._writer = LeanWriter(
-            self._stream, chunk_size=chunk_size, compression=CompressionType.ZSTD
-        )
+        zstd = CompressionType.ZSTD
+        self._writer = LeanWriter(self._stream, chunk_size, zstd, zstd_level=ZSTD_LEVEL)
         #: the writer's chunk indexes for the summary, packed (None: as the writer keeps them)
         self.chunk_indexes = pack_chunk_indexes(self._writer)
         self._writer.start(profile="", library="bodynet")
-        self._schemas = {
-            "pose": self._writer.register_schema("bodynet.PoseFrame", "jsonschema",
-                                                 json.dumps(POSE_SCHEMA).encode()),
-            "raw": self._writer.register_schema("bodynet.RawSample", "jsonschema",
-                                                json.dumps(RAW_SCHEMA).encode()),
-            "gap": self._writer.register_schema("bodynet.Gap", "jsonschema",
-                                                json.dumps(GAP_SCHEMA).encode()),
-            "truth": self._writer.register_schema("bodynet.Truth", "jsonschema",
-                                                  json.dumps(TRUTH_SCHEMA).encode()),
-            "tf": self._writer.register_schema("foxglove.FrameTransforms", "jsonschema",
-                                               json.dumps(FRAME_TRANSFORMS_SCHEMA).encode()),
-            "topology": self._writer.register_schema("bodynet.Topology", "jsonschema",
-                                                     json.dumps(TOPOLOGY_SCHEMA).encode()),
-            "health": self._writer.register_schema("bodynet.Health", "jsonschema",
-                                                   json.dumps(HEALTH_SCHEMA).encode()),
-            "metrics": self._writer.register_schema("bodynet.Metrics", "jsonschema",
-                                                    json.dumps(METRICS_SCHEMA).encode()),
-        }  # fmt: skip
+        self._schemas = {kind: self._writer.register_schema(name, encoding, data)
+                          for kind, (name, encoding, data) in _schemas().items()}  # fmt: skip
         self._transforms = Transforms(segment_parents(), WORLD_FRAME)
         self._channels: dict[str, int] = {}
         self._sequence: dict[int, int] = {}
@@ -461,6 +436,8 @@ class McapSink:
         # segments' text or (names, rows))
         self._tf_pending: list[tuple[int, bytes | None, Any]] = []
         self._segments_at = 0  # where the last pose's segments began: looked at first
+        self._tf_min_gap_ns = tf_min_gap_ns
+        self._tf_last: int | None = None  # the time of the last pose given transforms
 
     def _next(self, channel: int) -> int:
         """The channel's next message sequence number (1, 2, 3...): salvage
@@ -471,8 +448,9 @@ class McapSink:
     def _channel(self, topic: str, kind: str) -> int:
         channel = self._channels.get(topic)
         if channel is None:
+            encoding = foxglove_pb.MESSAGE_ENCODING if kind == "tf" else "json"
             channel = self._channels[topic] = self._writer.register_channel(
-                topic, "json", self._schemas[kind]
+                topic, encoding, self._schemas[kind]
             )
         return channel
 
@@ -482,7 +460,7 @@ class McapSink:
         pose again costs twice as much as decoding it)."""
         check_time(log_time_ns)  # before the pose: its transforms share its time
         data = pose.encode(frame) if data is None else data
-        if topic == keys.pose_key():
+        if topic == keys.pose_key() and self._tf_due(log_time_ns):
             rows = [[*p, *q] for p, q in frame.segments.values()]
             self._pending(log_time_ns, None, (tuple(frame.segments), rows))
         self._add(self._channel(topic, "pose"), log_time_ns, data)
@@ -492,34 +470,48 @@ class McapSink:
         number and its log time (its ``t_ns``; when that is 0, now).
 
         Only what the file needs is read of it: the header (``pose.glance``)
-        and, for the whole-body pose, its segments, for the transforms, read
-        with the next ones' (see :class:`~bodynet.clients.body_tree.Transforms`).
+        and, for a whole-body pose due its transforms (:data:`TF_MIN_GAP_NS`),
+        its segments, read with the next ones' (see
+        :class:`~bodynet.clients.body_tree.Transforms`).
         A message laid out otherwise than the gateway lays it out is decoded
         whole (``DecodeError`` if it is no pose). So a message that starts as a
         pose does but is none past its header is stored as it came (a reader
         then names it, see :func:`read_poses`), and a whole-body pose whose
-        segments do not read gets no transforms (an empty message)."""
-        whole = topic == keys.pose_key()
-        head = pose.glance(data, segments=whole, hint=self._segments_at)
+        segments do not read gets no transforms (an empty message); a whole-body
+        pose whose segments are not laid out so is decoded whole when its
+        transforms are due."""
+        head = pose.glance(data)
+        frame: pose.PoseFrame | None = None
         if head is None:
             frame = pose.decode(data)
-            seq, t_ns, segments = frame.seq, frame.t_ns, frame.segments
+            seq, t_ns = frame.seq, frame.t_ns
         else:
-            seq, t_ns, segments = head.seq, head.t_ns, None
+            seq, t_ns = head.seq, head.t_ns
         t = check_time(t_ns or time.time_ns())
-        if whole:
-            if head is not None:
-                self._segments_at = head.at
-                self._pending(t, data, head.segments)
-            else:
-                rows = [[*p, *q] for p, q in segments.values()]  # type: ignore[union-attr]
-                self._pending(t, None, (tuple(segments), rows))  # type: ignore[arg-type]
+        if topic == keys.pose_key() and self._tf_due(t):  # its segments, for its transforms
+            if frame is None:
+                head = pose.glance(data, segments=True, hint=self._segments_at)
+                if head is not None:
+                    self._segments_at = head.at
+                    self._pending(t, data, head.segments)
+                else:  # not laid out as the gateway lays it out past its header
+                    frame = pose.decode(data)
+            if frame is not None:
+                rows = [[*p, *q] for p, q in frame.segments.values()]
+                self._pending(t, None, (tuple(frame.segments), rows))
         self._add(self._channel(topic, "pose"), t, data)
         return seq, t
+
+    def _tf_due(self, t_ns: int) -> bool:
+        """Whether a whole-body pose at ``t_ns`` gets transforms (see
+        :data:`TF_MIN_GAP_NS`)."""
+        last = self._tf_last
+        return last is None or not last <= t_ns < last + self._tf_min_gap_ns
 
     def _pending(self, t_ns: int, data: bytes | None, segments: Any) -> None:
         # its transforms are made with the next ones' (at most TF_BATCH), and
         # before the writer closes a chunk on time, so salvage keeps them
+        self._tf_last = t_ns
         self._tf_pending.append((t_ns, data, segments))
         if len(self._tf_pending) >= TF_BATCH:
             self._write_transforms()
@@ -539,24 +531,34 @@ class McapSink:
                 names += one
                 flat += numbers
         rows = np.asarray(flat, dtype=float).reshape(-1, 7)
-        read, at = iter(names), 0
-        poses: list[tuple[int, Any, Any]] = []
-        for t_ns, data, given in pending:
-            segments = given
-            if isinstance(given, bytes):
-                these = next(read)
-                if these is None:  # not as the gateway writes them: the whole message
-                    segments = _decoded_rows(data)
-                else:
-                    segments = (these, rows[at : at + len(these)])
-                    at += len(these)
-            poses.append((t_ns, *segments))
+        times = [t for t, _, _ in pending]
+        if (
+            len(texts) == len(pending)
+            and names
+            and names[0]
+            and names.count(names[0]) == len(names)
+        ):
+            # the usual batch: every pose as the gateway writes it, the same segments
+            messages = self._transforms.alike(times, names[0], rows.reshape(len(times), -1, 7))
+        else:
+            read, at = iter(names), 0
+            poses: list[tuple[int, Any, Any]] = []
+            for t_ns, data, given in pending:
+                segments = given
+                if isinstance(given, bytes):
+                    these = next(read)
+                    if these is None:  # not as the gateway writes them: the whole message
+                        segments = _decoded_rows(data)
+                    else:
+                        segments = (these, rows[at : at + len(these)])
+                        at += len(these)
+                poses.append((t_ns, *segments))
+            messages = self._transforms.messages(poses)
         channel = self._channel(keys.TRANSFORMS, "tf")
-        messages = self._transforms.messages(poses)
         first = self._sequence.get(channel, 0) + 1  # numbered as _next numbers them
         self._sequence[channel] = first + len(messages) - 1
         self._writer.add_messages(
-            channel, [(t, m, t) for (t, _, _), m in zip(poses, messages, strict=True)], first
+            channel, [(t, m, t) for t, m in zip(times, messages, strict=True)], first
         )
         self.messages += len(messages)
 
@@ -634,9 +636,14 @@ _READ_ERRORS = (McapError, ValueError, EOFError, OSError, struct.error, zstandar
 
 def _damaged(path: Path, f: IO[bytes], exc: BaseException) -> StoreError:
     """The error of a recording that breaks off or is damaged: where, and how
-    to recover what is intact."""
+    to recover what is intact (not salvage, for a file that is no recording)."""
     try:
         stop = f.tell()
+        f.seek(0)
+        head = f.read(len(MCAP_MAGIC))
+        if not (head.startswith(MCAP_MAGIC) or MCAP_MAGIC.startswith(head)):
+            return StoreError(f"{path}: not an MCAP recording (it does not start as MCAP files "
+                              "do); `bodynet process` makes one of a capture")  # fmt: skip
         where = f" (reading stopped at byte {stop})"
         f.seek(0)
         summary = make_reader(f).get_summary()
@@ -832,6 +839,19 @@ class Salvaged:
     losses: tuple[Loss, ...]
     #: messages read whose channel no record defines (its record lost): channel -> count
     orphans: Mapping[int, int] = field(default_factory=dict)
+    #: the messages read carry no sequence numbers (a recording made before
+    #: bodynet's recorder numbered them, 2026-12-03, or by another tool)
+    unnumbered: bool = False
+
+    def uncounted(self) -> str | None:
+        """One line saying that the losses of an unnumbered file could not be
+        counted by sequence numbers, where that left one of them unknown or
+        bounded only by its size (None otherwise)."""
+        if not self.unnumbered or all(loss.counted == "exact" for loss in self.losses):
+            return None
+        return ("its messages carry no sequence numbers (recorded before bodynet's recorder "
+                "numbered them, 2026-12-03, or by another tool): what its damaged parts held "
+                "cannot be counted by them")  # fmt: skip
 
     def summary(self) -> str:
         """``lost N messages: byte X (n messages; why); ...``, "at least N" where
@@ -844,7 +864,9 @@ class Salvaged:
         high = low + sum(loss.messages or 0 for loss in self.losses if loss.counted == "at most")
         open_ended = any(loss.counted in ("at least", "unknown") or loss.messages is None
                          or _CUT in loss.why for loss in self.losses)  # fmt: skip
-        if open_ended:
+        if open_ended and not low and all(loss.messages is None for loss in self.losses):
+            lost = "an unknown number of messages"
+        elif open_ended:
             lost = f"at least {_n_messages(low)}"
         elif high > low:
             lost = f"{low} to {high} messages"
@@ -908,7 +930,7 @@ def salvage_report(src: Path, dst: Path) -> Salvaged:
             count, orphans = _copy_complete(gaps.watch(records, losses), out, summary)
         losses = _counted(f, size, losses, gaps, count + sum(orphans.values()), summary,
                           read_chunks)  # fmt: skip
-    return Salvaged(count, tuple(losses), orphans)
+    return Salvaged(count, tuple(losses), orphans, unnumbered=count > 0 and not gaps.numbered)
 
 
 class _SequenceGaps:

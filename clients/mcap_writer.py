@@ -9,19 +9,26 @@ sequence of calls through both and compares the files), with one ``pack`` per
 message and one per message index. Everything else (schemas, channels, chunks,
 their compression and indexes, the summary, the footer) is the library's own.
 
+It also takes a zstd level for its chunks (the library compresses at zstd's
+default, 3): the library's own code closes each chunk, run with a compressor
+of that level in place of the ``zstandard`` module it calls.
+
 It reaches into the library's writer state (the chunk being built and the
 statistics, private names of mcap 1.x). Where that state is not what it
 expects (another version of the library), it says so in :attr:`LeanWriter.lean`
 and every message goes through the library's ``add_message``: slower, the same
-file.
+file; likewise :attr:`LeanWriter.leveled` for the level (else the library's).
 """
 
 from __future__ import annotations
 
 import struct
+import types
 from collections.abc import Iterable
 from typing import IO, Any
 
+import mcap.writer
+import zstandard
 from mcap.data_stream import RecordBuilder
 from mcap.opcode import Opcode
 from mcap.records import MessageIndex
@@ -44,18 +51,45 @@ class _Index(MessageIndex):
         stream.finish_record()
 
 
+class _Zstd:
+    """What the library's chunk code calls of the ``zstandard`` module
+    (``compress``), at a chosen level; one per writer (a compressor is not
+    shared between threads)."""
+
+    def __init__(self, level: int) -> None:
+        self.compress = zstandard.ZstdCompressor(level=level).compress
+
+
+def _finalize_chunk_at(level: int) -> Any:
+    """The library's ``Writer.__finalize_chunk``, its ``zstandard`` a compressor
+    at ``level``; None if that method is not there or compresses otherwise."""
+    library = getattr(Writer, "_Writer__finalize_chunk", None)
+    code = getattr(library, "__code__", None)
+    if code is None or "zstandard" not in code.co_names or library.__closure__:
+        return None
+    scope = {**vars(mcap.writer), "zstandard": _Zstd(level)}
+    return types.FunctionType(code, scope, library.__name__, library.__defaults__)
+
+
 class LeanWriter(Writer):
     """``mcap.writer.Writer`` (same arguments) whose :meth:`add_message` and
-    :meth:`add_messages` write the library's records with less Python per message."""
+    :meth:`add_messages` write the library's records with less Python per message;
+    ``zstd_level``: the level of its zstd chunks (None: the library's)."""
 
     def __init__(
         self,
         output: IO[Any],
         chunk_size: int = 1024 * 1024,
         compression: CompressionType = CompressionType.ZSTD,
+        zstd_level: int | None = None,
         **kwargs: Any,
     ) -> None:
         super().__init__(output, chunk_size=chunk_size, compression=compression, **kwargs)
+        finalize_at = None if zstd_level is None else _finalize_chunk_at(zstd_level)
+        if finalize_at is not None:  # what the library's flush, finish and add_message call
+            self._Writer__finalize_chunk = types.MethodType(finalize_at, self)
+        #: whether chunks are compressed at ``zstd_level``
+        self.leveled = finalize_at is not None
         state = vars(self)
         self._chunks = state.get("_Writer__chunk_builder")
         self._stats = state.get("_Writer__statistics")

@@ -23,6 +23,14 @@ recording says where it is incomplete; the recorder itself only counts them
 (:attr:`Recorder.gaps`, :attr:`Recorder.missing`), so what it holds in memory
 does not grow with a lossy network.
 
+Nothing is dropped on the way in either: each subscription hands its samples
+to a deep FIFO (:data:`FIFO_DEPTH`) that a thread of the recorder empties into
+the file; when the recorder falls behind, the FIFO fills and then holds Zenoh
+back (the raw publishers block rather than drop, see
+``bodynet.nodes.publisher``), instead of losing samples as a plain callback's
+small internal queue did under load. :meth:`Recorder.close` writes what the
+FIFOs still hold before it finishes the file.
+
 A recording runs for hours: the recorder fixes the C library's mmap threshold
 (``mcap_store.keep_large_buffers_off_heap``), without which the writer's
 per-chunk buffers made its resident memory grow steadily.
@@ -37,6 +45,7 @@ import time
 from collections.abc import Sequence
 from functools import lru_cache
 from pathlib import Path
+from typing import Any
 
 import zenoh
 import zenoh.ext
@@ -53,11 +62,19 @@ log = logging.getLogger(__name__)
 DEFAULT_KEYS = (keys.all_raw(), keys.all_poses(), keys.TOPOLOGY, keys.all_health(),
                 keys.METRICS)  # fmt: skip
 
+#: Samples each subscription holds for the recorder before Zenoh is held back:
+#: about a second of twenty bodies' raw samples.
+FIFO_DEPTH = 1 << 15
+#: How long :meth:`Recorder.close` goes on writing what the FIFOs hold, at most.
+DRAIN_S = 10.0
+
 
 class Recorder:
     """Writes what it receives to ``path``. With ``rotate_bytes`` / ``rotate_s``
     it goes on in ``<stem>-001.mcap``, ``-002``... once the current file is
-    that large or that old (0: never)."""
+    that large or that old (0: never). No file is emptied: a name that is
+    taken (an earlier recording, a recorder started again) is passed over for
+    the next of the series (``files`` says which were written)."""
 
     def __init__(
         self,
@@ -68,11 +85,11 @@ class Recorder:
         rotate_s: float = 0.0,
     ) -> None:
         self.path = path
-        self.files = [path]
+        self._index, first, self._sink = self._new_file(0)
+        self.files = [first]
         self.rejected = RejectCounts()
         keep_large_buffers_off_heap()  # before the first chunk's buffers
         self.rotate_bytes, self.rotate_s = rotate_bytes, rotate_s
-        self._sink = McapSink(path)
         self._opened = time.monotonic()
         self._done = 0  # messages in files already closed
         self._lock = threading.Lock()
@@ -86,20 +103,50 @@ class Recorder:
         # fetches what a router restart made it miss. Poses, topology and health come from
         # plain publishers, with nothing to recover: a plain subscriber.
         recovery = zenoh.ext.RecoveryConfig(heartbeat=True)
-        self._subs = [
-            session.declare_subscriber(k, self._on_sample) if _kind(k) in _PLAIN
-            else zenoh.ext.declare_advanced_subscriber(session, k, self._on_sample,
-                                                       recovery=recovery)
+        self._subs: list[Any] = [
+            session.declare_subscriber(k, zenoh.handlers.FifoChannel(FIFO_DEPTH))
+            if _kind(k) in _PLAIN
+            else zenoh.ext.declare_advanced_subscriber(
+                session, k, zenoh.handlers.FifoChannel(FIFO_DEPTH), recovery=recovery)
             for k in key_exprs
         ]  # fmt: skip
+        # a thread per subscription empties its FIFO into the file (the FIFO outlives
+        # the subscription: close undeclares, then the threads write what is left)
+        self._drains = [
+            threading.Thread(target=self._drain, args=(sub.handler,), daemon=True,
+                             name=f"recorder {k}")
+            for k, sub in zip(key_exprs, self._subs, strict=True)
+        ]  # fmt: skip
+        for thread in self._drains:
+            thread.start()
         # the topology as it is now: published on change only, answered as a query
         for k in key_exprs:
             if _kind(k) == _TOPOLOGY:
                 session.get(k, self._on_reply)
 
+    def _drain(self, fifo: Any) -> None:
+        """Write what ``fifo`` receives until its subscription is undeclared and
+        it is empty."""
+        try:
+            while True:
+                self._on_sample(fifo.recv())
+        except zenoh.ZError:  # closed and empty
+            pass
+
     def _on_reply(self, reply: zenoh.Reply) -> None:
         if reply.ok is not None:
             self._on_sample(reply.ok)
+
+    def _new_file(self, index: int) -> tuple[int, Path, McapSink]:
+        """The first file of the series from ``index`` on (0: ``path`` itself,
+        else ``<stem>-NNN``) whose name is free, created, with its index."""
+        while True:
+            name = self.path if index == 0 else self.path.with_name(
+                f"{self.path.stem}-{index:03d}{self.path.suffix}")  # fmt: skip
+            try:
+                return index, name, McapSink(name, exclusive=True)
+            except FileExistsError:
+                index += 1
 
     @property
     def messages(self) -> int:
@@ -111,9 +158,8 @@ class Recorder:
         if too_big or too_old:
             self._sink.close()
             self._done += self._sink.messages
-            nxt = self.path.with_name(f"{self.path.stem}-{len(self.files):03d}{self.path.suffix}")
+            self._index, nxt, self._sink = self._new_file(self._index + 1)
             self.files.append(nxt)
-            self._sink = McapSink(nxt)
             self._opened = time.monotonic()
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
@@ -162,8 +208,13 @@ class Recorder:
             log.info("recorder: %d missing on %s after seq %d", gap.missing, topic, last[0])
 
     def close(self) -> None:
+        """Stop receiving, write what the subscriptions' FIFOs still hold (for
+        :data:`DRAIN_S` at most) and finish the file."""
         for sub in self._subs:
             sub.undeclare()
+        deadline = time.monotonic() + DRAIN_S
+        for thread in self._drains:
+            thread.join(timeout=max(0.0, deadline - time.monotonic()))
         with self._lock:
             self._closed = True
             try:

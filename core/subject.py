@@ -181,6 +181,16 @@ class Profile:
         version = data.get("version")
         if version != VERSION:
             raise ProfileError(f"profile version {version!r}; this bodynet reads version {VERSION}")
+        tables = ("ole", "imu_mounts", "segments", "trackers", "imu_headings", "heading_reference")
+        for name in tables:  # a list or a number where a table belongs: say so, by name
+            value = data.get(name, {})
+            if not isinstance(value, Mapping):
+                raise ProfileError(f"{name} must be a table ([{name}]), "
+                                   f"not {type(value).__name__} {value!r:.40}")  # fmt: skip
+        for name, c in data.get("ole", {}).items():
+            if not isinstance(c, Mapping):
+                raise ProfileError(f"ole.{name} must be a table (radius_mm, sf_travel_mm, sf), "
+                                   f"not {type(c).__name__} {c!r:.40}")  # fmt: skip
         try:
             ole = dict(default_ole_table())
             for name, c in data.get("ole", {}).items():

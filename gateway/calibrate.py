@@ -15,6 +15,7 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
+import numpy as np
 from scipy import stats
 
 from bodynet.core.calibration import MM_PER_COUNT, OleCalibration
@@ -38,7 +39,8 @@ def fit_radius(angles_deg: Sequence[float], counts: Sequence[float]) -> RadiusFi
     if len(angles_deg) != len(counts) or len(angles_deg) < 2:
         raise ValueError("need two or more (angle, counts) pairs")
     travel = [c * MM_PER_COUNT for c in counts]
-    fit = stats.linregress(angles_deg, travel)
+    with np.errstate(all="ignore"):  # counts of 1e300 overflow: a non-finite fit, refused
+        fit = stats.linregress(angles_deg, travel)
     return RadiusFit(fit.slope * 360.0 / (2 * math.pi), fit.intercept, fit.rvalue, len(travel))
 
 

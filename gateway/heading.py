@@ -301,6 +301,11 @@ def _window_heading(profile: Profile, means: Mapping[str, np.ndarray],
         report["heading"] = {"state": "unknown", "deg": None,
                              "next": "move a knee (or, after an N-pose, an elbow): the "
                                      "heading is found from the hinge's axis"}  # fmt: skip
+        if profile.heading == "independent":
+            report["heading"]["next"] = (
+                "walk (the legs' tags), reach after an N-pose (the arms'), and bow forward "
+                "from the hips, the head following (the pelvis', chest's and head's)"
+            )
         return {}
     ref_key, axis = profile.heading_reference
     if ref_key not in means:
@@ -545,14 +550,25 @@ class ElbowPairs:
     calibration pose (an N-pose; in a T-pose it is vertical and the pair's common
     heading does not show). The samples are taken every ``EVERY_S`` once the
     forearm has turned past ``MOVED_DEG`` since calibration (how far the elbow
-    bends cannot be told before the headings are known), ``SAMPLES`` of them (a
-    reach: the arm lifted, the elbow bent); while another pair far from the best
-    fits as well (the elbow barely bent, as in a walk) nothing is taken, and the
-    older half of the samples make way for new ones."""
+    bends cannot be told before the headings are known). From ``MIN_SAMPLES`` on,
+    every ``TRY_EVERY`` samples, the pair is searched (every 5 deg; while another
+    pair far from the best fits as well, as in a walk with the elbows barely bent,
+    there is none) and the best refined (least squares, continuous); it is taken
+    once its uncertainty (about two standard deviations, from the misfit's spread
+    and the fit's Jacobian: how well the samples constrain the two headings) is
+    within ``MAX_UNC_DEG``: as soon as the reach has told, not after a fixed count
+    (the lift of a straight arm tells only the two headings' difference; the
+    elbow bending, both; with sensors noisier than the emulator's 0.3 deg it may
+    never come that low: at ``MAX_SAMPLES`` it is taken within ``FULL_UNC_DEG``).
+    Beyond ``MAX_SAMPLES`` the older half make way."""
 
-    SAMPLES = 40
+    EVERY_S = 0.05
     MOVED_DEG = 10.0
-    EVERY_S = 0.1
+    MIN_SAMPLES = 20
+    TRY_EVERY = 4
+    MAX_SAMPLES = 120
+    MAX_UNC_DEG = 0.3
+    FULL_UNC_DEG = 1.0
 
     def __init__(self, profile: Profile) -> None:
         by_segment: dict[str, str] = {}
@@ -570,8 +586,11 @@ class ElbowPairs:
             self.pairs[side] = (p, c, p0, c0, seg_p, seg_c)
         self.samples: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {s: [] for s in self.pairs}
         self.found: dict[str, float] = {}
+        #: per side, the uncertainty (deg) of the pair when taken
+        self.unc_deg: dict[str, float] = {}
         self.done: set[str] = set()
         self._last: dict[str, float] = {}
+        self._basin: dict[str, tuple[float, float]] = {}  # the grid's best (rad), refined on
 
     @property
     def coming(self) -> set[str]:
@@ -582,7 +601,7 @@ class ElbowPairs:
     def update(self, t_s: float, orientations: Mapping[str, QuatWxyz]) -> dict[str, float]:
         """Take one tick's tag orientations; the headings found at this tick."""
         out: dict[str, float] = {}
-        for side, (p, c, p0, c0, seg_p, seg_c) in self.pairs.items():
+        for side, (p, c, p0, c0, _, _) in self.pairs.items():
             if side in self.done or p not in orientations or c not in orientations:
                 continue
             if t_s - self._last.get(side, -math.inf) < self.EVERY_S - 1e-6:
@@ -592,39 +611,366 @@ class ElbowPairs:
             if np.linalg.norm(_rotvec(a_c)) < math.radians(self.MOVED_DEG):
                 continue
             self._last[side] = t_s
-            self.samples[side].append((a_p, a_c))
-            if len(self.samples[side]) >= self.SAMPLES:
-                found = _elbow_pair_headings(self.samples[side], seg_p, seg_c)
-                if found is None:  # not telling yet: the next samples may (a reach)
-                    del self.samples[side][: self.SAMPLES // 2]
-                    continue
-                self.done.add(side)
+            found = self.take(side, a_p, a_c)
+            if found is not None:
                 out[p], out[c] = found
         self.found.update(out)
         return out
 
+    def take(self, side: str, a_p: np.ndarray, a_c: np.ndarray) -> tuple[float, float] | None:
+        """One sample of a side (each tag's turn since calibration, in its own
+        reference frame); the pair's headings (deg) once they are known."""
+        samples = self.samples[side]
+        samples.append((a_p, a_c))
+        n = len(samples)
+        if n < self.MIN_SAMPLES or (n - self.MIN_SAMPLES) % self.TRY_EVERY:
+            return None
+        seg_p, seg_c = self.pairs[side][4:]
+        start = self._basin.get(side) or _elbow_pair_grid(samples, seg_p, seg_c)
+        fit = None if start is None else _elbow_pair_refine(samples, seg_p, seg_c, start)
+        full = n >= self.MAX_SAMPLES
+        if fit is None or fit[2] > (self.FULL_UNC_DEG if full else self.MAX_UNC_DEG):
+            if fit is None or full:  # no basin (yet), or a new start
+                self._basin.pop(side, None)
+            else:  # refined on from here with the next samples
+                self._basin[side] = fit[:2]
+            if full:  # not telling yet: the next samples may (a reach)
+                del samples[: n // 2]
+            return None
+        psi_p, psi_c, unc = fit
+        grid = _elbow_pair_grid(samples, seg_p, seg_c)  # still the best basin, with all samples
+        if grid is None or _apart_deg(grid, (psi_p, psi_c)) > 10.0:
+            self._basin.pop(side, None)
+            return None
+        self.done.add(side)
+        self.unc_deg[side] = round(unc, 3)
+        return _wrap(math.degrees(psi_p)), _wrap(math.degrees(psi_c))
 
-def _elbow_pair_headings(samples: Sequence[tuple[np.ndarray, np.ndarray]], seg_p: np.ndarray,
-                         seg_c: np.ndarray) -> tuple[float, float] | None:  # fmt: skip
-    """The upper arm's and forearm's tag headings (deg) that keep the elbow's axes
-    perpendicular with its flexion in range; None when no pair does."""
-    a_p = np.array([a for a, _ in samples])
-    a_c = np.array([b for _, b in samples])
+
+class TrunkBow:
+    """Finds the heading of the pelvis', chest's and head's tags with references of
+    their own (``independent``) from a bow.
+
+    A wrong heading only mis-states which way a tag's segment tilts (a turn about
+    the vertical is the same whatever it is), so these tags' headings show when
+    their segments tilt. Gravity seen by the tag, in the tag's reference frame at
+    calibration (``R_s0 R_s(t)^T z``), moves by ``Rz(psi)`` times where it moves in
+    the body's frame (``R_seg0 R_seg(t)^T z``), whatever the drift of the tag's
+    reference or the turns of the body since the pose; in a forward bow it moves
+    backward. So a bow is waited for: the pelvis tag (the chest's where there is
+    none) tilted past ``GATE_DEG`` from the pose, which the hips flexing give and
+    a walk, a side bend or a turn of the trunk do not. ``SAMPLES`` samples are
+    taken every ``EVERY_S`` while it lasts; then each tag's heading is the one
+    that puts the way gravity moved in its frame backward in the body's (the bow
+    is forward), over the samples in which its segment tilted past ``TILT_DEG``
+    and at least as far as the pelvis (at least half of them), when their ways
+    agree (the mean resultant length of their directions at least
+    ``AGREEMENT``). A tag not found in one bow is looked for in the next.
+
+    That rule sees the segment's own frame, so a chest or head twisted about its
+    long axis in the bow (the trunk or head turned) is taken for a heading. Above
+    the pelvis, the joint flexes in its parent's sagittal plane, twisted or not:
+    the chest's and head's heading *now* is the one that keeps the axis that was
+    vertical in the pose in that plane (:meth:`_level`). The difference between
+    the two is the tag's twist in the bow, or its drift against its parent since
+    the pose: drift as far as drift can have gone (``SNAP_DEG_PER_MIN``), the rest
+    twist; the heading at calibration (the mount's) is the level one less that
+    drift.
+
+    The assumptions: the pelvis' first tilt past ``GATE_DEG`` is a forward bow
+    (sitting down slumped, which tilts it backward, would be taken for one), and
+    in it the chest and the head tilt forward too (a head looking up while the
+    chest bows, tilted back as far as the pelvis forward, would be taken turned
+    round: the neck near the end of its range); the lumbar and neck do not bend
+    sideways in it (their lateral bend goes into the headings)."""
+
+    SEGMENTS = ("pelvis", "thorax", "head")
+    GATE_DEG = 20.0
+    TILT_DEG = 15.0
+    SAMPLES = 20
+    EVERY_S = 0.05
+    AGREEMENT = 0.97
+    #: how fast a 6-axis tag's reference drifts at most (deg/min), and the noise of a
+    #: joint's twist in a bow (deg): the bounds of :meth:`snap`
+    SNAP_DEG_PER_MIN = 10.0
+    SNAP_NOISE_DEG = 1.0
+    #: the chest's and head's heading now is searched this far (deg) from the forward
+    #: rule's, and taken when the worst fits this much worse (the sine of a tilt)
+    LEVEL_DEG = 45.0
+    LEVEL_GRIP = 0.2
+    #: the drift found at a bow is taken as a rate over the time since the pose, or this
+    RATE_SINCE_S = 60.0
+
+    def __init__(self, profile: Profile) -> None:
+        by_segment: dict[str, str] = {}
+        for key, seg in _segments_of(profile.imu_mounts).items():
+            by_segment.setdefault(seg, key)
+        segments = pose_segments(profile)
+        #: segment -> (its tag, the tag at calibration for a heading of 0, the pose's segment)
+        self.tags: dict[str, tuple[str, np.ndarray, np.ndarray]] = {}
+        for seg in self.SEGMENTS:
+            if seg in by_segment:
+                key = by_segment[seg]
+                tag0 = segments[seg] @ _quat_matrix(profile.imu_mounts[key])
+                self.tags[seg] = (key, tag0, segments[seg])
+        self._tag0 = {key: tag0 for key, tag0, _ in self.tags.values()}
+        gate = next((s for s in ("pelvis", "thorax") if s in self.tags), None)
+        self.gate = self.tags[gate][0] if gate is not None else None
+        self.samples: list[dict[str, np.ndarray]] = []
+        self.bow: list[dict[str, np.ndarray]] = []  # the samples of the last headings found
+        self.found: dict[str, float] = {}
+        self._last = -math.inf
+        self._t0: float | None = None
+        self._bow_t = 0.0  # when the last headings were found
+        #: per tag placed against its parent at the last find: its heading now less
+        #: its heading at calibration (the drift between them since the pose)
+        self.drifted: dict[str, float] = {}
+        #: per tag turned at the last find by its joint's twist in the bow (deg)
+        self.joined: dict[str, float] = {}
+        #: the three-dof joints from the root out (parent's segment and tag, child's
+        #: segment and tag, the twist in the pose), and each segment's tags and below
+        self._joints: list[tuple[str, str, str, str, float]] = []
+        for _, parent, child in sorted(TWIST_JOINTS, key=lambda j: TWIST_ORDER.index(j[0])):
+            sided = child in ("thigh", "upperarm")
+            for name in [f"{side}_{child}" for side in ("left", "right")] if sided else [child]:
+                if parent in by_segment and name in by_segment:
+                    twist0 = _twist(segments[parent], segments[name]) or 0.0
+                    self._joints.append((parent, by_segment[parent], name, by_segment[name],
+                                         twist0))  # fmt: skip
+        below: dict[str, list[str]] = {}
+        for j in build_skeleton(profile.lengths).joints:
+            below.setdefault(j.parent, []).append(j.child)
+
+        def subtree(seg: str) -> list[str]:
+            return [seg, *(s for c in below.get(seg, []) for s in subtree(c))]
+
+        self._subtree = {seg: [by_segment[s] for s in subtree(seg) if s in by_segment]
+                         for seg in by_segment}  # fmt: skip
+
+    def coming(self, profile: Profile) -> set[str]:
+        """The tags whose heading may still be found here."""
+        if self.gate is None:
+            return set()
+        return {key for key, _, _ in self.tags.values() if not profile.heading_known(key)}
+
+    def _gravity(self, key: str, rot: np.ndarray) -> np.ndarray:
+        """Where gravity is now, seen by the tag (``rot``: its orientation now), in
+        the tag's reference frame at calibration (where it was: +z)."""
+        return self._tag0[key] @ rot[2]  # type: ignore[no-any-return]
+
+    def update(self, t_s: float, orientations: Mapping[str, QuatWxyz],
+               profile: Profile) -> dict[str, float]:  # fmt: skip
+        """Take one tick's tag orientations (``profile``: the headings known so far);
+        the headings found at this tick."""
+        if self._t0 is None:
+            self._t0 = t_s  # the first tick after the pose
+        if self.gate is None or self.gate not in orientations or not self.coming(profile):
+            return {}
+        if t_s - self._last < self.EVERY_S - 1e-6:
+            return {}
+        rots = {key: _quat_matrix(orientations[key]) for key, _, _ in self.tags.values()
+                if key in orientations}  # fmt: skip
+        if self._gravity(self.gate, rots[self.gate])[2] > math.cos(math.radians(self.GATE_DEG)):
+            self.samples.clear()  # not (or no longer) bowing: a bow's samples are its own
+            return {}
+        self._last = t_s
+        rots.update({k: _quat_matrix(q) for k, q in orientations.items() if k not in rots})
+        self.samples.append(rots)
+        if len(self.samples) < self.SAMPLES:
+            return {}
+        self.bow, self.samples, self._bow_t = self.samples, [], t_s
+        self.joined = {}
+        out: dict[str, float] = {}
+        self.drifted, now = {}, {}  # heading now - at calibration; headings now
+        for seg, (key, _, _) in self.tags.items():
+            if profile.heading_known(key):
+                continue
+            psi = self._forward(key)
+            if psi is None:
+                continue
+            out[key] = now[key] = psi
+            parent = {"thorax": "pelvis", "head": "thorax"}.get(seg)
+            if parent is None or parent not in self.tags:
+                continue
+            p_key = self.tags[parent][0]
+            if not profile.heading_known(p_key) and p_key not in out:
+                continue
+            level = self._level(key, parent, profile, out, now, psi)
+            if level is None:
+                continue
+            # what is left of the forward rule's heading is drift since the pose, as
+            # far as two tags can have drifted apart; the rest, the bow's twist
+            most = self._most_drift()
+            drift = max(-most, min(most, _wrap(level - psi)))
+            out[key], now[key] = _wrap(level - drift), level
+            self.drifted[key] = drift
+        self.found.update(out)
+        return out
+
+    def _most_drift(self) -> float:
+        """How far two tags' references can have drifted apart since the pose (deg)."""
+        minutes = (self._bow_t - (self._t0 if self._t0 is not None else self._bow_t)) / 60.0
+        return 2.0 * self.SNAP_DEG_PER_MIN * minutes
+
+    def _level(self, key: str, parent: str, profile: Profile, found: Mapping[str, float],
+               now: Mapping[str, float], near: float) -> float | None:  # fmt: skip
+        """The tag's heading now, within ``LEVEL_DEG`` of ``near``, that keeps its
+        segment's axis that was vertical in the pose in its parent's sagittal plane
+        (the joint flexing, not bending sideways; a twist of the segment about that
+        axis does not move it) over the samples its segment tilted in (``found``,
+        ``now``: the headings at calibration and now of the tags found in this bow);
+        None without a grip (the two barely tilted)."""
+        p_key, p0, seg_p0 = self.tags[parent]
+        tag0 = self._tag0[key]
+        ups, sides = [], []
+        for rots in self.bow:
+            if key not in rots or p_key not in rots:
+                continue
+            g = self._gravity(key, rots[key])
+            if g[2] > min(math.cos(math.radians(self.TILT_DEG)),
+                          self._gravity(self.gate, rots[self.gate])[2] + 1e-9):  # fmt: skip
+                continue
+            if p_key in found:
+                cal, turn = rz(found[p_key]), rz(now[p_key])
+                seg_p = turn.T @ rots[p_key] @ p0.T @ cal @ seg_p0
+            else:
+                seg_p = JointDrift._segment(profile, p_key, rots[p_key])
+            sides.append(seg_p[:, 1])  # the parent's lateral axis, in the body's frame
+            ups.append(rots[key] @ tag0[2])  # the pose's vertical axis, in the tag's frame
+        if len(ups) < self.SAMPLES // 2:
+            return None
+        u, y = np.array(ups), np.array(sides)
+        psi = np.radians(near + np.arange(-self.LEVEL_DEG, self.LEVEL_DEG + 0.1, 0.1))
+        c, s = np.cos(psi)[:, None], np.sin(psi)[:, None]
+        # Rz(-psi) u . y, for each heading (rows) and sample (columns)
+        off = ((c * u[:, 0] + s * u[:, 1]) * y[:, 0] + (c * u[:, 1] - s * u[:, 0]) * y[:, 1]
+               + u[:, 2] * y[:, 2])  # fmt: skip
+        cost = (off**2).mean(axis=1)
+        k = int(np.argmin(cost))
+        if k in (0, len(psi) - 1) or cost.max() - cost[k] < self.LEVEL_GRIP**2:
+            return None  # no minimum in the window, or no grip on the heading
+        return _wrap(math.degrees(psi[k]))
+
+    def _forward(self, key: str) -> float | None:
+        """The tag's heading from the way gravity moved in its frame in the samples
+        its segment tilted past ``TILT_DEG`` in, and at least as far as the pelvis
+        (backward in a forward bow); None when too few, or their ways do not agree.
+        (Above the pelvis, in a bow, the lumbar and neck flex: a chest tilted back
+        as far as the pelvis forward is out of the lumbar's range, a head so only
+        at the end of the neck's.)"""
+        sums, units, n = np.zeros(2), np.zeros(2), 0
+        tilt = math.cos(math.radians(self.TILT_DEG))
+        for rots in self.bow:
+            if key not in rots:
+                continue
+            g = self._gravity(key, rots[key])
+            if g[2] > min(tilt, self._gravity(self.gate, rots[self.gate])[2] + 1e-9):
+                continue
+            sums += g[:2]
+            units += g[:2] / np.linalg.norm(g[:2])
+            n += 1
+        if n < self.SAMPLES // 2 or np.linalg.norm(units) < self.AGREEMENT * n:
+            return None
+        return _wrap(math.degrees(math.atan2(sums[1], sums[0])) - 180.0)
+
+    def snap(self, profile: Profile, found: Iterable[str]) -> dict[str, float]:
+        """The turns to add to tags' headings once ``found`` (tags just found, their
+        headings in ``profile``) join three-dof joints to tags known before.
+
+        A heading found from gravity is the tag's at calibration (its mount's),
+        while a tag's reference drifts, each its own way, from the pose on: the
+        joints the find joins would show the drift between their two tags since
+        then, until the three-dof joints' hold (:class:`JointDrift`) takes it out
+        (about 30 s). The bow twists none of them (the hips and lumbar flex, the
+        head and arms go with the trunk: the assumption the hold makes too), so
+        each joined joint's child, and all below it, is turned at once by the
+        joint's mean twist over the bow's samples against the pose's, from the
+        root out, as far as two tags can have drifted apart since the pose
+        (``SNAP_DEG_PER_MIN`` each, and ``SNAP_NOISE_DEG``): a bow just after the
+        pose, twisted, is not taken for drift."""
+        new = set(found)
+        if not self.bow or not new or not profile.drift_joints[1]:
+            return {}
+        most = self.SNAP_NOISE_DEG + self._most_drift()
+        turns: dict[str, float] = {}
+        for _, p_key, child, c_key, twist0 in self._joints:
+            if not (profile.heading_known(p_key) and profile.heading_known(c_key)):
+                continue
+            if (p_key not in new and c_key not in new) or c_key in self.drifted:
+                continue  # joined before (the hold has it), or placed against its parent
+            offsets = []
+            for rots in self.bow:
+                if p_key in rots and c_key in rots:
+                    twist = _twist(JointDrift._segment(profile, p_key, rots[p_key]),
+                                   JointDrift._segment(profile, c_key, rots[c_key]))  # fmt: skip
+                    if twist is not None:
+                        offsets.append(math.radians(twist - twist0))
+            if len(offsets) < len(self.bow) // 2:
+                continue
+            turn = math.degrees(math.atan2(np.sin(offsets).mean(), np.cos(offsets).mean()))
+            turn = max(-most, min(most, turn))
+            keys = [k for k in self._subtree[child] if profile.heading_known(k)]
+            profile = turned_headings(profile, dict.fromkeys(keys, turn))
+            for k in keys:
+                turns[k] = turns.get(k, 0.0) + turn
+            self.joined[c_key] = turn
+        return turns
+
+    def drift_rates(self) -> dict[str, float]:
+        """Per tag the last find placed against its parent (``drifted``) or turned by
+        its joint's twist (``joined``): the drift between them since the pose, as a
+        rate (deg/s) over the time since, at least ``RATE_SINCE_S`` (a bow soon after
+        the pose says little of a rate), for the three-dof joints' hold to start from
+        (:class:`JointDrift`'s loop would otherwise learn it from zero)."""
+        since = self._bow_t - (self._t0 if self._t0 is not None else self._bow_t)
+        since = max(since, self.RATE_SINCE_S)
+        return {k: v / since for k, v in {**self.drifted, **self.joined}.items()}
+
+
+def _elbow_pair_segments(samples: Sequence[tuple[np.ndarray, np.ndarray]], seg_p: np.ndarray,
+                         seg_c: np.ndarray, psi_p: np.ndarray, psi_c: np.ndarray
+                         ) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    """The upper arms (body frame; (kp, n, 3, 3)) for each of the ``kp`` headings
+    ``psi_p`` (rad) and ``n`` samples (each tag's turn since calibration), and the
+    forearms for each of ``psi_c``."""
+    a_p = np.array([a for a, _ in samples])[None]
+    a_c = np.array([b for _, b in samples])[None]
+    rp, rc = _rz_batch(psi_p)[:, None], _rz_batch(psi_c)[:, None]
+    b_p = rp.transpose(0, 1, 3, 2) @ a_p @ rp @ seg_p
+    b_c = rc.transpose(0, 1, 3, 2) @ a_c @ rc @ seg_c
+    return b_p, b_c
+
+
+def _elbow_pair_cost(samples: Sequence[tuple[np.ndarray, np.ndarray]], seg_p: np.ndarray,
+                     seg_c: np.ndarray, psi_p: np.ndarray, psi_c: np.ndarray
+                     ) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    """Per pair of headings (each of ``psi_p`` with each of ``psi_c``: (kp, kc)): the
+    RMS of the elbow's axes' dot product (0: perpendicular), and how far (deg,
+    summed over the samples) its flexion falls outside its range."""
     lo, hi = rom("left_elbow_flexion_deg")
+    b_p, b_c = _elbow_pair_segments(samples, seg_p, seg_c, psi_p, psi_c)
+    perp = np.sqrt((np.einsum("pni,cni->pcn", b_p[..., :, 1], b_c[..., :, 2]) ** 2).mean(-1))
+    # the forearm in the upper arm: its flexion about -y
+    rel_20 = np.einsum("pni,cni->pcn", b_p[..., :, 2], b_c[..., :, 0])
+    rel_00 = np.einsum("pni,cni->pcn", b_p[..., :, 0], b_c[..., :, 0])
+    flexion = np.degrees(np.arctan2(rel_20, rel_00))
+    outside = np.maximum(0.0, np.maximum(lo - 10 - flexion, flexion - hi - 10)).sum(axis=-1)
+    return perp, outside
 
-    def cost(psi_p: np.ndarray, psi_c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        rp, rc = _rz_batch(psi_p), _rz_batch(psi_c)
-        b_p = np.einsum("kji,njl,klm->knim", rp, a_p, rp) @ seg_p  # the segments, body frame
-        b_c = np.einsum("kji,njl,klm->knim", rc, a_c, rc) @ seg_c
-        perp = np.sqrt((np.einsum("kni,kni->kn", b_p[..., :, 1], b_c[..., :, 2]) ** 2).mean(1))
-        rel = np.einsum("knji,knjl->knil", b_p, b_c)  # the forearm in the upper arm
-        flexion = np.degrees(np.arctan2(rel[..., 2, 0], rel[..., 0, 0]))  # about -y
-        outside = np.maximum(0.0, np.maximum(lo - 10 - flexion, flexion - hi - 10)).sum(axis=1)
-        return perp, outside
 
+def _apart_deg(a: tuple[float, float], b: tuple[float, float]) -> float:
+    """How far apart (deg) two pairs of headings (rad) are, in the farther one."""
+    return max(abs(_wrap(math.degrees(x - y))) for x, y in zip(a, b, strict=True))
+
+
+def _elbow_pair_grid(samples: Sequence[tuple[np.ndarray, np.ndarray]], seg_p: np.ndarray,
+                     seg_c: np.ndarray) -> tuple[float, float] | None:  # fmt: skip
+    """The upper arm's and forearm's tag headings (rad, every 5 deg) that keep the
+    elbow's axes most nearly perpendicular with its flexion in range; None when
+    a pair far from it fits about as well (the motion does not tell)."""
     grid = np.radians(np.arange(0.0, 360.0, 5.0))
     gp, gc = (g.ravel() for g in np.meshgrid(grid, grid, indexing="ij"))
-    perp, outside = cost(gp, gc)
+    perp, outside = (v.ravel() for v in _elbow_pair_cost(samples, seg_p, seg_c, grid, grid))
     best = int(np.lexsort((perp, np.round(outside, 0)))[0])
     # a motion that fits a pair far from the best as well (within 20 deg of it in
     # neither heading, as much inside the range) tells nothing: the elbow barely bent
@@ -632,13 +978,37 @@ def _elbow_pair_headings(samples: Sequence[tuple[np.ndarray, np.ndarray]], seg_p
     rivals = (far > math.radians(20.0)) & (np.round(outside, 0) <= round(float(outside[best])))
     if rivals.any() and perp[rivals].min() < 2.0 * perp[best]:
         return None
-    fine = np.radians(np.arange(-5.0, 5.5, 0.5))
-    fp, fc = (g.ravel() for g in np.meshgrid(gp[best] + fine, gc[best] + fine, indexing="ij"))
-    perp, outside = cost(fp, fc)
-    k = int(np.lexsort((perp, np.round(outside, 0)))[0])
-    if math.degrees(math.asin(min(1.0, perp[k]))) > 3.0 or outside[k] > 5.0 * len(samples):
+    return float(gp[best]), float(gc[best])
+
+
+def _elbow_pair_refine(samples: Sequence[tuple[np.ndarray, np.ndarray]], seg_p: np.ndarray,
+                       seg_c: np.ndarray, start: tuple[float, float]
+                       ) -> tuple[float, float, float] | None:  # fmt: skip
+    """The pair of headings (rad) near ``start`` that keeps the elbow's axes
+    perpendicular (least squares), and its uncertainty (deg, about two standard
+    deviations: the misfit's spread through the fit's Jacobian); None when it is
+    not an elbow's motion (the axes off perpendicular by more than 3 deg, the
+    flexion out of range) or the fit left the basin (10 deg)."""
+    from scipy.optimize import least_squares
+
+    def residuals(x: np.ndarray) -> np.ndarray:
+        b_p, b_c = _elbow_pair_segments(samples, seg_p, seg_c, x[:1], x[1:])
+        return np.einsum("ni,ni->n", b_p[0, :, :, 1], b_c[0, :, :, 2])  # type: ignore[no-any-return]
+
+    fit = least_squares(residuals, np.array(start), method="lm")
+    psi_p, psi_c = (float(v) for v in fit.x)
+    if _apart_deg((psi_p, psi_c), start) > 10.0:
+        return None
+    n = len(samples)
+    perp, outside = _elbow_pair_cost(samples, seg_p, seg_c, fit.x[:1], fit.x[1:])
+    if math.degrees(math.asin(min(1.0, float(perp[0, 0])))) > 3.0 or outside[0, 0] > 5.0 * n:
         return None  # not an elbow's motion
-    return _wrap(math.degrees(fp[k])), _wrap(math.degrees(fc[k]))
+    jtj = fit.jac.T @ fit.jac
+    if abs(np.linalg.det(jtj)) < 1e-12:
+        return None
+    cov = float(fit.fun @ fit.fun) / max(1, n - 2) * np.linalg.inv(jtj)
+    unc = 2.0 * math.degrees(math.sqrt(max(float(np.linalg.eigvalsh(cov).max()), 0.0)))
+    return psi_p, psi_c, unc
 
 
 def _child_heading(samples: Sequence[tuple[np.ndarray, np.ndarray]], seg_p: np.ndarray,
@@ -659,13 +1029,20 @@ def _child_heading(samples: Sequence[tuple[np.ndarray, np.ndarray]], seg_p: np.n
         return np.sqrt((perp**2).mean(axis=1)), np.degrees(angle).mean(axis=1)
 
     grid = np.radians(np.arange(0.0, 360.0, 5.0))
-    perp, turn = cost(grid)
-    # the perpendicular fits (within twice the best), then the least turned joint
-    fits = np.flatnonzero(perp <= 2 * perp.min() + 1e-3)
-    best = grid[fits[np.argmin(turn[fits])]]
-    fine = best + np.radians(np.arange(-5.0, 5.25, 0.25))
+    perp, _ = cost(grid)
+    # each local minimum of the misfit, refined (on the coarse grid alone a true fit
+    # between two of its points can look worse than a rival's falling on one) ...
+    minima = np.flatnonzero((perp <= np.roll(perp, 1)) & (perp <= np.roll(perp, -1)))
+    step = np.radians(np.arange(-5.0, 5.25, 0.25))
+    fine = (grid[minima][:, None] + step[None, :]).ravel()
     perp, turn = cost(fine)
-    k = int(np.argmin(perp))
+    perp, turn, fine = (a.reshape(len(minima), len(step)) for a in (perp, turn, fine))
+    at = np.argmin(perp, axis=1)
+    rows = np.arange(len(minima))
+    perp, turn, fine = perp[rows, at], turn[rows, at], fine[rows, at]
+    # ... the perpendicular fits (within twice the best), then the least turned joint
+    fits = np.flatnonzero(perp <= 2 * perp.min() + 1e-3)
+    k = int(fits[np.argmin(turn[fits])])
     if math.degrees(math.asin(min(1.0, perp[k]))) > 3.0:  # not this joint's motion
         return None
     return _wrap(math.degrees(fine[k]))
@@ -744,6 +1121,7 @@ class BodyHeading:
         self.pairs = KneePairs(profile) if self.unknown and independent else None
         self.children = ChildHeadings(profile) if self.unknown and independent else None
         self.elbows = ElbowPairs(profile) if self.unknown and independent else None
+        self.trunk = TrunkBow(profile) if self.unknown and independent else None
         if profile.heading == "fixed":
             self.how = "fixed"
         elif not profile.imu_mounts:
@@ -763,6 +1141,8 @@ class BodyHeading:
                      if side not in self.pairs.done for k in (p, c)}  # fmt: skip
             if self.elbows is not None:
                 knees |= self.elbows.coming
+            if self.trunk is not None and self.trunk.coming(self.profile):
+                return True
             return bool(knees) or (self.children is not None
                                    and self.children.pending(self.profile, knees))  # fmt: skip
         return self.finder is not None
@@ -770,7 +1150,8 @@ class BodyHeading:
     def update(self, t_s: float, samples: Mapping[Site, Any]) -> Profile | None:
         """Take one tick's samples (site -> RawSample); the profile with the heading
         once it is found (then never again; in ``independent`` mode, once per knee
-        and once per foot or hand whose parent's is known)."""
+        or elbow, once per foot or hand whose parent's is known, and once per bow
+        that gives trunk tags' headings: :class:`TrunkBow`)."""
         if not self.searching:
             return None  # nothing more to find
         orientations = {site.raw_key: s.reading.wxyz for site, s in samples.items()
@@ -781,9 +1162,20 @@ class BodyHeading:
                 found.update(self.elbows.update(t_s, orientations))
             if self.children is not None:  # then the feet's and hands' below them
                 found.update(self.children.update(orientations, self.profile))
+            trunk: dict[str, float] = {}
+            if self.trunk is not None:  # and the pelvis', chest's and head's from a bow
+                trunk = self.trunk.update(t_s, orientations, self.profile)
+                found.update(trunk)
             if not found:
                 return None
             self.profile = with_headings(self.profile, found)
+            if trunk and self.trunk is not None:  # the drift since the pose, at once
+                self.profile = turned_headings(self.profile, self.trunk.drifted)
+                self.profile = turned_headings(self.profile, self.trunk.snap(self.profile, trunk))
+                if self.drift is not None:  # and the rate of that drift, to hold on with
+                    for key, rate in self.trunk.drift_rates().items():
+                        if key in self.drift.rate_deg_s:
+                            self.drift.rate_deg_s[key] = rate
             self.unknown = [k for k in self.unknown if k not in found]
             self.how = "partly found" if self.unknown else "found"
             return self.profile
@@ -848,7 +1240,26 @@ class BodyHeading:
                 out["waiting_for"] = (
                     finder.informative or "no hinge with both tags: declare a heading reference"
                 )
+        if self.pairs is not None and self.unknown:
+            out["waiting_for"] = self._motions_wanted()
         return out
+
+    def _motions_wanted(self) -> list[str]:
+        """The motions that would find the tags still unknown (``independent``)."""
+        segments = {seg.partition("_")[2] or seg for seg in _segments_of(self.unknown).values()}
+        want = []
+        if segments & {"thigh", "shank"}:
+            want.append("walk or swing a leg: the thighs' and shanks' tags")
+        if segments & {"upperarm", "forearm"}:
+            want.append("reach, the elbows bending: the arms' tags"
+                        if self.elbows is not None and self.elbows.pairs
+                        else "the arms' tags: calibrate in an N-pose, then reach")  # fmt: skip
+        if segments & {"foot", "hand"}:
+            want.append("move the feet and hands: their tags, once the legs' and arms' are known")
+        if segments & {"pelvis", "thorax", "head"}:
+            want.append("bow forward from the hips, the head following: the pelvis', chest's "
+                        "and head's tags")  # fmt: skip
+        return want
 
 
 #: Where the body faces, for the yaw reset: the first of these segments with a tag.
@@ -897,6 +1308,8 @@ TWIST_JOINTS = (
     ("neck", "thorax", "head"),
     ("shoulder", "thorax", "upperarm"),
 )
+#: the three-dof joints from the root out (a parent's before its children's)
+TWIST_ORDER = ("lumbar", "hip", "neck", "shoulder")
 #: a perpendicular constraint's grip on the heading (|d(c.p)/d heading| at the
 #: answer) below this: the child's heading is not seen at that instant
 PERPENDICULAR_MIN = 0.3

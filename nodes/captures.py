@@ -30,6 +30,7 @@ __all__ = [
     "format_of",
     "formats",
     "frame_of",
+    "looks_else",
     "looks_like",
     "read_capture",
     "sample_json",
@@ -100,6 +101,19 @@ _SNIFFERS: tuple[tuple[str, re.Pattern[bytes]], ...] = (
      re.compile(rb"[A-Z]E[0-9A-Fa-f]{4}X[0-9A-Fa-f]{4}Y[0-9A-Fa-f]{4}Z")),
     ("an IMU central capture (--format imu-central)", re.compile(rb"\A([0-9a-fA-F]{52,56}\r?\n)+")),
 )  # fmt: skip
+
+
+def looks_else(path: Path, fmt: str) -> str:
+    """``"; it looks like <what>"`` when a file without samples of ``fmt``
+    looks like something else (another format, or a CAN log misnamed), else ""
+    (it looks like what was asked: it holds nothing that reads)."""
+    what = looks_like(path)
+    if what is None:
+        return ""
+    named = re.search(r", named (\.\w+)\)$", what)
+    if f"--format {fmt}" in what and (named is None or named[1] == path.suffix.lower()):
+        return ""
+    return f"; it looks like {what}"
 
 
 def looks_like(path: Path) -> str | None:

@@ -22,7 +22,7 @@ from bodynet.core.messages import OleAccel, Quat, Reading
 from bodynet.core.profile import IMU_SITES, SMARTSUIT_QUAT_NODES, SMARTSUIT_SITES, mount
 from bodynet.core.skeleton import build_skeleton
 from bodynet.kinematics.model import BodyModel, SiteMount, accel_axes
-from bodynet.nodes.motion import Routine
+from bodynet.nodes.motion import ROOT_ANGLES, Routine
 from bodynet.nodes.sensors import AccelBank, OleModel, QuatBank
 
 
@@ -192,19 +192,27 @@ class BodyEmulator:
     def angles(self, t_s: float) -> dict[str, float]:
         return self.routine.angles(t_s)
 
+    def _q(self, angles: Mapping[str, float]) -> np.ndarray:
+        """The model's configuration: the joint angles, and the pelvis' orientation
+        where the routine gives it (``ROOT_ANGLES``)."""
+        if not any(n in angles for n in ROOT_ANGLES):
+            return self.model.q(angles)
+        turn, tilt, lean = (angles.get(n, 0.0) for n in ROOT_ANGLES)
+        root = Rotation.from_euler("ZYX", [turn, tilt, lean], degrees=True).as_quat()
+        joints = {n: v for n, v in angles.items() if n not in ROOT_ANGLES}
+        return self.model.q(joints, root_quat_xyzw=root)
+
     def sample(self, t_s: float) -> tuple[list[Reading], list[Truth]]:
         """Every sensor's reading at ``t_s``, and the truth behind each."""
         angles = self.angles(t_s)
         n = len(self._frames)
-        rot, pos = self.model.frame_placements(
-            self.model.q(angles), self._frames + self._segment_frames
-        )
+        rot, pos = self.model.frame_placements(self._q(angles), self._frames + self._segment_frames)
         seg_rot = rot[n:]
         readings: list[Reading | None] = [None] * n
         if len(self._accel_idx):
             sites = [self._frames[i] for i in self._accel_idx]
-            _, before = self.model.frame_placements(self.model.q(self.angles(t_s - self._h)), sites)
-            _, after = self.model.frame_placements(self.model.q(self.angles(t_s + self._h)), sites)
+            _, before = self.model.frame_placements(self._q(self.angles(t_s - self._h)), sites)
+            _, after = self.model.frame_placements(self._q(self.angles(t_s + self._h)), sites)
             accel = (after - 2 * pos[self._accel_idx] + before) / (self._h * self._h)
             counts = self._accel.read(seg_rot[self._accel_idx], accel)
             for row, i in enumerate(self._accel_idx):

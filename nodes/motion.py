@@ -20,6 +20,12 @@ from bodynet.core.skeleton import TPOSE, build_skeleton, rom
 
 Pose = Mapping[str, float]
 
+#: Beside the joint angles a routine may give the pelvis' orientation in the world
+#: (deg): its forward tilt (about +Y: a bow from the hips), its list (about +X,
+#: positive down on the right) and its turn (about +Z), applied turn, tilt, list.
+#: Without them the pelvis stays upright, facing +X.
+ROOT_ANGLES = ("pelvis_turn_deg", "pelvis_tilt_deg", "pelvis_list_deg")
+
 
 @dataclass(frozen=True)
 class Routine:
@@ -94,6 +100,20 @@ def reach(side: str = "left") -> Callable[[float], dict[str, float]]:
         (15.0, {j + "shoulder_abduction_deg": 90.0}),
         (16.5, rest),                                             # return
     ])  # fmt: skip
+
+
+def bow(
+    depth_deg: float = 40.0, down_s: float = 1.2, hold_s: float = 0.5, **extra: float
+) -> Callable[[float], dict[str, float]]:
+    """A bow from the hips, once: the pelvis tilts forward ``depth_deg`` (the legs
+    straight, so the hips flex as much), the lumbar flexes three quarters of it
+    and the neck half (the head follows, looking down), held ``hold_s``, then
+    back up; ``extra`` joint angles (or root angles) are added at the bottom."""
+    down = {"pelvis_tilt_deg": depth_deg, **_both("hip_flexion", depth_deg),
+            "lumbar_flexion_deg": 0.75 * depth_deg, "neck_flexion_deg": 0.5 * depth_deg,
+            **extra}  # fmt: skip
+    return keyframes([(0.0, {}), (down_s, down), (down_s + hold_s, down),
+                      (2 * down_s + hold_s, {})], loop=False)  # fmt: skip
 
 
 _upper_body = keyframes([

@@ -238,7 +238,11 @@ class SitePublisher:
             for node in gone:
                 log.info("%s: node %d went quiet", self.name, node)
             if gone or now - self._last_health >= HEALTH_PERIOD_S:
-                self.publish_health()
+                try:
+                    self.publish_health()
+                except zenoh.ZError as exc:  # the session was closed under us: nothing to tell
+                    log.debug("%s: health not published (%s); watchdog ends", self.name, exc)
+                    return
 
     def close(self) -> None:
         """Drop every token and publisher; the session stays open. Later calls

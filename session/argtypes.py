@@ -162,10 +162,10 @@ def positive_int(hi: int, why: str = "") -> Callable[[str], int]:
     return bounded_int(1, hi, why)
 
 
-#: A rate of samples, poses or frames: above 0 and at most 10 kHz (no body
-#: sensor or display runs faster; a higher value is a typo that would make
-#: millions of frames).
-RATE_HZ = positive_float(10_000.0, "a rate in Hz, at most 10 kHz")
+#: A rate of samples, poses or frames: 0.01 Hz to 10 kHz (no body sensor or
+#: display runs faster; a higher value is a typo that would make millions of
+#: frames, a lower one times past what a clock counts: 1e-300 Hz).
+RATE_HZ = bounded_float(0.01, 10_000.0, "a rate in Hz, 0.01 Hz to 10 kHz")
 #: A length of time given on the command line: above 0, at most a day.
 DURATION_S = positive_float(86_400.0, "seconds, at most a day")
 
@@ -255,13 +255,16 @@ def _why_not_readable(path: Path) -> str | None:
         return exc.strerror or str(exc)
     if stat.S_ISDIR(st.st_mode):
         return "a folder, not a file"
+    if stat.S_ISCHR(st.st_mode) or stat.S_ISBLK(st.st_mode):  # /dev/zero: no end to read
+        return "a device, not a file"
     if not os.access(path, os.R_OK):
         return "not readable (permission denied)"
     return None
 
 
 def input_file(text: str) -> Path:
-    """A file that exists and can be read (not a folder)."""
+    """A file that exists and can be read (not a folder or a device; a pipe,
+    ``<(...)``, is one)."""
     path = _path(text)
     why = _why_not_readable(path)
     if why:
@@ -329,7 +332,7 @@ def _output(text: str) -> Path:
             fail(f"{_shown(text)} is a folder; give a file name")
         if not stat.S_ISREG(st.st_mode):
             fail(f"{_shown(text)} is not a regular file (a device or pipe); refusing to write it")
-        if not os.access(path, os.W_OK):
+        if not os.access(path, os.W_OK) or not st.st_mode & 0o222:  # root too: made read-only
             fail(f"cannot write {_shown(text)}: it is read-only")
     return path
 
@@ -348,7 +351,10 @@ def input_or_new_file(text: str) -> Path:
     calibration creates): a readable file, or a new name in a writable folder."""
     path = _path(text)
     if _kind(path) != "none" or os.path.islink(path):
-        return input_file(text)
+        input_file(text)
+        if _kind(path) != "file":  # it is replaced when written: a regular file only
+            fail(f"{_shown(text)} is not a regular file (a pipe?); refusing to write it")
+        return path
     _writable_folder(path, text)
     return path
 

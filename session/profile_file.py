@@ -3,7 +3,6 @@ writes its calibrations there, and the clients and commands that read it."""
 
 from __future__ import annotations
 
-import os
 import tomllib
 from pathlib import Path
 
@@ -33,9 +32,11 @@ def load(path: Path) -> Profile:
 
 
 def save(profile: Profile, path: Path) -> None:
-    """Write ``profile`` to ``path`` atomically, readable by the owner only."""
-    tmp = path.with_name(path.name + ".tmp")
-    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
-    with os.fdopen(fd, "w") as f:
-        f.write(HEADER + tomli_w.dumps(profile.to_dict()))
-    tmp.replace(path)
+    """Write ``profile`` to ``path`` whole or not at all, readable by the owner
+    only (a nameless file until it is whole: a failed or killed run leaves
+    nothing beside it); ``OutputError`` (an ``OSError``) names ``path``."""
+    from bodynet.session.outputs import atomic_file
+
+    text = HEADER + tomli_w.dumps(profile.to_dict())
+    with atomic_file(path) as f:
+        f.write(text)

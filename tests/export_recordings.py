@@ -6,8 +6,10 @@ from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
+from typing import Any
 
 import pytest
+from foxglove_schemas_protobuf.FrameTransforms_pb2 import FrameTransforms
 
 from bodynet.cli.main import main
 from bodynet.clients.mcap_store import McapSink, read_poses
@@ -38,3 +40,16 @@ def export(capsys: pytest.CaptureFixture[str], *args: object) -> str:
     err = capsys.readouterr().err
     assert code == 0, err
     return err
+
+
+def tf_message(data: bytes) -> dict[str, Any]:
+    """A ``foxglove.FrameTransforms`` message read with Foxglove's own class, laid
+    out as its JSON form (time as ``sec``, ``nsec``)."""
+    message = FrameTransforms()
+    message.ParseFromString(data)
+    return {"transforms": [
+        {"timestamp": {"sec": t.timestamp.seconds, "nsec": t.timestamp.nanos},
+         "parent_frame_id": t.parent_frame_id, "child_frame_id": t.child_frame_id,
+         "translation": {a: getattr(t.translation, a) for a in "xyz"},
+         "rotation": {a: getattr(t.rotation, a) for a in "xyzw"}}
+        for t in message.transforms]}  # fmt: skip

@@ -99,6 +99,10 @@ def test_half_minute_soak_loses_nothing(tmp_path: Path) -> None:
     assert result["load_1min"]["max"] > 0.0  # sampled: this run loads the machine itself
     assert result["lost_gateway"] == 0
     assert result["lost_recorder"] == 0
+    assert len(result["anon_mb"]["recorder"]) == len(result["rss_mb"]["recorder"])
+    for name in ("gateway", "recorder"):
+        assert 0 < result["anon_memory"][name]["end_mb"] < result["memory"][name]["end_mb"]
     for name, memory in result["memory"].items():
         assert not math.isnan(memory["growth"]), name
         assert memory["growth"] < soak.GROWTH_LIMIT, (name, memory)
+        assert result["owned_growth"][name] < soak.GROWTH_LIMIT, (name, result["anon_memory"])

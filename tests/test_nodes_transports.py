@@ -19,7 +19,14 @@ from typing import Any
 import can
 import pytest
 import zenoh
-from zenoh_helpers import Liveliness, Running, health_collector, raw_collector
+from zenoh_helpers import (
+    Liveliness,
+    Running,
+    client,
+    health_collector,
+    raw_collector,
+    wait_until,
+)
 
 from bodynet.core.keys import LEFT_ARM
 from bodynet.core.messages import OleAccel, Quat, RawSample, Source
@@ -224,10 +231,28 @@ def test_can_adapter_unplugged_and_back(
     adapter.port.unplug()
     health.wait_for(lambda h: bool(h) and h[-1][1]["device"] == "disconnected")
     n = len(raw.seen) + raw.queue.qsize()
+    shoulder = bridge.publisher.nodes[1]
+    before = shoulder.samples  # the bridge has seen the failure: nothing more of before
     adapter.port.plug()
     health.wait_for(lambda h: h[-1][1]["device"] == "connected")
+    wait_until(lambda: shoulder.samples >= before + 10, what="samples after the plug")
+    assert shoulder.gaps > 0  # the outage shows as missed periods
     raw.wait_for(lambda s: len(s) >= n + 30)
-    assert bridge.publisher.nodes[1].gaps > 0  # the outage shows as missed periods
     running.stop()
     adapter.stop()
     bridge.close()
+
+
+def test_a_publisher_whose_session_is_closed_under_it_ends_quietly(
+    router_endpoint: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Its health watchdog finds the session gone: it ends, no thread traceback."""
+    from bodynet.nodes.publisher import SitePublisher
+
+    died: list[threading.ExceptHookArgs] = []
+    monkeypatch.setattr(threading, "excepthook", died.append)
+    session = client(router_endpoint)
+    publisher = SitePublisher(session, dict(SMARTSUIT_SITES), Source.CAN, "closing", 0.01)
+    session.close()
+    wait_until(lambda: not publisher._watch.is_alive(), what="the watchdog to end")
+    assert died == []

@@ -25,7 +25,7 @@ import rerun as rr
 import zenoh
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
-from zenoh_helpers import Running, client, free_port
+from zenoh_helpers import Running, client, free_port, wait_matching
 
 from bodynet.clients.view import GAUGES, MAX_M, Viewer, drawing, status_text
 from bodynet.core import keys
@@ -235,6 +235,7 @@ def live() -> Iterator[tuple[Gateway, zenoh.Session]]:
     gw_session, hostile = client(endpoint), client(endpoint)
     gateway = Gateway(gw_session)
     running = Running(gateway.run)
+    wait_matching(hostile, SITE_KEYS[0])  # the gateway's subscription has reached the router
     yield gateway, hostile
     running.stop()
     gateway.close()

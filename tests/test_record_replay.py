@@ -109,6 +109,25 @@ def test_rotation_by_time(live_arm: None, router_endpoint: str, tmp_path: Path) 
     assert len(list(read_raw(tmp_path / "rot-001.mcap"))) > 0
 
 
+def test_a_recording_never_empties_an_earlier_one(
+    live_arm: None, router_endpoint: str, tmp_path: Path
+) -> None:
+    """``record -o`` a name taken (run twice, a recorder service started again):
+    the earlier files are kept whole; it goes on at the next free name."""
+    out = tmp_path / "rec.mcap"
+    earlier = {out: b"an earlier recording\n", tmp_path / "rec-001.mcap": b"its next file\n"}
+    for path, data in earlier.items():
+        path.write_bytes(data)
+    rec = start_recorder(router_endpoint, out, "--rotate-s", "0.5")
+    wait_for_size(tmp_path / "rec-003.mcap", 1)  # rotated past the taken names too
+    rec.send_signal(signal.SIGINT)
+    _, err = rec.communicate(timeout=20)
+    assert rec.returncode == 0, err
+    assert {path: path.read_bytes() for path in earlier} == earlier
+    assert f"{out} exists (kept); recording to {tmp_path / 'rec-002.mcap'}" in err
+    assert len(list(read_raw(tmp_path / "rec-002.mcap"))) > 0
+
+
 def processed_arm(tmp_path: Path, data_dir: Path) -> Path:
     """The golden SmartSuit arm capture through ``bodynet process``: 400 raw samples
     with their poses and transforms."""
@@ -222,6 +241,55 @@ def _subscribed(recorder: Recorder, probe: Callable[[int], None]) -> int:
         threading.Event().wait(0.05)
     threading.Event().wait(0.3)
     return recorder.messages
+
+
+def _burst(source: zenoh.Session, key: str, n: int, t0: int) -> None:
+    """``n`` raw samples on ``key`` back to back, as a node bridge sends them
+    (congestion control BLOCK: held back, never dropped)."""
+    pub = source.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK)
+    for seq in range(n):
+        pub.put(raw_sample.encode(_raw(seq, t0 + seq)))
+    pub.undeclare()
+
+
+def test_recorder_keeps_a_burst_whole_and_writes_its_backlog_at_close(
+    zsession: zenoh.Session, router_endpoint: str, tmp_path: Path
+) -> None:
+    """A burst far deeper than a plain callback's queue, held up behind a busy
+    writer, is in the file whole when the recorder closes: nothing dropped on
+    the way in, nothing left in its FIFOs at close."""
+    out = tmp_path / "burst.mcap"
+    recorder = Recorder(zsession, out, DEFAULT_KEYS)
+    source = client(router_endpoint)
+    wrist, elbow = keys.raw_key("arm", "left", "wrist"), keys.raw_key("arm", "left", "elbow")
+    # a second subscriber in the recorder's session: it gets each sample when the
+    # recorder's FIFO does
+    seen = zsession.declare_subscriber(elbow, zenoh.handlers.FifoChannel(1 << 15))
+    t0, n, got = 1_700_000_000_000_000_000, 5000, [0]
+
+    def all_seen() -> bool:
+        while seen.try_recv() is not None:
+            got[0] += 1
+        return got[0] >= n
+
+    closing = threading.Thread(target=recorder.close)
+    try:
+        probes = _subscribed(
+            recorder, lambda k: source.put(wrist, raw_sample.encode(_raw(k, t0 + k)))
+        )
+        with recorder._lock:  # the writer busy: the burst waits in the FIFO
+            _burst(source, elbow, n, t0)
+            _wait(all_seen)
+            closing.start()  # close while the whole burst is still to write
+            threading.Event().wait(0.2)
+        closing.join(timeout=30)
+        assert not closing.is_alive()
+    finally:
+        seen.undeclare()
+        source.close()
+    assert [s.seq for k, _, s in read_raw(out) if k == elbow] == list(range(n))
+    assert read_gaps(out) == []
+    assert count_messages(out) >= probes + n
 
 
 def test_recorder_refuses_what_mcap_cannot_store_and_closes_complete(
@@ -393,13 +461,18 @@ def test_salvage_keeps_a_cut_recording_up_to_its_last_chunk(
 
 
 def _schemas(path: Path) -> dict[str, dict[str, object]]:
-    """topic -> the JSON Schema of its channel, as a generic tool finds it."""
+    """topic -> the JSON Schema of its channel, as a generic tool finds it (the
+    Foxglove transforms are protobuf, see ``test_recorder_writes``)."""
     with path.open("rb") as f:
         summary = make_reader(f).get_summary()
     assert summary is not None
     out = {}
     for ch in summary.channels.values():
         schema = summary.schemas[ch.schema_id]
+        if ch.topic == keys.TRANSFORMS:
+            assert (schema.name, schema.encoding, ch.message_encoding) == (
+                "foxglove.FrameTransforms", "protobuf", "protobuf")  # fmt: skip
+            continue
         assert (schema.encoding, ch.message_encoding) == ("jsonschema", "json")
         out[ch.topic] = json.loads(schema.data)
     return out

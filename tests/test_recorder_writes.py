@@ -1,27 +1,34 @@
 """What the recorder writes of a pose, and how cheaply: the mcap library's
 records through a leaner way in (byte for byte the library's file), a pose
 stored as it came with only its header and segments read (``pose.glance``),
-and its Foxglove transforms made for many poses in one array pass, the same
-bytes as before."""
+and its Foxglove transforms made for many poses in one array pass, as
+protobuf messages that Foxglove's own schema classes and the mcap protobuf
+decoder read."""
 
 from __future__ import annotations
 
 import io
 import json
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import orjson
 import pytest
+from export_recordings import tf_message
+from foxglove_schemas_protobuf.FrameTransforms_pb2 import FrameTransforms
+from google.protobuf import descriptor_pb2
 from hypothesis import given
 from hypothesis import strategies as st
 from mcap.reader import make_reader
 from mcap.writer import CompressionType, Writer
+from mcap_protobuf.decoder import DecoderFactory
 from scipy.spatial.transform import Rotation
 
+from bodynet.clients import foxglove_pb
 from bodynet.clients.body_tree import Transforms, local_poses, segment_parents
-from bodynet.clients.mcap_store import McapSink, read_poses
+from bodynet.clients.mcap_store import TF_MIN_GAP_NS, McapSink, read_poses
 from bodynet.clients.mcap_writer import LeanWriter
 from bodynet.core import keys
 from bodynet.core.codecs import pose
@@ -67,6 +74,30 @@ def test_lean_writer_writes_what_the_library_writes() -> None:
     assert _write(LeanWriter, lean=False) == library  # and the library's own way, if not
     reader = make_reader(io.BytesIO(library))
     assert sum(1 for _ in reader.iter_messages()) == 300 + 6 * 40 + 1
+
+
+def test_lean_writer_compresses_at_its_level() -> None:
+    """zstd level 1 chunks: the same messages read back, other chunk bytes than
+    the library's level (so the level is applied)."""
+
+    def write(level: int | None) -> bytes:
+        out = io.BytesIO()
+        writer = LeanWriter(out, chunk_size=4096, zstd_level=level)
+        assert writer.leveled == (level is not None)
+        writer.start()
+        channel = writer.register_channel("one", "json", writer.register_schema("a", "", b""))
+        for i in range(500):
+            writer.add_message(channel, i, b'{"i": %d, "text": "%s"}' % (i, b"ab" * (i % 40)), i)
+        writer.finish()
+        return out.getvalue()
+
+    def messages(data: bytes) -> list[tuple[int, bytes]]:
+        return [(m.log_time, m.data) for _, _, m in make_reader(io.BytesIO(data)).iter_messages()]
+
+    library, fast = write(None), write(1)
+    assert fast != library
+    assert messages(fast) == messages(library)
+    assert len(messages(fast)) == 500
 
 
 def test_lean_writer_refuses_a_time_before_writing_any_of_it() -> None:
@@ -232,7 +263,7 @@ def test_transforms_are_the_rotation_algebra_of_scipy() -> None:
     translations, rotations = local_poses(p, q, [index.get(parents.get(s, ""), -1) for s in names])
     turns = rotations.as_quat().reshape(n, len(names), 4)
     for k, message in enumerate(messages):
-        transforms = json.loads(message)["transforms"]
+        transforms = tf_message(message)["transforms"]
         assert [t["child_frame_id"] for t in transforms] == names
         for s, t in enumerate(transforms):
             assert t["parent_frame_id"] == parents.get(names[s], "world")
@@ -252,7 +283,7 @@ def test_a_pose_not_laid_out_as_the_gateway_does_is_decoded(tmp_path: Path) -> N
     spaced = json.dumps(json.loads(pose.encode(frame))).encode()
     broken = pose.encode(frame).replace(b"[1.0,0.0,0.0,0.0]", b'[1.0,"x",0.0,0.0]')
     out = tmp_path / "odd.mcap"
-    sink = McapSink(out)
+    sink = McapSink(out, tf_min_gap_ns=0)  # each pose its transforms (the same time)
     assert sink.write_pose_message(keys.pose_key(), spaced) == (4, 2_000)
     with pytest.raises(DecodeError):
         sink.write_pose_message(keys.pose_key(), b'{"v": 2, "seq": 1}')
@@ -260,7 +291,83 @@ def test_a_pose_not_laid_out_as_the_gateway_does_is_decoded(tmp_path: Path) -> N
     assert sink.write_pose_message(keys.pose_key(), pose.encode(frame)) == (4, 2_000)
     sink.close()
     assert [d for _, d in _messages(out, keys.pose_key())] == [spaced, broken, pose.encode(frame)]
-    transforms = [json.loads(d)["transforms"] for _, d in _messages(out, TF)]
+    transforms = [tf_message(d)["transforms"] for _, d in _messages(out, TF)]
     assert [len(t) for t in transforms] == [1, 0, 1]
     assert transforms[0] == transforms[2]
     assert transforms[0][0]["translation"] == {"x": 0.0, "y": 0.0, "z": 1.0}
+
+
+def _fields(descriptor: Any) -> list[tuple[str, int, int, str]]:
+    return [(f.name, f.number, f.type, f.message_type.full_name if f.message_type else "")
+            for f in descriptor.fields]  # fmt: skip
+
+
+def test_transforms_schema_is_foxglove_s() -> None:
+    """The hand-written descriptors define what Foxglove's own .proto files
+    define (messages, fields, numbers, types), under Foxglove's schema name."""
+    files = descriptor_pb2.FileDescriptorSet()
+    files.ParseFromString(foxglove_pb.FRAME_TRANSFORMS_DESCRIPTOR)
+    ours = {f"{file.package}.{m.name}": [(fd.name, fd.number, fd.type, fd.type_name.lstrip("."))
+                                         for fd in m.field]
+            for file in files.file for m in file.message_type}  # fmt: skip
+    theirs = FrameTransforms.DESCRIPTOR
+    frame = theirs.fields_by_name["transforms"].message_type
+    want = {d.full_name: _fields(d) for d in (
+        theirs, frame, frame.fields_by_name["translation"].message_type,
+        frame.fields_by_name["rotation"].message_type,
+        frame.fields_by_name["timestamp"].message_type)}  # fmt: skip
+    assert ours == want
+    assert theirs.full_name == foxglove_pb.SCHEMA_NAME
+
+
+@given(st.integers(0, 2**64 - 1), st.lists(st.floats(-1e3, 1e3), min_size=7, max_size=7))
+def test_a_transform_record_reads_back(t_ns: int, numbers: list[float]) -> None:
+    stamp = foxglove_pb.timestamp(t_ns)
+    record, stamp_at, at = foxglove_pb.transform_layout("world", "päd", len(stamp))
+    data = bytearray(record)
+    data[stamp_at : stamp_at + len(stamp)] = stamp
+    for offset, value in zip(at, numbers, strict=True):
+        data[offset : offset + 8] = np.float64(value).tobytes()
+    (t,) = tf_message(bytes(data))["transforms"]
+    assert t["timestamp"]["sec"] * 1_000_000_000 + t["timestamp"]["nsec"] == t_ns
+    assert (t["parent_frame_id"], t["child_frame_id"]) == ("world", "päd")
+    assert [*t["translation"].values(), *t["rotation"].values()] == numbers
+
+
+def test_the_recording_s_transforms_decode_with_their_schema(body_mcap: Path) -> None:
+    """A reader that knows only what the file says (its schema, its encoding)
+    decodes every transforms message: the mcap protobuf decoder."""
+    with body_mcap.open("rb") as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        decoded = [(schema.encoding, channel.message_encoding, message.log_time, proto)
+                   for schema, channel, message, proto in reader.iter_decoded_messages(
+                       topics=[TF])]  # fmt: skip
+    assert len(decoded) > 100
+    for schema_encoding, message_encoding, log_time, proto in decoded:
+        assert (schema_encoding, message_encoding) == ("protobuf", "protobuf")
+        assert type(proto).DESCRIPTOR.full_name == "foxglove.FrameTransforms"
+        assert len(proto.transforms) == 15
+        assert proto.transforms[0].parent_frame_id == "world"
+        stamp = proto.transforms[0].timestamp
+        if log_time:
+            assert stamp.seconds * 1_000_000_000 + stamp.nanos == log_time
+
+
+def test_transforms_at_a_display_s_rate(body_mcap: Path, tmp_path: Path) -> None:
+    """Whole-body poses get transforms when the last are at least
+    ``TF_MIN_GAP_NS`` older: every other pose at 100 Hz, each at 60 Hz, again at
+    once when time goes back; every pose is stored."""
+    data = next(d for t, d in _messages(body_mcap, keys.pose_key()) if t > 0)
+    frame = pose.decode(data)
+    times = [10_000_000 * k for k in range(1, 11)]  # 100 Hz
+    times += [times[-1] + 16_666_667 * k for k in range(1, 7)]  # 60 Hz
+    times += [5_000_000, 10_000_000]  # back in time
+    out = tmp_path / "rate.mcap"
+    sink = McapSink(out)
+    for t in times:
+        sink.write_pose_message(keys.pose_key(), pose.encode(replace(frame, t_ns=t)))
+    sink.close()
+    assert [t for t, _ in _messages(out, keys.pose_key())] == sorted(times)
+    given = [t for t, _ in _messages(out, TF)]
+    assert given == sorted([*times[0:10:2], *times[10:16], 5_000_000])
+    assert TF_MIN_GAP_NS == 15_000_000  # the rates above

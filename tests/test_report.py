@@ -387,7 +387,7 @@ def test_bad_input_exits_2_with_a_message_and_writes_nothing(
     foreign = tmp_path / "foreign.mcap"
     foreign.write_text("t_s,angle\n0,1\n")
     _fails_cleanly(["report", str(foreign), "-o", out], capsys, tmp_path,
-                   "not a complete MCAP file")  # fmt: skip
+                   "not an MCAP recording")  # fmt: skip
     raw_only = tmp_path / "raw-only.mcap"
     sink = McapSink(raw_only)
     for topic, log_time, sample in read_raw(arm_recording["recording"]):

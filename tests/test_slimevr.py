@@ -11,13 +11,12 @@ import json
 import math
 import socket
 import struct
-import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
 import zenoh
-from zenoh_helpers import Collector, Liveliness, Running, client, raw_collector
+from zenoh_helpers import Collector, Liveliness, Running, client, raw_collector, wait_until
 
 from bodynet.cli.main import main
 from bodynet.core.codecs import slimevr as codec
@@ -35,13 +34,6 @@ HALF = math.sqrt(0.5)
 
 def still(_sensor: int, _t: float) -> tuple[float, float, float, float]:
     return (HALF, 0.0, 0.0, HALF)  # w, x, y, z: a quarter turn about z
-
-
-def wait_until(done: Callable[[], bool], timeout: float = 10.0, what: str = "") -> None:
-    deadline = time.monotonic() + timeout
-    while not done():
-        assert time.monotonic() < deadline, f"timed out waiting for {what}"
-        time.sleep(0.01)
 
 
 @pytest.fixture

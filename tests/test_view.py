@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 from mcap.writer import Writer
 from rerun.chunk import RrdReader
-from zenoh_helpers import client, free_port
+from zenoh_helpers import client, free_port, wait_matching
 
 from bodynet.clients.view import Viewer, view_live
 from bodynet.core import keys
@@ -199,7 +199,8 @@ def test_live_viewer_draws_partial_poses_and_survives_hostile_ones(
     thread = threading.Thread(target=lambda: shown.append(view_live(viewer_session, viewer, stop)))
     thread.start()
     try:
-        time.sleep(0.5)  # the viewer's subscriptions reach the router
+        for key in (keys.TOPOLOGY, keys.health_key("imu"), keys.METRICS, keys.pose_key()):
+            wait_matching(publisher, key)  # the viewer's subscriptions reach the router
         for key, payload in bad_admin:
             publisher.put(key, payload)
         publisher.put(keys.health_key("imu"), json.dumps(health).encode())

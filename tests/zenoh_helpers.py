@@ -18,6 +18,24 @@ from bodynet.core.codecs import raw_sample
 from bodynet.session import open_session, session_config
 
 
+def wait_until(done: Callable[[], bool], timeout: float = 10.0, what: str = "") -> None:
+    """Poll ``done`` until it holds; fail naming ``what`` after ``timeout`` s."""
+    deadline = time.monotonic() + timeout
+    while not done():
+        assert time.monotonic() < deadline, f"timed out waiting for {what}"
+        time.sleep(0.01)
+
+
+def wait_matching(session: zenoh.Session, key: str, timeout: float = 10.0) -> None:
+    """Wait until a subscriber for ``key`` is known to ``session`` (its
+    declaration has reached the router): a put then reaches it."""
+    publisher = session.declare_publisher(key)
+    try:
+        wait_until(lambda: publisher.matching_status.matching, timeout, f"a subscriber of {key}")
+    finally:
+        publisher.undeclare()
+
+
 class Running:
     """``service(stop)`` in a thread, ``stop`` a :class:`threading.Event`, as every
     bodynet service takes it; :meth:`stop` sets it and waits for the service to end."""

@@ -98,7 +98,11 @@ _TEXT_READERS: dict[str, type] = {
 # chip status, a system variable...), but also a frame line garbled past
 # recognition (a timestamp "1.0Z0", a direction "Rq"). Each line a reader
 # passed over is looked at here: one of the format's own non-frame lines is
-# left alone; any other is counted as garbled, with its line number.
+# left alone; any other is counted as garbled, with its line number. The
+# format's lines are listed by name, so that no damage of one character turns a
+# frame line into one of them; where it can (an empty line, a .trc comment or
+# record type), such a line among frames that reads as a frame once put back is
+# counted as well.
 
 _ASC_HEADER = re.compile(  # the header lines python-can's ASCReader looks for, and comments
     r"(date\s+\w+\s|base\s+(hex|dec)|(no)?\s*internal\s+events\s+logged|//"
@@ -106,29 +110,30 @@ _ASC_HEADER = re.compile(  # the header lines python-can's ASCReader looks for, 
     re.IGNORECASE,
 )
 _ASC_EVENT_TIME = re.compile(r"\d+\.\d+\s+(?P<rest>.*)", re.ASCII)
-#: an event on a CAN channel that is not a frame: "1 Statistic: D 0 R 0 ...", "1 Status:..."
-_ASC_CHANNEL_EVENT = re.compile(r"\d+\s+([A-Za-z]\w*:|OverloadFrame\b)", re.ASCII)
-#: the shape of a frame: "<channel> <id> Rx|Tx ..."
-_ASC_FRAME_SHAPE = re.compile(r"\S+\s+\S+\s+(Rx|Tx)\b", re.ASCII)
+#: Vector's events that are not CAN frames, after their time: the start of the
+#: measurement, log triggers, a CAN channel's statistics, chip status, overload
+#: frames and J1939 transport messages, system and environment variables, test
+#: feature sets, and the frames of other buses (Ethernet, FlexRay, MOST, K-Line,
+#: ARINC 429, AFDX). Nothing else passes: an event line of another kind is counted.
+_ASC_EVENTS = re.compile(
+    r"(Start\s+of\s+measurement|log\s+trigger\s+event|log\s+direct\s+(start|stop)\b"
+    r"|CAN\s+\d+\s+(Status|Error):"
+    r"|\d+\s+(Statistic:|J1939TP\s|OverloadFrame\b)"
+    r"|(SV|TFS|GPS):"
+    r"|[A-Za-z_]\w*\s+:=\s"
+    r"|(ETH|FR|Fr|MOST\w*|KLine|A429|AFDX)\s)",
+    re.ASCII,
+)
 
 
-def _asc_known(line: str, reader: object) -> bool:
+def _asc_known(line: str) -> bool:
     """An .asc line python-can skips on purpose: blank, a comment, a header or
-    trigger block line, the start of measurement, a bus's event that is not a
-    frame (statistics, a status), or an event of something else than a CAN
-    channel (a system variable "SV:", "J1939TP", a log trigger, LIN...)."""
+    trigger block line, or one of Vector's events that are not frames."""
     text = line.strip()
     if not text or _ASC_HEADER.match(text) or can.io.asc.ASC_TRIGGER_REGEX.match(text):
         return True
     timed = _ASC_EVENT_TIME.match(text)
-    if timed is None:
-        return False
-    rest = timed["rest"]
-    if rest.startswith("Start of measurement") or _ASC_CHANNEL_EVENT.match(rest):
-        return True
-    # an event of no CAN channel: a word first, unless the line is frame-shaped
-    first = rest.split(None, 1)[0] if rest else ""
-    return first[:1].isalpha() and first != "CANFD" and not _ASC_FRAME_SHAPE.match(rest)
+    return timed is not None and _ASC_EVENTS.match(timed["rest"]) is not None
 
 
 #: PCAN trace record types that are not frames (PEAK's TRC format 1.1 to 2.1):
@@ -136,31 +141,63 @@ def _asc_known(line: str, reader: object) -> bool:
 _TRC_NOT_FRAMES = {"ER", "EC", "ST", "EV", "Warng", "Error"}
 
 
-def _trc_known(line: str, reader: can.TRCReader) -> bool:
+def _trc_frame(text: str, reader: can.TRCReader) -> bool:
+    """Does ``text`` read as a frame of the reader's format?"""
+    try:
+        return reader._parse_line(text) is not None
+    except _PARSE_ERRORS:
+        return False
+
+
+def _trc_known(line: str, reader: can.TRCReader, among_frames: bool = False) -> bool:
     """A .trc line python-can skips on purpose: blank, a ``;`` comment, or a
     record of a type that is not a frame (``ST``, ``ER``...), or a 1.0 bus
-    information line (id FFFFFFFF)."""
+    information line (id FFFFFFFF). Among frames, a comment that reads as a
+    frame without its ``;`` (or with a digit in its place) is not, nor a record
+    that reads as a frame with the type ``DT``: a frame line one character of
+    which was changed."""
     text = line.strip()
-    if not text or text.startswith(";"):
+    if not text:
         return True
+    if text.startswith(";"):  # a ";" put before a frame's line, or over its first character
+        framed = (_trc_frame(t, reader) for t in (text[1:], "0" + text[1:]))
+        return not (among_frames and any(framed))
     cols = text.split()
     version = reader.file_version
+    v2 = version >= can.io.trc.TRCFileVersion.V2_0  # (it has >=, not <)
     try:
-        if version >= can.io.trc.TRCFileVersion.V2_0:
-            kind = cols[reader.columns["T"]]
+        if v2:
+            at = reader.columns["T"]
         elif version == can.io.trc.TRCFileVersion.V1_3:
-            kind = cols[3]
+            at = 3
         elif version == can.io.trc.TRCFileVersion.V1_1:
-            kind = cols[2]
+            at = 2
         else:
             return cols[2] == "FFFFFFFF"
+        if cols[at] not in _TRC_NOT_FRAMES:
+            return False
     except (IndexError, KeyError):
         return False
-    return kind in _TRC_NOT_FRAMES
+    if not v2:
+        return True
+    cols[at] = "DT"
+    return not _trc_frame(" ".join(cols), reader)
 
 
-def _csv_known(line: str, number: int) -> bool:
-    return number == 1  # its header
+def _not_frame(suffix: str, line: str, number: int, reader: object,
+               among_frames: bool) -> str | None:  # fmt: skip
+    """Why a line a reader passed over is counted (None: it is one of the
+    format's own non-frame lines). An empty line is one of them, but not among
+    frames: there it is most likely a frame line cut to nothing."""
+    if not line.strip():
+        return "an empty line among frames" if among_frames else None
+    if suffix == ".asc":
+        known = _asc_known(line)
+    elif suffix == ".trc":
+        known = _trc_known(line, reader, among_frames)  # type: ignore[arg-type]
+    else:
+        known = suffix == ".csv" and number == 1  # a CSV's header
+    return None if known else f"not a frame python-can reads: {line.strip()[:60]!r}"
 
 
 def can_log_messages(path: Path, stats: CaptureStats) -> Iterator[can.Message]:
@@ -194,43 +231,44 @@ def can_log_messages(path: Path, stats: CaptureStats) -> Iterator[can.Message]:
         if suffix == ".asc":
             reader._extract_header = _asc_header(reader, lines)
 
-        def passed_over(skipped: list[tuple[int, str]]) -> None:
+        frames = 0  # read so far
+
+        def passed_over(skipped: list[tuple[int, str]], then_frame: bool) -> None:
+            """Count the lines a reader passed over; ``then_frame``: a frame (or a
+            bad line) comes after them, so they lie among frames if one came before."""
             for number, line in skipped:
                 if not number:
                     continue  # a line handed out again: not the file's
-                if suffix == ".asc" and _asc_known(line, reader):
-                    continue
-                if suffix == ".trc" and _trc_known(line, reader):
-                    continue
-                if suffix == ".csv" and _csv_known(line, number):
-                    continue
-                if suffix == ".log" and not line.strip():
+                why = _not_frame(suffix, line, number, reader, frames > 0 and then_frame)
+                if why is None:
                     continue
                 where = f"line {number}"
-                shown = line.strip()[:60]
-                stats.count(Rejected(Reason.GARBAGE,
-                                     f"{path.name} {where}: not a frame python-can "
-                                     f"reads: {shown!r}"))  # fmt: skip
+                stats.count(Rejected(Reason.GARBAGE, f"{path.name} {where}: {why}"))
                 stats.bad_places.append(where)
 
+        messages = iter(reader)
         while True:
-            try:
-                for msg in reader:
-                    passed_over(lines.take(last_used=True))
-                    yield msg
-                passed_over(lines.take(last_used=False))
+            try:  # only the reader's errors are the file's (not this function's own)
+                msg = next(messages)
+            except StopIteration:
+                passed_over(lines.take(last_used=False), then_frame=False)
                 return
             except _PARSE_ERRORS as exc:
-                passed_over(lines.take(last_used=True))
+                passed_over(lines.take(last_used=True), then_frame=True)
                 where = f"line {lines.number}" if lines.number else "its header"
                 stats.count(Rejected(Reason.GARBAGE, f"{path.name} {where}: {exc}"))
                 stats.bad_places.append(where)
                 if not lines.number:
                     return
-            # on again from the next line, without reading a header again
-            reader._extract_header = lambda: None
-            if suffix == ".csv":
-                lines.again = (0, "header\n")  # the reader skips a first (header) line
+                # on again from the next line, without reading a header again
+                reader._extract_header = lambda: None
+                if suffix == ".csv":
+                    lines.again = (0, "header\n")  # the reader skips a first (header) line
+                messages = iter(reader)
+                continue
+            passed_over(lines.take(last_used=True), then_frame=True)
+            frames += 1
+            yield msg
 
 
 def _asc_header(reader: can.ASCReader, lines: _Lines):  # type: ignore[no-untyped-def]
