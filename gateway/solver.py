@@ -161,6 +161,25 @@ def _euler(rot: np.ndarray, seq: str) -> np.ndarray:
     return np.degrees([a, b, c])
 
 
+def _two_dofs(rot: np.ndarray, seq: str) -> np.ndarray:
+    """The two angles (deg) of a two-dof joint, ``rot ~ R_i(a) R_j(b)``: ``a`` from
+    where the child's own axis ``j`` points (about the parent's ``i``, to which
+    it is perpendicular), then ``b`` about it. A measured rotation is never
+    exactly of that form (noise, soft tissue); the Euler split took both angles
+    from the third axis instead, and its first angle then carried the misfit
+    times ``1 / cos b`` (an elbow pronated 60 deg: twice the tags' noise into its
+    flexion)."""
+    i, j, k = ("XYZ".index(c) for c in seq)
+    e = 1.0 if (j - i) % 3 == 1 else -1.0
+    a = math.atan2(e * rot[k, j], rot[j, j])
+    ca, sa = math.cos(a), math.sin(a)
+    # b from (R_i(a)^T rot) e_k: its i and k components
+    col_i = rot[i, k]
+    col_k = -e * sa * rot[j, k] + ca * rot[k, k]
+    b = math.atan2(e * col_i, col_k)
+    return np.degrees([a, b])
+
+
 @dataclass(frozen=True)
 class JointAxes:
     """A joint's dofs as a scipy Euler sequence with signs."""
@@ -211,6 +230,8 @@ class JointAxes:
             rest = pin.log3(head.T @ rel)
             euler = np.array([first, euler[1], math.degrees(rest["XYZ".index(self.seq[2])])])
             return euler * self.signs  # type: ignore[no-any-return]
+        if n == 2:
+            return _two_dofs(rel, self.seq) * self.signs  # type: ignore[no-any-return]
         other = np.array([_wrap(euler[0] + 180), _wrap(180 - euler[1]), _wrap(euler[2] + 180)])
         signs = np.concatenate([self.signs, np.ones(3 - n)])
         candidates = [euler * signs, other * signs]
@@ -300,6 +321,15 @@ class _SplitBatch:
         pick_three = (out2 < out1) | ((out2 == out1) & (d2 < d1))
         chosen = np.where(np.where(p.three, pick_three, pick_two)[:, None], second, first)
         chosen[unused] = 0.0
+        if p.two.any():  # two dofs: the first angle from the child's own axis (_two_dofs)
+            t = p.two
+            it, jt, kt, et = i[t], j[t], k[t], e[t]
+            rt = rel[m[t]]
+            mt = np.arange(len(rt))
+            a2 = np.arctan2(et * rt[mt, kt, jt], rt[mt, jt, jt])
+            col_k = -et * np.sin(a2) * rt[mt, jt, kt] + np.cos(a2) * rt[mt, kt, kt]
+            b2 = np.arctan2(et * rt[mt, it, kt], col_k)
+            chosen[t, :2] = np.degrees(np.column_stack([a2, b2])) * signs[t, :2]
         for r in np.flatnonzero(p.three & (np.abs(np.cos(b)) < GIMBAL_COS)).tolist():
             chosen[r] = self.axes[rows[r]].split(rel[r], previous[r])
         return chosen  # type: ignore[no-any-return]
@@ -333,7 +363,8 @@ class _SplitBatch:
 class _Rows:
     """The batch's constants gathered for some joint rows (:meth:`_SplitBatch.prepare`)."""
 
-    __slots__ = ("axis", "e", "hi", "i", "j", "k", "lo", "m", "n", "signs", "three", "unused")
+    __slots__ = ("axis", "e", "hi", "i", "j", "k", "lo", "m", "n", "signs", "three", "two",
+                 "unused")  # fmt: skip
 
     def __init__(self, batch: _SplitBatch, rows: np.ndarray) -> None:
         self.m = np.arange(len(rows))
@@ -341,6 +372,7 @@ class _Rows:
         self.signs, self.n, self.unused = batch.signs[rows], batch.n[rows], batch.unused[rows]
         self.lo, self.hi = batch.lo[rows], batch.hi[rows]
         self.three = self.n == 3
+        self.two = self.n == 2
         self.axis = batch.axis[rows].reshape(-1, 3)
 
 

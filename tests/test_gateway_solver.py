@@ -346,3 +346,36 @@ def test_the_body_stands_on_the_floor() -> None:
     assert heights[2.5][2] == pytest.approx(lengths["shank"] + lengths["ankle_height"], abs=1e-6)
     # kneeling upright, shanks level behind, ankles neutral: the feet point down, toes lowest
     assert heights[4.5][2] == pytest.approx(lengths["thigh"] + lengths["foot"], abs=1e-6)
+
+
+@pytest.mark.parametrize("joint", ["left_elbow", "right_wrist", "left_ankle"])
+def test_a_two_dof_joints_first_angle_takes_a_misfit_once(joint: str) -> None:
+    """A measured relative rotation is never exactly two dofs (the tags' noise): its
+    misfit must reach the first angle (an elbow's flexion) at most once, however far
+    the second (its pronation) has turned. The Euler split took both angles from the
+    unused third axis, which put the misfit into the first times 1 / cos(second): an
+    elbow pronated 60 deg, twice; 0.5 deg of noise, 1 deg of flexion. Scalar and
+    batched splits alike."""
+    from scipy.spatial.transform import Rotation
+
+    from bodynet.core.skeleton import build_skeleton
+    from bodynet.gateway.solver import JointAxes, _SplitBatch
+
+    axes = JointAxes.of(next(j for j in build_skeleton().joints if j.name == joint))
+    batch = _SplitBatch([axes])
+    lo, hi = axes.limits[1]
+    truth = np.array([10.0, 0.9 * (hi if hi >= -lo else lo)])  # the second far turned
+    exact = axes.matrix(truth)
+    misfits = Rotation.from_rotvec(np.random.default_rng(7).normal(size=(300, 3)))
+    misfits = Rotation.from_rotvec(misfits.as_rotvec() / np.linalg.norm(misfits.as_rotvec(),
+                                   axis=1)[:, None] * np.radians(0.5))  # fmt: skip
+    worst = {"scalar": 0.0, "batched": 0.0}
+    for misfit in misfits.as_matrix():
+        rel = exact @ misfit
+        scalar = axes.split(rel, None)
+        batched = batch.split(np.array([0]), rel[None], np.zeros((1, 3)))[0, :2]
+        assert scalar == pytest.approx(batched, abs=1e-9)
+        worst["scalar"] = max(worst["scalar"], abs(scalar[0] - truth[0]))
+        worst["batched"] = max(worst["batched"], abs(batched[0] - truth[0]))
+    assert axes.split(exact, None) == pytest.approx(truth, abs=1e-9)
+    assert 0.0 < max(worst.values()) <= 0.55, worst
