@@ -1368,6 +1368,10 @@ class JointDrift:
     TWIST_TAU_S = 30.0
     TWIST_FILTER_S = 2.0
     REST_FILTER_S = 0.5  # at rest: nothing to average out but the tags' noise
+    HINGE_FILTER_S = 0.5  # a hinge's error is geometric, at every instant: only noise
+    #: a learnt drift rate is bounded by this (deg/s: 20 deg/min, twice the worst
+    #: 6-axis tag's drift the emulator gives)
+    MAX_RATE_DEG_S = 20.0 / 60.0
     #: a tag that turned less than this in ``REST_S`` is at rest
     REST_DEG = 2.0
     REST_S = 1.0
@@ -1424,7 +1428,7 @@ class JointDrift:
         self.error_deg = dict.fromkeys(self.pairs, 0.0)  # filtered, per child tag
         self.corrected_deg = dict.fromkeys(self.pairs, 0.0)  # in all
         self.spread_deg = dict.fromkeys(self.pairs, 0.0)  # RMS of the error seen (filtered)
-        self.rate_deg_s = dict.fromkeys(self.twist0, 0.0)  # a twist-held tag's drift, learnt
+        self.rate_deg_s = dict.fromkeys(self.pairs, 0.0)  # each held tag's drift, learnt
         self.holding = {k: kind for k, (_, _, _, _, kind) in self.pairs.items()}
         self._rest_ref: dict[str, float] = {}  # child key -> the twist held at rest
         #: tag -> (since, its orientation then, at rest)
@@ -1486,17 +1490,29 @@ class JointDrift:
                     error = self._rest_error(key, p, c)
                 else:
                     self._rest_ref.pop(key, None)
-                if error is None:
-                    continue
-                self.error_deg[key] += gain * (error - self.error_deg[key])
-                self.spread_deg[key] += gain * (error**2 - self.spread_deg[key])
-                turn = self.pending.get(key, 0.0) + gain * self.error_deg[key]
+                turn = self.pending.get(key, 0.0) + self._hinge_turn(key, error, dt, gain)
             if abs(turn) >= self.MIN_TURN_DEG:
                 turns[key] = turn
                 self.corrected_deg[key] += turn
                 turn = 0.0
             self.pending[key] = turn
         return turns
+
+    def _hinge_turn(self, key: str, error: float | None, dt: float, gain: float) -> float:
+        """A hinge or two-dof joint's turn of its child tag's heading over ``dt``:
+        its constraint's ``error`` (deg; None where the axes give no grip, the
+        forearm hanging, say) through a critically damped loop (``tau_s``) that
+        also learns the tag's drift against its parent's, so a steady drift leaves
+        no lag, and goes on turning the tag at that rate while nothing grips it
+        (a gyroscope's bias does not stop when its axis turns vertical)."""
+        w = 1.0 / self.tau_s
+        if error is None:
+            return self.rate_deg_s[key] * dt
+        self.error_deg[key] += min(1.0, dt / self.HINGE_FILTER_S) * (error - self.error_deg[key])
+        self.spread_deg[key] += gain * (error**2 - self.spread_deg[key])
+        rate = self.rate_deg_s[key] + w * w * self.error_deg[key] * dt
+        self.rate_deg_s[key] = max(-self.MAX_RATE_DEG_S, min(self.MAX_RATE_DEG_S, rate))
+        return (2.0 * w * self.error_deg[key] + self.rate_deg_s[key]) * dt
 
     def _rest_error(self, key: str, p: np.ndarray, c: np.ndarray) -> float | None:
         """A joint at rest: its twist's turn since the rest began (drift)."""

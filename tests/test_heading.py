@@ -948,3 +948,52 @@ def test_a_bow_a_minute_after_the_pose_starts_the_hold_at_the_drift_rate(seed: i
     assert "body/trunk/mid/chest/raw" in rates
     assert any(abs(r) > 0.5 / 60 for r in rates.values())  # deg/s: drift was found
     assert 0.0 < worst <= 2.5
+
+
+@pytest.mark.parametrize("seed", [2, 3])
+def test_a_hanging_forearms_tag_drifts_on_at_the_rate_its_elbow_learnt(seed: int) -> None:
+    """Independent 6-axis tags drifting within +/- 5 deg/min: a minute of walking and
+    reaching (the elbows' axes grip the forearm tags' headings and their loop learns
+    each tag's drift against its upper arm's), then a minute of walking with the arms
+    hanging, where an elbow's axes hardly grip (the forearm vertical): the forearm
+    tag's heading goes on turning at the rate learnt, so the elbows' pronation, which
+    a hanging forearm's heading error is, stays within 2.5 deg (held by the error
+    alone, up to 3.2)."""
+    from bodynet.nodes.motion import ROUTINES, bow, reach
+
+    still = dict(CALIBRATION_POSES["npose"])
+    down, walk, left, right = bow(), ROUTINES["walk"].angles, reach("left"), reach("right")
+
+    def angles(t: float) -> dict[str, float]:
+        if t < 1.0:
+            return dict(still)
+        if 11.0 <= t < 13.9:
+            return {**still, **down(t - 11.0)}
+        if t < 60.0:
+            return {**walk(t), **left((t - 1.0) % 16.5), **right((t - 1.0) % 16.5)}
+        return walk(t)
+
+    realism = Realism(yaw_drift_deg_per_min=5.0, headings=Headings.INDEPENDENT)
+    body = BodyEmulator(Routine("reach-then-hang", "", angles), imu_tags(), realism=realism,
+                        seed=seed)  # fmt: skip
+    independent = Profile(heading="independent", pose="npose")
+    heading = BodyHeading(calibrate_window(_window(body, 0.2, 0.95), independent,
+                                           "npose").apply(independent, "npose"))  # fmt: skip
+    solver = BodySolver(heading.profile)
+    worst = 0.0
+    for t in np.arange(1.0, 120.0, 1 / 20):
+        samples, truth = _samples(body, float(t))
+        step = heading.step(float(t), samples, solver.profile)
+        if step is not None and step[0] == "found":
+            solver = BodySolver(step[1])
+        elif step is not None:
+            heading.hold(solver, step[1])
+        out = solver.solve(samples)
+        if t >= 60.0:
+            errors = measured_errors(out.angles_deg, out.flags, truth)
+            worst = max(worst, *(e for n, e in errors.items() if "elbow" in n), 0.0)
+    assert not heading.unknown
+    assert heading.drift is not None
+    rates = [heading.drift.rate_deg_s[k] for k in heading.drift.rate_deg_s if "forearm" in k]
+    assert any(abs(r) > 0.5 / 60 for r in rates)  # deg/s: a forearm's drift was learnt
+    assert 0.0 < worst <= 2.5
