@@ -161,7 +161,8 @@ def test_tiny_drift_benchmark_writes_its_tables(tmp_path: Path) -> None:
     """`bench --only drift` runs (a few emulated seconds here, ten minutes for real):
     every facing around the circle, and the drift without correction, with the hinge
     and two-dof joints', and with the three-dof joints' too; the twisted walk with IMU
-    tags and with the hybrid suit."""
+    tags and with the hybrid suit; tags of their own headings found by the protocol
+    (every tag found by 40 s, its errors measured from then)."""
     from bodynet.bench import drift
 
     result = drift.run(tmp_path, minutes=0.1)
@@ -169,6 +170,9 @@ def test_tiny_drift_benchmark_writes_its_tables(tmp_path: Path) -> None:
     assert [d["corrected"] for d in result["drift"]] == [False, "hinges", True]
     assert all(d["groups"] for d in result["drift"])
     assert [d["hybrid"] for d in result["twisted"]] == [False, True]
+    assert [r["seed"] for r in result["independent"]] == [1, 2, 3]
+    assert all(not r["unknown"] and 0.0 < r["worst"]["deg"] < 10.0 for r in result["independent"])
     table = (tmp_path / "drift.md").read_text()
+    assert "| worst joint |" in table
     assert table.startswith("Subject facing every 30 deg")
     assert json.loads((tmp_path / "drift.json").read_text())["headings"] == result["headings"]
