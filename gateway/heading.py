@@ -1369,6 +1369,9 @@ class JointDrift:
     TWIST_FILTER_S = 2.0
     REST_FILTER_S = 0.5  # at rest: nothing to average out but the tags' noise
     HINGE_FILTER_S = 0.5  # a hinge's error is geometric, at every instant: only noise
+    #: a three-dof joint whose parent segment is tilted past this (deg) from its pose's
+    #: vertical, moving, does not learn from its twist (a bow is a posture, not a gait)
+    BOWED_COS = math.cos(math.radians(20.0))
     #: a learnt drift rate is bounded by this (deg/s: 20 deg/min, twice the worst
     #: 6-axis tag's drift the emulator gives)
     MAX_RATE_DEG_S = 20.0 / 60.0
@@ -1477,8 +1480,6 @@ class JointDrift:
             if kind == "twist":
                 target = self._encoder_twist(key, p, c, encoders, profile)
                 turn = self._twist_turn(key, p, c, still[key] and still[parent_key], dt, target)
-                if turn is None:
-                    continue
                 turn += self.pending.get(key, 0.0)
             else:
                 if kind == "parallel":
@@ -1546,14 +1547,19 @@ class JointDrift:
         return twist - max(-30.0, min(30.0, _wrap(want - now) / grip))
 
     def _twist_turn(self, key: str, p: np.ndarray, c: np.ndarray, rest: bool,
-                    dt: float, target: float | None = None) -> float | None:  # fmt: skip
+                    dt: float, target: float | None = None) -> float:  # fmt: skip
         """A three-dof joint's turn of its child tag's heading over ``dt``: its
         twist against ``target`` (where an encoder measures the joint), the one
         held at rest, or (moving) the calibration pose's, low-passed, through
-        the loop that also learns the tag's drift rate."""
+        the loop that also learns the tag's drift rate; the rate learnt alone
+        where the twist is not seen or the parent is bowed."""
         twist = _twist(p, c)
-        if twist is None:
-            return None
+        if twist is None:  # nothing seen: the drift learnt goes on
+            return self.rate_deg_s[key] * dt
+        if target is None and not rest and p[2, 2] < self.BOWED_COS:
+            # the parent bowed (a bow, a reach to the floor): a posture held, whose
+            # twist is not a gait's that averages out; the drift learnt goes on
+            return self.rate_deg_s[key] * dt
         if target is not None:  # measured: followed as fast as at rest
             self._rest_ref.pop(key, None)
             ref, rest = target, True

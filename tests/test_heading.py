@@ -763,10 +763,9 @@ def test_independent_trunk_tags_are_found_from_a_bow(seed: int, turn: float) -> 
     last = [errors for _, errors, known in ticks if len(known) == 15]
     assert len(last[-1]) == 32  # every dof measured
     worst = max((e, name) for errors in last for name, e in errors.items())
-    # 2.1: seed 5's lumbar rotation in the last tick, after the twisted bow whose
-    # 15 deg the lumbar's hold partly takes for drift (1.93 with the elbows' fixed
-    # 50 samples, 2.04 since: the ticks the tags are found on shift the hold's)
-    assert worst[0] <= 2.1, worst
+    # the twisted bow's 15 deg of lumbar twist is a posture, not drift: the three-dof
+    # joints' hold does not learn from a bowed parent (seed 5's lumbar, learning: 2.04)
+    assert worst[0] <= 2.0, worst
 
 
 def test_a_walk_then_a_bow_after_a_t_pose_measures_the_hips_lumbar_and_neck() -> None:
