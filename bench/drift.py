@@ -38,7 +38,7 @@ from bodynet.core.subject import Profile
 from bodynet.gateway.heading import BodyHeading, calibrate_window
 from bodynet.gateway.solver import BodySolver
 from bodynet.nodes.emulator import BodyEmulator, Headings, Realism, imu_tags, smartsuit_sensors
-from bodynet.nodes.motion import ROUTINES, Routine, keyframes
+from bodynet.nodes.motion import ROUTINES, Routine, heading_protocol, keyframes
 
 #: joint groups whose error is reported (dofs by name stem)
 GROUPS = {
@@ -70,6 +70,20 @@ def _calibrated(body: BodyEmulator, profile: Profile, start: float, end: float,
             if hasattr(sample.reading, "wxyz"):  # a hybrid suit's encoders need none
                 window.setdefault(site, []).append((float(t), sample.reading.wxyz))
     return calibrate_window(window, profile, "tpose").apply(profile, "tpose")
+
+
+def heading_tick(heading: BodyHeading, solver: BodySolver, t_s: float,
+                 samples: Mapping[Any, RawSample]) -> BodySolver:  # fmt: skip
+    """The gateway's heading step for the tick at ``t_s`` (as the live gateway and
+    ``bodynet process`` take it): a heading found is a new calibration, a new
+    solver; a turn of drifting tags is held in the body's solver. Returns the
+    body's solver from then on."""
+    step = heading.step(t_s, samples, solver.profile)
+    if step is not None and step[0] == "found":
+        return BodySolver(step[1])
+    if step is not None:
+        heading.hold(solver, step[1])
+    return solver
 
 
 def measured_errors(angles: Mapping[str, float], flags: Mapping[str, str],
@@ -164,9 +178,7 @@ def drift(
         for group, stems in GROUPS.items():
             mine = [e for n, e in errors.items() if any(s in n for s in stems)]
             groups[group].append(max(mine) if mine else math.nan)
-        step = heading.step(float(t), samples, solver.profile)
-        if step is not None:
-            heading.hold(solver, step[1])
+        solver = heading_tick(heading, solver, float(t), samples)
     minutes_at = np.array(times)
     out_groups = {}
     for group, errs in groups.items():
@@ -194,21 +206,8 @@ def independent(minutes: float = 10.0, drift_deg_per_min: float = 5.0, rate_hz: 
     then walking and reaching to the end; the joints' error against the truth by
     minute from 40 s (every heading found by then), and its fitted slope. At 20 Hz
     or more: the bow's search takes a sample every 50 ms."""
-    from bodynet.nodes.motion import bow, reach
-
-    still = dict(CALIBRATION_POSES["npose"])
-    down, walk, left, right = bow(), ROUTINES["walk"].angles, reach("left"), reach("right")
-
-    def angles(t: float) -> dict[str, float]:
-        if t < 1.0:
-            return dict(still)
-        if 31.0 <= t < 33.9:
-            return {**still, **down(t - 31.0)}
-        return {**walk(t), **left((t - 1.0) % 16.5), **right((t - 1.0) % 16.5)}
-
     realism = Realism(yaw_drift_deg_per_min=drift_deg_per_min, headings=Headings.INDEPENDENT)
-    body = BodyEmulator(Routine("npose-protocol-walk", "", angles), imu_tags(),
-                        realism=realism, seed=seed)  # fmt: skip
+    body = BodyEmulator(heading_protocol(bow_at_s=31.0), imu_tags(), realism=realism, seed=seed)
     own = Profile(heading="independent", pose="npose")
     window: dict[Any, list[Any]] = {}
     for t in np.arange(0.2, 0.95, 1 / 50.0):
@@ -221,11 +220,7 @@ def independent(minutes: float = 10.0, drift_deg_per_min: float = 5.0, rate_hz: 
     worst: dict[str, float] = {}
     for t in np.arange(1.0, start + 60.0 * minutes, 1 / rate_hz):
         samples = _samples(body, float(t))
-        step = heading.step(float(t), samples, solver.profile)
-        if step is not None and step[0] == "found":
-            solver = BodySolver(step[1])
-        elif step is not None:
-            heading.hold(solver, step[1])
+        solver = heading_tick(heading, solver, float(t), samples)
         out = solver.solve(samples)
         if t < start:
             continue

@@ -16,7 +16,7 @@ import random
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 
-from bodynet.core.skeleton import TPOSE, build_skeleton, rom
+from bodynet.core.skeleton import CALIBRATION_POSES, TPOSE, build_skeleton, rom
 
 Pose = Mapping[str, float]
 
@@ -207,3 +207,27 @@ ROUTINES: dict[str, Routine] = {
         Routine("random", "smooth random motion within the range of motion", smooth_random()),
     )
 }  # fmt: skip
+
+
+def heading_protocol(bow_at_s: float = 31.0, reach_until_s: float = math.inf,
+                     pose: str = "npose", **bow_extra: float) -> Routine:  # fmt: skip
+    """The motions that find 6-axis tags' headings of their own (docs/calibration.md):
+    the calibration ``pose`` held for 1 s, then walking with both arms reaching (the
+    000 seed's task, every 16.5 s; their tags' headings come from the elbows'
+    bending), the walk alone from ``reach_until_s`` (the arms hanging), and a bow
+    from the hips at ``bow_at_s`` (the trunk's tags), in the pose, ``bow_extra``
+    joint angles added at its bottom (a twist, say)."""
+    still = dict(CALIBRATION_POSES[pose])
+    down, left, right = bow(**bow_extra), reach("left"), reach("right")
+    bow_s = 2 * 1.2 + 0.5  # bow()'s own length
+
+    def angles(t: float) -> dict[str, float]:
+        if t < 1.0:
+            return dict(still)
+        if bow_at_s <= t < bow_at_s + bow_s:
+            return {**still, **down(t - bow_at_s)}
+        if t >= reach_until_s:
+            return _walk(t)
+        return {**_walk(t), **left((t - 1.0) % 16.5), **right((t - 1.0) % 16.5)}
+
+    return Routine("heading-protocol", "calibration pose, walking and reaching, a bow", angles)

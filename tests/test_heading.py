@@ -13,7 +13,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 import pytest
 
-from bodynet.bench.drift import measured_errors
+from bodynet.bench.drift import heading_tick, measured_errors
 from bodynet.core.keys import Site
 from bodynet.core.messages import RawSample
 from bodynet.core.skeleton import CALIBRATION_POSES
@@ -721,11 +721,7 @@ def _follow(body: BodyEmulator, heading: BodyHeading, end_s: float
     ticks = []
     for t in np.arange(1.0, end_s, 1 / RATE_HZ):
         samples, truth = _samples(body, float(t))
-        step = heading.step(float(t), samples, solver.profile)
-        if step is not None and step[0] == "found":
-            solver = BodySolver(step[1])
-        elif step is not None:
-            heading.hold(solver, step[1])
+        solver = heading_tick(heading, solver, float(t), samples)
         out = solver.solve(samples)
         errors = measured_errors(out.angles_deg, out.flags, truth)
         ticks.append((float(t), errors, dict(heading.profile.imu_headings)))
@@ -833,20 +829,10 @@ def test_tags_drifting_until_a_late_bow_are_joined_at_once() -> None:
     joint, so the find turns each joined tag (and those below it) by its joint's
     twist in the bow: the hips, lumbar, neck and shoulders within 2.5 deg in the 5 s
     after the bow began; left to the three-dof joints' 30 s hold, 5 deg or more."""
-    from bodynet.nodes.motion import ROUTINES, bow, reach
-
-    still = dict(CALIBRATION_POSES["npose"])
-    down, walk, left, right = bow(), ROUTINES["walk"].angles, reach("left"), reach("right")
-
-    def angles(t: float) -> dict[str, float]:
-        if t < 1.0:
-            return dict(still)
-        if 31.0 <= t < 33.9:
-            return {**still, **down(t - 31.0)}
-        return {**walk(t), **left((t - 1.0) % 16.5), **right((t - 1.0) % 16.5)}
+    from bodynet.nodes.motion import heading_protocol
 
     realism = Realism(yaw_drift_deg_per_min=10.0, headings=Headings.INDEPENDENT)
-    body = BodyEmulator(Routine("late-bow", "", angles), imu_tags(), realism=realism, seed=1)
+    body = BodyEmulator(heading_protocol(bow_at_s=31.0), imu_tags(), realism=realism, seed=1)
     independent = Profile(heading="independent", pose="npose")
     profile = calibrate_window(_window(body, 0.2, 0.95), independent,
                                "npose").apply(independent, "npose")  # fmt: skip
@@ -859,11 +845,7 @@ def test_tags_drifting_until_a_late_bow_are_joined_at_once() -> None:
         worst[snap] = 0.0
         for t in np.arange(1.0, 36.0, 1 / 25):
             samples, truth = _samples(body, float(t))
-            step = heading.step(float(t), samples, solver.profile)
-            if step is not None and step[0] == "found":
-                solver = BodySolver(step[1])
-            elif step is not None:
-                heading.hold(solver, step[1])
+            solver = heading_tick(heading, solver, float(t), samples)
             out = solver.solve(samples)
             errors = measured_errors(out.angles_deg, out.flags, truth)
             if t >= 31.0:
@@ -910,21 +892,10 @@ def test_a_bow_a_minute_after_the_pose_starts_the_hold_at_the_drift_rate(seed: i
     the pose is its rate, and the three-dof joints' hold starts from it: the hips,
     lumbar, neck and shoulders within 2.5 deg through the minute after the bow
     (learning the rates from zero, 2.9 and 3.4 deg)."""
-    from bodynet.nodes.motion import ROUTINES, bow, reach
-
-    still = dict(CALIBRATION_POSES["npose"])
-    down, walk, left, right = bow(), ROUTINES["walk"].angles, reach("left"), reach("right")
-
-    def angles(t: float) -> dict[str, float]:
-        if t < 1.0:
-            return dict(still)
-        if 61.0 <= t < 63.9:
-            return {**still, **down(t - 61.0)}
-        return {**walk(t), **left((t - 1.0) % 16.5), **right((t - 1.0) % 16.5)}
+    from bodynet.nodes.motion import heading_protocol
 
     realism = Realism(yaw_drift_deg_per_min=5.0, headings=Headings.INDEPENDENT)
-    body = BodyEmulator(Routine("bow-at-a-minute", "", angles), imu_tags(), realism=realism,
-                        seed=seed)  # fmt: skip
+    body = BodyEmulator(heading_protocol(bow_at_s=61.0), imu_tags(), realism=realism, seed=seed)
     independent = Profile(heading="independent", pose="npose")
     heading = BodyHeading(calibrate_window(_window(body, 0.2, 0.95), independent,
                                            "npose").apply(independent, "npose"))  # fmt: skip
@@ -958,23 +929,11 @@ def test_a_hanging_forearms_tag_drifts_on_at_the_rate_its_elbow_learnt(seed: int
     tag's heading goes on turning at the rate learnt, so the elbows' pronation, which
     a hanging forearm's heading error is, stays within 2.5 deg (held by the error
     alone, up to 3.2)."""
-    from bodynet.nodes.motion import ROUTINES, bow, reach
-
-    still = dict(CALIBRATION_POSES["npose"])
-    down, walk, left, right = bow(), ROUTINES["walk"].angles, reach("left"), reach("right")
-
-    def angles(t: float) -> dict[str, float]:
-        if t < 1.0:
-            return dict(still)
-        if 11.0 <= t < 13.9:
-            return {**still, **down(t - 11.0)}
-        if t < 60.0:
-            return {**walk(t), **left((t - 1.0) % 16.5), **right((t - 1.0) % 16.5)}
-        return walk(t)
+    from bodynet.nodes.motion import heading_protocol
 
     realism = Realism(yaw_drift_deg_per_min=5.0, headings=Headings.INDEPENDENT)
-    body = BodyEmulator(Routine("reach-then-hang", "", angles), imu_tags(), realism=realism,
-                        seed=seed)  # fmt: skip
+    body = BodyEmulator(heading_protocol(bow_at_s=11.0, reach_until_s=60.0), imu_tags(),
+                        realism=realism, seed=seed)  # fmt: skip
     independent = Profile(heading="independent", pose="npose")
     heading = BodyHeading(calibrate_window(_window(body, 0.2, 0.95), independent,
                                            "npose").apply(independent, "npose"))  # fmt: skip
@@ -982,11 +941,7 @@ def test_a_hanging_forearms_tag_drifts_on_at_the_rate_its_elbow_learnt(seed: int
     worst = 0.0
     for t in np.arange(1.0, 120.0, 1 / 20):
         samples, truth = _samples(body, float(t))
-        step = heading.step(float(t), samples, solver.profile)
-        if step is not None and step[0] == "found":
-            solver = BodySolver(step[1])
-        elif step is not None:
-            heading.hold(solver, step[1])
+        solver = heading_tick(heading, solver, float(t), samples)
         out = solver.solve(samples)
         if t >= 60.0:
             errors = measured_errors(out.angles_deg, out.flags, truth)
