@@ -52,6 +52,7 @@ import operator
 import os
 import platform
 import struct
+import tempfile
 import time
 from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import asdict, dataclass, field
@@ -275,8 +276,8 @@ def raw_json(sample: RawSample) -> dict[str, Any]:
 #: chunk for the file's summary, so small chunks cost memory for as long as the
 #: file grows (64 KiB chunks of one body's raw samples and poses: some 25,000
 #: entries and tens of MB in ten minutes; 1 MiB: a chunk per 0.5 s, about 2 KB
-#: of index each as the writer keeps them, 0.3 KB packed by
-#: :class:`PackedChunkIndexes`; rotating files bounds it).
+#: of index each as the writer keeps them, 0.3 KB packed on disk by
+#: :class:`PackedChunkIndexes`).
 CHUNK_BYTES = 1 << 20
 
 #: The zstd level of a recording's chunks. Level 1 against the library's 3 (thread
@@ -322,23 +323,29 @@ _M_MMAP_THRESHOLD = -3  # glibc's malloc.h
 class PackedChunkIndexes:
     """The chunk indexes of a file being written, each kept as the bytes of its
     summary record (some 300 bytes for one body's 23 channels) instead of a
-    ``ChunkIndex`` object with a dictionary of offsets (about 2 KB).
+    ``ChunkIndex`` object with a dictionary of offsets (about 2 KB), in an
+    anonymous temporary file until the summary is written.
 
     The ``mcap`` writer keeps one index per chunk for the file's summary, which
-    it writes at :meth:`Writer.finish`: that memory grows with the file, and only
-    rotating files bounds it. Packed, one body's recording (two chunks a second)
-    holds about 2 MB of them an hour instead of 14 MB. The summary written is
-    the same, byte for byte: the writer calls ``write`` on what it iterates,
-    and :meth:`__iter__` gives one record that writes every packed index."""
+    it writes at :meth:`Writer.finish`: in memory, that grows with the file (one
+    body's recording, two chunks a second: 14 MB an hour as objects, 2.2 MB
+    packed), and only rotating files bounded it. On disk, the recorder's memory
+    no longer grows with the file's length. The summary written is the same,
+    byte for byte: the writer calls ``write`` on what it iterates, and
+    :meth:`__iter__` gives one record that writes every packed index."""
 
     def __init__(self) -> None:
-        self._records = bytearray()
+        # deleted by the system as soon as it is closed (or the process ends)
+        self._file = tempfile.TemporaryFile(prefix="bodynet-chunk-indexes-")  # noqa: SIM115
         self._count = 0
+        self._nbytes = 0
 
     def append(self, index: ChunkIndex) -> None:
         builder = RecordBuilder()
         index.write(builder)
-        self._records += builder.end()
+        data = builder.end()
+        self._file.write(data)
+        self._nbytes += len(data)
         self._count += 1
 
     def __len__(self) -> int:
@@ -346,12 +353,19 @@ class PackedChunkIndexes:
 
     @property
     def nbytes(self) -> int:
-        """The bytes the packed indexes take."""
-        return len(self._records)
+        """The bytes the packed indexes take (on disk)."""
+        return self._nbytes
 
     def __iter__(self) -> Iterator[_PackedRecords]:
         if self._count:
-            yield _PackedRecords(bytes(self._records))
+            self._file.seek(0)
+            data = self._file.read()
+            self._file.seek(0, io.SEEK_END)
+            yield _PackedRecords(data)
+
+    def close(self) -> None:
+        """Delete the temporary file (the summary has been written)."""
+        self._file.close()
 
 
 @dataclass(frozen=True)
@@ -603,7 +617,11 @@ class McapSink:
     def close(self) -> None:
         if self._tf_pending:
             self._write_transforms()
-        self._writer.finish()
+        try:
+            self._writer.finish()
+        finally:
+            if self.chunk_indexes is not None:
+                self.chunk_indexes.close()
         self._stream.close()
 
 

@@ -72,6 +72,37 @@ def test_the_recorders_sink_packs_its_chunk_indexes(tmp_path: Path) -> None:
     assert [s.seq for _, _, s in read_raw(path)] == list(range(200))
 
 
+def test_a_recordings_chunk_indexes_wait_on_disk_not_in_memory(tmp_path: Path) -> None:
+    """The summary's chunk indexes of a file being written grow with its length (2.2
+    MB an hour for one body, packed): they wait in an anonymous temporary file, so
+    the recorder's heap does not grow with them, and the summary is still whole."""
+    import tracemalloc
+
+    path = tmp_path / "long.mcap"
+    sink = McapSink(path, chunk_size=512)
+    assert sink.chunk_indexes is not None
+    sample = RawSample(Quat(3, (1.0, 0.0, 0.0, 0.0)), 0, 10**9, Source.IMU_CENTRAL)
+    for i in range(200):  # warm: channels, buffers
+        sink.write_raw("body/trunk/center/sacrum/raw", sample, 10**9 + i * 10**7)
+    tracemalloc.start()
+    before, chunks = tracemalloc.take_snapshot(), len(sink.chunk_indexes)
+    for i in range(200, 20_200):
+        sink.write_raw("body/trunk/center/sacrum/raw", sample, 10**9 + i * 10**7)
+    grown = sum(d.size_diff for d in tracemalloc.take_snapshot().compare_to(before, "filename")
+                if d.traceback[0].filename.endswith("mcap_store.py"))  # fmt: skip
+    tracemalloc.stop()
+    added = len(sink.chunk_indexes) - chunks
+    assert added > 500
+    assert sink.chunk_indexes.nbytes > 500 * 100
+    assert grown < 50 * added  # in memory, packed: about 100 bytes per chunk
+    sink.close()
+    with path.open("rb") as f:
+        summary = make_reader(f).get_summary()
+    assert summary is not None
+    assert len(summary.chunk_indexes) == len(sink.chunk_indexes)
+    assert len(list(read_raw(path))) == 20_200
+
+
 def test_the_solver_hands_pinocchio_column_major_matrices(monkeypatch: pytest.MonkeyPatch) -> None:
     """eigenpy copies a row-major (C-ordered) matrix for ``pin.Quaternion`` and never
     frees the copy (80 bytes a call, once a tick: the gateway's growth over an hour);
