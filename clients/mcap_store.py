@@ -335,8 +335,13 @@ class PackedChunkIndexes:
     :meth:`__iter__` gives one record that writes every packed index."""
 
     def __init__(self) -> None:
-        # deleted by the system as soon as it is closed (or the process ends)
-        self._file = tempfile.TemporaryFile(prefix="bodynet-chunk-indexes-")  # noqa: SIM115
+        # deleted by the system as soon as it is closed (or the process ends); in
+        # memory where no temporary directory is writable (a read-only container)
+        self._file: IO[bytes]
+        try:
+            self._file = tempfile.TemporaryFile(prefix="bodynet-chunk-indexes-")  # noqa: SIM115
+        except OSError:
+            self._file = io.BytesIO()
         self._count = 0
         self._nbytes = 0
 
