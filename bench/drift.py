@@ -63,13 +63,13 @@ def _samples(body: BodyEmulator, t: float) -> dict[Any, RawSample]:
 
 
 def _calibrated(body: BodyEmulator, profile: Profile, start: float, end: float,
-                rate_hz: float) -> Profile:  # fmt: skip
+                rate_hz: float, pose: str = "tpose") -> Profile:  # fmt: skip
     window: dict[Any, list[Any]] = {}
     for t in np.arange(start, end, 1 / rate_hz):
         for site, sample in _samples(body, float(t)).items():
             if hasattr(sample.reading, "wxyz"):  # a hybrid suit's encoders need none
                 window.setdefault(site, []).append((float(t), sample.reading.wxyz))
-    return calibrate_window(window, profile, "tpose").apply(profile, "tpose")
+    return calibrate_window(window, profile, pose).apply(profile, pose)
 
 
 def heading_tick(heading: BodyHeading, solver: BodySolver, t_s: float,
@@ -209,11 +209,7 @@ def independent(minutes: float = 10.0, drift_deg_per_min: float = 5.0, rate_hz: 
     realism = Realism(yaw_drift_deg_per_min=drift_deg_per_min, headings=Headings.INDEPENDENT)
     body = BodyEmulator(heading_protocol(bow_at_s=31.0), imu_tags(), realism=realism, seed=seed)
     own = Profile(heading="independent", pose="npose")
-    window: dict[Any, list[Any]] = {}
-    for t in np.arange(0.2, 0.95, 1 / 50.0):
-        for site, sample in _samples(body, float(t)).items():
-            window.setdefault(site, []).append((float(t), sample.reading.wxyz))
-    heading = BodyHeading(calibrate_window(window, own, "npose").apply(own, "npose"))
+    heading = BodyHeading(_calibrated(body, own, 0.2, 0.95, 50.0, "npose"))
     solver = BodySolver(heading.profile)
     start = 40.0
     times, groups = [], {g: [] for g in GROUPS}  # type: ignore[var-annotated]
