@@ -14,10 +14,9 @@ import time
 from pathlib import Path
 from typing import Any
 
-from bodynet.core.codecs import pose
 from bodynet.core.messages import RawSample, Source
 from bodynet.core.subject import Profile
-from bodynet.gateway.frames import pose_frame
+from bodynet.gateway.frames import whole_body_message
 from bodynet.gateway.solver import BodySolver, solve_bodies, tpose_mounts
 from bodynet.nodes.emulator import BodyEmulator, imu_tags
 from bodynet.nodes.motion import ROUTINES
@@ -45,7 +44,7 @@ def _frames() -> tuple[Profile, list[dict[Any, RawSample]]]:
 
 def _tick(work: list[tuple[BodySolver, dict[Any, RawSample]]], seq: int) -> None:
     for output in solve_bodies(work):
-        pose.encode(pose_frame(output, seq, ()))
+        whole_body_message(output, seq, [])
 
 
 def _per_body_tick_us(bodies: int, seconds: float, batched: bool,

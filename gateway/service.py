@@ -46,7 +46,7 @@ from bodynet.core.errors import DecodeError, Reason, RejectCounts
 from bodynet.core.keys import BRANCHES, Branch, Site
 from bodynet.core.messages import Quat, RawSample, source_name
 from bodynet.core.subject import Profile, ProfileError, QuatWxyz
-from bodynet.gateway.frames import branch_views, pose_frame
+from bodynet.gateway.frames import branch_views, pose_frame, whole_body_message
 from bodynet.gateway.heading import (
     BodyHeading,
     CalibrationRefused,
@@ -233,12 +233,16 @@ class _Body:
         matching = self.matching
         return matching[None], [b for b in self.branch_pubs if matching[b]]
 
-    def messages(self, frame: pose.PoseFrame, body: bool,
+    def messages(self, output: BodyOutput, stale: list[str], body: bool,
                  branches: list[Branch]) -> list[tuple[zenoh.Publisher, bytes]]:  # fmt: skip
-        """The encoded pose of the whole body (if ``body``) and of ``branches``."""
-        out = [(self.body_pub, pose.encode(frame))] if body else []
-        for branch, view in branch_views(frame, branches).items():
-            out.append((self.branch_pubs[branch], pose.encode(view)))
+        """The encoded pose of tick ``self.ticks`` of the whole body (if ``body``)
+        and of ``branches``: the whole body's encoded straight from the arrays,
+        the branch views cut from its frame."""
+        out = [(self.body_pub, whole_body_message(output, self.ticks, stale))] if body else []
+        if branches:
+            frame = pose_frame(output, self.ticks, stale)
+            for branch, view in branch_views(frame, branches).items():
+                out.append((self.branch_pubs[branch], pose.encode(view)))
         return out
 
     def topology(self, now: float) -> dict[str, object]:
@@ -819,7 +823,7 @@ class Gateway:
             body.last_output = output
             whole, branches = body.listened()
             if whole or branches:
-                messages += body.messages(pose_frame(output, body.ticks, stale), whole, branches)
+                messages += body.messages(output, stale, whole, branches)
         for pub, payload in messages:
             pub.put(payload)
 

@@ -41,6 +41,7 @@ from dataclasses import dataclass, field
 from functools import lru_cache
 from typing import Any
 
+import numpy as np
 import orjson
 
 from ..errors import DecodeError, Reason
@@ -148,6 +149,77 @@ def encode(frame: PoseFrame) -> bytes:
         },
         option=orjson.OPT_SERIALIZE_NUMPY,
     )
+
+
+class WholeBodyEncoder:
+    """:func:`encode` of whole-body frames whose names are these, byte for byte,
+    from the numbers as arrays: no dictionary of the message is built. The
+    message's fixed text (keys, brackets) is worked out once, with a slot for
+    each number; a tick fills them with orjson's text of its numbers (one call
+    for all of them, so each is written exactly as :func:`encode` writes it)
+    and of its few variable maps (flags, sources, stale sites, reasons).
+
+    ``numbers`` (see :meth:`encode`) is one vector: every segment's position
+    (x, y, z), then every segment's quaternion (w, x, y, z), the angles, the
+    joints' total rotations, then the angles' uncertainties (NaN: null),
+    unrounded: the message rounds them as the gateway's frames do (``numpy.round``,
+    to 1e-6, the uncertainties to 1e-3). ``joint_segment`` names each joint's
+    child segment (its position is the joint centre)."""
+
+    def __init__(self, angles: Sequence[str], joints: Sequence[str], segments: Sequence[str],
+                 joint_segment: Sequence[int]) -> None:  # fmt: skip
+        def key(name: str) -> str:
+            return orjson.dumps(name).decode().replace("%", "%%") + ":"
+
+        n_s, n_a, n_j = len(segments), len(angles), len(joints)
+        at_q = 3 * n_s
+        at_a = at_q + 4 * n_s
+        at_u = at_a + n_a + n_j  # the uncertainties
+        a_rel = [*range(at_a, at_u)]
+        seg = [i for s in range(n_s) for i in (*range(3 * s, 3 * s + 3),
+                                               *range(at_q + 4 * s, at_q + 4 * s + 4))]  # fmt: skip
+        jnt = [i for s in joint_segment for i in range(3 * s, 3 * s + 3)]
+        unc = [*range(at_u, at_u + n_a)]
+        #: where each slot's number sits in ``numbers``, in the message's order
+        self.order = np.array(a_rel + seg + jnt + unc, dtype=np.intp)
+        # numpy.round(x, d) is rint(x * 10**d) / 10**d: one pass with each slot's 10**d
+        self._scale = np.where(self.order >= at_u, 1e3, 1e6)
+        self._n_first, self._n_segs = len(a_rel), len(a_rel) + len(seg) + len(jnt)
+        self.size = at_u + n_a
+
+        def obj(names: Sequence[str], value: str) -> str:
+            return "{" + ",".join(key(n) + value for n in names) + "}"
+
+        point, quat = "[%s,%s,%s]", "[%s,%s,%s,%s]"
+        text = (
+            '{"v":' + str(VERSION) + ',"seq":%s,"t_ns":%s,'
+            + '"angles_deg":' + obj(angles, "%s") + ',"rel_deg":' + obj(joints, "%s")
+            + ',"flags":%s,"segments":'
+            + obj(segments, '{"p":' + point + ',"q":' + quat + "}")
+            + ',"joints_m":' + obj(joints, point)
+            + ',"sources":%s,"stale":%s,"reasons":%s,"unc_deg":' + obj(angles, "%s") + "}"
+        )  # fmt: skip
+        self._template = text.encode()
+
+    def encode(self, seq: int, t_ns: int, numbers: Any, flags: Mapping[str, str],
+               sources: Mapping[str, int], stale: Sequence[str],
+               reasons: Mapping[str, Sequence[str]]) -> bytes:  # fmt: skip
+        """The message: ``numbers`` (an array, see the class) as :func:`encode`
+        writes floats, the rest as given."""
+        if len(numbers) != self.size:
+            raise ValueError(f"{len(numbers)} numbers, the message has {self.size}")
+        picked = numbers[self.order]
+        picked *= self._scale
+        np.rint(picked, out=picked)
+        picked /= self._scale
+        texts = orjson.dumps(picked, option=orjson.OPT_SERIALIZE_NUMPY)[1:-1]
+        slots = texts.split(b",")
+        first, segs = self._n_first, self._n_segs
+        dumps = orjson.dumps
+        return self._template % (
+            b"%d" % seq, b"%d" % t_ns, *slots[:first], dumps(flags), *slots[first:segs],
+            dumps(sources), dumps(list(stale)), dumps(reasons), *slots[segs:],
+        )  # fmt: skip
 
 
 def source_time(payload: bytes | bytearray) -> int:
