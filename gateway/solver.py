@@ -467,22 +467,28 @@ class _Memory:
     first_t_ns: int = -1  # the body's first tick (source time)
 
 
+_NO_FRAMES = np.zeros((0, 3, 3))
+
+
 class _Tick:
     """One body's working state during one solve: plain data that its
     :class:`BodySolver` fills (:meth:`BodySolver._gather`) and reads."""
 
     __slots__ = ("angles", "direct_rot", "direct_rows", "harm", "held_tilt", "last", "lefts",
                  "measured", "modules", "mounts", "plan", "quats", "reasons", "rel", "rests",
-                 "segs", "solver", "sources", "t_ns", "unc", "uncal", "unknown")  # fmt: skip
+                 "segs", "solver", "sources", "t_ns", "unc", "uncal", "unknown",
+                 "used")  # fmt: skip
 
     def __init__(self, solver: BodySolver, last: np.ndarray | None) -> None:
         self.solver = solver
         self.last = last  # the angle vector of the body's last tick (None before one)
         self.segs: list[str] = []  # segments with an orientation sensor (the first one wins)
         self.quats: list[QuatWxyz] = []
-        self.mounts: list[np.ndarray] = []
+        self.used: list[Site] = []  # the orientation sensors of ``segs``, in that order
+        # theirs stacked (BodySolver._frames): mounts' inverses and turns into the body's heading
+        self.mounts: np.ndarray = _NO_FRAMES
         self.uncal: set[str] = set()  # segments whose orientation sensor has no mount yet
-        self.lefts: list[np.ndarray] = []  # each sensor's turn into the body's heading
+        self.lefts: np.ndarray = _NO_FRAMES
         self.unknown: set[str] = set()  # segments whose sensor's heading is not known
         self.modules: dict[str, tuple[Site, OleAccel]] = {}  # SmartSuit modules by segment
         self.sources: dict[str, int] = {}
@@ -556,6 +562,8 @@ class BodySolver:
         self._sites: dict[Site, tuple[str, np.ndarray, str, bool, np.ndarray, bool, bool]] = {}
         self._plans: dict[tuple[str, ...], tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
         self._layouts: dict[tuple[tuple[int, int], ...], _Layout] = {}  # see _solve_direct
+        # the sensors' stacked frames (turns, mounts) by the sensors used, see _frames
+        self._stacked: dict[tuple[Site, ...], tuple[np.ndarray, np.ndarray]] = {}
 
     def _site(self, site: Site) -> tuple[str, np.ndarray, str, bool, np.ndarray, bool, bool]:
         """The segment a sensor rides on, its mount's inverse (for orientation
@@ -603,6 +611,7 @@ class BodySolver:
             raise ValueError("set_profile keeps the body: new lengths or pose need a new solver")
         self.profile = profile
         self._sites.clear()
+        self._stacked.clear()
 
     def set_heading_unc(self, by_segment: Mapping[str, float]) -> None:
         """How well each segment's tag heading is known against its parent's (deg,
@@ -646,8 +655,8 @@ class BodySolver:
         quats = [q for t in ticks for q in t.quats]
         if quats:
             sensors = Rotation.from_quat(np.array(quats), scalar_first=True).as_matrix()
-            segments = (np.array([m for t in ticks for m in t.lefts]) @ sensors
-                        @ np.array([m for t in ticks for m in t.mounts]))  # fmt: skip
+            segments = (np.concatenate([t.lefts for t in ticks]) @ sensors
+                        @ np.concatenate([t.mounts for t in ticks]))  # fmt: skip
             start = 0
             for tick in ticks:
                 tick.measured = dict(zip(tick.segs, segments[start : start + len(tick.segs)],
@@ -667,7 +676,7 @@ class BodySolver:
         seen: set[str] = set()
         known, t_ns = self._sites, 0
         for site, sample in samples.items():
-            seg, mount_inv, key, module, left, heading_known, calibrated = (
+            seg, _, key, module, _, heading_known, calibrated = (
                 known.get(site) or self._site(site))  # fmt: skip
             sources[key] = t = sample.t_ns
             t_ns = max(t_ns, t)
@@ -677,8 +686,7 @@ class BodySolver:
                     seen.add(seg)
                     tick.segs.append(seg)
                     tick.quats.append(r.wxyz)
-                    tick.mounts.append(mount_inv)
-                    tick.lefts.append(left)
+                    tick.used.append(site)
                     if not heading_known:
                         tick.unknown.add(seg)
                     if not calibrated:
@@ -689,6 +697,7 @@ class BodySolver:
         if self._memory.first_t_ns == -1:
             self._memory.first_t_ns = t_ns
         if tick.segs:
+            tick.lefts, tick.mounts = self._frames(tuple(tick.used))
             tick.plan = self._direct_plan(tuple(tick.segs))
             self._memory.expected.update(tick.segs)
         return tick
@@ -699,6 +708,7 @@ class BodySolver:
         as OpenSense files processed without a T-pose. Call before the first solve."""
         self._all_mounted = True
         self._sites.clear()
+        self._stacked.clear()
 
     def expect(self, raw_keys: Iterable[str], complete: bool = False) -> None:
         """Orientation sensors this body has (the gateway's topology: nodes whose
@@ -805,6 +815,20 @@ class BodySolver:
                 unc[self._angle_at[n]] = math.nan
         return BodyOutput(tick.t_ns, self.names, tick.angles[:-1], tick.rel, flags, poses[:, :3],
                           quats, tick.sources, reasons, unc)  # fmt: skip
+
+    def _frames(self, used: tuple[Site, ...]) -> tuple[np.ndarray, np.ndarray]:
+        """The turns into the body's heading and the mounts' inverses of the
+        orientation sensors ``used``, stacked (n, 3, 3): the same sensors deliver
+        tick after tick, and stacking thirty small matrices each tick cost more
+        than the rotations they take part in."""
+        stacked = self._stacked.get(used)
+        if stacked is None:
+            sites = [self._sites.get(site) or self._site(site) for site in used]
+            stacked = (np.array([k[4] for k in sites]), np.array([k[1] for k in sites]))
+            if len(self._stacked) >= 64:  # which sensors deliver changes rarely
+                self._stacked.clear()
+            self._stacked[used] = stacked
+        return stacked
 
     def _direct_plan(self, measured: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """For segments ``measured`` (in this order), the joints between two of them
