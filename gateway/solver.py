@@ -769,6 +769,13 @@ class BodySolver:
             start += len(mine)
             # what the joints rest on: an uncalibrated sensor, an expected pelvis sensor missing
             solver = tick.solver
+            if not tick.uncal:  # every measured segment rests on its measurement alone
+                pelvis = solver._rests("pelvis", tick)
+                if pelvis:
+                    for row in mine[parent_at < 0].tolist():
+                        for name in batch.names[row]:
+                            tick.reasons[name] = set(pelvis)
+                continue
             rests = [solver._rests(tick.segs[p] if p >= 0 else "pelvis", tick)
                      for p in parent_at.tolist()]  # fmt: skip
             for row, c, rest in zip(mine.tolist(), child_at.tolist(), rests, strict=True):
