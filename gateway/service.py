@@ -82,12 +82,17 @@ IDLE_S, IDLE_QUIET_S = 0.0003, 0.005
 
 class _Site:
     """What the gateway keeps of one site: its latest sample, and for orientation
-    sensors the recent history (T-pose calibration)."""
+    sensors the recent history (T-pose calibration).
 
-    __slots__ = ("arrived", "fresh", "history", "owed", "sample")
+    The latest sample of a quaternion message is kept as its numbers
+    (``fields``) and made a :class:`RawSample` only when read: most samples are
+    superseded before a solve reads them when the gateway is busy."""
+
+    __slots__ = ("_sample", "arrived", "fields", "fresh", "history", "owed")
 
     def __init__(self, sample: RawSample, arrived: float) -> None:
-        self.sample = sample
+        self._sample: RawSample | None = sample
+        self.fields: raw_sample.QuatFields | None = None  # the latest, not read yet
         self.arrived = arrived  # monotonic
         self.fresh = False  # not yet in a solved tick
         # how many of the body's frames this site has delivered for, counted from the
@@ -97,6 +102,17 @@ class _Site:
         # (arrival, w, x, y, z): tuples of floats only, which Python's cyclic collector
         # stops tracking, so seconds of history do not lengthen its full passes
         self.history: deque[tuple[float, float, float, float, float]] | None = None
+
+    @property
+    def sample(self) -> RawSample:
+        """The site's latest sample."""
+        if self.fields is not None:
+            self._sample, self.fields = raw_sample.of_fields(self.fields), None
+        return self._sample  # type: ignore[return-value]
+
+    @sample.setter
+    def sample(self, sample: RawSample) -> None:
+        self._sample, self.fields = sample, None
 
 
 class _Body:
@@ -183,6 +199,31 @@ class _Body:
                     hist.popleft()
         if self.first_new is None:
             self.first_new = now
+
+    def take_fields(self, kept: _Site, fields: raw_sample.QuatFields, now: float) -> None:
+        """:meth:`take_into` for a quaternion message's numbers
+        (:func:`raw_sample.quat_fields`), on every IMU sample's path: the same
+        accounting written out, the sample made only when read (``_Site.sample``)."""
+        self.samples += 1
+        if not kept.fresh:
+            self.unsolved_sites += 1
+            kept.fresh = True
+        owed = kept.owed
+        if owed < 2:
+            if not owed:
+                self.ready_sites += 1
+            kept.owed = owed + 1
+        kept.fields, kept.arrived = fields, now
+        if self.first_new is None:
+            self.first_new = now
+        t = fields[2] / 1e9  # the history by the sample's own time, as take_into keeps it
+        hist = kept.history
+        if hist is None:
+            hist = kept.history = deque()
+        if not hist or t - hist[-1][0] >= HISTORY_STEP_S:
+            hist.append((t, *fields[4:]))
+            while t - hist[0][0] > HISTORY_S:
+                hist.popleft()
 
     def frame_complete(self, now: float) -> bool:
         """Has every site that is not stale delivered for the next frame (and every
@@ -395,6 +436,7 @@ class Gateway:
         taken, touched = 0, set()
         until = now + self.period_s  # a flood (of garbage, say) still leaves time to solve
         routes, foreign, share = self._routes, self._foreign, self.share
+        quat_fields = raw_sample.quat_fields
         with self._lock:
             for sub in self._subs:
                 while (taken % 256 or time.monotonic() < until) and (
@@ -402,8 +444,17 @@ class Gateway:
                 ):
                     taken += 1
                     key = str(sample.key_expr)
+                    route = routes.get(key)
+                    if route is not None:
+                        payload = sample.payload.to_bytes()
+                        fields = quat_fields(payload)
+                        if fields is not None:  # the common case: no RawSample made
+                            route[0].take_fields(route[1], fields, now)
+                            touched.add(route[0])
+                            continue
+                    else:
+                        payload = None
                     try:
-                        route = routes.get(key)
                         if route is None:
                             if key in foreign:
                                 self.foreign_samples += 1
@@ -415,7 +466,9 @@ class Gateway:
                                     foreign.add(key)
                                 self.foreign_samples += 1
                                 continue
-                        raw = raw_sample.decode(sample.payload.to_bytes())
+                        raw = raw_sample.decode(
+                            sample.payload.to_bytes() if payload is None else payload
+                        )
                     except DecodeError as exc:
                         self.rejected[exc.reason] += 1
                         continue

@@ -198,6 +198,12 @@ def test_raw_sample_quaternion_shortcut_agrees_with_the_checks(
     except DecodeError as exc:
         got = "length" if exc.reason.name in ("TRUNCATED", "BAD_LENGTH") else exc.reason
     assert got == _checked_decode(payload)
+    # the gateway's intake takes the numbers alone: exactly the good messages without extra
+    fields = raw_sample.quat_fields(payload)
+    good = isinstance(got, RawSample) and not got.reading.extra
+    assert (fields is not None) == good
+    if fields is not None:
+        assert raw_sample.of_fields(fields) == got
 
 
 @given(st.lists(raw_samples, max_size=20), cuts)

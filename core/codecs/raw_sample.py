@@ -30,7 +30,7 @@ import struct
 
 from ..errors import DecodeError, Reason, Rejected
 from ..messages import OleAccel, Quat, RawSample, Source
-from ._common import GarbageRun, ole_values, unit_quat
+from ._common import _SQ_HI, _SQ_LO, GarbageRun, ole_values, unit_quat
 
 MAGIC = b"BN"
 VERSION = 1
@@ -110,20 +110,42 @@ def _decode_at(buf: bytes | bytearray, pos: int, length: int) -> RawSample:
 
 
 #: A whole quaternion message with no extra bytes: what IMU nodes send, decoded in
-#: one unpack on the gateway's path for every sample.
-_QUAT_MESSAGE = struct.Struct("<2sBBBBHIq4dB")
+#: one unpack on the gateway's path for every sample (magic, version and kind as one
+#: field of four bytes).
+_QUAT_MESSAGE = struct.Struct("<4sBBHIq4dB")
+_QUAT_HEAD = MAGIC + bytes((VERSION, KIND_QUAT))
+QUAT_MESSAGE_LEN = _QUAT_MESSAGE.size
+
+#: node, seq, t_ns, source id, w, x, y, z: a quaternion message's fields
+QuatFields = tuple[int, int, int, int, float, float, float, float]
+
+
+def quat_fields(payload: bytes | bytearray) -> QuatFields | None:
+    """The fields of a good quaternion message with no extra bytes (the common
+    case, on the gateway's path for every sample), as plain numbers; None for
+    anything else, good or bad, which :func:`decode` then reads or judges."""
+    if len(payload) != QUAT_MESSAGE_LEN:
+        return None
+    head, source, _, node, seq, t_ns, w, x, y, z, n = _QUAT_MESSAGE.unpack(payload)
+    if head != _QUAT_HEAD or n or not node:
+        return None
+    if not _SQ_LO <= w * w + x * x + y * y + z * z <= _SQ_HI:  # unit_quat's test; NaN fails it
+        return None
+    return node, seq, t_ns, source, w, x, y, z
+
+
+def of_fields(fields: QuatFields) -> RawSample:
+    """The sample of :func:`quat_fields`' numbers: what :func:`decode` gives."""
+    node, seq, t_ns, source, w, x, y, z = fields
+    return RawSample(Quat(node, (w, x, y, z)), seq, t_ns, _SOURCES[source])
 
 
 def decode(payload: bytes | bytearray) -> RawSample:
     """Exactly one message; ``DecodeError`` if ``payload`` is anything else."""
-    if len(payload) == _QUAT_MESSAGE.size:
-        magic, version, kind, source, _, node, seq, t_ns, w, x, y, z, n = _QUAT_MESSAGE.unpack(
-            payload
-        )
-        if magic == MAGIC and version == VERSION and kind == KIND_QUAT and not n and node:
-            reading = Quat(node, unit_quat(w, x, y, z, normalise=False))
-            return RawSample(reading, seq, t_ns, _SOURCES[source])
-        # anything else takes the checks below, which say what is wrong
+    fields = quat_fields(payload)
+    if fields is not None:
+        return of_fields(fields)
+    # anything else takes the checks below, which say what is wrong
     length = _length(payload, 0)
     if length is None or length > len(payload):
         raise DecodeError(Reason.TRUNCATED, f"{len(payload)} bytes")
