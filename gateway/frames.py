@@ -19,11 +19,7 @@ from bodynet.core.keys import Branch
 from bodynet.core.skeleton import part
 
 if TYPE_CHECKING:
-    from bodynet.gateway.solver import BodyOutput, OutputNames
-
-#: each skeleton's message encoder, by the identity of its names (one per solver
-#: structure; a tuple's hash of every name would cost more than a look-up)
-_ENCODERS: dict[int, tuple[OutputNames, pose.WholeBodyEncoder]] = {}
+    from bodynet.gateway.solver import BodyOutput
 
 
 def branch_parts(branch: Branch) -> tuple[tuple[str, ...], tuple[str, ...]]:
@@ -44,18 +40,10 @@ def whole_body_message(output: BodyOutput, seq: int, stale: Sequence[str]) -> by
     """``pose.encode(pose_frame(output, seq, stale))``, byte for byte, with no
     frame or dictionary built: the gateway's message for the whole body, 100
     times a second per body (``tests/test_frames.py`` holds them equal)."""
-    names = output.names
-    known = _ENCODERS.get(id(names))
-    if known is None or known[0] is not names:
-        if len(_ENCODERS) >= 64:
-            _ENCODERS.clear()
-        encoder = pose.WholeBodyEncoder(names.angles, names.joints, names.segments,
-                                        names.joint_segment)  # fmt: skip
-        known = _ENCODERS[id(names)] = (names, encoder)
     numbers = np.concatenate([output.positions.ravel(), output.quats.ravel(), output.angles,
                               output.rel, output.unc])  # fmt: skip
-    return known[1].encode(seq, output.t_ns, numbers, output.flags, output.sources, stale,
-                           output.reasons)  # fmt: skip
+    return output.names.encoder.encode(seq, output.t_ns, numbers, output.flags, output.sources,
+                                       stale, output.reasons)  # fmt: skip
 
 
 def pose_frame(output: BodyOutput, seq: int, stale: Sequence[str]) -> pose.PoseFrame:

@@ -174,36 +174,36 @@ class _Body:
         return kept
 
     def take_into(self, kept: _Site, sample: RawSample, now: float) -> None:
-        """:meth:`take` for a site whose record the caller holds (the gateway's
-        routes, on every sample's path)."""
-        self.samples += 1
-        if not kept.fresh:
-            self.unsolved_sites += 1
-        owed = kept.owed
-        if not owed:
-            self.ready_sites += 1
-        if owed < 2:
-            kept.owed = owed + 1
-        kept.sample, kept.arrived, kept.fresh = sample, now, True
+        """:meth:`take` for a site whose record the caller holds (a key's first
+        sample, and samples that are not plain quaternion messages)."""
         reading = sample.reading
         if type(reading) is Quat:
-            # kept by the sample's own time: the worker takes samples in rounds, and
-            # by arrival a round's samples would all have one time (one kept a round)
-            t = sample.t_ns / 1e9
-            hist = kept.history
-            if hist is None:
-                hist = kept.history = deque()
-            if not hist or t - hist[-1][0] >= HISTORY_STEP_S:
-                hist.append((t, *reading.wxyz))
-                while t - hist[0][0] > HISTORY_S:
-                    hist.popleft()
-        if self.first_new is None:
-            self.first_new = now
+            w, x, y, z = reading.wxyz
+            fields = (reading.node, sample.seq, sample.t_ns, int(sample.source), w, x, y, z)
+            self.take_fields(kept, fields, now)
+        else:
+            self._count(kept, now)
+        kept.sample = sample  # as it came (with a quaternion's extra bytes)
 
     def take_fields(self, kept: _Site, fields: raw_sample.QuatFields, now: float) -> None:
         """:meth:`take_into` for a quaternion message's numbers
-        (:func:`raw_sample.quat_fields`), on every IMU sample's path: the same
-        accounting written out, the sample made only when read (``_Site.sample``)."""
+        (:func:`raw_sample.quat_fields`), on every IMU sample's path: the sample is
+        made only when read (``_Site.sample``)."""
+        self._count(kept, now)
+        kept.fields = fields
+        # kept by the sample's own time: the worker takes samples in rounds, and
+        # by arrival a round's samples would all have one time (one kept a round)
+        t = fields[2] / 1e9
+        hist = kept.history
+        if hist is None:
+            hist = kept.history = deque()
+        if not hist or t - hist[-1][0] >= HISTORY_STEP_S:
+            hist.append((t, *fields[4:]))
+            while t - hist[0][0] > HISTORY_S:
+                hist.popleft()
+
+    def _count(self, kept: _Site, now: float) -> None:
+        """A new sample of ``kept``'s site came: the frame's accounting."""
         self.samples += 1
         if not kept.fresh:
             self.unsolved_sites += 1
@@ -213,17 +213,9 @@ class _Body:
             if not owed:
                 self.ready_sites += 1
             kept.owed = owed + 1
-        kept.fields, kept.arrived = fields, now
+        kept.arrived = now
         if self.first_new is None:
             self.first_new = now
-        t = fields[2] / 1e9  # the history by the sample's own time, as take_into keeps it
-        hist = kept.history
-        if hist is None:
-            hist = kept.history = deque()
-        if not hist or t - hist[-1][0] >= HISTORY_STEP_S:
-            hist.append((t, *fields[4:]))
-            while t - hist[0][0] > HISTORY_S:
-                hist.popleft()
 
     def frame_complete(self, now: float) -> bool:
         """Has every site that is not stale delivered for the next frame (and every

@@ -39,6 +39,7 @@ from __future__ import annotations
 import math
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
+from functools import cached_property
 from typing import Any
 
 import numpy as np
@@ -46,7 +47,14 @@ import pinocchio as pin
 from scipy.spatial.transform import Rotation
 
 from bodynet.core import keys
-from bodynet.core.codecs.pose import CLAMPED, HELD, UNCALIBRATED, UNOBSERVED, primary
+from bodynet.core.codecs.pose import (
+    CLAMPED,
+    HELD,
+    UNCALIBRATED,
+    UNOBSERVED,
+    WholeBodyEncoder,
+    primary,
+)
 from bodynet.core.keys import Site
 from bodynet.core.messages import OleAccel, Quat, RawSample
 from bodynet.core.profile import OLE_DOF, mount
@@ -418,6 +426,11 @@ class OutputNames:
     joints: tuple[str, ...]
     segments: tuple[str, ...]
     joint_segment: tuple[int, ...]  # each joint's child segment: its origin is the joint centre
+
+    @cached_property
+    def encoder(self) -> WholeBodyEncoder:
+        """The whole-body message's encoder for these names (worked out once)."""
+        return WholeBodyEncoder(self.angles, self.joints, self.segments, self.joint_segment)
 
 
 @dataclass(slots=True)
