@@ -1,13 +1,15 @@
 """Raw-to-pose latency of the gateway beside a bare Zenoh relay, in one run.
 
-Five parties on loopback: a router; a feeder publishing one emulated body's
+Parties on loopback: a router; a feeder publishing one emulated body's
 raw samples (15 nodes at 100 Hz) stamped with the time of publishing; a bare
 relay that republishes every raw payload unchanged (subscribe, put, no work);
 the real gateway; and a probe that receives both and takes, for each relayed
 sample, ``receive time - source time``, and for each pose, ``receive time -
 newest source time in the tick``. Relay and gateway run at the same time on
 the same feed, so the machine's noise hits both alike; the ratio is the figure
-to read. Loss: what the relay and the gateway received against what was sent.
+to read. On two cores each then runs on what the other leaves: ``--apart``
+feeds them one after the other instead (the same feed each), rows marked
+"apart". Loss: what the relay and the gateway received against what was sent.
 """
 
 from __future__ import annotations
@@ -195,12 +197,13 @@ def _stats(lat: list[int]) -> dict[str, float]:
             "p99_ms": float(np.percentile(arr, 99))}  # fmt: skip
 
 
-def run_once(bodies: int, seconds: float, rate_hz: float = RATE_HZ,
-             feed: str = "realistic", gateways: int = 1) -> dict[str, Any]:  # fmt: skip
-    """One side-by-side run of relay and gateway fed ``bodies`` bodies, each
-    node sending ``rate_hz`` as ``feed`` says (see :func:`feed_schedule`).
-    ``gateways`` > 1: that many gateway processes share the bodies
-    (``gateway --share``); their samples and CPU are added up."""
+def _phase(bodies: int, seconds: float, rate_hz: float, feed: str, relay: bool,
+           gateways: int) -> dict[str, Any]:  # fmt: skip
+    """Feed ``bodies`` bodies for ``seconds`` through the relay (if ``relay``) and
+    ``gateways`` gateway processes at the same time, on a router of their own,
+    with a probe taking each relayed sample's and each pose's latency (ns).
+    What was sent, the latencies, each path's CPU (s), the gateways' samples
+    taken and solves."""
     import socket
 
     from bodynet.core.codecs import pose, raw_sample
@@ -215,29 +218,29 @@ def run_once(bodies: int, seconds: float, rate_hz: float = RATE_HZ,
     sent, gw_samples, gw_solves = ctx.Value("q", 0), ctx.Value("q", 0), ctx.Value("q", 0)
     relay_cpu, gw_cpu = ctx.Value("d", 0.0), ctx.Value("d", 0.0)
     stop, ready = ctx.Event(), ctx.Event()
-    relay = ctx.Process(target=_relay, args=(endpoint, stop, relay_cpu))
     share = (lambda k: f"bench-{k}") if gateways > 1 else (lambda k: None)
     serving = [ctx.Event() for _ in range(gateways)]
     procs = [ctx.Process(target=_gateway, args=(endpoint, stop, gw_samples, gw_cpu,
                                                 bodies > 1 or gateways > 1, share(k), serving[k],
                                                 gw_solves))
              for k in range(gateways)]  # fmt: skip
+    if relay:
+        procs.append(ctx.Process(target=_relay, args=(endpoint, stop, relay_cpu)))
     # one feeder process per 10 bodies, so the feed keeps its rate
     feeders = [
         ctx.Process(target=_feed, args=(endpoint, seconds, sent, ready,
                                         range(i, min(i + 10, bodies)), bodies, rate_hz, feed))
         for i in range(0, bodies, 10)
     ]  # fmt: skip
-    for p in (relay, *procs, *feeders):
+    for p in (*procs, *feeders):
         p.start()
     probe = open_session(session_config("client", connect=[endpoint]))
     relay_lat: list[int] = []
     pose_lat: list[int] = []
-    pose_selector = keys_pose(bodies)
     subs = [
         probe.declare_subscriber("bench/relay/**", lambda s: relay_lat.append(
             time.time_ns() - raw_sample.source_time(s.payload.to_bytes()))),
-        probe.declare_subscriber(pose_selector, lambda s: pose_lat.append(
+        probe.declare_subscriber(keys_pose(bodies), lambda s: pose_lat.append(
             time.time_ns() - pose.source_time(s.payload.to_bytes()))),
     ]  # fmt: skip
     for event in serving:  # each gateway process has imported Pinocchio and subscribed
@@ -248,24 +251,43 @@ def run_once(bodies: int, seconds: float, rate_hz: float = RATE_HZ,
         f.join()
     time.sleep(0.5)  # the last samples drain
     stop.set()
-    for p in (relay, *procs):
+    for p in procs:
         p.join(timeout=30)
     for sub in subs:
         sub.undeclare()
     probe.close()
     router.close()
-    r, g = _stats(relay_lat), _stats(pose_lat)
+    return {"sent": sent.value, "relay_lat": relay_lat, "pose_lat": pose_lat,
+            "relay_cpu_s": relay_cpu.value, "gateway_cpu_s": gw_cpu.value,
+            "samples": gw_samples.value, "solves": gw_solves.value}  # fmt: skip
+
+
+def run_once(bodies: int, seconds: float, rate_hz: float = RATE_HZ, feed: str = "realistic",
+             gateways: int = 1, apart: bool = False) -> dict[str, Any]:  # fmt: skip
+    """One run of relay and gateway fed ``bodies`` bodies, each node sending
+    ``rate_hz`` as ``feed`` says (see :func:`feed_schedule`): side by side, or
+    with ``apart`` one after the other (the same feed each). ``gateways`` > 1:
+    that many gateway processes share the bodies (``gateway --share``); their
+    samples and CPU are added up."""
+    if apart:
+        relay = _phase(bodies, seconds, rate_hz, feed, True, 0)
+        gw = _phase(bodies, seconds, rate_hz, feed, False, gateways)
+    else:
+        relay = gw = _phase(bodies, seconds, rate_hz, feed, True, gateways)
+    r, g = _stats(relay["relay_lat"]), _stats(gw["pose_lat"])
     expected_poses = seconds * RATE_HZ * bodies  # the gateway ticks at 100 Hz at most
+    poses = len(gw["pose_lat"])
     return {
-        "bodies": bodies, "feed": feed, "gateways": gateways, "sent": sent.value,
-        "relay": {**r, "received": len(relay_lat), "lost": sent.value - len(relay_lat),
-                  "cpu_ms_per_body_s": 1e3 * relay_cpu.value / seconds / bodies},
-        "gateway": {**g, "samples_received": gw_samples.value,
-                    "lost": sent.value - gw_samples.value, "poses": len(pose_lat),
-                    "pose_rate": len(pose_lat) / expected_poses,
+        "bodies": bodies, "feed": feed, "gateways": gateways, "apart": apart, "sent": gw["sent"],
+        "relay": {**r, "sent": relay["sent"], "received": len(relay["relay_lat"]),
+                  "lost": relay["sent"] - len(relay["relay_lat"]),
+                  "cpu_ms_per_body_s": 1e3 * relay["relay_cpu_s"] / seconds / bodies},
+        "gateway": {**g, "samples_received": gw["samples"],
+                    "lost": gw["sent"] - gw["samples"], "poses": poses,
+                    "pose_rate": poses / expected_poses,
                     # body-ticks per batched solve (the poses of bodies solved together)
-                    "mean_batch": len(pose_lat) / gw_solves.value if gw_solves.value else None,
-                    "cpu_ms_per_body_s": 1e3 * gw_cpu.value / seconds / bodies},
+                    "mean_batch": poses / gw["solves"] if gw["solves"] else None,
+                    "cpu_ms_per_body_s": 1e3 * gw["gateway_cpu_s"] / seconds / bodies},
         "p50_ratio": g["p50_ms"] / r["p50_ms"] if r["n"] and g["n"] else None,
         "p99_ratio": g["p99_ms"] / r["p99_ms"] if r["n"] and g["n"] else None,
     }  # fmt: skip
@@ -297,6 +319,7 @@ def run(
     name: str = "gateway",
     feeds: tuple[str, ...] = FEEDS,
     gateways: tuple[int, ...] = (1,),
+    apart: bool = False,
 ) -> dict[str, Any]:
     """Run the comparison for each number of bodies and each feed (realistic
     first, see :func:`feed_schedule`), each node sending ``rate_hz``; print a
@@ -304,20 +327,23 @@ def run(
     (one body, the first feed) are also at the top level of the result; the
     bodies sustained are counted on the first feed. Each count in ``gateways``
     other than 1 adds a row per number of bodies: that many gateway processes
-    sharing the bodies (``gateway --share``), on the first feed."""
+    sharing the bodies (``gateway --share``), on the first feed; ``apart`` adds
+    one per number of bodies with relay and gateway fed one after the other."""
     from bodynet.bench import machine
 
     rows = [run_once(n, seconds, rate_hz, feed) for n in bodies for feed in feeds]
     rows += [run_once(n, seconds, rate_hz, feeds[0], g)
              for g in gateways if g != 1 for n in bodies]  # fmt: skip
-    first = [r for r in rows if r["feed"] == feeds[0] and r["gateways"] == 1]
+    rows += [run_once(n, seconds, rate_hz, feeds[0], apart=True) for n in bodies if apart]
+    first = [r for r in rows if r["feed"] == feeds[0] and r["gateways"] == 1 and not r["apart"]]
     best = {
         path: max((r["bodies"] for r in first if sustained(r, path)), default=0)
         for path in ("relay", "gateway")
     }
     by_gateways = {
         g: max((r["bodies"] for r in rows
-                if r["gateways"] == g and r["feed"] == feeds[0] and sustained(r, "gateway")),
+                if r["gateways"] == g and r["feed"] == feeds[0] and not r["apart"]
+                and sustained(r, "gateway")),
                default=0)
         for g in sorted({1, *gateways})
     }  # fmt: skip
@@ -336,9 +362,10 @@ def run(
         "|---:|---|---|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for row in rows:
-        r, g, f = row["relay"], row["gateway"], row["feed"]
+        r, g = row["relay"], row["gateway"]
+        f = row["feed"] + (", apart" if row["apart"] else "")
         lines.append(
-            f"| {row['bodies']} | {f} | bare relay (raw -> raw) | {row['sent']} | {r['lost']} "
+            f"| {row['bodies']} | {f} | bare relay (raw -> raw) | {r['sent']} | {r['lost']} "
             f"| | {r['p50_ms']:.2f} | {r['p99_ms']:.2f} | | {r['cpu_ms_per_body_s']:.0f} | |"
         )
         ratio = f"{row['p99_ratio']:.2f}" if row["p99_ratio"] else "-"

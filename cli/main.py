@@ -139,7 +139,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
         solver.run(seconds=args.seconds, out_dir=args.out, bodies=(1, 5, 20))
     if "gateway" in only:
         gateway.run(seconds=args.gateway_seconds, out_dir=args.out, bodies=tuple(args.bodies),
-                    gateways=tuple(args.gateways))  # fmt: skip
+                    gateways=tuple(args.gateways), apart=args.apart)  # fmt: skip
     if "peer" in only:
         peer.run(seconds=args.gateway_seconds, out_dir=args.out)
     if "rate" in only:
@@ -219,6 +219,9 @@ def add_bench_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--gateways", type=argtypes.positive_int(64, "gateways"), nargs="+",
                    default=[1, 2, 4],
                    help="numbers of gateway processes sharing the bodies (--share)")  # fmt: skip
+    p.add_argument("--apart", action="store_true",
+                   help="gateway benchmark: also feed relay and gateway one after the other, "
+                        "each on the machine alone")  # fmt: skip
     p.add_argument("--only", action="append", choices=BENCHMARKS,
                    help="run only this benchmark (repeatable; default all but soak and "
                         "drift)")  # fmt: skip

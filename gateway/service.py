@@ -53,7 +53,7 @@ from bodynet.gateway.heading import (
     calibrate_window,
     yaw_reset,
 )
-from bodynet.gateway.rounds import Rounds
+from bodynet.gateway.rounds import Rounds, next_window
 from bodynet.gateway.shards import Share
 from bodynet.gateway.solver import BodyOutput, BodySolver, solve_bodies
 from bodynet.session import profile_file
@@ -75,8 +75,8 @@ INTAKE_DEPTH = 1 << 16
 #: Raw keys of subjects another sharing gateway serves, remembered so that their
 #: samples are skipped before decoding (past this many they are still skipped).
 MAX_FOREIGN_KEYS = 1 << 14
-#: How long the idle worker sleeps before it looks again: while samples flow, and
-#: after a second without any.
+#: How long the idle worker sleeps before it looks again: while samples flow and a
+#: frame may come whole (``rounds.next_window``), and at most.
 IDLE_S, IDLE_QUIET_S = 0.0003, 0.005
 
 
@@ -141,6 +141,7 @@ class _Body:
         self.unsolved_sites = 0  # sites whose latest sample is not in a solved tick yet
         self.ready_sites = 0  # sites that have delivered for the next frame (owed)
         self.first_new: float | None = None  # when the oldest unsolved sample came
+        self.whole_at: float | None = None  # when its last frame came whole (monotonic)
         self.next_housekeeping = 0.0  # monotonic: when its topology and health go out next
         cc = zenoh.CongestionControl.BLOCK
         self.body_pub = session.declare_publisher(prefix + keys.pose_key(), congestion_control=cc)
@@ -727,10 +728,20 @@ class Gateway:
             acted, wake = self._round(now, touched)
             if taken:
                 last_sample = now
-            elif not acted:  # nothing to do: poll again soon (sooner while busy)
-                idle = IDLE_S if now - last_sample < 1.0 else IDLE_QUIET_S
-                time.sleep(max(0.0, min(idle, wake - now)))
+            elif not acted:  # nothing to do: poll again soon, or when a frame may be whole
+                time.sleep(max(0.0, self._idle_until(now, wake, now - last_sample < 1.0) - now))
                 self.rounds.slept(time.monotonic() - now)
+
+    def _idle_until(self, now: float, wake: float, flowing: bool) -> float:
+        """Until when the idle worker sleeps: ``wake`` (a body due) at the latest;
+        while samples flow (``flowing``), ``IDLE_S`` while a frame may come whole,
+        else until one may (``rounds.next_window``); ``IDLE_QUIET_S`` at most."""
+        until = now + IDLE_QUIET_S
+        if flowing:
+            bodies = ((b.whole_at, b.first_new is not None) for b in self._bodies.values())
+            opens = next_window(now, bodies, self.period_s)
+            until = now + IDLE_S if opens <= now else min(opens, until)
+        return min(until, wake)
 
     def _round(self, now: float, touched: set[_Body]) -> tuple[bool, float]:
         """One round of the worker after taking samples (``touched``: the bodies
@@ -745,7 +756,7 @@ class Gateway:
                 if body in held:
                     continue
                 if body.frame_complete(now):
-                    held[body] = now
+                    held[body] = body.whole_at = now
                 elif body.first_new is not None:
                     self._next_due = min(self._next_due, body.first_new + self.period_s)
         events = self._reshare() if self.share is not None else 0

@@ -120,6 +120,23 @@ def test_tiny_gateway_benchmark_reports_both_paths(tmp_path: Path) -> None:
     assert set(result["sustained_by_gateways"]) == {1, 2}
 
 
+def test_gateway_benchmark_apart_feeds_relay_and_gateway_one_after_the_other(
+    tmp_path: Path,
+) -> None:
+    from bodynet.bench import gateway
+
+    result = gateway.run(seconds=0.5, out_dir=tmp_path, bodies=(1,), feeds=("realistic",),
+                         apart=True)  # fmt: skip
+    together, apart = result["runs"]
+    assert (together["apart"], apart["apart"]) == (False, True)
+    for path in ("relay", "gateway"):  # each of its own feed, in its own phase
+        assert apart[path]["n"] > 0
+    assert apart["relay"]["sent"] > 0 and apart["sent"] > 0
+    table = (tmp_path / "gateway.md").read_text()
+    assert "| 1 | realistic, apart | bare relay (raw -> raw) |" in table
+    assert "| 1 | realistic, apart | gateway (raw -> pose) |" in table
+
+
 def test_realistic_feed_is_not_phase_locked() -> None:
     """The realistic feed sends as real suits do: each body at its own phase, CAN
     nodes on their own timers, a serial receiver's lines one after another; the

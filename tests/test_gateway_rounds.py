@@ -8,8 +8,8 @@ import zenoh
 from zenoh_helpers import client
 
 from bodynet.core.messages import RawSample, Source
-from bodynet.gateway.rounds import Rounds
-from bodynet.gateway.service import Gateway
+from bodynet.gateway.rounds import EARLY_S, LATE_S, Rounds, next_window
+from bodynet.gateway.service import IDLE_S, Gateway
 from bodynet.nodes.emulator import BodyEmulator, imu_tags
 from bodynet.nodes.motion import ROUTINES
 
@@ -126,3 +126,67 @@ def test_a_body_a_whole_frame_behind_starts_afresh(router_endpoint: str) -> None
     finally:
         gw.close()
         session.close()
+
+
+def test_next_window_opens_around_each_expected_whole_frame() -> None:
+    inf = float("inf")
+    assert next_window(5.0, [], PERIOD) == inf  # no body: nothing to poll for
+    assert next_window(5.0, [(None, True)], PERIOD) == 5.0  # never whole, samples waiting
+    assert next_window(5.0, [(None, False)], PERIOD) == inf
+    assert next_window(5.0, [(3.0, True)], PERIOD) == 5.0  # not whole for a second: poll
+    whole = 1.0  # a frame came whole; the next is expected a period on
+    assert np.isclose(next_window(1.001, [(whole, True)], PERIOD), 1.01 - EARLY_S)
+    assert next_window(1.01 - EARLY_S / 2, [(whole, True)], PERIOD) == 1.01 - EARLY_S / 2
+    assert next_window(1.01 + LATE_S / 2, [(whole, True)], PERIOD) == 1.01 + LATE_S / 2
+    # past the window: the frame after next (a body solved when its oldest sample waited)
+    assert np.isclose(next_window(1.01 + 2 * LATE_S, [(whole, True)], PERIOD), 1.02 - EARLY_S)
+    # the soonest of two bodies
+    assert np.isclose(next_window(1.001, [(whole, True), (whole + 0.003, False)], PERIOD),
+                      1.01 - EARLY_S)  # fmt: skip
+
+
+def test_the_idle_worker_sleeps_between_whole_frames_and_misses_none(
+    router_endpoint: str,
+) -> None:
+    """The worker driven as it runs, on a simulated clock: each round takes what
+    has come, and an idle worker sleeps as long as ``_idle_until`` says. One
+    body with its nodes at their own phases and up to 1 ms late each send:
+    every tick is delivered, each whole frame solved within a poll of its last
+    sample, and the worker wakes a few times a period, not every 0.3 ms."""
+    tags = imu_tags()
+    readings, _ = BodyEmulator(ROUTINES["walk"], tags, seed=5).sample(0.2)
+    rng = np.random.default_rng(11)
+    seconds = 1.0
+    phases = rng.uniform(0, PERIOD, len(tags))
+    sends = sorted(
+        (phases[i] + k * PERIOD + rng.uniform(0, 1e-3), i, k)
+        for i in range(len(tags))
+        for k in range(int(seconds / PERIOD))
+    )  # fmt: skip
+    session = client(router_endpoint)
+    gw = Gateway(session)
+    try:
+        body = gw._bodies[None]
+        now, nxt, wakes, delays, last = 0.0, 0, 0, [], 0.0
+        while nxt < len(sends):
+            touched = set()
+            while nxt < len(sends) and sends[nxt][0] <= now:
+                t, i, k = sends[nxt]
+                body.take(tags[i].site, RawSample(readings[i], k, round(t * 1e9),
+                                                  Source.IMU_CENTRAL), now)  # fmt: skip
+                last, nxt = t, nxt + 1
+                touched.add(body)
+            ticks = body.ticks
+            acted, wake = gw._round(now, touched)
+            if body.ticks > ticks and body.whole_at == now:
+                delays.append(now - last)  # a whole frame solved: after its last sample
+            if not (touched or acted):
+                wakes += 1
+                now = max(gw._idle_until(now, wake, True), now + 1e-6)
+    finally:
+        gw.close()
+        session.close()
+    assert body.ticks >= 0.97 * seconds / PERIOD, body.ticks
+    assert len(delays) >= 0.9 * seconds / PERIOD  # nearly every tick a whole frame
+    assert max(delays) <= IDLE_S + 1e-9, max(delays)
+    assert wakes / body.ticks < 12, wakes / body.ticks  # polling every 0.3 ms: about 33
