@@ -131,7 +131,8 @@ def test_gateway_benchmark_apart_feeds_relay_and_gateway_one_after_the_other(
     assert (together["apart"], apart["apart"]) == (False, True)
     for path in ("relay", "gateway"):  # each of its own feed, in its own phase
         assert apart[path]["n"] > 0
-    assert apart["relay"]["sent"] > 0 and apart["sent"] > 0
+    assert apart["relay"]["sent"] > 0
+    assert apart["sent"] > 0
     table = (tmp_path / "gateway.md").read_text()
     assert "| 1 | realistic, apart | bare relay (raw -> raw) |" in table
     assert "| 1 | realistic, apart | gateway (raw -> pose) |" in table
