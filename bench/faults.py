@@ -101,6 +101,26 @@ class Inbox:
                 return t
         raise FaultError(f"no {what} within {timeout:g} s")
 
+    def wait_each(self, matches: dict[str, Callable[[str, Any], bool]],
+                  timeout: float) -> dict[str, float]:  # fmt: skip
+        """Arrival time of the first message that matches each of ``matches``, in
+        whatever order they come (waiting for one after the other would drop
+        what matches the second while the first is awaited); ``FaultError``
+        naming what did not come within ``timeout``."""
+        deadline = time.monotonic() + timeout
+        found: dict[str, float] = {}
+        while len(found) < len(matches) and (left := deadline - time.monotonic()) > 0:
+            try:
+                t, key, value = self.queue.get(timeout=left)
+            except queue.Empty:
+                break
+            for what, match in matches.items():
+                if what not in found and match(key, value):
+                    found[what] = t
+        if missing := [what for what in matches if what not in found]:
+            raise FaultError(f"no {' nor '.join(missing)} within {timeout:g} s")
+        return found
+
     def drain(self) -> None:
         with contextlib.suppress(queue.Empty):
             while True:
@@ -182,9 +202,13 @@ def node_killed(timeout: float = 60.0) -> dict[str, Any]:
                 gone.add(key)
             return gone == left
 
-        t_token = inbox.wait(tokens_gone, timeout, "liveliness tokens gone")
-        t_topo = inbox.wait(lambda k, v: k == keys.TOPOLOGY and _states(v, left) == {"gone"},
-                            timeout, "topology with the node gone")  # fmt: skip
+        # the gateway's topology may come before the probe's own tokens go
+        came = inbox.wait_each({
+            "liveliness tokens gone": tokens_gone,
+            "topology with the node gone":
+                lambda k, v: k == keys.TOPOLOGY and _states(v, left) == {"gone"},
+        }, timeout)  # fmt: skip
+        t_token, t_topo = came["liveliness tokens gone"], came["topology with the node gone"]
         for sub in subs:
             sub.undeclare()
     return {"liveliness_s": t_token - t0, "topology_s": max(t_topo, t_token) - t0}
