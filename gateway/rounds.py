@@ -12,10 +12,10 @@ stops holding when it is busy less than ``busy_off`` of its time.
 
 Between rounds the idle worker sleeps; each wake costs a context switch (about
 16 us of CPU here, more under load), and polling every 0.3 ms was 40% of one
-body's worker. A body's frames come whole once a period, at the phase of its
-slowest source, so :func:`next_window` tells the worker when the next frame
-may come whole: it polls in a window around that instant and sleeps through
-the rest of the period.
+body's worker. A body's frames come whole as often as its sources deliver (a
+period, or less for faster sources), at the phase of its slowest source, so
+:func:`next_window` tells the worker when the next frame may come whole: it
+polls in a window around that instant and sleeps through the rest.
 
 Pure: the worker tells it when it slept and what the clock says.
 """
@@ -80,23 +80,26 @@ class Rounds:
         return now >= since + self.hold(now, bodies)
 
 
-def next_window(now: float, bodies: Iterable[tuple[float | None, bool]], period_s: float,
+def next_window(now: float, bodies: Iterable[tuple[float | None, float, bool]],
                 early_s: float = EARLY_S, late_s: float = LATE_S) -> float:  # fmt: skip
     """When the idle worker next has to poll for whole frames: ``now`` while a
     window is open, else when the next opens. ``bodies``: per body, when its
-    last frame came whole (``None``: never) and whether it holds samples not
-    solved yet. A body's frames are expected whole a period apart after the
-    last (windows from ``early_s`` before to ``late_s`` after each); one that
-    has not come whole for a second, or never, and holds unsolved samples keeps
-    the worker polling; one without unsolved samples needs no window."""
+    last frame came whole (``None``: never), how long its frames come apart,
+    and whether it holds samples not solved yet. A body's frames are expected
+    whole that often after the last (windows from ``early_s`` before to
+    ``late_s`` after each); one that has not come whole for a second, or
+    never, and holds unsolved samples keeps the worker polling; one without
+    unsolved samples needs no window."""
     opens = math.inf
-    for whole_at, unsolved in bodies:
+    for whole_at, every, unsolved in bodies:
         if whole_at is None or now - whole_at > 1.0:
             if unsolved:
                 return now
             continue
-        k = max(1, math.ceil((now - whole_at - late_s) / period_s))  # first window not closed
-        start = whole_at + k * period_s - early_s
+        if every <= early_s:  # frames as often as that: always about to come whole
+            return now
+        k = max(1, math.ceil((now - whole_at - late_s) / every))  # first window not closed
+        start = whole_at + k * every - early_s
         if start <= now:
             return now
         opens = min(opens, start)

@@ -142,6 +142,8 @@ class _Body:
         self.ready_sites = 0  # sites that have delivered for the next frame (owed)
         self.first_new: float | None = None  # when the oldest unsolved sample came
         self.whole_at: float | None = None  # when its last frame came whole (monotonic)
+        # how long its last two came apart, at most a period (0: not known, look always)
+        self.whole_every = 0.0
         self.next_housekeeping = 0.0  # monotonic: when its topology and health go out next
         cc = zenoh.CongestionControl.BLOCK
         self.body_pub = session.declare_publisher(prefix + keys.pose_key(), congestion_control=cc)
@@ -738,8 +740,9 @@ class Gateway:
         else until one may (``rounds.next_window``); ``IDLE_QUIET_S`` at most."""
         until = now + IDLE_QUIET_S
         if flowing:
-            bodies = ((b.whole_at, b.first_new is not None) for b in self._bodies.values())
-            opens = next_window(now, bodies, self.period_s)
+            bodies = ((b.whole_at, b.whole_every, b.first_new is not None)
+                      for b in self._bodies.values())  # fmt: skip
+            opens = next_window(now, bodies)
             until = now + IDLE_S if opens <= now else min(opens, until)
         return min(until, wake)
 
@@ -756,6 +759,8 @@ class Gateway:
                 if body in held:
                     continue
                 if body.frame_complete(now):
+                    if body.whole_at is not None:  # sources faster than the ticks: sooner
+                        body.whole_every = min(now - body.whole_at, self.period_s)
                     held[body] = body.whole_at = now
                 elif body.first_new is not None:
                     self._next_due = min(self._next_due, body.first_new + self.period_s)

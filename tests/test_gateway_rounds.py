@@ -4,6 +4,7 @@ explicit clock values: no sleeps, no timing asserted."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import zenoh
 from zenoh_helpers import client
 
@@ -130,38 +131,45 @@ def test_a_body_a_whole_frame_behind_starts_afresh(router_endpoint: str) -> None
 
 def test_next_window_opens_around_each_expected_whole_frame() -> None:
     inf = float("inf")
-    assert next_window(5.0, [], PERIOD) == inf  # no body: nothing to poll for
-    assert next_window(5.0, [(None, True)], PERIOD) == 5.0  # never whole, samples waiting
-    assert next_window(5.0, [(None, False)], PERIOD) == inf
-    assert next_window(5.0, [(3.0, True)], PERIOD) == 5.0  # not whole for a second: poll
+    assert next_window(5.0, []) == inf  # no body: nothing to poll for
+    assert next_window(5.0, [(None, 0.0, True)]) == 5.0  # never whole, samples waiting
+    assert next_window(5.0, [(None, 0.0, False)]) == inf
+    assert next_window(5.0, [(3.0, PERIOD, True)]) == 5.0  # not whole for a second: poll
     whole = 1.0  # a frame came whole; the next is expected a period on
-    assert np.isclose(next_window(1.001, [(whole, True)], PERIOD), 1.01 - EARLY_S)
-    assert next_window(1.01 - EARLY_S / 2, [(whole, True)], PERIOD) == 1.01 - EARLY_S / 2
-    assert next_window(1.01 + LATE_S / 2, [(whole, True)], PERIOD) == 1.01 + LATE_S / 2
+    assert np.isclose(next_window(1.001, [(whole, PERIOD, True)]), 1.01 - EARLY_S)
+    assert next_window(1.01 - EARLY_S / 2, [(whole, PERIOD, True)]) == 1.01 - EARLY_S / 2
+    assert next_window(1.01 + LATE_S / 2, [(whole, PERIOD, True)]) == 1.01 + LATE_S / 2
     # past the window: the frame after next (a body solved when its oldest sample waited)
-    assert np.isclose(next_window(1.01 + 2 * LATE_S, [(whole, True)], PERIOD), 1.02 - EARLY_S)
+    assert np.isclose(next_window(1.01 + 2 * LATE_S, [(whole, PERIOD, True)]), 1.02 - EARLY_S)
     # the soonest of two bodies
-    assert np.isclose(next_window(1.001, [(whole, True), (whole + 0.003, False)], PERIOD),
+    assert np.isclose(next_window(1.001, [(whole, PERIOD, True), (whole + 0.003, PERIOD, False)]),
                       1.01 - EARLY_S)  # fmt: skip
+    # frames that come whole more often than the early margin: always about to
+    assert next_window(1.0005, [(whole, EARLY_S / 2, False)]) == 1.0005
 
 
+@pytest.mark.parametrize(("every", "wakes_per_tick"), [(PERIOD, 12), (PERIOD / 10, None)])
 def test_the_idle_worker_sleeps_between_whole_frames_and_misses_none(
-    router_endpoint: str,
+    router_endpoint: str, every: float, wakes_per_tick: float | None
 ) -> None:
     """The worker driven as it runs, on a simulated clock: each round takes what
     has come, and an idle worker sleeps as long as ``_idle_until`` says. One
-    body with its nodes at their own phases and up to 1 ms late each send:
-    every tick is delivered, each whole frame solved within a poll of its last
-    sample, and the worker wakes a few times a period, not every 0.3 ms."""
+    body with its nodes at their own phases, sending every ``every`` and late
+    by up to a millisecond (a tenth of that at 1000 Hz) each time: every frame
+    is solved (at 1000 Hz too, where frames come whole ten times a tick),
+    each within a poll of its last sample, and at 100 Hz the worker wakes a
+    few times a period, not every 0.3 ms."""
     tags = imu_tags()
     readings, _ = BodyEmulator(ROUTINES["walk"], tags, seed=5).sample(0.2)
     rng = np.random.default_rng(11)
     seconds = 1.0
-    phases = rng.uniform(0, PERIOD, len(tags))
+    frames = round(seconds / every)
+    phases = rng.uniform(0, every, len(tags))
+    late = min(1e-3, every / 10)
     sends = sorted(
-        (phases[i] + k * PERIOD + rng.uniform(0, 1e-3), i, k)
+        (phases[i] + k * every + rng.uniform(0, late), i, k)
         for i in range(len(tags))
-        for k in range(int(seconds / PERIOD))
+        for k in range(frames)
     )  # fmt: skip
     session = client(router_endpoint)
     gw = Gateway(session)
@@ -186,7 +194,8 @@ def test_the_idle_worker_sleeps_between_whole_frames_and_misses_none(
     finally:
         gw.close()
         session.close()
-    assert body.ticks >= 0.97 * seconds / PERIOD, body.ticks
-    assert len(delays) >= 0.9 * seconds / PERIOD  # nearly every tick a whole frame
+    assert body.ticks >= 0.97 * frames, (body.ticks, frames)  # the first waits a period
+    assert len(delays) >= 0.9 * frames  # nearly every tick a whole frame
     assert max(delays) <= IDLE_S + 1e-9, max(delays)
-    assert wakes / body.ticks < 12, wakes / body.ticks  # polling every 0.3 ms: about 33
+    if wakes_per_tick is not None:
+        assert wakes / body.ticks < wakes_per_tick, wakes / body.ticks  # polling: about 33
