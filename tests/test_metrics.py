@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 import zenoh
 from scipy.integrate import quad
-from zenoh_helpers import Collector, Running, client
+from zenoh_helpers import Collector, Running, client, wait_matching
 
 from bodynet.clients import live
 from bodynet.clients.metrics import MetricsOutput
@@ -185,6 +185,7 @@ def test_the_recorder_keeps_metrics(router_endpoint: str, zsession: zenoh.Sessio
     rec_session = client(router_endpoint)
     out = tmp_path / "m.mcap"
     recorder = Recorder(rec_session, out, DEFAULT_KEYS)
+    wait_matching(zsession, keys.METRICS)  # a put before it subscribed would be lost
     message = {"v": 1, "t_ns": 1_700_000_000_000_000_000,
                "dofs": {"left_elbow_flexion_deg": {"min_deg": 1.0}}}  # fmt: skip
     zsession.put(keys.METRICS, json.dumps(message))
