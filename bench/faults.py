@@ -91,15 +91,7 @@ class Inbox:
 
     def wait(self, match: Callable[[str, Any], bool], timeout: float, what: str) -> float:
         """Arrival time of the first message that ``match``es; ``FaultError`` after ``timeout``."""
-        deadline = time.monotonic() + timeout
-        while (left := deadline - time.monotonic()) > 0:
-            try:
-                t, key, value = self.queue.get(timeout=left)
-            except queue.Empty:
-                break
-            if match(key, value):
-                return t
-        raise FaultError(f"no {what} within {timeout:g} s")
+        return self.wait_each({what: match}, timeout)[what]
 
     def wait_each(self, matches: dict[str, Callable[[str, Any], bool]],
                   timeout: float) -> dict[str, float]:  # fmt: skip
