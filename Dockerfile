@@ -6,7 +6,8 @@ FROM python:3.11-slim
 ENV PYTHONDONTWRITEBYTECODE=1 PIP_NO_CACHE_DIR=1 PIP_DISABLE_PIP_VERSION_CHECK=1
 WORKDIR /src
 COPY . .
-RUN pip install . && rm -rf /src
+# the gateway's kernels compiled once, cached in site-packages for every user
+RUN pip install . && python -c 'import bodynet.gateway.kernels' && rm -rf /src
 
 # recordings and game results are health data: a user of its own, files 0600
 RUN useradd --create-home --uid 1000 bodynet && mkdir /data && chown bodynet /data

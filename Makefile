@@ -14,6 +14,8 @@ $(STAMP): pyproject.toml
 	@# could shadow it (none does here: the roles install as bodynet.*)
 	PYTHONWARNINGS='ignore:Editable installation' \
 	  $(BIN)/python -m pip install --quiet -e '.[dev,bench]'
+	@# the gateway's compiled kernels: built once here (seconds), cached beside their source
+	$(BIN)/python -c 'import bodynet.gateway.kernels'
 	touch $(STAMP)
 
 demo: $(STAMP)

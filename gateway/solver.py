@@ -60,6 +60,7 @@ from bodynet.core.messages import OleAccel, Quat, RawSample
 from bodynet.core.profile import OLE_DOF, mount
 from bodynet.core.skeleton import CALIBRATION_POSES, TPOSE, Joint, build_skeleton, rom
 from bodynet.core.subject import Profile, QuatWxyz
+from bodynet.gateway import kernels
 from bodynet.kinematics.model import BodyModel, accel_axes
 
 _REASON_ORDER = {r: i for i, r in enumerate((UNCALIBRATED, UNOBSERVED, HELD, CLAMPED))}
@@ -116,27 +117,6 @@ def _rot(axis: np.ndarray, angle_rad: float) -> np.ndarray:
 def _angle_deg(rot: np.ndarray) -> float:
     """Rotation angle of a rotation matrix (accurate near 0, unlike acos of the trace)."""
     return math.degrees(float(np.linalg.norm(pin.log3(rot))))
-
-
-# Batches of rotations, in array form: a scipy Rotation call costs some 30-90 us
-# whatever the batch (its array-API layer), more than these whole formulas.
-def _axis_rotations(axes: np.ndarray, angles_rad: np.ndarray) -> np.ndarray:
-    """Rotations (n, 3, 3) about unit ``axes`` (n, 3) by ``angles_rad`` (n,), by
-    Rodrigues' formula; a zero axis gives the identity."""
-    k = np.zeros((len(axes), 3, 3))
-    k[:, 0, 1], k[:, 0, 2], k[:, 1, 2] = -axes[:, 2], axes[:, 1], -axes[:, 0]
-    k -= k.transpose(0, 2, 1)
-    s, c = np.sin(angles_rad)[:, None, None], np.cos(angles_rad)[:, None, None]
-    return np.eye(3) + s * k + (1.0 - c) * (k @ k)  # type: ignore[no-any-return]
-
-
-def _angles_deg(rot: np.ndarray) -> np.ndarray:
-    """Rotation angles (deg) of rotations (n, 3, 3): atan2 of sine and cosine,
-    accurate near 0 (what ``_angle_deg`` gives for one)."""
-    vee = np.stack([rot[:, 2, 1] - rot[:, 1, 2], rot[:, 0, 2] - rot[:, 2, 0],
-                    rot[:, 1, 0] - rot[:, 0, 1]], axis=1)  # fmt: skip
-    cos = (np.trace(rot, axis1=1, axis2=2) - 1.0) / 2.0
-    return np.degrees(np.arctan2(np.linalg.norm(vee, axis=1) / 2.0, cos))  # type: ignore[no-any-return]
 
 
 def _quat_wxyz(rot: np.ndarray) -> QuatWxyz:
@@ -306,39 +286,9 @@ class _SplitBatch:
         """Angles (deg, (m, 3), absent dofs 0) of joints ``rows`` for relative
         rotations ``rel`` (m, 3, 3), continuous with ``previous`` (m, 3)."""
         p = prep or self.prepare(rows)
-        m, i, j, k, e = p.m, p.i, p.j, p.k, p.e
-        b = np.arcsin(np.clip(e * rel[m, i, k], -1.0, 1.0))
-        a = np.arctan2(-e * rel[m, j, k], rel[m, k, k])
-        c = np.arctan2(-e * rel[m, i, j], rel[m, i, i])
-        euler = np.degrees(np.column_stack([a, b, c]))
-        other = (np.column_stack([euler[:, 0] + 180, 180 - euler[:, 1], euler[:, 2] + 180])
-                 + 180.0) % 360.0 - 180.0  # fmt: skip
-        signs = p.signs
-        first, second = euler * signs, other * signs
-        unused = p.unused
-        # fewer than three dofs: the candidate whose unused angles vanish
-        pick_two = np.abs(second * unused).sum(1) < np.abs(first * unused).sum(1)
-        # three dofs: inside the range of motion, then nearest the previous angles
-        lo, hi = p.lo, p.hi
-
-        def outside(cand: np.ndarray) -> np.ndarray:
-            return np.maximum(0.0, np.maximum(lo - cand, cand - hi)).sum(1)  # type: ignore[no-any-return]
-
-        out1, out2 = outside(first), outside(second)
-        d1, d2 = np.abs(first - previous).sum(1), np.abs(second - previous).sum(1)
-        pick_three = (out2 < out1) | ((out2 == out1) & (d2 < d1))
-        chosen = np.where(np.where(p.three, pick_three, pick_two)[:, None], second, first)
-        chosen[unused] = 0.0
-        if p.two.any():  # two dofs: the first angle from the child's own axis (_two_dofs)
-            t = p.two
-            it, jt, kt, et = i[t], j[t], k[t], e[t]
-            rt = rel[m[t]]
-            mt = np.arange(len(rt))
-            a2 = np.arctan2(et * rt[mt, kt, jt], rt[mt, jt, jt])
-            col_k = -et * np.sin(a2) * rt[mt, jt, kt] + np.cos(a2) * rt[mt, kt, kt]
-            b2 = np.arctan2(et * rt[mt, it, kt], col_k)
-            chosen[t, :2] = np.degrees(np.column_stack([a2, b2])) * signs[t, :2]
-        for r in np.flatnonzero(p.three & (np.abs(np.cos(b)) < GIMBAL_COS)).tolist():
+        chosen, gimbal = kernels.split_rows(rel, previous, p.i, p.j, p.k, p.e, p.signs, p.n,
+                                            p.lo, p.hi, GIMBAL_COS)  # fmt: skip
+        for r in np.flatnonzero(gimbal).tolist():
             chosen[r] = self.axes[rows[r]].split(rel[r], previous[r])
         return chosen  # type: ignore[no-any-return]
 
@@ -357,15 +307,7 @@ class _SplitBatch:
         relative rotations ``relative`` (m, 3, 3), not from the clamped dofs: how a
         rotation splits into dofs is ambiguous at a gimbal lock, the rotation is not."""
         p = prep or self.prepare(rows)
-        lo, hi = p.lo, p.hi
-        clamped = (values < lo) | (values > hi)
-        values = np.clip(values, lo, hi)
-        # every dof's rotation in one call, then R = R_dof0 R_dof1 R_dof2 (an absent
-        # dof adds nothing)
-        dofs = _axis_rotations(p.axis, np.radians(values).ravel()).reshape(-1, 3, 3, 3)
-        matrices = dofs[:, 0] @ dofs[:, 1] @ dofs[:, 2]
-        total = _angles_deg(calibration_inv @ relative)
-        return values, clamped, matrices, total
+        return kernels.commit_rows(values, p.lo, p.hi, p.axis, calibration_inv, relative)  # type: ignore[no-any-return]
 
 
 class _Rows:
@@ -381,7 +323,7 @@ class _Rows:
         self.lo, self.hi = batch.lo[rows], batch.hi[rows]
         self.three = self.n == 3
         self.two = self.n == 2
-        self.axis = batch.axis[rows].reshape(-1, 3)
+        self.axis = batch.axis[rows]
 
 
 class _Layout:
@@ -675,7 +617,7 @@ class BodySolver:
                 tick.measured = dict(zip(tick.segs, segments[start : start + len(tick.segs)],
                                          strict=True))  # fmt: skip
                 start += len(tick.segs)
-            first._solve_direct(ticks, segments, angles, rel)
+            first._solve_direct(ticks, segments, angles, rel, unc)
         for tick in ticks:
             tick.solver._solve_rest(tick)
             if tick.unknown:
@@ -740,10 +682,10 @@ class BodySolver:
                 self._memory.expected.add(mount(site).segment)
 
     def _solve_direct(self, ticks: Sequence[_Tick], segments: np.ndarray, angles: np.ndarray,
-                      rel: np.ndarray) -> None:  # fmt: skip
+                      rel: np.ndarray, unc: np.ndarray) -> None:  # fmt: skip
         """The joints between two orientation sensors (or the root and one), of every
         body at once (this solver's structure, which they share), into ``angles``
-        and ``rel`` (one row a body). Each comes from its two segments' measured
+        ``rel`` and ``unc`` (one row a body). Each comes from its two segments' measured
         orientations (``segments``, every body's in turn), so a parent joint
         clamped to its range of motion does not move its child's."""
         batch = self._batch
@@ -770,10 +712,11 @@ class BodySolver:
             prep,
         )
         angles[owner[:, None], index] = values
+        unc[owner[:, None], index] = UNC_TAG_DEG
         for tick, at in zip(ticks, layout.unc_index, strict=True):
             extra = tick.solver._heading_unc
-            # a tag whose heading a three-dof joint holds (gateway/heading.py) widens them
-            tick.unc[at] = UNC_TAG_DEG if extra is None else np.hypot(UNC_TAG_DEG, extra[at])
+            if extra is not None:  # a tag whose heading a three-dof joint holds widens them
+                tick.unc[at] = np.hypot(UNC_TAG_DEG, extra[at])  # (gateway/heading.py)
         angles[:, -1] = 0.0  # the absent dofs' column
         rel[owner, rows] = total
         start = 0
@@ -796,9 +739,10 @@ class BodySolver:
                 if why:
                     for name in batch.names[row]:
                         tick.reasons[name] = set(why)
-        clamped &= ~prep.unused
-        for r, d in zip(*np.nonzero(clamped), strict=True):
-            ticks[owner[r]].reasons.setdefault(batch.names[rows[r]][d], set()).add(CLAMPED)
+        at, dof = np.nonzero(clamped & ~prep.unused)
+        names = batch.names
+        for b, row, d in zip(owner[at].tolist(), rows[at].tolist(), dof.tolist(), strict=True):
+            ticks[b].reasons.setdefault(names[row][d], set()).add(CLAMPED)
 
     def _outputs(self, ticks: Sequence[_Tick]) -> list[BodyOutput]:
         """Forward kinematics of each body's angles (Pinocchio), then, for every body

@@ -1,0 +1,128 @@
+"""The direct joints' array maths, compiled (numba): splitting relative rotations
+into dofs and committing them, for every joint of every body in a solve.
+
+A solve of the bodies due paid some hundred numpy calls here whatever their
+number (a few us each: about 150 us of one body's 420 alone, docs/benchmarks.md),
+the fixed cost that made unsynchronised bodies, solved a few at a time, dear.
+One compiled loop over the rows costs about a microsecond a joint. The maths
+is ``JointAxes.split`` (gateway/solver.py) row by row, which the tests hold it
+to; rows at a gimbal lock are flagged for that scalar split.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+_DEG, _RAD = 180.0 / math.pi, math.pi / 180.0
+
+
+@njit(cache=True)
+def _mul3(a, b, out):
+    """``out = a @ b`` for 3x3 matrices."""
+    for p in range(3):
+        for q in range(3):
+            out[p, q] = a[p, 0] * b[0, q] + a[p, 1] * b[1, q] + a[p, 2] * b[2, q]
+
+
+# Typed, so they compile when imported (the gateway's start, not its first solve),
+# and cached beside this file: `make` compiles them once (seconds), later imports
+# load them.
+_A3, _A2, _I1, _F1 = "float64[:, :, :]", "float64[:, :]", "int64[:]", "float64[:]"
+
+
+@njit(f"({_A3}, {_A2}, {_I1}, {_I1}, {_I1}, {_F1}, {_A2}, {_I1}, {_A2}, {_A2}, float64)",
+      cache=True)  # fmt: skip
+def split_rows(rel, previous, i, j, k, e, signs, n, lo, hi, gimbal_cos):
+    """Angles (deg, (m, 3), absent dofs 0) of joints for relative rotations ``rel``
+    (m, 3, 3), continuous with ``previous`` (m, 3); the joints' Euler axes
+    ``i, j, k``, cyclic sign ``e``, dof signs, dof count ``n`` and ranges of
+    motion ``lo, hi`` (m, 3). Also which rows are at a gimbal lock (three dofs,
+    ``|cos b| < gimbal_cos``), for the scalar split."""
+    m = rel.shape[0]
+    chosen = np.zeros((m, 3))
+    gimbal = np.zeros(m, dtype=np.bool_)
+    first = np.empty(3)
+    second = np.empty(3)
+    for r in range(m):
+        R = rel[r]
+        ii, jj, kk, ee, nn = i[r], j[r], k[r], e[r], n[r]
+        b = math.asin(min(1.0, max(-1.0, ee * R[ii, kk])))
+        a = math.atan2(-ee * R[jj, kk], R[kk, kk])
+        c = math.atan2(-ee * R[ii, jj], R[ii, ii])
+        euler = (a * _DEG, b * _DEG, c * _DEG)
+        other = (euler[0] + 180.0, 180.0 - euler[1], euler[2] + 180.0)
+        for d in range(3):
+            first[d] = euler[d] * signs[r, d]
+            second[d] = ((other[d] + 180.0) % 360.0 - 180.0) * signs[r, d]
+        if nn == 3:
+            out1 = out2 = d1 = d2 = 0.0
+            for d in range(3):
+                out1 += max(0.0, lo[r, d] - first[d], first[d] - hi[r, d])
+                out2 += max(0.0, lo[r, d] - second[d], second[d] - hi[r, d])
+                d1 += abs(first[d] - previous[r, d])
+                d2 += abs(second[d] - previous[r, d])
+            pick = out2 < out1 or (out2 == out1 and d2 < d1)
+            gimbal[r] = abs(math.cos(b)) < gimbal_cos
+        else:  # fewer dofs: the candidate whose unused angles vanish
+            u1 = u2 = 0.0
+            for d in range(nn, 3):
+                u1 += abs(first[d])
+                u2 += abs(second[d])
+            pick = u2 < u1
+        for d in range(nn):
+            chosen[r, d] = second[d] if pick else first[d]
+        if nn == 2:  # the first angle from the child's own axis (solver._two_dofs)
+            a2 = math.atan2(ee * R[kk, jj], R[jj, jj])
+            col_k = -ee * math.sin(a2) * R[jj, kk] + math.cos(a2) * R[kk, kk]
+            b2 = math.atan2(ee * R[ii, kk], col_k)
+            chosen[r, 0] = a2 * _DEG * signs[r, 0]
+            chosen[r, 1] = b2 * _DEG * signs[r, 1]
+    return chosen, gimbal
+
+
+@njit(f"({_A2}, {_A2}, {_A2}, {_A3}, {_A3}, {_A3})", cache=True)
+def commit_rows(values, lo, hi, axis, calibration_inv, relative):
+    """``_SplitBatch.commit`` (gateway/solver.py) row by row: the angles clamped to
+    ``lo, hi``, which were clamped, the joint rotations ``R_dof0 R_dof1 R_dof2``
+    (each dof about its row of ``axis`` (m, 3, 3), a zero axis adding nothing)
+    and each joint's total rotation (deg) ``calibration_inv @ relative``."""
+    m = values.shape[0]
+    clipped = np.empty((m, 3))
+    clamped = np.zeros((m, 3), dtype=np.bool_)
+    matrices = np.empty((m, 3, 3))
+    total = np.empty(m)
+    rot = np.empty((3, 3))
+    acc = np.empty((3, 3))
+    tmp = np.empty((3, 3))
+    for r in range(m):
+        for p in range(3):
+            for q in range(3):
+                acc[p, q] = 1.0 if p == q else 0.0
+        for d in range(3):
+            v = values[r, d]
+            clamped[r, d] = v < lo[r, d] or v > hi[r, d]
+            v = min(max(v, lo[r, d]), hi[r, d])
+            clipped[r, d] = v
+            x, y, z = axis[r, d, 0], axis[r, d, 1], axis[r, d, 2]
+            s, c1 = math.sin(v * _RAD), 1.0 - math.cos(v * _RAD)
+            # Rodrigues: I + s K + (1 - cos) K K, K the axis' cross-product matrix
+            rot[0, 0] = 1.0 - c1 * (y * y + z * z)
+            rot[1, 1] = 1.0 - c1 * (x * x + z * z)
+            rot[2, 2] = 1.0 - c1 * (x * x + y * y)
+            rot[0, 1] = -s * z + c1 * x * y
+            rot[1, 0] = s * z + c1 * x * y
+            rot[0, 2] = s * y + c1 * x * z
+            rot[2, 0] = -s * y + c1 * x * z
+            rot[1, 2] = -s * x + c1 * y * z
+            rot[2, 1] = s * x + c1 * y * z
+            _mul3(acc, rot, tmp)
+            acc[:, :] = tmp
+        matrices[r] = acc
+        _mul3(calibration_inv[r], relative[r], tmp)
+        vx, vy, vz = tmp[2, 1] - tmp[1, 2], tmp[0, 2] - tmp[2, 0], tmp[1, 0] - tmp[0, 1]
+        cos = (tmp[0, 0] + tmp[1, 1] + tmp[2, 2] - 1.0) / 2.0
+        total[r] = math.atan2(math.sqrt(vx * vx + vy * vy + vz * vz) / 2.0, cos) * _DEG
+    return clipped, clamped, matrices, total
