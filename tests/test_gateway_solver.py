@@ -249,6 +249,35 @@ def test_batch_split_agrees_with_the_scalar_split_of_every_joint() -> None:
         assert not values[n:].any()  # absent dofs are 0
 
 
+def test_batch_commit_agrees_with_each_joints_own_rotation() -> None:
+    """The compiled commit (gateway/kernels.py) clamps every dof to its joint's
+    range of motion, flags what it clamped, and gives the joint's rotation
+    (Pinocchio's exponential map, dof after dof: ``JointAxes.matrix``) and its
+    total rotation from the calibration pose (Pinocchio's log map), for every
+    joint of the skeleton, angles inside and far outside their ranges."""
+    from scipy.spatial.transform import Rotation
+
+    from bodynet.gateway.solver import _angle_deg
+
+    batch = BodySolver()._batch
+    rng = np.random.default_rng(3)
+    rows = np.arange(len(batch.axes)).repeat(20)
+    values = rng.uniform(-250.0, 250.0, size=(len(rows), 3)) * ~batch.unused[rows]
+    cal_inv = Rotation.random(len(rows), random_state=4).as_matrix()
+    relative = Rotation.random(len(rows), random_state=5).as_matrix()
+    clipped, clamped, matrices, total = batch.commit(rows, values, cal_inv, relative)
+    for r, row in enumerate(rows.tolist()):
+        ax = batch.axes[row]
+        n = len(ax.axes)
+        lo, hi = np.array(ax.limits).T
+        np.testing.assert_array_equal(clamped[r, :n], (values[r, :n] < lo) | (values[r, :n] > hi))
+        np.testing.assert_allclose(clipped[r, :n], np.clip(values[r, :n], lo, hi), atol=0)
+        np.testing.assert_allclose(matrices[r], ax.matrix(clipped[r, :n]), atol=1e-12)
+        assert total[r] == pytest.approx(_angle_deg(cal_inv[r] @ relative[r]), abs=1e-9)
+    assert clamped.any()
+    assert not clamped.all()
+
+
 def test_bodies_solved_together_match_each_solved_alone() -> None:
     """The gateway solves the bodies that are due in one batch: every output of
     every body (angles, flags, total rotations, poses) must be what that body
