@@ -313,17 +313,13 @@ class _SplitBatch:
 class _Rows:
     """The batch's constants gathered for some joint rows (:meth:`_SplitBatch.prepare`)."""
 
-    __slots__ = ("axis", "e", "hi", "i", "j", "k", "lo", "m", "n", "signs", "three", "two",
-                 "unused")  # fmt: skip
+    __slots__ = ("axis", "e", "hi", "i", "j", "k", "lo", "n", "signs", "unused")
 
     def __init__(self, batch: _SplitBatch, rows: np.ndarray) -> None:
-        self.m = np.arange(len(rows))
         self.i, self.j, self.k, self.e = batch.i[rows], batch.j[rows], batch.k[rows], batch.e[rows]
         self.signs, self.n, self.unused = batch.signs[rows], batch.n[rows], batch.unused[rows]
         self.lo, self.hi = batch.lo[rows], batch.hi[rows]
-        self.three = self.n == 3
-        self.two = self.n == 2
-        self.axis = batch.axis[rows]
+        self.axis = batch.axis[rows]  # (rows, 3 dofs, xyz)
 
 
 class _Layout:
