@@ -13,6 +13,8 @@ to; rows at a gimbal lock are flagged for that scalar split.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 from numba import njit
@@ -20,7 +22,21 @@ from numba import njit
 _DEG, _RAD = 180.0 / math.pi, math.pi / 180.0
 
 
-@njit(cache=True)
+def _compiled(signature: str | None = None) -> Callable[[Callable[..., Any]], Any]:
+    """numba's ``njit``, cached where numba finds a writable place (beside this
+    file, ``NUMBA_CACHE_DIR`` or the user's cache), else compiled each start
+    (a read-only install and home: seconds, not an error)."""
+
+    def wrap(function: Callable[..., Any]) -> Any:
+        try:
+            return njit(signature, cache=True)(function)
+        except RuntimeError:  # "cannot cache function ...: no locator available"
+            return njit(signature)(function)
+
+    return wrap
+
+
+@_compiled()
 def _mul3(a, b, out):
     """``out = a @ b`` for 3x3 matrices."""
     for p in range(3):
@@ -29,13 +45,11 @@ def _mul3(a, b, out):
 
 
 # Typed, so they compile when imported (the gateway's start, not its first solve),
-# and cached beside this file: `make` compiles them once (seconds), later imports
-# load them.
+# and cached: `make` compiles them once (seconds), later imports load them.
 _A3, _A2, _I1, _F1 = "float64[:, :, :]", "float64[:, :]", "int64[:]", "float64[:]"
 
 
-@njit(f"({_A3}, {_A2}, {_I1}, {_I1}, {_I1}, {_F1}, {_A2}, {_I1}, {_A2}, {_A2}, float64)",
-      cache=True)  # fmt: skip
+@_compiled(f"({_A3}, {_A2}, {_I1}, {_I1}, {_I1}, {_F1}, {_A2}, {_I1}, {_A2}, {_A2}, float64)")
 def split_rows(rel, previous, i, j, k, e, signs, n, lo, hi, gimbal_cos):
     """Angles (deg, (m, 3), absent dofs 0) of joints for relative rotations ``rel``
     (m, 3, 3), continuous with ``previous`` (m, 3); the joints' Euler axes
@@ -84,7 +98,7 @@ def split_rows(rel, previous, i, j, k, e, signs, n, lo, hi, gimbal_cos):
     return chosen, gimbal
 
 
-@njit(f"({_A2}, {_A2}, {_A2}, {_A3}, {_A3}, {_A3})", cache=True)
+@_compiled(f"({_A2}, {_A2}, {_A2}, {_A3}, {_A3}, {_A3})")
 def commit_rows(values, lo, hi, axis, calibration_inv, relative):
     """``_SplitBatch.commit`` (gateway/solver.py) row by row: the angles clamped to
     ``lo, hi``, which were clamped, the joint rotations ``R_dof0 R_dof1 R_dof2``

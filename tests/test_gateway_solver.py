@@ -278,6 +278,21 @@ def test_batch_commit_agrees_with_each_joints_own_rotation() -> None:
     assert not clamped.all()
 
 
+def test_kernels_compile_where_nothing_can_cache_them() -> None:
+    """numba caches compiled code only where it may write; with no such place
+    (a read-only install and home) ``cache=True`` raises, and the gateway's
+    kernels are compiled uncached instead of the gateway failing to start."""
+    import numba
+
+    from bodynet.gateway.kernels import _compiled
+
+    namespace: dict[str, Any] = {}
+    exec("def twice(x):\n    return 2.0 * x\n", namespace)  # no source file: no cache
+    with pytest.raises(RuntimeError, match="cannot cache"):
+        numba.njit(cache=True)(namespace["twice"])
+    assert _compiled("float64(float64)")(namespace["twice"])(3.0) == 6.0
+
+
 def test_bodies_solved_together_match_each_solved_alone() -> None:
     """The gateway solves the bodies that are due in one batch: every output of
     every body (angles, flags, total rotations, poses) must be what that body
