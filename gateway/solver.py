@@ -242,14 +242,15 @@ def _nearest(
 
 
 class _SplitBatch:
-    """:meth:`JointAxes.split` for many joints at once, in array form.
+    """:meth:`JointAxes.split` for many joints at once, and their commit.
 
     An IMU body splits a dozen relative rotations per tick, and the gateway
-    solves several bodies at a time; numpy over the lot costs what one joint
-    costs in scalar code. Rows at a gimbal lock go back to the scalar split,
-    which holds the first angle there. The joints' axes and ranges of motion
-    depend on the skeleton's structure only, not on its lengths, so one batch
-    serves every body."""
+    solves several bodies at a time: one compiled loop over the lot
+    (gateway/kernels.py), a few microseconds a call and a quarter of one a
+    joint. Rows at a gimbal lock go back to the scalar split, which holds the
+    first angle there. The joints' axes and ranges of motion depend on the
+    skeleton's structure only, not on its lengths, so one batch serves every
+    body."""
 
     def __init__(self, axes: list[JointAxes]) -> None:
         self.axes = axes
@@ -589,8 +590,9 @@ class BodySolver:
 
         The array work of every body is done together: sensor orientations, the
         relative rotations of the joints between two sensors, their split into
-        dofs, clamping and total rotations, and after forward kinematics the floor
-        and the canonical quaternions are each one numpy pass over all the bodies.
+        dofs, clamping and total rotations (one compiled loop), and after forward
+        kinematics the floor and the canonical quaternions are each one pass over
+        all the bodies.
         What is left per body is gathering its samples, the joints that SmartSuit
         modules measure (scalar code) and Pinocchio's forward kinematics. The
         solvers must share one skeleton structure (any segment lengths)."""
