@@ -949,8 +949,7 @@ class BodySolver:
         """Forward kinematics of the tick's angles (Pinocchio): the segments' poses
         with the pelvis at standing height, and the model's floor rows."""
         w, x, y, z = _quat_wxyz(tick.measured.get("pelvis", np.eye(3)))
-        poses = self.model.segment_poses(self.model.q_of(tick.angles[:-1], (x, y, z, w)))
-        return poses, self.model.floor_rows()
+        return self.model.poses_and_floor(self.model.q_of(tick.angles[:-1], (x, y, z, w)))
 
     def _from_module(
         self,
