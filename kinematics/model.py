@@ -116,9 +116,9 @@ class BodyModel:
     ) -> tuple[np.ndarray, np.ndarray]:
         """World rotations (n, 3, 3) and positions (n, 3) of ``frames`` at ``q``."""
         pin.framesForwardKinematics(self.model, self.data, q)
-        omf = self.data.oMf
-        rotations = np.array([omf[f].rotation for f in frames])
-        positions = np.array([omf[f].translation for f in frames])
+        placements = self.data.oMf.tolist()  # one call, as in poses_and_floor
+        rotations = np.array([placements[f].rotation for f in frames])
+        positions = np.array([placements[f].translation for f in frames])
         return rotations, positions
 
     @property
