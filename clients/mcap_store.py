@@ -66,7 +66,7 @@ from mcap.data_stream import ReadDataStream, RecordBuilder
 from mcap.exceptions import McapError
 from mcap.opcode import Opcode
 from mcap.reader import make_reader
-from mcap.records import Channel, Chunk, ChunkIndex, Message, MessageIndex, Schema
+from mcap.records import Channel, Chunk, ChunkIndex, Header, Message, MessageIndex, Schema
 from mcap.stream_reader import breakup_chunk
 from mcap.writer import CompressionType, Writer
 
@@ -1182,6 +1182,23 @@ def _cut_chunk(f: IO[bytes], pos: int, size: int) -> tuple[list[Any], int] | Non
 
 
 _KNOWN_OPCODES = {int(op) for op in Opcode}
+#: Records whose fields each carry their own length: one whose fields end before its
+#: record does has a garbled length, which would swallow the records after it.
+_SELF_DELIMITED = {Opcode.HEADER: Header, Opcode.SCHEMA: Schema, Opcode.CHANNEL: Channel}
+
+
+def _fills(opcode: int, body: bytes) -> bool:
+    """Whether a record's fields fill its ``body`` (records not self-delimited,
+    and ones that do not read at all, are left to their own checks)."""
+    kind = _SELF_DELIMITED.get(opcode)  # type: ignore[call-overload]
+    if kind is None:
+        return True
+    stream = ReadDataStream(io.BytesIO(body))
+    try:
+        kind.read(stream)
+    except (McapError, ValueError, EOFError, struct.error, UnicodeDecodeError, OverflowError):
+        return True
+    return stream.count == len(body)
 
 
 def _walk(f: IO[bytes], size: int, losses: list[Loss],  # noqa: PLR0915
@@ -1202,7 +1219,9 @@ def _walk(f: IO[bytes], size: int, losses: list[Loss],  # noqa: PLR0915
         if indexed and pos in indexed and indexed[pos] <= size - pos:
             opcode, length = Opcode.CHUNK, indexed[pos] - 9  # as the summary says
         end = pos + 9 + length
-        if opcode not in _KNOWN_OPCODES or end > size:
+        framed = opcode in _KNOWN_OPCODES and end <= size
+        body = f.read(length) if framed else b""
+        if not framed or not _fills(opcode, body):
             if bad is not None:
                 losses.append(bad)
                 bad = None
@@ -1210,7 +1229,7 @@ def _walk(f: IO[bytes], size: int, losses: list[Loss],  # noqa: PLR0915
             later = [at for at in starts if at > pos]
             if later and (nxt is None or later[0] < nxt):
                 nxt = later[0]
-            if opcode in _KNOWN_OPCODES and nxt is None:
+            if opcode in _KNOWN_OPCODES and end > size and nxt is None:
                 cut = _cut_chunk(f, pos, size) if opcode == Opcode.CHUNK else None
                 if cut is not None and cut[0]:  # the records of its start that were written
                     records, most = cut
@@ -1233,7 +1252,6 @@ def _walk(f: IO[bytes], size: int, losses: list[Loss],  # noqa: PLR0915
                 return
             pos = nxt
             continue
-        body = f.read(length)
         if opcode == Opcode.MESSAGE_INDEX and bad is not None:
             try:
                 index = MessageIndex.read(ReadDataStream(io.BytesIO(body)))
@@ -1265,8 +1283,10 @@ def _walk(f: IO[bytes], size: int, losses: list[Loss],  # noqa: PLR0915
         except (McapError, ValueError, EOFError, struct.error, zstandard.ZstdError,
                 UnicodeDecodeError, MemoryError, OverflowError) as exc:  # fmt: skip
             what = "a chunk that does not read" if opcode == Opcode.CHUNK else "a bad record"
-            # a chunk's count: from the message indexes after it (none: unknown)
-            bad = Loss(pos, None if opcode == Opcode.CHUNK else 1, f"{what}: {_short(exc)}", end)
+            # a chunk's count: from the message indexes after it (none: unknown); a
+            # schema or channel record holds no message (its channel's are orphans)
+            held = None if opcode == Opcode.CHUNK else int(opcode == Opcode.MESSAGE)
+            bad = Loss(pos, held, f"{what}: {_short(exc)}", end)
             if opcode != Opcode.CHUNK:
                 losses.append(bad)
                 bad = None
