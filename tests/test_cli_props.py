@@ -634,6 +634,33 @@ def test_salvage_tells_what_a_garbled_record_length_swallowed(
     assert lost == 0, saved.summary()  # reading went on at the next record: nothing lost
 
 
+def test_salvage_counts_no_message_for_a_channel_record_that_does_not_read(
+    corpus: dict[str, Path], tmp_path: Path
+) -> None:
+    """A channel record that does not read (its topic garbled, here the copy in
+    the file's summary) holds no message: salvage tells the bad record and loses
+    nothing, rather than one message it never lost."""
+    from bodynet.clients.mcap_store import count_messages, salvage_report
+
+    damaged = bytearray(corpus["numbered"].read_bytes())
+    pos, data_ended, channel = 8, False, None
+    while pos + 9 <= len(damaged):
+        opcode, length = damaged[pos], int.from_bytes(damaged[pos + 1 : pos + 9], "little")
+        data_ended |= opcode == 0x0F  # DataEnd: the summary section follows
+        if data_ended and opcode == 0x04:  # a Channel record
+            channel = pos
+            break
+        pos += 9 + length
+    assert channel is not None
+    damaged[channel + 9 + 8] = 0xFF  # the topic's first byte: not UTF-8
+    bad, out = tmp_path / "bad.mcap", tmp_path / "out.mcap"
+    bad.write_bytes(bytes(damaged))
+    saved = salvage_report(bad, out)
+    assert count_messages(out) == count_messages(corpus["numbered"])
+    assert "a bad record" in saved.summary()
+    assert _headline(saved.summary())[0] == 0, saved.summary()
+
+
 def test_salvage_reads_the_start_of_a_chunk_the_file_ends_inside(
     corpus: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
