@@ -1201,6 +1201,45 @@ def _fills(opcode: int, body: bytes) -> bool:
     return stream.count == len(body)
 
 
+def _chunk_framing(f: IO[bytes], pos: int, opcode: int, length: int, given: int | None,
+                   size: int) -> tuple[int, int]:  # fmt: skip
+    """The opcode and length to read the record at ``pos`` by, when it says it
+    is a chunk or the file's summary (``given``: the record's whole length) says
+    so: the first of its own length and the summary's whose body the chunk's
+    fields fill (either may be the garbled one); else the part of one that its
+    fields take (a length garbled upward, which would swallow the records after
+    it); else its own, left to the checks that follow."""
+    tries = [length] if opcode == Opcode.CHUNK else []
+    if given is not None and given - 9 not in tries:
+        tries.append(given - 9)
+    part = None
+    for n in tries:
+        span = _chunk_span(f, pos, n, size)
+        if span == n:
+            return Opcode.CHUNK, n
+        if span is not None and part is None:
+            part = span
+    return (opcode, length) if part is None else (Opcode.CHUNK, part)
+
+
+def _chunk_span(f: IO[bytes], pos: int, length: int, size: int) -> int | None:
+    """How many bytes of a ``length``-byte body the fields of a chunk record at
+    ``pos`` take (its compression's name and its records carry their lengths);
+    None if they do not fit in it or in the file."""
+    if length < 0 or pos + 9 + length > size:
+        return None
+    f.seek(pos + 9)
+    head = f.read(32)  # times, uncompressed size and CRC, the compression's length
+    if len(head) < 32:
+        return None
+    at = 32 + int.from_bytes(head[28:32], "little")
+    if at + 8 > length:
+        return None
+    f.seek(pos + 9 + at)
+    span = at + 8 + int.from_bytes(f.read(8), "little")
+    return span if span <= length else None
+
+
 def _walk(f: IO[bytes], size: int, losses: list[Loss],  # noqa: PLR0915
           read_chunks: set[int] | None = None,
           indexed: Mapping[int, int] | None = None) -> Iterator[Any]:  # fmt: skip
@@ -1216,10 +1255,12 @@ def _walk(f: IO[bytes], size: int, losses: list[Loss],  # noqa: PLR0915
     while pos + 9 <= size:
         f.seek(pos)
         opcode, length = f.read(1)[0], int.from_bytes(f.read(8), "little")
-        if indexed and pos in indexed and indexed[pos] <= size - pos:
-            opcode, length = Opcode.CHUNK, indexed[pos] - 9  # as the summary says
+        given = indexed.get(pos) if indexed else None
+        if opcode == Opcode.CHUNK or given is not None:
+            opcode, length = _chunk_framing(f, pos, opcode, length, given, size)
         end = pos + 9 + length
         framed = opcode in _KNOWN_OPCODES and end <= size
+        f.seek(pos + 9)
         body = f.read(length) if framed else b""
         if not framed or not _fills(opcode, body):
             if bad is not None:
