@@ -66,7 +66,18 @@ from mcap.data_stream import ReadDataStream, RecordBuilder
 from mcap.exceptions import McapError
 from mcap.opcode import Opcode
 from mcap.reader import make_reader
-from mcap.records import Channel, Chunk, ChunkIndex, Header, Message, MessageIndex, Schema
+from mcap.records import (
+    Attachment,
+    Channel,
+    Chunk,
+    ChunkIndex,
+    DataEnd,
+    Header,
+    Message,
+    MessageIndex,
+    Metadata,
+    Schema,
+)
 from mcap.stream_reader import breakup_chunk
 from mcap.writer import CompressionType, Writer
 
@@ -949,7 +960,8 @@ def salvage_report(src: Path, dst: Path) -> Salvaged:
             indexed = (
                 {c.chunk_start_offset: c.chunk_length for c in summary.chunks} if summary else None
             )
-            records = _walk(f, size, losses, read_chunks, indexed)
+            records = _walk(f, size, losses, read_chunks, indexed,
+                            set(summary.channels) if summary else None)  # fmt: skip
             count, orphans = _copy_complete(gaps.watch(records, losses), out, summary)
         losses = _counted(f, size, losses, gaps, count + sum(orphans.values()), summary,
                           read_chunks)  # fmt: skip
@@ -1182,9 +1194,14 @@ def _cut_chunk(f: IO[bytes], pos: int, size: int) -> tuple[list[Any], int] | Non
 
 
 _KNOWN_OPCODES = {int(op) for op in Opcode}
-#: Records whose fields each carry their own length: one whose fields end before its
-#: record does has a garbled length, which would swallow the records after it.
-_SELF_DELIMITED = {Opcode.HEADER: Header, Opcode.SCHEMA: Schema, Opcode.CHANNEL: Channel}
+#: Records whose fields each carry their own length (all but a message, whose data
+#: runs to its end, and a chunk, see :func:`_chunk_framing`): one whose fields end
+#: before its record does has a garbled length, which would swallow the records after it.
+_SELF_DELIMITED = {
+    Opcode.HEADER: Header, Opcode.SCHEMA: Schema, Opcode.CHANNEL: Channel,
+    Opcode.MESSAGE_INDEX: MessageIndex, Opcode.ATTACHMENT: Attachment,
+    Opcode.METADATA: Metadata, Opcode.DATA_END: DataEnd,
+}  # fmt: skip
 
 
 def _fills(opcode: int, body: bytes) -> bool:
@@ -1242,13 +1259,18 @@ def _chunk_span(f: IO[bytes], pos: int, length: int, size: int) -> int | None:
 
 def _walk(f: IO[bytes], size: int, losses: list[Loss],  # noqa: PLR0915
           read_chunks: set[int] | None = None,
-          indexed: Mapping[int, int] | None = None) -> Iterator[Any]:  # fmt: skip
+          indexed: Mapping[int, int] | None = None,
+          channels: set[int] | None = None) -> Iterator[Any]:  # fmt: skip
     """The schemas, channels and messages of an MCAP file's data section, record
     by record; a chunk that does not read is added to ``losses`` (with the
     messages its index lists) and skipped; framing that makes no sense is
     skipped up to the next chunk that reads. ``indexed``: the chunks the file's
     summary lists (start -> length), read by their index where their own
-    framing is garbled, and where reading goes on after garbled bytes."""
+    framing is garbled, and where reading goes on after garbled bytes.
+    ``channels``: the ids the summary lists, with those of the channel records
+    read: a message record outside a chunk on a channel neither defines is
+    garbled framing (a message's data runs to its record's end, so a garbled
+    opcode makes one of any bytes, and a garbled length swallows what follows)."""
     pos = len(MCAP_MAGIC)
     bad: Loss | None = None  # the last unreadable chunk, until its indexes are counted
     starts = sorted(indexed or ())
@@ -1260,9 +1282,13 @@ def _walk(f: IO[bytes], size: int, losses: list[Loss],  # noqa: PLR0915
             opcode, length = _chunk_framing(f, pos, opcode, length, given, size)
         end = pos + 9 + length
         framed = opcode in _KNOWN_OPCODES and end <= size
+        if opcode == Opcode.FOOTER:  # the end of reading: only where the closing magic follows
+            framed = end + len(MCAP_MAGIC) == size
         f.seek(pos + 9)
         body = f.read(length) if framed else b""
-        if not framed or not _fills(opcode, body):
+        stray = (opcode == Opcode.MESSAGE and channels is not None and len(body) >= 2
+                 and int.from_bytes(body[:2], "little") not in channels)  # fmt: skip
+        if not framed or stray or not _fills(opcode, body):
             if bad is not None:
                 losses.append(bad)
                 bad = None
@@ -1306,7 +1332,7 @@ def _walk(f: IO[bytes], size: int, losses: list[Loss],  # noqa: PLR0915
             losses.append(bad)
             bad = None
         if opcode == Opcode.FOOTER:
-            return
+            return  # (a footer is framed only as the file's last record, see above)
         try:
             if opcode == Opcode.CHUNK:
                 chunk = Chunk.read(ReadDataStream(io.BytesIO(body)))
@@ -1324,15 +1350,17 @@ def _walk(f: IO[bytes], size: int, losses: list[Loss],  # noqa: PLR0915
         except (McapError, ValueError, EOFError, struct.error, zstandard.ZstdError,
                 UnicodeDecodeError, MemoryError, OverflowError) as exc:  # fmt: skip
             what = "a chunk that does not read" if opcode == Opcode.CHUNK else "a bad record"
-            # a chunk's count: from the message indexes after it (none: unknown); a
-            # schema or channel record holds no message (its channel's are orphans)
-            held = None if opcode == Opcode.CHUNK else int(opcode == Opcode.MESSAGE)
-            bad = Loss(pos, held, f"{what}: {_short(exc)}", end)
+            # a chunk's count: from the message indexes after it; any other record's
+            # as garbled framing's (its opcode or length may be what is garbled, and
+            # the length may have swallowed records): by the summary or the numbers
+            bad = Loss(pos, None, f"{what}: {_short(exc)}", end)
             if opcode != Opcode.CHUNK:
                 losses.append(bad)
                 bad = None
             pos = end
             continue
+        if channels is not None:
+            channels.update(r.id for r in records if isinstance(r, Channel))
         yield from records
         pos = end
     if bad is not None:

@@ -609,20 +609,28 @@ def test_salvage_counts_what_garbled_framing_cost_where_it_can_be_known(
                      r"came after it is not in the file\)", err), err  # fmt: skip
 
 
+@pytest.mark.parametrize("record", ["header", "message index"])
 def test_salvage_tells_what_a_garbled_record_length_swallowed(
-    corpus: dict[str, Path], tmp_path: Path
+    corpus: dict[str, Path], tmp_path: Path, record: str
 ) -> None:
-    """A header, schema or channel record whose length is garbled (longer than
-    its fields) would swallow the records after it: salvage takes it for garbled
-    framing and reads on from the next chunk (found by the property test below:
-    the header's length overwritten with ``00 0a``, one message told lost, two
-    were)."""
+    """A header or message index record (any whose fields carry their lengths)
+    whose length is garbled (longer than its fields) would swallow the records
+    after it: salvage takes it for garbled framing and reads on from the next
+    chunk (found by the property test below: the header's length overwritten
+    with ``00 0a``, one message told lost, two were; a message index's with
+    ``00 06``, which swallowed the chunk after it untold)."""
     from bodynet.clients.mcap_store import count_messages, salvage_report
 
     whole = corpus["numbered"].read_bytes()
     total = count_messages(corpus["numbered"])
     damaged = bytearray(whole)
-    damaged[9:11] = b"\x00\n"  # the header record's length, byte 9 on: 2,560 more
+    if record == "header":
+        at = 8
+    else:  # the message index after the third chunk
+        third = _chunk_offsets(whole)[2]
+        at = third + 9 + int.from_bytes(whole[third + 1 : third + 9], "little")
+        assert whole[at] == 0x07
+    damaged[at + 1 : at + 3] = b"\x00\n"  # the record's length: 2,560 more
     bad, out = tmp_path / "bad.mcap", tmp_path / "out.mcap"
     bad.write_bytes(bytes(damaged))
     saved = salvage_report(bad, out)
@@ -630,8 +638,35 @@ def test_salvage_tells_what_a_garbled_record_length_swallowed(
     low, high = _headline(saved.summary())
     assert low <= lost, saved.summary()
     assert high is None or lost <= high, saved.summary()
-    assert "byte 8 to " in saved.summary()  # the garbled part starts at the header
-    assert lost == 0, saved.summary()  # reading went on at the next record: nothing lost
+    assert f"byte {at} to " in saved.summary()  # the garbled part starts at the record
+    assert lost == 0, saved.summary()  # reading went on at the next chunk: nothing lost
+
+
+@pytest.mark.parametrize(
+    "junk",
+    [b"\x02", b"\x05", b"\x05\x00\x0f", b"\x03\x00\n"],
+    ids=["a footer", "a message", "a message with a longer length", "a schema likewise"],
+)
+def test_salvage_counts_what_a_record_garbled_into_another_cost(
+    corpus: dict[str, Path], tmp_path: Path, junk: bytes
+) -> None:
+    """The header's opcode garbled into another record's: a footer where the
+    file does not end is garbled framing (it ended reading, 150 messages lost
+    and none told); a message record outside a chunk on a channel the file
+    does not define is garbled framing too (a "message" made of the header was
+    kept as an orphan, one message told lost, and its length swallowed the
+    chunks after it); a record that does not read is counted as garbled framing
+    is (its opcode or its length may be what is garbled: a "schema" whose length
+    swallowed two chunks counted none). Found by the property test below."""
+    from bodynet.clients.mcap_store import count_messages, salvage_report
+
+    damaged = bytearray(corpus["numbered"].read_bytes())
+    damaged[8 : 8 + len(junk)] = junk
+    bad, out = tmp_path / "bad.mcap", tmp_path / "out.mcap"
+    bad.write_bytes(bytes(damaged))
+    saved = salvage_report(bad, out)
+    lost = count_messages(corpus["numbered"]) - count_messages(out)
+    assert _headline(saved.summary()) == (lost, lost), saved.summary()  # exact: the summary's
 
 
 @pytest.mark.parametrize("garbled", ["the summary's index", "the chunk's own, no summary"])
