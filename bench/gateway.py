@@ -9,7 +9,9 @@ newest source time in the tick``. Relay and gateway run at the same time on
 the same feed, so the machine's noise hits both alike; the ratio is the figure
 to read. On two cores each then runs on what the other leaves: ``--apart``
 feeds them one after the other instead (the same feed each), rows marked
-"apart". Loss: what the relay and the gateway received against what was sent.
+"apart", with a third phase: a subscriber whose samples never reach Python,
+Zenoh's own CPU for receiving the feed (the floor under any gateway's). Loss:
+what the relay and the gateway received against what was sent.
 """
 
 from __future__ import annotations
@@ -160,6 +162,23 @@ def _relay(endpoint: str, stop: Any, cpu: Any) -> None:
     session.close()
 
 
+def _floor(endpoint: str, stop: Any, cpu: Any, serving: Any) -> None:
+    """Zenoh's own cost of receiving the feed: a subscriber whose samples never
+    reach Python (a ring of one, never read)."""
+    import zenoh
+
+    session = _session(endpoint)
+    subs = [session.declare_subscriber(sel, zenoh.handlers.RingChannel(1))
+            for sel in ("body/*/*/*/raw", "*/body/*/*/*/raw")]  # fmt: skip
+    serving.set()
+    cpu0 = time.process_time()
+    stop.wait()
+    cpu.value = time.process_time() - cpu0
+    for sub in subs:
+        sub.undeclare()
+    session.close()
+
+
 def _gateway(endpoint: str, stop: Any, samples: Any, cpu: Any, all_subjects: bool,
              share: str | None = None, serving: Any = None,
              solves: Any = None) -> None:  # fmt: skip
@@ -198,12 +217,12 @@ def _stats(lat: list[int]) -> dict[str, float]:
 
 
 def _phase(bodies: int, seconds: float, rate_hz: float, feed: str, relay: bool,
-           gateways: int) -> dict[str, Any]:  # fmt: skip
+           gateways: int, floor: bool = False) -> dict[str, Any]:  # fmt: skip
     """Feed ``bodies`` bodies for ``seconds`` through the relay (if ``relay``) and
-    ``gateways`` gateway processes at the same time, on a router of their own,
-    with a probe taking each relayed sample's and each pose's latency (ns).
-    What was sent, the latencies, each path's CPU (s), the gateways' samples
-    taken and solves."""
+    ``gateways`` gateway processes at the same time (or, with ``floor``, a
+    subscriber that only receives), on a router of their own, with a probe
+    taking each relayed sample's and each pose's latency (ns). What was sent,
+    the latencies, each path's CPU (s), the gateways' samples taken and solves."""
     import socket
 
     from bodynet.core.codecs import pose, raw_sample
@@ -226,6 +245,9 @@ def _phase(bodies: int, seconds: float, rate_hz: float, feed: str, relay: bool,
              for k in range(gateways)]  # fmt: skip
     if relay:
         procs.append(ctx.Process(target=_relay, args=(endpoint, stop, relay_cpu)))
+    if floor:
+        serving.append(ctx.Event())
+        procs.append(ctx.Process(target=_floor, args=(endpoint, stop, relay_cpu, serving[-1])))
     # one feeder process per 10 bodies, so the feed keeps its rate
     feeders = [
         ctx.Process(target=_feed, args=(endpoint, seconds, sent, ready,
@@ -269,9 +291,11 @@ def run_once(bodies: int, seconds: float, rate_hz: float = RATE_HZ, feed: str = 
     with ``apart`` one after the other (the same feed each). ``gateways`` > 1:
     that many gateway processes share the bodies (``gateway --share``); their
     samples and CPU are added up."""
+    floor = None
     if apart:
         relay = _phase(bodies, seconds, rate_hz, feed, True, 0)
         gw = _phase(bodies, seconds, rate_hz, feed, False, gateways)
+        floor = _phase(bodies, seconds, rate_hz, feed, False, 0, floor=True)
     else:
         relay = gw = _phase(bodies, seconds, rate_hz, feed, True, gateways)
     r, g = _stats(relay["relay_lat"]), _stats(gw["pose_lat"])
@@ -288,6 +312,10 @@ def run_once(bodies: int, seconds: float, rate_hz: float = RATE_HZ, feed: str = 
                     # body-ticks per batched solve (the poses of bodies solved together)
                     "mean_batch": poses / gw["solves"] if gw["solves"] else None,
                     "cpu_ms_per_body_s": 1e3 * gw["gateway_cpu_s"] / seconds / bodies},
+        # apart only: Zenoh's own cost of receiving the same feed, with no Python per sample
+        "floor": None if floor is None else {
+            "sent": floor["sent"],
+            "cpu_ms_per_body_s": 1e3 * floor["relay_cpu_s"] / seconds / bodies},
         "p50_ratio": g["p50_ms"] / r["p50_ms"] if r["n"] and g["n"] else None,
         "p99_ratio": g["p99_ms"] / r["p99_ms"] if r["n"] and g["n"] else None,
     }  # fmt: skip
@@ -375,6 +403,10 @@ def run(
                      f"| {g['lost']} | {g['pose_rate'] * RATE_HZ:.0f} | {g['p50_ms']:.2f} "
                      f"| {g['p99_ms']:.2f} | {ratio} | {g['cpu_ms_per_body_s']:.0f} "
                      f"| {batch} |")  # fmt: skip
+        if row.get("floor"):
+            lines.append(f"| {row['bodies']} | {f} | Zenoh subscriber alone (floor: receives, "
+                         f"no Python) | {row['floor']['sent']} | | | | | "
+                         f"| {row['floor']['cpu_ms_per_body_s']:.0f} | |")  # fmt: skip
     table = "\n".join(lines) + (
         f"\n\nSustained with zero loss ({feeds[0]} feed): relay {best['relay']} bodies, "
         f"gateway {best['gateway']} bodies (at least {TICKS_GOAL:.0%} of ticks delivered)"

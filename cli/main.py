@@ -220,8 +220,9 @@ def add_bench_args(p: argparse.ArgumentParser) -> None:
                    default=[1, 2, 4],
                    help="numbers of gateway processes sharing the bodies (--share)")  # fmt: skip
     p.add_argument("--apart", action="store_true",
-                   help="gateway benchmark: also feed relay and gateway one after the other, "
-                        "each on the machine alone")  # fmt: skip
+                   help="gateway benchmark: also feed relay, gateway and a bare Zenoh "
+                        "subscriber (the floor) one after the other, each on the machine "
+                        "alone")  # fmt: skip
     p.add_argument("--only", action="append", choices=BENCHMARKS,
                    help="run only this benchmark (repeatable; default all but soak and "
                         "drift)")  # fmt: skip

@@ -136,6 +136,11 @@ def test_gateway_benchmark_apart_feeds_relay_and_gateway_one_after_the_other(
     table = (tmp_path / "gateway.md").read_text()
     assert "| 1 | realistic, apart | bare relay (raw -> raw) |" in table
     assert "| 1 | realistic, apart | gateway (raw -> pose) |" in table
+    # the floor: Zenoh receiving the same feed alone, with its CPU
+    assert apart["floor"]["sent"] == apart["sent"]
+    assert apart["floor"]["cpu_ms_per_body_s"] > 0
+    assert together["floor"] is None
+    assert "| 1 | realistic, apart | Zenoh subscriber alone (floor: receives, no Python) |" in table
 
 
 def test_realistic_feed_is_not_phase_locked() -> None:
