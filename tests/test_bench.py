@@ -35,7 +35,9 @@ def test_tiny_solver_benchmark_compares_batched_with_alone(tmp_path: Path) -> No
     result = solver.run(seconds=0.01, out_dir=tmp_path, bodies=(1, 3))
     assert [r["bodies"] for r in result["runs"]] == [1, 3]
     assert all(r["alone_us"] > 0 and r["batched_us"] > 0 for r in result["runs"])
+    assert all(r["paced_us"] > 0 for r in result["runs"])  # once a period, as live
     assert "| 3 |" in (tmp_path / "solver.md").read_text()
+    assert "batched once a period" in (tmp_path / "solver.md").read_text()
 
 
 def test_demo_runs_the_live_body_network(tmp_path: Path) -> None:
