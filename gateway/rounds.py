@@ -1,7 +1,7 @@
 """When the gateway's worker solves the bodies whose frames are whole.
 
 Bodies solved in one call share the solver's fixed costs (``bodynet bench
---only solver``: about 280 us per body-tick alone, 106 in a batch of twenty).
+--only solver``: about 240 us per body-tick alone, 85 in a batch of twenty).
 Suits that are not phase-locked come whole one by one, so a worker that
 solves each body the moment its frame is whole pays the single body's cost
 for every tick, and at twenty bodies falls behind. So: while the worker has
