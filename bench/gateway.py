@@ -142,6 +142,24 @@ def _feed(endpoint: str, seconds: float, sent: Any, ready: Any, bodies: range, t
     session.close()
 
 
+#: Every raw key, of the namespace-less subject and of named ones.
+RAW_SELECTORS = ("body/*/*/*/raw", "*/body/*/*/*/raw")
+
+
+def _subscribed(session: Any, handler: Any, stop: Any, cpu: Any, serving: Any = None) -> None:
+    """Subscribe ``handler`` to every raw key until ``stop``; the process's CPU
+    meanwhile into ``cpu``."""
+    subs = [session.declare_subscriber(sel, handler) for sel in RAW_SELECTORS]
+    if serving is not None:
+        serving.set()
+    cpu0 = time.process_time()
+    stop.wait()
+    cpu.value = time.process_time() - cpu0
+    for sub in subs:
+        sub.undeclare()
+    session.close()
+
+
 def _relay(endpoint: str, stop: Any, cpu: Any) -> None:
     session = _session(endpoint)
     pubs: dict[str, Any] = {}
@@ -151,15 +169,7 @@ def _relay(endpoint: str, stop: Any, cpu: Any) -> None:
         pub = pubs.get(key) or pubs.setdefault(key, session.declare_publisher("bench/relay/" + key))
         pub.put(sample.payload)
 
-    subs = [
-        session.declare_subscriber(sel, on_raw) for sel in ("body/*/*/*/raw", "*/body/*/*/*/raw")
-    ]
-    cpu0 = time.process_time()
-    stop.wait()
-    cpu.value = time.process_time() - cpu0
-    for sub in subs:
-        sub.undeclare()
-    session.close()
+    _subscribed(session, on_raw, stop, cpu)
 
 
 def _floor(endpoint: str, stop: Any, cpu: Any, serving: Any) -> None:
@@ -167,16 +177,7 @@ def _floor(endpoint: str, stop: Any, cpu: Any, serving: Any) -> None:
     reach Python (a ring of one, never read)."""
     import zenoh
 
-    session = _session(endpoint)
-    subs = [session.declare_subscriber(sel, zenoh.handlers.RingChannel(1))
-            for sel in ("body/*/*/*/raw", "*/body/*/*/*/raw")]  # fmt: skip
-    serving.set()
-    cpu0 = time.process_time()
-    stop.wait()
-    cpu.value = time.process_time() - cpu0
-    for sub in subs:
-        sub.undeclare()
-    session.close()
+    _subscribed(_session(endpoint), zenoh.handlers.RingChannel(1), stop, cpu, serving)
 
 
 def _gateway(endpoint: str, stop: Any, samples: Any, cpu: Any, all_subjects: bool,
