@@ -1080,8 +1080,10 @@ class _Summary:
         cannot be read)."""
         counts: dict[int, int | None] = {}
         open_losses = [i for i, loss in enumerate(losses) if loss.messages is None]
+        # a chunk that did not read, counted already from the message indexes after it
+        counted = {loss.offset for loss in losses if loss.messages is not None}
         for chunk in self.chunks:
-            if chunk.chunk_start_offset in read:
+            if chunk.chunk_start_offset in read or chunk.chunk_start_offset in counted:
                 continue
             start, end = chunk.chunk_start_offset, chunk.chunk_start_offset + chunk.chunk_length
             at = [i for i in open_losses if losses[i].offset < end]

@@ -669,6 +669,33 @@ def test_salvage_counts_what_a_record_garbled_into_another_cost(
     assert _headline(saved.summary()) == (lost, lost), saved.summary()  # exact: the summary's
 
 
+def test_salvage_counts_a_bad_chunk_once_after_garbled_framing(
+    corpus: dict[str, Path], tmp_path: Path
+) -> None:
+    """Garbled framing (a message index's length) just before a chunk that does
+    not read (its records damaged): the chunk is counted once, from its own
+    message indexes, and the garbled bytes, which held no message, count none
+    (the summary's count gave the chunk to both: two lost told, one was; found
+    by fuzzing salvage)."""
+    from bodynet.clients.mcap_store import count_messages, salvage_report
+
+    whole = corpus["numbered"].read_bytes()
+    damaged = bytearray(whole)
+    chunks = _chunk_offsets(whole)
+    k = len(chunks) // 2
+    index = chunks[k] + 9 + int.from_bytes(whole[chunks[k] + 1 : chunks[k] + 9], "little")
+    assert whole[index] == 0x07  # the chunk's first message index
+    damaged[index + 1 : index + 3] = b"\x00\n"  # its length: 2,560 more
+    damaged[chunks[k + 1] + 9 + 44 + 20] ^= 0xFF  # in the next chunk's compressed records
+    bad, out = tmp_path / "bad.mcap", tmp_path / "out.mcap"
+    bad.write_bytes(bytes(damaged))
+    saved = salvage_report(bad, out)
+    lost = count_messages(corpus["numbered"]) - count_messages(out)
+    assert lost > 0
+    assert "a chunk that does not read" in saved.summary()
+    assert _headline(saved.summary()) == (lost, lost), saved.summary()
+
+
 @pytest.mark.parametrize("garbled", ["the summary's index", "the chunk's own, no summary"])
 def test_salvage_reads_a_chunk_by_the_length_its_fields_fill(
     corpus: dict[str, Path], tmp_path: Path, garbled: str
