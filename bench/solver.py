@@ -89,7 +89,8 @@ def _paced_per_body_tick_us(bodies: int, seconds: float, profile: Profile,
 
 def run(seconds: float = 2.0, out_dir: Path = Path("bench-results"),
         bodies: tuple[int, ...] = (1, 5, 20)) -> dict[str, Any]:  # fmt: skip
-    """Measure each number of bodies both ways; print a table; write solver.{json,md}."""
+    """Measure each number of bodies alone, batched, and batched once a period;
+    print a table; write solver.{json,md}."""
     profile, frames = _frames()
     rows = []
     for n in bodies:
