@@ -266,7 +266,7 @@ def _phase(bodies: int, seconds: float, rate_hz: float, feed: str, relay: bool,
         probe.declare_subscriber(keys_pose(bodies), lambda s: pose_lat.append(
             time.time_ns() - pose.source_time(s.payload.to_bytes()))),
     ]  # fmt: skip
-    for event in serving:  # each gateway process has imported Pinocchio and subscribed
+    for event in serving:  # each gateway has imported Pinocchio and subscribed (the floor too)
         event.wait(timeout=120)
     time.sleep(1.0)  # subscriptions propagate
     ready.set()
