@@ -42,6 +42,12 @@ DEFAULT_ROUTER = "tcp/127.0.0.1:7447"
 MODES = ("client", "peer", "router")
 #: How long a client waits for its router by default before it gives up.
 DEFAULT_CONNECT_TIMEOUT_S = 30.0
+#: Zenoh's runtime unless ``ZENOH_RUNTIME`` says otherwise: receiving (``rx``)
+#: and accepting (``acc``) run on the one ``app`` thread instead of threads of
+#: their own, as Zenoh's own example configures it. A sample then reaches its
+#: subscriber without a hand-off between threads: half the CPU of receiving one
+#: body, a fifth less for the gateway (docs/benchmarks.md, "Zenoh's runtime").
+ZENOH_RUNTIME = "(rx: (handover: app), acc: (handover: app))"
 
 
 def add_session_args(parser: argparse.ArgumentParser, default_mode: str = "client") -> None:
@@ -204,12 +210,17 @@ def is_opening() -> bool:
 def open_session(conf: zenoh.Config) -> zenoh.Session:
     """Open a session; Zenoh's own logging follows ``RUST_LOG`` if set.
 
+    The process's first session sets Zenoh's runtime threads to
+    :data:`ZENOH_RUNTIME` unless the environment's ``ZENOH_RUNTIME`` names
+    others (Zenoh reads it once, when its runtime starts).
+
     A client whose router does not answer at once says so on stderr ("waiting
     for the router at ..."), again every few seconds, and gives up after the
     config's ``connect/timeout_ms`` (``--connect-timeout``) with
     ``SessionError``. The wait happens in a helper thread so that the main
     thread still runs signal handlers (see ``cli.nodes.stop_on_signals``:
     Ctrl-C or SIGTERM while waiting ends the process)."""
+    os.environ.setdefault("ZENOH_RUNTIME", ZENOH_RUNTIME)
     import zenoh
 
     zenoh.try_init_log_from_env()

@@ -1,0 +1,65 @@
+"""The Zenoh runtime a bodynet process runs: its threads, seen in /proc."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from bodynet.session import ZENOH_RUNTIME
+
+# A router and a client in a fresh process, 200 samples from one to the other,
+# then the names of the process's threads (Zenoh names them after its runtimes).
+_SCRIPT = """
+import json, socket, sys, time
+from pathlib import Path
+from bodynet.session import open_session, session_config
+with socket.socket() as s:
+    s.bind(("127.0.0.1", 0))
+    endpoint = f"tcp/127.0.0.1:{s.getsockname()[1]}"
+router = open_session(session_config("router", listen=[endpoint]))
+client = open_session(session_config("client", connect=[endpoint]))
+got = []
+sub = router.declare_subscriber("body/**", lambda sample: got.append(sample))
+time.sleep(0.5)
+for i in range(200):
+    client.put("body/arm/left/elbow/raw", b"x")
+deadline = time.monotonic() + 10
+while len(got) < 200 and time.monotonic() < deadline:
+    time.sleep(0.05)
+names = sorted(p.read_text().strip() for p in Path("/proc/self/task").glob("*/comm"))
+print(json.dumps({"received": len(got), "threads": names}))
+client.close()
+router.close()
+"""
+
+
+def _run(env_runtime: str | None) -> dict[str, object]:
+    env = {k: v for k, v in os.environ.items() if k != "ZENOH_RUNTIME"}
+    if env_runtime is not None:
+        env["ZENOH_RUNTIME"] = env_runtime
+    out = subprocess.run([sys.executable, "-c", _SCRIPT], env=env, capture_output=True,
+                         text=True, timeout=60, check=True)  # fmt: skip
+    result: dict[str, object] = json.loads(out.stdout.strip().splitlines()[-1])
+    return result
+
+
+@pytest.mark.skipif(not Path("/proc/self/task").is_dir(), reason="needs Linux /proc")
+def test_a_session_receives_on_the_app_thread_unless_told_otherwise() -> None:
+    lean = _run(None)
+    assert lean["received"] == 200
+    threads = lean["threads"]
+    assert isinstance(threads, list)
+    assert "app-0" in threads
+    assert not [t for t in threads if t.startswith(("rx-", "acc-"))], threads
+    # A user's own ZENOH_RUNTIME stands: two receiving threads of their own.
+    theirs = _run("(rx: (worker_threads: 2))")
+    assert theirs["received"] == 200
+    threads = theirs["threads"]
+    assert isinstance(threads, list)
+    assert {"rx-0", "rx-1"} <= set(threads), threads
+    assert "rx: (handover: app)" in ZENOH_RUNTIME
