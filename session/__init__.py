@@ -42,12 +42,14 @@ DEFAULT_ROUTER = "tcp/127.0.0.1:7447"
 MODES = ("client", "peer", "router")
 #: How long a client waits for its router by default before it gives up.
 DEFAULT_CONNECT_TIMEOUT_S = 30.0
-#: Zenoh's runtime unless ``ZENOH_RUNTIME`` says otherwise: receiving (``rx``)
-#: and accepting (``acc``) run on the one ``app`` thread instead of threads of
-#: their own, as Zenoh's own example configures it. A sample then reaches its
-#: subscriber without a hand-off between threads: half the CPU of receiving one
-#: body, a fifth less for the gateway (docs/benchmarks.md, "Zenoh's runtime").
-ZENOH_RUNTIME = "(rx: (handover: app), acc: (handover: app))"
+#: Zenoh's runtime unless ``ZENOH_RUNTIME`` says otherwise (Zenoh's own
+#: example): receiving (``rx``) and accepting (``acc``) run on the two ``app``
+#: threads instead of threads of their own, so a sample reaches its subscriber
+#: without a hand-off between threads: about 40% less CPU to receive one body
+#: (docs/benchmarks.md, "Zenoh's runtime"). Two, not one: a subscriber's full
+#: queue blocks the thread that pushes into it, and with one thread that
+#: stalled every link of the process (a flood then lost samples sent BLOCK).
+ZENOH_RUNTIME = "(rx: (handover: app), acc: (handover: app), app: (worker_threads: 2))"
 
 
 def add_session_args(parser: argparse.ArgumentParser, default_mode: str = "client") -> None:
