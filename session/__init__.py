@@ -46,9 +46,9 @@ DEFAULT_CONNECT_TIMEOUT_S = 30.0
 #: example): receiving (``rx``) and accepting (``acc``) run on the two ``app``
 #: threads instead of threads of their own, so a sample reaches its subscriber
 #: without a hand-off between threads: about 40% less CPU to receive one body
-#: (docs/benchmarks.md, "Zenoh's runtime"). Two, not one: a subscriber's full
-#: queue blocks the thread that pushes into it, and with one thread that
-#: stalled every link of the process (a flood then lost samples sent BLOCK).
+#: (docs/benchmarks.md, "Zenoh's runtime"). Two, not one: with one, a flood
+#: sent BLOCK lost samples (likely a subscriber's full queue blocking the only
+#: thread, and with it every link of the process).
 ZENOH_RUNTIME = "(rx: (handover: app), acc: (handover: app), app: (worker_threads: 2))"
 
 
