@@ -9,16 +9,15 @@ import sys
 from pathlib import Path
 
 import pytest
+from zenoh_helpers import free_port
 
 # A router and a client in a fresh process, 200 samples from one to the other,
 # then the names of the process's threads (Zenoh names them after its runtimes).
 _SCRIPT = """
-import json, socket, sys, time
+import json, sys, time
 from pathlib import Path
 from bodynet.session import open_session, session_config
-with socket.socket() as s:
-    s.bind(("127.0.0.1", 0))
-    endpoint = f"tcp/127.0.0.1:{s.getsockname()[1]}"
+endpoint = sys.argv[1]
 router = open_session(session_config("router", listen=[endpoint]))
 client = open_session(session_config("client", connect=[endpoint]))
 got = []
@@ -40,8 +39,9 @@ def _run(env_runtime: str | None) -> dict[str, object]:
     env = {k: v for k, v in os.environ.items() if k != "ZENOH_RUNTIME"}
     if env_runtime is not None:
         env["ZENOH_RUNTIME"] = env_runtime
-    out = subprocess.run([sys.executable, "-c", _SCRIPT], env=env, capture_output=True,
-                         text=True, timeout=60, check=True)  # fmt: skip
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    out = subprocess.run([sys.executable, "-c", _SCRIPT, endpoint], env=env,
+                         capture_output=True, text=True, timeout=60, check=True)  # fmt: skip
     result: dict[str, object] = json.loads(out.stdout.strip().splitlines()[-1])
     return result
 
