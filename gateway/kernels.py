@@ -1,5 +1,6 @@
-"""The direct joints' array maths, compiled (numba): splitting relative rotations
-into dofs and committing them, for every joint of every body in a solve.
+"""The direct joints' array maths, compiled (numba): the segments' rotations from
+their sensors' quaternions, the joints' relative rotations, splitting those into
+dofs and committing them, for every joint of every body in a solve.
 
 A solve of the bodies due paid some hundred numpy calls here whatever their
 number (a few us each: about 150 us of one body's 420 alone, docs/benchmarks.md),
@@ -7,7 +8,9 @@ the fixed cost that made unsynchronised bodies, solved a few at a time, dear.
 Compiled, split and commit cost a few microseconds a call and a quarter of one
 a joint (6.5 us for twelve joints, 56 for 240: measured 2026-12-05). The maths
 is ``JointAxes.split`` (gateway/solver.py) row by row, which the tests hold it
-to; rows at a gimbal lock are flagged for that scalar split.
+to; rows at a gimbal lock are flagged for that scalar split. The rotations
+replaced scipy's ``Rotation.from_quat`` and numpy's stacked products, some 80 us
+of one body's hot solve of 255 (2026-12-05); the tests hold them to scipy.
 """
 
 from __future__ import annotations
@@ -141,3 +144,51 @@ def commit_rows(values, lo, hi, axis, calibration_inv, relative):
         cos = (tmp[0, 0] + tmp[1, 1] + tmp[2, 2] - 1.0) / 2.0
         total[r] = math.atan2(math.sqrt(vx * vx + vy * vy + vz * vz) / 2.0, cos) * _DEG
     return clipped, clamped, matrices, total
+
+
+@_compiled(f"({_A2}, {_A3}, {_A3})")
+def segment_rotations(quats, lefts, mounts):
+    """Segments' world rotations ``lefts @ R(q) @ mounts`` (n, 3, 3) from their
+    sensors' quaternions ``quats`` (n, 4, w first, normalised here), the turns
+    into the body's heading ``lefts`` and the mounts' inverses ``mounts``."""
+    n = quats.shape[0]
+    out = np.empty((n, 3, 3))
+    sensor = np.empty((3, 3))
+    tmp = np.empty((3, 3))
+    for s in range(n):
+        w, x, y, z = quats[s, 0], quats[s, 1], quats[s, 2], quats[s, 3]
+        norm = math.sqrt(w * w + x * x + y * y + z * z)
+        w, x, y, z = w / norm, x / norm, y / norm, z / norm
+        sensor[0, 0] = 1.0 - 2.0 * (y * y + z * z)
+        sensor[0, 1] = 2.0 * (x * y - z * w)
+        sensor[0, 2] = 2.0 * (x * z + y * w)
+        sensor[1, 0] = 2.0 * (x * y + z * w)
+        sensor[1, 1] = 1.0 - 2.0 * (x * x + z * z)
+        sensor[1, 2] = 2.0 * (y * z - x * w)
+        sensor[2, 0] = 2.0 * (x * z - y * w)
+        sensor[2, 1] = 2.0 * (y * z + x * w)
+        sensor[2, 2] = 1.0 - 2.0 * (x * x + y * y)
+        _mul3(lefts[s], sensor, tmp)
+        _mul3(tmp, mounts[s], out[s])
+    return out
+
+
+@_compiled(f"({_A3}, {_I1}, {_I1})")
+def relative_rotations(segments, parents, children):
+    """``segments[p].T @ segments[c]`` (m, 3, 3) for each joint's parent and child
+    rows ``parents``, ``children``; a parent row past the end is the identity
+    (an unmeasured pelvis)."""
+    m = parents.shape[0]
+    n = segments.shape[0]
+    out = np.empty((m, 3, 3))
+    for r in range(m):
+        c, p = children[r], parents[r]
+        for a in range(3):
+            for b in range(3):
+                if p >= n:
+                    out[r, a, b] = segments[c, a, b]
+                else:
+                    out[r, a, b] = (segments[p, 0, a] * segments[c, 0, b]
+                                    + segments[p, 1, a] * segments[c, 1, b]
+                                    + segments[p, 2, a] * segments[c, 2, b])  # fmt: skip
+    return out

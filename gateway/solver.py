@@ -607,9 +607,12 @@ class BodySolver:
             tick.angles, tick.rel, tick.unc = angles[b], rel[b], unc[b]
         quats = [q for t in ticks for q in t.quats]
         if quats:
-            sensors = Rotation.from_quat(np.array(quats), scalar_first=True).as_matrix()
-            segments = (np.concatenate([t.lefts for t in ticks]) @ sensors
-                        @ np.concatenate([t.mounts for t in ticks]))  # fmt: skip
+            if len(ticks) == 1:
+                lefts, mounts = ticks[0].lefts, ticks[0].mounts
+            else:
+                lefts = np.concatenate([t.lefts for t in ticks])
+                mounts = np.concatenate([t.mounts for t in ticks])
+            segments = kernels.segment_rotations(np.array(quats, dtype=float), lefts, mounts)
             start = 0
             for tick in ticks:
                 tick.measured = dict(zip(tick.segs, segments[start : start + len(tick.segs)],
@@ -697,8 +700,7 @@ class BodySolver:
                 self._layouts.clear()
             layout = self._layouts[key] = _Layout(ticks, batch)
         owner, rows, index = layout.owner, layout.rows, layout.index
-        segments = np.concatenate([segments, _EYE[None]])
-        relative = np.einsum("nji,njk->nik", segments[layout.parents], segments[layout.children])
+        relative = kernels.relative_rotations(segments, layout.parents, layout.children)
         nothing = np.zeros(angles.shape[1])  # a body's first tick: no previous angles
         last = np.stack([t.last if t.last is not None else nothing for t in ticks])
         prep = layout.prep

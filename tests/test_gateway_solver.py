@@ -278,6 +278,34 @@ def test_batch_commit_agrees_with_each_joints_own_rotation() -> None:
     assert not clamped.all()
 
 
+def test_segment_and_relative_rotations_agree_with_scipy() -> None:
+    """The compiled sensor-to-segment rotations (gateway/kernels.py) are scipy's
+    rotations of the quaternions (not unit: they are normalised), turned into the
+    body's heading and through the mounts; the joints' relative rotations are
+    ``parent.T @ child``, an unmeasured parent (a row past the end) the identity."""
+    from scipy.spatial.transform import Rotation
+
+    from bodynet.gateway.kernels import relative_rotations, segment_rotations
+
+    rng = np.random.default_rng(5)
+    quats = Rotation.random(50, random_state=6).as_quat(scalar_first=True)
+    quats *= rng.uniform(0.5, 2.0, size=(50, 1))
+    lefts = Rotation.random(50, random_state=7).as_matrix()
+    mounts = Rotation.random(50, random_state=8).as_matrix()
+    segments = segment_rotations(quats, lefts, mounts)
+    want = lefts @ Rotation.from_quat(quats, scalar_first=True).as_matrix() @ mounts
+    np.testing.assert_allclose(segments, want, atol=1e-12)
+    parents = rng.integers(0, 51, size=80)  # 50: the identity
+    children = rng.integers(0, 50, size=80)
+    padded = np.concatenate([segments, np.eye(3)[None]])
+    np.testing.assert_allclose(
+        relative_rotations(segments, parents, children),
+        np.einsum("nji,njk->nik", padded[parents], padded[children]),
+        atol=1e-12,
+    )
+    assert (parents == 50).any()
+
+
 def test_kernels_compile_where_nothing_can_cache_them() -> None:
     """numba caches compiled code only where it may write; with no such place
     (a read-only install and home) ``cache=True`` raises, and the gateway's
