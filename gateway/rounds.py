@@ -13,16 +13,20 @@ stops holding when it is busy less than ``busy_off`` of its time.
 Between rounds the idle worker sleeps; each wake costs a context switch (about
 16 us of CPU here, more under load), and polling every 0.3 ms was 40% of one
 body's worker. A body's frames come whole as often as its sources deliver (a
-period, or less for faster sources), at the phase of its slowest source, so
-:func:`next_window` tells the worker when the next frame may come whole: it
-polls in a window around that instant and sleeps through the rest.
+period, or less for faster sources), at the phase of its slowest source plus
+that source's jitter, so its :class:`Cadence` tells the worker when the next
+frame may come whole (the earliest such instant seen, a frame on) and
+:func:`next_window` opens a window of polls there; the worker sleeps through
+the rest.
 
 Pure: the worker tells it when it slept and what the clock says.
 """
 
 from __future__ import annotations
 
+import itertools
 import math
+from collections import deque
 from collections.abc import Iterable
 
 #: Share of a period a whole frame may wait for the round when the worker is busy:
@@ -33,12 +37,18 @@ HOLD_OF_PERIOD = 0.25
 #: holds frames for the round, and below which it stops.
 BUSY_ON, BUSY_OFF = 0.5, 0.25
 WINDOW_S = 0.1
-#: How long before a body's frame is expected whole the worker starts polling
-#: (nodes' sends are late by up to a millisecond each, so a frame comes whole up
-#: to that much earlier than the last one did, a period on), and how long after
-#: it keeps polling for a frame that has not come (then it is solved when its
-#: oldest sample has waited a period, as frames that never come whole are).
-EARLY_S, LATE_S = 0.0015, 0.004
+#: How long before a body's frame is expected whole the worker starts polling:
+#: for frames that come whole at the gateway's period, :class:`Cadence` expects
+#: them at the earliest instant seen, so this covers the sources' clocks against
+#: ours (500 ppm over the frames it looks at: 0.16 ms); for others, and while few
+#: frames are known, the wider margin (nodes' sends are late by up to a
+#: millisecond each). How long after it keeps polling for a frame that
+#: has not come (then it is solved when its oldest sample has waited a period, as
+#: frames that never come whole are).
+EARLY_S, EARLY_WIDE_S, LATE_S = 0.0003, 0.0015, 0.004
+#: How many of its last frames a body's cadence looks at (the earliest instant
+#: among them, carried on), and how many it needs before it is trusted.
+FRAMES, FRAMES_KNOWN = 32, 8
 
 
 class Rounds:
@@ -80,26 +90,74 @@ class Rounds:
         return now >= since + self.hold(now, bodies)
 
 
-def next_window(now: float, bodies: Iterable[tuple[float | None, float, bool]],
-                early_s: float = EARLY_S, late_s: float = LATE_S) -> float:  # fmt: skip
-    """When the idle worker next has to poll for whole frames: ``now`` while a
-    window is open, else when the next opens. ``bodies``: per body, when its
-    last frame came whole (``None``: never), how long its frames come apart,
-    and whether it holds samples not solved yet. A body's frames are expected
-    whole that often after the last (windows from ``early_s`` before to
-    ``late_s`` after each); one that has not come whole for a second, or
-    never, and holds unsolved samples keeps the worker polling; one without
-    unsolved samples needs no window."""
-    opens = math.inf
-    for whole_at, every, unsolved in bodies:
-        if whole_at is None or now - whole_at > 1.0:
-            if unsolved:
-                return now
-            continue
+class Cadence:
+    """When a body's frames come whole: ``whole(now)`` each time one does.
+
+    A frame comes whole at the phase of the body's slowest source plus that
+    source's jitter (sends late by up to a millisecond, and the worker's poll).
+    While the last ``FRAMES`` frames came whole at the gateway's period
+    (``regular``: every interval within ``EARLY_WIDE_S`` of a whole number of
+    periods), the instant to poll from is the lower envelope of those instants,
+    not the last of them: ``earliest`` is the earliest of them, each carried on
+    to the last frame by whole periods. Otherwise (sources at another rate, or
+    frames that come whole out of step, as when a frame solved on its wait
+    leaves the next whole early) the last instant, with ``every`` the last
+    interval (at most a period) and the wider margin."""
+
+    __slots__ = ("_ats", "at", "earliest", "every", "period_s", "regular")
+
+    def __init__(self, period_s: float) -> None:
+        self.period_s = period_s
+        self.at: float | None = None  # when the last frame came whole
+        self.earliest = 0.0  # the instant the next frames are expected whole from
+        self.every = 0.0  # how often they come whole (0: not known)
+        self.regular = False
+        self._ats: deque[float] = deque(maxlen=FRAMES)
+
+    def whole(self, now: float) -> None:
+        """A frame came whole at ``now``."""
+        ats, period = self._ats, self.period_s
+        if self.at is not None:
+            self.every = min(now - self.at, period)
+        ats.append(now)
+        self.at = self.earliest = now
+        self.regular = len(ats) >= FRAMES_KNOWN and all(
+            b - a >= period - EARLY_WIDE_S
+            and abs(b - a - round((b - a) / period) * period) <= EARLY_WIDE_S
+            for a, b in itertools.pairwise(ats)
+        )
+        if self.regular:
+            self.every = period
+            self.earliest = min(t + round((now - t) / period) * period for t in ats)
+
+    def window(self, now: float, unsolved: bool, early_s: float = EARLY_S,
+               late_s: float = LATE_S) -> float:  # fmt: skip
+        """When the idle worker has to poll for this body's next whole frame:
+        ``now`` while a window is open, else when the next opens. Windows run
+        from ``early_s`` before each expected instant (``EARLY_WIDE_S`` unless
+        ``regular``) to ``late_s`` after.
+        A body that has not come whole for a second, or never, and holds
+        unsolved samples (``unsolved``) keeps the worker polling; one without
+        unsolved samples needs no window."""
+        if self.at is None or now - self.at > 1.0:
+            return now if unsolved else math.inf
+        if not self.regular:
+            early_s = max(early_s, EARLY_WIDE_S)
+        every = self.every
         if every <= early_s:  # frames as often as that: always about to come whole
             return now
-        k = max(1, math.ceil((now - whole_at - late_s) / every))  # first window not closed
-        start = whole_at + k * every - early_s
+        k = max(1, math.ceil((now - self.earliest - late_s) / every))  # first window not closed
+        start = self.earliest + k * every - early_s
+        return now if start <= now else start
+
+
+def next_window(now: float, bodies: Iterable[tuple[Cadence, bool]]) -> float:
+    """When the idle worker next has to poll for whole frames: ``now`` while a
+    window of one of ``bodies`` (its cadence, whether it holds unsolved samples;
+    :meth:`Cadence.window`) is open, else when the next opens."""
+    opens = math.inf
+    for cadence, unsolved in bodies:
+        start = cadence.window(now, unsolved)
         if start <= now:
             return now
         opens = min(opens, start)

@@ -53,7 +53,7 @@ from bodynet.gateway.heading import (
     calibrate_window,
     yaw_reset,
 )
-from bodynet.gateway.rounds import Rounds, next_window
+from bodynet.gateway.rounds import Cadence, Rounds, next_window
 from bodynet.gateway.shards import Share
 from bodynet.gateway.solver import BodyOutput, BodySolver, solve_bodies
 from bodynet.session import profile_file
@@ -123,7 +123,8 @@ class _Body:
     around anything that touches the samples."""
 
     def __init__(self, session: zenoh.Session, prefix: str, profile: Profile,
-                 profile_path: Path | None, branches: Sequence[Branch]) -> None:  # fmt: skip
+                 profile_path: Path | None, branches: Sequence[Branch],
+                 period_s: float) -> None:  # fmt: skip
         self.prefix = prefix
         self.profile_path = profile_path
         self.solver = BodySolver(profile)
@@ -141,9 +142,7 @@ class _Body:
         self.unsolved_sites = 0  # sites whose latest sample is not in a solved tick yet
         self.ready_sites = 0  # sites that have delivered for the next frame (owed)
         self.first_new: float | None = None  # when the oldest unsolved sample came
-        self.whole_at: float | None = None  # when its last frame came whole (monotonic)
-        # how long its last two came apart, at most a period (0: not known, look always)
-        self.whole_every = 0.0
+        self.cadence = Cadence(period_s)  # when its frames come whole (monotonic)
         self.next_housekeeping = 0.0  # monotonic: when its topology and health go out next
         cc = zenoh.CongestionControl.BLOCK
         self.body_pub = session.declare_publisher(prefix + keys.pose_key(), congestion_control=cc)
@@ -379,7 +378,7 @@ class Gateway:
         self._routes: dict[str, tuple[_Body, _Site]] = {}  # raw key -> where its samples go
         if not all_subjects:
             self._bodies[None] = _Body(session, "", profile or Profile(), profile_path,
-                                       self.branches)  # fmt: skip
+                                       self.branches, self.period_s)  # fmt: skip
         prefixes = ("", keys.ANY_SUBJECT + "/") if all_subjects else ("",)
         inner = [keys.all_raw()] if branches is None else [f"{b.key}/*/raw" for b in branches]
         self._subs = [session.declare_subscriber(p + sel, zenoh.handlers.FifoChannel(INTAKE_DEPTH))
@@ -561,7 +560,7 @@ class Gateway:
                 log.error("gateway: %s; subject %s runs on default calibration", exc, subject)
                 profile = Profile()
             prefix = keys.subject_prefix(subject)
-            body = _Body(self.session, prefix, profile, path, self.branches)
+            body = _Body(self.session, prefix, profile, path, self.branches, self.period_s)
             body.alive |= self._foreign_alive.pop(subject, set())  # nodes seen while not ours
             self._bodies[subject] = body
             log.info("gateway: serving subject %s", subject or "(no namespace)")
@@ -740,8 +739,7 @@ class Gateway:
         else until one may (``rounds.next_window``); ``IDLE_QUIET_S`` at most."""
         until = now + IDLE_QUIET_S
         if flowing:
-            bodies = ((b.whole_at, b.whole_every, b.first_new is not None)
-                      for b in self._bodies.values())  # fmt: skip
+            bodies = ((b.cadence, b.first_new is not None) for b in self._bodies.values())
             opens = next_window(now, bodies)
             until = now + IDLE_S if opens <= now else min(opens, until)
         return min(until, wake)
@@ -759,9 +757,8 @@ class Gateway:
                 if body in held:
                     continue
                 if body.frame_complete(now):
-                    if body.whole_at is not None:  # sources faster than the ticks: sooner
-                        body.whole_every = min(now - body.whole_at, self.period_s)
-                    held[body] = body.whole_at = now
+                    body.cadence.whole(now)
+                    held[body] = now
                 elif body.first_new is not None:
                     self._next_due = min(self._next_due, body.first_new + self.period_s)
         events = self._reshare() if self.share is not None else 0

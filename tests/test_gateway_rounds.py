@@ -3,13 +3,16 @@ explicit clock values: no sleeps, no timing asserted."""
 
 from __future__ import annotations
 
+import itertools
+from collections.abc import Sequence
+
 import numpy as np
 import pytest
 import zenoh
 from zenoh_helpers import client
 
 from bodynet.core.messages import RawSample, Source
-from bodynet.gateway.rounds import EARLY_S, LATE_S, Rounds, next_window
+from bodynet.gateway.rounds import EARLY_S, EARLY_WIDE_S, LATE_S, Cadence, Rounds, next_window
 from bodynet.gateway.service import IDLE_S, Gateway
 from bodynet.nodes.emulator import BodyEmulator, imu_tags
 from bodynet.nodes.motion import ROUTINES
@@ -129,26 +132,74 @@ def test_a_body_a_whole_frame_behind_starts_afresh(router_endpoint: str) -> None
         session.close()
 
 
+def cadence_of(instants: Sequence[float]) -> Cadence:
+    cadence = Cadence(PERIOD)
+    for t in instants:
+        cadence.whole(t)
+    return cadence
+
+
 def test_next_window_opens_around_each_expected_whole_frame() -> None:
     inf = float("inf")
     assert next_window(5.0, []) == inf  # no body: nothing to poll for
-    assert next_window(5.0, [(None, 0.0, True)]) == 5.0  # never whole, samples waiting
-    assert next_window(5.0, [(None, 0.0, False)]) == inf
-    assert next_window(5.0, [(3.0, PERIOD, True)]) == 5.0  # not whole for a second: poll
-    whole = 1.0  # a frame came whole; the next is expected a period on
-    assert np.isclose(next_window(1.001, [(whole, PERIOD, True)]), 1.01 - EARLY_S)
-    assert next_window(1.01 - EARLY_S / 2, [(whole, PERIOD, True)]) == 1.01 - EARLY_S / 2
-    assert next_window(1.01 + LATE_S / 2, [(whole, PERIOD, True)]) == 1.01 + LATE_S / 2
+    assert next_window(5.0, [(Cadence(PERIOD), True)]) == 5.0  # never whole, samples waiting
+    assert next_window(5.0, [(Cadence(PERIOD), False)]) == inf
+    steady = cadence_of([PERIOD * k for k in range(101)])  # whole every period up to 1.0
+    assert next_window(2.5, [(steady, True)]) == 2.5  # not whole for a second: poll
+    assert steady.every == pytest.approx(PERIOD)
+    assert np.isclose(next_window(1.001, [(steady, True)]), 1.01 - EARLY_S)
+    assert next_window(1.01 - EARLY_S / 2, [(steady, True)]) == 1.01 - EARLY_S / 2
+    assert next_window(1.01 + LATE_S / 2, [(steady, True)]) == 1.01 + LATE_S / 2
     # past the window: the frame after next (a body solved when its oldest sample waited)
-    assert np.isclose(next_window(1.01 + 2 * LATE_S, [(whole, PERIOD, True)]), 1.02 - EARLY_S)
+    assert np.isclose(next_window(1.01 + 2 * LATE_S, [(steady, True)]), 1.02 - EARLY_S)
     # the soonest of two bodies
-    assert np.isclose(next_window(1.001, [(whole, PERIOD, True), (whole + 0.003, PERIOD, False)]),
-                      1.01 - EARLY_S)  # fmt: skip
+    later = cadence_of([PERIOD * k + 0.003 for k in range(101)])
+    assert np.isclose(next_window(1.001, [(steady, True), (later, False)]), 1.01 - EARLY_S)
+    # while few frames are known, the wider margin
+    young = cadence_of([0.97, 0.98, 0.99, 1.0])
+    assert np.isclose(next_window(1.001, [(young, True)]), 1.01 - EARLY_WIDE_S)
     # frames that come whole more often than the early margin: always about to
-    assert next_window(1.0005, [(whole, EARLY_S / 2, False)]) == 1.0005
+    fast = cadence_of([1.0 + k * EARLY_S / 2 for k in range(20)])
+    assert next_window(fast.at + 1e-5, [(fast, False)]) == fast.at + 1e-5
 
 
-@pytest.mark.parametrize(("every", "wakes_per_tick"), [(PERIOD, 12), (PERIOD / 10, None)])
+def test_a_cadence_polls_from_the_earliest_instant_its_frames_come_whole() -> None:
+    """Frames come whole at the phase of the slowest source plus up to a
+    millisecond of jitter: the window opens before the earliest of those, not
+    the last; a frame that never came whole does not halve the cadence; a
+    source slower than the gateway's clock, or restarted at a later phase, is
+    followed; and a window never opens after a frame came whole."""
+    rng = np.random.default_rng(3)
+    jitter = rng.uniform(0.0, 0.001, 300)
+    instants = [0.5 + PERIOD * k + jitter[k] for k in range(300) if k % 37 != 5]  # some lost
+    cadence = cadence_of(instants[:-1])
+    assert cadence.every == pytest.approx(PERIOD, abs=1e-5)
+    last = instants[-2]
+    start = next_window(last + 0.001, [(cadence, True)])
+    # from the envelope (about the least jitter seen), not from the last frame's instant
+    assert start == pytest.approx(0.5 + PERIOD * 299 + jitter.min() - EARLY_S, abs=2.5e-4)
+    assert start <= instants[-1]
+    # sources 500 ppm slower or faster than the gateway's clock, then restarted 3 ms
+    # later in the period: never a frame before its window
+    for rate in (1.0005, 0.9995):
+        drifting = [0.5 + PERIOD * rate * k + jitter[k] for k in range(300)]
+        jumped = drifting + [drifting[-1] + 0.003 + PERIOD * rate * (k + 1) + jitter[k]
+                             for k in range(200)]  # fmt: skip
+        cadence = Cadence(PERIOD)
+        for t, after in itertools.pairwise(jumped):
+            cadence.whole(t)
+            assert next_window(t + 1e-6, [(cadence, True)]) <= after
+        assert cadence.every == PERIOD
+    # frames at another rate than the gateway's: measured, polled from the wider margin
+    other = cadence_of([0.5 + 0.004 * k + jitter[k] / 10 for k in range(40)])
+    assert other.every == pytest.approx(0.004, abs=1e-4)
+    assert next_window(other.at + 1e-6, [(other, True)]) <= other.at + 0.004 - EARLY_WIDE_S + 1e-4
+
+
+@pytest.mark.parametrize(
+    ("every", "wakes_per_tick"),
+    [(PERIOD, 7), (PERIOD * 1.0005, 7), (PERIOD / 10, None)],
+)
 def test_the_idle_worker_sleeps_between_whole_frames_and_misses_none(
     router_endpoint: str, every: float, wakes_per_tick: float | None
 ) -> None:
@@ -157,8 +208,11 @@ def test_the_idle_worker_sleeps_between_whole_frames_and_misses_none(
     body with its nodes at their own phases, sending every ``every`` and late
     by up to a millisecond (a tenth of that at 1000 Hz) each time: every frame
     is solved (at 1000 Hz too, where frames come whole ten times a tick),
-    each within a poll of its last sample, and at 100 Hz the worker wakes a
-    few times a period, not every 0.3 ms."""
+    each whole one within a poll of its last sample, and at 100 Hz the worker
+    wakes a few times a period, not every 0.3 ms (8 a tick when it polled from
+    a millisecond and a half before the last frame's instant a period on; about
+    5.5 polling from the earliest seen). Also with the nodes' clocks slower
+    than the gateway's (500 ppm)."""
     tags = imu_tags()
     readings, _ = BodyEmulator(ROUTINES["walk"], tags, seed=5).sample(0.2)
     rng = np.random.default_rng(11)
@@ -186,7 +240,7 @@ def test_the_idle_worker_sleeps_between_whole_frames_and_misses_none(
                 touched.add(body)
             ticks = body.ticks
             acted, wake = gw._round(now, touched)
-            if body.ticks > ticks and body.whole_at == now:
+            if body.ticks > ticks and body.cadence.at == now:
                 delays.append(now - last)  # a whole frame solved: after its last sample
             if not (touched or acted):
                 wakes += 1
