@@ -12,7 +12,15 @@ import zenoh
 from zenoh_helpers import client
 
 from bodynet.core.messages import RawSample, Source
-from bodynet.gateway.rounds import EARLY_S, EARLY_WIDE_S, LATE_S, Cadence, Rounds, next_window
+from bodynet.gateway.rounds import (
+    EARLY_S,
+    EARLY_WIDE_S,
+    FRAMES,
+    LATE_S,
+    Cadence,
+    Rounds,
+    next_window,
+)
 from bodynet.gateway.service import IDLE_S, Gateway
 from bodynet.nodes.emulator import BodyEmulator, imu_tags
 from bodynet.nodes.motion import ROUTINES
@@ -190,6 +198,13 @@ def test_a_cadence_polls_from_the_earliest_instant_its_frames_come_whole() -> No
             cadence.whole(t)
             assert next_window(t + 1e-6, [(cadence, True)]) <= after
         assert cadence.every == PERIOD
+    # the envelope forgets a frame FRAMES periods on: one early frame, then late ones
+    early = [1.0] + [1.0 + PERIOD * k + 0.0005 for k in range(1, FRAMES + 10)]
+    cadence = cadence_of(early[: FRAMES // 2])
+    assert cadence.regular
+    assert cadence.earliest == pytest.approx(early[FRAMES // 2 - 1] - 0.0005)
+    cadence = cadence_of(early)
+    assert cadence.earliest == pytest.approx(early[-1])
     # frames at another rate than the gateway's: measured, polled from the wider margin
     other = cadence_of([0.5 + 0.004 * k + jitter[k] / 10 for k in range(40)])
     assert other.every == pytest.approx(0.004, abs=1e-4)
