@@ -150,7 +150,9 @@ def commit_rows(values, lo, hi, axis, calibration_inv, relative):
 def segment_rotations(quats, lefts, mounts):
     """Segments' world rotations ``lefts @ R(q) @ mounts`` (n, 3, 3) from their
     sensors' quaternions ``quats`` (n, 4, w first, normalised here), the turns
-    into the body's heading ``lefts`` and the mounts' inverses ``mounts``."""
+    into the body's heading ``lefts`` and the mounts' inverses ``mounts``.
+    ``ValueError`` for a quaternion of zero, infinite or NaN norm (scipy refused
+    zero and NaN ones; an infinite one gave NaN rotations)."""
     n = quats.shape[0]
     out = np.empty((n, 3, 3))
     sensor = np.empty((3, 3))
@@ -158,6 +160,8 @@ def segment_rotations(quats, lefts, mounts):
     for s in range(n):
         w, x, y, z = quats[s, 0], quats[s, 1], quats[s, 2], quats[s, 3]
         norm = math.sqrt(w * w + x * x + y * y + z * z)
+        if not 0.0 < norm < math.inf:
+            raise ValueError("a quaternion of zero, infinite or NaN norm")
         w, x, y, z = w / norm, x / norm, y / norm, z / norm
         sensor[0, 0] = 1.0 - 2.0 * (y * y + z * z)
         sensor[0, 1] = 2.0 * (x * y - z * w)

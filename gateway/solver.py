@@ -105,7 +105,6 @@ DAMPING = 0.01 * (math.pi / 180.0) ** 2
 MAX_TOLD = 4096
 
 _UP = np.array([0.0, 0.0, 1.0])
-_EYE = np.eye(3)
 _NOTHING: frozenset[str] = frozenset()
 _UNCAL = frozenset({UNCALIBRATED})
 _UNOBS = frozenset({UNOBSERVED})

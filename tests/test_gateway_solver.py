@@ -304,6 +304,9 @@ def test_segment_and_relative_rotations_agree_with_scipy() -> None:
         atol=1e-12,
     )
     assert (parents == 50).any()
+    for bad in (0.0, np.nan, np.inf):  # no rotation: refused, not NaN angles
+        with pytest.raises(ValueError, match="quaternion"):
+            segment_rotations(np.full((1, 4), bad), lefts[:1], mounts[:1])
 
 
 def test_kernels_compile_where_nothing_can_cache_them() -> None:
