@@ -187,12 +187,12 @@ def relative_rotations(segments, parents, children):
     out = np.empty((m, 3, 3))
     for r in range(m):
         c, p = children[r], parents[r]
+        if p >= n:
+            out[r] = segments[c]
+            continue
         for a in range(3):
             for b in range(3):
-                if p >= n:
-                    out[r, a, b] = segments[c, a, b]
-                else:
-                    out[r, a, b] = (segments[p, 0, a] * segments[c, 0, b]
-                                    + segments[p, 1, a] * segments[c, 1, b]
-                                    + segments[p, 2, a] * segments[c, 2, b])  # fmt: skip
+                out[r, a, b] = (segments[p, 0, a] * segments[c, 0, b]
+                                + segments[p, 1, a] * segments[c, 1, b]
+                                + segments[p, 2, a] * segments[c, 2, b])  # fmt: skip
     return out

@@ -152,22 +152,20 @@ class Cadence:
             self.every = period
             self.earliest = lows[0][1] + index * period
 
-    def window(self, now: float, unsolved: bool, early_s: float = EARLY_S,
-               late_s: float = LATE_S) -> float:  # fmt: skip
+    def window(self, now: float, unsolved: bool) -> float:
         """When the idle worker has to poll for this body's next whole frame:
         ``now`` while a window is open, else when the next opens. Windows run
-        from ``early_s`` before each expected instant (``EARLY_WIDE_S`` unless
-        ``regular``) to ``late_s`` after. A body that has not come whole for a
+        from ``EARLY_S`` before each expected instant (``EARLY_WIDE_S`` unless
+        ``regular``) to ``LATE_S`` after. A body that has not come whole for a
         second, or never, and holds unsolved samples (``unsolved``) keeps the
         worker polling; one without unsolved samples needs no window."""
         if self.at is None or now - self.at > 1.0:
             return now if unsolved else math.inf
-        if not self.regular:
-            early_s = max(early_s, EARLY_WIDE_S)
+        early_s = EARLY_S if self.regular else EARLY_WIDE_S
         every = self.every
         if every <= early_s:  # frames as often as that: always about to come whole
             return now
-        k = max(1, math.ceil((now - self.earliest - late_s) / every))  # first window not closed
+        k = max(1, math.ceil((now - self.earliest - LATE_S) / every))  # first window not closed
         start = self.earliest + k * every - early_s
         return now if start <= now else start
 

@@ -610,11 +610,8 @@ class BodySolver:
             tick.angles, tick.rel, tick.unc = angles[b], rel[b], unc[b]
         quats = [q for t in ticks for q in t.quats]
         if quats:
-            if len(ticks) == 1:
-                lefts, mounts = ticks[0].lefts, ticks[0].mounts
-            else:
-                lefts = np.concatenate([t.lefts for t in ticks])
-                mounts = np.concatenate([t.mounts for t in ticks])
+            lefts = np.concatenate([t.lefts for t in ticks])
+            mounts = np.concatenate([t.mounts for t in ticks])
             segments = kernels.segment_rotations(np.array(quats, dtype=float), lefts, mounts)
             start = 0
             for tick in ticks:
