@@ -47,6 +47,23 @@ def _mul3(a, b, out):
             out[p, q] = a[p, 0] * b[0, q] + a[p, 1] * b[1, q] + a[p, 2] * b[2, q]
 
 
+@_compiled()
+def _axis_rotation(x, y, z, angle_rad, out):
+    """``out`` = the rotation by ``angle_rad`` about the unit axis ``x, y, z``
+    (Rodrigues: I + s K + (1 - cos) K K, K the axis' cross-product matrix; a
+    zero axis gives the identity)."""
+    s, c1 = math.sin(angle_rad), 1.0 - math.cos(angle_rad)
+    out[0, 0] = 1.0 - c1 * (y * y + z * z)
+    out[1, 1] = 1.0 - c1 * (x * x + z * z)
+    out[2, 2] = 1.0 - c1 * (x * x + y * y)
+    out[0, 1] = -s * z + c1 * x * y
+    out[1, 0] = s * z + c1 * x * y
+    out[0, 2] = s * y + c1 * x * z
+    out[2, 0] = -s * y + c1 * x * z
+    out[1, 2] = -s * x + c1 * y * z
+    out[2, 1] = s * x + c1 * y * z
+
+
 # Typed, so they compile when imported (the gateway's start, not its first solve),
 # and cached: `make` compiles them once (seconds), later imports load them.
 _A3, _A2, _I1, _F1 = "float64[:, :, :]", "float64[:, :]", "int64[:]", "float64[:]"
@@ -124,18 +141,7 @@ def commit_rows(values, lo, hi, axis, calibration_inv, relative):
             clamped[r, d] = v < lo[r, d] or v > hi[r, d]
             v = min(max(v, lo[r, d]), hi[r, d])
             clipped[r, d] = v
-            x, y, z = axis[r, d, 0], axis[r, d, 1], axis[r, d, 2]
-            s, c1 = math.sin(v * _RAD), 1.0 - math.cos(v * _RAD)
-            # Rodrigues: I + s K + (1 - cos) K K, K the axis' cross-product matrix
-            rot[0, 0] = 1.0 - c1 * (y * y + z * z)
-            rot[1, 1] = 1.0 - c1 * (x * x + z * z)
-            rot[2, 2] = 1.0 - c1 * (x * x + y * y)
-            rot[0, 1] = -s * z + c1 * x * y
-            rot[1, 0] = s * z + c1 * x * y
-            rot[0, 2] = s * y + c1 * x * z
-            rot[2, 0] = -s * y + c1 * x * z
-            rot[1, 2] = -s * x + c1 * y * z
-            rot[2, 1] = s * x + c1 * y * z
+            _axis_rotation(axis[r, d, 0], axis[r, d, 1], axis[r, d, 2], v * _RAD, rot)
             _mul3(acc, rot, tmp)
             acc[:, :] = tmp
         matrices[r] = acc
@@ -196,3 +202,80 @@ def relative_rotations(segments, parents, children):
                                 + segments[p, 1, a] * segments[c, 1, b]
                                 + segments[p, 2, a] * segments[c, 2, b])  # fmt: skip
     return out
+
+
+@_compiled(f"({_A2}, {_A3}, {_I1}, {_F1}, {_I1}, {_A2}, {_A3}, {_I1}, {_I1}, {_A3})")
+def forward_poses(angles, segments, root_at, root_z, parents, axes, offsets, segment_joints,
+                  floor_joints, floor_points):  # fmt: skip
+    """Forward kinematics of every body of a solve (``BodyModel``'s Pinocchio
+    model, its arrays read by ``BodyModel.chain``): each body's segment poses
+    with its lowest point on the floor (z = 0), as positions (b, segments, 3)
+    and unit quaternions w, x, y, z with w >= 0 (b, segments, 4).
+
+    Body ``b`` has the angles ``angles[b]`` (deg, the skeleton's order), its root
+    at height ``root_z[b]`` turned by ``segments[root_at[b]]`` (-1: upright);
+    revolute joint ``r`` turns about ``axes[r]`` after its parent (``parents``,
+    -1 the root) and the offset ``offsets[b, r]`` in the parent's frame.
+    Segments sit on the joints ``segment_joints``; the floor points
+    ``floor_points[b]`` on ``floor_joints`` (-1: the root). The quaternions
+    are Eigen's of the rotation matrices (as Pinocchio's ``SE3ToXYZQUAT``)."""
+    nb, nr, ns = angles.shape[0], parents.shape[0], segment_joints.shape[0]
+    positions = np.empty((nb, ns, 3))
+    quats = np.empty((nb, ns, 4))
+    rots = np.empty((nr + 1, 3, 3))  # row 0 the root, row r + 1 revolute joint r
+    pos = np.empty((nr + 1, 3))
+    turn = np.empty((3, 3))
+    for b in range(nb):
+        a = root_at[b]
+        for p in range(3):
+            for q in range(3):
+                rots[0, p, q] = segments[a, p, q] if a >= 0 else (1.0 if p == q else 0.0)
+        pos[0, 0], pos[0, 1], pos[0, 2] = 0.0, 0.0, root_z[b]
+        for r in range(nr):
+            up = parents[r] + 1
+            for p in range(3):
+                pos[r + 1, p] = pos[up, p] + (rots[up, p, 0] * offsets[b, r, 0]
+                                              + rots[up, p, 1] * offsets[b, r, 1]
+                                              + rots[up, p, 2] * offsets[b, r, 2])  # fmt: skip
+            _axis_rotation(axes[r, 0], axes[r, 1], axes[r, 2], angles[b, r] * _RAD, turn)
+            _mul3(rots[up], turn, rots[r + 1])
+        lowest = math.inf
+        for f in range(floor_joints.shape[0]):
+            j = floor_joints[f] + 1
+            z = (rots[j, 2, 0] * floor_points[b, f, 0] + rots[j, 2, 1] * floor_points[b, f, 1]
+                 + rots[j, 2, 2] * floor_points[b, f, 2] + pos[j, 2])  # fmt: skip
+            lowest = min(lowest, z)
+        for s in range(ns):
+            lowest = min(lowest, pos[segment_joints[s] + 1, 2])
+        for s in range(ns):
+            j = segment_joints[s] + 1
+            positions[b, s, 0], positions[b, s, 1] = pos[j, 0], pos[j, 1]
+            positions[b, s, 2] = pos[j, 2] - lowest
+            m = rots[j]
+            t = m[0, 0] + m[1, 1] + m[2, 2]
+            q4 = quats[b, s]  # w, x, y, z
+            if t > 0.0:  # Eigen's conversion (Shepperd's)
+                t = math.sqrt(t + 1.0)
+                q4[0] = 0.5 * t
+                t = 0.5 / t
+                q4[1] = (m[2, 1] - m[1, 2]) * t
+                q4[2] = (m[0, 2] - m[2, 0]) * t
+                q4[3] = (m[1, 0] - m[0, 1]) * t
+            else:
+                i = 0
+                if m[1, 1] > m[0, 0]:
+                    i = 1
+                if m[2, 2] > m[i, i]:
+                    i = 2
+                j2, k = (i + 1) % 3, (i + 2) % 3
+                t = math.sqrt(m[i, i] - m[j2, j2] - m[k, k] + 1.0)
+                q4[1 + i] = 0.5 * t
+                t = 0.5 / t
+                q4[0] = (m[k, j2] - m[j2, k]) * t
+                q4[1 + j2] = (m[j2, i] + m[i, j2]) * t
+                q4[1 + k] = (m[k, i] + m[i, k]) * t
+            norm = math.sqrt(q4[0] * q4[0] + q4[1] * q4[1] + q4[2] * q4[2] + q4[3] * q4[3])
+            sign = -1.0 if q4[0] < 0.0 else 1.0
+            for c in range(4):
+                q4[c] = sign * q4[c] / norm
+    return positions, quats

@@ -29,8 +29,9 @@ Angles are split with continuity: at a gimbal lock (the middle dof at +/-90
 degrees) or where the tilt has no unique answer (the segment along the
 vertical), the ambiguous dof holds its last value instead of jumping. Angles
 outside the range of motion are clamped and flagged. Positions come from
-Pinocchio's forward kinematics of the assembled configuration, the body set
-on the floor: the pelvis above the origin, at the height that puts the
+forward kinematics of the assembled configuration on the Pinocchio model's
+chain (one compiled pass over every body of a solve, held to Pinocchio's own
+in the tests), the body set on the floor: the pelvis above the origin, at the height that puts the
 body's lowest point (a heel or a toe, standing) at z = 0.
 """
 
@@ -119,19 +120,6 @@ def _rot(axis: np.ndarray, angle_rad: float) -> np.ndarray:
 def _angle_deg(rot: np.ndarray) -> float:
     """Rotation angle of a rotation matrix (accurate near 0, unlike acos of the trace)."""
     return math.degrees(float(np.linalg.norm(pin.log3(rot))))
-
-
-def _quat_wxyz(rot: np.ndarray) -> QuatWxyz:
-    # column-major: given a row-major (numpy's C-ordered) matrix, eigenpy 3.13 copies
-    # it for pinocchio's Eigen::Ref<const Matrix3d> argument and never frees the copy,
-    # 80 bytes a call; once a tick, that was the gateway's steady growth (0.45 MB a
-    # minute, docs/benchmarks.md "Memory over an hour")
-    q = pin.Quaternion(np.asfortranarray(rot))
-    q.normalize()
-    w, x, y, z = q.w, q.x, q.y, q.z
-    if w < 0:  # canonical: w >= 0
-        w, x, y, z = -w, -x, -y, -z
-    return (float(w), float(x), float(y), float(z))
 
 
 def _matrix(q: QuatWxyz) -> np.ndarray:
@@ -593,12 +581,11 @@ class BodySolver:
 
         The array work of every body is done together: sensor orientations, the
         relative rotations of the joints between two sensors, their split into
-        dofs, clamping and total rotations (one compiled loop), and after forward
-        kinematics the floor and the canonical quaternions are each one pass over
-        all the bodies.
+        dofs, clamping and total rotations (one compiled loop), and forward
+        kinematics with the floor and the canonical quaternions (another).
         What is left per body is gathering its samples, the joints that SmartSuit
-        modules measure (scalar code) and Pinocchio's forward kinematics. The
-        solvers must share one skeleton structure (any segment lengths)."""
+        modules measure (scalar code) and its output's flags. The solvers must
+        share one skeleton structure (any segment lengths)."""
         if not work:
             return []
         ticks = [solver._gather(samples) for solver, samples in work]
@@ -609,21 +596,26 @@ class BodySolver:
         for b, tick in enumerate(ticks):
             tick.angles, tick.rel, tick.unc = angles[b], rel[b], unc[b]
         quats = [q for t in ticks for q in t.quats]
+        roots = np.full(len(ticks), -1)  # each body's pelvis in ``segments`` (-1: upright)
         if quats:
             lefts = np.concatenate([t.lefts for t in ticks])
             mounts = np.concatenate([t.mounts for t in ticks])
             segments = kernels.segment_rotations(np.array(quats, dtype=float), lefts, mounts)
             start = 0
-            for tick in ticks:
+            for b, tick in enumerate(ticks):
                 tick.measured = dict(zip(tick.segs, segments[start : start + len(tick.segs)],
                                          strict=True))  # fmt: skip
+                if "pelvis" in tick.measured:
+                    roots[b] = start + tick.segs.index("pelvis")
                 start += len(tick.segs)
             first._solve_direct(ticks, segments, angles, rel, unc)
+        else:
+            segments = _NO_FRAMES
         for tick in ticks:
             tick.solver._solve_rest(tick)
             if tick.unknown:
                 tick.solver._flag_uncalibrated(tick)
-        return first._outputs(ticks)
+        return first._outputs(ticks, angles, segments, roots)
 
     def _gather(self, samples: Mapping[Site, RawSample]) -> _Tick:
         """A new tick of this body: its samples sorted by kind, against its last angles."""
@@ -750,25 +742,25 @@ class BodySolver:
         for b, row, d in zip(owner[at].tolist(), rows[at].tolist(), dof.tolist(), strict=True):
             ticks[b].reasons.setdefault(names[row][d], set()).add(CLAMPED)
 
-    def _outputs(self, ticks: Sequence[_Tick]) -> list[BodyOutput]:
-        """Forward kinematics of each body's angles (Pinocchio), then, for every body
-        at once (this solver's structure, which they share), the pelvis height that
-        puts the lowest point on the floor (z = 0) and the segments' quaternions,
-        canonical (w >= 0)."""
-        poses, floor = zip(*(tick.solver._forward(tick) for tick in ticks), strict=True)
+    def _outputs(self, ticks: Sequence[_Tick], angles: np.ndarray, segments: np.ndarray,
+                 roots: np.ndarray) -> list[BodyOutput]:  # fmt: skip
+        """Forward kinematics of every body at once (this solver's structure, which
+        they share; one compiled pass over the Pinocchio model's chain): the
+        segments' poses with each body's lowest point on the floor (z = 0) and
+        canonical quaternions (w >= 0). Each body's pelvis is turned as its
+        sensor measured it (``segments[roots[b]]``), else upright."""
+        chain = self.model.chain
+        chains = [t.solver.model.chain for t in ticks]  # the lengths are each body's
+        positions, quats = kernels.forward_poses(
+            angles, segments, roots, np.array([c.root_z for c in chains]), chain.parents,
+            chain.axes, np.array([c.offsets for c in chains]), chain.segment_joints,
+            chain.floor_joints, np.array([c.floor_points for c in chains]),
+        )  # fmt: skip
         for tick in ticks:  # what the next tick's angles are continuous with
             tick.solver._memory.last = tick.angles
-        poses = np.array(poses)  # (bodies, segments, xyz + quaternion x, y, z, w)
-        points = np.array([tick.solver.model.floor_points for tick in ticks])  # lengths differ
-        floor_z = self.model.floor_heights(np.array(floor), points).min(axis=1)
-        lowest = np.minimum(floor_z, poses[:, :, 2].min(axis=1))  # or a joint centre
-        poses[:, :, 2] -= lowest[:, None]
-        quats = poses[:, :, [6, 3, 4, 5]]  # x, y, z, w -> w, x, y, z
-        quats /= np.linalg.norm(quats, axis=2, keepdims=True)
-        quats *= np.where(quats[:, :, :1] < 0, -1.0, 1.0)
-        return [t.solver._output(t, p, q) for t, p, q in zip(ticks, poses, quats, strict=True)]
+        return [t.solver._output(t, p, q) for t, p, q in zip(ticks, positions, quats, strict=True)]
 
-    def _output(self, tick: _Tick, poses: np.ndarray, quats: np.ndarray) -> BodyOutput:
+    def _output(self, tick: _Tick, positions: np.ndarray, quats: np.ndarray) -> BodyOutput:
         """One body's output: flags (each dof's first reason) and uncertainties
         (none where a reason other than ``clamped`` says no measurement)."""
         reasons: dict[str, tuple[str, ...]] = {}
@@ -783,7 +775,7 @@ class BodySolver:
         for n, f in flags.items():
             if f != CLAMPED:
                 unc[self._angle_at[n]] = math.nan
-        return BodyOutput(tick.t_ns, self.names, tick.angles[:-1], tick.rel, flags, poses[:, :3],
+        return BodyOutput(tick.t_ns, self.names, tick.angles[:-1], tick.rel, flags, positions,
                           quats, tick.sources, reasons, unc)  # fmt: skip
 
     def _frames(self, used: tuple[Site, ...]) -> tuple[np.ndarray, np.ndarray]:
@@ -952,12 +944,6 @@ class BodySolver:
         tick.rel[self._batch.index[joint.name]] = _angle_deg(
             self._calibration[joint.name].T @ (joint_rot if relative is None else relative)
         )
-
-    def _forward(self, tick: _Tick) -> tuple[np.ndarray, np.ndarray]:
-        """Forward kinematics of the tick's angles (Pinocchio): the segments' poses
-        with the pelvis at standing height, and the model's floor rows."""
-        w, x, y, z = _quat_wxyz(tick.measured.get("pelvis", np.eye(3)))
-        return self.model.poses_and_floor(self.model.q_of(tick.angles[:-1], (x, y, z, w)))
 
     def _from_module(
         self,

@@ -12,6 +12,7 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 import pinocchio as pin
@@ -116,47 +117,51 @@ class BodyModel:
     ) -> tuple[np.ndarray, np.ndarray]:
         """World rotations (n, 3, 3) and positions (n, 3) of ``frames`` at ``q``."""
         pin.framesForwardKinematics(self.model, self.data, q)
-        placements = self.data.oMf.tolist()  # one call, as in poses_and_floor
+        placements = self.data.oMf.tolist()  # one call, as in segment_poses
         rotations = np.array([placements[f].rotation for f in frames])
         positions = np.array([placements[f].translation for f in frames])
         return rotations, positions
-
-    @property
-    def floor_points(self) -> np.ndarray:
-        """The points that can touch the floor (top of the head, finger tips, heels,
-        toes), each in its end segment's frame, (points, 3): they depend on the
-        segments' lengths."""
-        return self._floor_xyz
-
-    def floor_heights(self, rows: np.ndarray, points: np.ndarray) -> np.ndarray:
-        """Heights (..., points) of the floor points from :meth:`poses_and_floor`'s rows,
-        of one body or of a stack of bodies of this structure (..., 5, 4) with each
-        one's :attr:`floor_points` (..., points, 3)."""
-        r = rows[..., self._floor_index, :]
-        return (r[..., :3] * points).sum(axis=-1) + r[..., 3]  # type: ignore[no-any-return]
-
-    def q_of(self, angles_deg: np.ndarray, root_quat_xyzw: Sequence[float]) -> np.ndarray:
-        """Configuration vector from every joint angle in skeleton order (deg), the
-        root at standing height with orientation ``root_quat_xyzw``."""
-        root = (0.0, 0.0, self.skeleton.root_height())
-        return np.concatenate([root, root_quat_xyzw, np.radians(angles_deg)])
 
     def segment_poses(self, q: np.ndarray) -> np.ndarray:
         """World pose of every segment (skeleton order) at ``q``, as rows of position
         x, y, z and quaternion x, y, z, w (Pinocchio's XYZQUAT). A segment's frame
         sits on its last dof's joint, so plain forward kinematics gives it."""
-        return self.poses_and_floor(q)[0]
-
-    def poses_and_floor(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """:meth:`segment_poses`, and the height row (the third row of the world
-        placement) of each end segment (head, hands, feet) for
-        :meth:`floor_heights`, from one forward kinematics. The placements are
-        read in one call: indexing ``data.oMi`` costs some 0.6 us a placement,
-        its ``tolist`` 1.7 us for all."""
         pin.forwardKinematics(self.model, self.data, q)
-        placements = self.data.oMi.tolist()
-        return (np.array([pin.SE3ToXYZQUAT(placements[j]) for j in self._segment_joints]),
-                np.array([placements[j].homogeneous[2] for j in self._floor_joints]))  # fmt: skip
+        placements = self.data.oMi.tolist()  # one call: indexing oMi costs 0.6 us each
+        return np.array([pin.SE3ToXYZQUAT(placements[j]) for j in self._segment_joints])
+
+    @cached_property
+    def chain(self) -> Chain:
+        """The model's revolute joints as arrays, for forward kinematics of many
+        bodies in one compiled pass (``gateway.kernels.forward_poses``), read from
+        the Pinocchio model: joint ``r`` is Pinocchio's joint ``r + 2`` (1 is the
+        root, -1 here) and angle ``r`` of ``q``."""
+        model = self.model
+        revolute = range(2, model.njoints)
+        return Chain(
+            parents=np.array([model.parents[j] - 2 for j in revolute], dtype=np.int64),
+            axes=np.array([model.joints[j].extract().axis for j in revolute]),
+            offsets=np.array([model.jointPlacements[j].translation for j in revolute]),
+            root_z=self.skeleton.root_height(),
+            segment_joints=np.array(self._segment_joints, dtype=np.int64) - 2,
+            floor_joints=np.array(self._floor_joints, dtype=np.int64)[self._floor_index] - 2,
+            floor_points=self._floor_xyz,
+        )
+
+
+@dataclass(frozen=True, slots=True)
+class Chain:
+    """:attr:`BodyModel.chain`: a body model's kinematic chain as arrays."""
+
+    parents: np.ndarray  # (joints,) each revolute joint's parent (-1: the root)
+    axes: np.ndarray  # (joints, 3) unit axes, in the joint's frame
+    offsets: np.ndarray  # (joints, 3) the joint's origin in its parent's frame
+    root_z: float  # the root's height at zero pose
+    segment_joints: np.ndarray  # (segments,) the joint each segment's frame sits on
+    # the points that can touch the floor besides the segments' origins (top of the
+    # head, finger tips, heels, toes): each one's joint, and its place in that frame
+    floor_joints: np.ndarray  # (points,)
+    floor_points: np.ndarray  # (points, 3)
 
 
 def accel_axes(direction: np.ndarray, flexion_axis: np.ndarray) -> np.ndarray:

@@ -309,6 +309,52 @@ def test_segment_and_relative_rotations_agree_with_scipy() -> None:
             segment_rotations(np.full((1, 4), bad), lefts[:1], mounts[:1])
 
 
+def test_forward_poses_agree_with_pinocchio() -> None:
+    """The compiled forward kinematics of a solve's bodies (gateway/kernels.py) is
+    Pinocchio's of each body's own model (its lengths): every segment's position
+    and quaternion (w first, w >= 0), the pelvis turned as measured or upright,
+    and each body lowered until its lowest point (a joint centre, a heel, a toe,
+    a finger tip or the top of the head, from Pinocchio's placements) is at z = 0."""
+    from scipy.spatial.transform import Rotation
+
+    from bodynet.gateway.kernels import forward_poses
+
+    rng = np.random.default_rng(9)
+    lengths = [{}, {"upperarm": 0.35, "thigh": 0.5, "foot": 0.3, "ankle_height": 0.09},
+               {"shank": 0.3, "forearm": 0.2}]  # fmt: skip
+    models = [BodySolver(Profile(lengths=one)).model for one in lengths]
+    chains = [m.chain for m in models]
+    n = len(models[0].angle_names)
+    angles = rng.uniform(-120.0, 120.0, size=(3, n + 1))  # + the absent dofs' column
+    segments = Rotation.random(4, random_state=10).as_matrix()
+    roots = np.array([2, -1, 0])  # -1: no pelvis sensor, upright
+    positions, quats = forward_poses(
+        angles, segments, roots, np.array([c.root_z for c in chains]), chains[0].parents,
+        chains[0].axes, np.array([c.offsets for c in chains]), chains[0].segment_joints,
+        chains[0].floor_joints, np.array([c.floor_points for c in chains]),
+    )  # fmt: skip
+    on_a_floor_point = []
+    for b, model in enumerate(models):
+        root = Rotation.from_matrix(segments[roots[b]] if roots[b] >= 0 else np.eye(3))
+        q = np.concatenate([[0.0, 0.0, chains[b].root_z], root.as_quat(),
+                            np.radians(angles[b, :-1])])  # fmt: skip
+        want = model.segment_poses(q)  # x, y, z, quaternion x, y, z, w
+        placements = model.data.oMi.tolist()  # Pinocchio's joint j + 2 is the chain's j
+        chain = chains[b]
+        floor = [placements[j + 2].act(p)[2]
+                 for j, p in zip(chain.floor_joints, chain.floor_points, strict=True)]  # fmt: skip
+        lowest = min(*floor, *want[:, 2])
+        on_a_floor_point.append(min(floor) < want[:, 2].min())
+        want[:, 2] -= lowest
+        np.testing.assert_allclose(positions[b], want[:, :3], atol=1e-12)
+        wxyz = want[:, [6, 3, 4, 5]] * np.where(want[:, 6:] < 0, -1.0, 1.0)
+        np.testing.assert_allclose(quats[b], wxyz, atol=1e-12)
+    assert (quats[..., 0] >= 0).all()
+    assert any(on_a_floor_point)  # the floor points count, not only the joint centres
+    # each body its own lengths: the same angles put the segments elsewhere
+    assert np.abs(positions[0] - positions[2]).max() > 0.05
+
+
 def test_kernels_compile_where_nothing_can_cache_them() -> None:
     """numba caches compiled code only where it may write; with no such place
     (a read-only install and home) ``cache=True`` raises, and the gateway's

@@ -9,11 +9,8 @@ import subprocess
 import sys
 from pathlib import Path
 
-import numpy as np
-import pytest
 from mcap.reader import make_reader
 from mcap.writer import CompressionType, Writer
-from scipy.spatial.transform import Rotation
 
 from bodynet.clients.mcap_store import McapSink, PackedChunkIndexes, pack_chunk_indexes, read_raw
 from bodynet.core.messages import Quat, RawSample, Source
@@ -101,30 +98,6 @@ def test_a_recordings_chunk_indexes_wait_on_disk_not_in_memory(tmp_path: Path) -
     assert summary is not None
     assert len(summary.chunk_indexes) == len(sink.chunk_indexes)
     assert len(list(read_raw(path))) == 20_200
-
-
-def test_the_solver_hands_pinocchio_column_major_matrices(monkeypatch: pytest.MonkeyPatch) -> None:
-    """eigenpy copies a row-major (C-ordered) matrix for ``pin.Quaternion`` and never
-    frees the copy (80 bytes a call, once a tick: the gateway's growth over an hour);
-    the solver's quaternions come from column-major matrices, with the same values."""
-    import pinocchio as pin
-
-    from bodynet.gateway import solver
-
-    rots = Rotation.random(50, random_state=3).as_matrix()  # (50, 3, 3), C-ordered
-    expected = [tuple(np.roll(r.as_quat(canonical=True), 1)) for r in Rotation.from_matrix(rots)]
-    made = pin.Quaternion
-    given: list[bool] = []
-
-    def quaternion(*args: object) -> object:
-        if len(args) == 1:
-            given.append(bool(np.asarray(args[0]).flags.f_contiguous))
-        return made(*args)
-
-    monkeypatch.setattr(pin, "Quaternion", quaternion)
-    got = [solver._quat_wxyz(r) for r in rots]  # slices of a C-ordered stack, as in a tick
-    assert given == [True] * len(rots)
-    np.testing.assert_allclose(got, expected, atol=1e-12)
 
 
 def _arenas_limited(env: dict[str, str]) -> str:
