@@ -429,9 +429,9 @@ def test_flood_on_one_subject_and_random_keys_never_stops_the_other_subjects(
 
 
 class _FailingSolver(BodySolver):
-    """A solver whose forward kinematics fails: a bug hit by one body's tick."""
+    """A solver whose own joints fail: a bug hit by one body's tick."""
 
-    def _forward(self, tick: Any) -> Any:
+    def _solve_rest(self, tick: Any) -> Any:
         raise RuntimeError("injected fault in one body's tick")
 
 
