@@ -418,25 +418,20 @@ class _Tick:
 
     __slots__ = ("angles", "direct_rot", "direct_rows", "harm", "held_tilt", "last", "lefts",
                  "measured", "modules", "mounts", "plan", "quats", "reasons", "rel", "rests",
-                 "segs", "solver", "sources", "t_ns", "unc", "uncal", "unknown",
+                 "segs", "solver", "sort", "sources", "t_ns", "unc", "uncal", "unknown",
                  "used")  # fmt: skip
 
-    def __init__(self, solver: BodySolver, last: np.ndarray | None) -> None:
+    def __init__(self, solver: BodySolver, last: np.ndarray | None, sort: _Sorted) -> None:
         self.solver = solver
         self.last = last  # the angle vector of the body's last tick (None before one)
-        self.segs: list[str] = []  # segments with an orientation sensor (the first one wins)
-        self.quats: list[QuatWxyz] = []
-        self.used: list[Site] = []  # the orientation sensors of ``segs``, in that order
-        # theirs stacked (BodySolver._frames): mounts' inverses and turns into the body's heading
-        self.mounts: np.ndarray = _NO_FRAMES
-        self.uncal: set[str] = set()  # segments whose orientation sensor has no mount yet
-        self.lefts: np.ndarray = _NO_FRAMES
-        self.unknown: set[str] = set()  # segments whose sensor's heading is not known
+        self.sort = sort  # how its samples sort (BodySolver._sort), and what that gives:
+        self.segs, self.used, self.plan = sort.segs, sort.used, sort.plan
+        self.unknown, self.uncal = sort.unknown, sort.uncal
+        self.lefts, self.mounts = sort.lefts, sort.mounts
+        self.quats: list[QuatWxyz] = []  # the quaternions of ``used``
         self.modules: dict[str, tuple[Site, OleAccel]] = {}  # SmartSuit modules by segment
-        self.sources: dict[str, int] = {}
+        self.sources: dict[str, int] = {}  # raw key -> the source time of its sample
         self.t_ns = 0
-        # the joints between two of ``segs``: rows, parent and child indices (see _direct_plan)
-        self.plan: tuple[np.ndarray, np.ndarray, np.ndarray] = (np.zeros(0, dtype=int),) * 3
         self.measured: dict[str, np.ndarray] = {}  # segment -> world orientation
         # the joints split from two sensors: their rows and rotations
         self.direct_rows: np.ndarray = np.zeros(0, dtype=int)
@@ -457,8 +452,8 @@ class _Sorted:
     so a tick only takes the numbers (sorting fifteen samples cost more than a
     tenth of a hot solve)."""
 
-    __slots__ = ("keys", "kinds", "lefts", "modules", "mounts", "plan", "quats", "segs",
-                 "sites", "uncal", "unknown", "used")  # fmt: skip
+    __slots__ = ("flagged", "keys", "kinds", "lefts", "modules", "mounts", "plan", "quats",
+                 "segs", "sites", "uncal", "unknown", "used")  # fmt: skip
 
     def __init__(self, sites: tuple[Site, ...], kinds: tuple[type, ...]) -> None:
         self.sites, self.kinds = sites, kinds
@@ -471,6 +466,7 @@ class _Sorted:
         self.modules: list[tuple[str, int]] = []  # SmartSuit modules: segment, sample
         self.lefts, self.mounts = _NO_FRAMES, _NO_FRAMES
         self.plan: tuple[np.ndarray, np.ndarray, np.ndarray] = (np.zeros(0, dtype=int),) * 3
+        self.flagged: list[str] | None = None  # BodySolver._flag_uncalibrated's dofs
 
 
 def solve_bodies(work: Sequence[tuple[BodySolver, Mapping[Site, RawSample]]]) -> list[BodyOutput]:
@@ -552,8 +548,25 @@ class BodySolver:
     def _flag_uncalibrated(self, tick: _Tick) -> None:
         """Flag ``uncalibrated`` every dof that a sensor of unknown heading drives:
         the joints next to its segment, and down the chain while the segments'
-        orientations come from their parents (SmartSuit modules)."""
+        orientations come from their parents (SmartSuit modules). Which dofs
+        those are follows from the sites that deliver (worked out once for them),
+        except an unobserved dof, which keeps that flag alone."""
+        sort = tick.sort
+        if sort.flagged is None:
+            sort.flagged = self._driven_by_unknown(tick)
+        reasons = tick.reasons
+        for name in sort.flagged:
+            why = reasons.get(name)
+            if why is None:
+                reasons[name] = {UNCALIBRATED}
+            elif UNOBSERVED not in why:
+                why.add(UNCALIBRATED)
+
+    def _driven_by_unknown(self, tick: _Tick) -> list[str]:
+        """The dofs that the tick's sensors of unknown heading drive (see
+        :meth:`_flag_uncalibrated`)."""
         unknown, tainted, measured = tick.unknown, set(tick.unknown), tick.measured
+        names = []
         for joint in self.skeleton.joints:
             if joint.parent in tainted or joint.child in unknown:
                 if joint.child not in measured:
@@ -565,9 +578,8 @@ class BodySolver:
                     if module is not None and joint.child not in unknown
                     else None
                 )
-                for name in self.axes[joint.name].names:
-                    if name != absolute and UNOBSERVED not in tick.reasons.get(name, ()):
-                        tick.reasons.setdefault(name, set()).add(UNCALIBRATED)
+                names += [name for name in self.axes[joint.name].names if name != absolute]
+        return names
 
     def set_profile(self, profile: Profile) -> None:
         """Take a profile of the same body (lengths, calibration pose) whose mounts or
@@ -643,25 +655,22 @@ class BodySolver:
 
     def _gather(self, samples: Mapping[Site, RawSample]) -> _Tick:
         """A new tick of this body: its samples sorted by kind, against its last angles."""
-        tick = _Tick(self, self._memory.last)
         values = list(samples.values())
         sites, kinds = tuple(samples), tuple([type(s.reading) for s in values])
-        known = self._sorted
-        if known is None or known.sites != sites or known.kinds != kinds:
-            known = self._sorted = self._sort(sites, kinds)
+        sort = self._sorted
+        if sort is None or sort.sites != sites or sort.kinds != kinds:
+            sort = self._sorted = self._sort(sites, kinds)
+        tick = _Tick(self, self._memory.last, sort)
         times = [s.t_ns for s in values]
-        tick.sources = dict(zip(known.keys, times, strict=True))
+        tick.sources = dict(zip(sort.keys, times, strict=True))
         tick.t_ns = t_ns = max(max(times, default=0), 0)
         if self._memory.first_t_ns == -1:
             self._memory.first_t_ns = t_ns
         tick.modules = {seg: (sites[i], values[i].reading)  # type: ignore[misc]
-                        for seg, i in known.modules}  # fmt: skip
-        if known.segs:
-            tick.segs, tick.used, tick.unknown, tick.uncal = (
-                known.segs, known.used, known.unknown, known.uncal)  # fmt: skip
-            tick.quats = [values[i].reading.wxyz for i in known.quats]  # type: ignore[union-attr]
-            tick.lefts, tick.mounts, tick.plan = known.lefts, known.mounts, known.plan
-            self._memory.expected.update(known.segs)
+                        for seg, i in sort.modules}  # fmt: skip
+        if sort.segs:
+            tick.quats = [values[i].reading.wxyz for i in sort.quats]  # type: ignore[union-attr]
+            self._memory.expected.update(sort.segs)
         return tick
 
     def _sort(self, sites: tuple[Site, ...], kinds: tuple[type, ...]) -> _Sorted:
