@@ -424,7 +424,7 @@ class _Tick:
     def __init__(self, solver: BodySolver, last: np.ndarray | None, sort: _Sorted) -> None:
         self.solver = solver
         self.last = last  # the angle vector of the body's last tick (None before one)
-        self.sort = sort  # how its samples sort (BodySolver._sort), and what that gives:
+        self.sort = sort  # how its samples sort (BodySolver._sort): these are its
         self.segs, self.used, self.plan = sort.segs, sort.used, sort.plan
         self.unknown, self.uncal = sort.unknown, sort.uncal
         self.lefts, self.mounts = sort.lefts, sort.mounts
@@ -458,13 +458,15 @@ class _Sorted:
     def __init__(self, sites: tuple[Site, ...], kinds: tuple[type, ...]) -> None:
         self.sites, self.kinds = sites, kinds
         self.keys: list[str] = []  # each site's raw key
-        self.segs: list[str] = []  # as _Tick's
-        self.used: list[Site] = []
-        self.quats: list[int] = []  # where the used sensors' samples are
-        self.unknown: set[str] = set()
-        self.uncal: set[str] = set()
+        self.segs: list[str] = []  # segments with an orientation sensor (the first one wins)
+        self.used: list[Site] = []  # the orientation sensors of ``segs``, in that order
+        self.quats: list[int] = []  # where their samples are among the tick's
+        self.unknown: set[str] = set()  # segments whose sensor's heading is not known
+        self.uncal: set[str] = set()  # segments whose orientation sensor has no mount yet
         self.modules: list[tuple[str, int]] = []  # SmartSuit modules: segment, sample
+        # the used sensors' turns into the body's heading and mounts' inverses, stacked
         self.lefts, self.mounts = _NO_FRAMES, _NO_FRAMES
+        # the joints between two of ``segs``: rows, parent and child indices (see _direct_plan)
         self.plan: tuple[np.ndarray, np.ndarray, np.ndarray] = (np.zeros(0, dtype=int),) * 3
         self.flagged: list[str] | None = None  # BodySolver._flag_uncalibrated's dofs
 
