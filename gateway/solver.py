@@ -31,8 +31,9 @@ vertical), the ambiguous dof holds its last value instead of jumping. Angles
 outside the range of motion are clamped and flagged. Positions come from
 forward kinematics of the assembled configuration on the Pinocchio model's
 chain (one compiled pass over every body of a solve, held to Pinocchio's own
-in the tests), the body set on the floor: the pelvis above the origin, at the height that puts the
-body's lowest point (a heel or a toe, standing) at z = 0.
+in the tests), the body set on the floor: the pelvis above the origin, at
+the height that puts the body's lowest point (a heel or a toe, standing) at
+z = 0.
 """
 
 from __future__ import annotations
@@ -452,8 +453,8 @@ class _Sorted:
     so a tick only takes the numbers (sorting fifteen samples cost more than a
     tenth of a hot solve)."""
 
-    __slots__ = ("flagged", "keys", "kinds", "lefts", "modules", "mounts", "plan", "quats",
-                 "segs", "sites", "uncal", "unknown", "used")  # fmt: skip
+    __slots__ = ("flagged", "keys", "kinds", "lefts", "modules", "mounts", "pelvis", "plan",
+                 "quats", "segs", "sites", "uncal", "unknown", "used")  # fmt: skip
 
     def __init__(self, sites: tuple[Site, ...], kinds: tuple[type, ...]) -> None:
         self.sites, self.kinds = sites, kinds
@@ -469,6 +470,7 @@ class _Sorted:
         # the joints between two of ``segs``: rows, parent and child indices (see _direct_plan)
         self.plan: tuple[np.ndarray, np.ndarray, np.ndarray] = (np.zeros(0, dtype=int),) * 3
         self.flagged: list[str] | None = None  # BodySolver._flag_uncalibrated's dofs
+        self.pelvis = -1  # where the pelvis is in ``segs`` (-1: no sensor on it)
 
 
 def solve_bodies(work: Sequence[tuple[BodySolver, Mapping[Site, RawSample]]]) -> list[BodyOutput]:
@@ -643,8 +645,8 @@ class BodySolver:
             for b, tick in enumerate(ticks):
                 tick.measured = dict(zip(tick.segs, segments[start : start + len(tick.segs)],
                                          strict=True))  # fmt: skip
-                if "pelvis" in tick.measured:
-                    roots[b] = start + tick.segs.index("pelvis")
+                if tick.sort.pelvis >= 0:
+                    roots[b] = start + tick.sort.pelvis
                 start += len(tick.segs)
             first._solve_direct(ticks, segments, angles, rel, unc)
         else:
@@ -697,6 +699,8 @@ class BodySolver:
             elif module:
                 sorted_.modules.append((seg, i))
         if sorted_.segs:
+            if "pelvis" in seen:
+                sorted_.pelvis = sorted_.segs.index("pelvis")
             sorted_.lefts, sorted_.mounts = self._frames(tuple(sorted_.used))
             sorted_.plan = self._direct_plan(tuple(sorted_.segs))
         return sorted_
