@@ -421,12 +421,13 @@ class Gateway:
             return list(self._bodies)
 
     # --- input ------------------------------------------------------------------------
-    def _take_pending(self, now: float) -> tuple[int, set[_Body]]:
+    def _take_pending(self, now: float) -> tuple[int, set[_Body], bool]:
         """Take the raw samples waiting in the subscribers' queues (the worker's
         thread), for at most a period: each is decoded and kept as its site's
         latest, or counted as a rejection. Taking comes before solving, so no
         sample waits behind solves: under load bodies are solved less often.
-        Returns how many were taken and the bodies they went to."""
+        Returns how many were taken, the bodies they went to, and whether the
+        period ran out first (samples may still be waiting)."""
         taken, touched = 0, set()
         until = now + self.period_s  # a flood (of garbage, say) still leaves time to solve
         routes, foreign, share = self._routes, self._foreign, self.share
@@ -478,7 +479,8 @@ class Gateway:
                         body = route[0]
                         body.take_into(route[1], raw, now)
                     touched.add(body)
-        return taken, touched
+        # the loops stop at an empty queue, or on a 256th sample past the period
+        return taken, touched, not taken % 256 and time.monotonic() >= until
 
     def _join_share(self, share: Share) -> None:
         """Declare this gateway's token and learn the members already there
@@ -725,13 +727,17 @@ class Gateway:
         last_sample = time.monotonic()
         while not stop.is_set():
             now = time.monotonic()
-            taken, touched = self._take_pending(now)
+            taken, touched, more = self._take_pending(now)
             acted, wake = self._round(now, touched)
             if taken:
                 last_sample = now
-            elif not acted:  # nothing to do: poll again soon, or when a frame may be whole
-                time.sleep(max(0.0, self._idle_until(now, wake, now - last_sample < 1.0) - now))
-                self.rounds.slept(time.monotonic() - now)
+            # after a solve or a cut-short take, look again at once (samples came
+            # meanwhile); else poll again soon, or when a frame may be whole
+            if not (acted or more):
+                until = self._idle_until(now, wake, now - last_sample < 1.0)
+                if (idle := until - (start := time.monotonic())) > 0:
+                    time.sleep(idle)
+                    self.rounds.slept(time.monotonic() - start)
 
     def _idle_until(self, now: float, wake: float, flowing: bool) -> float:
         """Until when the idle worker sleeps: ``wake`` (a body due) at the latest;

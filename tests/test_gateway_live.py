@@ -16,6 +16,7 @@ import pytest
 import zenoh
 from zenoh_helpers import Collector, Running, client
 
+from bodynet.bench.gateway import feed_schedule
 from bodynet.clients.view import status_text
 from bodynet.core import keys
 from bodynet.core.codecs import pose, raw_sample
@@ -523,6 +524,46 @@ def test_housekeeping_takes_one_body_a_round(router_endpoint: str) -> None:
     finally:
         gw.close()
         session.close()
+
+
+def test_the_worker_rounds_again_at_once_only_after_a_solve(router_endpoint: str) -> None:
+    """``Gateway.run`` itself, fed a body's nodes at their own phases in the
+    period (the benchmark's realistic schedule, 100 Hz) through Zenoh: a round
+    that takes part of a frame is followed by a sleep, as an empty one is, not
+    by another round at once. About seven rounds a tick here (each wake's
+    poll, and the solve's round); nine to twelve when every round that took
+    samples was followed at once by another. A count of rounds, not a time."""
+    tags = imu_tags()
+    readings, _ = BodyEmulator(ROUTINES["walk"], tags, seed=2).sample(0.1)
+    schedule = feed_schedule(range(1), len(tags), 100.0, "realistic")
+    session, feeder = client(router_endpoint), client(router_endpoint)
+    pubs = [feeder.declare_publisher(t.site.raw_key) for t in tags]
+    gw = Gateway(session)
+    rounds = [0]
+    take_round = gw._round
+
+    def counted(now: float, touched: set[Any]) -> tuple[bool, float]:
+        rounds[0] += 1
+        return take_round(now, touched)
+
+    gw._round = counted  # type: ignore[method-assign]
+    running = Running(gw.run)
+    try:
+        start = time.monotonic()
+        sends = sorted((start + off + k * period, i, k) for i, (off, period) in enumerate(schedule)
+                       for k in range(150))  # fmt: skip
+        for at, i, k in sends:
+            time.sleep(max(0.0, at - time.monotonic()))
+            pubs[i].put(raw_sample.encode(RawSample(readings[i], k, time.time_ns(),
+                                                    Source.IMU_CENTRAL)))  # fmt: skip
+        time.sleep(0.1)
+    finally:
+        running.stop()
+        gw.close()
+        session.close()
+        feeder.close()
+    assert gw.ticks >= 100, gw.ticks
+    assert rounds[0] / gw.ticks < 8.5, (rounds[0], gw.ticks)
 
 
 def test_a_calibration_window_no_history_holds_is_refused_at_once(
