@@ -110,6 +110,9 @@ _UP = np.array([0.0, 0.0, 1.0])
 _NOTHING: frozenset[str] = frozenset()
 _UNCAL = frozenset({UNCALIBRATED})
 _UNOBS = frozenset({UNOBSERVED})
+_CLAMPED = frozenset({CLAMPED})
+#: a dof's reasons -> the same and uncalibrated, one shared set each (worked out once)
+_PLUS_UNCAL: dict[frozenset[str], frozenset[str]] = {}
 
 
 # Per-tick maths uses Pinocchio's rotation functions: scipy's Rotation objects cost
@@ -440,7 +443,8 @@ class _Tick:
         self.angles = np.zeros(0)  # the skeleton's angle vector (+1: see angle_index)
         self.rel = np.zeros(0)
         self.unc = np.zeros(0)  # each angle's uncertainty (deg), NaN: none
-        self.reasons: dict[str, set[str]] = {}  # angle -> why it is no plain measurement
+        # angle -> why it is no plain measurement (frozen: the same sets serve tick after tick)
+        self.reasons: dict[str, frozenset[str]] = {}
         self.rests: dict[str, frozenset[str]] = {}  # segment -> what its orientation rests on
         # segment -> how far (rad) held dofs above it may tilt it from what gravity says
         self.harm: dict[str, float] = {}
@@ -454,7 +458,7 @@ class _Sorted:
     tenth of a hot solve)."""
 
     __slots__ = ("flagged", "keys", "kinds", "lefts", "modules", "mounts", "pelvis", "plan",
-                 "quats", "segs", "sites", "uncal", "unknown", "used")  # fmt: skip
+                 "quats", "reasons", "segs", "sites", "uncal", "unknown", "used")  # fmt: skip
 
     def __init__(self, sites: tuple[Site, ...], kinds: tuple[type, ...]) -> None:
         self.sites, self.kinds = sites, kinds
@@ -471,6 +475,9 @@ class _Sorted:
         self.plan: tuple[np.ndarray, np.ndarray, np.ndarray] = (np.zeros(0, dtype=int),) * 3
         self.flagged: list[str] | None = None  # BodySolver._flag_uncalibrated's dofs
         self.pelvis = -1  # where the pelvis is in ``segs`` (-1: no sensor on it)
+        # what the pelvis rests on -> the reasons of the joints of ``plan``
+        # (BodySolver._direct_reasons)
+        self.reasons: dict[frozenset[str], dict[str, frozenset[str]]] = {}
 
 
 def solve_bodies(work: Sequence[tuple[BodySolver, Mapping[Site, RawSample]]]) -> list[BodyOutput]:
@@ -558,13 +565,18 @@ class BodySolver:
         sort = tick.sort
         if sort.flagged is None:
             sort.flagged = self._driven_by_unknown(tick)
-        reasons = tick.reasons
+        reasons, plus = tick.reasons, _PLUS_UNCAL
         for name in sort.flagged:
             why = reasons.get(name)
             if why is None:
-                reasons[name] = {UNCALIBRATED}
+                reasons[name] = _UNCAL
             elif UNOBSERVED not in why:
-                why.add(UNCALIBRATED)
+                flagged = plus.get(why)
+                if flagged is None:
+                    flagged = why | _UNCAL
+                    if len(plus) < 256:  # a handful of names: a few combinations
+                        plus[why] = flagged
+                reasons[name] = flagged
 
     def _driven_by_unknown(self, tick: _Tick) -> list[str]:
         """The dofs that the tick's sensors of unknown heading drive (see
@@ -774,29 +786,40 @@ class BodySolver:
         angles[:, -1] = 0.0  # the absent dofs' column
         rel[owner, rows] = total
         start = 0
-        for tick, (mine, parent_at, child_at) in zip(ticks, plans, strict=True):
+        for tick, (mine, _, _) in zip(ticks, plans, strict=True):
             tick.direct_rows, tick.direct_rot = mine, matrices[start : start + len(mine)]
             start += len(mine)
-            # what the joints rest on: an uncalibrated sensor, an expected pelvis sensor missing
-            solver = tick.solver
-            if not tick.uncal:  # every measured segment rests on its measurement alone
-                pelvis = solver._rests("pelvis", tick)
-                if pelvis:
-                    for row in mine[parent_at < 0].tolist():
-                        for name in batch.names[row]:
-                            tick.reasons[name] = set(pelvis)
-                continue
-            rests = [solver._rests(tick.segs[p] if p >= 0 else "pelvis", tick)
-                     for p in parent_at.tolist()]  # fmt: skip
-            for row, c, rest in zip(mine.tolist(), child_at.tolist(), rests, strict=True):
-                why = rest | solver._rests(tick.segs[c], tick)
-                if why:
-                    for name in batch.names[row]:
-                        tick.reasons[name] = set(why)
+            pelvis = tick.solver._rests("pelvis", tick)  # the one that changes with time
+            known = tick.sort.reasons.get(pelvis)
+            if known is None:
+                known = tick.sort.reasons[pelvis] = tick.solver._direct_reasons(tick, pelvis)
+            tick.reasons.update(known)
         at, dof = np.nonzero(clamped & ~prep.unused)
         names = batch.names
         for b, row, d in zip(owner[at].tolist(), rows[at].tolist(), dof.tolist(), strict=True):
-            ticks[b].reasons.setdefault(names[row][d], set()).add(CLAMPED)
+            reasons, name = ticks[b].reasons, names[row][d]
+            reasons[name] = reasons.get(name, _NOTHING) | _CLAMPED
+
+    def _direct_reasons(self, tick: _Tick, pelvis: frozenset[str]) -> dict[str, frozenset[str]]:
+        """What the dofs of the tick's joints between two orientation sensors rest
+        on besides their measurement (an uncalibrated sensor; ``pelvis``, what the
+        pelvis rests on, where it is not measured): the same for every tick of
+        the same sorting and pelvis (:class:`_Sorted`)."""
+        mine, parent_at, child_at = tick.plan
+        names = self._batch.names
+        out: dict[str, frozenset[str]] = {}
+        if not tick.uncal:  # every measured segment rests on its measurement alone
+            if pelvis:
+                for row in mine[parent_at < 0].tolist():
+                    out.update(dict.fromkeys(names[row], pelvis))
+            return out
+        for row, p, c in zip(mine.tolist(), parent_at.tolist(), child_at.tolist(), strict=True):
+            why = (self._rests(tick.segs[p], tick) if p >= 0 else pelvis) | self._rests(
+                tick.segs[c], tick
+            )
+            if why:
+                out.update(dict.fromkeys(names[row], why))
+        return out
 
     def _outputs(self, ticks: Sequence[_Tick], angles: np.ndarray, segments: np.ndarray,
                  roots: np.ndarray) -> list[BodyOutput]:  # fmt: skip
@@ -824,13 +847,12 @@ class BodySolver:
         ordered = _ORDERED
         for n, r in tick.reasons.items():
             if r:
-                key = frozenset(r)
-                known = ordered.get(key) or _order(key)
+                known = ordered.get(r) or _order(r)
                 reasons[n], flags[n] = known
         unc = tick.unc[:-1]
-        for n, f in flags.items():
-            if f != CLAMPED:
-                unc[self._angle_at[n]] = math.nan
+        at = self._angle_at
+        if none := [at[n] for n, f in flags.items() if f != CLAMPED]:
+            unc[none] = math.nan
         return BodyOutput(tick.t_ns, self.names, tick.angles[:-1], tick.rel, flags, positions,
                           quats, tick.sources, reasons, unc)  # fmt: skip
 
@@ -984,12 +1006,12 @@ class BodySolver:
         :meth:`_SplitBatch.commit`)."""
         ax = self.axes[joint.name]
         for i, (name, (lo, hi)) in enumerate(zip(ax.names, ax.limits, strict=True)):
-            reasons = set(why[i])
+            reasons = why[i]
             if not lo <= values[i] <= hi:
                 values[i] = min(max(values[i], lo), hi)
-                reasons.add(CLAMPED)
+                reasons = reasons | _CLAMPED
             if reasons:
-                tick.reasons[name] = reasons
+                tick.reasons[name] = frozenset(reasons)  # a copy of a set the caller keeps
             else:
                 tick.reasons.pop(name, None)
         sl = self._slices[joint.name]

@@ -171,6 +171,37 @@ def test_uncalibrated_tags_and_the_arms_below_them_are_flagged() -> None:
     assert "left_shoulder_flexion_deg" not in out.flags
 
 
+@pytest.mark.parametrize("calibrated", [True, False])
+def test_joints_on_a_pelvis_tag_announced_but_silent_are_flagged(calibrated: bool) -> None:
+    """Tags everywhere but on the pelvis: the joints between the pelvis and a
+    tag (lumbar, hips) are measured against the upright model while no pelvis
+    tag is known, and flagged ``unobserved`` once the topology announces one
+    that does not deliver (they rest on a pelvis assumed upright); the
+    shoulders never rest on it. The same sites deliver throughout, so what
+    those joints rest on is worked out for the sites once (``_Sorted``) and
+    again when the pelvis's state changes. Uncalibrated, every dof a tag
+    drives also says so."""
+    tags = imu_tags()
+    sacrum = next(t for t in tags if t.site.name == "sacrum")
+    body = BodyEmulator(still({}), [t for t in tags if t is not sacrum], realism=Realism(), seed=1)
+    solver = BodySolver(Profile(heading="fixed"))
+    if calibrated:
+        solver.assume_calibrated()
+    names = ("left_hip_flexion_deg", "lumbar_flexion_deg", "left_shoulder_flexion_deg")
+    seen = []
+    for k in range(4):
+        if k == 2:  # the pelvis tag's token comes up; it never delivers
+            solver.expect([sacrum.site.raw_key])
+        readings, _ = body.sample(k / 100)
+        out = solver.solve({s.site: RawSample(r, k, k * 10_000_000)
+                            for s, r in zip(body.sensors, readings, strict=True)})  # fmt: skip
+        seen.append([out.reasons.get(n, ()) for n in names])
+    tag = () if calibrated else (pose.UNCALIBRATED,)
+    assert seen[:2] == [[tag, tag, tag]] * 2, seen
+    pelvis = (*tag, pose.UNOBSERVED)
+    assert seen[2:] == [[pelvis, pelvis, tag]] * 2, seen
+
+
 @pytest.mark.parametrize("version", [1, 2])
 def test_pose_versions_decode_and_is_measured(version: int) -> None:
     """Readers of today's (v1) messages keep working; v2 carries every reason
