@@ -789,7 +789,8 @@ class BodySolver:
         for tick, (mine, _, _) in zip(ticks, plans, strict=True):
             tick.direct_rows, tick.direct_rot = mine, matrices[start : start + len(mine)]
             start += len(mine)
-            pelvis = tick.solver._rests("pelvis", tick)  # the one that changes with time
+            # what an unmeasured pelvis rests on changes with the topology, not the sorting
+            pelvis = tick.solver._rests("pelvis", tick)
             known = tick.sort.reasons.get(pelvis)
             if known is None:
                 known = tick.sort.reasons[pelvis] = tick.solver._direct_reasons(tick, pelvis)
