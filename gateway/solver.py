@@ -422,17 +422,17 @@ class _Tick:
 
     __slots__ = ("angles", "direct_rot", "direct_rows", "harm", "held_tilt", "last", "lefts",
                  "measured", "modules", "mounts", "plan", "quats", "reasons", "rel", "rests",
-                 "segs", "solver", "sort", "sources", "t_ns", "unc", "uncal", "unknown",
-                 "used")  # fmt: skip
+                 "segs", "solver", "sort", "sources", "t_ns", "unc", "uncal",
+                 "unknown")  # fmt: skip
 
     def __init__(self, solver: BodySolver, last: np.ndarray | None, sort: _Sorted) -> None:
         self.solver = solver
         self.last = last  # the angle vector of the body's last tick (None before one)
         self.sort = sort  # how its samples sort (BodySolver._sort): these are its
-        self.segs, self.used, self.plan = sort.segs, sort.used, sort.plan
+        self.segs, self.plan = sort.segs, sort.plan
         self.unknown, self.uncal = sort.unknown, sort.uncal
         self.lefts, self.mounts = sort.lefts, sort.mounts
-        self.quats: list[QuatWxyz] = []  # the quaternions of ``used``
+        self.quats: list[QuatWxyz] = []  # the quaternions of ``sort.used``
         self.modules: dict[str, tuple[Site, OleAccel]] = {}  # SmartSuit modules by segment
         self.sources: dict[str, int] = {}  # raw key -> the source time of its sample
         self.t_ns = 0

@@ -64,16 +64,15 @@ class BodyModel:
         # their segment's frame)
         sole = np.array([0.0, 0.0, -skeleton.lengths["ankle_height"]])
         ends = ("head", "left_hand", "right_hand", "left_foot", "right_foot")
-        self._floor_joints = [segment_joint[segment] for segment in ends]
-        points: list[tuple[int, np.ndarray]] = []  # (index in ends, point)
-        for i, segment in enumerate(ends):
-            points.append((i, np.array(skeleton.directions[segment])
+        points: list[tuple[int, np.ndarray]] = []  # (its segment's joint, point)
+        for segment in ends:
+            points.append((segment_joint[segment], np.array(skeleton.directions[segment])
                            * skeleton.segment_length(segment)))  # fmt: skip
         for side in ("left", "right"):
-            foot = ends.index(f"{side}_foot")
+            foot = segment_joint[f"{side}_foot"]
             tip = np.array(skeleton.directions[f"{side}_foot"]) * skeleton.segment_length("foot")
             points += [(foot, sole), (foot, tip + sole)]
-        self._floor_index = np.array([i for i, _ in points])
+        self._floor_joints = np.array([j for j, _ in points], dtype=np.int64)
         self._floor_xyz = np.array([p for _, p in points])
         self.site_frames: dict[str, int] = {}
         for site in sites:
@@ -144,7 +143,7 @@ class BodyModel:
             offsets=np.array([model.jointPlacements[j].translation for j in revolute]),
             root_z=self.skeleton.root_height(),
             segment_joints=np.array(self._segment_joints, dtype=np.int64) - 2,
-            floor_joints=np.array(self._floor_joints, dtype=np.int64)[self._floor_index] - 2,
+            floor_joints=self._floor_joints - 2,
             floor_points=self._floor_xyz,
         )
 
