@@ -441,6 +441,25 @@ def test_one_body_solve_reads_like_before() -> None:
     assert len(out.flags) == 32
 
 
+def test_solvers_of_one_shape_share_what_never_changes() -> None:
+    """Solvers of the same lengths and calibration pose share the skeleton, model
+    and tables built from them (a gateway meeting twenty suits built them twenty
+    times); other lengths or another pose get their own, and sharing leaves each
+    solver's outputs its own (test_bodies_solved_together_match_each_solved_alone)."""
+    a = BodySolver(Profile(lengths={"thigh": 0.5, "forearm": 0.3}))
+    b = BodySolver(Profile(lengths={"forearm": 0.3, "thigh": 0.5}, heading="fixed"))
+    assert a.model is b.model
+    assert a.names is b.names
+    assert a._batch is b._batch
+    taller = BodySolver(Profile(lengths={"thigh": 0.55, "forearm": 0.3}))
+    assert taller.model is not a.model
+    assert taller.skeleton.lengths["thigh"] == 0.55
+    assert a.skeleton.lengths["thigh"] == 0.5
+    npose = BodySolver(Profile(lengths={"thigh": 0.5, "forearm": 0.3}, pose="npose"))
+    assert npose.model is not a.model
+    assert not np.allclose(npose._calibration_inv, a._calibration_inv)
+
+
 def test_the_body_stands_on_the_floor() -> None:
     """The pelvis is set at the height that puts the body's lowest point on the
     floor (z = 0): at leg length standing, a shank and an ankle height above the
