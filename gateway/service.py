@@ -376,6 +376,10 @@ class Gateway:
         self._lock = threading.RLock()
         self._bodies: dict[str | None, _Body] = {}
         self._routes: dict[str, tuple[_Body, _Site]] = {}  # raw key -> where its samples go
+        # each routed raw key declared to Zenoh, which then routes its samples by the
+        # declaration instead of matching the key's text against every declaration of
+        # this session, sample by sample (a tenth of the gateway's CPU at twenty bodies)
+        self._declared: dict[str, zenoh.KeyExpr] = {}
         if not all_subjects:
             self._bodies[None] = _Body(session, "", profile or Profile(), profile_path,
                                        self.branches, self.period_s)  # fmt: skip
@@ -475,6 +479,7 @@ class Gateway:
                             continue
                         # at most MAX_SUBJECTS times the key space's sites
                         routes[key] = (body, body.take(site, raw, now))
+                        self._declared[key] = self.session.declare_keyexpr(key)
                     else:
                         body = route[0]
                         body.take_into(route[1], raw, now)
@@ -525,6 +530,7 @@ class Gateway:
                     self._foreign_alive[subject] = set(body.alive)
                     for key in [k for k, (b, _) in self._routes.items() if b is body]:
                         del self._routes[key]
+                        self.session.undeclare(self._declared.pop(key))
                     body.close()
                     log.info("gateway: subject %s is now another gateway's", subject)
             self._foreign.clear()
@@ -945,3 +951,6 @@ class Gateway:
             live.undeclare()
         for body in list(self._bodies.values()):
             body.close()
+        for key_expr in self._declared.values():
+            self.session.undeclare(key_expr)
+        self._declared.clear()

@@ -21,7 +21,7 @@ from bodynet.clients.view import status_text
 from bodynet.core import keys
 from bodynet.core.codecs import pose, raw_sample
 from bodynet.core.keys import LEFT_ARM
-from bodynet.core.messages import RawSample, Source
+from bodynet.core.messages import Quat, RawSample, Source
 from bodynet.core.profile import IMU_SITES
 from bodynet.core.skeleton import TPOSE
 from bodynet.gateway.service import Gateway
@@ -590,3 +590,64 @@ def test_a_calibration_window_no_history_holds_is_refused_at_once(
             assert "at most 5" in str(answer["error"])
     finally:
         session.close()
+
+
+def test_the_raw_keys_a_gateway_serves_are_declared_to_zenoh(router_endpoint: str) -> None:
+    """Each raw key a gateway routes is declared to Zenoh (which then routes its
+    samples by the declaration, not by matching the key's text per sample); the
+    keys of subjects that become another gateway's are undeclared with their
+    routes, and closing the gateway undeclares the rest."""
+    subjects = [f"p{i}" for i in range(6)]
+    sites = [IMU_SITES[n].raw_key for n in (1, 2)]
+    wanted = {f"{s}/{k}" for s in subjects for k in sites}
+    feeder, stop = client(router_endpoint), threading.Event()
+
+    def feed() -> None:
+        pubs = [(n, feeder.declare_publisher(k)) for n, k in enumerate(sorted(wanted), 1)]
+        seq = 0
+        while not stop.wait(0.02):
+            for node, pub in pubs:
+                sample = RawSample(Quat(node, (1.0, 0.0, 0.0, 0.0)), seq, time.time_ns(),
+                                   Source.IMU_CENTRAL)  # fmt: skip
+                pub.put(raw_sample.encode(sample))
+            seq += 1
+
+    def routed(gw: Gateway) -> tuple[set[str], set[str]]:
+        with gw._lock:
+            return set(gw._routes), set(gw._declared)
+
+    def wait(done: Any, timeout: float = 20.0) -> None:
+        deadline = time.monotonic() + timeout
+        while not done():
+            assert time.monotonic() < deadline, "timed out"
+            time.sleep(0.05)
+
+    thread = threading.Thread(target=feed, daemon=True)
+    thread.start()
+    sa, sb = client(router_endpoint), client(router_endpoint)
+    a = Gateway(sa, all_subjects=True, share="gw-a")
+    ra = Running(a.run)
+    b = rb = None
+    try:
+        wait(lambda: routed(a)[0] == wanted)  # alone: every subject is a's
+        assert routed(a)[1] == wanted
+        b = Gateway(sb, all_subjects=True, share="gw-b")
+        rb = Running(b.run)
+        wait(lambda: routed(b)[0] and not routed(a)[0] & routed(b)[0]
+             and routed(a)[0] | routed(b)[0] == wanted)  # fmt: skip
+        for gw in (a, b):
+            keys_routed, keys_declared = routed(gw)
+            assert keys_declared == keys_routed  # a's moved keys went with their routes
+            assert keys_routed < wanted
+    finally:
+        stop.set()
+        thread.join(timeout=5)
+        for running in (ra, rb):
+            if running is not None:
+                running.stop()
+        for gw in (a, b):
+            if gw is not None:
+                gw.close()
+                assert not gw._declared
+        for s in (sa, sb, feeder):
+            s.close()
