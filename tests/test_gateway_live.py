@@ -14,7 +14,7 @@ from typing import Any
 
 import pytest
 import zenoh
-from zenoh_helpers import Collector, Running, client
+from zenoh_helpers import Collector, Running, client, wait_until
 
 from bodynet.bench.gateway import feed_schedule
 from bodynet.clients.view import status_text
@@ -616,12 +616,6 @@ def test_the_raw_keys_a_gateway_serves_are_declared_to_zenoh(router_endpoint: st
         with gw._lock:
             return set(gw._routes), set(gw._declared)
 
-    def wait(done: Any, timeout: float = 20.0) -> None:
-        deadline = time.monotonic() + timeout
-        while not done():
-            assert time.monotonic() < deadline, "timed out"
-            time.sleep(0.05)
-
     thread = threading.Thread(target=feed, daemon=True)
     thread.start()
     sa, sb = client(router_endpoint), client(router_endpoint)
@@ -629,12 +623,13 @@ def test_the_raw_keys_a_gateway_serves_are_declared_to_zenoh(router_endpoint: st
     ra = Running(a.run)
     b = rb = None
     try:
-        wait(lambda: routed(a)[0] == wanted)  # alone: every subject is a's
+        wait_until(lambda: routed(a)[0] == wanted, 20.0, "a routing every key")  # alone
         assert routed(a)[1] == wanted
         b = Gateway(sb, all_subjects=True, share="gw-b")
         rb = Running(b.run)
-        wait(lambda: routed(b)[0] and not routed(a)[0] & routed(b)[0]
-             and routed(a)[0] | routed(b)[0] == wanted)  # fmt: skip
+        wait_until(lambda: bool(routed(b)[0]) and not routed(a)[0] & routed(b)[0]
+                   and routed(a)[0] | routed(b)[0] == wanted,
+                   20.0, "the keys split between a and b")  # fmt: skip
         for gw in (a, b):
             keys_routed, keys_declared = routed(gw)
             assert keys_declared == keys_routed  # a's moved keys went with their routes
