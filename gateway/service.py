@@ -243,21 +243,25 @@ class _Body:
         next frame is whole when the others deliver again, not a period after
         that site's next sample (which cost one tick in three at twenty
         unsynchronised bodies). A body a whole frame behind starts afresh."""
-        latest = {site: s.sample for site, s in self.latest.items()}
-        kept = self.latest.values()
-        behind = all(s.owed > 1 or now - s.arrived > STALE_S for s in kept)
+        latest: dict[Site, RawSample] = {}
+        stale, behind, gone = [], True, self.gone
+        for site, s in self.latest.items():
+            latest[site] = s.sample
+            if now - s.arrived > STALE_S:
+                stale.append(site.raw_key)
+            else:
+                behind = behind and s.owed > 1
+                if gone and site.raw_key in gone:
+                    stale.append(site.raw_key)
         ready = 0
-        for s in kept:
+        for s in self.latest.values():
             s.fresh = False
             if s.owed:
                 s.owed = 0 if behind else s.owed - 1
                 ready += s.owed
         self.unsolved_sites = 0
         self.ready_sites = ready
-        stale = sorted(
-            s.raw_key for s, v in self.latest.items()
-            if now - v.arrived > STALE_S or s.raw_key in self.gone
-        )  # fmt: skip
+        stale.sort()
         self.published_stale = set(stale)
         self.first_new = None
         self.solver.expect(self.alive)

@@ -317,10 +317,32 @@ class _Rows:
         self.axis = batch.axis[rows]  # (rows, 3 dofs, xyz)
 
 
+class _Plan:
+    """One body's joints between two of its measured segments (or the root and
+    one), for :meth:`BodySolver._solve_direct`: their ``rows`` in the batch
+    arrays, the indices in the measured segments of each one's ``parents`` (-1:
+    the unmeasured pelvis) and ``children``, where its dofs sit in the angle
+    vector (``index``) and its calibration pose's rotation inverted
+    (``cal_inv``, (rows, 3, 3)). What a batch of bodies gathers from each
+    (:class:`_Layout`), worked out once per set of measured segments."""
+
+    __slots__ = ("cal_inv", "children", "index", "parents", "rows")
+
+    def __init__(self, rows: np.ndarray, parents: np.ndarray, children: np.ndarray,
+                 index: np.ndarray, cal_inv: np.ndarray) -> None:  # fmt: skip
+        self.rows, self.parents, self.children = rows, parents, children
+        self.index, self.cal_inv = index, cal_inv
+
+
+_NO_PLAN = _Plan(*(np.zeros(0, dtype=int),) * 3, np.zeros((0, 3), dtype=int), np.zeros((0, 3, 3)))
+
+
 class _Layout:
     """Where the direct joints of a set of bodies' ticks sit in the batch arrays
-    (:meth:`BodySolver._solve_direct`): which sensors deliver changes rarely, so
-    this is worked out once for the same solvers and plans and then reused."""
+    (:meth:`BodySolver._solve_direct`), joined from the bodies' plans: which
+    sensors deliver changes rarely, so this is reused for the same solvers and
+    plans. Unsynchronised bodies come due in ever other sets: joining their
+    plans costs half of gathering each set from the batch."""
 
     __slots__ = ("cal_inv", "children", "index", "keys", "owner", "parents", "prep", "rows",
                  "unc_index")  # fmt: skip
@@ -328,21 +350,21 @@ class _Layout:
     def __init__(self, ticks: Sequence[_Tick], batch: _SplitBatch) -> None:
         self.keys = [(t.solver, t.plan) for t in ticks]
         plans = [t.plan for t in ticks]
-        counts = [len(p[0]) for p in plans]
+        counts = [len(p.rows) for p in plans]
+        sizes = [len(t.segs) for t in ticks]
         owner = np.repeat(np.arange(len(ticks)), counts)
-        offsets = np.repeat(np.cumsum([0, *(len(t.segs) for t in ticks[:-1])]), counts)
-        rows = np.concatenate([p[0] for p in plans])
-        parents = np.concatenate([p[1] for p in plans])
-        self.children = np.concatenate([p[2] for p in plans]) + offsets
+        offsets = np.repeat(np.cumsum([0, *sizes[:-1]]), counts)
+        rows = np.concatenate([p.rows for p in plans])
+        parents = np.concatenate([p.parents for p in plans])
+        self.children = np.concatenate([p.children for p in plans]) + offsets
         # an unmeasured pelvis (-1) is the identity, put after every measured segment
-        measured = sum(len(t.segs) for t in ticks)
-        self.parents = np.where(parents >= 0, parents + offsets, measured)
+        self.parents = np.where(parents >= 0, parents + offsets, sum(sizes))
         self.owner, self.rows = owner, rows
-        self.index = batch.angle_index[rows]
+        self.index = np.concatenate([p.index for p in plans])
         # each body's own calibration pose (T or N): the total rotations are from it
-        self.cal_inv = np.stack([t.solver._calibration_inv for t in ticks])[owner, rows]
+        self.cal_inv = np.concatenate([p.cal_inv for p in plans])
         self.prep = batch.prepare(rows)
-        self.unc_index = [self.index[owner == b] for b in range(len(ticks))]
+        self.unc_index = [p.index for p in plans]
 
     def fits(self, ticks: Sequence[_Tick]) -> bool:
         return len(ticks) == len(self.keys) and all(
@@ -471,8 +493,8 @@ class _Sorted:
         self.modules: list[tuple[str, int]] = []  # SmartSuit modules: segment, sample
         # the used sensors' turns into the body's heading and mounts' inverses, stacked
         self.lefts, self.mounts = _NO_FRAMES, _NO_FRAMES
-        # the joints between two of ``segs``: rows, parent and child indices (see _direct_plan)
-        self.plan: tuple[np.ndarray, np.ndarray, np.ndarray] = (np.zeros(0, dtype=int),) * 3
+        # the joints between two of ``segs`` (see _direct_plan)
+        self.plan = _NO_PLAN
         self.flagged: list[str] | None = None  # BodySolver._flag_uncalibrated's dofs
         self.pelvis = -1  # where the pelvis is in ``segs`` (-1: no sensor on it)
         # what the pelvis rests on -> the reasons of the joints of ``plan``
@@ -557,7 +579,7 @@ class BodySolver:
         self._memory = _Memory()
         self._all_mounted = False  # assume_calibrated
         self._sites: dict[Site, tuple[str, np.ndarray, str, bool, np.ndarray, bool, bool]] = {}
-        self._plans: dict[tuple[str, ...], tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+        self._plans: dict[tuple[str, ...], _Plan] = {}
         self._layouts: dict[tuple[tuple[int, int], ...], _Layout] = {}  # see _solve_direct
         # the sensors' stacked frames (turns, mounts) by the sensors used, see _frames
         self._stacked: dict[tuple[Site, ...], tuple[np.ndarray, np.ndarray]] = {}
@@ -783,7 +805,7 @@ class BodySolver:
         clamped to its range of motion does not move its child's."""
         batch = self._batch
         plans = [tick.plan for tick in ticks]
-        if not any(len(p[0]) for p in plans):
+        if not any(len(p.rows) for p in plans):
             return
         key = tuple((id(t.solver), id(t.plan)) for t in ticks)
         layout = self._layouts.get(key)
@@ -812,7 +834,8 @@ class BodySolver:
         angles[:, -1] = 0.0  # the absent dofs' column
         rel[owner, rows] = total
         start = 0
-        for tick, (mine, _, _) in zip(ticks, plans, strict=True):
+        for tick, plan in zip(ticks, plans, strict=True):
+            mine = plan.rows
             tick.direct_rows, tick.direct_rot = mine, matrices[start : start + len(mine)]
             start += len(mine)
             # what an unmeasured pelvis rests on changes with the topology, not the sorting
@@ -832,7 +855,8 @@ class BodySolver:
         on besides their measurement (an uncalibrated sensor; ``pelvis``, what the
         pelvis rests on, where it is not measured): the same for every tick of
         the same sorting and pelvis (:class:`_Sorted`)."""
-        mine, parent_at, child_at = tick.plan
+        plan = tick.plan
+        mine, parent_at, child_at = plan.rows, plan.parents, plan.children
         names = self._batch.names
         out: dict[str, frozenset[str]] = {}
         if not tick.uncal:  # every measured segment rests on its measurement alone
@@ -897,10 +921,9 @@ class BodySolver:
             self._stacked[used] = stacked
         return stacked
 
-    def _direct_plan(self, measured: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def _direct_plan(self, measured: tuple[str, ...]) -> _Plan:
         """For segments ``measured`` (in this order), the joints between two of them
-        (or the root and one): their rows, and the indices in ``measured`` of their
-        parent (-1: the unmeasured pelvis) and child segments."""
+        (or the root and one): see :class:`_Plan`."""
         plan = self._plans.get(measured)
         if plan is None:
             at = {s: i for i, s in enumerate(measured)}
@@ -909,11 +932,14 @@ class BodySolver:
                 for j in self.skeleton.joints
                 if j.child in at and (j.parent in at or j.parent == "pelvis")
             ]  # fmt: skip
-            plan = tuple(np.array([d[k] for d in direct], dtype=int) for k in range(3))  # type: ignore[assignment]
+            rows, parents, children = (np.array([d[k] for d in direct], dtype=int)
+                                       for k in range(3))  # fmt: skip
+            plan = _Plan(rows, parents, children, self._batch.angle_index[rows],
+                         self._calibration_inv[rows])  # fmt: skip
             if len(self._plans) >= 64:  # which sensors deliver changes rarely: a small cache
                 self._plans.clear()
-            self._plans[measured] = plan  # type: ignore[assignment]
-        return plan  # type: ignore[return-value]
+            self._plans[measured] = plan
+        return plan
 
     def _solve_rest(self, tick: _Tick) -> None:
         """The joints not split from two orientation sensors: from one sensor and

@@ -375,7 +375,8 @@ def test_bodies_solved_together_match_each_solved_alone() -> None:
     every body (angles, flags, total rotations, poses) must be what that body
     solved alone gives, tick by tick, whatever else is in the batch. Bodies of
     every kind at once: IMU (calibrated, random mounts), SmartSuit, hybrid, other
-    segment lengths, and one whose sensors drop out for a while."""
+    segment lengths, and one whose sensors drop out for a while; all of them due,
+    or only some."""
     tags = imu_tags()
     hybrid_tags = [t for t in tags if t.site.name in ("upperarm", "chest", "sacrum")]
     hybrid = hybrid_tags + [s for s in smartsuit_sensors([LEFT_ARM]) if s.site.name != "shoulder"]
@@ -414,8 +415,11 @@ def test_bodies_solved_together_match_each_solved_alone() -> None:
                 if not (b == 4 and 100 <= tick < 150 and s.site.branch == LEFT_ARM)
             }
             work.append((together[b], samples))
+        # unsynchronised bodies come due in ever other sets: now and then only some
+        chosen = [b for b in range(len(work)) if tick % 5 != 3 or (b + tick) % 3]
+        work = [work[b] for b in chosen]
         batch = solve_bodies(work) if tick % 7 else solve_bodies(work[::-1])[::-1]
-        for b, ((_, samples), got) in enumerate(zip(work, batch, strict=True)):
+        for b, (_, samples), got in zip(chosen, work, batch, strict=True):
             want = alone[b].solve(samples)
             assert got.flags == want.flags, (tick, b)
             assert got.reasons == want.reasons, (tick, b)
