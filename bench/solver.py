@@ -10,7 +10,9 @@ Both run tick after tick, the code and data hot in the caches. A gateway ticks
 every 10 ms and waits between, and here a tick's CPU grows with the wait
 (caches refilled: on this shared VM, 2-3x after 9 ms, spinning or sleeping):
 ``paced`` solves the batch once a period, as live, and counts the CPU of the
-ticks alone.
+ticks alone. Unsynchronised bodies come due in ever other sets (see
+gateway/rounds.py), so each number of bodies is measured twice: all of them
+due every tick, and a new set of them each tick (:func:`due_sets`).
 """
 
 from __future__ import annotations
@@ -19,6 +21,8 @@ import json
 import time
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 from bodynet.core.messages import RawSample, Source
 from bodynet.core.subject import Profile
@@ -53,51 +57,72 @@ def _tick(work: list[tuple[BodySolver, dict[Any, RawSample]]], seq: int) -> None
         whole_body_message(output, seq, [])
 
 
+def due_sets(bodies: int, varying: bool) -> list[list[int]]:
+    """Which of ``bodies`` are due together, tick after tick (looped): all of
+    them, or (``varying``) between half and all but one, a different set each
+    tick, as unsynchronised bodies come due (seeded)."""
+    if not varying:
+        return [list(range(bodies))]
+    rng = np.random.default_rng(0)
+    return [sorted(rng.choice(bodies, int(rng.integers(max(1, bodies // 2), bodies)),
+                              replace=False).tolist())
+            for _ in range(FRAMES)]  # fmt: skip
+
+
 def _per_body_tick_us(bodies: int, seconds: float, batched: bool,
-                      profile: Profile, frames: list[dict[Any, RawSample]]) -> float:  # fmt: skip
+                      profile: Profile, frames: list[dict[Any, RawSample]],
+                      varying: bool = False) -> float:  # fmt: skip
     solvers = [BodySolver(profile) for _ in range(bodies)]
-    ticks, start = 0, time.perf_counter()
+    sets = due_sets(bodies, varying)
+    ticks, solved, start = 0, 0, time.perf_counter()
     while time.perf_counter() - start < seconds or ticks < 3:
-        work = [(s, frames[(ticks + b) % FRAMES]) for b, s in enumerate(solvers)]
+        work = [(solvers[b], frames[(ticks + b) % FRAMES]) for b in sets[ticks % len(sets)]]
         if batched:
             _tick(work, ticks)
         else:
             for one in work:
                 _tick([one], ticks)
         ticks += 1
-    return 1e6 * (time.perf_counter() - start) / ticks / bodies
+        solved += len(work)
+    return 1e6 * (time.perf_counter() - start) / solved
 
 
 PERIOD_S = 0.01  # the gateway's tick at 100 Hz
 
 
 def _paced_per_body_tick_us(bodies: int, seconds: float, profile: Profile,
-                            frames: list[dict[Any, RawSample]]) -> float:  # fmt: skip
+                            frames: list[dict[Any, RawSample]],
+                            varying: bool = False) -> float:  # fmt: skip
     """CPU per body-tick of the batch solved once a period, sleeping between."""
     solvers = [BodySolver(profile) for _ in range(bodies)]
-    ticks, cpu, start = 0, 0.0, time.perf_counter()
+    sets = due_sets(bodies, varying)
+    ticks, solved, cpu, start = 0, 0, 0.0, time.perf_counter()
     while time.perf_counter() - start < seconds or ticks < 3:
-        work = [(s, frames[(ticks + b) % FRAMES]) for b, s in enumerate(solvers)]
+        work = [(solvers[b], frames[(ticks + b) % FRAMES]) for b in sets[ticks % len(sets)]]
         due = start + (ticks + 1) * PERIOD_S
         c = time.thread_time()
         _tick(work, ticks)
         cpu += time.thread_time() - c
         ticks += 1
+        solved += len(work)
         time.sleep(max(0.0, due - time.perf_counter()))
-    return 1e6 * cpu / ticks / bodies
+    return 1e6 * cpu / solved
 
 
 def run(seconds: float = 2.0, out_dir: Path = Path("bench-results"),
         bodies: tuple[int, ...] = (1, 5, 20)) -> dict[str, Any]:  # fmt: skip
-    """Measure each number of bodies alone, batched, and batched once a period;
-    print a table; write solver.{json,md}."""
+    """Measure each number of bodies alone, batched, and batched once a period,
+    all of them due each tick and (three bodies or more) varying sets of them
+    (:func:`due_sets`); print a table; write solver.{json,md}."""
     profile, frames = _frames()
     rows = []
-    for n in bodies:
-        alone = _per_body_tick_us(n, seconds, False, profile, frames)
-        batched = _per_body_tick_us(n, seconds, True, profile, frames)
-        paced = _paced_per_body_tick_us(n, seconds, profile, frames)
-        rows.append({"bodies": n, "alone_us": alone, "batched_us": batched,
+    for n, varying in [(n, v) for n in bodies for v in (False, True) if n >= 3 or not v]:
+        alone = _per_body_tick_us(n, seconds, False, profile, frames, varying)
+        batched = _per_body_tick_us(n, seconds, True, profile, frames, varying)
+        paced = _paced_per_body_tick_us(n, seconds, profile, frames, varying)
+        sizes = [len(s) for s in due_sets(n, varying)]
+        rows.append({"bodies": n, "varying": varying, "due": (min(sizes), max(sizes)),
+                     "alone_us": alone, "batched_us": batched,
                      "speedup": alone / batched,
                      "body_ticks_per_s_batched": 1e6 / batched,
                      "paced_us": paced, "paced_over_batched": paced / batched})  # fmt: skip
@@ -106,7 +131,9 @@ def run(seconds: float = 2.0, out_dir: Path = Path("bench-results"),
              "per body-tick | paced / back to back |",
              "|---:|---:|---:|---:|---:|---:|---:|"]  # fmt: skip
     for r in rows:
-        lines.append(f"| {r['bodies']} | {r['alone_us']:.0f} | {r['batched_us']:.0f} "
+        lo, hi = r["due"]
+        due = f"{lo}-{hi} of {r['bodies']}, a new set each tick" if r["varying"] else r["bodies"]
+        lines.append(f"| {due} | {r['alone_us']:.0f} | {r['batched_us']:.0f} "
                      f"| {r['speedup']:.2f} | {r['body_ticks_per_s_batched']:.0f} "
                      f"| {r['paced_us']:.0f} | {r['paced_over_batched']:.2f} |")  # fmt: skip
     table = "\n".join(lines) + "\n"

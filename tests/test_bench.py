@@ -33,10 +33,14 @@ def test_tiny_solver_benchmark_compares_batched_with_alone(tmp_path: Path) -> No
     from bodynet.bench import solver
 
     result = solver.run(seconds=0.01, out_dir=tmp_path, bodies=(1, 3))
-    assert [r["bodies"] for r in result["runs"]] == [1, 3]
+    # three bodies twice: all due each tick, and a new set of one or two of them each tick
+    assert [(r["bodies"], r["varying"]) for r in result["runs"]] == [(1, False), (3, False),
+                                                                     (3, True)]  # fmt: skip
+    assert result["runs"][2]["due"] == (1, 2)
     assert all(r["alone_us"] > 0 and r["batched_us"] > 0 for r in result["runs"])
     assert all(r["paced_us"] > 0 for r in result["runs"])  # once a period, as live
     assert "| 3 |" in (tmp_path / "solver.md").read_text()
+    assert "| 1-2 of 3, a new set each tick |" in (tmp_path / "solver.md").read_text()
     assert "batched once a period" in (tmp_path / "solver.md").read_text()
 
 
