@@ -31,6 +31,7 @@ import contextlib
 import gc
 import json
 import logging
+import math
 import queue
 import threading
 import time
@@ -89,7 +90,7 @@ class _Site:
     (``fields``) and made a :class:`RawSample` only when read: most samples are
     superseded before a solve reads them when the gateway is busy."""
 
-    __slots__ = ("_sample", "arrived", "fields", "fresh", "history", "owed")
+    __slots__ = ("_sample", "arrived", "fields", "fresh", "history", "kept_at", "owed")
 
     def __init__(self, sample: RawSample, arrived: float) -> None:
         self._sample: RawSample | None = sample
@@ -103,6 +104,9 @@ class _Site:
         # (arrival, w, x, y, z): tuples of floats only, which Python's cyclic collector
         # stops tracking, so seconds of history do not lengthen its full passes
         self.history: deque[tuple[float, float, float, float, float]] | None = None
+        # the sample time of the history's last entry, beside it: every sample asks,
+        # and a field of this record is at hand where the history's last tuple is not
+        self.kept_at = -math.inf
 
     @property
     def sample(self) -> RawSample:
@@ -197,11 +201,12 @@ class _Body:
         # kept by the sample's own time: the worker takes samples in rounds, and
         # by arrival a round's samples would all have one time (one kept a round)
         t = fields[2] / 1e9
-        hist = kept.history
-        if hist is None:
-            hist = kept.history = deque()
-        if not hist or t - hist[-1][0] >= HISTORY_STEP_S:
+        if t - kept.kept_at >= HISTORY_STEP_S:
+            hist = kept.history
+            if hist is None:
+                hist = kept.history = deque()
             hist.append((t, *fields[4:]))
+            kept.kept_at = t
             while t - hist[0][0] > HISTORY_S:
                 hist.popleft()
 
