@@ -201,6 +201,20 @@ def stop_gateway(gw: Gateway, running: Running) -> None:
     gw.close()
 
 
+def wait_after_restart(rec: Recorder, sid: str, n: int, gw: Gateway, poses: Collector) -> None:
+    """``rec.wait_for(sid, n)`` after a gateway restart; if the stream stops there
+    (seen once, 2026-12-06, not since), the failure says where the poses stopped."""
+    try:
+        rec.wait_for(sid, n)
+    except AssertionError as exc:
+        listened = {s: dict(b.matching) for s, b in gw._bodies.items()}
+        raise AssertionError(
+            f"{exc}; the restarted gateway: {gw.health()}, listened to: "
+            f"{listened}, poses on Zenoh: {len(poses.seen)} seen"
+            f" + {poses.queue.qsize()} queued"
+        ) from exc
+
+
 def test_lsl_streams_every_pose_through_gateway_and_router_restarts(tmp_path: Path) -> None:
     subject = f"lsl{os.getpid()}"
     endpoint = f"tcp/127.0.0.1:{free_port()}"
@@ -236,7 +250,7 @@ def test_lsl_streams_every_pose_through_gateway_and_router_restarts(tmp_path: Pa
         stop_gateway(gw, gw_run)  # a gateway restart: a new process would be the same to us
         n = len(rec.samples[sid])
         gw, gw_run = start_gateway()
-        rec.wait_for(sid, n + 20)
+        wait_after_restart(rec, sid, n + 20, gw, poses)
 
         router.close()  # a router restart; every client reconnects by itself
         n = len(rec.samples[sid])
