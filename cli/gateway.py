@@ -76,6 +76,10 @@ def cmd_gateway(args: argparse.Namespace) -> int:
     finally:
         gateway.close()
         session.close()
+    if gateway.session_lost:
+        print("bodynet gateway: the Zenoh session closed under the gateway; stopped",
+              file=sys.stderr)  # fmt: skip
+        return 1
     return 0
 
 

@@ -167,7 +167,9 @@ class _Body:
                     lambda status, view=view: self.matching.__setitem__(view, status.matching)
                 )
             )
-            self.matching[view] = pub.matching_status.matching
+            # the status read now can be older than a notification the listener has had
+            # meanwhile (a subscriber arriving): that one stands
+            self.matching.setdefault(view, pub.matching_status.matching)
 
     def take(self, site: Site, sample: RawSample, now: float) -> _Site:
         """Keep a sample as its site's latest (and, for T-pose, in its recent
@@ -371,6 +373,7 @@ class Gateway:
         self.solver_errors = 0
         self.refused_subjects = 0
         self.solves = 0  # batched solves: ticks / solves is the mean batch
+        self.session_lost = False  # run() ended because the session was closed
         self.rounds = Rounds(self.period_s)  # when whole frames are solved (batching)
         # bodies whose frame is whole, waiting for the round (-> since when), oldest first
         self._held: dict[_Body, float] = {}
@@ -742,24 +745,33 @@ class Gateway:
         while it solves, and the next round takes them all. Under load bodies
         are solved less often, in larger batches (cheaper per body), each with
         its newest samples; no sample is lost and none waits behind a backlog
-        of solves."""
+        of solves.
+
+        If the Zenoh session is closed under it, it returns, logged and with
+        ``session_lost`` set: nothing more can come in or go out."""
         # What exists before serving (modules, models) is left out of the cyclic
         # collector's full passes, which otherwise paused this loop for tens of ms.
         gc.freeze()
         last_sample = time.monotonic()
-        while not stop.is_set():
-            now = time.monotonic()
-            taken, touched, more = self._take_pending(now)
-            acted, wake = self._round(now, touched)
-            if taken:
-                last_sample = now
-            # after a solve or a cut-short take, look again at once (samples came
-            # meanwhile); else poll again soon, or when a frame may be whole
-            if not (acted or more):
-                until = self._idle_until(now, wake, now - last_sample < 1.0)
-                if (idle := until - (start := time.monotonic())) > 0:
-                    time.sleep(idle)
-                    self.rounds.slept(time.monotonic() - start)
+        try:
+            while not stop.is_set():
+                now = time.monotonic()
+                taken, touched, more = self._take_pending(now)
+                acted, wake = self._round(now, touched)
+                if taken:
+                    last_sample = now
+                # after a solve or a cut-short take, look again at once (samples came
+                # meanwhile); else poll again soon, or when a frame may be whole
+                if not (acted or more):
+                    until = self._idle_until(now, wake, now - last_sample < 1.0)
+                    if (idle := until - (start := time.monotonic())) > 0:
+                        time.sleep(idle)
+                        self.rounds.slept(time.monotonic() - start)
+        except zenoh.ZError as exc:
+            if not self.session.is_closed():
+                raise
+            self.session_lost = True
+            log.error("gateway: its Zenoh session was closed (%s); the gateway stops", exc)
 
     def _idle_until(self, now: float, wake: float, flowing: bool) -> float:
         """Until when the idle worker sleeps: ``wake`` (a body due) at the latest;

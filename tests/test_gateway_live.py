@@ -473,6 +473,44 @@ def test_a_body_whose_tick_fails_costs_no_other_body_its_pose(
         session.close()
 
 
+def test_a_session_closed_under_the_gateway_ends_it_cleanly(
+    router_endpoint: str, zsession: zenoh.Session, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The worker, taking samples and publishing poses, whose Zenoh session is
+    closed under it returns with ``session_lost`` set instead of dying of the
+    ``ZError``."""
+    failures: list[BaseException | None] = []
+    monkeypatch.setattr(threading, "excepthook", lambda args: failures.append(args.exc_value))
+    tags = imu_tags()
+    readings, _ = BodyEmulator(ROUTINES["tpose"], tags, seed=2).sample(0.0)
+    session, feeder = client(router_endpoint), client(router_endpoint)
+    pubs = [feeder.declare_publisher(t.site.raw_key) for t in tags]
+    poses = Collector(zsession, keys.pose_key(), pose.decode)
+    gw = Gateway(session)
+    stop = threading.Event()
+    worker = threading.Thread(target=gw.run, args=(stop,), daemon=True)
+    worker.start()
+    try:
+        for k in range(100):  # poses flowing: the close comes while the worker is busy
+            for pub, reading in zip(pubs, readings, strict=True):
+                sample = RawSample(reading, k, time.time_ns(), Source.IMU_CENTRAL)
+                pub.put(raw_sample.encode(sample))
+            time.sleep(0.01)
+            if k == 60:
+                poses.wait_for(lambda seen: len(seen) >= 5)
+                session.close()
+        worker.join(timeout=10)
+        assert not worker.is_alive()
+        assert not stop.is_set()
+        assert gw.session_lost
+        assert failures == []
+    finally:
+        stop.set()
+        gw.close()
+        session.close()
+        feeder.close()
+
+
 def test_the_tpose_history_is_trimmed_as_samples_come(router_endpoint: str) -> None:
     """A site's history keeps the last ``HISTORY_S`` at ``HISTORY_STEP_S``, trimmed
     by the samples themselves (nothing else trims it any more), and the window
