@@ -7,8 +7,13 @@ writes it as TOML a user can read and edit:
 ```toml
 version = 1
 subject = "subject-1"
+pose = "tpose"         # the calibration pose: tpose or npose
+heading = "auto"       # auto: found from motion; fixed: the subject faced +X of the tags' frame
+drift = "auto"         # which joints hold drifting tags' headings: auto, joints, hinges, off
+accel_counts_per_g = 1024.0    # SmartSuit accelerometer counts in 1 g
+accel_filter = 0.5     # weight of a new accelerometer sample in the tilt filter, (0, 1]
 
-[segments]             # metres
+[segments]             # metres, each above 0 and at most 3 (DEFAULT_LENGTHS names them)
 upperarm = 0.293
 forearm = 0.265
 
@@ -16,10 +21,6 @@ forearm = 0.265
 radius_mm = 26.93
 sf_travel_mm = [0.0, 14.1, 28.0, 39.1, 48.6, 52.2]
 sf = [1.0, 1.0, 1.007, 1.084, 1.161, 1.261]
-
-pose = "tpose"         # the calibration pose: tpose or npose
-heading = "auto"       # auto: found from motion; fixed: the subject faced +X of the tags' frame
-drift = "auto"         # which joints hold drifting tags' headings: auto, joints, hinges, off
 
 [imu_mounts]           # sensor orientation in its segment (w, x, y, z), from calibration
 "body/arm/left/upperarm/raw" = [1.0, 0.0, 0.0, 0.0]
@@ -34,12 +35,15 @@ axis = "+z"
 [trackers]             # a sensor that says who it is (SlimeVR: MAC-sensor) -> its site
 "aabbccddeeff-0" = "left-arm/upperarm"
 ```
+
+Every key is one of these (an unknown one, a typo, is refused by name) and every
+number is finite and in its range (``from_dict``).
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from types import MappingProxyType
 from typing import Any
@@ -48,6 +52,7 @@ from .calibration import OleCalibration, default_ole
 from .codecs.slimevr import normalise_tracker_id
 from .keys import KeySpaceError, site_name, site_named
 from .profile import OLE_DOF, SMARTSUIT_SITES
+from .skeleton import DEFAULT_LENGTHS
 
 VERSION = 1
 QuatWxyz = tuple[float, float, float, float]
@@ -74,6 +79,33 @@ HEADING_MODES = ("auto", "fixed", "independent")
 DRIFT_MODES = ("auto", "joints", "hinges", "off")
 #: Sensor axes a declared heading reference may name.
 AXES = ("+x", "-x", "+y", "-y", "+z", "-z")
+
+#: The keys of a profile that hold tables.
+TABLES = ("ole", "imu_mounts", "segments", "trackers", "imu_headings", "heading_reference")
+#: The keys a profile may hold (what ``Profile.to_dict`` writes): any other is refused
+#: by name, as a misspelt key would otherwise be dropped (a saved profile drops it too).
+KEYS = (
+    "version",
+    "subject",
+    "accel_counts_per_g",
+    "accel_filter",
+    "pose",
+    "heading",
+    "drift",
+    *TABLES,
+)
+#: The longest a segment (``[segments]``, metres) may be: a human's are all under 1 m,
+#: and a length far above that is a mistake (1e308 m overflows the solver to null).
+MAX_SEGMENT_M = 3.0
+#: ``accel_counts_per_g``'s range: 1 for a sensor that reports in g, 9.81 in m/s^2,
+#: 16384 for +-2 g at 16 bits (0 divides by zero in the solver's tilt).
+ACCEL_COUNTS_PER_G = (0.001, 1e6)
+#: The norm an IMU mount (w, x, y, z) may have: it is normalised where it is used, so
+#: one far from 1 is fine, but not one of about 0 (no rotation) or one that overflows.
+MOUNT_NORM = (1e-3, 1e3)
+#: The largest heading (deg, either way) in ``[imu_headings]``; the gateway writes
+#: them within +-180.
+MAX_HEADING_DEG = 360.0
 
 
 def default_ole_table() -> dict[str, OleCalibration]:
@@ -178,11 +210,13 @@ class Profile:
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any]) -> Profile:
+        """The profile ``data`` (a parsed TOML file) holds; ``ProfileError`` names the
+        first key that is unknown, of the wrong type or out of its range (``KEYS``)."""
         version = data.get("version")
         if version != VERSION:
             raise ProfileError(f"profile version {version!r}; this bodynet reads version {VERSION}")
-        tables = ("ole", "imu_mounts", "segments", "trackers", "imu_headings", "heading_reference")
-        for name in tables:  # a list or a number where a table belongs: say so, by name
+        _known("", data, KEYS)
+        for name in TABLES:  # a list or a number where a table belongs: say so, by name
             value = data.get(name, {})
             if not isinstance(value, Mapping):
                 raise ProfileError(f"{name} must be a table ([{name}]), "
@@ -191,55 +225,124 @@ class Profile:
             if not isinstance(c, Mapping):
                 raise ProfileError(f"ole.{name} must be a table (radius_mm, sf_travel_mm, sf), "
                                    f"not {type(c).__name__} {c!r:.40}")  # fmt: skip
+        _known("ole.", data.get("ole", {}), tuple(default_ole_table()))
+        _known("segments.", data.get("segments", {}), tuple(DEFAULT_LENGTHS))
+        _known("heading_reference.", data.get("heading_reference", {}), ("key", "axis"))
         try:
             ole = dict(default_ole_table())
             for name, c in data.get("ole", {}).items():
+                _known(f"ole.{name}.", c, ("radius_mm", "sf_travel_mm", "sf"))
                 ole[name] = OleCalibration(
                     float(c["radius_mm"]),
                     tuple(map(float, c.get("sf_travel_mm", [0.0]))),
                     tuple(map(float, c.get("sf", [1.0]))),
                 )
-            mounts = {}
-            for key, q in data.get("imu_mounts", {}).items():
-                if len(q) != 4:
-                    raise ProfileError(f"imu_mounts[{key!r}] needs 4 numbers (w, x, y, z)")
-                w, x, y, z = map(float, q)
-                mounts[key] = (w, x, y, z)
-            numbers = [*(v for q in mounts.values() for v in q),
-                       *map(float, data.get("segments", {}).values()),
-                       float(data.get("accel_counts_per_g", 1024.0))]  # fmt: skip
-            if not all(math.isfinite(v) for v in numbers):
-                raise ProfileError("a number that is not finite (nan or inf)")
             trackers = {}
             for tracker, site in data.get("trackers", {}).items():
                 try:
                     trackers[normalise_tracker_id(str(tracker))] = site_name(site_named(str(site)))
                 except (ValueError, KeySpaceError) as exc:
                     raise ProfileError(f"trackers[{tracker!r}]: {exc}") from None
-            accel_filter = float(data.get("accel_filter", 0.5))
-            if not 0.0 < accel_filter <= 1.0:
-                raise ProfileError(f"accel_filter must be in (0, 1], not {accel_filter}")
             ref = data.get("heading_reference")
             reference = (str(ref["key"]), str(ref["axis"])) if ref is not None else None
             return cls(
                 pose=str(data.get("pose", "tpose")),
                 heading=str(data.get("heading", "auto")),
                 drift=str(data.get("drift", "auto")),
-                imu_headings=MappingProxyType(
-                    {str(k): float(v) for k, v in data.get("imu_headings", {}).items()}
-                ),
+                imu_headings=MappingProxyType(_headings(data.get("imu_headings", {}))),
                 heading_reference=reference,
                 subject=str(data.get("subject", "subject-1")),
-                lengths=MappingProxyType(
-                    {k: float(v) for k, v in data.get("segments", {}).items()}
-                ),
+                lengths=MappingProxyType(_lengths(data.get("segments", {}))),
                 ole=MappingProxyType(ole),
-                imu_mounts=MappingProxyType(mounts),
+                imu_mounts=MappingProxyType(_mounts(data.get("imu_mounts", {}))),
                 trackers=MappingProxyType(trackers),
-                accel_counts_per_g=float(data.get("accel_counts_per_g", 1024.0)),
-                accel_filter=accel_filter,
-            )
+                accel_counts_per_g=_within(
+                    "accel_counts_per_g", data.get("accel_counts_per_g", 1024.0),
+                    ACCEL_COUNTS_PER_G, "counts of the accelerometer in 1 g",
+                ),
+                accel_filter=_within(
+                    "accel_filter", data.get("accel_filter", 0.5), (0.0, 1.0),
+                    "the weight of a new accelerometer sample", low_open=True,
+                ),
+            )  # fmt: skip
         except (KeyError, TypeError, ValueError, AttributeError) as exc:
             if isinstance(exc, ProfileError):
                 raise
             raise ProfileError(f"bad profile: {exc}") from None
+
+
+def _known(where: str, table: Mapping[str, Any], names: tuple[str, ...]) -> None:
+    """Refuse a key of ``table`` (``where`` names it, "ole." say) not in ``names``:
+    a misspelt key would otherwise be dropped without a word."""
+    for key in table:
+        if key not in names:
+            raise ProfileError(f"unknown key {where}{key} (known here: {', '.join(names)})")
+
+
+def _number(name: str, value: object) -> float:
+    """``value`` as a finite float; ``ProfileError`` naming ``name`` if it is not one."""
+    if isinstance(value, bool) or not isinstance(value, int | float | str):
+        raise ProfileError(f"{name} must be a number, not {type(value).__name__} {value!r:.40}")
+    try:
+        number = float(value)
+    except ValueError:
+        raise ProfileError(f"{name} must be a number, not {value!r:.40}") from None
+    if not math.isfinite(number):
+        raise ProfileError(f"{name} must be a finite number, not {number}")
+    return number
+
+
+def _within(
+    name: str,
+    value: object,
+    bounds: tuple[float, float],
+    what: str,
+    *,
+    unit: str = "",
+    low_open: bool = False,
+) -> float:
+    """``value`` as a number in ``bounds`` (above the low one if ``low_open``)."""
+    number = _number(name, value)
+    low, high = bounds
+    if not (low < number if low_open else low <= number) or number > high:
+        raise ProfileError(f"{name} must be {'above' if low_open else 'at least'} {low:g}{unit} "
+                           f"and at most {high:g}{unit} ({what}), not {number:g}")  # fmt: skip
+    return number
+
+
+def _lengths(segments: Mapping[str, Any]) -> dict[str, float]:
+    return {
+        str(k): _within(
+            f"segments.{k}", v, (0.0, MAX_SEGMENT_M), "a segment's length", unit=" m", low_open=True
+        )
+        for k, v in segments.items()
+    }
+
+
+def _headings(headings: Mapping[str, Any]) -> dict[str, float]:
+    return {
+        str(k): _within(
+            f"imu_headings[{k!r}]",
+            v,
+            (-MAX_HEADING_DEG, MAX_HEADING_DEG),
+            "a tag's heading",
+            unit=" deg",
+        )
+        for k, v in headings.items()
+    }
+
+
+def _mounts(mounts: Mapping[str, Any]) -> dict[str, QuatWxyz]:
+    out = {}
+    for key, q in mounts.items():
+        name = f"imu_mounts[{key!r}]"
+        if isinstance(q, str | bytes) or not isinstance(q, Sequence) or len(q) != 4:
+            raise ProfileError(f"{name} needs 4 numbers (w, x, y, z), not {q!r:.40}")
+        w, x, y, z = (_number(name, v) for v in q)
+        low, high = MOUNT_NORM
+        if not low <= math.hypot(w, x, y, z) <= high:
+            raise ProfileError(f"{name} must be a rotation (w, x, y, z) of norm at least {low:g} "
+                               f"and at most {high:g} (normalised where used), "
+                               f"not {[w, x, y, z]}")  # fmt: skip
+        out[str(key)] = (w, x, y, z)
+    return out

@@ -87,3 +87,95 @@ def test_bad_profiles_say_why(tmp_path: Path, text: str, message: str) -> None:
     path.write_text(text)
     with pytest.raises(ProfileError, match=message):
         profile_file.load(path)
+
+
+MOUNT = "'body/arm/left/upperarm/raw'"
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        ("accel_counts_per_g = 0", r"accel_counts_per_g must be at least 0\.001 .*, not 0$"),
+        ("accel_counts_per_g = -1024", r"accel_counts_per_g must be .*, not -1024$"),
+        ("accel_counts_per_g = inf", r"accel_counts_per_g must be a finite number, not inf"),
+        ("accel_counts_per_g = true", r"accel_counts_per_g must be a number, not bool"),
+        ("accel_filter = nan", r"accel_filter must be a finite number, not nan"),
+        ("[segments]\nforearm = 0", r"segments\.forearm must be above 0 m .*, not 0$"),
+        ("[segments]\nthigh = -0.4", r"segments\.thigh must be above 0 m .*, not -0\.4$"),
+        ("[segments]\nforearm = 1e300", r"segments\.forearm must be .* at most 3 m .*not 1e\+300"),
+        ("[segments]\nshank = 3.5", r"segments\.shank must be .* at most 3 m .*not 3\.5$"),
+        ("[segments]\nshank = 'long'", r"segments\.shank must be a number, not 'long'"),
+        ("[segments]\nupperam = 0.3", r"unknown key segments\.upperam \(known here: upperarm, "),
+        ("[imu_headings]\n'a/b/raw' = nan", r"imu_headings\['a/b/raw'\] must be a finite number"),
+        ("[imu_headings]\n'a/b/raw' = -inf", r"imu_headings\['a/b/raw'\] must be a finite"),
+        ("[imu_headings]\n'a/b/raw' = 1e300", r"imu_headings\['a/b/raw'\] must be at least -360"),
+        (f"[imu_mounts]\n{MOUNT} = [0, 0, 0, 0]", r"imu_mounts\[.*\] must be a rotation .*norm"),
+        (f"[imu_mounts]\n{MOUNT} = [1e300, 0, 0, 0]", r"norm at least 0\.001 and at most 1000"),
+        (f"[imu_mounts]\n{MOUNT} = [1, 0, nan, 0]", r"imu_mounts\[.*\] must be a finite number"),
+        (f"[imu_mounts]\n{MOUNT} = 'wxyz'", r"imu_mounts\[.*\] needs 4 numbers"),
+        ("accel_count_per_g = 512", r"unknown key accel_count_per_g \(known here: version, "),
+        ("[ole.left_elbow]\nradius_mm = 20", r"unknown key ole\.left_elbow \(known here: "),
+        ("[ole.left_elbow_flexion_deg]\nradius_mm = 20\nsf_d_mm = [0]",
+         r"unknown key ole\.left_elbow_flexion_deg\.sf_d_mm \(known here: radius_mm, "),
+        ("[heading_reference]\nkey = 'a/b/raw'\naxis = '+x'\nangle = 3",
+         r"unknown key heading_reference\.angle"),
+    ],
+)  # fmt: skip
+def test_profile_values_out_of_range_are_refused_by_name(
+    tmp_path: Path, text: str, message: str
+) -> None:
+    """Every number in a profile is finite and in its range, and every key known: a
+    zero accelerometer scale divided by zero in the solver, a huge length overflowed
+    its poses to null, a misspelt key was dropped without a word."""
+    path = tmp_path / "bad.toml"
+    path.write_text(f"version = 1\n{text}\n")
+    with pytest.raises(ProfileError, match=message) as caught:
+        profile_file.load(path)
+    assert str(caught.value).startswith(f"{path}: ")
+
+
+def test_profile_values_at_their_bounds_load_as_written(tmp_path: Path) -> None:
+    """The bounds are generous: a 3 m segment, a heading of -360 deg, a mount of any
+    norm away from 0 (normalised where it is used) load unchanged."""
+    path = tmp_path / "edge.toml"
+    path.write_text(
+        "version = 1\naccel_counts_per_g = 9.81\naccel_filter = 1\n"
+        f"[segments]\nthigh = 3.0\nshoulder_drop = 0.001\n[imu_mounts]\n{MOUNT} = [2, 0, 0, 0]\n"
+        "[imu_headings]\n'body/arm/left/upperarm/raw' = -360\n"
+    )
+    profile = profile_file.load(path)
+    assert profile.lengths == {"thigh": 3.0, "shoulder_drop": 0.001}
+    assert profile.imu_mounts == {"body/arm/left/upperarm/raw": (2.0, 0.0, 0.0, 0.0)}
+    assert profile.imu_headings == {"body/arm/left/upperarm/raw": -360.0}
+    assert (profile.accel_counts_per_g, profile.accel_filter) == (9.81, 1.0)
+
+
+def test_the_documented_profile_loads(tmp_path: Path) -> None:
+    """The layout ``core/subject.py`` shows loads as it reads (its keys where it
+    puts them: ``pose`` after ``[ole...]`` would belong to that table)."""
+    from bodynet.core import subject
+
+    doc = subject.__doc__ or ""
+    path = tmp_path / "doc.toml"
+    path.write_text(doc[doc.index("```toml") + 7 : doc.rindex("```")])
+    profile = profile_file.load(path)
+    assert profile.lengths == {"upperarm": 0.293, "forearm": 0.265}
+    assert profile.heading_reference == ("body/trunk/mid/sacrum/raw", "+z")
+    assert profile.trackers == {"aabbccddeeff-0": "left-arm/upperarm"}
+
+
+def test_a_calibrated_profile_round_trips(tmp_path: Path) -> None:
+    """What the gateway writes after calibrating (mounts turned by their headings,
+    the headings wrapped, a declared reference, a tracker) loads back the same."""
+    from bodynet.gateway.heading import with_headings
+
+    key = "body/arm/left/upperarm/raw"
+    profile = with_headings(
+        Profile(lengths={"upperarm": 0.31}, heading_reference=(key, "-y")).with_mounts(
+            {key: (0.5, 0.5, 0.5, 0.5), "body/arm/left/forearm/raw": (1.0, 0.0, 0.0, 0.0)}
+        ),
+        {key: 541.0, "body/arm/left/forearm/raw": -179.5},
+    ).with_tracker("aabbccddeeff-0", "left-arm/upperarm")
+    path = tmp_path / "s.toml"
+    profile_file.save(profile, path)
+    assert profile_file.load(path) == profile

@@ -160,3 +160,26 @@ def test_process_holds_drifting_tags_as_the_gateway_does(tmp_path: Path) -> None
     assert unc["off"]["lumbar_rotation_deg"] == UNC_TAG_DEG
     assert unc["joints"]["lumbar_rotation_deg"] > UNC_TAG_DEG
     assert unc["joints"]["left_knee_flexion_deg"] == UNC_TAG_DEG  # a hinge: geometric
+
+
+@pytest.mark.parametrize(
+    ("text", "key"),
+    [("accel_counts_per_g = 0", "accel_counts_per_g"),  # divided by zero in the solver
+     ("[segments]\nthigh = 1e308", "segments.thigh"),  # the poses' pelvis went null
+     ("[segments]\nupperam = 0.3", "segments.upperam")],  # dropped without a word
+)  # fmt: skip
+def test_process_refuses_a_profile_out_of_range(
+    tmp_path: Path, data_dir: Path, text: str, key: str
+) -> None:
+    """A profile's absurd value stops `process` before it starts: exit 2, one line
+    naming the file and the key, no traceback, no output."""
+    profile = tmp_path / "subject.toml"
+    profile.write_text(f"version = 1\n{text}\n")
+    out = tmp_path / "p.mcap"
+    result = run("process", "--format", "can-log", data_dir / "smartsuit_arm.log", "-o", out,
+                 "--profile", profile)  # fmt: skip
+    assert result.returncode == 2, result.stderr
+    assert result.stderr.startswith(f"bodynet process: {profile}: ")
+    assert result.stderr.count("\n") == 1
+    assert key in result.stderr
+    assert not out.exists()
