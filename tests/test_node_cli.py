@@ -238,3 +238,21 @@ def test_emulate_replaces_a_stale_link_and_removes_only_its_own(tmp_path: Path) 
     assert "Traceback" not in proc.communicate()[1]
     assert [p.name for p in tmp_path.iterdir()] == ["ttyUSB0.tmp"]
     assert beside.read_text() == "kept\n"
+
+
+def test_emulated_trackers_given_a_server_by_name_stop_on_sigterm() -> None:
+    from zenoh_helpers import free_port
+
+    proc = subprocess.Popen([str(BODYNET), "emulate", "slimevr", "--server",
+                             f"localhost:{free_port()}"], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)  # fmt: skip
+    try:
+        assert proc.stdout is not None
+        assert "emulated slimevr on localhost:" in proc.stdout.readline()
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(timeout=30) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(timeout=10)
+    assert "Traceback" not in proc.communicate()[1]
