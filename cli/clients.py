@@ -30,13 +30,12 @@ def cmd_export(args: argparse.Namespace) -> int:
     from bodynet.clients.exports.track import load_track, resample
     from bodynet.clients.mcap_store import StoreError
     from bodynet.core.subject import ProfileError
-    from bodynet.session.outputs import check_output
 
     entry = writer(args.kind)
     out = args.output or args.recording.with_suffix(entry.suffix)
     options = {o.dest: getattr(args, o.dest) for o in entry.options}
     try:
-        check_output(out, [args.recording, options.get("profile")])
+        entry.check(out, [args.recording, options.get("profile")])  # and the files beside it
         if options.get("profile"):
             from bodynet.core.skeleton import build_skeleton
             from bodynet.session import profile_file

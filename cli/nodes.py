@@ -88,6 +88,7 @@ def cmd_bridge(args: argparse.Namespace) -> int:
 
 def cmd_emulate(args: argparse.Namespace) -> int:
     from bodynet.nodes import services
+    from bodynet.nodes.sources.base import EmulatorError
 
     stop = stop_on_signals()
     session = open_session(config_from_args(args)) if args.truth else None
@@ -109,6 +110,9 @@ def cmd_emulate(args: argparse.Namespace) -> int:
             truth_session=session,
             **device_args,
         )
+    except EmulatorError as exc:  # its link, bus or server: nothing was started
+        print(f"bodynet emulate {args.device}: {exc}", file=sys.stderr)
+        return 2
     finally:
         if session is not None:
             session.close()

@@ -50,7 +50,7 @@ from bodynet.clients import stats
 from bodynet.clients.mcap_store import StoreError, read_poses, read_truth
 from bodynet.core import metrics
 from bodynet.core.codecs import pose
-from bodynet.session.outputs import scratch_folder
+from bodynet.session.outputs import OutputError, check_output, scratch_folder
 
 #: At most this many channels get a panel of their own in a plot.
 MAX_PANELS = 12
@@ -668,9 +668,11 @@ def _html(blocks: list[Block]) -> str:
     return "\n".join(parts) + "\n"
 
 
-def write_report(an: Analysis, out: Path) -> list[Path]:
+def write_report(an: Analysis, out: Path, inputs: Sequence[Path | None] = ()) -> list[Path]:
     """Write the report (Markdown, or HTML for ``.html``/``.htm``) and its PNG plots
-    beside it; returns every file written, the report first."""
+    beside it; returns every file written, the report first. Each file is checked
+    as an output (``check_output``: none of ``inputs``, a folder, read-only...)
+    before any is put in place: ``OutputError`` naming it, and nothing written."""
     folder = out.parent
     folder.mkdir(parents=True, exist_ok=True)
     tmp = scratch_folder(out)  # one a killed run left is removed by the next
@@ -679,14 +681,21 @@ def write_report(an: Analysis, out: Path) -> list[Path]:
         blocks = _blocks(an, images)
         text = _html(blocks) if out.suffix.lower() in (".html", ".htm") else _markdown(blocks)
         (tmp / out.name).write_text(text, encoding="utf-8")
-        written = []
-        for name in images.values():
-            os.replace(tmp / name, folder / name)
-            written.append(folder / name)
-        os.replace(tmp / out.name, out)
+        written = [folder / name for name in images.values()]
+        for path in (out, *written):
+            check_output(path, inputs)
+        for path in (*written, out):
+            _put(tmp / path.name, path)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     return [out, *written]
+
+
+def _put(made: Path, path: Path) -> None:
+    try:
+        os.replace(made, path)
+    except OSError as exc:
+        raise OutputError(f"cannot write {path}: {exc.strerror or exc}") from None
 
 
 def make_report(
@@ -700,4 +709,4 @@ def make_report(
 ) -> list[Path]:
     """Analyse the recordings and write the report; returns the files written."""
     an = analyse(paths, reference, joint, still, still_s, with_trials)
-    return write_report(an, out)
+    return write_report(an, out, [*paths, reference])

@@ -17,8 +17,10 @@ emulate pulling the USB cable and putting it back.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
+import secrets
 import select
 import termios
 import threading
@@ -34,6 +36,8 @@ from bodynet.core.codecs.smartsuit_can import SlcanDecoder, SlcanReply
 from bodynet.core.messages import NoNewData, OleAccel, Quat, Reading, SensorAbsent
 from bodynet.nodes.emulator import BodyEmulator, Truth
 from bodynet.nodes.loop import Loop
+from bodynet.nodes.sources.base import EmulatorError
+from bodynet.session.argtypes import is_pty_link
 
 log = logging.getLogger(__name__)
 
@@ -115,27 +119,56 @@ class PtyPort:
         self.plugged = threading.Event()
         self.dropped = 0  # bytes the far end did not make room for
         self._lock = threading.Lock()
+        self._target: str | None = None  # the terminal the link was pointed at
 
     def plug(self) -> None:
-        """Create the device (again) and point the symlink at it."""
+        """Create the device (again) and point the symlink at it.
+
+        :class:`EmulatorError` if the link cannot be made, or if something other
+        than a link to a pseudo-terminal (a stale one, which is replaced) is there:
+        nothing is deleted that the port did not make."""
         master, slave = os.openpty()
-        os.set_blocking(master, False)
-        tty.setraw(slave)
-        attrs = termios.tcgetattr(slave)
-        attrs[4] = attrs[5] = _BAUD.get(self.baud, termios.B115200)
-        termios.tcsetattr(slave, termios.TCSANOW, attrs)
-        tmp = self.link.with_name(self.link.name + ".tmp")
-        tmp.unlink(missing_ok=True)
-        tmp.symlink_to(os.ttyname(slave))
-        tmp.replace(self.link)
+        try:
+            os.set_blocking(master, False)
+            tty.setraw(slave)
+            attrs = termios.tcgetattr(slave)
+            attrs[4] = attrs[5] = _BAUD.get(self.baud, termios.B115200)
+            termios.tcsetattr(slave, termios.TCSANOW, attrs)
+            self._point_link(os.ttyname(slave))
+        except BaseException:
+            os.close(master)
+            os.close(slave)
+            raise
         with self._lock:
             self.master, self._slave = master, slave
         self.plugged.set()
 
+    def _point_link(self, target: str) -> None:
+        if os.path.lexists(self.link) and not is_pty_link(self.link):
+            raise EmulatorError(f"refusing to replace {self.link}: it is not a link to a "
+                                "pseudo-terminal; give a new name")  # fmt: skip
+        # a new name of this process's (never one that may be someone's file), then
+        # renamed over the link: a bridge opening it meanwhile finds the old or the new
+        tmp = self.link.with_name(f".{self.link.name}.{os.getpid()}.{secrets.token_hex(4)}.tmp")
+        try:
+            tmp.symlink_to(target)
+            try:
+                tmp.replace(self.link)
+            except OSError:
+                tmp.unlink(missing_ok=True)
+                raise
+        except OSError as exc:
+            why = exc.strerror or exc
+            raise EmulatorError(f"cannot make the link {self.link}: {why}") from None
+        self._target = target
+
     def unplug(self) -> None:
         """Remove the device: its users' reads and writes fail, as on a USB unplug."""
         self.plugged.clear()
-        self.link.unlink(missing_ok=True)
+        # the link only if it is still the one made here (not a file put there since)
+        with contextlib.suppress(OSError):
+            if self._target is not None and os.readlink(self.link) == self._target:
+                self.link.unlink()
         with self._lock:
             for fd in (self.master, self._slave):
                 if fd is not None:

@@ -337,11 +337,28 @@ def _output(text: str) -> Path:
     return path
 
 
+#: Where Linux's pseudo-terminals are (``os.ttyname`` of one).
+PTY_FOLDER = "/dev/pts/"
+
+
+def is_pty_link(path: Path) -> bool:
+    """Is ``path`` a symbolic link to a pseudo-terminal (one an emulator made,
+    perhaps left by one that was killed: its terminal may be gone)?"""
+    try:
+        return os.readlink(path).startswith(PTY_FOLDER)
+    except OSError:  # nothing there, or not a link
+        return False
+
+
 def link_path(text: str) -> Path:
-    """Where a link (or socket) will be made: not a folder, in a writable folder."""
+    """Where a link to a pseudo-terminal will be made: nothing there yet, or
+    such a link (an emulator's, which is replaced); in a writable folder."""
     path = _path(text)
     if _kind(path) == "dir" and not os.path.islink(path):
         fail(f"{_shown(text)} is a folder; give a file name")
+    if os.path.lexists(path) and not is_pty_link(path):
+        fail(f"{_shown(text)} exists and is not a link to a pseudo-terminal; "
+             "refusing to replace it: give a new name")  # fmt: skip
     _writable_folder(path, text)
     return path
 

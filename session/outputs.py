@@ -41,8 +41,8 @@ class OutputError(OSError):
 
 
 def check_output(output: Path, inputs: Iterable[Path | None] = ()) -> None:
-    """``OutputError`` unless ``output`` may be written: not empty, not a folder
-    or a device, and none of ``inputs``."""
+    """``OutputError`` unless ``output`` may be written: not empty, not a folder,
+    a device or a read-only file (even for root), and none of ``inputs``."""
     if not str(output) or str(output) == ".":
         raise OutputError("an empty output name")
     try:
@@ -60,6 +60,8 @@ def check_output(output: Path, inputs: Iterable[Path | None] = ()) -> None:
             what = "" if str(source) == str(output) else f" ({source}, by another name)"
             raise OutputError(f"refusing to write {output}: it is an input of this "
                               f"command{what}; choose another output")  # fmt: skip
+    if st is not None and (not os.access(output, os.W_OK) or not st.st_mode & 0o222):
+        raise OutputError(f"cannot write {output}: it is read-only")
     folder = output.parent
     if not folder.is_dir():
         raise OutputError(f"cannot write {output}: its folder {folder} does not exist")

@@ -391,3 +391,37 @@ def test_export_shows_its_progress_on_a_terminal_unless_quiet(
     assert not bar.search(terminal), terminal
     assert "pose/s" not in terminal
     assert out.exists()
+
+
+def test_amc_skeleton_beside_it_is_checked_as_the_output_is(
+    arm_mcap: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The .asf written beside the .amc is never an input, the .amc itself or a
+    read-only file; neither file is written when one is refused."""
+    recording = tmp_path / "rec.asf"  # a recording named like the skeleton
+    recording.write_bytes(arm_mcap.read_bytes())
+    code, err = export(capsys, "amc", recording, "-o", tmp_path / "rec.amc")
+    assert code == 2, err
+    assert err == (f"bodynet export: refusing to write {recording}: it is an input of this "
+                   "command; choose another output\n")  # fmt: skip
+    assert recording.read_bytes() == arm_mcap.read_bytes()
+    both = tmp_path / "w.asf"  # the motion and the skeleton in one file: the motion lost
+    code, err = export(capsys, "amc", arm_mcap, "-o", both)
+    assert code == 2, err
+    assert f"the skeleton is written beside it as {both}, the same file" in err
+    read_only = tmp_path / "ro.asf"
+    read_only.write_text("an earlier skeleton\n")
+    read_only.chmod(0o444)  # refused by root too
+    code, err = export(capsys, "amc", arm_mcap, "-o", tmp_path / "ro.amc")
+    assert code == 2, err
+    assert err == f"bodynet export: cannot write {read_only}: it is read-only\n"
+    assert read_only.read_text() == "an earlier skeleton\n"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["rec.asf", "ro.asf"]
+    # a read-only default output (the recording's name, no -o) is refused as -o's is
+    default = tmp_path / "rec.csv"
+    default.write_text("an earlier export\n")
+    default.chmod(0o444)
+    code, err = export(capsys, "csv", recording)
+    assert code == 2, err
+    assert err == f"bodynet export: cannot write {default}: it is read-only\n"
+    assert default.read_text() == "an earlier export\n"

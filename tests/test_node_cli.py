@@ -183,3 +183,76 @@ def test_a_bad_config_is_a_message_and_sigterm_ends_a_wait_for_the_router(tmp_pa
     waiting.send_signal(signal.SIGTERM)
     assert waiting.wait(timeout=30) == 0
     assert "Traceback" not in waiting.stderr.read()
+
+
+def _emulate(*args: object) -> subprocess.CompletedProcess[str]:
+    """``bodynet emulate ...`` that must end by itself (a refusal); one still
+    running after a minute fails the test (subprocess kills it)."""
+    return subprocess.run([str(BODYNET), "emulate", *map(str, args)], capture_output=True,
+                          text=True, timeout=60, check=False)  # fmt: skip
+
+
+def test_emulate_never_replaces_a_file_and_says_why_it_cannot_start(tmp_path: Path) -> None:
+    victim = tmp_path / "victim.txt"
+    victim.write_text("data\n")
+    for device in ("concentrator", "imu-central", "slcan"):
+        result = _emulate(device, "--link", victim)
+        assert result.returncode == 2, result.stderr
+        assert "exists and is not a link to a pseudo-terminal" in result.stderr
+        assert victim.read_text() == "data\n"
+    for device, link in (("concentrator", "/proc/nope"), ("slcan", "/proc/x")):
+        result = _emulate(device, "--link", link)
+        assert result.returncode == 2, result.stderr
+        assert result.stderr == f"bodynet emulate {device}: cannot make the link {link}: " \
+                                "No such file or directory\n"  # fmt: skip
+    for bus in ([], ["--interface", "socketcan", "--channel", "bodynet-none0"],
+                ["--interface", "nonsense", "--channel", "x"],
+                ["--interface", "slcan", "--channel", tmp_path / "ttyNOPE"]):  # fmt: skip
+        result = _emulate("can", *bus)
+        assert result.returncode == 2, (bus, result.stderr)
+        assert result.stderr.startswith("bodynet emulate can: cannot open the CAN bus ("), bus
+        assert result.stderr.count("\n") == 1, result.stderr  # one line, no traceback
+    result = _emulate("slimevr", "--server", "nohost.invalid:6969")
+    assert result.returncode == 2, result.stderr
+    assert result.stderr == "bodynet emulate slimevr: cannot find the server nohost.invalid: " \
+                            "Name or service not known\n"  # fmt: skip
+
+
+def test_emulate_replaces_a_stale_link_and_removes_only_its_own(tmp_path: Path) -> None:
+    link = tmp_path / "ttyUSB0"
+    link.symlink_to("/dev/pts/999999")  # left by an emulator that was killed
+    beside = tmp_path / "ttyUSB0.tmp"
+    beside.write_text("kept\n")
+    proc = subprocess.Popen([str(BODYNET), "emulate", "imu-central", "--link", str(link)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)  # fmt: skip
+    try:
+        assert proc.stdout is not None
+        assert f"emulated imu-central on {link} -> /dev/pts/" in proc.stdout.readline()
+        assert link.exists()  # a live terminal now
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(timeout=30) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(timeout=10)
+    assert "Traceback" not in proc.communicate()[1]
+    assert [p.name for p in tmp_path.iterdir()] == ["ttyUSB0.tmp"]
+    assert beside.read_text() == "kept\n"
+
+
+def test_emulated_trackers_given_a_server_by_name_stop_on_sigterm() -> None:
+    from zenoh_helpers import free_port
+
+    proc = subprocess.Popen([str(BODYNET), "emulate", "slimevr", "--server",
+                             f"localhost:{free_port()}"], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)  # fmt: skip
+    try:
+        assert proc.stdout is not None
+        assert "emulated slimevr on localhost:" in proc.stdout.readline()
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(timeout=30) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(timeout=10)
+    assert "Traceback" not in proc.communicate()[1]

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import itertools
 import math
+import os
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -38,10 +39,12 @@ from bodynet.nodes.hardware import (
     CanNodes,
     ConcentratorEmulator,
     ImuCentralEmulator,
+    PtyPort,
     SlcanAdapterEmulator,
 )
 from bodynet.nodes.imu_bridge import ImuCentralBridge
 from bodynet.nodes.motion import ROUTINES
+from bodynet.nodes.sources.base import EmulatorError
 
 
 def still_body(sensors: list[Any]) -> BodyEmulator:
@@ -256,3 +259,34 @@ def test_a_publisher_whose_session_is_closed_under_it_ends_quietly(
     session.close()
     wait_until(lambda: not publisher._watch.is_alive(), what="the watchdog to end")
     assert died == []
+
+
+def test_a_pty_link_replaces_only_a_stale_link_and_removes_only_its_own(tmp_path: Path) -> None:
+    """Nothing the port did not make is deleted: a file where the link goes is
+    refused (kept), a stale link to a pseudo-terminal (a killed emulator's) is
+    replaced, and a file put over the link meanwhile is left at unplug."""
+    link = tmp_path / "ttyACM0"
+    link.write_text("a file of the user's\n")
+    neighbour = tmp_path / "ttyACM0.tmp"  # the name the port once made and removed
+    neighbour.write_text("another\n")
+    port = PtyPort(link, 115200)
+    with pytest.raises(EmulatorError, match=f"refusing to replace {link}"):
+        port.plug()
+    assert port.master is None
+    assert link.read_text() == "a file of the user's\n"
+    link.unlink()
+    link.symlink_to("/dev/pts/999999")  # stale: left by a killed emulator
+    port.plug()
+    assert os.readlink(link).startswith("/dev/pts/")
+    assert link.exists()  # a live terminal now
+    port.unplug()
+    assert not os.path.lexists(link)
+    port.plug()
+    link.unlink()
+    link.write_text("put there since\n")
+    port.unplug()
+    assert link.read_text() == "put there since\n"
+    assert neighbour.read_text() == "another\n"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["ttyACM0", "ttyACM0.tmp"]
+    with pytest.raises(EmulatorError, match="cannot make the link /proc/nope"):
+        PtyPort(Path("/proc/nope"), 115200).plug()

@@ -408,3 +408,25 @@ def test_bad_input_exits_2_with_a_message_and_writes_nothing(
                    "the still window holds 0 poses")  # fmt: skip
     _fails_cleanly(["report", str(tmp_path / "missing.mcap"), "-o", out], capsys, tmp_path,
                    "missing.mcap")  # fmt: skip
+
+
+def test_the_plots_beside_a_report_are_checked_as_the_report_is(
+    arm_recording: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A plot never goes over an input (a recording named like it) or a folder
+    or a read-only file; the message names the plot, and nothing is written."""
+    recording = tmp_path / "rq-angles.png"
+    recording.write_bytes(arm_recording["recording"].read_bytes())
+    _fails_cleanly(["report", str(recording), "-o", str(tmp_path / "rq.md")], capsys, tmp_path,
+                   f"bodynet report: refusing to write {recording}: it is an input")  # fmt: skip
+    assert recording.read_bytes() == arm_recording["recording"].read_bytes()
+    angles = tmp_path / "rp-angles.png"
+    angles.mkdir()
+    _fails_cleanly(["report", str(recording), "-o", str(tmp_path / "rp.md")], capsys, tmp_path,
+                   f"bodynet report: cannot write {angles}: it is a folder")  # fmt: skip
+    trials = tmp_path / "ro-trials.png"
+    trials.write_bytes(b"an earlier plot")
+    trials.chmod(0o444)
+    _fails_cleanly(["report", str(recording), "-o", str(tmp_path / "ro.md")], capsys, tmp_path,
+                   f"bodynet report: cannot write {trials}: it is read-only")  # fmt: skip
+    assert trials.read_bytes() == b"an earlier plot"

@@ -22,7 +22,7 @@ value and say how many they held.
 from __future__ import annotations
 
 import importlib
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -68,11 +68,27 @@ class Writer:
     module: str  # bodynet.clients.exports.<module> has write(track, out, options)
     regular: bool = True  # frames on a regular grid (--rate-hz), else one row per pose
     options: tuple[Option, ...] = ()
+    #: files written beside ``out``: (suffix, what it holds); ``out`` with that suffix
+    sidecars: tuple[tuple[str, str], ...] = ()
 
     def write(self, track: PoseTrack, out: Path, options: Mapping[str, Any]) -> Written:
         module = importlib.import_module(f"{__name__}.{self.module}")
         written: Written = module.write(track, out, options)
         return written
+
+    def check(self, out: Path, inputs: Sequence[Path | None]) -> None:
+        """``OutputError`` unless every file writing ``out`` makes, ``out`` and
+        its sidecars, may be written (``check_output``), each a file of its own."""
+        from bodynet.session.outputs import OutputError, check_output
+
+        check_output(out, inputs)
+        for suffix, what in self.sidecars:
+            beside = out.with_suffix(suffix)
+            if argtypes.same_file(beside, out):
+                raise OutputError(f"refusing to write {out}: the {what} is written beside "
+                                  f"it as {beside}, the same file; choose another output "
+                                  f"(such as {out.with_suffix(self.suffix)})")  # fmt: skip
+            check_output(beside, inputs)
 
 
 #: ``--profile``: the subject's segment lengths (End Sites, ASF bone lengths);
@@ -129,6 +145,7 @@ WRITERS: Mapping[str, Writer] = {
             "Acclaim motion (.amc) and skeleton (.asf, written beside it), as the CMU database's",
             "amc",
             options=(UP, UNITS, PROFILE),
+            sidecars=((".asf", "skeleton"),),
         ),
     )
 }

@@ -46,6 +46,11 @@ class CaptureError(ValueError):
     """A capture or file that cannot be read; the message says where (file, line)."""
 
 
+class EmulatorError(Exception):
+    """An emulated device that cannot start (its link cannot be made, its bus
+    opened, its server found); the message names the link, bus or server."""
+
+
 class Transport(StrEnum):
     """What carries a source's bytes."""
 

@@ -29,7 +29,7 @@ from bodynet.core.errors import DecodeError
 from bodynet.core.keys import KeySpaceError, Site, site_named
 from bodynet.core.messages import Source as SourceId
 from bodynet.nodes.loop import Loop
-from bodynet.nodes.sources.base import NodeParts, Source, Transport
+from bodynet.nodes.sources.base import EmulatorError, NodeParts, Source, Transport
 from bodynet.session import argtypes
 
 log = logging.getLogger(__name__)
@@ -151,6 +151,17 @@ def free_udp_port() -> int:
         return int(s.getsockname()[1])
 
 
+def resolve(server: tuple[str, int]) -> tuple[str, int]:
+    """``(host, port)`` with the host's IPv4 address; :class:`EmulatorError` if
+    the name is not known."""
+    host, port = server
+    try:
+        found = socket.getaddrinfo(host, port, socket.AF_INET, socket.SOCK_DGRAM)
+    except OSError as exc:  # socket.gaierror
+        raise EmulatorError(f"cannot find the server {host}: {exc.strerror or exc}") from None
+    return str(found[0][4][0]), port
+
+
 def emulated_mac(number: int) -> bytes:
     """The MAC of emulated tracker ``number`` (locally administered, unicast)."""
     return bytes([0x02, 0xB0, 0xD1, 0x00, (number >> 8) & 0xFF, number & 0xFF])
@@ -169,7 +180,7 @@ class EmulatedTracker(Loop):
                  rate_hz: float = 100.0, compact: bool = False, clock: Any = None,
                  name: str = "tracker") -> None:  # fmt: skip
         super().__init__(name)
-        self.server = server
+        self.server = resolve(server)  # once: a name looked up for each datagram could block
         self.mac = mac
         self.sensors = list(sensors)
         self.orientation = orientation
@@ -338,5 +349,7 @@ class EmulatedTrackers:
             tracker.start()
 
     def stop(self) -> None:
+        for tracker in self.trackers:  # all told first: each then ends as soon as it can
+            tracker.stop_event.set()
         for tracker in self.trackers:
             tracker.stop()

@@ -29,6 +29,7 @@ from bodynet.nodes.sources.base import (
     CapturedSample,
     CaptureSink,
     CaptureStats,
+    EmulatorError,
     NodeParts,
     PeriodicAdapter,
     Source,
@@ -155,7 +156,11 @@ class _BusNodes:
     def start(self) -> None:
         from bodynet.nodes.hardware import CanNodes
 
-        self._bus = can.Bus(**self.bus_args)
+        try:
+            self._bus = can.Bus(**self.bus_args)
+        except (can.CanError, OSError) as exc:  # no such interface, channel or port
+            where = ", ".join(f"{k} {v}" for k, v in self.bus_args.items() if v is not None)
+            raise EmulatorError(f"cannot open the CAN bus ({where}): {exc}") from None
         self._nodes = CanNodes(self._bus, self.body, self.clock, self.truth)
         self._nodes.start()
 
