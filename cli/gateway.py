@@ -219,6 +219,7 @@ def _calibrate_from_recording(args: argparse.Namespace) -> int:
     """``calibrate tpose --from REC --window A:B --profile P``: the mounts from a
     still window of a recording, written into the profile; a refusal (subject
     moved, too short, a tag missing) prints why, exits 1 and leaves it as it was."""
+    from bodynet.clients.mcap_store import StoreError
     from bodynet.gateway.heading import CalibrationRefused
     from bodynet.nodes.captures import CaptureError, capture_options
     from bodynet.nodes.sources.base import CaptureStats
@@ -241,7 +242,7 @@ def _calibrate_from_recording(args: argparse.Namespace) -> int:
         print(f"bodynet calibrate tpose: refused: {exc}; {args.profile} is unchanged",
               file=sys.stderr)  # fmt: skip
         return 1
-    except (ProfileError, OSError, ValueError, CaptureError) as exc:
+    except (ProfileError, OSError, ValueError, CaptureError, StoreError) as exc:
         print(f"bodynet calibrate tpose: {exc}", file=sys.stderr)
         return 2
     print(json.dumps({**result.report, "profile": str(args.profile)}, indent=2))
