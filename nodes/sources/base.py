@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import math
 import threading
 from collections.abc import Callable, Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
@@ -44,6 +45,17 @@ CHUNK = 1 << 16
 
 class CaptureError(ValueError):
     """A capture or file that cannot be read; the message says where (file, line)."""
+
+
+def time_refused(t_s: float) -> str | None:
+    """Why a capture's time of a sample (s) cannot be one, or None: it must be
+    finite and within the signed 64-bit ns of a raw sample's time (+-292 years
+    from 1970, ``core/codecs/raw_sample.py``)."""
+    if not math.isfinite(t_s):
+        return f"time {t_s} is not finite"
+    if abs(t_s) * 1e9 >= 2**63:
+        return f"time {t_s:g} s is beyond what a sample's time holds (64-bit ns, +-292 years)"
+    return None
 
 
 class Transport(StrEnum):
