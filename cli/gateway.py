@@ -219,6 +219,7 @@ def _calibrate_from_recording(args: argparse.Namespace) -> int:
     """``calibrate tpose --from REC --window A:B --profile P``: the mounts from a
     still window of a recording, written into the profile; a refusal (subject
     moved, too short, a tag missing) prints why, exits 1 and leaves it as it was."""
+    from bodynet.clients.mcap_store import StoreError
     from bodynet.gateway.heading import CalibrationRefused
     from bodynet.nodes.captures import CaptureError, capture_options
     from bodynet.nodes.sources.base import CaptureStats
@@ -241,7 +242,7 @@ def _calibrate_from_recording(args: argparse.Namespace) -> int:
         print(f"bodynet calibrate tpose: refused: {exc}; {args.profile} is unchanged",
               file=sys.stderr)  # fmt: skip
         return 1
-    except (ProfileError, OSError, ValueError, CaptureError) as exc:
+    except (ProfileError, OSError, ValueError, CaptureError, StoreError) as exc:
         print(f"bodynet calibrate tpose: {exc}", file=sys.stderr)
         return 2
     print(json.dumps({**result.report, "profile": str(args.profile)}, indent=2))
@@ -546,18 +547,14 @@ def cmd_calibrate_ole(args: argparse.Namespace) -> int:
     if args.from_pairs:
         try:
             text = args.from_pairs.read_text(encoding="utf-8", errors="replace")
+            pairs = _pairs(text, args.from_pairs)
         except OSError as exc:
             print(f"bodynet calibrate ole: cannot read {args.from_pairs}: {exc.strerror or exc}",
                   file=sys.stderr)  # fmt: skip
             return 2
-        for line in text.splitlines():
-            fields = [f.strip() for f in line.replace(";", ",").split(",")]
-            try:
-                pair = (float(fields[0]), float(fields[1]))
-            except (ValueError, IndexError):
-                continue  # a header or a blank line
-            if all(map(math.isfinite, pair)):
-                pairs.append(pair)
+        except ValueError as exc:
+            print(f"bodynet calibrate ole: {exc}; nothing written", file=sys.stderr)
+            return 2
     else:
         angles = args.angles
         session = open_session(config_from_args(args))
@@ -597,6 +594,43 @@ def cmd_calibrate_ole(args: argparse.Namespace) -> int:
         f"{fit.radius_mm:.2f} mm, r = {fit.r:.4f}); SF: {table}; saved to {args.profile}"
     )
     return 0
+
+
+def _pairs(text: str, path: Path) -> list[tuple[float, float]]:
+    """The ``angle_deg,counts`` rows of a ``--from-pairs`` file (``;`` as well as
+    ``,``; blank lines and a first line that is no numbers, a header, skipped):
+    each row two finite numbers, the angle within +-360 deg as ``--angles``'
+    (``ValueError`` naming the file and line of the first that is not)."""
+    pairs: list[tuple[float, float]] = []
+    first = True
+    for number, line in enumerate(text.splitlines(), start=1):
+        fields = [f.strip() for f in line.replace(";", ",").split(",")]
+        if not any(fields):
+            continue
+        try:
+            pair: tuple[float, float] | None = (float(fields[0]), float(fields[1]))
+        except (ValueError, IndexError):
+            if first and not _number(fields[0]):
+                first = False
+                continue  # the header
+            pair = None
+        first = False
+        if pair is None or len(fields) != 2 or not math.isfinite(pair[1]):
+            raise ValueError(f"{path}: line {number}: not angle_deg,counts (two finite "
+                             f"numbers): {line.strip()[:60]!r}")  # fmt: skip
+        if not abs(pair[0]) <= 360.0:  # NaN too
+            raise ValueError(f"{path}: line {number}: angle {fields[0][:20]} is not within "
+                             "+-360 deg")  # fmt: skip
+        pairs.append(pair)
+    return pairs
+
+
+def _number(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
 
 
 def _ole_joints() -> list[str]:

@@ -30,6 +30,7 @@ from typing import Any
 
 from bodynet.clients.mcap_store import McapSink
 from bodynet.core import keys
+from bodynet.core.errors import DecodeError
 from bodynet.core.keys import BRANCHES, Site
 from bodynet.core.messages import Quat, RawSample, Reading
 from bodynet.core.subject import Profile, QuatWxyz
@@ -42,7 +43,7 @@ from bodynet.gateway.heading import (
 )
 from bodynet.gateway.solver import BodySolver
 from bodynet.nodes import sources
-from bodynet.nodes.sources.base import CapturedSample, CaptureStats
+from bodynet.nodes.sources.base import CapturedSample, CaptureError, CaptureStats
 
 
 @dataclass
@@ -155,6 +156,16 @@ def _hold_drift(heading: BodyHeading, t_s: float, latest: Mapping[Site, RawSampl
         heading.hold(solver, step[1])
 
 
+def _write_raw(sink: McapSink, site: Site, sample: RawSample, path: Path) -> None:
+    """A raw sample into the recording; one MCAP cannot hold (a time before 1970)
+    is a ``CaptureError`` naming the capture and the sample's time."""
+    try:
+        sink.write_raw(site.raw_key, sample, sample.t_ns)
+    except DecodeError as exc:
+        raise CaptureError(f"{path}: the sample of {site.raw_key} at {sample.t_ns / 1e9:g} s "
+                           f"cannot be recorded: {exc}") from None  # fmt: skip
+
+
 def process(path: Path, fmt: str, out: Path, profile: Profile | None = None,
             rate_hz: float | None = None, tick_hz: float = 100.0,
             tpose_s: float = 3.0, options: Mapping[str, Any] | None = None,
@@ -224,7 +235,7 @@ def process(path: Path, fmt: str, out: Path, profile: Profile | None = None,
                 seq = seqs[s.site] = seqs.get(s.site, -1) + 1
                 sample = RawSample(s.reading, seq, round(s.t_s * 1e9), source.wire_id)
                 latest[s.site] = sample
-                sink.write_raw(s.site.raw_key, sample, sample.t_ns)
+                _write_raw(sink, s.site, sample, path)
             ticks += 1
             t_ns = round(tick[-1].t_s * 1e9)
             frame = pose_frame(solver.solve(latest), ticks, [])

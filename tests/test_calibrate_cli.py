@@ -39,6 +39,29 @@ def test_from_pairs_reproduces_table_4_1(tmp_path: Path) -> None:
     assert cal.sf == pytest.approx(ELBOW_SF, abs=0.003)
 
 
+@pytest.mark.parametrize(("row", "line", "why"), [
+    ("90,abc", 4, "not angle_deg,counts"), ("90,nan", 4, "not angle_deg,counts"),
+    ("90", 4, "not angle_deg,counts"), ("90,391,1", 4, "not angle_deg,counts"),
+    ("3600,391", 4, "angle 3600 is not within +-360 deg"),
+    ("nan,391", 4, "angle nan is not within +-360 deg"),
+])  # fmt: skip
+def test_a_bad_pairs_row_is_refused_naming_its_line(
+    tmp_path: Path, row: str, line: int, why: str
+) -> None:
+    """A row that is not two finite numbers, or an angle past a turn, is an error
+    naming the file and line (exit 2, nothing written), never skipped unsaid."""
+    pairs = tmp_path / "pairs.csv"
+    pairs.write_text(f"angle_deg,counts\n0,0\n\n{row}\n30,141\n60,280\n120,486\n")
+    profile = tmp_path / "subject.toml"
+    result = subprocess.run([str(BODYNET), "calibrate", "ole", "--joint", "left_elbow",
+                             "--from-pairs", str(pairs), "--profile", str(profile)],
+                            capture_output=True, text=True, timeout=60, check=False)  # fmt: skip
+    assert result.returncode == 2, result.stderr
+    assert result.stderr.startswith(f"bodynet calibrate ole: {pairs}: line {line}: {why}")
+    assert result.stderr.endswith("; nothing written\n"), result.stderr
+    assert not profile.exists()
+
+
 def test_live_calibration_on_cue(
     zsession: zenoh.Session, router_endpoint: str, tmp_path: Path
 ) -> None:

@@ -131,3 +131,23 @@ def test_live_calibration_refuses_heading_options_it_cannot_apply(
     err = capsys.readouterr().err
     assert "--heading, --drift go with --from" in err
     assert "Traceback" not in err
+
+
+def test_a_recording_that_is_no_mcap_is_one_line_naming_it(
+    recording: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """An empty, cut or foreign file given as the recording: the store's reason
+    on one line (exit 2), no profile written."""
+    empty, cut, foreign = tmp_path / "empty.mcap", tmp_path / "cut.mcap", tmp_path / "x.mcap"
+    empty.write_bytes(b"")
+    cut.write_bytes(recording.read_bytes()[:2000])
+    foreign.write_bytes(bytes(range(256)) * 8)
+    profile_path = tmp_path / "subject.toml"
+    for path, why in ((empty, "not a complete MCAP file"), (cut, "not a complete MCAP file"),
+                      (foreign, "not an MCAP recording")):  # fmt: skip
+        assert main(["calibrate", "tpose", "--from", str(path), "--profile",
+                     str(profile_path)]) == 2  # fmt: skip
+        err = capsys.readouterr().err
+        assert err.startswith(f"bodynet calibrate tpose: {path}: {why}"), err
+        assert err.count("\n") == 1, err
+        assert not profile_path.exists()

@@ -99,6 +99,34 @@ def test_can_log_keeps_capture_time_and_survives_garbled_lines(tmp_path: Path) -
     )
 
 
+def test_a_can_log_time_no_sample_holds_costs_only_its_line(tmp_path: Path) -> None:
+    """python-can reads "(nan)", "(inf)" and "(1e300)" as a line's time: each such
+    line is counted with its number and skipped (decode, and process, whose
+    recording holds 64-bit ns), the frames around it kept."""
+    log = tmp_path / "x.log"
+    log.write_text(
+        "(12.500000) can0 0006FFFF#0100020003000400\n"
+        "(nan) can0 000AFFFF#0500060007000800\n"
+        "(inf) can0 000AFFFF#0500060007000800\n"
+        "(1e300) can0 000AFFFF#0500060007000800\n"
+        "(-1e30) can0 000AFFFF#0500060007000800\n"
+        "(12.510000) can0 000AFFFF#0500060007000800\n"
+    )
+    told = (f"decoded 2, rejected 4 ({Reason.NOT_FINITE}: 2, {Reason.OUT_OF_RANGE}: 2); "
+            "skipped garbled line 2, line 3, line 4, line 5")  # fmt: skip
+    result = run_decode("--format", "can-log", log)
+    assert result.returncode == 0, result.stderr
+    assert [json.loads(line)["t_s"] for line in result.stdout.splitlines()] == [12.5, 12.51]
+    assert result.stderr.strip() == told
+    out = tmp_path / "x.mcap"
+    result = subprocess.run([str(BODYNET), "process", "--format", "can-log", str(log),
+                             "-o", str(out)], capture_output=True, text=True, timeout=60,
+                            check=False)  # fmt: skip
+    assert result.returncode == 0, result.stderr
+    assert result.stderr.strip().endswith(told), result.stderr
+    assert out.exists()
+
+
 def test_can_log_in_other_python_can_formats(tmp_path: Path, data_dir: Path) -> None:
     """An .asc and a .blf written by python-can decode to the same samples."""
     messages = list(can_log_messages(data_dir / "smartsuit_arm.log", CaptureStats()))

@@ -5,6 +5,7 @@ kinematics, and must find the joint centres of the recording's poses."""
 
 from __future__ import annotations
 
+import dataclasses
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -14,7 +15,9 @@ import pytest
 from export_recordings import WINDOW, export
 from scipy.spatial.transform import Rotation
 
-from bodynet.clients.mcap_store import read_poses
+from bodynet.cli.main import main
+from bodynet.clients.mcap_store import McapSink, read_poses
+from bodynet.core import keys
 from bodynet.core.codecs import pose
 from bodynet.core.codecs.pose import is_measured as measured
 from bodynet.core.skeleton import build_skeleton
@@ -181,3 +184,25 @@ def test_acclaim_holds_what_nothing_measured(
     assert np.ptp(truth) > 1.0
     for f in WINDOW:
         assert knee_angle(f) == pytest.approx(before, abs=0.01)
+
+
+@pytest.mark.parametrize("value", [1e308, -1e308, 3600.0])
+def test_an_angle_no_rotation_is_rebuilt_from_is_one_line_and_nothing_written(
+    flagged: Path, tmp_path: Path, value: float, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A held angle (the pose decoder takes any number) past a turn: one line
+    naming the pose and the angle, exit 2, neither file written (1e308 gave
+    scipy's "zero norm quaternions" traceback)."""
+    bad = tmp_path / "big.mcap"
+    sink = McapSink(bad)
+    for log_time, frame in read_poses(flagged):
+        angles = dict.fromkeys(frame.angles_deg, value)
+        sink.write_pose(keys.pose_key(), dataclasses.replace(frame, angles_deg=angles), log_time)
+    sink.close()
+    out = tmp_path / "y.amc"
+    assert main(["export", "amc", str(bad), "-o", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("bodynet export: the pose "), err
+    assert f"= {value:g} deg, no joint angle" in err
+    assert err.count("\n") == 1, err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["big.mcap"]

@@ -11,6 +11,7 @@ from pathlib import Path
 import pytest
 
 from bodynet.core.codecs import imu_matrix, smartsuit_can
+from bodynet.core.errors import Reason
 from bodynet.core.keys import LEFT_ARM
 from bodynet.core.messages import Quat
 from bodynet.core.skeleton import TPOSE
@@ -183,3 +184,21 @@ def test_process_refuses_a_profile_out_of_range(
     assert result.stderr.count("\n") == 1
     assert key in result.stderr
     assert not out.exists()
+
+
+def test_a_sample_before_1970_is_refused_naming_the_capture(tmp_path: Path) -> None:
+    """A time decode takes but a recording cannot hold (MCAP's times are from
+    1970 on): process says which capture and sample, exit 2, nothing written."""
+    csv_file, log = tmp_path / "neg.csv", tmp_path / "neg.log"
+    csv_file.write_text("time,pelvis_w,pelvis_x,pelvis_y,pelvis_z\n-1,1,0,0,0\n0,1,0,0,0\n")
+    log.write_text("(-5.000000) can0 0006FFFF#0100020003000400\n")
+    for capture, fmt, site, t in ((csv_file, "orientation-csv", "body/trunk/mid/sacrum/raw", -1),
+                                  (log, "can-log", "body/arm/left/shoulder/raw", -5)):  # fmt: skip
+        result = run("process", "--format", fmt, capture, "--tpose-s", "0",
+                     "-o", tmp_path / "x.mcap")  # fmt: skip
+        assert result.returncode == 2, result.stderr
+        assert result.stderr.startswith(
+            f"bodynet process: {capture}: the sample of {site} at {t} s cannot be recorded: "
+            f"{Reason.OUT_OF_RANGE}: "), result.stderr  # fmt: skip
+        assert result.stderr.count("\n") == 1
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["neg.csv", "neg.log"]

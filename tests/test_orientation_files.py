@@ -122,6 +122,51 @@ def test_a_malformed_sto_is_refused_naming_its_line(
     assert not (tmp_path / "x.mcap").exists()
 
 
+STO_HEAD = "DataType=Quaternion\n{}\nendheader\ntime\tpelvis_imu\n0\t1,0,0,0\n"
+CSV_HEAD = "time,pelvis_w,pelvis_x,pelvis_y,pelvis_z\n0,1,0,0,0\n"
+#: read as a table, refused by the reader: the header's values, a time no sample holds
+UNUSABLE = {
+    "start not a number": ("bad.sto", STO_HEAD.format("bodynet_start_ns=abc"), 2),
+    "start empty": ("bad.sto", STO_HEAD.format("bodynet_start_ns="), 2),
+    "start nan": ("bad.sto", STO_HEAD.format("bodynet_start_ns=nan"), 2),
+    "start inf": ("bad.sto", STO_HEAD.format("bodynet_start_ns=inf"), 2),
+    "start and time past 64 bits": (
+        "bad.sto", STO_HEAD.format("bodynet_start_ns=9223372036000000000") + "1e3\t1,0,0,0\n", 6),
+    "rotation nan": ("bad.sto", STO_HEAD.format("sensor_to_opensim_rotations=nan 0 0"), 2),
+    "rotation inf": ("bad.sto", STO_HEAD.format("sensor_to_opensim_rotations=0 inf 0"), 2),
+    "rotation 1e400": ("bad.sto", STO_HEAD.format("sensor_to_opensim_rotations=0 0 1e400"), 2),
+    "rotation in degrees": ("bad.sto", STO_HEAD.format("sensor_to_opensim_rotations=90 0 0"), 2),
+    "time 1e300": ("bad.csv", CSV_HEAD + "1e300,1,0,0,0\n", 3),
+    "time -1e30": ("bad.csv", "time,pelvis_w,pelvis_x,pelvis_y,pelvis_z\n-1e30,1,0,0,0\n", 2),
+    "field past csv's limit": ("bad.csv", CSV_HEAD + '0.1,"' + "1" * 140_000 + '",0,0,0\n', 3),
+    "one 1 MB line": ("bad.csv", CSV_HEAD + "9" * 1_000_000 + "\n", 3),
+}  # fmt: skip
+
+
+@pytest.mark.parametrize("case", sorted(UNUSABLE))
+def test_an_unusable_header_or_time_is_refused_naming_its_line(
+    case: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """What the table holds but no sample can (a start or rotation that is no
+    number, a time past a raw sample's 64-bit ns): one line naming the file's
+    line, exit 2, nothing written, and no NaN or Infinity printed as JSON."""
+    name, text, line = UNUSABLE[case]
+    path = tmp_path / name
+    path.write_text(text)
+    fmt = "sto" if name.endswith(".sto") else "orientation-csv"
+    for argv in (["decode", "--format", fmt, str(path)],
+                 ["process", "--format", fmt, str(path), "-o", str(tmp_path / "x.mcap")],
+                 ["calibrate", "tpose", "--from", str(path), "--format", fmt,
+                  "--profile", str(tmp_path / "p.toml")]):  # fmt: skip
+        assert main(argv) == 2, argv
+        out, err = capsys.readouterr()
+        assert err.count(f"{name}: line {line}: ") == 1, (argv, err)
+        assert err.count("\n") == 1, (argv, err)
+        assert "NaN" not in out
+        assert "Infinity" not in out
+    assert sorted(p.name for p in tmp_path.iterdir()) == [name]
+
+
 def test_a_malformed_file_through_the_real_command_shows_no_traceback(tmp_path: Path) -> None:
     bad = tmp_path / "bad.csv"
     bad.write_text("time,pelvis_w,pelvis_x,pelvis_y,pelvis_z\n0,1,0,0,0\n0.01,1,0,0,nan5\n")

@@ -53,7 +53,12 @@ from bodynet.clients.exports.track import (
     hold_unmeasured,
     output_file,
 )
+from bodynet.clients.mcap_store import StoreError
 from bodynet.core.skeleton import Skeleton, build_skeleton
+
+#: the most a held joint angle may be to rebuild a rotation from it (a turn; a pose's
+#: angles are within it, a number past it is no angle bodynet wrote)
+MAX_HELD_DEG = 360.0
 
 
 class Bone(NamedTuple):
@@ -155,12 +160,30 @@ def local_rotations(track: PoseTrack, skeleton: Skeleton) -> Rotation:
         dofs = [angle_index[a] for a in joint.angle_names()]
         rows = ~track.measured[:, dofs].all(axis=1)
         if rows.any():
+            _check_held(track, held, rows, dofs)
             rebuilt = Rotation.identity(int(rows.sum()))
             for dof, column in zip(joint.dofs, dofs, strict=True):
                 angle = np.radians(held[rows, column])
                 rebuilt = rebuilt * Rotation.from_rotvec(np.outer(angle, dof.axis))
             quats[rows, index[joint.child]] = rebuilt.as_quat()
     return Rotation.from_quat(quats.reshape(-1, 4))
+
+
+def _check_held(track: PoseTrack, held: np.ndarray, rows: np.ndarray, dofs: list[int]) -> None:
+    """``StoreError`` at the first angle a joint's rotation would be rebuilt from
+    that is not finite or past a turn (a pose's ``angles_deg`` of 1e308 gave
+    scipy's "zero norm quaternions")."""
+    values = held[np.ix_(rows, dofs)]
+    bad = np.argwhere(~(np.abs(values) <= MAX_HELD_DEG))
+    if len(bad):
+        row, dof = bad[0]
+        frame = int(np.flatnonzero(rows)[row])
+        raise StoreError(
+            f"the pose {(track.t_ns[frame] - track.t_ns[0]) / 1e9:.3f} s into the recording "
+            f"holds {track.angles[dofs[dof]]} = "
+            f"{values[row, dof]:g} deg, no joint angle (finite, within +-{MAX_HELD_DEG:g} deg) "
+            "an AMC rotation can be rebuilt from; nothing written"
+        )
 
 
 def write(track: PoseTrack, out: Path, options: Mapping[str, Any]) -> Written:

@@ -52,6 +52,8 @@ class Table:
     header: dict[str, str] = field(default_factory=dict)
     #: (line number, time in s, {column index: w, x, y, z}); NaN cells left out
     rows: list[tuple[int, float, dict[int, QuatWxyz]]] = field(default_factory=list)
+    #: the line of each header key (a ``.sto`` file's), to name in an error about its value
+    header_lines: dict[str, int] = field(default_factory=dict)
 
 
 def _quat(values: list[str], line: int, what: str) -> QuatWxyz | None:
@@ -84,21 +86,23 @@ def parse_sto(lines: Iterable[str]) -> Table:
     """An OpenSense quaternion ``.sto`` file's lines (line ends optional)."""
     numbered: Iterator[tuple[int, str]] = enumerate(lines, start=1)
     header: dict[str, str] = {}
+    header_lines: dict[str, int] = {}
     n = 0
-    for n, raw in numbered:  # noqa: B007 (n: where the header ends, for the errors below)
+    for n, raw in numbered:  # n: where the header ends, for the errors below
         text = raw.strip()
         if text.lower() == "endheader":
             break
         key, sep, value = text.partition("=")
         if sep:
             header[key.strip()] = value.strip()
+            header_lines[key.strip()] = n
     else:
         raise OrientationFileError(n if header else 1, "no 'endheader' line: not a .sto file")
     kind = header.get("DataType", "Quaternion")
     if kind != "Quaternion":
         raise OrientationFileError(n, f"DataType={kind}: an orientation file holds Quaternion")
     labels: list[str] | None = None
-    table = Table([], header)
+    table = Table([], header, header_lines=header_lines)
     last: float | None = None
     for n, raw in numbered:
         if not raw.strip():
@@ -133,7 +137,13 @@ def parse_csv(lines: Iterable[str]) -> Table:
     groups: list[tuple[str, list[int]]] = []
     time_index = 0
     last: float | None = None
-    for row in reader:
+    while True:
+        try:
+            row = next(reader, None)
+        except csv.Error as exc:  # a field past csv's limit (128 KiB), a NUL byte
+            raise OrientationFileError(reader.line_num, f"not a CSV row ({exc})") from None
+        if row is None:
+            break
         n = reader.line_num
         if not any(c.strip() for c in row):
             continue

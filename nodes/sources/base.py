@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import math
 import threading
 from collections.abc import Callable, Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
@@ -49,6 +50,16 @@ class CaptureError(ValueError):
 class EmulatorError(Exception):
     """An emulated device that cannot start (its link cannot be made, its bus
     opened, its server found); the message names the link, bus or server."""
+
+def time_refused(t_s: float) -> str | None:
+    """Why a capture's time of a sample (s) cannot be one, or None: it must be
+    finite and within the signed 64-bit ns of a raw sample's time (+-292 years
+    from 1970, ``core/codecs/raw_sample.py``)."""
+    if not math.isfinite(t_s):
+        return f"time {t_s} is not finite"
+    if abs(t_s) * 1e9 >= 2**63:
+        return f"time {t_s:g} s is beyond what a sample's time holds (64-bit ns, +-292 years)"
+    return None
 
 
 class Transport(StrEnum):

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import re
 import struct
 import threading
@@ -16,7 +17,7 @@ from can.io.blf import BLFParseError
 
 from bodynet.core.codecs.smartsuit_can import CanFrame
 from bodynet.core.errors import Reason, Rejected
-from bodynet.nodes.sources.base import CaptureStats
+from bodynet.nodes.sources.base import CaptureStats, time_refused
 
 #: suffixes of the logs python-can's ``LogReader`` reads that bodynet takes
 LOG_SUFFIXES = (".log", ".asc", ".blf", ".trc")
@@ -203,7 +204,8 @@ def _not_frame(suffix: str, line: str, number: int, reader: object,
 def can_log_messages(path: Path, stats: CaptureStats) -> Iterator[can.Message]:
     """python-can's messages of a log (candump ``.log``, ``.asc``, ``.trc``,
     ``.csv``, ``.blf``); a line (or BLF object) it cannot parse, or passes over
-    when it is not one of its format's own non-frame lines, is counted with
+    when it is not one of its format's own non-frame lines, or a text line
+    whose time no sample holds (NaN, inf, beyond 64-bit ns), is counted with
     its line number (byte offset) and skipped, and the lines after it are read.
 
     python-can's readers stop at the first line they cannot parse: here the
@@ -268,7 +270,20 @@ def can_log_messages(path: Path, stats: CaptureStats) -> Iterator[can.Message]:
                 continue
             passed_over(lines.take(last_used=True), then_frame=True)
             frames += 1
-            yield msg
+            if not _untimed(msg, f"line {lines.number}", path, stats):
+                yield msg
+
+
+def _untimed(msg: can.Message, where: str, path: Path, stats: CaptureStats) -> bool:
+    """Count a message whose time no sample holds (python-can reads a candump
+    line's "(nan)" or "(1e300)" as its time); True if it was."""
+    why = time_refused(msg.timestamp)
+    if why is None:
+        return False
+    reason = Reason.OUT_OF_RANGE if math.isfinite(msg.timestamp) else Reason.NOT_FINITE
+    stats.count(Rejected(reason, f"{path.name} {where}: {why}"))
+    stats.bad_places.append(where)
+    return True
 
 
 def _asc_header(reader: can.ASCReader, lines: _Lines):  # type: ignore[no-untyped-def]

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import math
 from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any, ClassVar
@@ -53,9 +54,13 @@ from bodynet.nodes.sources.base import (
     CaptureStats,
     Source,
     Transport,
+    time_refused,
 )
 
 log = logging.getLogger(__name__)
+
+#: the ``.sto`` header key of the first row's time (ns), as ``bodynet export sto`` writes it
+START_NS = "bodynet_start_ns"
 
 #: bodynet segment -> the IMU site on it
 SEGMENT_SITES: Mapping[str, Site] = {
@@ -96,12 +101,31 @@ def _to_bodynet(table: Table) -> Rotation:
     text = table.header.get(SENSOR_TO_OPENSIM, "0 0 0")
     try:
         angles = [float(v) for v in text.split()]
-        if len(angles) != 3:
+        if len(angles) != 3 or not all(abs(a) <= 2 * math.pi for a in angles):  # NaN too
             raise ValueError
     except ValueError:
-        raise OrientationFileError(1, f"{SENSOR_TO_OPENSIM}={text}: not three angles") from None
+        raise OrientationFileError(
+            table.header_lines.get(SENSOR_TO_OPENSIM, 1),
+            f"{SENSOR_TO_OPENSIM}={text}: not three angles in radians, each within +-2 pi",
+        ) from None
     to_opensim = Rotation.from_euler("XYZ", angles)
     return Rotation.from_matrix(np.array(OPENSIM_FROM_BODYNET)).inv() * to_opensim
+
+
+def _start_s(table: Table) -> float:
+    """A ``.sto`` file's ``bodynet_start_ns`` (what ``bodynet export sto`` writes:
+    the time of its first row), in seconds; 0 if absent."""
+    text = table.header.get(START_NS)
+    if text is None:
+        return 0.0
+    try:
+        start = float(text) / 1e9
+    except ValueError:
+        start = math.nan
+    if time_refused(start) is not None:
+        raise OrientationFileError(table.header_lines.get(START_NS, 1),
+                                   f"{START_NS}={text[:40]}: not a time in ns")  # fmt: skip
+    return start
 
 
 class OrientationFile(Source):
@@ -140,9 +164,9 @@ class OrientationFile(Source):
             with path.open(encoding="utf-8", errors="replace", newline="") as f:
                 table = parse_sto(f) if fmt == "sto" else parse_csv(f)
             to_bodynet = _to_bodynet(table) if fmt == "sto" else None
+            start = _start_s(table) if fmt == "sto" else 0.0
         except OrientationFileError as exc:
             raise CaptureError(f"{path}: {exc}") from None
-        start = float(table.header.get("bodynet_start_ns", 0)) / 1e9 if fmt == "sto" else 0.0
         sites, events = {}, []
         for i, column in enumerate(table.columns):
             site = self.column_map.get(column)
@@ -154,7 +178,10 @@ class OrientationFile(Source):
         self.sites = sites
         adapter, sink = self.adapter(), CaptureSink(sites, stats)
         adapter.events(events, None, sink)
-        for row, (_, t, quats) in enumerate(table.rows):
+        for row, (line, t, quats) in enumerate(table.rows):
+            why = time_refused(start + t)
+            if why is not None:
+                raise CaptureError(f"{path}: line {line}: {why}")
             found: list[StreamEvent] = [Tick(row)]
             for i, q in quats.items():
                 if i + 1 in sites:
