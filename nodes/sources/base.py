@@ -51,6 +51,7 @@ class EmulatorError(Exception):
     """An emulated device that cannot start (its link cannot be made, its bus
     opened, its server found); the message names the link, bus or server."""
 
+
 def time_refused(t_s: float) -> str | None:
     """Why a capture's time of a sample (s) cannot be one, or None: it must be
     finite and within the signed 64-bit ns of a raw sample's time (+-292 years
