@@ -6,7 +6,7 @@ import json
 import signal
 import subprocess
 import sys
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
@@ -223,19 +223,9 @@ def test_emulate_replaces_a_stale_link_and_removes_only_its_own(tmp_path: Path) 
     link.symlink_to("/dev/pts/999999")  # left by an emulator that was killed
     beside = tmp_path / "ttyUSB0.tmp"
     beside.write_text("kept\n")
-    proc = subprocess.Popen([str(BODYNET), "emulate", "imu-central", "--link", str(link)],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)  # fmt: skip
-    try:
-        assert proc.stdout is not None
-        assert f"emulated imu-central on {link} -> /dev/pts/" in proc.stdout.readline()
-        assert link.exists()  # a live terminal now
-        proc.send_signal(signal.SIGTERM)
-        assert proc.wait(timeout=30) == 0
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait(timeout=10)
-    assert "Traceback" not in proc.communicate()[1]
+    first = _until_sigterm("emulate", "imu-central", "--link", link,
+                           started=link.exists)  # a live terminal by then  # fmt: skip
+    assert f"emulated imu-central on {link} -> /dev/pts/" in first
     assert [p.name for p in tmp_path.iterdir()] == ["ttyUSB0.tmp"]
     assert beside.read_text() == "kept\n"
 
@@ -243,12 +233,19 @@ def test_emulate_replaces_a_stale_link_and_removes_only_its_own(tmp_path: Path) 
 def test_emulated_trackers_given_a_server_by_name_stop_on_sigterm() -> None:
     from zenoh_helpers import free_port
 
-    proc = subprocess.Popen([str(BODYNET), "emulate", "slimevr", "--server",
-                             f"localhost:{free_port()}"], stdout=subprocess.PIPE,
+    first = _until_sigterm("emulate", "slimevr", "--server", f"localhost:{free_port()}")
+    assert "emulated slimevr on localhost:" in first
+
+
+def _until_sigterm(*args: object, started: Callable[[], bool] = lambda: True) -> str:
+    """Run ``bodynet *args`` until its first line, check ``started``, end it with
+    SIGTERM: it exits 0 with no traceback. Its first line."""
+    proc = subprocess.Popen([str(BODYNET), *map(str, args)], stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True)  # fmt: skip
     try:
         assert proc.stdout is not None
-        assert "emulated slimevr on localhost:" in proc.stdout.readline()
+        first = proc.stdout.readline()
+        assert started(), first
         proc.send_signal(signal.SIGTERM)
         assert proc.wait(timeout=30) == 0
     finally:
@@ -256,3 +253,4 @@ def test_emulated_trackers_given_a_server_by_name_stop_on_sigterm() -> None:
             proc.kill()
             proc.wait(timeout=10)
     assert "Traceback" not in proc.communicate()[1]
+    return first
