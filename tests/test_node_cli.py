@@ -183,3 +183,21 @@ def test_a_bad_config_is_a_message_and_sigterm_ends_a_wait_for_the_router(tmp_pa
     waiting.send_signal(signal.SIGTERM)
     assert waiting.wait(timeout=30) == 0
     assert "Traceback" not in waiting.stderr.read()
+
+
+@pytest.mark.parametrize("device", ["can --interface nonsense --channel x",
+                                    "concentrator --port {tmp}", "concentrator --port {tmp}/f.bin",
+                                    "concentrator --port /dev/null"])  # fmt: skip
+def test_a_device_that_can_never_open_is_refused_at_once(
+    router_endpoint: str, tmp_path: Path, device: str
+) -> None:
+    """A misspelled interface, a folder or a file as a serial port: one line, exit 2,
+    instead of retrying for ever as for an unplugged device."""
+    (tmp_path / "f.bin").write_bytes(b"\x00" * 64)
+    argv = [str(BODYNET), "bridge", *device.format(tmp=tmp_path).split(), "-e", router_endpoint]
+    bad = subprocess.run(argv, capture_output=True, text=True, timeout=60, check=False)
+    assert bad.returncode == 2, bad.stderr
+    what = device.partition(" ")[0]
+    assert bad.stderr.startswith(f"bodynet bridge {what}: cannot open the device: ")
+    assert "Traceback" not in bad.stderr
+    assert "retrying" not in bad.stderr

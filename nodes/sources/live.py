@@ -83,6 +83,7 @@ class SerialBridge(Bridge):
             lambda link: link.close(),
             SERIAL_ERRORS,
             stop,
+            path=port,
         )
 
 
@@ -107,7 +108,8 @@ class CanBusBridge(Bridge):
                     self.handle(msg)
 
         keep_connected(self.publisher, lambda: can.Bus(**bus_args), serve,
-                       lambda bus: bus.shutdown(), CAN_ERRORS, stop)  # fmt: skip
+                       lambda bus: bus.shutdown(), CAN_ERRORS, stop,
+                       path=str(bus_args.get("channel") or "") or None)  # fmt: skip
 
     def run_replay(self, path: Path, stop: threading.Event, loop: bool = False) -> None:
         """Play a CAN log back at its recorded speed, stamped with the time of play."""
