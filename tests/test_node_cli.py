@@ -201,3 +201,20 @@ def test_a_device_that_can_never_open_is_refused_at_once(
     assert bad.stderr.startswith(f"bodynet bridge {what}: cannot open the device: ")
     assert "Traceback" not in bad.stderr
     assert "retrying" not in bad.stderr
+
+
+@pytest.mark.parametrize(("system", "selection", "said"), [
+    ("imu", ["--sensors", "13-15", "--branch", "left-arm"],
+     "--sensors 13,14,15 with --branch left-arm matches no imu sensor"),
+    ("slimevr", ["--sensors", "16-20"], "--sensors 16,17,18,19,20 matches no slimevr sensor"),
+])  # fmt: skip
+def test_a_selection_of_no_sensor_is_refused_at_once(
+    system: str, selection: list[str], said: str
+) -> None:
+    from zenoh_helpers import free_port
+
+    argv = [str(BODYNET), "node", system, *selection, "-e", f"tcp/127.0.0.1:{free_port()}"]
+    bad = subprocess.run(argv, capture_output=True, text=True, timeout=60, check=False)
+    assert bad.returncode == 2, bad.stderr
+    assert bad.stderr.startswith(f"bodynet node {system}: {said}")
+    assert "Traceback" not in bad.stderr
