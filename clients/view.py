@@ -593,8 +593,8 @@ def _sink(mode: str, bp: rrb.Blueprint, recording_id: str, url: str | None,
         if mode == "native":
             rec.spawn(default_blueprint=bp)
         elif mode == "web":
-            _check_free(grpc_port or GRPC_PORT, "--grpc-port")
             _check_free(web_port or WEB_PORT, "--web-port")
+            _check_free(grpc_port or GRPC_PORT, "--grpc-port")
             uri = rec.serve_grpc(grpc_port=grpc_port, default_blueprint=bp)
             rr.serve_web_viewer(open_browser=False, connect_to=uri, web_port=web_port)
         else:
