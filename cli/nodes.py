@@ -81,11 +81,12 @@ def _with_session(
 
 def cmd_bridge(args: argparse.Namespace) -> int:
     from bodynet.nodes import services, sources
+    from bodynet.nodes.sources.base import CaptureError
 
     name = args.name or sources.get(args.device).bridge_name(args)
     try:
         return _with_session(args, services.bridge, args.device, name, args)
-    except OSError as exc:  # e.g. the UDP port is taken (another SlimeVR server runs)
+    except (OSError, CaptureError) as exc:  # a UDP port taken, a --replay of no frame...
         print(f"bodynet bridge {args.device}: {exc}", file=sys.stderr)
         return 2
 

@@ -218,3 +218,25 @@ def test_a_selection_of_no_sensor_is_refused_at_once(
     assert bad.returncode == 2, bad.stderr
     assert bad.stderr.startswith(f"bodynet node {system}: {said}")
     assert "Traceback" not in bad.stderr
+
+
+def test_a_replay_says_what_it_replayed_and_a_log_of_no_frame_is_an_error(
+    router_endpoint: str, tmp_path: Path
+) -> None:
+    (tmp_path / "rand.bin").write_bytes(bytes(range(256)) * 4)
+    (tmp_path / "text.log").write_text("hello\nworld\n")
+    (tmp_path / "empty.log").write_text("")
+    for name in ("rand.bin", "text.log", "empty.log"):
+        argv = [str(BODYNET), "bridge", "can", "--replay", str(tmp_path / name)]
+        bad = subprocess.run([*argv, "-e", router_endpoint],
+                             capture_output=True, text=True, timeout=60, check=False)  # fmt: skip
+        assert bad.returncode == 2, bad.stderr
+        assert bad.stderr.startswith(f"bodynet bridge can: no CAN frame in {tmp_path / name}")
+        assert "Traceback" not in bad.stderr
+    mixed = tmp_path / "mixed.log"
+    mixed.write_text("(0.0) vcan0 123#00\nGARBLED\n")
+    ok = subprocess.run(
+        [str(BODYNET), "bridge", "can", "--replay", str(mixed), "-e", router_endpoint],
+        capture_output=True, text=True, timeout=60, check=False)  # fmt: skip
+    assert ok.returncode == 0, ok.stderr
+    assert f"1 frames replayed from {mixed}; skipped 1 (garbage: 1) at line 2" in ok.stderr
