@@ -110,6 +110,8 @@ def cmd_view(args: argparse.Namespace) -> int:
             except StoreError as exc:
                 print(f"bodynet view: {exc}", file=sys.stderr)
                 return 2
+            if viewer.address:  # the web viewer lives as long as this process
+                _serve_until_stopped(viewer, n)
         else:
             assert stop is not None
             session = open_session(config_from_args(args))
@@ -125,6 +127,16 @@ def cmd_view(args: argparse.Namespace) -> int:
     print(f"bodynet view: {n} poses{bad}" + (f", saved to {args.save}" if args.save else ""),
           file=sys.stderr)  # fmt: skip
     return 0
+
+
+def _serve_until_stopped(viewer: Viewer, n: int) -> None:
+    """Keep serving a recording's web viewer until Ctrl-C or SIGTERM."""
+    from bodynet.cli.nodes import stop_on_signals
+
+    stop = stop_on_signals()
+    print(f"bodynet view: {n} poses in the web viewer at {viewer.address}; serving it "
+          "until Ctrl-C", file=sys.stderr, flush=True)  # fmt: skip
+    stop.wait()
 
 
 def _close_viewer(viewer: Viewer, keep: bool) -> int:

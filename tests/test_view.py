@@ -373,3 +373,28 @@ def test_a_viewer_that_takes_nothing_is_said_and_sigterm_ends_the_view(tmp_path:
     assert proc.returncode == 128 + signal.SIGTERM, err
     assert f"interrupted by SIGTERM while the viewer at {url} took nothing" in err
     assert "Traceback" not in err
+
+
+def test_a_recording_in_the_web_viewer_is_served_until_stopped(arm_mcap: Path) -> None:
+    """No display: `--viewer auto` falls back to the web viewer, which lives as long as
+    the process; it serves the recording until Ctrl-C instead of exiting at once."""
+    import os
+    import signal
+
+    web, grpc = free_port(), free_port()
+    env = {k: v for k, v in os.environ.items() if k != "DISPLAY"}
+    proc = subprocess.Popen([str(BODYNET), "view", str(arm_mcap),
+                             "--web-port", str(web), "--grpc-port", str(grpc)],
+                            stderr=subprocess.PIPE, text=True, env=env)  # fmt: skip
+    try:
+        assert proc.stderr is not None
+        line = proc.stderr.readline()
+        assert f"in the web viewer at http://127.0.0.1:{web}/" in line, line
+        assert "serving it until Ctrl-C" in line
+        with urllib.request.urlopen(f"http://127.0.0.1:{web}/", timeout=10) as page:
+            assert page.status == 200
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(timeout=30) == 0
+    finally:
+        proc.kill()
+        proc.wait(timeout=10)
