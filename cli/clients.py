@@ -4,8 +4,12 @@ from __future__ import annotations
 
 import argparse
 import sys
+from typing import TYPE_CHECKING
 
 from bodynet.session import add_session_args, argtypes, config_from_args, open_session
+
+if TYPE_CHECKING:  # Rerun loads only when a view runs
+    from bodynet.clients.view import Viewer
 
 #: Frames per second of an export: a higher rate only repeats poses (and a
 #: C3D at 1 MHz of a one-second recording takes gigabytes).
@@ -105,6 +109,8 @@ def cmd_view(args: argparse.Namespace) -> int:
             except StoreError as exc:
                 print(f"bodynet view: {exc}", file=sys.stderr)
                 return 2
+            if viewer.address:  # the web viewer lives as long as this process
+                _serve_until_stopped(viewer, n)
         else:
             assert stop is not None
             session = open_session(config_from_args(args))
@@ -114,18 +120,55 @@ def cmd_view(args: argparse.Namespace) -> int:
                 session.close()
         complete = True
     finally:
-        try:
-            viewer.close(keep=complete)
-        except OSError as exc:  # the .rrd could not be put in place (a full disk)
-            print(f"bodynet view: {exc}", file=sys.stderr)
-            return 1
+        if code := _close_viewer(viewer, complete):
+            return code  # noqa: B012  the error said, the view is over
     bad = f", {viewer.bad} bad messages not shown" if viewer.bad else ""
     print(f"bodynet view: {n} poses{bad}" + (f", saved to {args.save}" if args.save else ""),
           file=sys.stderr)  # fmt: skip
     return 0
 
 
-_VIEWER_URL = argtypes.url("rerun", "rerun+http", "rerun+https", "http", "https")
+def _serve_until_stopped(viewer: Viewer, n: int) -> None:
+    """Keep serving a recording's web viewer until Ctrl-C or SIGTERM."""
+    from bodynet.cli.nodes import stop_on_signals
+
+    stop = stop_on_signals()
+    print(f"bodynet view: {n} poses in the web viewer at {viewer.address}; serving it "
+          "until Ctrl-C", file=sys.stderr, flush=True)  # fmt: skip
+    stop.wait()
+
+
+def _close_viewer(viewer: Viewer, keep: bool) -> int:
+    """Close the view's sinks: 0, or 1 with one line if one could not be. A
+    viewer that takes nothing would hold Rerun, and the process, for ever: the
+    process then ends at once, on an interrupt too (the .rrd, nameless until it
+    is whole, leaves nothing)."""
+    import os
+    import signal
+
+    code = 0
+    try:
+        viewer.close(keep=keep)
+    except OSError as exc:  # the .rrd could not be put in place (a full disk), no viewer
+        print(f"bodynet view: {exc}", file=sys.stderr)
+        code = 1
+    except (KeyboardInterrupt, SystemExit) as exc:  # SystemExit: outputs.Interrupted
+        signum = signal.SIGINT if isinstance(exc, KeyboardInterrupt) else getattr(exc, "signum", 0)
+        if not viewer.stuck or not signum:
+            raise
+        print(f"bodynet view: interrupted by {signal.Signals(signum).name} while the viewer "
+              f"at {viewer.url} took nothing: stopped", file=sys.stderr)  # fmt: skip
+        code = 128 + signum
+    if viewer.stuck:
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code or 1)
+    return code
+
+
+#: Rerun's schemes only: it refuses http:// and https:// (its web viewer's address
+#: is not where a viewer takes a recording)
+_VIEWER_URL = argtypes.url("rerun", "rerun+http", "rerun+https")
 
 
 def add_view_args(p: argparse.ArgumentParser) -> None:

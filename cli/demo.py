@@ -14,10 +14,14 @@ import contextlib
 import json
 import math
 import os
+import sys
 import threading
 import time
 from collections.abc import Callable
+from dataclasses import dataclass, field
 from pathlib import Path
+
+import zenoh
 
 from bodynet.clients.recorder import Recorder
 from bodynet.clients.view import Viewer, view_live
@@ -28,7 +32,8 @@ from bodynet.core.skeleton import TPOSE
 from bodynet.gateway.service import Gateway
 from bodynet.nodes.motion import ROUTINES, Routine, keyframes
 from bodynet.nodes.services import EmulationOptions, body_plan, run_node
-from bodynet.session import open_session, session_config
+from bodynet.session import SessionError, open_session, session_config
+from bodynet.session.outputs import PendingOutput, check_output
 
 TPOSE_S = 4.0
 #: The demo asks the gateway to calibrate from this many still seconds, ending
@@ -128,47 +133,96 @@ def run_demo(endpoint: str, routine: str, seconds: float | None, record: Path,
              web_port: int | None = None) -> int:  # fmt: skip
     """Run everything until ``stop`` (Ctrl-C) or for ``seconds``. The live view
     is a window where there is a display, else the web viewer plus a saved
-    ``.rrd`` (``viewer_mode`` "none": the ``.rrd`` only)."""
+    ``.rrd`` (``viewer_mode`` "none": the ``.rrd`` only). An output that cannot
+    be written, a port in use: one line, exit 2, and what had started is stopped."""
     if viewer_mode == "auto":
         viewer_mode = "native" if os.environ.get("DISPLAY") else "web"
     if viewer_mode != "native" and rrd is None:
         rrd = record.with_suffix(".rrd")
-    scripted = Routine("demo", "", demo_motion(ROUTINES[routine].angles))
+    with contextlib.ExitStack() as stack:
+        try:
+            for output in (record, rrd):
+                if output is not None:  # before anything starts: it can be, and is, made
+                    check_output(output)
+                    PendingOutput(output).discard()  # a folder that takes no file: /proc
+            parts = _start(stack, endpoint, routine, record, stop, viewer_mode, rrd, web_port)
+        except (OSError, SessionError) as exc:
+            stop.set()
+            why: object = exc
+            if isinstance(exc, OSError) and exc.filename and exc.strerror:
+                why = f"cannot write {exc.filename}: {exc.strerror}"
+            print(f"bodynet demo: {why}", file=sys.stderr)
+            return 2
+        _say_where(endpoint, parts.record, routine, parts.viewer.address, rrd)
+        _show(parts, seconds, stop)
+        parts.complete = True
+    print(f"bodynet demo: stopped; {parts.recorder.messages} messages in {parts.record}")
+    return 0
+
+
+@dataclass
+class _Parts:
+    """What the demo started (each stopped by the exit stack it was started in)."""
+
+    client: zenoh.Session
+    recorder: Recorder
+    viewer: Viewer
+    record: Path
+    start: float  # the emulated body's clock (monotonic s): it starts with its nodes
+    latest: dict[str, pose.PoseFrame] = field(default_factory=dict)
+    complete: bool = False  # the live view's .rrd is kept only if it ran to its end
+
+
+def _start(stack: contextlib.ExitStack, endpoint: str, routine: str, record: Path,
+           stop: threading.Event, viewer_mode: str, rrd: Path | None,
+           web_port: int | None) -> _Parts:  # fmt: skip
+    """Start the router and gateway, the live view, the recorder and the body, in
+    an order where what fails most often (a port, an output) fails first."""
+
+    def thread(target: Callable[..., object], *args: object) -> None:
+        t = threading.Thread(target=target, args=args, daemon=True)
+        t.start()
+        stack.callback(lambda: (stop.set(), t.join(timeout=10)))
+
     gw_session = open_session(session_config("router", listen=[endpoint]))
-    gateway = Gateway(gw_session)
-    gw_thread = threading.Thread(target=gateway.run, args=(stop,), daemon=True)
-    gw_thread.start()
-    node_session = open_session(session_config("client", connect=[endpoint]))
-    nodes = threading.Thread(
-        target=run_node,
-        daemon=True,
-        args=(node_session, stop, body_plan(), EmulationOptions(scripted)),
-    )
-    start = time.monotonic()  # the emulated body's clock starts with its nodes
-    nodes.start()
+    stack.callback(gw_session.close)
     client = open_session(session_config("client", connect=[endpoint]))
-    recorder = Recorder(client, record)
-    record = recorder.files[0]  # another name where that one is taken (it is kept)
+    stack.callback(client.close)
     viewer = Viewer.start(viewer_mode, rrd, web_port=web_port)
-    view_thread = threading.Thread(target=view_live, args=(client, viewer, stop), daemon=True)
-    view_thread.start()
-    latest: dict[str, pose.PoseFrame] = {}
+    stack.callback(lambda: viewer.close(keep=parts.complete))
+    recorder = Recorder(client, record)
+    stack.callback(recorder.close)
+    parts = _Parts(client, recorder, viewer, recorder.files[0], 0.0)  # files[0]: a free name
+    gateway = Gateway(gw_session)
+    stack.callback(gateway.close)
+    thread(gateway.run, stop)
+    node_session = open_session(session_config("client", connect=[endpoint]))
+    stack.callback(node_session.close)
+    scripted = Routine("demo", "", demo_motion(ROUTINES[routine].angles))
+    parts.start = time.monotonic()
+    thread(run_node, node_session, stop, body_plan(), EmulationOptions(scripted))
+    thread(view_live, client, viewer, stop)
 
-    def on_pose(sample: object) -> None:
+    def on_pose(sample: zenoh.Sample) -> None:
         with contextlib.suppress(DecodeError):  # the demo shows poses; others are the gateway's
-            latest["body"] = pose.decode(sample.payload.to_bytes())  # type: ignore[attr-defined]
+            parts.latest["body"] = pose.decode(sample.payload.to_bytes())
 
-    sub = client.declare_subscriber(keys.pose_key(), on_pose)
-    _say_where(endpoint, record, routine, viewer.address, rrd)
+    stack.callback(client.declare_subscriber(keys.pose_key(), on_pose).undeclare)
+    return parts
+
+
+def _show(parts: _Parts, seconds: float | None, stop: threading.Event) -> None:
+    """The table, a line a second, until ``stop`` or ``seconds``; the T-pose
+    calibration asked for on time (in the body's clock)."""
     calibrated = False
     calibrate_at = TPOSE_S - CALIBRATION_SLACK_S
     wait_s = 0.0
     while not stop.wait(wait_s):
-        elapsed = time.monotonic() - start
+        elapsed = time.monotonic() - parts.start
         if not calibrated and elapsed >= calibrate_at:
             calibrated = True
-            replies = list(client.get(f"{keys.CALIBRATE_TPOSE}?seconds={CALIBRATION_S}",
-                                      timeout=10))  # fmt: skip
+            replies = list(parts.client.get(f"{keys.CALIBRATE_TPOSE}?seconds={CALIBRATION_S}",
+                                            timeout=10))  # fmt: skip
             result = (
                 json.loads(replies[0].ok.payload.to_bytes()) if replies and replies[0].ok else {}
             )
@@ -176,22 +230,12 @@ def run_demo(endpoint: str, routine: str, seconds: float | None, record: Path,
                   + (f" (refused: {result['error']})" if result.get("error") else "")
                   + ("; the heading is found when a knee bends"
                      if result.get("heading", {}).get("state") == "unknown" else ""))  # fmt: skip
-        frame = latest.get("body")
+        frame = parts.latest.get("body")
         if frame is not None:
-            print(_status_line(elapsed, frame, recorder.messages))
+            print(_status_line(elapsed, frame, parts.recorder.messages))
         if seconds is not None and elapsed >= seconds:
             stop.set()
-        # a line a second, and the calibration asked for on time (in the body's clock)
-        # however long the viewer took to start
-        left = calibrate_at - (time.monotonic() - start)
+        # a line a second, and the calibration asked for on time however long the
+        # viewer took to start
+        left = calibrate_at - (time.monotonic() - parts.start)
         wait_s = 1.0 if calibrated else max(0.0, min(1.0, left))
-    sub.undeclare()
-    recorder.close()
-    for thread in (view_thread, nodes, gw_thread):
-        thread.join(timeout=10)
-    gateway.close()
-    viewer.close()
-    for session in (client, node_session, gw_session):
-        session.close()
-    print(f"bodynet demo: stopped; {recorder.messages} messages in {record}")
-    return 0

@@ -8,11 +8,15 @@ import os
 import signal
 import sys
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
+from typing import TYPE_CHECKING
 
 from bodynet.core.keys import BRANCHES, branch_named
 from bodynet.nodes.motion import ROUTINES
 from bodynet.session import add_session_args, argtypes, config_from_args, open_session
+
+if TYPE_CHECKING:
+    from bodynet.nodes.services import NodePlan
 
 log = logging.getLogger("bodynet")
 
@@ -77,11 +81,12 @@ def _with_session(
 
 def cmd_bridge(args: argparse.Namespace) -> int:
     from bodynet.nodes import services, sources
+    from bodynet.nodes.sources.base import CaptureError
 
     name = args.name or sources.get(args.device).bridge_name(args)
     try:
         return _with_session(args, services.bridge, args.device, name, args)
-    except OSError as exc:  # e.g. the UDP port is taken (another SlimeVR server runs)
+    except (OSError, CaptureError) as exc:  # a UDP port taken, a --replay of no frame...
         print(f"bodynet bridge {args.device}: {exc}", file=sys.stderr)
         return 2
 
@@ -130,7 +135,29 @@ def cmd_node(args: argparse.Namespace) -> int:
         plans = [NodePlan(args.system, via, _branches(args), sensors)]
     else:
         plans = [NodePlan("smartsuit", args.via, _branches(args))]
+    if empty := _no_sensor(plans):
+        print(f"bodynet node {args.system}: {_selection(args)} matches no {empty.system} "
+              "sensor; nothing to emulate", file=sys.stderr)  # fmt: skip
+        return 2
     return _with_session(args, run_node, plans, _options(args), args.name or f"node-{args.system}")
+
+
+def _no_sensor(plans: Sequence[NodePlan]) -> NodePlan | None:
+    """The first plan whose selection matches no sensor, or None."""
+    from bodynet.nodes import sources
+
+    for plan in plans:
+        if not sources.by_device(plan.via)().emulated_sensors(plan.sensors, plan.branches):
+            return plan
+    return None
+
+
+def _selection(args: argparse.Namespace) -> str:
+    """The options that chose the sensors, as given."""
+    chosen = [f"--branch {b}" for b in args.branch]
+    if args.sensors:
+        chosen.insert(0, "--sensors " + ",".join(map(str, _numbers(args.sensors))))
+    return " with ".join(chosen) or "the selection"
 
 
 def _emulation_args(p: argparse.ArgumentParser) -> None:

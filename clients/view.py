@@ -15,13 +15,16 @@ from __future__ import annotations
 import json
 import logging
 import math
+import os
 import queue
+import socket
 import threading
 import time
 from collections import deque
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from urllib.parse import urlsplit
 
 import numpy as np
 import rerun as rr
@@ -381,6 +384,38 @@ def metrics_text(message: object) -> str:
     return "\n".join(lines)
 
 
+class ViewerError(OSError):
+    """A viewer that cannot be started or reached (a port in use, no viewer at
+    the URL); the message says which."""
+
+
+#: Rerun's defaults: its gRPC server's port (and a viewer's), and the web viewer's.
+GRPC_PORT, WEB_PORT = 9876, 9090
+
+
+def _check_free(port: int, option: str) -> None:
+    """``ViewerError`` unless ``port`` can be listened on (Rerun says so only in
+    its log, and fails later)."""
+    try:
+        socket.create_server(("0.0.0.0", port)).close()
+    except OSError as exc:
+        why = os.strerror(exc.errno) if exc.errno else str(exc)
+        raise ViewerError(f"cannot serve on port {port} ({option}): {why}") from None
+
+
+def _check_reachable(url: str | None) -> None:
+    """``ViewerError`` unless something listens where the viewer at ``url``
+    should (Rerun would only say so when it gives up flushing)."""
+    url = url or f"rerun+http://127.0.0.1:{GRPC_PORT}/proxy"
+    parts = urlsplit(url)
+    try:
+        port = parts.port or (443 if parts.scheme == "rerun+https" else GRPC_PORT)
+        socket.create_connection((parts.hostname or "", port), timeout=5.0).close()
+    except (OSError, ValueError) as exc:
+        why = exc.strerror if isinstance(exc, OSError) and exc.strerror else exc
+        raise ViewerError(f"cannot reach the viewer at {url}: {why} (is it running?)") from None
+
+
 @dataclass
 class Viewer:
     """Logs poses to Rerun, batching them; to several sinks at once if asked
@@ -396,6 +431,8 @@ class Viewer:
     #: segment -> (colour, label): the calibration state per segment (health), drawn
     #: at each segment's origin in the 3D view
     calibration: dict[str, tuple[tuple[int, int, int], str]] = field(default_factory=dict)
+    url: str | None = None  # the viewer connected to, in connect mode
+    stuck: bool = False  # a sink that did not take what it was given (Rerun would wait)
 
     @classmethod
     def start(cls, mode: str, save: Path | None = None, url: str | None = None,
@@ -413,16 +450,10 @@ class Viewer:
             part = PendingOutput(save)
         try:
             if mode != "none":
-                rec = rr.RecordingStream("bodynet", recording_id=recording_id)
-                if mode == "native":
-                    rec.spawn(default_blueprint=bp)
-                elif mode == "web":
-                    uri = rec.serve_grpc(grpc_port=grpc_port, default_blueprint=bp)
-                    rr.serve_web_viewer(open_browser=False, connect_to=uri, web_port=web_port)
-                    address = f"http://127.0.0.1:{web_port or 9090}/?url={uri}"
-                else:
-                    rec.connect_grpc(url, default_blueprint=bp)
+                rec, uri = _sink(mode, bp, recording_id, url, web_port, grpc_port)
                 recs.append(rec)
+                if uri:
+                    address = f"http://127.0.0.1:{web_port or WEB_PORT}/?url={uri}"
             if part is not None:
                 rec = rr.RecordingStream("bodynet", recording_id=recording_id)
                 rec.save(part.path, default_blueprint=bp)
@@ -441,7 +472,7 @@ class Viewer:
             if part is not None:
                 part.discard()
             raise
-        return cls(recs, build_skeleton(), address, save, part)
+        return cls(recs, build_skeleton(), address, save, part, url=url)
 
     def log_poses(self, frames: Sequence[pose.PoseFrame]) -> int:
         """One batch: angle columns over time, the latest figure and gauges.
@@ -493,27 +524,85 @@ class Viewer:
         """Flush and close every sink; the ``.rrd`` goes into place if ``keep``
         (and it was all written), else it is removed, leaving an older file of
         that name as it was."""
+        viewer = f"the viewer{f' at {self.url}' if self.url else ''}"
         try:
             for rec in self.recs:
+                rrd = self.part is not None and rec is self.recs[-1]  # the .rrd: the last sink
+                self.stuck = not rrd  # until it is closed: Rerun may wait on a viewer for ever
                 try:
-                    rec.flush(timeout_sec=FLUSH_S)
+                    _flush(rec, FLUSH_S)
                 except RuntimeError as exc:  # its writer stopped (a full disk) or hung
-                    if self.part is None or rec is not self.recs[-1]:
-                        raise
-                    keep = False  # the .rrd (the last sink) is not whole: not kept
+                    if not rrd:
+                        raise ViewerError(f"{viewer} did not take the poses: {exc}") from None
+                    keep = False  # the .rrd is not whole: not kept
                     raise OutputError(f"cannot write {self.save}: Rerun could not write "
                                       f"it ({exc}; a full disk?)") from None  # fmt: skip
                 finally:
-                    rec.disconnect()
+                    if rrd:
+                        rec.disconnect()
+                if not rrd and not _ends(rec.disconnect, FLUSH_S):
+                    raise ViewerError(f"{viewer} did not take the poses within {FLUSH_S:g} s")
+                self.stuck = False
             if keep and self.part is not None:
                 self.part.commit()
         finally:
             if self.part is not None:
                 self.part.discard()
+            if self.stuck:  # nor at exit: Rerun would wait there too
+                rr.unregister_shutdown()
 
 
-#: How long closing waits for Rerun to write what it was given.
-FLUSH_S = 60.0
+#: How long closing waits for Rerun to write what it was given, in steps
+#: between which a signal (Ctrl-C, SIGTERM) is handled.
+FLUSH_S, FLUSH_STEP_S = 60.0, 0.25
+
+
+def _flush(rec: rr.RecordingStream, timeout_s: float) -> None:
+    """``rec.flush`` for up to ``timeout_s``, in short waits: Rerun's own wait
+    blocks signals (``RuntimeError`` if it fails or times out)."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        left = deadline - time.monotonic()
+        try:
+            rec.flush(timeout_sec=max(min(FLUSH_STEP_S, left), 0.01))
+            return
+        except RuntimeError as exc:
+            if "timed out" not in str(exc) or left <= FLUSH_STEP_S:
+                raise
+
+
+def _ends(call: Callable[[], object], timeout_s: float) -> bool:
+    """Run ``call`` in a helper thread and wait for it up to ``timeout_s``, in
+    short waits (Rerun's own waits block signals); whether it ended."""
+    thread = threading.Thread(target=call, name="rerun-close", daemon=True)
+    thread.start()
+    deadline = time.monotonic() + timeout_s
+    while thread.is_alive() and time.monotonic() < deadline:
+        thread.join(FLUSH_STEP_S)
+    return not thread.is_alive()
+
+
+def _sink(mode: str, bp: rrb.Blueprint, recording_id: str, url: str | None,
+          web_port: int | None, grpc_port: int | None,
+          ) -> tuple[rr.RecordingStream, str]:  # fmt: skip
+    """The recording stream of the live view, and in web mode the URI it is
+    served on (``ViewerError`` if it cannot be)."""
+    rec = rr.RecordingStream("bodynet", recording_id=recording_id)
+    uri = ""
+    try:
+        if mode == "native":
+            rec.spawn(default_blueprint=bp)
+        elif mode == "web":
+            _check_free(web_port or WEB_PORT, "--web-port")
+            _check_free(grpc_port or GRPC_PORT, "--grpc-port")
+            uri = rec.serve_grpc(grpc_port=grpc_port, default_blueprint=bp)
+            rr.serve_web_viewer(open_browser=False, connect_to=uri, web_port=web_port)
+        else:
+            _check_reachable(url)
+            rec.connect_grpc(url, default_blueprint=bp)
+    except RuntimeError as exc:  # Rerun's: an endpoint it refuses, a server it cannot make
+        raise ViewerError(f"Rerun: {exc}") from None
+    return rec, uri
 
 
 def view_recording(path: Path, viewer: Viewer, batch: int = 100) -> int:

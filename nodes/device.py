@@ -3,7 +3,10 @@
 from __future__ import annotations
 
 import contextlib
+import errno
 import logging
+import os
+import stat
 import threading
 from collections.abc import Callable
 from typing import TypeVar
@@ -17,6 +20,47 @@ D = TypeVar("D")
 BACKOFF_S = (0.1, 2.0)
 
 
+class DeviceError(OSError):
+    """A device that can never open as given (a misspelled interface, a folder
+    or a regular file given as a serial port): retrying would not help."""
+
+
+def never_opens(exc: BaseException, path: str | None = None) -> str | None:
+    """Why the error ``exc`` of opening a device will not go away by waiting, or
+    None if it may (a device unplugged, busy or not up yet: retried).
+
+    ``path``: the device's path if it has one (a serial port), to say what it
+    is instead."""
+    seen: BaseException | None = exc
+    for _ in range(5):  # python-can wraps pyserial's error, which wraps the OS's
+        if seen is None:
+            break
+        if type(seen).__name__ == "CanInterfaceNotImplementedError":
+            import can  # an unknown python-can interface, or its driver missing
+
+            return f"{seen} (python-can's: {', '.join(sorted(can.VALID_INTERFACES))})"
+        code = getattr(seen, "errno", None) or (seen.args[0] if seen.args else None)
+        if code == errno.EAFNOSUPPORT:
+            return f"{seen.args[-1] if seen.args else seen} (this kernel has no SocketCAN?)"
+        if code in (errno.EISDIR, errno.ENOTTY):
+            return _not_a_port(path) or str(seen)
+        seen = seen.__cause__ or seen.__context__
+    return None
+
+
+def _not_a_port(path: str | None) -> str | None:
+    """What ``path`` is, if it is something other than a serial port."""
+    try:
+        mode = os.stat(path).st_mode if path else None
+    except OSError:
+        return None
+    if mode is None:
+        return None
+    what = ("a folder" if stat.S_ISDIR(mode) else "a regular file" if stat.S_ISREG(mode)
+            else "a device that is not a terminal")  # fmt: skip
+    return f"{path} is not a serial port: it is {what}"
+
+
 def keep_connected(
     publisher: SitePublisher,
     open_device: Callable[[], D],
@@ -25,16 +69,21 @@ def keep_connected(
     errors: tuple[type[BaseException], ...],
     stop: threading.Event,
     backoff_s: tuple[float, float] = BACKOFF_S,
+    path: str | None = None,
 ) -> None:
     """Open the device and ``serve`` it until ``stop``; on one of ``errors``
     report the loss once (log and health), then retry with exponential backoff.
-    ``serve`` returns when ``stop`` is set."""
+    ``serve`` returns when ``stop`` is set. An error that waiting cannot mend
+    (:func:`never_opens`; ``path`` is the device's, if it has one) raises
+    :class:`DeviceError` instead."""
     name = publisher.name
     delay, reported = backoff_s[0], False
     while not stop.is_set():
         try:
             device = open_device()
         except errors as exc:
+            if why := never_opens(exc, path):
+                raise DeviceError(f"cannot open the device: {why}") from None
             if not reported:
                 log.warning("%s: device unavailable (%s); retrying until it is back", name, exc)
                 reported = True

@@ -28,7 +28,7 @@ import re
 import sys
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -140,12 +140,16 @@ def session_config(
     if mode is None:
         mode = _file_mode(conf) or default_mode
     if not connect and (env_connect := os.environ.get("BODYNET_ZENOH_CONNECT")):
-        connect = [e.strip() for e in env_connect.split(",") if e.strip()]
+        connect = [_from_env("BODYNET_ZENOH_CONNECT", argtypes.endpoint, e.strip())
+                   for e in env_connect.split(",") if e.strip()]  # fmt: skip
     if not connect and not path and mode == "client":
         connect = [DEFAULT_ROUTER]
 
     def put(key: str, value: Any) -> None:
-        conf.insert_json5(key, json.dumps(value))
+        try:
+            conf.insert_json5(key, json.dumps(value))
+        except zenoh.ZError as exc:  # e.g. an endpoint from BODYNET_ZENOH_CONNECT
+            raise SessionError(f"{key}: {_one_line(exc)}") from None
 
     if not path:
         put("scouting/multicast/enabled", False)
@@ -157,7 +161,8 @@ def session_config(
         put("connect/endpoints", list(connect))
     if listen:
         put("listen/endpoints", list(listen))
-    subject = subject or os.environ.get("BODYNET_SUBJECT") or None
+    if not subject and (env_subject := os.environ.get("BODYNET_SUBJECT")):
+        subject = _from_env("BODYNET_SUBJECT", _subject_arg, env_subject)
     if subject:
         put("namespace", subject_name(subject))
     for entry in entries:
@@ -169,6 +174,14 @@ def session_config(
         except zenoh.ZError as exc:
             raise SessionError(f"--cfg {entry!r}: {_one_line(exc)}") from None
     return conf
+
+
+def _from_env(name: str, check: Callable[[str], str], text: str) -> str:
+    """``text``, from the environment variable ``name``, checked as its flag's value is."""
+    try:
+        return check(text)
+    except argparse.ArgumentTypeError as exc:
+        raise SessionError(f"environment variable {name}: {exc}") from None
 
 
 def _one_line(exc: BaseException) -> str:
@@ -233,6 +246,8 @@ def open_session(conf: zenoh.Config) -> zenoh.Session:
             box["session"] = zenoh.open(conf)
         except zenoh.ZError as exc:
             box["error"] = exc
+        except BaseException as exc:  # a Rust panic (pyo3's PanicException)
+            box["panic"] = exc
 
     mode = json.loads(conf.get_json("mode"))
     where = ", ".join(json.loads(conf.get_json("connect/endpoints")) or ()) or "(none given)"
@@ -258,6 +273,11 @@ def open_session(conf: zenoh.Config) -> zenoh.Session:
                 next_word = now + 5.0
     finally:
         _opening.clear()
+    if "session" not in box and "error" not in box:  # Zenoh panicked
+        runtime = os.environ.get("ZENOH_RUNTIME")
+        hint = (f"; is ZENOH_RUNTIME={runtime!r} valid?" if runtime != ZENOH_RUNTIME
+                else "")  # fmt: skip
+        raise SessionError(f"Zenoh failed to start: {_one_line(box.get('panic', ''))}{hint}")
     if "error" in box:
         if mode == "client":
             raise SessionError(

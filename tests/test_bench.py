@@ -205,3 +205,28 @@ def test_tiny_drift_benchmark_writes_its_tables(tmp_path: Path) -> None:
     assert "| worst joint |" in table
     assert table.startswith("Subject facing every 30 deg")
     assert json.loads((tmp_path / "drift.json").read_text())["headings"] == result["headings"]
+
+
+def test_demo_startup_errors_are_one_line_and_stop_what_started(tmp_path: Path) -> None:
+    """An output that cannot be made (in /proc), a web port in use: one line, exit 2,
+    nothing left running (the process ends) and no recording left."""
+    import socket
+
+    from zenoh_helpers import free_port
+
+    bodynet = Path(sys.executable).with_name("bodynet")
+    common = ["demo", "--seconds", "3", "-l", f"tcp/127.0.0.1:{free_port()}"]
+    bad = subprocess.run([str(bodynet), *common, "--record", "/proc/x.mcap", "--viewer", "none"],
+                         capture_output=True, text=True, timeout=60, check=False)  # fmt: skip
+    assert bad.returncode == 2, bad.stderr
+    assert bad.stderr == "bodynet demo: cannot write /proc/x.mcap: No such file or directory\n"
+    record = tmp_path / "demo.mcap"
+    with socket.create_server(("0.0.0.0", 0)) as taken:
+        port = taken.getsockname()[1]
+        bad = subprocess.run([str(bodynet), *common, "--record", str(record), "--viewer", "web",
+                              "--web-port", str(port)],
+                             capture_output=True, text=True, timeout=60, check=False)  # fmt: skip
+    assert bad.returncode == 2, bad.stderr
+    assert bad.stderr == (f"bodynet demo: cannot serve on port {port} (--web-port): "
+                          "Address already in use\n")  # fmt: skip
+    assert list(tmp_path.iterdir()) == []

@@ -254,3 +254,60 @@ def _until_sigterm(*args: object, started: Callable[[], bool] = lambda: True) ->
             proc.wait(timeout=10)
     assert "Traceback" not in proc.communicate()[1]
     return first
+
+
+@pytest.mark.parametrize("device", ["can --interface nonsense --channel x",
+                                    "concentrator --port {tmp}", "concentrator --port {tmp}/f.bin",
+                                    "concentrator --port /dev/null"])  # fmt: skip
+def test_a_device_that_can_never_open_is_refused_at_once(
+    router_endpoint: str, tmp_path: Path, device: str
+) -> None:
+    """A misspelled interface, a folder or a file as a serial port: one line, exit 2,
+    instead of retrying for ever as for an unplugged device."""
+    (tmp_path / "f.bin").write_bytes(b"\x00" * 64)
+    argv = [str(BODYNET), "bridge", *device.format(tmp=tmp_path).split(), "-e", router_endpoint]
+    bad = subprocess.run(argv, capture_output=True, text=True, timeout=60, check=False)
+    assert bad.returncode == 2, bad.stderr
+    what = device.partition(" ")[0]
+    assert bad.stderr.startswith(f"bodynet bridge {what}: cannot open the device: ")
+    assert "Traceback" not in bad.stderr
+    assert "retrying" not in bad.stderr
+
+
+@pytest.mark.parametrize(("system", "selection", "said"), [
+    ("imu", ["--sensors", "13-15", "--branch", "left-arm"],
+     "--sensors 13,14,15 with --branch left-arm matches no imu sensor"),
+    ("slimevr", ["--sensors", "16-20"], "--sensors 16,17,18,19,20 matches no slimevr sensor"),
+])  # fmt: skip
+def test_a_selection_of_no_sensor_is_refused_at_once(
+    system: str, selection: list[str], said: str
+) -> None:
+    from zenoh_helpers import free_port
+
+    argv = [str(BODYNET), "node", system, *selection, "-e", f"tcp/127.0.0.1:{free_port()}"]
+    bad = subprocess.run(argv, capture_output=True, text=True, timeout=60, check=False)
+    assert bad.returncode == 2, bad.stderr
+    assert bad.stderr.startswith(f"bodynet node {system}: {said}")
+    assert "Traceback" not in bad.stderr
+
+
+def test_a_replay_says_what_it_replayed_and_a_log_of_no_frame_is_an_error(
+    router_endpoint: str, tmp_path: Path
+) -> None:
+    (tmp_path / "rand.bin").write_bytes(bytes(range(256)) * 4)
+    (tmp_path / "text.log").write_text("hello\nworld\n")
+    (tmp_path / "empty.log").write_text("")
+    for name in ("rand.bin", "text.log", "empty.log"):
+        argv = [str(BODYNET), "bridge", "can", "--replay", str(tmp_path / name)]
+        bad = subprocess.run([*argv, "-e", router_endpoint],
+                             capture_output=True, text=True, timeout=60, check=False)  # fmt: skip
+        assert bad.returncode == 2, bad.stderr
+        assert bad.stderr.startswith(f"bodynet bridge can: no CAN frame in {tmp_path / name}")
+        assert "Traceback" not in bad.stderr
+    mixed = tmp_path / "mixed.log"
+    mixed.write_text("(0.0) vcan0 123#00\nGARBLED\n")
+    ok = subprocess.run(
+        [str(BODYNET), "bridge", "can", "--replay", str(mixed), "-e", router_endpoint],
+        capture_output=True, text=True, timeout=60, check=False)  # fmt: skip
+    assert ok.returncode == 0, ok.stderr
+    assert f"1 frames replayed from {mixed}; skipped 1 (garbage: 1) at line 2" in ok.stderr

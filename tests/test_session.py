@@ -60,3 +60,27 @@ def test_a_session_receives_on_the_app_threads_unless_told_otherwise() -> None:
     threads = theirs["threads"]
     assert isinstance(threads, list)
     assert {"rx-0", "rx-1"} <= set(threads), threads
+
+
+@pytest.mark.parametrize(("name", "value", "said"), [
+    ("BODYNET_SUBJECT", "a/b", "environment variable BODYNET_SUBJECT: subject 'a/b'"),
+    ("BODYNET_SUBJECT", "body", "environment variable BODYNET_SUBJECT: subject 'body'"),
+    ("BODYNET_ZENOH_CONNECT", "nonsense", "environment variable BODYNET_ZENOH_CONNECT: "
+                                          "'nonsense' is not a Zenoh endpoint"),
+    ("ZENOH_RUNTIME", "garbage", "Zenoh failed to start: "),
+])  # fmt: skip
+def test_a_bad_environment_variable_is_one_line_as_a_bad_flag(
+    name: str, value: str, said: str
+) -> None:
+    """The variables every command reads are checked as their flags are: one line, exit 2."""
+    env = {**os.environ, name: value, "RUST_BACKTRACE": "0"}
+    argv = [str(Path(sys.executable).with_name("bodynet")), "subjects", "--timeout", "1"]
+    if name != "BODYNET_ZENOH_CONNECT":
+        argv += ["-e", f"tcp/127.0.0.1:{free_port()}", "--connect-timeout", "1"]
+    out = subprocess.run(argv, env=env, capture_output=True, text=True, timeout=60, check=False)
+    assert out.returncode == 2, out.stderr
+    last = out.stderr.strip().splitlines()[-1]
+    assert last.startswith(f"bodynet subjects: {said}"), out.stderr
+    assert "Traceback" not in out.stderr
+    if name == "ZENOH_RUNTIME":
+        assert "ZENOH_RUNTIME='garbage'" in last

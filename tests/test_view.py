@@ -315,3 +315,86 @@ def test_the_calibration_state_is_drawn_per_segment(tmp_path: Path) -> None:
     printed = subprocess.run([str(RERUN), "rrd", "print", str(rrd)], capture_output=True, text=True,
                              timeout=60, check=True).stdout  # fmt: skip
     assert "- /body/calibration -" in printed
+
+
+# --- a viewer that cannot be served or reached ---------------------------------------
+
+
+def test_a_viewer_url_rerun_refuses_is_refused_as_the_option(tmp_path: Path) -> None:
+    recording = foreign_mcap(tmp_path / "f.mcap")
+    result = run("view", recording, "--connect-viewer", "http://127.0.0.1:1")
+    assert result.returncode == 2
+    assert "argument --connect-viewer: 'http://127.0.0.1:1' is not a URL like rerun://" in (
+        result.stderr
+    )
+    result = run("view", recording, "--connect-viewer", "rerun+http://256.1.1.1:1/proxy")
+    assert result.returncode == 2
+    assert result.stderr.startswith("bodynet view: cannot reach the viewer at rerun+http://256")
+    assert "Traceback" not in result.stderr
+
+
+def test_ports_in_use_are_one_line(tmp_path: Path) -> None:
+    import socket
+
+    recording = foreign_mcap(tmp_path / "f.mcap")
+    with socket.create_server(("0.0.0.0", 0)) as taken:
+        port = taken.getsockname()[1]
+        for option, other in (("--web-port", "--grpc-port"), ("--grpc-port", "--web-port")):
+            result = run("view", recording, "--viewer", "web", option, port, other, free_port())
+            assert result.returncode == 2, result.stderr
+            assert result.stderr.strip() == (f"bodynet view: cannot serve on port {port} "
+                                             f"({option}): Address already in use")  # fmt: skip
+
+
+def test_a_viewer_that_takes_nothing_is_said_and_sigterm_ends_the_view(tmp_path: Path) -> None:
+    """Nothing listening: said at once. A listener that never answers (Rerun would wait
+    for it for ever): SIGTERM still ends the view."""
+    import signal
+    import socket
+
+    recording = foreign_mcap(tmp_path / "f.mcap")
+    result = run("view", recording, "--viewer", "connect",
+                 "--url", f"rerun+http://127.0.0.1:{free_port()}/proxy")  # fmt: skip
+    assert result.returncode == 2
+    assert "cannot reach the viewer at rerun+http://127.0.0.1:" in result.stderr
+    with socket.create_server(("127.0.0.1", 0)) as silent:
+        url = f"rerun+http://127.0.0.1:{silent.getsockname()[1]}/proxy"
+        proc = subprocess.Popen([str(BODYNET), "view", recording, "--viewer", "connect",
+                                 "--url", url], stderr=subprocess.PIPE, text=True)  # fmt: skip
+        silent.settimeout(60)
+        peer, _ = silent.accept()  # Rerun connected: the view is logging, then flushing
+        time.sleep(1)
+        proc.send_signal(signal.SIGTERM)
+        try:
+            _, err = proc.communicate(timeout=60)
+        finally:
+            proc.kill()
+            peer.close()
+    assert proc.returncode == 128 + signal.SIGTERM, err
+    assert f"interrupted by SIGTERM while the viewer at {url} took nothing" in err
+    assert "Traceback" not in err
+
+
+def test_a_recording_in_the_web_viewer_is_served_until_stopped(arm_mcap: Path) -> None:
+    """No display: `--viewer auto` falls back to the web viewer, which lives as long as
+    the process; it serves the recording until Ctrl-C instead of exiting at once."""
+    import os
+    import signal
+
+    web, grpc = free_port(), free_port()
+    env = {k: v for k, v in os.environ.items() if k != "DISPLAY"}
+    proc = subprocess.Popen([str(BODYNET), "view", str(arm_mcap),
+                             "--web-port", str(web), "--grpc-port", str(grpc)],
+                            stderr=subprocess.PIPE, text=True, env=env)  # fmt: skip
+    try:
+        assert proc.stderr is not None
+        line = proc.stderr.readline()
+        assert f"in the web viewer at http://127.0.0.1:{web}/" in line, line
+        assert "serving it until Ctrl-C" in line
+        with urllib.request.urlopen(f"http://127.0.0.1:{web}/", timeout=10) as page:
+            assert page.status == 200
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(timeout=30) == 0
+    finally:
+        proc.kill()
+        proc.wait(timeout=10)

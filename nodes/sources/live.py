@@ -9,6 +9,7 @@ port (again after an unplug), feed what it reads to the decoder.
 
 from __future__ import annotations
 
+import logging
 import threading
 import time
 from collections.abc import Iterable
@@ -23,8 +24,10 @@ from bodynet.core.errors import Rejected
 from bodynet.core.messages import NodeStatus, NoNewData, Reading, SensorAbsent, StreamEvent
 from bodynet.nodes.device import keep_connected
 from bodynet.nodes.publisher import SitePublisher
-from bodynet.nodes.sources.base import CaptureStats, Source
+from bodynet.nodes.sources.base import CaptureError, CaptureStats, Source
 from bodynet.nodes.sources.can_transport import can_log_messages, frame_of, paced
+
+log = logging.getLogger(__name__)
 
 SERIAL_ERRORS = (serial.SerialException, OSError)
 CAN_ERRORS = (can.CanError, OSError, serial.SerialException)
@@ -83,6 +86,7 @@ class SerialBridge(Bridge):
             lambda link: link.close(),
             SERIAL_ERRORS,
             stop,
+            path=port,
         )
 
 
@@ -107,18 +111,37 @@ class CanBusBridge(Bridge):
                     self.handle(msg)
 
         keep_connected(self.publisher, lambda: can.Bus(**bus_args), serve,
-                       lambda bus: bus.shutdown(), CAN_ERRORS, stop)  # fmt: skip
+                       lambda bus: bus.shutdown(), CAN_ERRORS, stop,
+                       path=str(bus_args.get("channel") or "") or None)  # fmt: skip
 
     def run_replay(self, path: Path, stop: threading.Event, loop: bool = False) -> None:
         """Play a CAN log back at its recorded speed, stamped with the time of play."""
         self.publisher.set_device("replay")
         while not stop.is_set():
             stats = CaptureStats()
+            frames = 0
             for msg in paced(can_log_messages(path, stats), stop):
                 msg.timestamp = time.time()
                 self.handle(msg)
+                frames += 1
             for reason, n in stats.rejected.items():
                 for _ in range(n):
                     self.publisher.reject(Rejected(reason, "log line"))
+            _replayed(self.publisher.name, path, frames, stats, stop.is_set())
             if not loop:
                 break
+
+
+def _replayed(name: str, path: Path, frames: int, stats: CaptureStats, stopped: bool) -> None:
+    """Say what a pass over a CAN log replayed (a warning if it skipped lines);
+    ``CaptureError`` if the whole file held no frame."""
+    total = sum(stats.rejected.values())
+    skipped = f"; skipped {total} ({stats.rejected.summary()})" if total else ""
+    if stats.bad_places:
+        skipped += f" at {', '.join(stats.bad_places[:10])}"
+    if not frames and not stopped:
+        from bodynet.nodes.captures import looks_else
+
+        raise CaptureError(f"no CAN frame in {path}{skipped}{looks_else(path, 'can-log')}")
+    say = log.warning if total else log.info
+    say("%s: %d frames replayed from %s%s", name, frames, path, skipped)
