@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import re
 import sys
 from pathlib import Path
 
@@ -13,8 +12,6 @@ DEFAULT_HTTP_PORT = 8088
 
 
 def cmd_game(args: argparse.Namespace) -> int:
-    import zenoh
-
     from bodynet.cli.nodes import stop_on_signals
     from bodynet.clients.game import GameOptions, listen_socket, run_game
     from bodynet.clients.rehab import GameError, check_patient, plural
@@ -28,10 +25,8 @@ def cmd_game(args: argparse.Namespace) -> int:
                               args.target_timeout, check_patient(args.patient))  # fmt: skip
         options.game()  # the rules check them too
         conf = config_from_args(args)
-    except (GameError, SessionError) as exc:
+    except (GameError, SessionError) as exc:  # SessionError: e.g. an endpoint Zenoh refuses
         return fail(str(exc))
-    except zenoh.ZError as exc:  # e.g. an endpoint that is not <protocol>/<address>
-        return fail(f"bad Zenoh session option: {_zenoh_message(exc)}")
     where = ", ".join(args.connect) or "the configured endpoints"
 
     def announce(url: str) -> None:
@@ -65,14 +60,6 @@ def cmd_game(args: argparse.Namespace) -> int:
     print(f"bodynet game: {plural(summary['complete_trials'], 'complete trial')}, "
           f"score {summary['score']}{saved}", file=sys.stderr)  # fmt: skip
     return 0
-
-
-def _zenoh_message(exc: Exception) -> str:
-    """Zenoh's message without its Rust wrapping and source location."""
-    text = str(exc)
-    if match := re.search(r'msg: "(.*?)(?: at [^ "]+\.rs:\d+\.?)?"', text):
-        text = match.group(1)
-    return re.sub(r" at \S+\.rs:\d+\.?", "", text).strip()
 
 
 def _patient(text: str) -> str:

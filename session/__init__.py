@@ -149,7 +149,7 @@ def session_config(
         try:
             conf.insert_json5(key, json.dumps(value))
         except zenoh.ZError as exc:  # e.g. an endpoint from BODYNET_ZENOH_CONNECT
-            raise SessionError(f"{key}: {_one_line(exc)}") from None
+            raise SessionError(f"bad Zenoh session option {key}: {_one_line(exc)}") from None
 
     if not path:
         put("scouting/multicast/enabled", False)
@@ -185,9 +185,12 @@ def _from_env(name: str, check: Callable[[str], str], text: str) -> str:
 
 
 def _one_line(exc: BaseException) -> str:
-    """Zenoh's error on one line, without its Rust source location."""
-    text = re.sub(r"\s+at\s+\S+\.rs:\d+\.?", "", " ".join(str(exc).split()))
-    return text[:300]
+    """Zenoh's error on one line, without its Rust wrapping (``Json5Err(Message {
+    msg: "..." })``) and source location."""
+    text = " ".join(str(exc).split())
+    if match := re.search(r'msg: "(.*?)(?: at [^ "]+\.rs:\d+\.?)?"', text):
+        text = match.group(1)
+    return re.sub(r"\s+at\s+\S+\.rs:\d+\.?", "", text).strip()[:300]
 
 
 def _file_mode(conf: zenoh.Config) -> str | None:

@@ -383,7 +383,9 @@ def test_a_bad_endpoint_a_taken_port_or_unwritable_results_are_told_at_once(
     assert bodynet_main(["game", "-e", "tcp/127.0.0.1:7447?", "--http-port", "0",
                          "--results", str(tmp_path / "r")]) == 2  # fmt: skip
     err = capsys.readouterr().err
-    assert err.startswith("bodynet game: bad Zenoh session option: Endpoints must be of the form")
+    assert err.startswith(
+        "bodynet game: bad Zenoh session option connect/endpoints: Endpoints must be of the form"
+    ), err
     assert len(err.strip().splitlines()) == 1, err
     assert ".rs:" not in err
     # the real executable, once: no router within --connect-timeout
