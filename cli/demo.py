@@ -189,10 +189,12 @@ def _start(stack: contextlib.ExitStack, endpoint: str, routine: str, record: Pat
     client = open_session(session_config("client", connect=[endpoint]))
     stack.callback(client.close)
     viewer = Viewer.start(viewer_mode, rrd, web_port=web_port)
-    stack.callback(lambda: viewer.close(keep=parts.complete))
+    ran: list[_Parts] = []  # the parts, once all are made (a recorder that fails: none)
+    stack.callback(lambda: viewer.close(keep=any(p.complete for p in ran)))
     recorder = Recorder(client, record)
     stack.callback(recorder.close)
     parts = _Parts(client, recorder, viewer, recorder.files[0], 0.0)  # files[0]: a free name
+    ran.append(parts)
     gateway = Gateway(gw_session)
     stack.callback(gateway.close)
     thread(gateway.run, stop)

@@ -9,6 +9,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 
 def test_tiny_decode_benchmark_writes_its_table(tmp_path: Path) -> None:
@@ -230,3 +231,28 @@ def test_demo_startup_errors_are_one_line_and_stop_what_started(tmp_path: Path) 
     assert bad.stderr == (f"bodynet demo: cannot serve on port {port} (--web-port): "
                           "Address already in use\n")  # fmt: skip
     assert list(tmp_path.iterdir()) == []
+
+
+def test_demo_whose_recorder_cannot_start_stops_what_started(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The disk fills between the output's check and the recorder's start (the
+    recorder raises, injected here): one line, exit 2, and the router, client and
+    viewer already started are stopped (the unwinding once raised NameError)."""
+    import threading
+
+    from zenoh_helpers import free_port
+
+    from bodynet.cli import demo
+
+    def full_disk(*_: object) -> None:
+        raise OSError(28, "No space left on device", str(tmp_path / "demo.mcap"))
+
+    monkeypatch.setattr(demo, "Recorder", full_disk)
+    rc = demo.run_demo(f"tcp/127.0.0.1:{free_port()}", "reach", 1.0, tmp_path / "demo.mcap",
+                       threading.Event(), "none", tmp_path / "demo.rrd")  # fmt: skip
+    assert rc == 2
+    assert capsys.readouterr().err == (
+        f"bodynet demo: cannot write {tmp_path / 'demo.mcap'}: No space left on device\n"
+    )
+    assert list(tmp_path.iterdir()) == []  # the .rrd begun is not kept
