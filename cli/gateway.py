@@ -546,7 +546,7 @@ def cmd_calibrate_ole(args: argparse.Namespace) -> int:
     pairs: list[tuple[float, float]] = []
     if args.from_pairs:
         try:
-            text = args.from_pairs.read_text(encoding="utf-8", errors="replace")
+            text = args.from_pairs.read_text(encoding="utf-8-sig", errors="replace")
             pairs = _pairs(text, args.from_pairs)
         except OSError as exc:
             print(f"bodynet calibrate ole: cannot read {args.from_pairs}: {exc.strerror or exc}",

@@ -138,7 +138,7 @@ def _reference_csv(path: Path) -> tuple[pd.DataFrame, list[str]]:
     left_out: list[str] = []
     rows: list[list[str]] = []
     try:
-        with path.open(newline="", encoding="utf-8", errors="replace") as f:
+        with path.open(newline="", encoding="utf-8-sig", errors="replace") as f:
             reader = csv.reader(f)
             header = next(reader, None)
             if header is None:

@@ -62,6 +62,22 @@ def test_a_bad_pairs_row_is_refused_naming_its_line(
     assert not profile.exists()
 
 
+def test_pairs_saved_with_a_byte_order_mark_keep_their_first_row(tmp_path: Path) -> None:
+    """Excel's "CSV UTF-8" (a byte order mark first) of rows with no header: the
+    first row is a pair like the others, not taken for a header."""
+    fits = []
+    for name, encoding in (("plain.csv", "utf-8"), ("marked.csv", "utf-8-sig")):
+        pairs = tmp_path / name
+        pairs.write_text("30,141\n0,0\n60,280\n120,486\n", encoding=encoding)
+        profile = tmp_path / f"{name}.toml"
+        argv = [str(BODYNET), "calibrate", "ole", "--joint", "left_elbow",
+                "--from-pairs", str(pairs), "--profile", str(profile)]  # fmt: skip
+        result = subprocess.run(argv, capture_output=True, text=True, timeout=60, check=False)
+        assert result.returncode == 0, result.stderr
+        fits.append(profile.read_text())
+    assert fits[1] == fits[0]
+
+
 def test_live_calibration_on_cue(
     zsession: zenoh.Session, router_endpoint: str, tmp_path: Path
 ) -> None:

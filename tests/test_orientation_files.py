@@ -237,3 +237,17 @@ def test_calibrated_from_another_file_of_the_session(tmp_path: Path) -> None:
             for name in ("left_shoulder_abduction_deg", "right_elbow_flexion_deg")
         ]
         assert (max(errors) < 0.01) is close, max(errors)
+
+
+def test_a_csv_saved_with_a_byte_order_mark_reads_as_without(tmp_path: Path) -> None:
+    """Excel's "CSV UTF-8" starts the file with a byte order mark: the same rows,
+    not "no time column"."""
+    text = "time,pelvis_w,pelvis_x,pelvis_y,pelvis_z\n0.0,1,0,0,0\n0.01,0,1,0,0\n"
+    plain, marked = tmp_path / "plain.csv", tmp_path / "marked.csv"
+    plain.write_text(text, encoding="utf-8")
+    marked.write_text(text, encoding="utf-8-sig")
+    assert marked.read_bytes().startswith(b"\xef\xbb\xbf")
+    decoded = [bodynet("decode", "--format", "orientation-csv", path) for path in (plain, marked)]
+    assert [d.returncode for d in decoded] == [0, 0], decoded[1].stderr
+    assert decoded[1].stdout == decoded[0].stdout
+    assert decoded[0].stdout.count("\n") >= 2

@@ -362,6 +362,23 @@ def test_several_recordings_are_trials(
 # -- bad input -----------------------------------------------------------------
 
 
+def test_a_reference_saved_with_a_byte_order_mark_is_read_as_without(
+    arm_recording: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Excel's "CSV UTF-8" of the reference (a byte order mark first): the same
+    report, not "a reference CSV needs a t_s column"."""
+    marked = tmp_path / "truth-excel.csv"
+    marked.write_bytes(b"\xef\xbb\xbf" + arm_recording["reference"].read_bytes())
+    texts = []
+    for name, reference in (("plain", arm_recording["reference"]), ("marked", marked)):
+        out = tmp_path / name / "report.md"
+        code = cli_main(["report", str(arm_recording["recording"]), "--reference",
+                         str(reference), "-o", str(out)])  # fmt: skip
+        assert code == 0, capsys.readouterr().err
+        texts.append(out.read_text().replace(str(reference), "REF"))
+    assert texts[1] == texts[0]
+
+
 def _fails_cleanly(argv: list[str], capsys: pytest.CaptureFixture[str], folder: Path,
                    message: str) -> None:  # fmt: skip
     before = set(folder.iterdir())

@@ -161,7 +161,7 @@ class OrientationFile(Source):
             log.warning("%s: an orientation file keeps its own times; --rate-hz is not used",
                         path)  # fmt: skip
         try:
-            with path.open(encoding="utf-8", errors="replace", newline="") as f:
+            with path.open(encoding="utf-8-sig", errors="replace", newline="") as f:
                 table = parse_sto(f) if fmt == "sto" else parse_csv(f)
             to_bodynet = _to_bodynet(table) if fmt == "sto" else None
             start = _start_s(table) if fmt == "sto" else 0.0
