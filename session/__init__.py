@@ -136,7 +136,9 @@ def session_config(
     try:
         conf = zenoh.Config.from_file(str(path)) if path else zenoh.Config()
     except zenoh.ZError as exc:
-        raise SessionError(f"cannot use Zenoh config {path}: {_one_line(exc)}") from None
+        said, where = _zenoh_error(exc)
+        at = f", line {where[0]}, column {where[1]}" if where else ""
+        raise SessionError(f"cannot use Zenoh config {path}{at}: {said}") from None
     if mode is None:
         mode = _file_mode(conf) or default_mode
     if not connect and (env_connect := os.environ.get("BODYNET_ZENOH_CONNECT")):
@@ -171,8 +173,10 @@ def session_config(
             raise SessionError(f"--cfg wants KEY:VALUE, not {entry!r}")
         try:
             conf.insert_json5(key, value)
-        except zenoh.ZError as exc:
-            raise SessionError(f"--cfg {entry!r}: {_one_line(exc)}") from None
+        except zenoh.ZError as exc:  # a parser's column; serde's location is the value's start
+            said, where = _zenoh_error(exc)
+            at = f" (column {where[1]} of the value)" if where and where[1] > 1 else ""
+            raise SessionError(f"--cfg {entry!r}{at}: {said}") from None
     return conf
 
 
@@ -187,10 +191,38 @@ def _from_env(name: str, check: Callable[[str], str], text: str) -> str:
 def _one_line(exc: BaseException) -> str:
     """Zenoh's error on one line, without its Rust wrapping (``Json5Err(Message {
     msg: "..." })``) and source location."""
-    text = " ".join(str(exc).split())
-    if match := re.search(r'msg: "(.*?)(?: at [^ "]+\.rs:\d+\.?)?"', text):
-        text = match.group(1)
-    return re.sub(r"\s+at\s+\S+\.rs:\d+\.?", "", text).strip()[:300]
+    return _zenoh_error(exc)[0]
+
+
+def _zenoh_error(exc: BaseException) -> tuple[str, tuple[int, int] | None]:
+    """Zenoh's error on one line, and the (line, column) of the JSON5 text it is
+    about if it says (a parser's ``--> 3:26`` or serde's ``location``).
+
+    The message is unwrapped from Rust's ``Debug`` string (``msg: "..."``, with
+    its escapes: a literal ``\\n`` is a line break) and a parser's picture of the
+    line is left out: ``= expected boolean or null`` is what it says."""
+    text = str(exc)
+    where: tuple[int, int] | None = None
+    if quoted := re.search(r'(?:msg: |Error\(|Str\()"((?:[^"\\]|\\.)*)"', text):
+        rest = text[: quoted.start()] + text[quoted.end() :]
+        if found := re.search(r"line: (\d+), column: (\d+)", rest):
+            where = (int(found.group(1)), int(found.group(2)))
+        text = re.sub(r"\\(u\{[0-9a-fA-F]+\}|.)", _unescape, quoted.group(1))
+    if found := re.match(r"\s*-->\s*(\d+):(\d+)", text):  # the JSON5 parser's own picture
+        where = (int(found.group(1)), int(found.group(2)))
+        said = re.findall(r"^\s*=\s*(.+)$", text, flags=re.MULTILINE)
+        text = said[-1] if said else text[found.end() :]
+    text = re.sub(r"\s+at\s+\S+\.rs:\d+\.?", "", " ".join(text.split()))
+    return text.strip()[:300], where
+
+
+def _unescape(match: re.Match[str]) -> str:
+    """One escape of a Rust ``Debug`` string (``\\n``, ``\\"``, ``\\u{e9}``...)."""
+    code = match.group(1)
+    if code.startswith("u{"):
+        value = int(code[2:-1], 16)
+        return chr(value) if value <= sys.maxunicode else "\ufffd"
+    return {"n": "\n", "t": "\t", "r": "\r", "0": "\0"}.get(code, code)
 
 
 def _file_mode(conf: zenoh.Config) -> str | None:

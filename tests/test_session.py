@@ -84,3 +84,31 @@ def test_a_bad_environment_variable_is_one_line_as_a_bad_flag(
     assert "Traceback" not in out.stderr
     if name == "ZENOH_RUNTIME":
         assert "ZENOH_RUNTIME='garbage'" in last
+
+
+@pytest.mark.parametrize(("flag", "text", "said"), [
+    ("-c", '{\n  mode: "client",\n  connect: { endpoints: ["tcp/127.0.0.1:1"], },,\n}\n',
+     "cannot use Zenoh config {file}, line 3, column 48: expected identifier or string"),
+    ("-c", '{ mode: "bogus" }', "cannot use Zenoh config {file}, line 1, column 9: "
+                                "unknown variant `bogus`, expected one of `router`"),
+    ("--cfg", 'mode:"cl', "--cfg 'mode:\"cl' (column 4 of the value): expected char_literal"),
+    ("--cfg", "connect/endpoints:[bad", "--cfg 'connect/endpoints:[bad' (column 2 of the "
+                                        "value): expected array, boolean, null, number"),
+    ("--cfg", "no/such:1", "--cfg 'no/such:1': unknown key"),
+])  # fmt: skip
+def test_a_malformed_zenoh_config_is_one_clean_line_naming_where(
+    tmp_path: Path, flag: str, text: str, said: str
+) -> None:
+    """Zenoh's parser error is one line: the file, its line and column, and what the
+    parser expected; no literal \\n, Rust wrapping or picture of the line."""
+    file = tmp_path / "zenoh.json5"
+    file.write_text(text)
+    value = str(file) if flag == "-c" else text
+    argv = [str(Path(sys.executable).with_name("bodynet")), "subjects", flag, value,
+            "--connect-timeout", "1", "--timeout", "1"]  # fmt: skip
+    out = subprocess.run(argv, capture_output=True, text=True, timeout=60, check=False)
+    assert out.returncode == 2, out.stderr
+    assert out.stderr.count("\n") == 1, out.stderr
+    assert out.stderr.startswith(f"bodynet subjects: {said.format(file=file)}"), out.stderr
+    for noise in ("\\n", "-->", "^---", "Json5Err", "Message {", ".rs:", "Str("):
+        assert noise not in out.stderr
