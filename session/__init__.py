@@ -314,7 +314,8 @@ def open_session(conf: zenoh.Config) -> zenoh.Session:
                 else "")  # fmt: skip
         raise SessionError(f"Zenoh failed to start: {_one_line(box.get('panic', ''))}{hint}")
     if "error" in box:
-        if mode == "client":
+        # a client's listener that cannot bind fails too: only a failed connection is the router's
+        if mode == "client" and "unable to connect" in str(box["error"]).lower():
             raise SessionError(
                 f"no router answered at {where} within {time.monotonic() - start:.0f} s "
                 f"(is it running? --connect-timeout sets the wait): {_one_line(box['error'])}"

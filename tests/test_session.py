@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import socket
 import subprocess
 import sys
 from pathlib import Path
@@ -112,3 +113,21 @@ def test_a_malformed_zenoh_config_is_one_clean_line_naming_where(
     assert out.stderr.startswith(f"bodynet subjects: {said.format(file=file)}"), out.stderr
     for noise in ("\\n", "-->", "^---", "Json5Err", "Message {", ".rs:", "Str("):
         assert noise not in out.stderr
+
+
+def test_a_client_that_cannot_listen_is_told_so_not_that_no_router_answered(
+    router_endpoint: str,
+) -> None:
+    """`subjects -l` on a port that is taken: the listener is what failed; the router
+    (up, on loopback) is not blamed."""
+    with socket.create_server(("127.0.0.1", 0)) as taken:
+        port = taken.getsockname()[1]
+        argv = [str(Path(sys.executable).with_name("bodynet")), "subjects", "-e", router_endpoint,
+                "-l", f"tcp/127.0.0.1:{port}", "--connect-timeout", "5"]  # fmt: skip
+        out = subprocess.run(argv, capture_output=True, text=True, timeout=60, check=False)
+    assert out.returncode == 2, out.stderr
+    assert out.stderr.count("\n") == 1, out.stderr
+    assert out.stderr.startswith("bodynet subjects: cannot open the Zenoh session: "), out.stderr
+    assert f"127.0.0.1:{port}" in out.stderr
+    assert "Address already in use" in out.stderr
+    assert "router" not in out.stderr
