@@ -301,7 +301,8 @@ def add_calibrate_args(cal: argparse.ArgumentParser) -> None:
         "--format",
         choices=formats(),
         default=None,
-        help="with --from: the capture's format (an .mcap needs none)",
+        help="with --from: the capture's format (default: from its suffix, .mcap, .sto, "
+        ".csv, .log...)",
     )
     add_capture_args(p)
     p.add_argument("--profile", type=argtypes.input_or_new_file,

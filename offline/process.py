@@ -63,8 +63,18 @@ def recorded_samples(path: Path, fmt: str | None, stats: CaptureStats,
                      rate_hz: float | None = None, options: Mapping[str, Any] | None = None,
                      ) -> Iterator[tuple[float, Site, Reading]]:  # fmt: skip
     """(time s, site, reading) of a recording: an MCAP file's raw samples (``fmt``
-    ``mcap`` or the file's suffix), or a capture of any source's format."""
-    if fmt == "mcap" or (fmt is None and path.suffix.lower() == ".mcap"):
+    ``mcap`` or the file's suffix), or a capture of any source's format (``fmt``,
+    or the one its suffix implies: ``.sto``, ``.log``...)."""
+    if fmt is None:
+        from bodynet.nodes.captures import format_of, looks_like
+
+        fmt = "mcap" if path.suffix.lower() == ".mcap" else format_of(path)
+        if fmt is None:
+            what = looks_like(path)
+            suffix = f"its suffix {path.suffix!r} names none" if path.suffix else "no suffix"
+            raise ValueError(f"{path}: say which --format the recording is in ({suffix}"
+                             + (f"; it looks like {what})" if what else ")"))  # fmt: skip
+    if fmt == "mcap":
         from bodynet.clients.mcap_store import read_raw
 
         for topic, _, sample in read_raw(path):
@@ -75,8 +85,6 @@ def recorded_samples(path: Path, fmt: str | None, stats: CaptureStats,
             stats.decoded += 1
             yield sample.t_ns / 1e9, site, sample.reading
         return
-    if fmt is None:
-        raise ValueError(f"{path}: say which --format the recording is in")
     source = sources.by_format(fmt).from_options(options or {})
     for s in source.read(path, fmt, stats, rate_hz):
         yield s.t_s, s.site, s.reading

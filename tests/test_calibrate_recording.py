@@ -151,3 +151,38 @@ def test_a_recording_that_is_no_mcap_is_one_line_naming_it(
         assert err.startswith(f"bodynet calibrate tpose: {path}: {why}"), err
         assert err.count("\n") == 1, err
         assert not profile_path.exists()
+
+
+def test_a_capture_recording_takes_its_format_from_its_suffix(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`--from still.sto` needs no `--format` (as `process still.sto` does not); a
+    suffix that names no format is one line saying so, no profile written."""
+    from bodynet.core.messages import Quat
+    from bodynet.core.opensim import imu_label
+    from bodynet.core.profile import mount
+
+    tags = imu_tags()
+    body = BodyEmulator(Routine("still", "", lambda t: dict(CALIBRATION_POSES["tpose"])), tags,
+                        realism=Realism(facing_deg=30.0), seed=4)  # fmt: skip
+    lines = ["DataType=Quaternion", "endheader",
+             "\t".join(["time"] + [imu_label(mount(t.site).segment) for t in tags])]  # fmt: skip
+    for k in range(60):
+        quats = {r.node: r.wxyz for r in body.sample(0.02 * k)[0] if isinstance(r, Quat)}
+        lines.append("\t".join([f"{0.02 * k:.2f}"]
+                               + [",".join(map(repr, quats[t.node])) for t in tags]))  # fmt: skip
+    sto = tmp_path / "still.sto"
+    sto.write_text("\n".join(lines) + "\n")
+    profile_path = tmp_path / "subject.toml"
+    assert main(["calibrate", "tpose", "--from", str(sto), "--window", "0:1",
+                 "--profile", str(profile_path)]) == 0, capsys.readouterr().err  # fmt: skip
+    assert len(profile_file.load(profile_path).imu_mounts) == len(tags)
+    capsys.readouterr()
+    unknown, profile_path = tmp_path / "still.quat", tmp_path / "other.toml"
+    unknown.write_bytes(sto.read_bytes())
+    assert main(["calibrate", "tpose", "--from", str(unknown), "--profile",
+                 str(profile_path)]) == 2  # fmt: skip
+    err = capsys.readouterr().err
+    assert err == (f"bodynet calibrate tpose: {unknown}: say which --format the recording is "
+                   "in (its suffix '.quat' names none)\n")  # fmt: skip
+    assert not profile_path.exists()
