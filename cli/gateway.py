@@ -406,8 +406,9 @@ def cmd_process(args: argparse.Namespace) -> int:
     from bodynet.session.outputs import atomic_path
 
     calibration = None
-    if args.calibration is not None:
-        calibration = (args.calibration, format_of(args.calibration) or fmt)
+    if args.calibration is not None:  # a recording by its suffix, as `calibrate --from`'s
+        mcap = "mcap" if args.calibration.suffix.lower() == ".mcap" else None
+        calibration = (args.calibration, format_of(args.calibration) or mcap or fmt)
     tpose_s = 3.0 if args.tpose_s is None else args.tpose_s
     try:
         profile = with_heading_args(_profile(args.profile), args)

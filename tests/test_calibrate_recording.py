@@ -186,3 +186,32 @@ def test_a_capture_recording_takes_its_format_from_its_suffix(
     assert err == (f"bodynet calibrate tpose: {unknown}: say which --format the recording is "
                    "in (its suffix '.quat' names none)\n")  # fmt: skip
     assert not profile_path.exists()
+
+
+def test_process_takes_its_calibration_from_a_recording_by_its_suffix(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`process trial.csv --calibration still.mcap`: the MCAP is read as the
+    recording it is (not as a CSV, the trial's format): its still window
+    calibrates the trial, whose knee then bends as the truth's."""
+    from bodynet.clients.mcap_store import read_poses
+    from bodynet.core.messages import Quat
+    from bodynet.core.profile import mount
+
+    still = tmp_path / "still.mcap"
+    body = _record(still, "tpose", 0.0)
+    header = ["time"] + [f"{mount(s.site).segment}_{c}" for s in body.sensors for c in "wxyz"]
+    rows = [header]
+    for t in np.arange(2.0, 3.5, 1 / 50):
+        quats = {r.node: r.wxyz for r in body.sample(float(t))[0] if isinstance(r, Quat)}
+        rows.append([repr(float(t))] + [repr(c) for s in body.sensors for c in quats[s.node]])
+    trial = tmp_path / "trial.csv"
+    trial.write_text("\n".join(",".join(r) for r in rows) + "\n")
+    out = tmp_path / "trial.mcap"
+    assert main(["process", str(trial), "--calibration", str(still), "--window", "0.2:1.8",
+                 "--heading", "fixed", "-o", str(out)]) == 0, capsys.readouterr().err  # fmt: skip
+    knee = [(t_ns / 1e9, frame.angles_deg["left_knee_flexion_deg"]) for t_ns, frame
+            in read_poses(out)]  # fmt: skip
+    assert max(angle for _, angle in knee) > 60.0
+    for t, angle in knee:
+        assert angle == pytest.approx(body.angles(t)["left_knee_flexion_deg"], abs=3.0), t
