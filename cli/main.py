@@ -313,11 +313,21 @@ def resolve(spec: str) -> Callable[..., Any]:
     return getattr(importlib.import_module(module), name)  # type: ignore[no-any-return]
 
 
+class _Parser(argparse.ArgumentParser):
+    """A parser that takes no abbreviation of an option: ``calibrate ole --from``
+    is not ``--from-pairs``, ``process --out`` not ``--output``. Its sub-commands'
+    parsers are of its class (``add_subparsers``), so none of them takes one either."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        kwargs["allow_abbrev"] = False
+        super().__init__(*args, **kwargs)
+
+
 def build_parser(only: Collection[str] | None = None) -> argparse.ArgumentParser:
     """The ``bodynet`` parser. Every command is listed with its help; the
     arguments are added for every command, or for those in ``only`` (the
     command about to run, so that no other command's module is imported)."""
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="bodynet",
         description="A distributed body-network gateway for wearable motion capture.",
     )

@@ -296,6 +296,28 @@ def test_the_real_executable_refuses_nonsense_in_one_line(tmp_path: Path) -> Non
     assert result.stderr.count("\n") == 1, result.stderr
 
 
+def test_no_option_is_taken_as_an_abbreviation_of_another(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`calibrate ole --from` (the option of `calibrate tpose`) is not `--from-pairs`,
+    `process --out` not `--output`: refused, nothing read or written as another option's."""
+    pairs, profile, out = tmp_path / "pairs.csv", tmp_path / "p.toml", tmp_path / "x.mcap"
+    pairs.write_text("0,0\n30,100\n60,200\n")
+    for args, told in (
+        (["calibrate", "ole", "--joint", "left_elbow", "--from", pairs, "--profile", profile],
+         "unrecognized arguments: --from"),
+        (["process", DATA / "imu_central.txt", "--format", "imu-central", "--out", out],
+         "required: -o/--output"),
+    ):  # fmt: skip
+        with pytest.raises(SystemExit) as exited:
+            main([str(a) for a in args])
+        assert exited.value.code == 2
+        assert told in capsys.readouterr().err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["pairs.csv"]
+    for command, parser in _walk(build_parser()):  # every command, those to come too
+        assert not parser.allow_abbrev, command
+
+
 def test_a_client_without_its_router_says_so_and_gives_up(tmp_path: Path) -> None:
     from zenoh_helpers import free_port
 
