@@ -50,7 +50,9 @@ def cmd_report(args: argparse.Namespace) -> int:
         )
         print(f"bodynet report: {why}", file=sys.stderr)
         return 2
-    print(f"bodynet report: {files[0]} ({len(files) - 1} plots beside it)", file=sys.stderr)
+    plots = ", ".join(f.name for f in files[1:])
+    print(f"bodynet report: {files[0]} ({len(files) - 1} plots beside it: {plots})",
+          file=sys.stderr)  # fmt: skip
     return 0
 
 

@@ -337,7 +337,8 @@ def trials_of(recs: Sequence[Recording], joint: str | None) -> Trials:
     recs = [_after_calibration(r) for r in recs]
     if len(recs) > 1:
         channels = [c for c in _moving(recs[0]) if all(c in _moving(r) for r in recs[1:])]
-        how = f"each of the {len(recs)} recordings is one trial"
+        names = ", ".join(f"trial {k}: {r.source}" for k, r in enumerate(recs, 1))
+        how = f"each of the {len(recs)} recordings is one trial ({names})"
         segments = [[(r.t_s, r.angles[c].to_numpy(float)) for r in recs] for c in channels]
         bounds: list[tuple[float, float]] = []
     else:
@@ -461,7 +462,8 @@ def analyse(
         note = ""
     else:
         ref = _truth(paths[0])
-        note = "" if ref else "no reference: the recording holds no ground truth and no " \
+        which = "the recording" if len(recs) == 1 else f"{first.source} (the first recording)"
+        note = "" if ref else f"no reference: {which} holds no ground truth and no " \
                               "--reference was given"  # fmt: skip
     acc = accuracy(first, ref) if ref is not None else None
     tri = trials_of(recs, joint) if with_trials else None
@@ -501,6 +503,9 @@ def _blocks(an: Analysis, images: dict[str, str]) -> list[Block]:
         if len(an.recordings) > 1:
             out.append(("p", rec.source))
         out.append(("table", table))
+    several = len(an.recordings) > 1
+    if several:
+        out.append(("p", f"Joint angles over time of the first recording, {first.source}:"))
     out.append(("img", images["angles"]))
     out += _clinical_blocks(an)
 
@@ -508,7 +513,9 @@ def _blocks(an: Analysis, images: dict[str, str]) -> list[Block]:
     if an.accuracy is None:
         out.append(("p", an.accuracy_note))
     else:
-        out += [("p", f"Reference: {an.accuracy.reference}, interpolated at the recording's "
+        whose = (f"the first recording's ({first.source}; the others are not compared)"
+                 if several else "the recording's")  # fmt: skip
+        out += [("p", f"Reference: {an.accuracy.reference}, interpolated at {whose} "
                       f"{len(an.accuracy.t_s)} pose times they share. RMS error "
                       "sqrt(mean((x - ref)^2)); Pearson's correlation coefficient (eq. 27), "
                       "blank where a channel is constant."),

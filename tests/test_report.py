@@ -359,6 +359,31 @@ def test_several_recordings_are_trials(
     assert float(icc.loc["left_elbow_flexion_deg", "ICC(3,1)"]) > 0.99
 
 
+def test_several_recordings_say_which_is_which_and_the_plots_are_named(
+    arm_recording: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Two recordings: each trial is named by its file, and the sections of the
+    first recording only (its angles, the accuracy) say so; the plots of `-o rp.md`
+    are rp-<plot>.png beside it, each named on stderr."""
+    first, second = arm_recording["recording"], arm_recording["second"]
+    out = tmp_path / "rp.md"
+    for reference in ([], ["--reference", str(arm_recording["reference"])]):
+        assert cli_main(["report", str(first), str(second), *reference, "-o", str(out)]) == 0
+        text = out.read_text()
+        assert f"one trial (trial 1: {first}, trial 2: {second})" in text
+        assert f"Joint angles over time of the first recording, {first}:" in text
+        if reference:
+            assert f"interpolated at the first recording's ({first}; the others are not " \
+                   "compared)" in text  # fmt: skip
+            plots = ["rp-angles.png", "rp-reference.png", "rp-trials.png"]
+        else:
+            assert f"no reference: {first} (the first recording) holds no ground truth" in text
+            plots = ["rp-angles.png", "rp-trials.png"]
+        err = capsys.readouterr().err
+        assert err == f"bodynet report: {out} ({len(plots)} plots beside it: {', '.join(plots)})\n"
+        assert all((tmp_path / png).is_file() for png in plots)
+
+
 # -- bad input -----------------------------------------------------------------
 
 
