@@ -24,12 +24,16 @@ def _router_path(text: str) -> Path:
 
 def cmd_certs(args: argparse.Namespace) -> int:
     from bodynet.session.certs import CertError
+    from bodynet.session.outputs import OutputError
     from bodynet.session.security import Layout, SecurityError, make_certs
 
     try:
         made = make_certs(args.dir, args.subject, args.host, args.users, args.port,
                           args.router_path, args.days)  # fmt: skip
     except (SecurityError, CertError, KeySpaceError) as exc:
+        print(f"bodynet certs: {exc}", file=sys.stderr)
+        return 2
+    except OutputError as exc:  # it names the file
         print(f"bodynet certs: {exc}", file=sys.stderr)
         return 2
     except OSError as exc:

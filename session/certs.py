@@ -162,16 +162,12 @@ def cert_hosts(cert: x509.Certificate) -> tuple[str, ...]:
 
 def write_private(path: Path, data: bytes) -> None:
     """Write ``data`` to ``path`` readable by the owner only, whole or not at all
-    (a nameless file until it is whole: a killed run leaves nothing)."""
-    from bodynet.session.outputs import PendingOutput
+    (a nameless file until it is whole: a killed run leaves nothing); ``OutputError``
+    naming ``path`` if it cannot be written."""
+    from bodynet.session.outputs import atomic_path
 
-    pending = PendingOutput(path)  # created 0600
-    try:
-        with open(pending.path, "wb") as f:
-            f.write(data)
-        pending.commit()
-    finally:
-        pending.discard()
+    with atomic_path(path) as pending:  # created 0600
+        pending.write_bytes(data)
 
 
 def save(pair: KeyPair, cert_path: Path, key_path: Path) -> None:

@@ -31,7 +31,7 @@ from typing import Any
 from bodynet.core import keys
 from bodynet.core.keys import KeySpaceError
 from bodynet.session import certs
-from bodynet.session.outputs import scratch_folder
+from bodynet.session.outputs import OutputError, scratch_folder
 
 PORT = 7447
 MANIFEST = "bodynet-certs.json"
@@ -403,6 +403,9 @@ def make_certs(
         if root.exists():
             root.rmdir()  # empty, as _read_manifest checked
         work.rename(root)
+    except OutputError as exc:  # named in the scratch folder: told as where it was going
+        shutil.rmtree(work, ignore_errors=True)
+        raise OutputError(str(exc).replace(str(work), str(root), 1)) from None
     except BaseException:
         shutil.rmtree(work, ignore_errors=True)
         raise

@@ -189,6 +189,28 @@ def test_certs_refuses_clearly_and_leaves_the_directory_as_it_was(
     assert {p: p.read_bytes() for p in root.rglob("*") if p.is_file()} == before
 
 
+def test_a_file_certs_cannot_write_is_named_once(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A config whose place is taken by a folder, and a disk that takes no more
+    bytes (`ulimit -f`, the real executable): one line naming the file as it is
+    meant to be, never `cannot write DIR: cannot write FILE` nor a scratch folder."""
+    root = tmp_path / "certs"
+    make_certs(root)
+    config = Layout(root).config("viewer")
+    config.unlink()
+    config.mkdir()
+    assert bodynet_main(["certs", str(root)]) == 2
+    assert capsys.readouterr().err == f"bodynet certs: cannot write {config}: it is a folder\n"
+    new = tmp_path / "new"
+    full = subprocess.run(["sh", "-c", 'trap \'\' XFSZ; ulimit -f 0; exec "$0" "$@"', str(BODYNET),
+                           "certs", str(new)], capture_output=True, text=True, timeout=60,
+                          check=False)  # fmt: skip
+    assert full.returncode == 2, full.stderr
+    assert full.stderr == f"bodynet certs: cannot write {Layout(new).ca_key}: File too large\n"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["certs"]
+
+
 def test_a_new_directory_appears_whole_or_not_at_all(tmp_path: Path) -> None:
     with pytest.raises(OverflowError):  # the CA's end date is past the year 9999
         make_certs(tmp_path / "certs", ["alice"], days=10**6)
