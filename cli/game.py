@@ -13,7 +13,7 @@ DEFAULT_HTTP_PORT = 8088
 
 def cmd_game(args: argparse.Namespace) -> int:
     from bodynet.cli.nodes import stop_on_signals
-    from bodynet.clients.game import GameOptions, listen_socket, run_game
+    from bodynet.clients.game import GameOptions, listen_socket, results_dir_problem, run_game
     from bodynet.clients.rehab import GameError, check_patient, plural
 
     def fail(message: str) -> int:
@@ -33,19 +33,14 @@ def cmd_game(args: argparse.Namespace) -> int:
         print(f"bodynet game: {url}", flush=True)
         print(f"bodynet game: waiting for the Zenoh router at {where}", flush=True)
 
-    # the page's address and the results folder first: a mistake there is told at
-    # once, not after waiting for the router
+    # the results folder and the page's address first: a mistake there is told at
+    # once, not after waiting for the router; the folder is made with the first results
+    if why := results_dir_problem(args.results):
+        return fail(f"cannot write results in {args.results}: {why}")
     try:
         sock = listen_socket(args.http_host, args.http_port)
     except OSError as exc:
         return fail(f"cannot serve on {args.http_host}:{args.http_port}: {exc.strerror or exc}")
-    try:
-        args.results.mkdir(parents=True, exist_ok=True, mode=0o700)
-        if not args.results.is_dir():
-            raise NotADirectoryError(20, "not a folder")
-    except OSError as exc:
-        sock.close()
-        return fail(f"cannot write results in {args.results}: {exc.strerror or exc}")
     stop = stop_on_signals()
     try:
         server = run_game(conf, stop, options, args.results, sock, args.http_host, announce)

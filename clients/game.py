@@ -39,7 +39,9 @@ import csv
 import io
 import json
 import logging
+import os
 import socket
+import stat
 import threading
 import time
 from collections import defaultdict
@@ -99,11 +101,33 @@ def results_csv(summary: dict[str, Any]) -> str:
     return out.getvalue()
 
 
+def results_dir_problem(directory: Path) -> str | None:
+    """Why no results could be saved in ``directory``, or None: it is a writable
+    folder, or the nearest of it and its parents that exists is. Nothing is
+    made here: the folder is made when the first results are saved."""
+    path = directory
+    while True:
+        try:
+            is_dir = stat.S_ISDIR(path.stat().st_mode)
+        except (FileNotFoundError, NotADirectoryError):  # not there, or under a file
+            if path.parent == path:
+                return f"{path} does not exist"
+            path = path.parent
+            continue
+        except OSError as exc:
+            return f"{path}: {exc.strerror or exc}"
+        if not is_dir:
+            return f"{path} is not a folder"
+        if not os.access(path, os.W_OK | os.X_OK):
+            return f"{path} is not writable"
+        return None
+
+
 class ResultsFile:
-    """One session's results on disk, rewritten whole after every change."""
+    """One session's results on disk, rewritten whole after every change; the
+    folder (owner-only) is made when they are first saved."""
 
     def __init__(self, directory: Path, side: str, patient: str = "") -> None:
-        directory.mkdir(parents=True, exist_ok=True, mode=0o700)
         stem = f"rehab-{side}-arm-{time.strftime('%Y%m%dT%H%M%S')}"
         if patient:
             stem += f"-{patient}"
@@ -117,7 +141,14 @@ class ResultsFile:
         self.written = 0  # the game's revision on disk; nothing before the first trial ends
 
     def save(self, game: RehabGame) -> None:
+        from bodynet.session.outputs import OutputError
+
         summary = game.summary()
+        try:
+            self.directory.mkdir(parents=True, exist_ok=True, mode=0o700)
+        except OSError as exc:
+            raise OutputError(f"cannot write results in {self.directory}: "
+                              f"{exc.strerror or exc}") from None  # fmt: skip
         write_private(self.json_path, json.dumps(summary, indent=1) + "\n")
         write_private(self.csv_path, results_csv(summary))
         self.written = game.revision
@@ -323,11 +354,9 @@ class GameServer:
         in a new file; ``GameError`` (and this session goes on) if it cannot be."""
         patient = check_patient(patient)
         side = str(arm) if arm in ("left", "right") else self.game.side
-        try:
-            results = ResultsFile(self.results_dir, side, patient)
-        except OSError as exc:
-            raise GameError(f"cannot write results in {self.results_dir}: "
-                            f"{exc.strerror or exc}", "results") from None  # fmt: skip
+        if why := results_dir_problem(self.results_dir):
+            raise GameError(f"cannot write results in {self.results_dir}: {why}", "results")
+        results = ResultsFile(self.results_dir, side, patient)
         old = self.game
         old.abort(time.monotonic(), "new session started")
         self._save_if_changed()

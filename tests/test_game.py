@@ -332,6 +332,23 @@ def test_a_new_session_saves_the_old_one_and_starts_a_file_of_its_own(tmp_path: 
     assert server.results.json_path.name.startswith("rehab-right-arm-")
 
 
+def test_the_results_folder_is_made_with_the_first_results_not_before(tmp_path: Path) -> None:
+    """No router answers: the game ends (exit 2) and leaves no results folder, nor
+    any of the missing folders above it; a folder under a file is refused at once."""
+    results = tmp_path / "clinic" / "res"
+    out = subprocess.run([*BODYNET, "game", "-e", "tcp/127.0.0.1:1", "--http-port", "0",
+                          "--results", str(results), "--connect-timeout", "0.2"],
+                         capture_output=True, text=True, timeout=60, check=False)  # fmt: skip
+    assert out.returncode == 2, out.stderr
+    assert "no router answered" in out.stderr.strip().splitlines()[-1]
+    assert list(tmp_path.iterdir()) == []
+    (tmp_path / "file").write_text("")
+    under_file = tmp_path / "file" / "a" / "res"
+    assert bodynet_main(["game", "-e", "tcp/127.0.0.1:1", "--http-port", "0",
+                         "--results", str(under_file)]) == 2  # fmt: skip
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["file"]
+
+
 @pytest.mark.parametrize(
     ("args", "told"),
     [
