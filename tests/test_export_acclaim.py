@@ -191,8 +191,8 @@ def test_an_angle_no_rotation_is_rebuilt_from_is_one_line_and_nothing_written(
     flagged: Path, tmp_path: Path, value: float, capsys: pytest.CaptureFixture[str]
 ) -> None:
     """A held angle (the pose decoder takes any number) past a turn: one line
-    naming the pose and the angle, exit 2, neither file written (1e308 gave
-    scipy's "zero norm quaternions" traceback)."""
+    naming the recording, the pose (its time and AMC frame) and the angle, exit 2,
+    neither file written (1e308 gave scipy's "zero norm quaternions" traceback)."""
     bad = tmp_path / "big.mcap"
     sink = McapSink(bad)
     for log_time, frame in read_poses(flagged):
@@ -202,7 +202,8 @@ def test_an_angle_no_rotation_is_rebuilt_from_is_one_line_and_nothing_written(
     out = tmp_path / "y.amc"
     assert main(["export", "amc", str(bad), "-o", str(out)]) == 2
     err = capsys.readouterr().err
-    assert err.startswith("bodynet export: the pose "), err
+    assert err.startswith(f"bodynet export: {bad}: the pose "), err
+    assert re.search(r"the pose \d+\.\d{3} s into the recording \(AMC frame \d+\) holds", err)
     assert f"= {value:g} deg, no joint angle" in err
     assert err.count("\n") == 1, err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["big.mcap"]

@@ -178,9 +178,10 @@ def _check_held(track: PoseTrack, held: np.ndarray, rows: np.ndarray, dofs: list
     if len(bad):
         row, dof = bad[0]
         frame = int(np.flatnonzero(rows)[row])
+        where = f"{track.source}: " if track.source else ""
         raise StoreError(
-            f"the pose {(track.t_ns[frame] - track.t_ns[0]) / 1e9:.3f} s into the recording "
-            f"holds {track.angles[dofs[dof]]} = "
+            f"{where}the pose {(track.t_ns[frame] - track.t_ns[0]) / 1e9:.3f} s into the "
+            f"recording (AMC frame {frame + 1}) holds {track.angles[dofs[dof]]} = "
             f"{values[row, dof]:g} deg, no joint angle (finite, within +-{MAX_HELD_DEG:g} deg) "
             "an AMC rotation can be rebuilt from; nothing written"
         )

@@ -53,6 +53,7 @@ class PoseTrack:
     rel_deg: np.ndarray  # (F, J) each joint's total rotation from the calibration pose
     measured: np.ndarray  # (F, A) bool: a measurement is behind the angle (is_measured)
     rate_hz: float | None = None  # set by resample: the frames are 1 / rate_hz apart
+    source: str = ""  # the recording it was read from, for messages about its poses
 
     def __len__(self) -> int:
         return len(self.t_ns)
@@ -125,7 +126,8 @@ def load_track(recording: Path, progress: bool = True, every_tick: bool = False)
         _, last_first = np.unique(t[:n][::-1], return_index=True)
         keep = n - 1 - last_first
     return PoseTrack(t[keep], segments, seg_p[keep], seg_q[keep], joints, joint_p[keep], angles,
-                     angle_deg[keep], rel_deg[keep], measured[keep])  # fmt: skip
+                     angle_deg[keep], rel_deg[keep], measured[keep],
+                     source=str(recording))  # fmt: skip
 
 
 def resample(track: PoseTrack, rate_hz: float) -> PoseTrack:
