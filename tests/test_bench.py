@@ -233,6 +233,31 @@ def test_demo_startup_errors_are_one_line_and_stop_what_started(tmp_path: Path) 
     assert list(tmp_path.iterdir()) == []
 
 
+def test_demo_with_rerun_data_port_in_use_names_no_option_it_lacks(tmp_path: Path) -> None:
+    """Rerun's data port (9876) in use: the web view's message names the port as the
+    demo's, not `--grpc-port` (an option of `view`, not of `demo`); nothing is left."""
+    import contextlib
+    import socket
+
+    from zenoh_helpers import free_port
+
+    from bodynet.clients.view import GRPC_PORT
+
+    bodynet = Path(sys.executable).with_name("bodynet")
+    with contextlib.ExitStack() as stack:
+        with contextlib.suppress(OSError):  # taken already: taken all the same
+            stack.enter_context(socket.create_server(("0.0.0.0", GRPC_PORT)))
+        bad = subprocess.run([str(bodynet), "demo", "--seconds", "3", "-l",
+                              f"tcp/127.0.0.1:{free_port()}", "--record", str(tmp_path / "d.mcap"),
+                              "--viewer", "web", "--web-port", str(free_port())],
+                             capture_output=True, text=True, timeout=60, check=False)  # fmt: skip
+    assert bad.returncode == 2, bad.stderr
+    assert bad.stderr == (f"bodynet demo: cannot serve on port {GRPC_PORT} (Rerun's data port, "
+                          "fixed in the demo; free it, or --viewer none): Address already in "
+                          "use\n")  # fmt: skip
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_demo_whose_recorder_cannot_start_stops_what_started(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:
