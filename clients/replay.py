@@ -22,6 +22,7 @@ from tqdm import tqdm
 from bodynet.clients.mcap_store import channel_counts, read_raw
 from bodynet.core.codecs import raw_sample
 from bodynet.core.messages import RawSample
+from bodynet.session import _one_line
 
 #: The schema of the channels replay republishes (see ``mcap_store``).
 RAW_SCHEMA_NAME = "bodynet.RawSample"
@@ -37,8 +38,7 @@ def topic_filter(key_exprs: Sequence[str] | None) -> Callable[[str], bool]:
         try:
             selectors.append(zenoh.KeyExpr(k))
         except zenoh.ZError as exc:
-            why = str(exc).split(" at ")[0]  # without the place in Zenoh's sources
-            raise ValueError(f"{k!r} is not a key expression ({why})") from None
+            raise ValueError(f"{k!r} is not a key expression ({_one_line(exc)})") from None
     seen: dict[str, bool] = {}
 
     def wanted(topic: str) -> bool:

@@ -192,6 +192,19 @@ def test_replay_bar_counts_what_it_replays_and_keys_choose_topics(
     assert "Traceback" not in result.stderr
 
 
+def test_a_key_expression_zenoh_refuses_is_told_whole_without_zenohs_source() -> None:
+    """replay's filter (its Python API: `--keys` is checked by argparse first) says
+    Zenoh's refusal through the session's one-line rule: a key with " at " in it is
+    quoted whole (a split at " at " cut it), and no Rust file of Zenoh's is named."""
+    from bodynet.clients.replay import topic_filter
+
+    with pytest.raises(ValueError, match="is not a key expression") as refused:
+        topic_filter(["body/sat at home//raw"])
+    said = str(refused.value)
+    assert "Invalid Key Expr `body/sat at home//raw`: empty chunks are forbidden" in said
+    assert ".rs:" not in said
+
+
 # -- what MCAP cannot store is refused, the file goes on --------------------------
 
 
