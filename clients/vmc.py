@@ -5,10 +5,12 @@ VSeeFace, Blender's VMC add-ons, listens on port 39539). At ``rate_hz`` the
 newest pose of the subject goes out as ONE OSC bundle (python-osc builds it):
 
 - ``/VMC/Ext/OK`` (int loaded, int calibration state, int calibration mode,
-  int tracking status): loaded 1 once a pose came; calibration state 3
-  (calibrated) or 0 (uncalibrated: some dof of the pose is flagged
-  ``uncalibrated``); mode 3 (T-pose: how bodynet calibrates); tracking 1 while
-  poses arrive (the newest is under 0.5 s old and no source of it is stale), else 0;
+  int tracking status; the spec's V2.7 form): loaded 1 once a pose came, else
+  0; calibration state 3 (Calibrated) or 0 (Uncalibrated: some dof of the pose
+  is flagged ``uncalibrated``, or no pose yet); calibration mode 0 (Normal: the
+  spec's modes are 0 Normal, 1 MR Normal, 2 MR Floor fix, and bodynet's T-pose
+  calibration is no mixed-reality one); tracking status 1 (OK) while poses
+  arrive (the newest is under 0.5 s old and no source of it is stale), else 0 (Bad);
 - ``/VMC/Ext/T`` (float): seconds since the output started;
 - ``/VMC/Ext/Root/Pos`` ("root", position, quaternion): the origin, identity;
 - ``/VMC/Ext/Bone/Pos`` (name, local position x, y, z, local rotation x, y,
@@ -58,6 +60,9 @@ from bodynet.core.codecs import pose
 DEFAULT_PORT = 39539
 DEFAULT_RATE_HZ = 60.0
 STALE_S = 0.5
+#: ``/VMC/Ext/OK`` values (the spec's lists): calibration state and mode.
+UNCALIBRATED, CALIBRATED = 0, 3
+MODE_NORMAL = 0
 
 #: Unity HumanBodyBones name -> (bodynet segment, parent bone), parents first.
 BONES: dict[str, tuple[str, str | None]] = {
@@ -166,9 +171,9 @@ def bones(frame: pose.PoseFrame) -> list[Bone]:
 def ok_args(frame: pose.PoseFrame | None, fresh: bool) -> tuple[int, int, int, int]:
     """``/VMC/Ext/OK``: loaded, calibration state, calibration mode, tracking."""
     if frame is None:
-        return (0, 0, 3, 0)
-    calibrated = 0 if "uncalibrated" in frame.flags.values() else 3
-    return (1, calibrated, 3, int(fresh and not frame.stale))
+        return (0, UNCALIBRATED, MODE_NORMAL, 0)
+    state = UNCALIBRATED if pose.UNCALIBRATED in frame.flags.values() else CALIBRATED
+    return (1, state, MODE_NORMAL, int(fresh and not frame.stale))
 
 
 def messages(frame: pose.PoseFrame | None, fresh: bool, t_s: float

@@ -41,6 +41,27 @@ SEGMENT = {"Hips": "pelvis", "Spine": "thorax", "Chest": "thorax", "Neck": "head
               for b, g in LIMB_BONES}}  # fmt: skip
 
 
+#: ``/VMC/Ext/OK`` (V2.7): every argument an int, each within the values the VMC
+#: protocol's specification lists (sh-akira/VirtualMotionCaptureProtocol,
+#: docs/english.markdown, "Available"), written out here, not taken from the module.
+OK_SPEC = (
+    ("loaded", {0, 1}),  # 0 not loaded, 1 loaded
+    # Uncalibrated, WaitingForCalibrating, Calibrating, Calibrated
+    ("calibration state", {0, 1, 2, 3}),
+    ("calibration mode", {0, 1, 2}),  # Normal, MR Normal, MR Floor fix
+    ("tracking status", {0, 1}),  # Bad, OK
+)
+
+
+def assert_ok_within_spec(msg: OscMessage) -> None:
+    """A parsed ``/VMC/Ext/OK``: four ints, each one the specification allows."""
+    assert msg.address == "/VMC/Ext/OK"
+    assert len(msg.params) == len(OK_SPEC), msg.params
+    for value, (name, allowed) in zip(msg.params, OK_SPEC, strict=True):
+        assert type(value) is int, (name, value)
+        assert value in allowed, f"{name} {value} is not one of the spec's {sorted(allowed)}"
+
+
 def wxyz(r: Rotation) -> tuple[float, float, float, float]:
     x, y, z, w = r.as_quat()
     return (float(w), float(x), float(y), float(z))
@@ -117,15 +138,16 @@ def test_bundle_is_one_osc_bundle_python_osc_reads() -> None:
     assert OscBundle.dgram_is_bundle(data)
     msgs = [m for m in OscBundle(data) if isinstance(m, OscMessage)]
     assert [m.address for m in msgs[:3]] == ["/VMC/Ext/OK", "/VMC/Ext/T", "/VMC/Ext/Root/Pos"]
-    assert msgs[0].params == [1, 3, 3, 1]
+    assert_ok_within_spec(msgs[0])
+    assert msgs[0].params == [1, 3, 0, 1]  # loaded, calibrated, normal mode, tracking
     assert msgs[1].params == [1.5]
     assert msgs[2].params[0] == "root"
     bones = {m.params[0]: m.params for m in msgs if m.address == "/VMC/Ext/Bone/Pos"}
     assert set(bones) == set(PARENT)
     assert worst_error_deg(f, bones) < 0.01
     stale = pose.PoseFrame(0, 0, {}, {}, f.segments, {}, {"x_deg": "uncalibrated"}, {}, ["k"])
-    assert vmc.ok_args(stale, fresh=True) == (1, 0, 3, 0)
-    assert vmc.ok_args(None, fresh=False) == (0, 0, 3, 0)
+    assert vmc.ok_args(stale, fresh=True) == (1, 0, 0, 0)
+    assert vmc.ok_args(None, fresh=False) == (0, 0, 0, 0)
 
 
 # --- live: a receiver on a real UDP socket ---------------------------------------------------
@@ -148,10 +170,45 @@ def next_bundle_with_bones(sock: socket.socket, timeout: float = 20.0) -> dict[s
         assert OscBundle.dgram_is_bundle(data)  # one bundle per frame, nothing else
         msgs = [m for m in OscBundle(data) if isinstance(m, OscMessage)]
         assert [m.address for m in msgs[:2]] == ["/VMC/Ext/OK", "/VMC/Ext/T"]
+        assert_ok_within_spec(msgs[0])
         bones = {m.params[0]: m.params for m in msgs if m.address == "/VMC/Ext/Bone/Pos"}
         if bones:
             assert msgs[0].params[0] == 1  # loaded
             return bones
+
+
+def received_ok(sock: socket.socket) -> OscMessage:
+    """The ``/VMC/Ext/OK`` of the next datagram on ``sock``, parsed by python-osc."""
+    data, _ = sock.recvfrom(65536)
+    assert OscBundle.dgram_is_bundle(data)
+    msgs = [m for m in OscBundle(data) if isinstance(m, OscMessage)]
+    assert msgs[0].address == "/VMC/Ext/OK"
+    return msgs[0]
+
+
+def test_every_ok_state_on_the_wire_is_one_the_spec_allows(receiver: socket.socket) -> None:
+    """Each state of the output (nothing yet, calibrated, a dof uncalibrated, a stale
+    source, no pose for a while), as the real UDP datagrams carry it."""
+    output = vmc.VmcOutput("127.0.0.1", receiver.getsockname()[1], rate_hz=50)
+    f = random_frame(4)
+    uncalibrated = pose.PoseFrame(1, 1, {}, {}, f.segments, {}, {"x_deg": "uncalibrated"})
+    stale_source = pose.PoseFrame(2, 2, {}, {}, f.segments, {}, {}, {}, ["body/x/raw"])
+    try:
+        got: list[OscMessage] = []
+        for frame in (None, f, uncalibrated, stale_source):
+            if frame is not None:
+                output.on_pose("s", frame)
+            output.tick(time.monotonic())
+            got.append(received_ok(receiver))
+        output.tick(time.monotonic() + 10 * vmc.STALE_S)  # long after the last pose
+        got.append(received_ok(receiver))
+    finally:
+        output.close()
+    for msg in got:
+        assert_ok_within_spec(msg)
+    # loaded, calibration state, calibration mode (always Normal), tracking status
+    want = [[0, 0, 0, 0], [1, 3, 0, 1], [1, 0, 0, 1], [1, 3, 0, 0], [1, 3, 0, 0]]
+    assert [m.params for m in got] == want
 
 
 def test_vmc_receiver_rebuilds_every_segment_orientation(
@@ -200,8 +257,8 @@ def test_bodynet_vmc_sends_to_the_port_it_is_given(router_endpoint: str,
         receiver.settimeout(30)
         data, _ = receiver.recvfrom(65536)
         msgs = [m for m in OscBundle(data) if isinstance(m, OscMessage)]
-        assert msgs[0].address == "/VMC/Ext/OK"
-        assert msgs[0].params == [0, 0, 3, 0]  # nothing loaded before a pose comes
+        assert_ok_within_spec(msgs[0])
+        assert msgs[0].params == [0, 0, 0, 0]  # nothing loaded before a pose comes
         assert proc.stop() == 0
     finally:
         services.close()
