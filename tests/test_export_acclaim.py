@@ -1,7 +1,8 @@
-"""`bodynet export amc` read back by an Acclaim reader written here from the
-format's description (no maintained ASF/AMC reader is on PyPI), independent of
-the writer: it parses the .asf and .amc as text and runs their forward
-kinematics, and must find the joint centres of the recording's poses."""
+"""`bodynet export amc` read back by two readers independent of the writer, which
+must find the joint centres of the recording's poses: pyacclaim (PyPI, a
+third-party ASF/AMC parser with forward kinematics; the `dev` extra) and an
+Acclaim reader written here from the format's description (text parsing and
+forward kinematics), which also checks the held angles."""
 
 from __future__ import annotations
 
@@ -13,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from export_recordings import WINDOW, export
+from pyacclaim import loadAMC, loadASF
 from scipy.spatial.transform import Rotation
 
 from bodynet.cli.main import main
@@ -145,6 +147,51 @@ def test_acclaim_reader_finds_the_joint_centres(
     m = TO_Y_UP if up == "y" else np.eye(3)
     worst = worst_error(asf, amc, frames, m, 100.0 if units == "cm" else 1.0, range(len(frames)))
     assert worst < 2e-5, worst  # metres: the pose messages carry 1 µm
+
+
+@pytest.mark.parametrize(("up", "units"), [("y", "m"), ("z", "cm")])
+def test_pyacclaim_reads_the_poses_joint_centres_and_orientations(
+    body_mcap: Path, tmp_path: Path, up: str, units: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """pyacclaim's forward kinematics of the exported pair: where each bone
+    starts is the joint centre of the pose (the root: the pelvis), within 20 µm,
+    and each moving bone's world rotation is its segment's orientation (the rest
+    pose is anatomical neutral, where every segment frame is the world's), seen
+    in the file's axes, within 1e-3 deg; every frame."""
+    out = tmp_path / "session.amc"
+    export(capsys, "amc", body_mcap, "-o", out, "--up", up, "--units", units)
+    frames = [frame for _, frame in read_poses(body_mcap)]
+    asf = loadASF(str(out.with_suffix(".asf")), verbose=False)  # prints a line anyway
+    # pyacclaim 0.0.1's loadAMC keeps a frame's values when it meets the NEXT frame's
+    # number, so it drops the last frame of every file: it returns the first n - 1,
+    # in order. The file as written must give exactly those; a copy with one more
+    # frame number appended (nothing else changed) gives all n, the last included.
+    assert len(loadAMC(asf, str(out))) == len(frames) - 1
+    closed = tmp_path / "closed.amc"
+    closed.write_text(out.read_text() + f"{len(frames) + 1}\n")
+    amc = loadAMC(asf, str(closed))
+    assert len(amc) == len(frames)
+
+    m = TO_Y_UP if up == "y" else np.eye(3)
+    scale = 100.0 if units == "cm" else 1.0
+    bones = asf["bones"]
+    skeleton = build_skeleton()
+    worst_m = worst_deg = 0.0
+    for values, frame in zip(amc, frames, strict=True):
+        bones["root"].set_pose(values)  # poses the whole tree from the root
+        got = bones["root"].global_coordinate / scale
+        worst_m = max(worst_m, float(np.abs(got - m @ frame.segments["pelvis"][0]).max()))
+        for joint in skeleton.joints:  # a bone starts where its parent bone ends
+            got = bones[joint.child].parent.global_coordinate / scale
+            worst_m = max(worst_m, float(np.abs(got - m @ frame.joints_m[joint.name]).max()))
+        for segment in skeleton.segments:
+            w, x, y, z = frame.segments[segment][1]
+            want = m @ Rotation.from_quat([x, y, z, w]).as_matrix() @ m.T
+            got = bones["root" if segment == "pelvis" else segment].transformation[:3, :3]
+            off = Rotation.from_matrix(got @ want.T).magnitude()
+            worst_deg = max(worst_deg, float(np.degrees(off)))
+    assert worst_m < 2e-5, worst_m  # metres: the pose messages carry 1 µm
+    assert worst_deg < 1e-3, worst_deg  # the .amc's angles have 6 decimals
 
 
 def test_acclaim_holds_what_nothing_measured(
