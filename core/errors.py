@@ -30,6 +30,7 @@ class Reason(StrEnum):
     BAD_FLAG = "bad_flag"
     GARBAGE = "garbage"
     UNPAIRED_REPLY = "unpaired_reply"
+    LATE_REPLY = "late_reply"
     NO_REPLY = "no_reply"
     BAD_MAGIC = "bad_magic"
     BAD_VERSION = "bad_version"

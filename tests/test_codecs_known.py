@@ -107,6 +107,61 @@ def test_unpaired_reply_and_unknown_node() -> None:
     ]  # fmt: skip
 
 
+# a bridge polling the device decodes only what the device sends (replies_only)
+REPLY = b"E0001X0002Y0003Z0004\r\n"
+
+
+def test_polled_letters_from_the_device_are_garbage_not_requests() -> None:
+    dec = concentrator.ConcentratorDecoder(replies_only=True)
+    assert dec.poll(2) == []
+    assert dec.feed(b"RESET\r\n" + REPLY) == [
+        Rejected(Reason.GARBAGE, "5 bytes", b"RESET"),
+        OleAccel(2, 1, (2, 3, 4)),
+    ]
+    assert not dec.waiting
+    assert dec.feed(REPLY) == [Rejected(Reason.UNPAIRED_REPLY, "reply with no request", REPLY[:20])]
+
+
+def test_polled_late_reply_is_counted_once_and_not_paired_with_the_next() -> None:
+    dec = concentrator.ConcentratorDecoder(replies_only=True)
+    dec.poll(1)
+    dec.overdue()
+    assert dec.waiting
+    assert dec.feed(REPLY) == [Rejected(Reason.LATE_REPLY, "node 1", REPLY[:20])]
+    assert dec.poll(2) == []  # answered, late: no no_reply as well
+    assert dec.feed(b"E0005X0006Y0007Z0008") == [OleAccel(2, 5, (6, 7, 8))]
+    assert [e.node for e in dec.feed(REPLY) if isinstance(e, Rejected)] == [None]  # unpaired
+
+
+def test_polled_unanswered_and_cut_short_end_at_the_next_poll() -> None:
+    dec = concentrator.ConcentratorDecoder(replies_only=True)
+    dec.poll(1)
+    assert dec.feed(b"E0001X00") == []  # may go on
+    dec.overdue()
+    assert dec.poll(2) == [
+        Rejected(Reason.GARBAGE, "8 bytes", b"E0001X00"),
+        Rejected(Reason.NO_REPLY, "node 1"),
+    ]
+    assert dec.feed(b"02Y0003Z0004" + REPLY) == [  # its rest: garbage, not node 2's
+        Rejected(Reason.GARBAGE, "12 bytes", b"02Y0003Z0004"),
+        OleAccel(2, 1, (2, 3, 4)),
+    ]
+
+
+def test_polled_extended_reply_only_for_the_node_polled() -> None:
+    dec = concentrator.ConcentratorDecoder(replies_only=True)
+    dec.poll(2)
+    events = dec.feed(b"1 1 2\r\n1 1 3 0 0 0 0\r\n1 1 2 -5 1 -1024 300\r\n")
+    assert [getattr(e, "reason", e) for e in events] == [
+        Reason.GARBAGE, Reason.UNPAIRED_REPLY, OleAccel(2, -5, (1, -1024, 300)),
+    ]  # fmt: skip
+    dec.poll(3)
+    dec.overdue()
+    assert dec.feed(b"1 1 3 0 0 0 0\r\n") == [
+        Rejected(Reason.LATE_REPLY, "node 3", b"1 1 3 0 0 0 0")
+    ]
+
+
 # --- IMU central ----------------------------------------------------------------------
 def _line(sensor: int, flag: int, payload: bytes) -> bytes:
     return b"%02x%02x" % (sensor, flag) + payload.hex().encode()

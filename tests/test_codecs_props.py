@@ -256,6 +256,22 @@ def test_good_concentrator_reply_after_garbage_still_decodes(garbage: bytes) -> 
     assert decode_all(concentrator.ConcentratorDecoder, [data])[-1] == good
 
 
+@given(noisy, st.integers(1, 15))
+def test_polled_concentrator_attributes_replies_only_to_the_node_polled(
+    noise: bytes, node: int
+) -> None:
+    """Whatever the device sends (request letters, replies, banners, noise), a
+    reading is only ever the polled node's, at most one per poll, and the good
+    reply to the next poll still decodes."""
+    dec = concentrator.ConcentratorDecoder(replies_only=True)
+    events = dec.poll(node) + dec.feed(noise)
+    events += dec.poll(4) + dec.feed(concentrator.encode_reply(OleAccel(4, 12, (1, 2, 3))))
+    readings = [e for e in events if isinstance(e, OleAccel)]
+    assert readings[-1] == OleAccel(4, 12, (1, 2, 3))
+    assert all(r.node == node for r in readings[:-1])
+    assert len(readings) <= 2
+
+
 @given(noisy)
 def test_good_slcan_frame_after_garbage_still_decodes(garbage: bytes) -> None:
     good = OleAccel(4, 12, (1, 2, 3))

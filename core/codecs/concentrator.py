@@ -21,6 +21,14 @@ reply against its template as far as the bytes go, and wait for more only
 while everything seen still fits. Anything else is garbage, reported as one
 event per run; a reply with no request before it, and a request that got no
 reply before the next one, are counted too.
+
+A capture holds both directions, so a request character in it is a request. A
+bridge that polls the device decodes only what the device sends
+(``replies_only``) and says itself what it asked (:meth:`ConcentratorDecoder.poll`)
+and when the answer is overdue (:meth:`ConcentratorDecoder.overdue`): a letter
+from the device (a reset banner's ``RESET``) is garbage, never a request, and a
+reply is the polled node's only while it is on time; after that it is a
+``late_reply``, never the answer to the next request.
 """
 
 from __future__ import annotations
@@ -127,13 +135,42 @@ def _match(data: bytes | bytearray, start: int = 0) -> int:
 
 
 class ConcentratorDecoder:
-    """Streaming decoder of a capture of the exchange (both directions)."""
+    """Streaming decoder of a capture of the exchange (both directions), or with
+    ``replies_only`` of what the device sends to a bridge polling it (see the
+    module's docstring)."""
 
-    def __init__(self, max_nodes: int = MAX_NODES) -> None:
+    def __init__(self, max_nodes: int = MAX_NODES, *, replies_only: bool = False) -> None:
         self.max_nodes = max_nodes
+        self.replies_only = replies_only
         self._buf = bytearray()
         self._pending: int | None = None
+        self._late: int | None = None  # polled, overdue, still unanswered
         self._garbage = GarbageRun()
+
+    @property
+    def waiting(self) -> bool:
+        """Whether the last request is unanswered (on time or overdue)."""
+        return self._pending is not None or self._late is not None
+
+    def poll(self, node: int) -> list[StreamEvent]:
+        """The bridge asks ``node`` now: the last exchange ends (a reply cut short
+        is garbage, a request never answered a ``no_reply``), and the next reply
+        is ``node``'s."""
+        out: list[StreamEvent] = []
+        self._garbage.add(self._buf)  # a reply begun in the last exchange: stale now
+        self._buf.clear()
+        self._garbage.flush(out)
+        unanswered = self._pending if self._pending is not None else self._late
+        if unanswered is not None:
+            out.append(self._no_reply(unanswered))
+        self._pending, self._late = node, None
+        return out
+
+    def overdue(self) -> None:
+        """The reply to the last request is past its time: if it still comes, it
+        is counted as a ``late_reply`` and published for no node."""
+        if self._pending is not None:
+            self._pending, self._late = None, self._pending
 
     def feed(self, data: bytes) -> list[StreamEvent]:
         buf = self._buf
@@ -144,7 +181,7 @@ class ConcentratorDecoder:
             b = buf[pos]
             if b in _SPACE:
                 pos += 1
-            elif FIRST_REQUEST <= b < FIRST_REQUEST + self.max_nodes:
+            elif not self.replies_only and FIRST_REQUEST <= b < FIRST_REQUEST + self.max_nodes:
                 if self._pending is not None:
                     self._garbage.flush(out)
                     out.append(self._no_reply(self._pending))
@@ -195,10 +232,17 @@ class ConcentratorDecoder:
     def _reply(self, m: re.Match[bytes], out: list[StreamEvent]) -> None:
         self._garbage.flush(out)
         node, self._pending = self._pending, None
-        if node is None:
-            out.append(Rejected(Reason.UNPAIRED_REPLY, "reply with no request", bytes(m[0])))
-        else:
+        if node is not None:
             out.append(_reading(m, node))
+        else:
+            out.append(self._unpaired(m[0]))
+
+    def _unpaired(self, data: bytes | bytearray) -> Rejected:
+        """A reply to no request on time: late if one is overdue, else unpaired."""
+        late, self._late = self._late, None
+        if late is not None:
+            return Rejected(Reason.LATE_REPLY, f"node {late}", bytes(data), node=late)
+        return Rejected(Reason.UNPAIRED_REPLY, "reply with no request", bytes(data))
 
     def _extended(self, line: bytearray, out: list[StreamEvent]) -> None:
         self._garbage.flush(out)
@@ -207,7 +251,9 @@ class ConcentratorDecoder:
         except DecodeError as exc:
             out.append(Rejected.of(exc, line))
             return
-        if isinstance(result, int):
+        if self.replies_only:
+            self._extended_reply(result, line, out)
+        elif isinstance(result, int):
             if self._pending is not None:
                 out.append(self._no_reply(self._pending))
             self._pending = result
@@ -217,3 +263,17 @@ class ConcentratorDecoder:
                 out.append(Rejected(Reason.UNKNOWN_NODE, f"node {result.node}", bytes(line)))
             else:
                 out.append(result)
+
+    def _extended_reply(self, result: int | OleAccel, line: bytearray,
+                        out: list[StreamEvent]) -> None:  # fmt: skip
+        """An extended line from the device: a reply is taken only for the node
+        polled; a request line is no request from the device, but garbage."""
+        if isinstance(result, int):
+            out.append(Rejected(Reason.GARBAGE, "a request line from the device", bytes(line)))
+        elif result.node == self._pending:
+            self._pending = None
+            out.append(result)
+        elif result.node == self._late:
+            out.append(self._unpaired(line))
+        else:
+            out.append(Rejected(Reason.UNPAIRED_REPLY, f"reply of node {result.node}", bytes(line)))

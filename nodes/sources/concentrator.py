@@ -1,10 +1,17 @@
 """The Data Concentrator (000 seed, ch. 3.4.2, 4.1): SmartSuit nodes polled over serial.
 
-The bridge writes each request character and feeds both what it wrote and
-what came back to the sans-io decoder, exactly as a capture of the link reads,
-so pairing, missing replies and garbage are handled in one place. A sample's
-sequence number is the poll cycle (a missed reply is a gap); a capture, which
-has no clock, times the replies by their order at one per 22 ms.
+The bridge polls one node at a time and feeds only what the device sends to
+the sans-io decoder (``replies_only``), telling it which node it asked and when
+the answer is overdue: a reply is published only for the node just asked. A
+reply that misses its ``REPLY_TIMEOUT_S`` is still waited for up to
+``LATE_WINDOW_S`` more and then counted as ``late_reply``, not published, so
+that it cannot be taken for the next node's (the concentrator answers in
+order); bytes left over from an earlier exchange are decoded (and counted)
+before the next request, and letters from the device (a reset banner) are
+garbage, not requests. A capture of the link, both directions interleaved,
+keeps its requests as requests. A sample's sequence number is the poll cycle
+(a missed reply is a gap); a capture, which has no clock, times the replies
+by their order at one per 22 ms.
 """
 
 from __future__ import annotations
@@ -18,14 +25,17 @@ from typing import Any, ClassVar
 
 from bodynet.core.codecs import concentrator as codec
 from bodynet.core.keys import Site
-from bodynet.core.messages import OleAccel, Reading, Tick
+from bodynet.core.messages import Reading, Tick
 from bodynet.core.messages import Source as SourceId
 from bodynet.core.profile import SMARTSUIT_SITES
 from bodynet.nodes.sources.base import Adapter, Feed, NodeParts, Transport
 from bodynet.nodes.sources.serial_port import SerialSource
 from bodynet.session import argtypes
 
+#: How long the bridge waits for a node's reply; and how much longer a reply
+#: still counts as the late answer to that request before the next one is sent.
 REPLY_TIMEOUT_S = 0.1
+LATE_WINDOW_S = 0.1
 
 
 class CycleAdapter(Adapter):
@@ -68,20 +78,14 @@ class Concentrator(SerialSource):
 
     def serve(self, link: Any, stop: threading.Event, bridge: Feed) -> None:
         """Poll each node in turn, a cycle after another, until ``stop``."""
-        decoder = self.decoder()
+        decoder = codec.ConcentratorDecoder(replies_only=True)
         cycle = 0
         while not stop.is_set():
             bridge.feed([Tick(cycle)])
             for node in self.nodes:
-                request = codec.request(node)
-                link.write(request)
-                bridge.feed(decoder.feed(request))
-                deadline = time.monotonic() + REPLY_TIMEOUT_S
-                while time.monotonic() < deadline and not stop.is_set():
-                    events = decoder.feed(link.read(max(1, link.in_waiting)))
-                    bridge.feed(events)
-                    if any(isinstance(e, OleAccel) for e in events):
-                        break
+                if stop.is_set():
+                    break
+                _ask(link, decoder, node, stop, bridge)
             cycle += 1
 
     @classmethod
@@ -114,3 +118,30 @@ class Concentrator(SerialSource):
         nodes = tuple(s.node for s in sensors)
         source = Concentrator(self.sites, None, nodes)
         return emulator, source.run_bridge, {"port": str(where / label)}
+
+
+def _ask(link: Any, decoder: codec.ConcentratorDecoder, node: int, stop: threading.Event,
+         bridge: Feed) -> None:  # fmt: skip
+    """One exchange on the open port (pyserial's ``Serial``): request ``node``'s
+    reading and wait for it, then, if it is overdue, for its late reply."""
+    if link.in_waiting:  # left from before: later than its late window, or a banner
+        bridge.feed(decoder.feed(link.read(link.in_waiting)))
+    bridge.feed(decoder.poll(node))
+    link.write(codec.request(node))
+    if not _listen(link, decoder, REPLY_TIMEOUT_S, stop, bridge):
+        decoder.overdue()
+        _listen(link, decoder, LATE_WINDOW_S, stop, bridge)
+
+
+def _listen(link: Any, decoder: codec.ConcentratorDecoder, timeout_s: float,
+            stop: threading.Event, bridge: Feed) -> bool:  # fmt: skip
+    """Decode what comes until the request is answered (True) or ``timeout_s``
+    passes; it reads at least once, so a reply already there when the bridge
+    was held up past the deadline still counts."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        bridge.feed(decoder.feed(link.read(max(1, link.in_waiting))))
+        if not decoder.waiting:
+            return True
+        if stop.is_set() or time.monotonic() >= deadline:
+            return False
