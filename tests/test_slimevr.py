@@ -21,15 +21,173 @@ from zenoh_helpers import Collector, Liveliness, Running, client, raw_collector,
 from bodynet.cli.main import main
 from bodynet.core.codecs import slimevr as codec
 from bodynet.core.errors import Reason, Rejected
-from bodynet.core.keys import LEFT_ARM, RIGHT_ARM, Site
-from bodynet.core.messages import Quat, Source
+from bodynet.core.keys import LEFT_ARM, LEFT_LEG, RIGHT_ARM, Site
+from bodynet.core.messages import NodeStatus, Quat, Source, Tick
 from bodynet.gateway.service import Gateway
+from bodynet.nodes.publisher import NodeHealth
 from bodynet.nodes.slimevr_bridge import SlimeVRBridge
 from bodynet.nodes.sources.slimevr import EmulatedTracker, emulated_mac, free_udp_port
 from bodynet.session import profile_file
 
 UPPER, FORE = Site(LEFT_ARM, "upperarm"), Site(RIGHT_ARM, "forearm")
+THIGH = Site(LEFT_LEG, "thigh")  # where the firmware-built tracker below is assigned
 HALF = math.sqrt(0.5)
+
+
+# --- the standard's bytes, written from the SlimeVR sources (not from bodynet's codec) ---
+# The firmware: SlimeVR-Tracker-ESP 12f4b22, src/network/connection.cpp (cpp:),
+# connection.h, packets.h. The server: SlimeVR-Server 5549763,
+# server/core/src/main/java/dev/slimevr/tracking/trackers/udp/ (UDPProtocolParser.kt,
+# TrackersUDPServer.kt, UDPDevice.kt, UDPPacket.kt).
+
+FW_MAC = bytes.fromhex("a1b2c3d4e5f6")
+FW_TRACKER = "a1b2c3d4e5f6-0"
+#: the server's handshake answer: its 64-byte buffer, 3 then "Hey OVR =D 5"
+#: (UDPProtocolParser.kt:84-86,161-168; sent whole, TrackersUDPServer.kt:191-194)
+SERVER_HANDSHAKE = bytes([3]) + b"Hey OVR =D 5" + bytes(51)
+# the types the server writes (UDPProtocolParser.kt:126-160) and the firmware
+# reads at byte 3 of a datagram (cpp:682; packets.h:62-72)
+T_HEARTBEAT, T_SERVER_HEARTBEAT, T_HANDSHAKE, T_PING, T_SENSOR_INFO = 0, 1, 3, 10, 15
+
+
+def server_packet(kind: int, body: bytes = b"") -> bytes:
+    """A server->tracker packet: type int32, number int64 "always 0 when sending
+    data to trackers" (UDPProtocolParser.kt:77-81), then the body."""
+    return struct.pack(">i", kind) + bytes(8) + body
+
+
+def short_string(text: str) -> bytes:
+    return bytes([len(text)]) + text.encode("ascii")  # sendShortString (cpp:167-178)
+
+
+class Firmware:
+    """What a SlimeVR tracker puts on the wire, byte for byte as the firmware
+    builds it; with :meth:`link`, on a real UDP socket on loopback."""
+
+    def __init__(self, mac: bytes = FW_MAC, number: int = 0) -> None:
+        self.mac = mac
+        # uint64_t m_PacketNumber = 0 (connection.h:221): never reset, not by a
+        # timeout (cpp:640-660) nor by reset() (cpp:603-627)
+        self.packet_number = number
+        self.sock: socket.socket | None = None
+        self.server: tuple[str, int] = ("127.0.0.1", 0)
+
+    def header(self, kind: int, number: int | None = None) -> bytes:
+        """sendPacketType: three 0 bytes then the type (cpp:180-186); then
+        sendPacketNumber: ``m_PacketNumber++``, uint64 big-endian (cpp:157-165,
+        convert_to_chars reverses the bytes, cpp:34-40), or an override (connection.h:161-179)."""
+        if number is None:
+            number, self.packet_number = self.packet_number, self.packet_number + 1
+        return bytes([0, 0, 0, kind]) + struct.pack(">Q", number)
+
+    def handshake(self) -> bytes:
+        """sendTrackerDiscovery (cpp:356-396), number overridden to 0 (cpp:394):
+        board, IMU, MCU, three 0s, PROTOCOL_VERSION 22 (debug.h:99), firmware
+        version, MAC, tracker type, vendor name and URL, product name, update
+        address and name (globals.h:61-77 defaults)."""
+        ints = struct.pack(">7I", 6, 10, 1, 0, 0, 0, 22)  # BOARD_WEMOSD1MINI (consts.h:81)...
+        strings = b"".join(short_string(t) for t in
+                           ("Unknown", "", "DIY SlimeVR Tracker", "", ""))  # fmt: skip
+        return (self.header(T_HANDSHAKE, 0) + ints + short_string("0.6.1") + self.mac
+                + bytes([1]) + strings)  # fmt: skip
+
+    def rotation(self, sensor: int = 0, xyzw: tuple[float, ...] = (0.0, 0.0, HALF, HALF)) -> bytes:
+        """PACKET_ROTATION_DATA 17 (cpp:275-294): RotationDataPacket (packets.h:151-159):
+        sensor id, data type 1 (normal), x, y, z, w big-endian floats, accuracy."""
+        return self.header(17) + bytes([sensor, 1]) + struct.pack(">4f", *xyzw) + bytes([0])
+
+    def sensor_info(self, sensor: int = 0, state: int = 1) -> bytes:
+        """PACKET_SENSOR_INFO 15 (cpp:255-272): SensorInfoPacket (packets.h:135-149):
+        sensor id, state, type, config bits (u16 BE), rest calibration done, position,
+        data type, then two debug floats."""
+        body = bytes([sensor, state, 10]) + struct.pack(">H", 0) + bytes([0, 0, 0])
+        return self.header(T_SENSOR_INFO) + body + struct.pack(">2f", 100.0, 100.0)
+
+    # --- on a socket -------------------------------------------------------------------
+    def link(self, server: tuple[str, int]) -> Firmware:
+        self.server = server
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.bind(("127.0.0.1", 0))
+        self.sock.settimeout(5.0)
+        return self
+
+    @property
+    def address(self) -> tuple[str, int]:
+        assert self.sock is not None
+        return self.sock.getsockname()  # type: ignore[no-any-return]
+
+    def send(self, data: bytes) -> None:
+        assert self.sock is not None
+        self.sock.sendto(data, self.server)
+
+    def receive(self, kind: int) -> bytes:
+        """The next datagram of type ``kind`` (read at byte 3, as update() does,
+        cpp:682), skipping others (heartbeats, pings meanwhile)."""
+        assert self.sock is not None
+        while True:
+            data = self.sock.recv(128)  # m_Packet[128] (connection.h:220)
+            if len(data) > 3 and data[3] == kind:
+                return data
+
+    def connect(self) -> bytes:
+        """A handshake a second until answered: byte 0 is 3 and "Hey OVR =D 5"
+        follows (searchForServer, cpp:560-601); the answer as it came."""
+        assert self.sock is not None
+        for _ in range(10):
+            self.send(self.handshake())
+            self.sock.settimeout(1.0)
+            try:
+                while True:
+                    data = self.sock.recv(128)
+                    if data[:1] == b"\x03" and data[1:13] == b"Hey OVR =D 5":
+                        return data
+            except TimeoutError:
+                continue
+            finally:
+                self.sock.settimeout(5.0)
+        raise AssertionError("no answer to ten handshakes")
+
+    def close(self) -> None:
+        if self.sock is not None:
+            self.sock.close()
+
+
+@pytest.fixture
+def firmware() -> Iterator[Callable[..., Firmware]]:
+    made: list[Firmware] = []
+
+    def make(server: tuple[str, int], number: int = 0, mac: bytes = FW_MAC) -> Firmware:
+        fw = Firmware(mac, number).link(server)
+        made.append(fw)
+        return fw
+
+    yield make
+    for fw in made:
+        fw.close()
+
+
+def stream(fw: Firmware, bridge: SlimeVRBridge, count: int, batch: int = 100) -> None:
+    """``count`` rotations from ``fw``, a batch at a time, each batch waited for
+    until the bridge has taken or refused all of it (no loss to a full socket buffer)."""
+
+    def done() -> int:
+        node = bridge.server.nodes.get(FW_TRACKER)
+        health = bridge.publisher.nodes.get(node) if node is not None else None
+        return (health.samples if health else 0) + sum(bridge.publisher.rejected.values())
+
+    target = done()
+    for start in range(0, count, batch):
+        n = min(batch, count - start)
+        for _ in range(n):
+            fw.send(fw.rotation())
+        target += n
+        wait_until(lambda t=target: done() >= t, what=f"{target} packets through the bridge")
+
+
+def fw_health(bridge: SlimeVRBridge) -> tuple[codec.Connection, NodeHealth]:
+    node = bridge.server.nodes[FW_TRACKER]
+    conn = next(c for c in bridge.server.connections.values() if c.handshake.mac == FW_MAC)
+    return conn, bridge.publisher.nodes[node]
 
 
 def still(_sensor: int, _t: float) -> tuple[float, float, float, float]:
@@ -39,7 +197,8 @@ def still(_sensor: int, _t: float) -> tuple[float, float, float, float]:
 @pytest.fixture
 def served(zsession: zenoh.Session) -> Iterator[tuple[SlimeVRBridge, tuple[str, int]]]:
     listen = ("127.0.0.1", free_udp_port())
-    bridge = SlimeVRBridge(zsession, "slimevr-test", {codec.tracker_id(emulated_mac(1), 0): UPPER})
+    assignments = {codec.tracker_id(emulated_mac(1), 0): UPPER, FW_TRACKER: THIGH}
+    bridge = SlimeVRBridge(zsession, "slimevr-test", assignments)
     running = Running(lambda stop: bridge.run(listen, stop))
     yield bridge, listen
     running.stop()
@@ -207,3 +366,74 @@ def test_a_handshake_flood_fills_no_more_than_its_bound() -> None:
     server.receive(codec.encode_handshake(0, first), ("10.0.0.2", 5))  # back, elsewhere
     events = server.receive(codec.encode_rotation(1, 0, (0.0, 0.0, 0.0, 1.0)), ("10.0.0.2", 5))
     assert [e.node for e in events if isinstance(e, Quat)] == [1]  # its node as before
+
+
+# --- against the standard: packet numbers ---------------------------------------------
+
+
+def test_a_ping_echoed_verbatim_after_thousands_of_packets_moves_no_numbering(
+    served: tuple[SlimeVRBridge, tuple[str, int]], firmware: Callable[..., Firmware],
+) -> None:  # fmt: skip
+    """The firmware answers a ping by sending the server's datagram back as it
+    came (returnLastPacket, cpp:494-502,701-702). The SlimeVR server numbers
+    what it sends 0 (UDPProtocolParser.kt:79; its ping, TrackersUDPServer.kt:379-384)
+    and takes a 0 whatever came before (UDPDevice.kt:92): so must bodynet, or the
+    echo is refused or throws the tracker's numbering off."""
+    bridge, listen = served
+    fw = firmware(listen)
+    fw.connect()
+    stream(fw, bridge, 3000)  # the first numbered 0 (cpp:162): taken as the server takes it
+    assert not bridge.publisher.rejected
+    heartbeat = fw.receive(T_SERVER_HEARTBEAT)
+    assert heartbeat == server_packet(T_SERVER_HEARTBEAT)  # UDPPacket1Heartbeat: no body
+    ping = fw.receive(T_PING)
+    assert (ping[:12], len(ping)) == (server_packet(T_PING), 16)  # + ping id int32
+    fw.send(ping)
+    conn, health = fw_health(bridge)
+    wait_until(lambda: "rtt_ms" in health.status or bridge.publisher.rejected,
+               what="the echo taken")  # fmt: skip
+    assert not bridge.publisher.rejected
+    stream(fw, bridge, 500)
+    assert not bridge.publisher.rejected
+    assert (health.samples, health.gaps, conn.lost) == (3500, 0, 0)
+
+
+def test_an_echo_of_a_ping_sent_after_more_packets_than_the_tracker_sent_moves_nothing() -> None:
+    """A server that has sent a tracker more packets than the tracker sent it
+    (a heartbeat and a ping a second to each tracker): the echo of its ping is
+    still number 0 (UDPProtocolParser.kt:79), taken without a gap, and the
+    tracker's next packets are taken after it."""
+    server = codec.SlimeVRServer()
+    fw, addr = Firmware(), ("10.0.0.5", 4000)
+    server.receive(fw.handshake(), addr)
+    for _ in range(50):
+        server.receive(fw.rotation(), addr)
+    for ping_id in range(1, 201):  # 200 s of heartbeats and pings
+        assert server.heartbeats() == [(addr, server_packet(T_SERVER_HEARTBEAT))]
+        ((to, ping),) = server.ping(ping_id)
+    assert (to, ping) == (addr, server_packet(T_PING, struct.pack(">i", 200)))
+    events = server.receive(ping, addr)  # the firmware's verbatim echo
+    assert events == [NodeStatus(1, codec.PING_ECHO, 200)]
+    events = server.receive(fw.rotation(), addr)
+    assert [e for e in events if isinstance(e, Tick | Rejected)] == [Tick(50, 1)]
+    assert server.connections[addr].lost == 0
+
+
+def test_the_emulated_tracker_echoes_a_ping_verbatim(
+    trackers: Callable[..., EmulatedTracker],
+) -> None:  # fmt: skip
+    """As the firmware does (cpp:494-502,701-702): the server's datagram back as
+    it came, its number 0 in it, the tracker's own counter not used."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as server:
+        server.bind(("127.0.0.1", 0))
+        server.settimeout(5.0)
+        trackers(server.getsockname(), 1)
+        data, tracker = server.recvfrom(2048)
+        while data[3] != T_HANDSHAKE:
+            data, tracker = server.recvfrom(2048)
+        server.sendto(SERVER_HANDSHAKE, tracker)
+        ping = server_packet(T_PING, struct.pack(">i", -123456789))
+        server.sendto(ping, tracker)
+        while data[3] != T_PING:
+            data = server.recv(2048)
+        assert data == ping

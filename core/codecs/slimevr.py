@@ -24,11 +24,12 @@ not at hand when this was written, see "doubts" below). Every packet is::
 | type | packet              | payload read here                               |
 +======+=====================+=================================================+
 | 0    | heartbeat (tracker) | none                                            |
-| 1    | heartbeat (server)  | none; sent by us every second                   |
+| 1    | heartbeat (server)  | none; sent by us every second, numbered 0       |
 | 3    | handshake           | board i32, IMU i32, MCU i32, 3 x i32 IMU info,  |
 |      |                     | firmware build i32, firmware string (u8 length  |
 |      |                     | + bytes), MAC 6 bytes; the full form only       |
-| 10   | ping                | i32 id: we send pings, the tracker echoes them  |
+| 10   | ping                | i32 id: we send pings (numbered 0), the tracker |
+|      |                     | echoes the datagram verbatim                    |
 | 12   | battery             | f32 voltage, f32 level                          |
 | 15   | sensor info         | sensor id u8, status u8, IMU type u8 (more      |
 |      |                     | bytes of newer firmware ignored); acknowledged  |
@@ -54,7 +55,10 @@ one after its last plus every packet of its tracker lost since (numbers
 skipped), so a lost packet is a gap of the sensors it could have carried (an
 upper bound: a lost battery packet is counted too). A packet whose number is
 not above the last one (a duplicate or reordered datagram) is rejected
-(``out_of_order``), as the server drops it.
+(``out_of_order``), as the server drops it. Number 0 is the exception, as in the
+server (``UDPDevice.isNextPacket``): always taken, no gap counted, the last
+number left as it was. Every packet the server sends is numbered 0, and the
+firmware answers a ping (10) by sending the server's datagram back verbatim.
 
 Versions: the packet framing above (int32 type + int64 number) is that of
 SlimeVR firmware since its numbered packets; handshakes are read in their full
@@ -93,6 +97,9 @@ HEARTBEAT, SERVER_HEARTBEAT, HANDSHAKE = 0, 1, 3
 PING, BATTERY, SENSOR_INFO, ROTATION_DATA, SIGNAL_STRENGTH, ROTATION_ACCEL = 10, 12, 15, 17, 19, 23
 IGNORED_TYPES = frozenset({4, 13, 14, 18, 20, 21, 22, 200})
 HANDSHAKE_REPLY = b"\x03Hey OVR =D 5"
+#: the packet number of every server->tracker packet: "Packet number is always 0
+#: when sending data to trackers" (UDPProtocolParser.kt:79, TrackersUDPServer.kt:382)
+SERVER_NUMBER = 0
 DEVICE_SENSOR = 255  # a sensor id meaning the whole tracker
 #: the NodeStatus key under which an echoed ping's id comes out (for a round trip)
 PING_ECHO = "ping_echo"
@@ -375,11 +382,6 @@ class SlimeVRServer:
         self.trackers: dict[int, str] = {}  # node -> tracker id
         self.seqs: dict[int, int] = {}  # node -> last sequence number, across reconnects
         self._replies: list[tuple[Hashable, bytes]] = []
-        self._number = 0  # our packets' counter
-
-    def _next_number(self) -> int:
-        self._number += 1
-        return self._number
 
     def take_replies(self) -> list[tuple[Hashable, bytes]]:
         out, self._replies = self._replies, []
@@ -388,11 +390,13 @@ class SlimeVRServer:
     def heartbeats(self) -> list[tuple[Hashable, bytes]]:
         """A heartbeat for every tracker that shook hands (the firmware reconnects
         when it has heard nothing for :data:`TRACKER_TIMEOUT_S`)."""
-        return [(addr, encode_heartbeat(self._next_number(), SERVER_HEARTBEAT))
+        return [(addr, encode_heartbeat(SERVER_NUMBER, SERVER_HEARTBEAT))
                 for addr in self.connections]  # fmt: skip
 
     def ping(self, ping_id: int) -> list[tuple[Hashable, bytes]]:
-        return [(addr, encode_ping(self._next_number(), ping_id)) for addr in self.connections]
+        """A ping for every tracker; the firmware echoes the datagram as it came
+        (``returnLastPacket``, connection.cpp:494-502,701-702), number 0 included."""
+        return [(addr, encode_ping(SERVER_NUMBER, ping_id)) for addr in self.connections]
 
     def forget(self, address: Hashable) -> None:
         """Drop a sender's connection (it went silent); its nodes keep their numbers."""
@@ -413,17 +417,31 @@ class SlimeVRServer:
         if conn is None:
             return [Rejected(Reason.UNKNOWN_NODE, "no handshake from this address",
                              bytes(data[:MAX_KEPT]))]  # fmt: skip
-        if packet.number <= conn.last_number:
-            node = next(iter(conn.nodes.values()), None)
-            detail = f"packet {packet.number} after {conn.last_number}"
-            return [Rejected(Reason.OUT_OF_ORDER, detail, bytes(data[:MAX_KEPT]), node)]
-        skipped = packet.number - conn.last_number - 1
-        conn.last_number = packet.number
+        if packet.number != SERVER_NUMBER:  # 0 is always taken and moves nothing (see _take)
+            if packet.number <= conn.last_number:
+                node = next(iter(conn.nodes.values()), None)
+                detail = f"packet {packet.number} after {conn.last_number}"
+                return [Rejected(Reason.OUT_OF_ORDER, detail, bytes(data[:MAX_KEPT]), node)]
+            self._take(conn, packet.number)
+        return self._payload(conn, payload)
+
+    @staticmethod
+    def _take(conn: Connection, number: int) -> None:
+        """The tracker's packet ``number`` (above its last) is taken; the numbers
+        skipped are packets lost.
+
+        Number 0 never comes here: the SlimeVR server accepts it whatever came
+        before (``packetId == 0L || packetId > lastPacketNumber``, UDPDevice.kt:92)
+        since it is the number the server writes in everything it sends
+        (UDPProtocolParser.kt:79), which comes back in the firmware's verbatim ping
+        echo. The server then sets its last number to 0, which would let a stale
+        packet through; here the last number stays, and no gap is counted."""
+        skipped = number - conn.last_number - 1
+        conn.last_number = number
         if skipped:
             conn.lost += skipped
             for node in conn.nodes.values():
                 conn.pending_lost[node] = conn.pending_lost.get(node, 0) + skipped
-        return self._payload(conn, payload)
 
     def _handshake(self, number: int, hs: Handshake, address: Hashable,
                    data: bytes) -> list[StreamEvent]:  # fmt: skip
@@ -485,7 +503,7 @@ class SlimeVRServer:
             node = conn.nodes[payload.sensor]
             out.append(NodeStatus(node, "sensor_status", payload.status))
             ack = _SENSOR_INFO.pack(payload.sensor, payload.status, payload.imu)[:2]
-            self._replies.append((conn.address, _packet(SENSOR_INFO, self._next_number(), ack)))
+            self._replies.append((conn.address, _packet(SENSOR_INFO, SERVER_NUMBER, ack)))
         elif isinstance(payload, Battery):
             for node in self._nodes_of(conn, DEVICE_SENSOR):
                 out.append(NodeStatus(node, "battery_v", round(payload.voltage, 3)))

@@ -252,8 +252,10 @@ class EmulatedTracker(Loop):
                 if not self.connected.is_set():
                     self.connected.set()
                     self.acked.clear()
-            elif packet.kind == codec.PING and packet.ping_id is not None:
-                self.send(codec.encode_ping(self._next(), packet.ping_id))
+            elif packet.kind == codec.PING:
+                # the datagram as it came, the server's packet number in it; the
+                # firmware's counter does not move (returnLastPacket, connection.cpp:494-502)
+                self.send(data)
                 self.pings_echoed += 1
             elif packet.kind == codec.SERVER_HEARTBEAT:
                 self.heartbeats += 1
