@@ -437,3 +437,43 @@ def test_the_emulated_tracker_echoes_a_ping_verbatim(
         while data[3] != T_PING:
             data = server.recv(2048)
         assert data == ping
+
+
+# --- against the standard: the sensor-info acknowledgement -----------------------------
+
+
+def test_sensor_info_is_acknowledged_in_the_servers_six_bytes(
+    served: tuple[SlimeVRBridge, tuple[str, int]], firmware: Callable[..., Firmware],
+) -> None:  # fmt: skip
+    """The server answers a sensor info with type, sensor id and status, no
+    packet number (writeSensorInfoResponse, UDPProtocolParser.kt:89-97); the
+    firmware wants 6 bytes at least and reads the id and state at byte 4
+    (cpp:705-716, SensorInfoPacket packets.h:135-137), resending until acknowledged."""
+    bridge, listen = served
+    fw = firmware(listen)
+    fw.connect()
+    for state in (1, 2):  # SensorStatus: OK, then an error
+        fw.send(fw.sensor_info(0, state))
+        ack = fw.receive(T_SENSOR_INFO)
+        assert ack == struct.pack(">i", T_SENSOR_INFO) + bytes([0, state])
+        assert len(ack) >= 6  # as the firmware checks
+        assert (ack[4], ack[5]) == (0, state)  # sensorId, sensorState, as it reads them
+    assert not bridge.publisher.rejected
+
+
+def test_the_emulated_tracker_takes_the_servers_six_byte_acknowledgement(
+    trackers: Callable[..., EmulatedTracker],
+) -> None:  # fmt: skip
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as server:
+        server.bind(("127.0.0.1", 0))
+        server.settimeout(5.0)
+        tracker = trackers(server.getsockname(), 1)
+        data, address = server.recvfrom(2048)
+        while data[3] != T_HANDSHAKE:
+            data, address = server.recvfrom(2048)
+        server.sendto(SERVER_HANDSHAKE, address)
+        while data[3] != T_SENSOR_INFO:
+            data = server.recv(2048)
+        sensor, state = data[12], data[13]  # as the server reads it (UDPPacket.kt:233-235)
+        server.sendto(struct.pack(">i", T_SENSOR_INFO) + bytes([sensor, state]), address)
+        wait_until(lambda: sensor in tracker.acked, what="the acknowledgement taken")

@@ -33,6 +33,8 @@ not at hand when this was written, see "doubts" below). Every packet is::
 | 12   | battery             | f32 voltage, f32 level                          |
 | 15   | sensor info         | sensor id u8, status u8, IMU type u8 (more      |
 |      |                     | bytes of newer firmware ignored); acknowledged  |
+|      |                     | as the server does: 6 bytes, type i32, sensor   |
+|      |                     | id u8, status u8, no packet number              |
 | 17   | rotation data       | sensor id u8, data type u8 (1 normal; 2         |
 |      |                     | correction, ignored), quaternion x, y, z, w as  |
 |      |                     | 4 x f32 BE, accuracy u8                         |
@@ -70,8 +72,6 @@ against a real tracker or the SlimeVR server's parser.
 Doubts, where this had to assume:
 - the handshake reply: one byte 3 then ASCII ``Hey OVR =D 5`` (13 bytes); the
   server may pad it to a fixed buffer, which trackers do not read;
-- the sensor-info acknowledgement: type 15 with sensor id and status, as
-  firmware that resends sensor info until acknowledged expects;
 - quaternions are taken in the tracker's own (z-up) world frame, as sent; the
   SlimeVR server turns them into its y-up frame, bodynet does not;
 - the battery level is passed on as sent (0-1 in recent firmware).
@@ -114,6 +114,10 @@ _COMPACT = struct.Struct(">B4h3h")
 _BATTERY = struct.Struct(">2f")
 _SENSOR_INFO = struct.Struct(">BBB")
 _RSSI = struct.Struct(">Bb")
+#: the server's answer to a sensor info: type, sensor id, status, and no packet
+#: number (writeSensorInfoResponse, UDPProtocolParser.kt:89-97)
+_SENSOR_ACK = struct.Struct(">iBB")
+_PING_SIZE = _HEADER.size + _I32.size
 MAC_LEN = 6
 
 
@@ -308,23 +312,31 @@ class ServerPacket:
     kind: int  # HANDSHAKE (the reply), SERVER_HEARTBEAT, PING, SENSOR_INFO (ack)
     ping_id: int | None = None
     sensor: int | None = None
+    status: int | None = None  # of the sensor-info acknowledgement
 
 
 def decode_server_packet(data: bytes) -> ServerPacket:
-    """A datagram from the server, for the tracker side; ``DecodeError`` if unknown."""
+    """A datagram from the server as the firmware reads it (connection.cpp
+    ``update``); ``DecodeError`` if it is none the firmware acts on.
+
+    The type is byte 3 (connection.cpp:682). A ping is echoed whole, so its id
+    is only read if there (after the 12-byte header). The sensor-info
+    acknowledgement is the server's 6 bytes, type then sensor id and status with
+    no packet number (UDPProtocolParser.kt:89-97), read at byte 4 (connection.cpp:705-716).
+    """
     if data.startswith(HANDSHAKE_REPLY):
         return ServerPacket(HANDSHAKE)
-    _need(data, _HEADER.size, "header")
-    kind, _ = _HEADER.unpack_from(data)
-    body = data[_HEADER.size :]
+    _need(data, _I32.size, "type")
+    kind = data[3]
     if kind == SERVER_HEARTBEAT:
         return ServerPacket(kind)
     if kind == PING:
-        _need(body, _I32.size, "ping")
-        return ServerPacket(kind, ping_id=_I32.unpack_from(body)[0])
+        ping_id = _I32.unpack_from(data, _HEADER.size)[0] if len(data) >= _PING_SIZE else None
+        return ServerPacket(kind, ping_id=ping_id)
     if kind == SENSOR_INFO:
-        _need(body, 2, "sensor info")
-        return ServerPacket(kind, sensor=body[0])
+        _need(data, _SENSOR_ACK.size, "sensor info acknowledgement")
+        _, sensor, status = _SENSOR_ACK.unpack_from(data)
+        return ServerPacket(kind, sensor=sensor, status=status)
     raise DecodeError(Reason.BAD_KIND, f"server packet type {kind}")
 
 
@@ -502,8 +514,8 @@ class SlimeVRServer:
             self._sensor(conn, payload.sensor, out)
             node = conn.nodes[payload.sensor]
             out.append(NodeStatus(node, "sensor_status", payload.status))
-            ack = _SENSOR_INFO.pack(payload.sensor, payload.status, payload.imu)[:2]
-            self._replies.append((conn.address, _packet(SENSOR_INFO, SERVER_NUMBER, ack)))
+            ack = _SENSOR_ACK.pack(SENSOR_INFO, payload.sensor, payload.status)
+            self._replies.append((conn.address, ack))
         elif isinstance(payload, Battery):
             for node in self._nodes_of(conn, DEVICE_SENSOR):
                 out.append(NodeStatus(node, "battery_v", round(payload.voltage, 3)))

@@ -37,6 +37,8 @@ log = logging.getLogger(__name__)
 MAX_PROFILE_BYTES = 1 << 20
 #: How often an emulated tracker sends its battery and signal strength.
 STATUS_S = 1.0
+#: the state an emulated tracker's sensors report in their sensor info (1: OK)
+SENSOR_OK = 1
 
 
 def parse_assignment(text: str) -> tuple[str, Site]:
@@ -259,7 +261,9 @@ class EmulatedTracker(Loop):
                 self.pings_echoed += 1
             elif packet.kind == codec.SERVER_HEARTBEAT:
                 self.heartbeats += 1
-            elif packet.kind == codec.SENSOR_INFO and packet.sensor is not None:
+            # acknowledged in the state it was sent in, or sent again (connection.cpp:532-538)
+            elif (packet.kind == codec.SENSOR_INFO and packet.sensor is not None
+                  and packet.status == SENSOR_OK):  # fmt: skip
                 self.acked.add(packet.sensor)
 
     def run(self) -> None:
@@ -303,7 +307,7 @@ class EmulatedTracker(Loop):
     def _status(self) -> None:
         for sensor in self.sensors:
             if sensor not in self.acked:
-                self.send(codec.encode_sensor_info(self._next(), sensor, 1, 10))
+                self.send(codec.encode_sensor_info(self._next(), sensor, SENSOR_OK, 10))
         self.send(codec.encode_battery(self._next(), 3.9, 0.8))
         self.send(codec.encode_signal_strength(self._next(), codec.DEVICE_SENSOR, -52))
         self.send(codec.encode_heartbeat(self._next()))
