@@ -477,3 +477,73 @@ def test_the_emulated_tracker_takes_the_servers_six_byte_acknowledgement(
         sensor, state = data[12], data[13]  # as the server reads it (UDPPacket.kt:233-235)
         server.sendto(struct.pack(">i", T_SENSOR_INFO) + bytes([sensor, state]), address)
         wait_until(lambda: sensor in tracker.acked, what="the acknowledgement taken")
+
+
+# --- against the standard: numbering around the handshake -----------------------------
+
+
+def test_a_tracker_connecting_and_reconnecting_with_its_counter_running_on(
+    served: tuple[SlimeVRBridge, tuple[str, int]], firmware: Callable[..., Firmware],
+) -> None:  # fmt: skip
+    """The firmware numbers its handshake 0 (cpp:394) and everything else from a
+    counter it never resets (connection.h:221): here one that ran before (another
+    server, a bridge restarted), then a second handshake, as after a timeout
+    (cpp:640-660). The server starts over at each handshake (UDPDevice.kt:46;
+    TrackersUDPServer.kt:84,107) and counts no gap: nothing is lost here."""
+    bridge, listen = served
+    fw = firmware(listen, number=50_000)
+    fw.connect()
+    stream(fw, bridge, 100)
+    conn, health = fw_health(bridge)
+    assert (health.samples, conn.lost) == (100, 0)
+    fw.connect()  # numbered 0; the packets after it 50_100 on
+    stream(fw, bridge, 100)
+    assert not bridge.publisher.rejected
+    assert (health.samples, health.gaps, conn.lost) == (200, 0, 0)
+
+
+def test_the_first_packet_after_a_handshake_is_taken_and_starts_the_count() -> None:
+    """After the handshake, whatever its number, the tracker's first packet is
+    taken and no gap counted; numbers skipped after it are. (A tracker fresh from
+    boot numbers its first packet 0, cpp:162: taken as any 0 is.)"""
+    server, fw, addr = codec.SlimeVRServer(), Firmware(), ("10.0.0.5", 4000)
+    server.receive(fw.handshake(), addr)
+    for index in range(3):  # 0, 1, 2
+        events = server.receive(fw.rotation(), addr)
+        assert [e for e in events if isinstance(e, Tick | Rejected)] == [Tick(index, 1)]
+    for first in (1, 7, 2**40):
+        server, fw, addr = codec.SlimeVRServer(), Firmware(number=first), ("10.0.0.5", 4000)
+        server.receive(fw.handshake(), addr)
+        ticks = [e for e in server.receive(fw.rotation(), addr) if isinstance(e, Tick | Rejected)]
+        fw.packet_number += 3  # three packets lost
+        ticks += [e for e in server.receive(fw.rotation(), addr) if isinstance(e, Tick | Rejected)]
+        assert ticks == [Tick(0, 1), Tick(4, 1)]
+        assert server.connections[addr].lost == 3
+
+
+def test_the_emulated_tracker_keeps_its_counter_across_reconnects(
+    trackers: Callable[..., EmulatedTracker], monkeypatch: pytest.MonkeyPatch,
+) -> None:  # fmt: skip
+    """Like the firmware: its first packet numbered 0 (``m_PacketNumber++``,
+    cpp:162), its handshakes 0 (cpp:394), its counter running on after it gave up
+    on a silent server and shook hands again (connection.h:221, cpp:640-660)."""
+    monkeypatch.setattr(codec, "TRACKER_TIMEOUT_S", 0.3)  # give up sooner than 3 s
+    numbers: list[list[int]] = []  # those numbered after each handshake answered
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as server:
+        server.bind(("127.0.0.1", 0))
+        server.settimeout(5.0)
+        trackers(server.getsockname(), 1)
+        while len(numbers) < 2 or len(numbers[-1]) < 5:
+            data, address = server.recvfrom(2048)
+            number = struct.unpack_from(">q", data, 4)[0]
+            if data[3] == T_HANDSHAKE:
+                assert number == 0
+                if not numbers or numbers[-1]:  # answered once, then silence
+                    server.sendto(SERVER_HANDSHAKE, address)
+                    numbers.append([])
+            elif numbers:
+                numbers[-1].append(number)
+    before, after = numbers[0], numbers[1]
+    assert before[0] == 0
+    assert before == sorted(before)
+    assert after[0] > before[-1]

@@ -61,6 +61,8 @@ not above the last one (a duplicate or reordered datagram) is rejected
 server (``UDPDevice.isNextPacket``): always taken, no gap counted, the last
 number left as it was. Every packet the server sends is numbered 0, and the
 firmware answers a ping (10) by sending the server's datagram back verbatim.
+A handshake (numbered 0) leaves no last number: the firmware's counter runs on
+from boot across reconnects, so the first packet after it counts no gap.
 
 Versions: the packet framing above (int32 type + int64 number) is that of
 SlimeVR firmware since its numbered packets; handshakes are read in their full
@@ -370,7 +372,8 @@ class Connection:
 
     address: Hashable
     handshake: Handshake
-    last_number: int
+    #: the number of the tracker's last packet taken; none since its handshake
+    last_number: int | None = None
     lost: int = 0  # packets whose numbers were skipped
     ignored: int = 0
     nodes: dict[int, int] = field(default_factory=dict)  # sensor id -> node
@@ -424,15 +427,17 @@ class SlimeVRServer:
             return [Rejected.of(exc, data, node)]
         payload = packet.payload
         if isinstance(payload, Handshake):
-            return self._handshake(packet.number, payload, address, data)
+            return self._handshake(payload, address, data)
         conn = self.connections.get(address)
         if conn is None:
             return [Rejected(Reason.UNKNOWN_NODE, "no handshake from this address",
                              bytes(data[:MAX_KEPT]))]  # fmt: skip
         if packet.number != SERVER_NUMBER:  # 0 is always taken and moves nothing (see _take)
-            if packet.number <= conn.last_number:
+            last = conn.last_number
+            if packet.number < 0 or (last is not None and packet.number <= last):
                 node = next(iter(conn.nodes.values()), None)
-                detail = f"packet {packet.number} after {conn.last_number}"
+                after = "its handshake" if last is None else last
+                detail = f"packet {packet.number} after {after}"
                 return [Rejected(Reason.OUT_OF_ORDER, detail, bytes(data[:MAX_KEPT]), node)]
             self._take(conn, packet.number)
         return self._payload(conn, payload)
@@ -447,20 +452,30 @@ class SlimeVRServer:
         since it is the number the server writes in everything it sends
         (UDPProtocolParser.kt:79), which comes back in the firmware's verbatim ping
         echo. The server then sets its last number to 0, which would let a stale
-        packet through; here the last number stays, and no gap is counted."""
-        skipped = number - conn.last_number - 1
-        conn.last_number = number
+        packet through; here the last number stays, and no gap is counted (nor
+        one just after it, where the firmware's first packet from boot is 0).
+
+        The first packet after a handshake counts no gap either: the firmware
+        numbers its packets from a counter it never resets (connection.h:221,
+        connection.cpp:157-165), not from its handshake (numbered 0,
+        connection.cpp:394), and the server starts over at each handshake
+        (lastPacketNumber -1 for a new tracker, UDPDevice.kt:46; 0 for one back,
+        TrackersUDPServer.kt:84,107), taking any number above. (The server counts
+        as lost only the packets it refuses, UDPDevice.kt:97, never a gap.)"""
+        last, conn.last_number = conn.last_number, number
+        if last is None:
+            return
+        skipped = number - last - 1
         if skipped:
             conn.lost += skipped
             for node in conn.nodes.values():
                 conn.pending_lost[node] = conn.pending_lost.get(node, 0) + skipped
 
-    def _handshake(self, number: int, hs: Handshake, address: Hashable,
-                   data: bytes) -> list[StreamEvent]:  # fmt: skip
+    def _handshake(self, hs: Handshake, address: Hashable, data: bytes) -> list[StreamEvent]:
         self._replies.append((address, HANDSHAKE_REPLY))
         conn = self.connections.get(address)
         if conn is not None and conn.handshake.mac == hs.mac:
-            conn.last_number = number  # the tracker started over (a reconnect)
+            conn.last_number = None  # a reconnect: its counter runs on, from no last number
             return []
         if conn is None and len(self.connections) >= self.max_trackers:
             self._replies.pop()
@@ -469,7 +484,7 @@ class SlimeVRServer:
         # a new tracker, or another one at this address: forget whoever was there
         for other in [a for a, c in self.connections.items() if c.handshake.mac == hs.mac]:
             del self.connections[other]  # the same tracker from a new address
-        conn = self.connections[address] = Connection(address, hs, number)
+        conn = self.connections[address] = Connection(address, hs)
         return self._sensor(conn, 0, [])
 
     def _sensor(self, conn: Connection, sensor: int, out: list[StreamEvent]) -> list[StreamEvent]:

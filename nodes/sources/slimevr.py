@@ -210,8 +210,9 @@ class EmulatedTracker(Loop):
         return [codec.tracker_id(self.mac, s) for s in self.sensors]
 
     def _next(self) -> int:
-        self.number += 1
-        return self.number
+        """``m_PacketNumber++`` (connection.cpp:162): the first packet is numbered 0."""
+        number, self.number = self.number, self.number + 1
+        return number
 
     def send(self, data: bytes) -> None:
         with contextlib.suppress(OSError):  # nobody listening yet: like a lost datagram
@@ -235,7 +236,8 @@ class EmulatedTracker(Loop):
         return self.clock.now() if self.clock is not None else time.monotonic() - self._t0
 
     def _handshake(self) -> None:
-        self.number = 0  # the firmware numbers from its handshake
+        """Numbered 0 (connection.cpp:394); the packet counter runs on across
+        reconnects, as the firmware's does (connection.h:221, never reset)."""
         hs = codec.Handshake(self.mac, board=2, imu=10, mcu=2, build=17, firmware="bodynet-emu")
         self.send(codec.encode_handshake(0, hs))
 
