@@ -547,3 +547,60 @@ def test_the_emulated_tracker_keeps_its_counter_across_reconnects(
     assert before[0] == 0
     assert before == sorted(before)
     assert after[0] > before[-1]
+
+
+# --- against the standard: the packets bodynet has no use for --------------------------
+
+# what the firmware sends (packets.h:32-60; layouts packets.h:113-205, connection.cpp)
+# or the server parses (UDPProtocolParser.kt:99-123; layouts UDPPacket.kt), that bodynet
+# takes quietly: type -> body
+UNUSED_PACKETS = {
+    1: struct.pack(">4f", 0.0, 0.0, 0.0, 1.0),  # deprecated rotation (UDPPacket.kt:86-93)
+    4: struct.pack(">3f", 0.0, 0.0, 9.81) + bytes([0]),  # AccelPacket (packets.h:113-118)
+    11: struct.pack(">I", 5) + b"hello",  # serial: sendLongString (cpp:188-194)
+    13: bytes([0, 1]),  # TapPacket (packets.h:125-128)
+    14: bytes([0, 5]),  # ErrorPacket (packets.h:130-133)
+    16: struct.pack(">4f", 0.0, 0.0, 0.0, 1.0),  # deprecated rotation 2 (UDPPacket.kt:257-264)
+    18: bytes([0]) + struct.pack(">f", 1.0),  # MagnetometerAccuracyPacket (packets.h:161-164)
+    20: bytes([0]) + struct.pack(">f", 31.5),  # TemperaturePacket (packets.h:171-174)
+    21: bytes([3]),  # user action: yaw reset (UDPPacket.kt:316-326)
+    22: bytes([0b110]),  # feature flags (cpp:333-338; featureflags.h: bits 1, 2)
+    24: bytes([0]) + struct.pack(">H", 1),  # AcknowledgeConfigChangePacket (packets.h:176-179)
+    26: bytes([0]) + struct.pack(">f", 0.5),  # FlexDataPacket (packets.h:181-184)
+    27: bytes([0]) + struct.pack(">3f", 0.0, 1.0, 0.0),  # position (UDPPacket.kt:398-410)
+    # IntRawImuDataInspectionPacket (packets.h:186-205), ENABLE_INSPECTION (cpp:410-450)
+    105: bytes([1, 0, 1]) + (struct.pack(">3I", 1, 2, 3) + bytes([0])) * 3,
+    200: bytes([1, 1]),  # protocol change (UDPPacket.kt:412-419)
+}
+
+
+def test_packets_of_no_use_are_taken_quietly_and_get_no_answer() -> None:
+    """Each takes its number and is counted ``ignored``, not ``bad_kind``, and
+    has no answer: feature flags (22) unanswered, the firmware never bundles
+    (beginBundle, cpp:92-101)."""
+    server, fw, addr = codec.SlimeVRServer(), Firmware(), ("10.0.0.5", 4000)
+    server.receive(fw.handshake(), addr)
+    server.take_replies()
+    for kind, body in UNUSED_PACKETS.items():
+        assert server.receive(fw.header(kind) + body, addr) == [], kind
+        assert server.take_replies() == [], kind
+    events = server.receive(fw.rotation(), addr)
+    assert [e for e in events if isinstance(e, Tick)] == [Tick(0, 1)]  # no gap: all were taken
+    conn = server.connections[addr]
+    assert (conn.ignored, conn.lost) == (len(UNUSED_PACKETS), 0)
+
+
+def test_packets_of_no_use_between_rotations_count_as_nothing_bad(
+    served: tuple[SlimeVRBridge, tuple[str, int]], firmware: Callable[..., Firmware],
+) -> None:  # fmt: skip
+    bridge, listen = served
+    fw = firmware(listen)
+    fw.connect()
+    stream(fw, bridge, 10)
+    for kind, body in UNUSED_PACKETS.items():
+        fw.send(fw.header(kind) + body)
+        stream(fw, bridge, 1)  # taken after it
+    assert not bridge.publisher.rejected
+    conn, health = fw_health(bridge)
+    assert (conn.ignored, conn.lost) == (len(UNUSED_PACKETS), 0)
+    assert (health.samples, health.gaps) == (10 + len(UNUSED_PACKETS), 0)

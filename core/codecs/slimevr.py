@@ -24,7 +24,8 @@ not at hand when this was written, see "doubts" below). Every packet is::
 | type | packet              | payload read here                               |
 +======+=====================+=================================================+
 | 0    | heartbeat (tracker) | none                                            |
-| 1    | heartbeat (server)  | none; sent by us every second, numbered 0       |
+| 1    | heartbeat (server)  | none; sent by us every second, numbered 0 (from |
+|      |                     | a tracker, 1 is a deprecated rotation: ignored) |
 | 3    | handshake           | board i32, IMU i32, MCU i32, 3 x i32 IMU info,  |
 |      |                     | firmware build i32, firmware string (u8 length  |
 |      |                     | + bytes), MAC 6 bytes; the full form only       |
@@ -43,10 +44,14 @@ not at hand when this was written, see "doubts" below). Every packet is::
 |      |                     | Q15, acceleration x, y, z 3 x i16 BE Q7 (m/s^2) |
 +------+---------------------+-------------------------------------------------+
 
-Other known types (4 accel, 13 tap, 14 error, 18 magnetometer accuracy, 20
-temperature, 21 user action, 22 feature flags, 200 protocol change) are
-counted as ``ignored`` in the tracker's state, not rejected; unknown types are
-rejected (``bad_kind``).
+The other types the server parses or today's firmware sends (1 and 16
+deprecated rotations, 4 acceleration, 11 serial, 13 tap, 14 error, 18
+magnetometer accuracy, 20 temperature, 21 user action, 22 feature flags, 24
+config change acknowledged, 26 flex data, 27 position, 105 inspection, 200
+protocol change) take their packet number and are counted as ``ignored`` in the
+tracker's state, not rejected. Feature flags are not answered, so the firmware
+never bundles its packets (100, 101: not read). Any other type is rejected
+(``bad_kind``; the server would skip it silently).
 
 Readings: each tracker sensor (MAC + sensor id, written ``aabbccddeeff-0``) is
 one node, numbered in order of first appearance and kept across reconnects.
@@ -97,7 +102,12 @@ TRACKER_TIMEOUT_S = 3.0
 
 HEARTBEAT, SERVER_HEARTBEAT, HANDSHAKE = 0, 1, 3
 PING, BATTERY, SENSOR_INFO, ROTATION_DATA, SIGNAL_STRENGTH, ROTATION_ACCEL = 10, 12, 15, 17, 19, 23
-IGNORED_TYPES = frozenset({4, 13, 14, 18, 20, 21, 22, 200})
+#: what the SlimeVR server parses (UDPProtocolParser.kt:99-123) or today's firmware sends
+#: (packets.h:32-60) and bodynet has no use for: 1 and 16 deprecated rotations, 4
+#: acceleration, 11 serial, 13 tap, 14 error, 18 magnetometer accuracy, 20 temperature,
+#: 21 user action, 22 feature flags (not answered: no bundles then, connection.cpp:92-101),
+#: 24 config change acknowledged, 26 flex data, 27 position, 105 inspection, 200 protocol change
+IGNORED_TYPES = frozenset({1, 4, 11, 13, 14, 16, 18, 20, 21, 22, 24, 26, 27, 105, 200})
 HANDSHAKE_REPLY = b"\x03Hey OVR =D 5"
 #: the packet number of every server->tracker packet: "Packet number is always 0
 #: when sending data to trackers" (UDPProtocolParser.kt:79, TrackersUDPServer.kt:382)
@@ -197,7 +207,7 @@ def decode_packet(data: bytes) -> Packet:
     kind, number = _HEADER.unpack_from(data)
     body = data[_HEADER.size :]
     payload: Payload
-    if kind in (HEARTBEAT, SERVER_HEARTBEAT):
+    if kind == HEARTBEAT:
         payload = Heartbeat()
     elif kind == HANDSHAKE:
         payload = _handshake(body)
