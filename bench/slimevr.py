@@ -41,7 +41,7 @@ def _connect(mac: bytes, udp: tuple[str, int]) -> socket.socket:
     for _ in range(50):  # the bridge may still be starting
         sock.sendto(codec.encode_handshake(0, hs), udp)
         try:
-            if sock.recv(64).startswith(codec.HANDSHAKE_REPLY):
+            if sock.recv(128).startswith(codec.HANDSHAKE_MAGIC):
                 break
         except TimeoutError:
             continue

@@ -371,6 +371,13 @@ def test_a_handshake_flood_fills_no_more_than_its_bound() -> None:
 # --- against the standard: packet numbers ---------------------------------------------
 
 
+def test_the_handshake_is_answered_with_the_servers_64_bytes(
+    served: tuple[SlimeVRBridge, tuple[str, int]], firmware: Callable[..., Firmware],
+) -> None:  # fmt: skip
+    _, listen = served
+    assert firmware(listen).connect() == SERVER_HANDSHAKE
+
+
 def test_a_ping_echoed_verbatim_after_thousands_of_packets_moves_no_numbering(
     served: tuple[SlimeVRBridge, tuple[str, int]], firmware: Callable[..., Firmware],
 ) -> None:  # fmt: skip

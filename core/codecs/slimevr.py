@@ -13,10 +13,12 @@ countable reason (nothing a datagram holds can disturb another's decoding).
 State is kept per sender address, and only once a handshake has come from it:
 a flood from an address that never shook hands costs a counter, not memory.
 
-What is supported (the layouts are those of the SlimeVR server's
-``UDPPacket.kt``/``UDPProtocolParser.kt`` and the firmware's ``connection.cpp``
-as summarised in the project's field notes; the source files themselves were
-not at hand when this was written, see "doubts" below). Every packet is::
+What is supported: the layouts and rules of the SlimeVR server (SlimeVR-Server
+5549763, ``UDPProtocolParser.kt``, ``UDPPacket.kt``, ``UDPDevice.kt``,
+``TrackersUDPServer.kt`` in server/core/src/main/java/dev/slimevr/tracking/trackers/udp)
+and of the firmware (SlimeVR-Tracker-ESP 12f4b22, src/network/connection.cpp,
+connection.h, packets.h), read from their sources; file:line references here
+are to those versions. Every tracker->server packet is::
 
     int32 BE packet type, int64 BE packet number, payload
 
@@ -27,8 +29,10 @@ not at hand when this was written, see "doubts" below). Every packet is::
 | 1    | heartbeat (server)  | none; sent by us every second, numbered 0 (from |
 |      |                     | a tracker, 1 is a deprecated rotation: ignored) |
 | 3    | handshake           | board i32, IMU i32, MCU i32, 3 x i32 IMU info,  |
-|      |                     | firmware build i32, firmware string (u8 length  |
-|      |                     | + bytes), MAC 6 bytes; the full form only       |
+|      |                     | protocol version i32 (``build`` here), firmware |
+|      |                     | string (u8 length + bytes), MAC 6 bytes; the    |
+|      |                     | full form only; answered with the server's 64   |
+|      |                     | bytes: 3, ``Hey OVR =D 5``, zeros               |
 | 10   | ping                | i32 id: we send pings (numbered 0), the tracker |
 |      |                     | echoes the datagram verbatim                    |
 | 12   | battery             | f32 voltage, f32 level                          |
@@ -71,17 +75,20 @@ from boot across reconnects, so the first packet after it counts no gap.
 
 Versions: the packet framing above (int32 type + int64 number) is that of
 SlimeVR firmware since its numbered packets; handshakes are read in their full
-form only (board, IMU, MCU, IMU info, firmware build and string, MAC): an
-older, shorter handshake is refused as ``truncated``. Checked here only against
-bodynet's own emulated tracker (firmware build 17 in its handshake), not yet
-against a real tracker or the SlimeVR server's parser.
+form only (board, IMU, MCU, IMU info, protocol version, firmware string, MAC;
+today's firmware, protocol 22, adds a tracker type and vendor strings after,
+not read): an older, shorter handshake is refused as ``truncated``. The tests
+build the tracker's datagrams from the firmware's sources and check the
+answers byte for byte against the server's; a real tracker is yet to be tried.
 
-Doubts, where this had to assume:
-- the handshake reply: one byte 3 then ASCII ``Hey OVR =D 5`` (13 bytes); the
-  server may pad it to a fixed buffer, which trackers do not read;
+Where bodynet does otherwise than the server, knowingly:
 - quaternions are taken in the tracker's own (z-up) world frame, as sent; the
-  SlimeVR server turns them into its y-up frame, bodynet does not;
-- the battery level is passed on as sent (0-1 in recent firmware).
+  server turns them into its y-up frame (AXES_OFFSET, TrackersUDPServer.kt:407,427);
+- the battery level is passed on as sent, 0-1 (the server shows it x 100,
+  TrackersUDPServer.kt:488);
+- heartbeats and pings go out every second, not every 500 ms
+  (TrackersUDPServer.kt:346-385): well within the firmware's 3 s timeout
+  (connection.cpp:32,640).
 """
 
 from __future__ import annotations
@@ -108,7 +115,12 @@ PING, BATTERY, SENSOR_INFO, ROTATION_DATA, SIGNAL_STRENGTH, ROTATION_ACCEL = 10,
 #: 21 user action, 22 feature flags (not answered: no bundles then, connection.cpp:92-101),
 #: 24 config change acknowledged, 26 flex data, 27 position, 105 inspection, 200 protocol change
 IGNORED_TYPES = frozenset({1, 4, 11, 13, 14, 16, 18, 20, 21, 22, 24, 26, 27, 105, 200})
-HANDSHAKE_REPLY = b"\x03Hey OVR =D 5"
+#: what the firmware looks for in the server's answer to its handshake: byte 0 is 3,
+#: then these 12 characters (connection.cpp:562-564)
+HANDSHAKE_MAGIC = b"\x03Hey OVR =D 5"
+#: the server's answer: its whole 64-byte buffer, the magic then zeros
+#: (UDPProtocolParser.kt:84-86,161-168; TrackersUDPServer.kt:191-194)
+HANDSHAKE_REPLY = HANDSHAKE_MAGIC.ljust(64, b"\0")
 #: the packet number of every server->tracker packet: "Packet number is always 0
 #: when sending data to trackers" (UDPProtocolParser.kt:79, TrackersUDPServer.kt:382)
 SERVER_NUMBER = 0
@@ -336,7 +348,7 @@ def decode_server_packet(data: bytes) -> ServerPacket:
     acknowledgement is the server's 6 bytes, type then sensor id and status with
     no packet number (UDPProtocolParser.kt:89-97), read at byte 4 (connection.cpp:705-716).
     """
-    if data.startswith(HANDSHAKE_REPLY):
+    if data.startswith(HANDSHAKE_MAGIC):
         return ServerPacket(HANDSHAKE)
     _need(data, _I32.size, "type")
     kind = data[3]
