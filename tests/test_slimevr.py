@@ -2,7 +2,10 @@
 
 The emulated tracker speaks the protocol as a tracker does (handshake until
 answered, rotations, battery, signal strength, sensor info, ping echoes); the
-bridge is bodynet in the place of the SlimeVR server.
+bridge is bodynet in the place of the SlimeVR server. The tests "against the
+standard" build the tracker's datagrams as the SlimeVR firmware builds them and
+check the answers against the SlimeVR server's, both written here from their
+sources (not from bodynet's codec).
 """
 
 from __future__ import annotations
