@@ -51,6 +51,9 @@ OFFLINE = {"decode", "demo", "process", "report", "certs", "bench"}
 PORT = 7447
 WINDOW_S = 5.0  # each measuring window of the clinic's link
 
+# one at a time under `make test`'s two processes: links from this namespace take 10.77.n.0/24
+pytestmark = pytest.mark.xdist_group("netns")
+
 
 def _leaves(
     parser: argparse.ArgumentParser, path: tuple[str, ...] = ()

@@ -25,6 +25,9 @@ from bodynet.gateway.shards import Share, check_id, new_id, owner
 SUBJECTS = [f"s{i}" for i in range(8)]
 SITES = ("body/trunk/mid/chest/raw", "body/trunk/mid/sacrum/raw")
 
+# one at a time under `make test`'s two processes: links from this namespace take 10.77.n.0/24
+pytestmark = pytest.mark.xdist_group("netns")
+
 
 def test_every_subject_has_one_owner_and_only_a_leaver_s_subjects_move() -> None:
     subjects = [None, *(f"subject-{i}" for i in range(200))]
