@@ -21,8 +21,9 @@ BACKOFF_S = (0.1, 2.0)
 
 
 class DeviceError(OSError):
-    """A device that can never open as given (a misspelled interface, a folder
-    or a regular file given as a serial port): retrying would not help."""
+    """A device that can never open as given (a CAN interface whose driver is not
+    installed, a folder or a regular file given as a serial port): retrying would
+    not help."""
 
 
 def never_opens(exc: BaseException, path: str | None = None) -> str | None:
@@ -35,10 +36,8 @@ def never_opens(exc: BaseException, path: str | None = None) -> str | None:
     for _ in range(5):  # python-can wraps pyserial's error, which wraps the OS's
         if seen is None:
             break
-        if type(seen).__name__ == "CanInterfaceNotImplementedError":
-            import can  # an unknown python-can interface, or its driver missing
-
-            return f"{seen} (python-can's: {', '.join(sorted(can.VALID_INTERFACES))})"
+        if isinstance(seen, DeviceError):  # said by the opener (a CAN driver missing)
+            return str(seen)
         code = getattr(seen, "errno", None) or (seen.args[0] if seen.args else None)
         if code == errno.EAFNOSUPPORT:
             return f"{seen.args[-1] if seen.args else seen} (this kernel has no SocketCAN?)"

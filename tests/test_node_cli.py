@@ -206,7 +206,7 @@ def test_emulate_never_replaces_a_file_and_says_why_it_cannot_start(tmp_path: Pa
         assert result.stderr == f"bodynet emulate {device}: cannot make the link {link}: " \
                                 "No such file or directory\n"  # fmt: skip
     for bus in ([], ["--interface", "socketcan", "--channel", "bodynet-none0"],
-                ["--interface", "nonsense", "--channel", "x"],
+                ["--interface", "socketcand", "--channel", "x"],
                 ["--interface", "slcan", "--channel", tmp_path / "ttyNOPE"]):  # fmt: skip
         result = _emulate("can", *bus)
         assert result.returncode == 2, (bus, result.stderr)
@@ -256,22 +256,61 @@ def _until_sigterm(*args: object, started: Callable[[], bool] = lambda: True) ->
     return first
 
 
-@pytest.mark.parametrize("device", ["can --interface nonsense --channel x",
+@pytest.mark.parametrize("device", ["can --interface serial",
                                     "concentrator --port {tmp}", "concentrator --port {tmp}/f.bin",
                                     "concentrator --port /dev/null"])  # fmt: skip
 def test_a_device_that_can_never_open_is_refused_at_once(
     router_endpoint: str, tmp_path: Path, device: str
 ) -> None:
-    """A misspelled interface, a folder or a file as a serial port: one line, exit 2,
-    instead of retrying for ever as for an unplugged device."""
+    """Options that do not suit the interface (serial without a --channel), a folder or
+    a file as a serial port: one line, exit 2, instead of retrying for ever as for an
+    unplugged device."""
     (tmp_path / "f.bin").write_bytes(b"\x00" * 64)
     argv = [str(BODYNET), "bridge", *device.format(tmp=tmp_path).split(), "-e", router_endpoint]
     bad = subprocess.run(argv, capture_output=True, text=True, timeout=60, check=False)
     assert bad.returncode == 2, bad.stderr
     what = device.partition(" ")[0]
     assert bad.stderr.startswith(f"bodynet bridge {what}: cannot open the device: ")
-    assert "Traceback" not in bad.stderr
+    assert bad.stderr.count("\n") == 1, bad.stderr  # one line, no traceback
     assert "retrying" not in bad.stderr
+
+
+def _can_driver_installed(interface: str) -> bool:
+    """Whether python-can's ``interface`` finds its vendor library or module here."""
+    import ctypes.util
+    import importlib.util
+
+    if interface == "neovi":
+        return importlib.util.find_spec("ics") is not None
+    return (
+        ctypes.util.find_library({"kvaser": "canlib", "pcan": "pcanbasic"}[interface]) is not None
+    )
+
+
+@pytest.mark.parametrize("interface", ["kvaser", "pcan", "neovi"])
+def test_a_can_interface_whose_driver_is_not_installed_is_refused_at_once(
+    router_endpoint: str, interface: str
+) -> None:
+    """kvaser without its canlib (python-can fails with a NameError), pcan without
+    pcanbasic (an OSError, once retried for ever), neovi without python-ics (an
+    ImportError): one line naming the interface, exit 2; for the bridge and the emulator."""
+    if _can_driver_installed(interface):
+        pytest.skip(f"{interface}'s driver is installed here")
+    argv = [str(BODYNET), "bridge", "can", "--interface", interface, "--channel", "1",
+            "-e", router_endpoint]  # fmt: skip
+    bad = subprocess.run(argv, capture_output=True, text=True, timeout=60, check=False)
+    assert bad.returncode == 2, bad.stderr
+    assert bad.stderr.startswith(f"bodynet bridge can: cannot open the device: python-can's "
+                                 f"{interface} interface cannot be used here: its driver or "
+                                 "library is not installed ("), bad.stderr  # fmt: skip
+    assert bad.stderr.count("\n") == 1, bad.stderr  # one line: no traceback, no log line
+    result = _emulate("can", "--interface", interface, "--channel", "1")
+    assert result.returncode == 2, result.stderr
+    assert result.stderr.startswith(f"bodynet emulate can: cannot open the CAN bus (interface "
+                                    f"{interface}, channel 1): python-can's {interface} "
+                                    "interface cannot be used here: its driver or library "
+                                    "is not installed ("), result.stderr  # fmt: skip
+    assert result.stderr.count("\n") == 1, result.stderr
 
 
 @pytest.mark.parametrize(("system", "selection", "said"), [

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import contextlib
+import logging
 import math
 import re
 import struct
@@ -10,13 +12,14 @@ import time
 import zlib
 from collections.abc import Iterable, Iterator
 from pathlib import Path
-from typing import IO
+from typing import IO, Any
 
 import can
 from can.io.blf import BLFParseError
 
 from bodynet.core.codecs.smartsuit_can import CanFrame
 from bodynet.core.errors import Reason, Rejected
+from bodynet.nodes.device import DeviceError
 from bodynet.nodes.sources.base import CaptureStats, time_refused
 
 #: suffixes of the logs python-can's ``LogReader`` reads that bodynet takes
@@ -33,6 +36,80 @@ def frame_of(msg: can.Message) -> CanFrame:
         msg.is_error_frame,
         msg.dlc,
     )
+
+
+#: what python-can's vendor wrappers say when a library will not load (a ctypes
+#: ``OSError`` without an errno: "pcanbasic library not found.", "...: cannot open
+#: shared object file"), unlike an absent device (an errno: ENODEV, ENOENT...)
+_NO_LIBRARY = re.compile(
+    r"library not found|could not be loaded|cannot open shared object|not installed"
+    r"|no module named|please install",
+    re.IGNORECASE,
+)
+
+
+def unusable(exc: BaseException) -> str | None:
+    """Why ``exc``, raised by ``can.Bus(...)``, will not go away by waiting (the
+    interface's driver, vendor library or Python module missing, another OS, options
+    that do not suit it), or None if it may (a device unplugged, busy, not up yet)."""
+    if isinstance(exc, NotImplementedError):  # CanInterfaceNotImplementedError
+        return str(exc)
+    if isinstance(exc, ImportError | NameError):  # NameError: kvaser without its canlib
+        return f"its driver or library is not installed ({type(exc).__name__}: {exc})"
+    if isinstance(exc, OSError) and exc.errno is None and _NO_LIBRARY.search(str(exc)):
+        return f"its driver or library is not installed ({exc})"
+    if isinstance(exc, TypeError | ValueError):  # "Must specify a serial port."...
+        return f"the options do not suit it ({exc})"
+    return None
+
+
+def open_bus(**bus_args: Any) -> can.BusABC:
+    """``can.Bus(**bus_args)``; :class:`DeviceError` if its interface can never open
+    here (:func:`unusable`). What python-can logs meanwhile is dropped then (the
+    error says it: "Kvaser canlib is unavailable."), else logged after."""
+    with _held_logs() as held:
+        try:
+            return can.Bus(**bus_args)
+        except Exception as exc:
+            if why := unusable(exc):
+                held.clear()
+                interface = bus_args.get("interface")
+                raise DeviceError(f"python-can's {interface} interface cannot be used "
+                                  f"here: {why}") from None  # fmt: skip
+            raise
+
+
+class _Held(logging.Handler):
+    """python-can's log records of this thread, held; other threads' passed on."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.thread = threading.get_ident()
+        self.records: list[logging.LogRecord] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        if record.thread == self.thread:
+            self.records.append(record)
+        else:
+            logging.getLogger().handle(record)
+
+    def clear(self) -> None:
+        self.records.clear()
+
+
+@contextlib.contextmanager
+def _held_logs() -> Iterator[_Held]:
+    """Hold what python-can logs in the block; log what was not cleared after it."""
+    logger, held = logging.getLogger("can"), _Held()
+    logger.addHandler(held)
+    logger.propagate = False
+    try:
+        yield held
+    finally:
+        logger.removeHandler(held)
+        logger.propagate = True
+        for record in held.records:
+            logging.getLogger(record.name).handle(record)
 
 
 class _Lines:

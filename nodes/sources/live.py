@@ -25,7 +25,7 @@ from bodynet.core.messages import NodeStatus, NoNewData, Reading, SensorAbsent, 
 from bodynet.nodes.device import keep_connected
 from bodynet.nodes.publisher import SitePublisher
 from bodynet.nodes.sources.base import CaptureError, CaptureStats, Source
-from bodynet.nodes.sources.can_transport import can_log_messages, frame_of, paced
+from bodynet.nodes.sources.can_transport import can_log_messages, frame_of, open_bus, paced
 
 log = logging.getLogger(__name__)
 
@@ -102,7 +102,8 @@ class CanBusBridge(Bridge):
         self.feed(self._decoder.feed(frame_of(msg)), msg.timestamp or time.time())
 
     def run_bus(self, stop: threading.Event, **bus_args: Any) -> None:
-        """Serve ``can.Bus(**bus_args)`` until ``stop``, reopening it when it fails."""
+        """Serve ``can.Bus(**bus_args)`` until ``stop``, reopening it when it fails (not
+        when it can never open: :func:`open_bus`)."""
 
         def serve(bus: can.BusABC) -> None:
             while not stop.is_set():
@@ -110,7 +111,7 @@ class CanBusBridge(Bridge):
                 if msg is not None:
                     self.handle(msg)
 
-        keep_connected(self.publisher, lambda: can.Bus(**bus_args), serve,
+        keep_connected(self.publisher, lambda: open_bus(**bus_args), serve,
                        lambda bus: bus.shutdown(), CAN_ERRORS, stop,
                        path=str(bus_args.get("channel") or "") or None)  # fmt: skip
 

@@ -35,7 +35,12 @@ from bodynet.nodes.sources.base import (
     Source,
     Transport,
 )
-from bodynet.nodes.sources.can_transport import LOG_SUFFIXES, can_log_messages, frame_of
+from bodynet.nodes.sources.can_transport import (
+    LOG_SUFFIXES,
+    can_log_messages,
+    frame_of,
+    open_bus,
+)
 from bodynet.nodes.sources.serial_port import SerialSource
 from bodynet.session import argtypes
 
@@ -157,7 +162,7 @@ class _BusNodes:
         from bodynet.nodes.hardware import CanNodes
 
         try:
-            self._bus = can.Bus(**self.bus_args)
+            self._bus = open_bus(**self.bus_args)
         except (can.CanError, OSError) as exc:  # no such interface, channel or port
             where = ", ".join(f"{k} {v}" for k, v in self.bus_args.items() if v is not None)
             raise EmulatorError(f"cannot open the CAN bus ({where}): {exc}") from None
