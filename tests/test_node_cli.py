@@ -9,6 +9,7 @@ import sys
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
+import can
 import pytest
 import zenoh
 from zenoh_helpers import Collector, Liveliness, raw_collector
@@ -311,6 +312,19 @@ def test_a_can_interface_whose_driver_is_not_installed_is_refused_at_once(
                                     "interface cannot be used here: its driver or library "
                                     "is not installed ("), result.stderr  # fmt: skip
     assert result.stderr.count("\n") == 1, result.stderr
+
+
+@pytest.mark.parametrize("command", ["bridge", "emulate"])
+def test_an_unknown_can_interface_is_refused_by_its_option(command: str) -> None:
+    """Not a python-can interface: refused while reading the options, with the known ones."""
+    bad = subprocess.run([str(BODYNET), command, "can", "--interface", "kvasr"],
+                         capture_output=True, text=True, timeout=60, check=False)  # fmt: skip
+    assert bad.returncode == 2, bad.stderr
+    assert bad.stderr.splitlines()[-1] == (
+        f"bodynet {command} can: error: argument --interface: 'kvasr' is not a python-can "
+        "interface (python-can's: " + ", ".join(sorted(can.VALID_INTERFACES)) + ")"
+    )
+    assert "Traceback" not in bad.stderr
 
 
 @pytest.mark.parametrize(("system", "selection", "said"), [

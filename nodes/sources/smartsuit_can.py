@@ -47,8 +47,9 @@ from bodynet.session import argtypes
 
 def can_interface(text: str) -> str:
     """A python-can interface name (socketcan, slcan, pcan...): an argparse type."""
-    if not text or len(text) > 40 or not text.replace("_", "").replace("-", "").isalnum():
-        argtypes.fail(f"{text!r} is not a python-can interface name")
+    if text not in can.VALID_INTERFACES:
+        known = ", ".join(sorted(can.VALID_INTERFACES))
+        argtypes.fail(f"{text[:60]!r} is not a python-can interface (python-can's: {known})")
     return text
 
 
