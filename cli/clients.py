@@ -119,8 +119,8 @@ def cmd_view(args: argparse.Namespace) -> int:
             finally:
                 session.close()
         complete = True
-    finally:
-        if code := _close_viewer(viewer, complete):
+    finally:  # a live view ends on Ctrl-C or SIGTERM: promptly, a viewer gone or not
+        if code := _close_viewer(viewer, complete, live=not args.recording):
             return code  # noqa: B012  the error said, the view is over
     bad = f", {viewer.bad} bad messages not shown" if viewer.bad else ""
     print(f"bodynet view: {n} poses{bad}" + (f", saved to {args.save}" if args.save else ""),
@@ -138,17 +138,20 @@ def _serve_until_stopped(viewer: Viewer, n: int) -> None:
     stop.wait()
 
 
-def _close_viewer(viewer: Viewer, keep: bool) -> int:
+def _close_viewer(viewer: Viewer, keep: bool, live: bool = False) -> int:
     """Close the view's sinks: 0, or 1 with one line if one could not be. A
     viewer that takes nothing would hold Rerun, and the process, for ever: the
     process then ends at once, on an interrupt too (the .rrd, nameless until it
-    is whole, leaves nothing)."""
+    is whole, leaves nothing). ``live``: stopped by Ctrl-C or SIGTERM, the viewer
+    is waited for only briefly."""
     import os
     import signal
 
+    from bodynet.clients.view import STOPPED_FLUSH_S
+
     code = 0
     try:
-        viewer.close(keep=keep)
+        viewer.close(keep=keep, patience_s=STOPPED_FLUSH_S if live else None)
     except OSError as exc:  # the .rrd could not be put in place (a full disk), no viewer
         print(f"bodynet view: {exc}", file=sys.stderr)
         code = 1

@@ -520,41 +520,60 @@ class Viewer:
         for rec in self.recs:
             rec.log("metrics", rr.TextDocument(text, media_type=rr.MediaType.MARKDOWN))
 
-    def close(self, keep: bool = True) -> None:
-        """Flush and close every sink; the ``.rrd`` goes into place if ``keep``
-        (and it was all written), else it is removed, leaving an older file of
-        that name as it was."""
+    def close(self, keep: bool = True, patience_s: float | None = None) -> None:
+        """Flush and close every sink. The ``.rrd`` first (a viewer that takes nothing
+        costs it nothing): into place if ``keep`` (and it was all written), else
+        removed, leaving an older file of that name as it was. Then the viewer, waited
+        for at most ``patience_s`` (default :data:`FLUSH_S`; a view stopped by Ctrl-C
+        or SIGTERM: :data:`STOPPED_FLUSH_S`)."""
+        patience = FLUSH_S if patience_s is None else patience_s
         viewer = f"the viewer{f' at {self.url}' if self.url else ''}"
+        failure: OSError | None = None
         try:
-            for rec in self.recs:
-                rrd = self.part is not None and rec is self.recs[-1]  # the .rrd: the last sink
-                self.stuck = not rrd  # until it is closed: Rerun may wait on a viewer for ever
+            if self.part is not None:  # the .rrd: the last sink
                 try:
-                    _flush(rec, FLUSH_S)
-                except RuntimeError as exc:  # its writer stopped (a full disk) or hung
-                    if not rrd:
-                        raise ViewerError(f"{viewer} did not take the poses: {exc}") from None
-                    keep = False  # the .rrd is not whole: not kept
-                    raise OutputError(f"cannot write {self.save}: Rerun could not write "
-                                      f"it ({exc}; a full disk?)") from None  # fmt: skip
-                finally:
-                    if rrd:
-                        rec.disconnect()
-                if not rrd and not _ends(rec.disconnect, FLUSH_S):
-                    raise ViewerError(f"{viewer} did not take the poses within {FLUSH_S:g} s")
+                    self._close_rrd(self.recs[-1], keep)
+                except OutputError as exc:
+                    failure = exc
+            for rec in self.recs[:-1] if self.part is not None else self.recs:
+                self.stuck = True  # until it is closed: Rerun may wait on a viewer for ever
+                try:
+                    _flush(rec, patience)
+                except RuntimeError as exc:  # it stopped, or did not take it all in time
+                    raise ViewerError(f"{viewer} did not take the poses: {exc}") from None
+                if not _ends(rec.disconnect, patience):
+                    raise ViewerError(f"{viewer} did not take the poses within {patience:g} s")
                 self.stuck = False
-            if keep and self.part is not None:
-                self.part.commit()
+        except ViewerError as exc:
+            failure = failure or exc
         finally:
             if self.part is not None:
                 self.part.discard()
             if self.stuck:  # nor at exit: Rerun would wait there too
                 rr.unregister_shutdown()
+        if failure is not None:
+            raise failure
+
+    def _close_rrd(self, rec: rr.RecordingStream, keep: bool) -> None:
+        """Write the rest of the ``.rrd`` and put it into place if ``keep``."""
+        try:
+            _flush(rec, FLUSH_S)
+        except RuntimeError as exc:  # its writer stopped (a full disk) or hung: not whole
+            raise OutputError(f"cannot write {self.save}: Rerun could not write "
+                              f"it ({exc}; a full disk?)") from None  # fmt: skip
+        finally:
+            rec.disconnect()
+        if keep and self.part is not None:
+            self.part.commit()
 
 
 #: How long closing waits for Rerun to write what it was given, in steps
 #: between which a signal (Ctrl-C, SIGTERM) is handled.
 FLUSH_S, FLUSH_STEP_S = 60.0, 0.25
+#: How long a view stopped by Ctrl-C or SIGTERM waits for its viewer to take the
+#: rest: one that is there takes it in milliseconds, one that is not would hold
+#: the stop for a minute (the .rrd, a file, is still written whole).
+STOPPED_FLUSH_S = 2.0
 
 
 def _flush(rec: rr.RecordingStream, timeout_s: float) -> None:

@@ -398,3 +398,79 @@ def test_a_recording_in_the_web_viewer_is_served_until_stopped(arm_mcap: Path) -
     finally:
         proc.kill()
         proc.wait(timeout=10)
+
+
+def _rows(rrd: Path, entity: str, writing: bool = False) -> int:
+    """How many rows an ``.rrd`` holds of ``entity``; ``writing``: one that Rerun is
+    still writing (no footer yet, perhaps a chunk cut short: -1 until it reads)."""
+    import warnings
+
+    with warnings.catch_warnings():  # a stream still being written has no footer yet
+        warnings.simplefilter("ignore")
+        try:
+            chunks = list(RrdReader(rrd).stream()) if rrd.exists() or not writing else []
+        except Exception:
+            if not writing:
+                raise
+            return -1
+    return sum(c.to_record_batch().num_rows for c in chunks if c.entity_path == entity)
+
+
+def test_sigterm_ends_a_live_view_promptly_flushing_what_it_has(
+    tmp_path: Path, router_endpoint: str
+) -> None:
+    """A live view ends on SIGTERM within a second or two: a viewer that is there (a
+    real Rerun, writing what it takes) has every pose the view showed, as has the
+    --save'd .rrd; a viewer that takes nothing (a listener that never answers) is said
+    in one line, exit 1, instead of holding the stop for a minute, and the .rrd is
+    kept whole rather than lost with it."""
+    import signal
+    import socket
+
+    angle = "/angles/left_elbow_flexion"
+    port, got = free_port(), tmp_path / "viewer.rrd"
+    procs: list[subprocess.Popen[str]] = []
+
+    def view(url: str, rrd: str) -> subprocess.Popen[str]:
+        procs.append(subprocess.Popen([str(BODYNET), "view", "--connect-viewer", url, "--save",
+                                       tmp_path / rrd, "-e", router_endpoint],
+                                      stderr=subprocess.PIPE, text=True))  # fmt: skip
+        return procs[-1]
+
+    procs.append(subprocess.Popen([str(RERUN), "--port", str(port), "--save", str(got)],
+                                  stderr=subprocess.DEVNULL, text=True))  # fmt: skip
+    publisher = client(router_endpoint)
+    try:
+        wait(lambda: socket.socket().connect_ex(("127.0.0.1", port)) == 0, timeout=60)
+        there = view(f"rerun+http://127.0.0.1:{port}/proxy", "there.rrd")
+        wait_matching(publisher, keys.pose_key(), timeout=60)
+        t0 = 1_700_000_000_000_000_000
+        for i in range(20):
+            publisher.put(keys.pose_key(), pose.encode(full_pose(i, t0 + i * 10_000_000)))
+        wait(lambda: _rows(got, angle, writing=True) == 20, timeout=60)  # the viewer has them
+        there.send_signal(signal.SIGTERM)
+        assert there.wait(timeout=30) == 0
+        assert there.communicate()[1] == f"bodynet view: 20 poses, saved to {tmp_path}/there.rrd\n"
+        assert _rows(tmp_path / "there.rrd", angle) == 20
+        poses = publisher.declare_publisher(keys.pose_key())
+        wait(lambda: not poses.matching_status.matching, timeout=60)  # that view is gone
+        poses.undeclare()
+        with socket.create_server(("127.0.0.1", 0)) as silent:
+            url = f"rerun+http://127.0.0.1:{silent.getsockname()[1]}/proxy"
+            gone = view(url, "silent.rrd")
+            silent.settimeout(60)
+            peer, _ = silent.accept()  # Rerun connected: the view is logging
+            wait_matching(publisher, keys.pose_key(), timeout=60)
+            gone.send_signal(signal.SIGTERM)
+            with peer:
+                assert gone.wait(timeout=30) == 1  # it waited 60 s (and lost the .rrd)
+    finally:
+        publisher.close()
+        for proc in procs:
+            if proc.poll() is None:
+                proc.kill()
+            proc.wait(timeout=10)
+    err = gone.communicate()[1]
+    assert err.startswith(f"bodynet view: the viewer at {url} did not take the poses"), err
+    assert err.count("\n") == 1, err
+    assert _rows(tmp_path / "silent.rrd", "/gauges/faces") == 1
