@@ -132,7 +132,8 @@ def run(
     subject: str | None = None,
     all_subjects: bool = False,
 ) -> Counts:
-    """Feed ``output`` from ``session`` until ``stop`` is set; then close it.
+    """Feed ``output`` from ``session`` until ``stop`` is set; then hand it what had
+    come in meanwhile, and close it.
 
     ``subject`` names the subject of a session in that subject's namespace (the
     keys it sees are plain ``body/...``); with ``all_subjects`` the session has
@@ -157,35 +158,50 @@ def run(
                 key, data = inbox.get(timeout=max(0.0, min(0.1, next_tick - now)))
             except queue.Empty:
                 continue
+            _handle(output, counts, key, data, own, all_subjects)
+        for sub in subs:  # stopped: nothing more comes in, and what came is sent
+            sub.undeclare()
+        subs = []
+        while True:
             try:
-                name, body_key = keys.split_subject(key) if all_subjects else (own, key)
-                name = name or DEFAULT_SUBJECT
-                new = name not in counts.poses and name not in counts.raw
-                if new and len(set(counts.poses) | set(counts.raw)) >= MAX_SUBJECTS:
-                    counts.refused_subjects += 1
-                    continue
-                if body_key == keys.pose_key():
-                    frame = pose.decode(data)
-                    counts.poses[name] += 1
-                    output.on_pose(name, frame)
-                else:  # a payload may hold several samples back to back
-                    for event in raw_sample.decode_batch(data):
-                        if isinstance(event, RawSample):
-                            counts.raw[name] += 1
-                            output.on_raw(name, body_key, event)
-                        else:
-                            counts.bad += 1
-            except (DecodeError, keys.KeySpaceError):
-                counts.bad += 1
-            except Exception:  # one message the output could not send: counted, it goes on
-                counts.failed += 1
-                if counts.failed <= 3:
-                    log.exception("live output: a message on %s could not be sent", key)
+                key, data = inbox.get_nowait()
+            except queue.Empty:
+                break
+            _handle(output, counts, key, data, own, all_subjects)
     finally:
         for sub in subs:
             sub.undeclare()
         output.close()
     return counts
+
+
+def _handle(output: LiveOutput, counts: Counts, key: str, data: bytes, own: str,
+            all_subjects: bool) -> None:  # fmt: skip
+    """Decode one message and hand it to ``output``, counting it; none raises."""
+    try:
+        name, body_key = keys.split_subject(key) if all_subjects else (own, key)
+        name = name or DEFAULT_SUBJECT
+        new = name not in counts.poses and name not in counts.raw
+        if new and len(set(counts.poses) | set(counts.raw)) >= MAX_SUBJECTS:
+            counts.refused_subjects += 1
+            return
+        if body_key == keys.pose_key():
+            frame = pose.decode(data)
+            counts.poses[name] += 1
+            output.on_pose(name, frame)
+        else:  # a payload may hold several samples back to back
+            for event in raw_sample.decode_batch(data):
+                if isinstance(event, RawSample):
+                    counts.raw[name] += 1
+                    output.on_raw(name, body_key, event)
+                else:
+                    counts.bad += 1
+    except (DecodeError, keys.KeySpaceError):
+        counts.bad += 1
+    except Exception:  # one message the output could not send: counted, it goes on
+        counts.failed += 1
+        if counts.failed <= 3:
+            log.exception("live output: a message on %s could not be sent", key)
 
 
 def load_output(name: str, **options: Any) -> LiveOutput:

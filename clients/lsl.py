@@ -60,6 +60,9 @@ from bodynet.core.skeleton import Skeleton, build_skeleton
 
 STREAM_TYPE = "MoCap"
 NAN = math.nan
+#: How long closing leaves a consumed outlet up for liblsl to send what was pushed
+#: (it writes a sample within milliseconds of its push; it has no flush to wait on).
+LINGER_S = 0.5
 
 
 # --- conversions (pure) -------------------------------------------------------------------
@@ -272,4 +275,10 @@ class LslOutput(LiveOutput):
         return [source_id(s, n) for s, n in self._outlets]
 
     def close(self) -> None:
+        """Destroy the outlets, once their consumers had :data:`LINGER_S` to take the
+        last samples: liblsl has no flush, and destroying an outlet closes its
+        connections at once, dropping what its sender threads had not written yet
+        (the last samples before a stop, as often as not)."""
+        if any(o.have_consumers() for o in self._outlets.values()):
+            time.sleep(LINGER_S)
         self._outlets.clear()  # pylsl destroys an outlet when it is collected

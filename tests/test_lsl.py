@@ -196,6 +196,96 @@ def check_subject(rec: Recorder, subject: str, sent: list[pose.PoseFrame], offse
     assert [values[f"left_hand_{c}"] for c in SEGMENT_SUFFIXES] == [*p, *q]
 
 
+def test_the_samples_pushed_just_before_closing_reach_the_inlet() -> None:
+    """Destroying an LSL outlet drops what liblsl has not sent yet: closing leaves its
+    consumers time to take the last samples. Outputs of one raw stream each, closed
+    right after a burst: without it, nearly each lost most of its burst (as the restart
+    test once got 139 samples for 140 poses)."""
+    key = keys.raw_key("arm", "left", "elbow")
+    subjects = [f"close{os.getpid()}x{k}" for k in range(4)]
+    sids = [lsl.source_id(s, "raw/arm/left/elbow/ole") for s in subjects]
+    outputs = {s: lsl.LslOutput(raw=True) for s in subjects}
+    pushed = dict.fromkeys(subjects, 0)
+
+    def push(s: str) -> None:
+        pushed[s] += 1
+        sample = RawSample(OleAccel(2, pushed[s], (0, 0, 0)), pushed[s], time.time_ns(), Source.CAN)
+        outputs[s].on_raw(s, key, sample)
+
+    for s in subjects:
+        push(s)  # the outlets are made by the first samples
+    rec = Recorder(sids)
+    try:
+        rec.wait_ready()
+        deadline = time.monotonic() + 30
+        while not all(rec.samples[sid] for sid in sids):  # every inlet receiving
+            assert time.monotonic() < deadline, {sid: len(rec.samples[sid]) for sid in sids}
+            for s in subjects:
+                push(s)
+            rec.pump(0.05)
+        for s in subjects:  # one after the other: a burst, then the stop
+            for _ in range(10):
+                push(s)
+            outputs[s].close()
+        rec.finish()
+    finally:
+        if not rec.done:
+            rec.finish()
+    for s, sid in zip(subjects, sids, strict=True):
+        seqs = [int(values[0]) for values, _ in rec.samples[sid]]
+        assert seqs == list(range(seqs[0], pushed[s] + 1)), f"{sid}: {seqs[-12:]}, {pushed[s]}"
+
+
+def test_a_stopped_output_is_handed_what_came_in_before_the_stop(
+    router_endpoint: str, zsession: zenoh.Session
+) -> None:
+    """Stopped while its output is busy with a pose, ``live.run`` hands it the poses
+    that came in meanwhile before closing it (it dropped them: the restart test's LSL
+    stream could lack the last poses the Zenoh subscriber beside it had)."""
+    import threading
+
+    busy, release = threading.Event(), threading.Event()
+
+    class Busy(live.LiveOutput):
+        def __init__(self) -> None:
+            self.seen: list[int] = []
+            self.closed_after: list[int] | None = None
+
+        def on_pose(self, subject: str, frame: pose.PoseFrame) -> None:
+            if not self.seen:  # busy with the first until released
+                busy.set()
+                assert release.wait(30)
+            self.seen.append(frame.seq)
+
+        def close(self) -> None:
+            self.closed_after = list(self.seen)
+
+    out_session = open_session(session_config("client", connect=[router_endpoint]))
+    output = Busy()
+    running = Running(partial(live.run, out_session, output))
+    try:
+        pub = zsession.declare_publisher(keys.pose_key(), congestion_control=BLOCK)
+        deadline = time.monotonic() + 10
+        while not pub.matching_status.matching:  # the output's subscription, alone yet
+            assert time.monotonic() < deadline, "the output never subscribed"
+            time.sleep(0.01)
+        # beside it on its session: once this one has a pose, the output's inbox has
+        # every pose before it (one link, its samples handed out in order)
+        arrived = Collector(out_session, keys.pose_key(), pose.decode)
+        t0 = 1_700_000_000_000_000_000
+        for seq in range(6):
+            pub.put(pose.encode(frame(seq, t0 + seq * 10_000_000)))
+        assert busy.wait(30)
+        arrived.wait_for(lambda seen: len(seen) == 6, timeout=30)
+        running.stop_event.set()  # stopped while the output is busy with pose 0
+    finally:
+        release.set()
+        running.stop()
+        out_session.close()
+    assert output.closed_after is not None
+    assert output.closed_after[:5] == [0, 1, 2, 3, 4]
+
+
 def stop_gateway(gw: Gateway, running: Running) -> None:
     running.stop()
     gw.close()
