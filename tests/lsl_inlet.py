@@ -135,6 +135,15 @@ class Recorder:
             assert left > 0, f"{sid}: {len(self.samples[sid])} samples of {n}"
             self.pump(min(left, 0.5))
 
+    def wait_since(self, sid: str, since: float, n: int, timeout: float = 30.0) -> None:
+        """Until stream ``sid`` has ``n`` samples stamped after ``since`` (LSL's
+        clock): sent after that moment, whatever was still on its way here then."""
+        deadline = time.monotonic() + timeout
+        while (got := sum(t > since for _, t in self.samples[sid])) < n:
+            left = deadline - time.monotonic()
+            assert left > 0, f"{sid}: {got} samples of {n} since {since:.3f}"
+            self.pump(min(left, 0.5))
+
     def finish(self, timeout: float = 30.0) -> None:
         """Stop once the streams are drained; gather everything."""
         self.stop_event.set()

@@ -132,6 +132,13 @@ def _loopback_lsl(tmp_path_factory: pytest.TempPathFactory) -> None:
     loopback_lsl(tmp_path_factory.mktemp("lsl"))
 
 
+def local_clock() -> float:
+    """LSL's clock, the one the samples are stamped on (here, as in the recorder)."""
+    import pylsl
+
+    return float(pylsl.local_clock())
+
+
 def unix_to_lsl_offset() -> float:
     """This test's own estimate of local_clock() - Unix time (s), as a median."""
     import pylsl
@@ -291,11 +298,12 @@ def stop_gateway(gw: Gateway, running: Running) -> None:
     gw.close()
 
 
-def wait_after_restart(rec: Recorder, sid: str, n: int, gw: Gateway, poses: Collector) -> None:
-    """``rec.wait_for(sid, n)`` after a gateway restart; if the stream stops there
+def wait_after_restart(rec: Recorder, sid: str, since: float, gw: Gateway,
+                       poses: Collector) -> None:  # fmt: skip
+    """``rec.wait_since(sid, since, 20)`` after a gateway restart; if the stream stops there
     (seen once, 2026-12-06, not since), the failure says where the poses stopped."""
     try:
-        rec.wait_for(sid, n)
+        rec.wait_since(sid, since, 20)
     except AssertionError as exc:
         listened = {s: dict(b.matching) for s, b in gw._bodies.items()}
         raise AssertionError(
@@ -303,6 +311,29 @@ def wait_after_restart(rec: Recorder, sid: str, n: int, gw: Gateway, poses: Coll
             f"{listened}, poses on Zenoh: {len(poses.seen)} seen"
             f" + {poses.queue.qsize()} queued"
         ) from exc
+
+
+def handed_without_gap(output: HandedLsl, poses: Collector) -> None:
+    """The output was handed the poses on Zenoh (as a subscriber beside it on its
+    session got them) without a gap, until it stopped: the gateway's last poses can
+    reach that subscriber after the output's is gone."""
+    while not poses.queue.empty():
+        poses.seen.append(poses.queue.get_nowait())
+    on_zenoh, handed = [f.t_ns for _, f in poses.seen], [f.t_ns for f in output.handed]
+    start = on_zenoh.index(handed[0])
+    assert handed == on_zenoh[start : start + len(handed)]
+
+
+class HandedLsl(lsl.LslOutput):
+    """The LSL output, keeping the poses it was handed: what its streams must hold."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.handed: list[pose.PoseFrame] = []
+
+    def on_pose(self, subject: str, frame: pose.PoseFrame) -> None:
+        self.handed.append(frame)
+        super().on_pose(subject, frame)
 
 
 def test_lsl_streams_every_pose_through_gateway_and_router_restarts(tmp_path: Path) -> None:
@@ -322,7 +353,7 @@ def test_lsl_streams_every_pose_through_gateway_and_router_restarts(tmp_path: Pa
 
     out_session = client()
     poses = Collector(out_session, keys.pose_key(), pose.decode)  # the poses on Zenoh
-    output = lsl.LslOutput()
+    output = HandedLsl()
     outlet = Running(partial(live.run, out_session, output, subject=subject))
     gw, gw_run = start_gateway()
     options = EmulationOptions("reach", seed=5)
@@ -338,18 +369,18 @@ def test_lsl_streams_every_pose_through_gateway_and_router_restarts(tmp_path: Pa
         rec.wait_for(sid, 20)
 
         stop_gateway(gw, gw_run)  # a gateway restart: a new process would be the same to us
-        n = len(rec.samples[sid])
+        restarted = local_clock()  # samples stamped later: the restarted gateway's poses
         gw, gw_run = start_gateway()
-        wait_after_restart(rec, sid, n + 20, gw, poses)
+        wait_after_restart(rec, sid, restarted, gw, poses)
 
         router.close()  # a router restart; every client reconnects by itself
-        n = len(rec.samples[sid])
+        restarted = local_clock()
         router = open_session(session_config("router", listen=[endpoint]))
-        rec.wait_for(sid, n + 20)
+        rec.wait_since(sid, restarted, 20)
 
         nodes.stop()
         stop_gateway(gw, gw_run)
-        outlet.stop()  # the output drains what Zenoh gave it
+        outlet.stop()  # the output is handed what Zenoh gave it, and sends it
         rec.finish()
     finally:
         if rec is not None and not rec.done:
@@ -357,9 +388,9 @@ def test_lsl_streams_every_pose_through_gateway_and_router_restarts(tmp_path: Pa
         for s in sessions:
             s.close()
         router.close()
-    while not poses.queue.empty():  # every pose the collector got
-        poses.seen.append(poses.queue.get_nowait())
-    assert check_stream(rec, sid, [f for _, f in poses.seen], unix_to_lsl_offset()) >= 60
+    handed_without_gap(output, poses)
+    # and its stream has every pose it was handed from the first the inlet got
+    assert check_stream(rec, sid, output.handed, unix_to_lsl_offset()) >= 60
     assert rec.info[sid]["uid"] == uid  # one outlet throughout: the inlet never re-resolved
     measured = ~np.isnan(np.array([v for v, _ in rec.samples[sid]]))
     labels = [c["label"] for c in rec.info[sid]["channels"]]
@@ -459,9 +490,12 @@ def test_bodynet_lsl_restarted_is_picked_up_again_by_its_source_id(router_endpoi
         rec.wait_for(sid, 10)
         assert first.stop() == 0
         assert any("poses" in line for line in first.output)  # its summary
-        n = len(rec.samples[sid])
+        # samples stamped later were sent by the new process (not the first one's last,
+        # still on their way to this process: a count of them let the test stop the new
+        # one before it had even set its signal handler, exit -2)
+        restarted = local_clock()
         second = services.start("lsl", argv)
-        rec.wait_for(sid, n + 10, timeout=60)  # the inlet found the new outlet by itself
+        rec.wait_since(sid, restarted, 10, timeout=60)  # the inlet found the new outlet
         assert second.stop() == 0
         rec.finish()
     finally:
