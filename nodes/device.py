@@ -21,6 +21,9 @@ D = TypeVar("D")
 #: absent device costs a failed open() every 0.5 s (said once), a replugged one is
 #: found within 0.5 s of its return
 BACKOFF_S = (0.1, 0.5)
+#: what an open() of a port another program holds fails with: flock's EWOULDBLOCK
+#: (pyserial's ``exclusive=True``), the kernel's EBUSY (a terminal made exclusive)
+IN_USE_ERRNOS = frozenset({errno.EAGAIN, errno.EWOULDBLOCK, errno.EBUSY})
 
 
 class DeviceError(OSError):
@@ -50,6 +53,19 @@ def never_opens(exc: BaseException, path: str | None = None) -> str | None:
     return None
 
 
+def in_use(exc: BaseException) -> bool:
+    """Whether the error ``exc`` of opening a device says another program holds it."""
+    seen: BaseException | None = exc
+    for _ in range(5):
+        if seen is None:
+            break
+        code = getattr(seen, "errno", None) or (seen.args[0] if seen.args else None)
+        if code in IN_USE_ERRNOS:
+            return True
+        seen = seen.__cause__ or seen.__context__
+    return False
+
+
 def _not_a_port(path: str | None) -> str | None:
     """What ``path`` is, if it is something other than a serial port."""
     try:
@@ -75,36 +91,48 @@ def keep_connected(
 ) -> None:
     """Open the device and ``serve`` it until ``stop``; on one of ``errors``
     report the loss once (log and health), then retry with exponential backoff.
-    ``serve`` returns when ``stop`` is set. An error that waiting cannot mend
-    (:func:`never_opens`; ``path`` is the device's, if it has one) raises
-    :class:`DeviceError` instead."""
+    A failure to open of another kind than the one already said (the port back
+    but held by another program) is said too, once. ``serve`` returns when
+    ``stop`` is set. An error that waiting cannot mend (:func:`never_opens`;
+    ``path`` is the device's, if it has one) raises :class:`DeviceError` instead."""
     name = publisher.name
-    delay, reported = backoff_s[0], False
+    delay = backoff_s[0]
+    said: set[str] = set()  # the kinds of failure said during this outage
     while not stop.is_set():
         try:
             device = open_device()
         except errors as exc:
             if why := never_opens(exc, path):
                 raise DeviceError(f"cannot open the device: {why}") from None
-            if not reported:
-                log.warning("%s: device unavailable (%s); retrying until it is back", name, exc)
-                reported = True
+            if (kind := _kind(exc)) not in said:
+                if said != {_LOST}:  # the first failure after a loss is the loss's
+                    log.warning("%s: device unavailable (%s); retrying until it is back",
+                                name, exc)  # fmt: skip
+                said.add(kind)
             publisher.set_device("disconnected")
             stop.wait(delay)
             delay = min(delay * 2, backoff_s[1])
             continue
-        if reported:
+        if said:
             log.warning("%s: device is back", name)
         else:
             log.info("%s: device connected", name)
         publisher.set_device("connected")
-        delay, reported = backoff_s[0], False
+        delay, said = backoff_s[0], set()
         try:
             serve(device)
         except errors as exc:
             log.warning("%s: device lost (%s); retrying until it is back", name, exc)
-            reported = True
+            said = {_LOST}
             publisher.set_device("disconnected")
         finally:
             with contextlib.suppress(*errors):
                 close(device)
+
+
+_LOST = "lost"
+
+
+def _kind(exc: BaseException) -> str:
+    """What sort of failure ``exc`` is, to say each sort once: its type and errno."""
+    return f"{type(exc).__name__}:{getattr(exc, 'errno', None)}"

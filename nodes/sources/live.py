@@ -22,7 +22,7 @@ import zenoh
 
 from bodynet.core.errors import Rejected
 from bodynet.core.messages import NodeStatus, NoNewData, Reading, SensorAbsent, StreamEvent
-from bodynet.nodes.device import keep_connected
+from bodynet.nodes.device import DeviceError, in_use, keep_connected
 from bodynet.nodes.publisher import SitePublisher
 from bodynet.nodes.sources.base import CaptureError, CaptureStats, Source
 from bodynet.nodes.sources.can_transport import can_log_messages, frame_of, open_bus, paced
@@ -69,25 +69,38 @@ class Bridge:
 
 class SerialBridge(Bridge):
     """A source on a serial port: the source serves the open port (by default
-    reading and decoding what comes); reopened after an unplug."""
+    reading and decoding what comes); reopened after an unplug.
+
+    The port is opened exclusively (``flock``, as pyserial's ``exclusive``): a
+    port another bridge holds when this one starts is refused (:class:`DeviceError`,
+    exit 2); one taken by another program after an unplug is said and retried."""
 
     def run(self, port: str, stop: threading.Event, baud: int | None = None) -> None:
+        source = self.source
+        speed = baud or source.BAUD
+        tries = 0
+
+        def open_port() -> serial.Serial:
+            nonlocal tries
+            tries += 1
+            try:
+                return serial.Serial(port, speed, timeout=source.SERIAL_TIMEOUT_S, exclusive=True)
+            except SERIAL_ERRORS as exc:
+                if not in_use(exc):
+                    raise
+                why = f"{port} is in use by another program (another bridge? ModemManager?)"
+                if tries == 1:  # held when we start: a mistake to say, not to wait out
+                    raise DeviceError(why) from None
+                raise serial.SerialException(why) from None  # taken meanwhile: retried
+
         def serve(link: serial.Serial) -> None:
             try:
                 self.source.serve(link, stop, self)
             finally:
                 self.adapter.restart()
 
-        source = self.source
-        keep_connected(
-            self.publisher,
-            lambda: serial.Serial(port, baud or source.BAUD, timeout=source.SERIAL_TIMEOUT_S),
-            serve,
-            lambda link: link.close(),
-            SERIAL_ERRORS,
-            stop,
-            path=port,
-        )
+        keep_connected(self.publisher, open_port, serve, lambda link: link.close(),
+                       SERIAL_ERRORS, stop, path=port)  # fmt: skip
 
 
 class CanBusBridge(Bridge):
