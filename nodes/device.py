@@ -1,4 +1,5 @@
-"""Keeping a device open: say once that it is gone, retry with backoff, resume."""
+"""Keeping a device open: say once that it is gone, retry with backoff, resume;
+and saying when a device sends bytes of which nothing decodes (a wrong baud rate)."""
 
 from __future__ import annotations
 
@@ -8,9 +9,11 @@ import logging
 import os
 import stat
 import threading
+import time
 from collections.abc import Callable
 from typing import TypeVar
 
+from bodynet.core.errors import RejectCounts
 from bodynet.nodes.publisher import SitePublisher
 
 log = logging.getLogger(__name__)
@@ -21,6 +24,10 @@ D = TypeVar("D")
 #: absent device costs a failed open() every 0.5 s (said once), a replugged one is
 #: found within 0.5 s of its return
 BACKOFF_S = (0.1, 0.5)
+#: bytes coming without anything decoded for this long are said on the console...
+NO_DECODE_S = 2.0
+#: ...again at most this often while it lasts
+NO_DECODE_REPEAT_S = 30.0
 #: what an open() of a port another program holds fails with: flock's EWOULDBLOCK
 #: (pyserial's ``exclusive=True``), the kernel's EBUSY (a terminal made exclusive)
 IN_USE_ERRNOS = frozenset({errno.EAGAIN, errno.EWOULDBLOCK, errno.EBUSY})
@@ -136,3 +143,55 @@ _LOST = "lost"
 def _kind(exc: BaseException) -> str:
     """What sort of failure ``exc`` is, to say each sort once: its type and errno."""
     return f"{type(exc).__name__}:{getattr(exc, 'errno', None)}"
+
+
+class DecodeWatch:
+    """Says on the console when a device sends bytes but nothing of them decodes
+    for :data:`NO_DECODE_S` (a wrong baud rate, most often): a warning naming
+    the device, what was rejected meanwhile and ``hint``, again every
+    :data:`NO_DECODE_REPEAT_S` while it lasts, and a line when it decodes again.
+
+    The bridge calls :meth:`received` with the size of each read and
+    :meth:`decoded` for each thing decoded (a sample, a node's status: anything
+    but a rejection), from the thread that reads."""
+
+    def __init__(self, publisher: SitePublisher, device: str, hint: str) -> None:
+        self.publisher = publisher
+        self.device = device
+        self.hint = hint
+        self.after_s = NO_DECODE_S
+        self.repeat_s = NO_DECODE_REPEAT_S
+        self._since: float | None = None  # the first byte since anything decoded
+        self._bytes = 0
+        self._rejected_before = RejectCounts()
+        self._warned_at: float | None = None
+
+    def received(self, n: int) -> None:
+        if n <= 0:
+            return
+        now = time.monotonic()
+        if self._since is None:
+            self._since, self._bytes = now, 0
+            self._rejected_before = RejectCounts(self.publisher.rejected)
+        self._bytes += n
+        if now - self._since < self.after_s:
+            return
+        if self._warned_at is not None and now - self._warned_at < self.repeat_s:
+            return
+        self._warned_at = now
+        rejected = RejectCounts(self.publisher.rejected - self._rejected_before)
+        log.warning("%s: receiving bytes from %s but nothing valid for %.0f s (%d bytes; "
+                    "rejected %s): %s", self.publisher.name, self.device, now - self._since,
+                    self._bytes, rejected.summary() or "none", self.hint)  # fmt: skip
+
+    def decoded(self) -> None:
+        if self._since is None and self._warned_at is None:
+            return
+        if self._warned_at is not None:
+            log.warning("%s: %s sends valid data again", self.publisher.name, self.device)
+        self._since = self._warned_at = None
+
+    def restart(self) -> None:
+        """The device was opened again: its bytes are counted afresh (a warning
+        given still waits for valid data to be called off)."""
+        self._since = None

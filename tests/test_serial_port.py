@@ -1,6 +1,6 @@
 """A serial bridge on real pseudo-terminals (pyserial), onto a loopback router:
-a port is held by one bridge only, and a device unplugged and back is found
-again at once.
+what a wrong baud rate sends is said on the console, a port is held by one
+bridge only, and a device unplugged and back is found again at once.
 
 The device is a :class:`PtyPort` behind a symlink, as a USB serial device is
 behind ``/dev/serial/by-id/...``; the bridge runs as ``bodynet bridge`` does
@@ -10,6 +10,7 @@ behind ``/dev/serial/by-id/...``; the bridge runs as ``bodynet bridge`` does
 from __future__ import annotations
 
 import logging
+import random
 import signal
 import subprocess
 import sys
@@ -17,6 +18,7 @@ import threading
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import IO
 
 import pytest
 import zenoh
@@ -33,6 +35,23 @@ from bodynet.nodes.motion import ROUTINES
 BODYNET = Path(sys.executable).with_name("bodynet")
 LINE = imu_matrix.encode_line(Quat(1, (1.0, 0.0, 0.0, 0.0), bytes(9)))  # one tick of tag 1
 KEY_1 = IMU_SITES[1].raw_key
+
+
+class Stderr:
+    """A process's stderr lines, read as they come."""
+
+    def __init__(self, proc: subprocess.Popen[str]) -> None:
+        assert proc.stderr is not None
+        self.lines: list[str] = []
+        self._thread = threading.Thread(target=self._read, args=(proc.stderr,), daemon=True)
+        self._thread.start()
+
+    def _read(self, stream: IO[str]) -> None:
+        for line in stream:
+            self.lines.append(line)
+
+    def said(self, text: str) -> list[str]:
+        return [line for line in self.lines if text in line]
 
 
 @pytest.fixture
@@ -70,6 +89,35 @@ def _writing(port: PtyPort, data: Callable[[], bytes], done: Callable[[], bool],
         assert time.monotonic() < deadline, f"timed out waiting for {what}"
         port.write(data())
         time.sleep(0.02)
+
+
+def test_bytes_that_never_decode_are_said_and_good_lines_after_them_flow(
+    zsession: zenoh.Session, port: PtyPort, bridge_proc: Callable[[Path], subprocess.Popen[str]]
+) -> None:
+    """A wrong baud rate gives bytes of every value: the bridge says so on its
+    console (once for now: every 30 s while it lasts), naming the port and what it
+    rejected; right bytes after it are published and the all-clear said."""
+    health, raw = health_collector(zsession), raw_collector(zsession)
+    bridge = bridge_proc(port.link)
+    stderr = Stderr(bridge)
+    health.wait_for(lambda h: any(m["device"] == "connected" for _, m in h), timeout=30)
+    rng = random.Random(5)
+    said = f"imu-central-ttyACM0: receiving bytes from {port.link} but nothing valid for 2 s ("
+    _writing(port, lambda: rng.randbytes(220), lambda: bool(stderr.said(said)), "the warning")
+    [warning] = stderr.said(said)
+    assert "rejected bad_length: " in warning, warning
+    assert warning.rstrip().endswith("): wrong --baud (it is 230400)?"), warning
+    assert raw.queue.empty()  # nothing of it published
+
+    _writing(port, lambda: LINE, lambda: raw.queue.qsize() >= 20, "samples")
+    raw.wait_for(lambda s: len(s) >= 20)
+    assert {key for key, _ in raw.seen} == {KEY_1}
+    wait_until(lambda: bool(stderr.said(f"imu-central-ttyACM0: {port.link} sends valid data "
+                                        "again")), 30, "the all-clear")  # fmt: skip
+    assert len(stderr.said(said)) == 1  # not repeated within 30 s
+    bridge.send_signal(signal.SIGINT)
+    assert bridge.wait(timeout=30) == 0
+    assert not stderr.said("Traceback")
 
 
 def test_a_port_another_bridge_holds_is_refused_and_the_first_loses_nothing(

@@ -22,7 +22,7 @@ import zenoh
 
 from bodynet.core.errors import Rejected
 from bodynet.core.messages import NodeStatus, NoNewData, Reading, SensorAbsent, StreamEvent
-from bodynet.nodes.device import DeviceError, in_use, keep_connected
+from bodynet.nodes.device import DecodeWatch, DeviceError, in_use, keep_connected
 from bodynet.nodes.publisher import SitePublisher
 from bodynet.nodes.sources.base import CaptureError, CaptureStats, Source
 from bodynet.nodes.sources.can_transport import can_log_messages, frame_of, open_bus, paced
@@ -73,11 +73,16 @@ class SerialBridge(Bridge):
 
     The port is opened exclusively (``flock``, as pyserial's ``exclusive``): a
     port another bridge holds when this one starts is refused (:class:`DeviceError`,
-    exit 2); one taken by another program after an unplug is said and retried."""
+    exit 2); one taken by another program after an unplug is said and retried.
+    Bytes that come without anything decoding from them are said on the
+    console (:class:`DecodeWatch`: a wrong ``--baud``)."""
+
+    watch: DecodeWatch | None = None
 
     def run(self, port: str, stop: threading.Event, baud: int | None = None) -> None:
         source = self.source
         speed = baud or source.BAUD
+        watch = self.watch = DecodeWatch(self.publisher, port, f"wrong --baud (it is {speed})?")
         tries = 0
 
         def open_port() -> serial.Serial:
@@ -94,13 +99,40 @@ class SerialBridge(Bridge):
                 raise serial.SerialException(why) from None  # taken meanwhile: retried
 
         def serve(link: serial.Serial) -> None:
+            watch.restart()
             try:
-                self.source.serve(link, stop, self)
+                self.source.serve(_Counted(link, watch), stop, self)
             finally:
                 self.adapter.restart()
 
         keep_connected(self.publisher, open_port, serve, lambda link: link.close(),
                        SERIAL_ERRORS, stop, path=port)  # fmt: skip
+
+    def sample(self, reading: Reading, seq: int, t_s: float) -> None:
+        if self.watch is not None:
+            self.watch.decoded()
+        super().sample(reading, seq, t_s)
+
+    def status(self, event: NoNewData | SensorAbsent | NodeStatus) -> None:
+        if self.watch is not None:
+            self.watch.decoded()
+        super().status(event)
+
+
+class _Counted:
+    """A serial port whose reads are told to a :class:`DecodeWatch`."""
+
+    def __init__(self, link: serial.Serial, watch: DecodeWatch) -> None:
+        self._link = link
+        self._watch = watch
+
+    def read(self, size: int = 1) -> bytes:
+        data: bytes = self._link.read(size)
+        self._watch.received(len(data))
+        return data
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._link, name)
 
 
 class CanBusBridge(Bridge):
