@@ -10,6 +10,7 @@ port (again after an unplug), feed what it reads to the decoder.
 from __future__ import annotations
 
 import logging
+import struct
 import threading
 import time
 from collections.abc import Iterable
@@ -20,7 +21,7 @@ import can
 import serial
 import zenoh
 
-from bodynet.core.errors import Rejected
+from bodynet.core.errors import Reason, Rejected
 from bodynet.core.messages import NodeStatus, NoNewData, Reading, SensorAbsent, StreamEvent
 from bodynet.nodes.device import DecodeWatch, DeviceError, in_use, keep_connected
 from bodynet.nodes.publisher import SitePublisher
@@ -31,6 +32,11 @@ log = logging.getLogger(__name__)
 
 SERIAL_ERRORS = (serial.SerialException, OSError)
 CAN_ERRORS = (can.CanError, OSError, serial.SerialException)
+#: What python-can's interfaces raise, out of ``recv``, on what the adapter sent that
+#: they cannot parse: slcan on ``T0006FFZZ8...`` (``int(..., 16)``) or on a line cut
+#: before its DLC (``IndexError``), the ``serial`` interface on a frame cut short
+#: (``struct.error``, ``ord(b"")``). One bad frame: the next one is read.
+BAD_FRAME_ERRORS = (ValueError, IndexError, TypeError, struct.error)
 
 
 class Bridge:
@@ -152,13 +158,30 @@ class CanBusBridge(Bridge):
 
         def serve(bus: can.BusABC) -> None:
             while not stop.is_set():
-                msg = bus.recv(timeout=0.1)
+                msg = self._receive(bus)
                 if msg is not None:
                     self.handle(msg)
 
         keep_connected(self.publisher, lambda: open_bus(**bus_args), serve,
                        lambda bus: bus.shutdown(), CAN_ERRORS, stop,
                        path=str(bus_args.get("channel") or "") or None)  # fmt: skip
+
+    def _receive(self, bus: can.BusABC) -> can.Message | None:
+        """The bus's next message, or None: none came within 0.1 s, or what the
+        adapter sent could not be read as a frame (counted as garbage: the device is
+        still there, the next frame is read)."""
+        try:
+            return bus.recv(timeout=0.1)
+        except BAD_FRAME_ERRORS as exc:
+            why = f"{type(exc).__name__}: {exc}"
+        except can.CanOperationError as exc:
+            # python-can's slcan decodes each line as text: a byte that is not
+            # (line noise, a wrong baud rate) is this error, not a device gone
+            if not isinstance(exc.__cause__, UnicodeDecodeError) or not _drop_bad_line(bus):
+                raise
+            why = f"not text: {exc.__cause__}"
+        self.publisher.reject(Rejected(Reason.GARBAGE, f"a frame python-can cannot read ({why})"))
+        return None
 
     def run_replay(self, path: Path, stop: threading.Event, loop: bool = False) -> None:
         """Play a CAN log back at its recorded speed, stamped with the time of play."""
@@ -176,6 +199,17 @@ class CanBusBridge(Bridge):
             _replayed(self.publisher.name, path, frames, stats, stop.is_set())
             if not loop:
                 break
+
+
+def _drop_bad_line(bus: can.BusABC) -> bool:
+    """Drop the line python-can's slcan could not decode as text: it clears its
+    buffer only after decoding a line, so that line's bytes would spoil every line
+    after it. False if the bus keeps no such buffer (then it is reopened)."""
+    buffer = getattr(bus, "_buffer", None)
+    if not isinstance(buffer, bytearray):
+        return False
+    buffer.clear()
+    return True
 
 
 def _replayed(name: str, path: Path, frames: int, stats: CaptureStats, stopped: bool) -> None:
