@@ -10,10 +10,14 @@ or as a lost sample when it is not one.
 
 from __future__ import annotations
 
+import itertools
+import random
+import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
+import can
 import pytest
 import zenoh
 from zenoh_helpers import Running, health_collector, raw_collector
@@ -22,6 +26,7 @@ from bodynet.core.codecs import smartsuit_can
 from bodynet.core.messages import OleAccel
 from bodynet.nodes.can_bridge import CanBridge
 from bodynet.nodes.hardware import PtyPort
+from bodynet.nodes.sources.can_transport import BusClock
 
 
 @pytest.fixture
@@ -101,3 +106,69 @@ def test_a_byte_that_is_not_text_on_slcan_is_garbage_not_a_lost_device(
     # and a device that does vanish still is
     port.unplug()
     health.wait_for(lambda h: h[-1][1]["device"] == "disconnected")
+
+
+def run_virtual(
+    zsession: zenoh.Session, run_thread: Callable[..., Running], name: str
+) -> tuple[CanBridge, str]:
+    """A CAN bridge on a new python-can virtual bus, connected; the channel's name."""
+    channel = f"{name}-{time.monotonic_ns()}"
+    health = health_collector(zsession)
+    bridge = CanBridge(zsession, name)
+    run_thread(bridge.run_bus, interface="virtual", channel=channel)
+    health.wait_for(lambda h: any(m["device"] == "connected" for _, m in h))
+    health.close()
+    return bridge, channel
+
+
+def node_message(node: int, encoder: int, timestamp: float = 0.0) -> can.Message:
+    frame = smartsuit_can.encode_reading(OleAccel(node, encoder, (node, 0, 0)))
+    return can.Message(arbitration_id=frame.arbitration_id, data=frame.data, timestamp=timestamp)
+
+
+def test_an_adapters_own_clock_gives_wall_clock_times_that_never_go_back(
+    zsession: zenoh.Session, run_thread: Callable[..., Running]
+) -> None:
+    """gs_usb, cantact, systec... stamp frames with the adapter's counter (seconds
+    since it started; a 32-bit microsecond one wraps at 4294.967296 s): the samples
+    carry wall-clock times, in order across the wrap. A wall-clock stamp (socketcan's
+    kernel time) is kept as it is."""
+    bridge, channel = run_virtual(zsession, run_thread, "adapter-clock")
+    raw = raw_collector(zsession)
+    stamps = [4294.93, 4294.94, 4294.95, 4294.96, 0.003, 0.013, 0.023]
+    kernel = time.time() - 0.5
+    with can.Bus(interface="virtual", channel=channel, preserve_timestamps=True) as bus:
+        for i, stamp in enumerate(stamps):
+            bus.send(node_message(1, i, stamp))
+        bus.send(node_message(2, 99, kernel))
+    seen = raw.wait_for(lambda s: len(s) >= len(stamps) + 1)
+    now = time.time()
+    times = [s.t_ns / 1e9 for _, s in seen if s.reading.node == 1]
+    assert [s.reading.encoder for _, s in seen if s.reading.node == 1] == list(range(len(stamps)))
+    assert all(now - 60 < t <= now for t in times), times  # not 1970 + the adapter's uptime
+    assert times == sorted(times)  # nor back at the wrap
+    assert [s.t_ns for _, s in seen if s.reading.node == 2] == [round(kernel * 1e9)]
+    bridge.close()
+
+
+def test_bus_clock_keeps_the_adapters_spacing_anchored_to_the_wall_clock() -> None:
+    """The clock on explicit times: frames every 10 ms on an adapter counter near
+    its wrap, received 0-3 ms late; then a counter 0.05 % slow for two hours; then
+    one 1 % slow (more than the clock follows): anchored again."""
+    clock, rng = BusClock(), random.Random(1)
+    wall0, got, sent = 1.7e9, [], []
+    for i in range(2000):
+        stamp = (4290.0 + i * 0.01) % 4294.967296
+        sent.append(wall0 + i * 0.01)
+        got.append(clock.wall(stamp, sent[-1] + rng.uniform(0, 0.003)))
+    assert got == sorted(got)
+    assert all(0 <= g - s <= 0.003 for g, s in zip(got, sent, strict=True))  # as late as they came
+    steps = [b - a for a, b in itertools.pairwise(got)]
+    assert sum(abs(d - 0.01) < 2e-5 for d in steps) > 0.9 * len(steps)  # the adapter's spacing
+    for slow in (0.0005, 0.01):
+        clock = BusClock()
+        for i in range(0, 720_000, 100):  # 2 h at 100 Hz, one frame in 100 looked at
+            now = wall0 + i * 0.01
+            t = clock.wall(5.0 + i * 0.01 * (1 - slow), now)
+            assert now - BusClock.MAX_LAG_S - 0.01 <= t <= now
+    assert clock.wall(wall0 - 3.0, wall0) == wall0 - 3.0  # on the wall clock: kept

@@ -38,6 +38,55 @@ def frame_of(msg: can.Message) -> CanFrame:
     )
 
 
+class BusClock:
+    """The wall-clock time of a bus's frames, from python-can's ``msg.timestamp``.
+
+    Where that is on the wall clock (socketcan's kernel time, slcan's and the
+    virtual bus's host time, the vendor libraries python-can sets to it: pcan,
+    kvaser, vector, ixxat, etas) it is kept as it is. Some interfaces give the
+    adapter's own counter instead (gs_usb/candleLight, cantact, systec, usb2can,
+    canalystii, serial): 1970 plus the adapter's uptime, a 32-bit microsecond
+    one going back to 0 every 71.6 minutes. Of such a time only the spacing
+    of the frames is kept: anchored to ``time.time()`` at the first frame, never
+    ahead of it (a frame that came sooner than any before moves the anchor back
+    to it), following an adapter clock slower than the host's by up to
+    :attr:`DRIFT`, and anchored again when the counter goes back (it wrapped or
+    the adapter restarted) or falls :attr:`MAX_LAG_S` behind the wall clock.
+    The times it gives never go back.
+    """
+
+    #: a timestamp further than this from ``time.time()`` is the adapter's own clock
+    ON_WALL_S = 10.0
+    #: how fast (s/s) the anchor follows an adapter clock slower than the host's
+    DRIFT = 1e-3
+    #: how far behind the wall clock an adapter's times may fall before anchoring again
+    MAX_LAG_S = 1.0
+
+    def __init__(self) -> None:
+        self._offset: float | None = None  # wall clock minus the adapter's
+        self._last = (0.0, 0.0)  # the last adapter time and wall-clock time
+
+    def reset(self) -> None:
+        """The adapter was opened again: its counter may have started over."""
+        self._offset = None
+
+    def wall(self, stamp: float | None, now: float) -> float:
+        """The time of a frame python-can stamped ``stamp``, received at ``now``."""
+        if not stamp or not math.isfinite(stamp):
+            return now
+        if abs(stamp - now) <= self.ON_WALL_S:
+            return stamp
+        last_stamp, last_now = self._last
+        self._last = (stamp, now)
+        if self._offset is None or stamp < last_stamp:
+            self._offset = now - stamp  # the first frame, or the counter went back
+        else:
+            self._offset = min(now - stamp, self._offset + self.DRIFT * max(0.0, now - last_now))
+            if now - (stamp + self._offset) > self.MAX_LAG_S:
+                self._offset = now - stamp
+        return stamp + self._offset
+
+
 #: what python-can's vendor wrappers say when a library will not load (a ctypes
 #: ``OSError`` without an errno: "pcanbasic library not found.", "...: cannot open
 #: shared object file"), unlike an absent device (an errno: ENODEV, ENOENT...)

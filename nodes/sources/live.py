@@ -26,7 +26,13 @@ from bodynet.core.messages import NodeStatus, NoNewData, Reading, SensorAbsent, 
 from bodynet.nodes.device import DecodeWatch, DeviceError, in_use, keep_connected
 from bodynet.nodes.publisher import SitePublisher
 from bodynet.nodes.sources.base import CaptureError, CaptureStats, Source
-from bodynet.nodes.sources.can_transport import can_log_messages, frame_of, open_bus, paced
+from bodynet.nodes.sources.can_transport import (
+    BusClock,
+    can_log_messages,
+    frame_of,
+    open_bus,
+    paced,
+)
 
 log = logging.getLogger(__name__)
 
@@ -147,16 +153,19 @@ class CanBusBridge(Bridge):
     def __init__(self, session: zenoh.Session, source: Source, name: str) -> None:
         super().__init__(session, source, name)
         self._decoder = source.decoder()
+        self.clock = BusClock()
 
     def handle(self, msg: can.Message) -> None:
-        """Decode and publish one message (bad frames are counted, never raised)."""
-        self.feed(self._decoder.feed(frame_of(msg)), msg.timestamp or time.time())
+        """Decode and publish one message (bad frames are counted, never raised),
+        at its time on the wall clock (:class:`BusClock`)."""
+        self.feed(self._decoder.feed(frame_of(msg)), self.clock.wall(msg.timestamp, time.time()))
 
     def run_bus(self, stop: threading.Event, **bus_args: Any) -> None:
         """Serve ``can.Bus(**bus_args)`` until ``stop``, reopening it when it fails (not
         when it can never open: :func:`open_bus`)."""
 
         def serve(bus: can.BusABC) -> None:
+            self.clock.reset()  # the adapter's own clock may have started over
             while not stop.is_set():
                 msg = self._receive(bus)
                 if msg is not None:
