@@ -172,3 +172,31 @@ def test_bus_clock_keeps_the_adapters_spacing_anchored_to_the_wall_clock() -> No
             t = clock.wall(5.0 + i * 0.01 * (1 - slow), now)
             assert now - BusClock.MAX_LAG_S - 0.01 <= t <= now
     assert clock.wall(wall0 - 3.0, wall0) == wall0 - 3.0  # on the wall clock: kept
+
+
+def test_late_frames_are_not_gaps_dropped_ones_are(
+    zsession: zenoh.Session, run_thread: Callable[..., Running]
+) -> None:
+    """Frames of a node at 100 Hz stamped as slcan's host stamps them: up to 4 ms
+    late, and held back 2 to 6 periods then read at once (the host busy); two
+    dropped. The node's health counts two gaps, not one per late frame, and its
+    last sample is numbered as its period."""
+    bridge, channel = run_virtual(zsession, run_thread, "late-frames")
+    raw = raw_collector(zsession)
+    rng, start = random.Random(4), time.time() - 8.0
+    times = {i: start + i * 0.01 + rng.uniform(0, 0.004) for i in range(300)}
+    for first, periods in ((40, 2), (90, 4), (150, 6)):
+        end = times[first] + periods * 0.01
+        for k, i in enumerate(range(first, first + periods + 1)):
+            times[i] = max(times[i], end + k * 1e-4)
+    dropped = {200, 201}
+    with can.Bus(interface="virtual", channel=channel, preserve_timestamps=True) as bus:
+        for i, t in sorted(times.items()):
+            if i not in dropped:
+                bus.send(node_message(1, i, t))
+    seen = raw.wait_for(lambda s: len(s) >= len(times) - len(dropped))
+    seqs = [s.seq for _, s in seen]
+    assert seqs == sorted(set(seqs))
+    assert seqs[-1] - seqs[0] == 299
+    assert bridge.publisher.nodes[1].gaps == len(dropped)
+    bridge.close()

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import itertools
 import math
+import random
 
 import numpy as np
 import pytest
@@ -154,6 +156,50 @@ def test_sensor_kinds() -> None:
 
 
 def test_periodic_sequence_numbers_show_missed_periods() -> None:
+    """0.03 and 0.04 missed: the node's frames run two periods behind from then
+    on, which is counted once they have for ``BACKLOG_S``; a silence longer than
+    that is counted at the next frame."""
     seq = PeriodicSeq(0.01)
-    got = [seq.next(1, t) for t in (0.0, 0.0101, 0.0199, 0.0502, 0.0598)]
-    assert got == [0, 1, 2, 5, 6]  # 0.03 and 0.04 were missed
+    times = [0.0, 0.0101, 0.0199] + [0.0502 + 0.01 * i for i in range(80)]
+    got = [seq.next(1, t) for t in times]
+    assert got[:4] == [0, 1, 2, 3]  # late, or two missed: not known yet
+    assert got[-1] == 5 + 79  # known: each frame's number is its period's
+    assert [b - a for a, b in itertools.pairwise(got)].count(3) == 1  # one gap of two
+    assert seq.next(1, 0.0502 + 0.01 * 79 + 1.0) == 5 + 79 + 100  # silent for a second
+
+
+def _held_back(times: dict[int, float], first: int, periods: int) -> None:
+    """Frames ``first``.. held back ``periods`` periods and then handed on at once."""
+    end = times[first] + periods * 0.01
+    for k, i in enumerate(range(first, first + periods + 1)):
+        times[i] = max(times[i], end + k * 1e-4)
+
+
+def test_periodic_sequence_numbers_take_late_frames_for_late_not_missed() -> None:
+    """Frames up to 4 ms late, and frames held back 2, 3.5, 6 and 30 periods and
+    then handed on at once (a busy host, an adapter's USB transfer): no period
+    missed. Three frames dropped among them are counted, each frame then
+    numbered as its period."""
+    rng = random.Random(2)
+    times = {i: i * 0.01 + rng.uniform(0, 0.004) for i in range(600)}
+    for first, periods in ((50, 2), (130, 3), (200, 6), (260, 30)):
+        _held_back(times, first, periods)
+    dropped = {320, 321, 420}
+    seq = PeriodicSeq(0.01)
+    got = {i: seq.next(1, t) for i, t in sorted(times.items()) if i not in dropped}
+    assert all(got[i] == i for i in range(320))  # nothing counted missed before the drops
+    assert [got[i] for i in range(500, 600)] == list(range(500, 600))
+    assert sum(b - a - 1 for a, b in itertools.pairwise(got.values())) == len(dropped)
+
+
+def test_periodic_sequence_numbers_follow_a_slow_node_and_resync() -> None:
+    """A node whose clock runs 2 % slow misses nothing; one frame dropped still
+    counts. After a reopen (``resync``) a silence is counted at the next frame."""
+    seq = PeriodicSeq(0.01)
+    got = [seq.next(1, i * 0.0102) for i in range(1000) if i != 500]
+    assert got[-1] == 999
+    assert sum(b - a - 1 for a, b in itertools.pairwise(got)) == 1
+    seq = PeriodicSeq(0.01)
+    assert [seq.next(1, i * 0.01) for i in range(10)] == list(range(10))
+    seq.resync()
+    assert seq.next(1, 0.29) == 29  # 0.2 s silent: 19 missed, counted at once

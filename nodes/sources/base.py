@@ -16,6 +16,7 @@ import argparse
 import logging
 import math
 import threading
+from collections import deque
 from collections.abc import Callable, Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
 from enum import StrEnum
@@ -87,18 +88,77 @@ class Sink(Protocol):
     def status(self, event: NoNewData | SensorAbsent | NodeStatus) -> None: ...
 
 
+@dataclass(slots=True)
+class _Grid:
+    """One node's numbering (see :class:`PeriodicSeq`)."""
+
+    count: int  # frames so far, less one
+    phase: float  # when frame number 0 was due, on the grid of the node's frames
+    last_t: float
+    lost: int = 0  # periods counted as missed
+    #: (time, time less ``count`` periods) of the last ``backlog_s`` of frames,
+    #: the second rising (a sliding minimum: the front is the least)
+    recent: deque[tuple[float, float]] = field(default_factory=deque)
+
+
 class PeriodicSeq:
-    """Sequence numbers from arrival times of a source sending every ``period_s``."""
+    """Sequence numbers of a source that sends every ``period_s`` and numbers
+    nothing itself, from the times its frames came.
+
+    A node's frames are numbered one after the other, and a period counts as
+    missed (its number skipped) once all the node's frames of the last
+    :attr:`BACKLOG_S` ran at least half a period behind the grid its earlier
+    frames kept. So a frame that comes late, however late within that (a
+    busy host, or an adapter holding frames back and handing them on at once),
+    is not a missed period: the frames after it catch up with the grid. A missed
+    frame keeps the node's frames a period behind: counted, at most
+    :attr:`BACKLOG_S` later, where it shows; a node silent for longer than that is
+    counted at its next frame. The grid goes back at once to a node that sends
+    sooner than it, and follows one whose clock is slower than the host's by up
+    to :attr:`DRIFT`.
+    """
+
+    #: how long frames may run late (and catch up) before a period counts as missed
+    BACKLOG_S = 0.5
+    #: how fast (s/s) the grid follows a node whose clock is slower than the host's
+    DRIFT = 0.05
 
     def __init__(self, period_s: float) -> None:
         self.period_s = period_s
-        self._last: dict[int, tuple[int, float]] = {}
+        self._grids: dict[int, _Grid] = {}
 
     def next(self, node: int, t_s: float) -> int:
-        last = self._last.get(node)
-        seq = 0 if last is None else last[0] + max(1, round((t_s - last[1]) / self.period_s))
-        self._last[node] = (seq, t_s)
-        return seq
+        grid = self._grids.get(node)
+        if grid is None:
+            self._grids[node] = _Grid(0, t_s, t_s, recent=deque([(t_s, t_s)]))
+            return 0
+        period = self.period_s
+        grid.count += 1
+        offset = t_s - grid.count * period
+        recent = grid.recent
+        while recent and recent[-1][1] >= offset:
+            recent.pop()
+        recent.append((t_s, offset))
+        while recent[0][0] < t_s - self.BACKLOG_S:
+            recent.popleft()
+        behind = recent[0][1] - grid.lost * period - grid.phase  # the least lag of late
+        if behind >= period / 2:
+            missed = round(behind / period)
+            grid.lost += missed
+            behind -= missed * period
+        late = offset - grid.lost * period - grid.phase  # this frame's
+        if late < 0:
+            grid.phase += late  # sooner than the grid: it was late
+        elif behind > 0:
+            grid.phase += min(behind, self.DRIFT * max(0.0, t_s - grid.last_t))
+        grid.last_t = t_s
+        return grid.count + grid.lost
+
+    def resync(self) -> None:
+        """The device was opened again: how late its frames came before tells
+        nothing of the ones to come; a node's next frame is set on its grid at once."""
+        for grid in self._grids.values():
+            grid.recent.clear()
 
 
 class Adapter:
@@ -149,8 +209,9 @@ class Adapter:
 
 
 class PeriodicAdapter(Adapter):
-    """For a stream with no ticks of its own: numbered by arrival (a gap is a
-    missed period), or, without times, by order at ``rate_hz``."""
+    """For a stream with no ticks of its own: numbered by arrival
+    (:class:`PeriodicSeq`: a gap is a missed period), or, without times, by order
+    at ``rate_hz``."""
 
     def __init__(self, period_s: float, rate_hz: float | None = None) -> None:
         super().__init__(period_s, rate_hz)
@@ -162,6 +223,10 @@ class PeriodicAdapter(Adapter):
             t_s = self.count / self.rate_hz
         self.count += 1
         return self._periodic.next(reading.node, t_s), t_s
+
+    def restart(self) -> None:
+        super().restart()
+        self._periodic.resync()
 
 
 @dataclass(frozen=True, slots=True)

@@ -166,6 +166,7 @@ class CanBusBridge(Bridge):
 
         def serve(bus: can.BusABC) -> None:
             self.clock.reset()  # the adapter's own clock may have started over
+            self.adapter.restart()  # and how late its frames came tells nothing now
             while not stop.is_set():
                 msg = self._receive(bus)
                 if msg is not None:
