@@ -283,6 +283,8 @@ def status_text(topology: object, health: Mapping[str, object], bad: int = 0) ->
         parts += [f"{k} {_show(field(h, k))}" for k in ("samples", "ticks")
                   if field(h, k) is not None]  # fmt: skip
         parts.append(f"rejected {_counts(field(h, 'rejected'))}")
+        if field(h, "foreign"):
+            parts.append(f"other devices' frames {_counts(field(h, 'foreign'))}")
         lines.append(f"- **{source}**: " + ", ".join(parts))
         nodes = field(h, "nodes")
         # node numbers in numeric order: "2" before "10"

@@ -29,7 +29,7 @@ import json
 import logging
 import threading
 import time
-from collections import deque
+from collections import Counter, deque
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 
@@ -112,6 +112,7 @@ class SitePublisher:
         self.stale_after_s = max(stale_periods * period_s, MIN_STALE_S)
         self.nodes: dict[int, NodeHealth] = {}
         self.rejected = RejectCounts()
+        self.foreign: Counter[str] = Counter()  # other devices' messages, by kind
         self._early_status: dict[int, dict[str, float | int | str]] = {}
         self.device = "starting"
         self._publishers: dict[int, zenoh.ext.AdvancedPublisher] = {}
@@ -171,6 +172,12 @@ class SitePublisher:
             "%s: rejected %s: %s %r", self.name, rejected.reason, rejected.detail, rejected.data
         )
 
+    def count_foreign(self, kind: str) -> None:
+        """Count a well-formed message of another device on the source's medium (a
+        CAN bus shared with other devices): not this source's, and no rejection."""
+        with self._lock:
+            self.foreign[kind] += 1
+
     def move(self, node: int, site: Site) -> None:
         """Node ``node`` sits at ``site`` from now on (a tracker assigned live): what
         it published elsewhere is dropped, its health starts over."""
@@ -214,6 +221,7 @@ class SitePublisher:
                 "device": self.device,
                 "t_ns": time.time_ns(),
                 "rejected": dict(self.rejected),
+                "foreign": dict(self.foreign),
                 "nodes": {str(n): h.as_json(now) for n, h in sorted(self.nodes.items())},
             }
 

@@ -59,9 +59,12 @@ def slcan_bridge(
     port.plug()
     health = health_collector(zsession)
     bridge = CanBridge(zsession, "slcan-adapter")
-    run_thread(bridge.run_bus, interface="slcan", channel=str(port.link), sleep_after_open=0)
+    running = run_thread(
+        bridge.run_bus, interface="slcan", channel=str(port.link), sleep_after_open=0
+    )
     health.wait_for(lambda h: any(m["device"] == "connected" for _, m in h))
     yield port, bridge
+    running.stop()
     bridge.close()
     if port.master is not None:
         port.unplug()
@@ -108,17 +111,27 @@ def test_a_byte_that_is_not_text_on_slcan_is_garbage_not_a_lost_device(
     health.wait_for(lambda h: h[-1][1]["device"] == "disconnected")
 
 
-def run_virtual(
-    zsession: zenoh.Session, run_thread: Callable[..., Running], name: str
-) -> tuple[CanBridge, str]:
-    """A CAN bridge on a new python-can virtual bus, connected; the channel's name."""
-    channel = f"{name}-{time.monotonic_ns()}"
-    health = health_collector(zsession)
-    bridge = CanBridge(zsession, name)
-    run_thread(bridge.run_bus, interface="virtual", channel=channel)
-    health.wait_for(lambda h: any(m["device"] == "connected" for _, m in h))
-    health.close()
-    return bridge, channel
+@pytest.fixture
+def virtual_bridge(
+    zsession: zenoh.Session, run_thread: Callable[..., Running]
+) -> Iterator[Callable[[str], tuple[CanBridge, str]]]:
+    """Starts a CAN bridge on a new python-can virtual bus, connected, and gives it
+    and the channel's name; each is stopped, then closed, at teardown."""
+    started: list[tuple[Running, CanBridge]] = []
+
+    def start(name: str) -> tuple[CanBridge, str]:
+        channel = f"{name}-{time.monotonic_ns()}"
+        health = health_collector(zsession)
+        bridge = CanBridge(zsession, name)
+        started.append((run_thread(bridge.run_bus, interface="virtual", channel=channel), bridge))
+        health.wait_for(lambda h: any(m["device"] == "connected" for _, m in h))
+        health.close()
+        return bridge, channel
+
+    yield start
+    for running, bridge in started:
+        running.stop()
+        bridge.close()
 
 
 def node_message(node: int, encoder: int, timestamp: float = 0.0) -> can.Message:
@@ -127,13 +140,13 @@ def node_message(node: int, encoder: int, timestamp: float = 0.0) -> can.Message
 
 
 def test_an_adapters_own_clock_gives_wall_clock_times_that_never_go_back(
-    zsession: zenoh.Session, run_thread: Callable[..., Running]
+    zsession: zenoh.Session, virtual_bridge: Callable[[str], tuple[CanBridge, str]]
 ) -> None:
     """gs_usb, cantact, systec... stamp frames with the adapter's counter (seconds
     since it started; a 32-bit microsecond one wraps at 4294.967296 s): the samples
     carry wall-clock times, in order across the wrap. A wall-clock stamp (socketcan's
     kernel time) is kept as it is."""
-    bridge, channel = run_virtual(zsession, run_thread, "adapter-clock")
+    _, channel = virtual_bridge("adapter-clock")
     raw = raw_collector(zsession)
     stamps = [4294.93, 4294.94, 4294.95, 4294.96, 0.003, 0.013, 0.023]
     kernel = time.time() - 0.5
@@ -148,7 +161,6 @@ def test_an_adapters_own_clock_gives_wall_clock_times_that_never_go_back(
     assert all(now - 60 < t <= now for t in times), times  # not 1970 + the adapter's uptime
     assert times == sorted(times)  # nor back at the wrap
     assert [s.t_ns for _, s in seen if s.reading.node == 2] == [round(kernel * 1e9)]
-    bridge.close()
 
 
 def test_bus_clock_keeps_the_adapters_spacing_anchored_to_the_wall_clock() -> None:
@@ -175,13 +187,13 @@ def test_bus_clock_keeps_the_adapters_spacing_anchored_to_the_wall_clock() -> No
 
 
 def test_late_frames_are_not_gaps_dropped_ones_are(
-    zsession: zenoh.Session, run_thread: Callable[..., Running]
+    zsession: zenoh.Session, virtual_bridge: Callable[[str], tuple[CanBridge, str]]
 ) -> None:
     """Frames of a node at 100 Hz stamped as slcan's host stamps them: up to 4 ms
     late, and held back 2 to 6 periods then read at once (the host busy); two
     dropped. The node's health counts two gaps, not one per late frame, and its
     last sample is numbered as its period."""
-    bridge, channel = run_virtual(zsession, run_thread, "late-frames")
+    bridge, channel = virtual_bridge("late-frames")
     raw = raw_collector(zsession)
     rng, start = random.Random(4), time.time() - 8.0
     times = {i: start + i * 0.01 + rng.uniform(0, 0.004) for i in range(300)}
@@ -199,4 +211,37 @@ def test_late_frames_are_not_gaps_dropped_ones_are(
     assert seqs == sorted(set(seqs))
     assert seqs[-1] - seqs[0] == 299
     assert bridge.publisher.nodes[1].gaps == len(dropped)
-    bridge.close()
+
+
+def test_other_devices_frames_on_a_shared_bus_are_foreign_not_rejected(
+    zsession: zenoh.Session, virtual_bridge: Callable[[str], tuple[CanBridge, str]]
+) -> None:
+    """A bus shared with other devices (an 11-bit one, a J1939 one, the Data
+    Concentrator polling node 1 with remote frames): their frames are counted as
+    foreign in health, apart from rejections; a node's malformed frame and an
+    error frame are still rejected, and every node frame is published."""
+    bridge, channel = virtual_bridge("shared-bus")
+    raw, health = raw_collector(zsession), health_collector(zsession)
+    others = [
+        can.Message(arbitration_id=0x123, data=bytes.fromhex("DEADBEEF00112233"),
+                    is_extended_id=False),
+        can.Message(arbitration_id=0x18FF0001, data=bytes(8)),
+        can.Message(arbitration_id=0x0006FFFF, is_remote_frame=True, dlc=8),
+    ]  # fmt: skip
+    with can.Bus(interface="virtual", channel=channel) as bus:
+        for i in range(20):
+            bus.send(node_message(1 + i % 3, i))
+            for msg in others:
+                bus.send(msg)
+        bus.send(can.Message(arbitration_id=0x000AFFFF, data=bytes(3)))  # node 2's, cut short
+        bus.send(can.Message(is_error_frame=True))
+        bus.send(node_message(3, 20))
+    seen = raw.wait_for(lambda s: len(s) >= 21)
+    assert [s.reading.encoder for _, s in seen] == list(range(21))
+    assert {str(r): n for r, n in bridge.publisher.rejected.items()} == {
+        "bad_dlc": 1, "error_frame": 1,
+    }  # fmt: skip
+    bridge.publisher.publish_health()
+    report = health.wait_for(lambda h: any(sum(m["foreign"].values()) == 60 for _, m in h))
+    assert report[-1][1]["foreign"] == {"standard_id": 20, "extended_id": 20, "remote_frame": 20}
+    assert report[-1][1]["rejected"] == {"bad_dlc": 1, "error_frame": 1}

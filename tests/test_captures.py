@@ -41,6 +41,7 @@ def test_decode_matches_what_the_capture_writer_injected(
     assert len(samples) == stats.decoded == manifest.pop("decoded")
     assert stats.no_new_data == manifest.pop("no_new_data", 0)
     assert stats.sensor_absent == manifest.pop("sensor_absent", 0)
+    assert stats.foreign == manifest.pop("foreign", {})  # other devices' frames: not rejected
     assert {str(k): v for k, v in stats.rejected.items()} == manifest
 
 

@@ -50,6 +50,23 @@ def test_can_bad_frames(frame: CanFrame, reason: Reason) -> None:
     assert err.value.reason is reason
 
 
+@pytest.mark.parametrize(
+    ("frame", "kind"),
+    [
+        (CanFrame(0x123, bytes(8), is_extended_id=False), "standard_id"),
+        (CanFrame(0x18FF0001, bytes(8)), "extended_id"),  # a J1939 device's
+        (CanFrame(0x0042FFFF, bytes(8)), "extended_id"),  # no node 16
+        (CanFrame(0x0006FFFF, b"", is_remote_frame=True), "remote_frame"),  # polls node 1
+        (CanFrame(0x0006FFFF, bytes(8), is_error_frame=True), None),  # rejected: error_frame
+        (CanFrame(0x0006FFFF, bytes(4), dlc=4), None),  # node 1's, malformed: bad_dlc
+        (CanFrame(0x0036FFFF, bytes(8)), None),  # node 13's, malformed: bad_quat_norm
+        (CanFrame(0x000AFFFF, bytes(8)), None),  # node 2's reading
+    ],
+)
+def test_can_frames_of_other_devices_are_foreign(frame: CanFrame, kind: str | None) -> None:
+    assert smartsuit_can.foreign(frame) == kind
+
+
 def test_slcan_line_as_python_can_sends_it() -> None:
     frame = smartsuit_can.encode_reading(OleAccel(2, -5, (1, -1024, 300)))
     assert smartsuit_can.encode_slcan(frame) == b"T000AFFFF8FBFF010000FC2C01\r"

@@ -163,6 +163,15 @@ def test_status_panel_shows_what_a_bridge_publishes() -> None:
             "rejected bad_length 2") in text.splitlines()  # fmt: skip
 
 
+def test_status_panel_shows_other_devices_frames_apart_from_rejections() -> None:
+    """A CAN bridge on a bus shared with other devices: their frames by kind."""
+    health = {"can-can0": {"source": "can-can0", "device": "connected", "nodes": {},
+                           "rejected": {"bad_dlc": 1},
+                           "foreign": {"standard_id": 20, "remote_frame": 3}}}  # fmt: skip
+    assert ("- **can-can0**: device connected, rejected bad_dlc 1, other devices' frames "
+            "remote_frame 3, standard_id 20") in status_text(None, health)  # fmt: skip
+
+
 SKELETON = build_skeleton()
 # what pose.decode takes for a number: any JSON number, a boolean, or a string
 # float() reads ("nan", "inf", "1e999")

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import struct
 from dataclasses import dataclass
+from enum import StrEnum
 
 from ..errors import DecodeError, Reason, Rejected
 from ..messages import OleAccel, Quat, Reading, StreamEvent
@@ -58,6 +59,34 @@ def node_of(arbitration_id: int) -> int:
     if arbitration_id & _ID_LOW != _ID_LOW or high % 4 != 2 or not 1 <= high // 4 <= MAX_NODES:
         raise DecodeError(Reason.UNKNOWN_NODE, f"identifier {arbitration_id:#010x}")
     return high // 4
+
+
+class Foreign(StrEnum):
+    """What makes a well-formed frame on the bus another device's (a bus shared
+    with other devices, or the Data Concentrator's polls): not bad input, counted
+    apart from rejections."""
+
+    STANDARD_ID = "standard_id"  # an 11-bit identifier: the nodes send 29-bit ones
+    EXTENDED_ID = "extended_id"  # a 29-bit identifier none of nodes 1-15 sends on
+    REMOTE_FRAME = "remote_frame"  # a request for data: the nodes send data frames
+
+
+def foreign(frame: CanFrame) -> Foreign | None:
+    """Why ``frame`` is another device's, or None: a SmartSuit node's frame (a
+    reading, or rejected when malformed: a wrong length, a quaternion that is not
+    one) or an error frame (the bus's own trouble, rejected). A frame on a CAN bus
+    has passed its CRC: one that no node sends is some other device's."""
+    if frame.is_error_frame:
+        return None
+    if frame.is_remote_frame:
+        return Foreign.REMOTE_FRAME
+    if not frame.is_extended_id:
+        return Foreign.STANDARD_ID
+    try:
+        node_of(frame.arbitration_id)
+    except DecodeError:
+        return Foreign.EXTENDED_ID
+    return None
 
 
 def frame_events(frame: CanFrame) -> list[StreamEvent]:

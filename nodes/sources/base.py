@@ -16,7 +16,7 @@ import argparse
 import logging
 import math
 import threading
-from collections import deque
+from collections import Counter, deque
 from collections.abc import Callable, Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
 from enum import StrEnum
@@ -246,6 +246,8 @@ class CaptureStats:
     rejected: RejectCounts = field(default_factory=RejectCounts)
     no_new_data: int = 0
     sensor_absent: int = 0
+    #: well-formed messages of other devices (a CAN bus shared with them), by kind
+    foreign: Counter[str] = field(default_factory=Counter)
     #: where each line (byte, in a binary log) skipped as garbled was: "line 12"
     bad_places: list[str] = field(default_factory=list)
 
@@ -256,7 +258,8 @@ class CaptureStats:
         if total:
             text += f" ({self.rejected.summary()})"
         idle = [(n, what) for n, what in ((self.no_new_data, "no new data"),
-                (self.sensor_absent, "sensor absent")) if n]  # fmt: skip
+                (self.sensor_absent, "sensor absent"),
+                (sum(self.foreign.values()), "other devices' frames")) if n]  # fmt: skip
         if idle:
             text += "; not samples: " + ", ".join(f"{what} {n}" for n, what in idle)
         if self.bad_places:

@@ -21,6 +21,7 @@ import can
 import serial
 import zenoh
 
+from bodynet.core.codecs import smartsuit_can as can_codec
 from bodynet.core.errors import Reason, Rejected
 from bodynet.core.messages import NodeStatus, NoNewData, Reading, SensorAbsent, StreamEvent
 from bodynet.nodes.device import DecodeWatch, DeviceError, in_use, keep_connected
@@ -157,8 +158,13 @@ class CanBusBridge(Bridge):
 
     def handle(self, msg: can.Message) -> None:
         """Decode and publish one message (bad frames are counted, never raised),
-        at its time on the wall clock (:class:`BusClock`)."""
-        self.feed(self._decoder.feed(frame_of(msg)), self.clock.wall(msg.timestamp, time.time()))
+        at its time on the wall clock (:class:`BusClock`); another device's frame
+        is counted as foreign."""
+        frame = frame_of(msg)
+        if (kind := can_codec.foreign(frame)) is not None:
+            self.publisher.count_foreign(kind)
+            return
+        self.feed(self._decoder.feed(frame), self.clock.wall(msg.timestamp, time.time()))
 
     def run_bus(self, stop: threading.Event, **bus_args: Any) -> None:
         """Serve ``can.Bus(**bus_args)`` until ``stop``, reopening it when it fails (not

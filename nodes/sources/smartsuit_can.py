@@ -88,7 +88,11 @@ class SmartSuitCan(Source):
         decoder, adapter = self.decoder(), self.adapter(rate_hz)
         sink = CaptureSink(self.sites, stats)
         for msg in can_log_messages(path, stats):
-            adapter.events(decoder.feed(frame_of(msg)), msg.timestamp, sink)
+            frame = frame_of(msg)
+            if (kind := codec.foreign(frame)) is not None:
+                stats.foreign[kind] += 1  # another device's on the bus: not bad input
+                continue
+            adapter.events(decoder.feed(frame), msg.timestamp, sink)
             yield from sink.take()
 
     # --- live ---------------------------------------------------------------------------

@@ -43,8 +43,9 @@ def _arm(node: int, t: float) -> OleAccel:
     return reading
 
 
-def can_log() -> Counter[str]:
+def can_log() -> dict[str, object]:
     counts: Counter[str] = Counter()
+    foreign: Counter[str] = Counter()  # other devices' frames on the bus: not rejected
     lines = []
 
     def frame_line(t: float, frame: smartsuit_can.CanFrame) -> str:
@@ -67,16 +68,16 @@ def can_log() -> Counter[str]:
         counts["decoded"] += 1
         if tick == 10:
             lines.append(f"({t + 6e-4:.6f}) vcan0 123#0102030405060708")
-            counts["standard_id"] += 1
+            foreign["standard_id"] += 1
         if tick == 20:
-            lines.append(f"({t + 6e-4:.6f}) vcan0 0006FFFF#R8")
-            counts["remote_frame"] += 1
+            lines.append(f"({t + 6e-4:.6f}) vcan0 0006FFFF#R8")  # node 1 polled
+            foreign["remote_frame"] += 1
         if tick == 30:
             lines.append(f"({t + 6e-4:.6f}) vcan0 0006FFFF#01020304")
             counts["bad_dlc"] += 1
         if tick == 40:
             lines.append(f"({t + 6e-4:.6f}) vcan0 0042FFFF#0102030405060708")  # node 16
-            counts["unknown_node"] += 1
+            foreign["extended_id"] += 1
         if tick == 50:
             lines.append(f"({t + 6e-4:.6f}) vcan0 20000080#0000000000000000")  # bus error
             counts["error_frame"] += 1
@@ -87,7 +88,7 @@ def can_log() -> Counter[str]:
             lines.append(f"({t + 6e-4:.6f}) vcan0 0036FFFF#0040004000400040")
             counts["bad_quat_norm"] += 1
     (HERE / "smartsuit_arm.log").write_text("\n".join(lines) + "\n")
-    return counts
+    return {**counts, "foreign": dict(sorted(foreign.items()))}
 
 
 def concentrator_capture() -> Counter[str]:
