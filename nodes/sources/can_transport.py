@@ -19,7 +19,6 @@ from can.io.blf import BLFParseError
 
 from bodynet.core.codecs.smartsuit_can import CanFrame
 from bodynet.core.errors import Reason, Rejected
-from bodynet.nodes.device import DeviceError
 from bodynet.nodes.sources.base import CaptureStats, time_refused
 
 #: suffixes of the logs python-can's ``LogReader`` reads that bodynet takes
@@ -121,6 +120,9 @@ def open_bus(**bus_args: Any) -> can.BusABC:
             return can.Bus(**bus_args)
         except Exception as exc:
             if why := unusable(exc):
+                # here, not at the top: device.py loads Zenoh, which captures do not
+                from bodynet.nodes.device import DeviceError
+
                 held.clear()
                 interface = bus_args.get("interface")
                 raise DeviceError(f"python-can's {interface} interface cannot be used "
