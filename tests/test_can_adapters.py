@@ -23,9 +23,11 @@ import zenoh
 from zenoh_helpers import Running, health_collector, raw_collector
 
 from bodynet.core.codecs import smartsuit_can
+from bodynet.core.errors import Reason
 from bodynet.core.messages import OleAccel
 from bodynet.nodes.can_bridge import CanBridge
 from bodynet.nodes.hardware import PtyPort
+from bodynet.nodes.sources import live
 from bodynet.nodes.sources.can_transport import BusClock
 
 
@@ -109,6 +111,23 @@ def test_a_byte_that_is_not_text_on_slcan_is_garbage_not_a_lost_device(
     # and a device that does vanish still is
     port.unplug()
     health.wait_for(lambda h: h[-1][1]["device"] == "disconnected")
+
+
+def test_a_flood_of_unreadable_lines_reopens_the_adapter_and_frames_flow_after(
+    zsession: zenoh.Session, slcan_bridge: tuple[PtyPort, CanBridge]
+) -> None:
+    """Every line unreadable, a thousand in a row: each is counted, then the adapter
+    is taken for broken and opened again (an error python-can raises over and over
+    without reading anything would otherwise spin for ever); the frames after flow."""
+    port, bridge = slcan_bridge
+    raw, health = raw_collector(zsession), health_collector(zsession)
+    port.write(b"T0006FF\r" * live.MAX_UNREADABLE)
+    health.wait_for(lambda h: any(m["device"] == "disconnected" for _, m in h), timeout=60)
+    health.wait_for(lambda h: h[-1][1]["device"] == "connected", timeout=60)
+    port.write(slcan_line(1, 10) + slcan_line(2, 20))
+    seen = raw.wait_for(lambda s: len(s) >= 2)
+    assert [(s.reading.node, s.reading.encoder) for _, s in seen] == [(1, 10), (2, 20)]
+    assert bridge.publisher.rejected[Reason.GARBAGE] == live.MAX_UNREADABLE
 
 
 @pytest.fixture

@@ -44,6 +44,8 @@ CAN_ERRORS = (can.CanError, OSError, serial.SerialException)
 #: before its DLC (``IndexError``), the ``serial`` interface on a frame cut short
 #: (``struct.error``, ``ord(b"")``). One bad frame: the next one is read.
 BAD_FRAME_ERRORS = (ValueError, IndexError, TypeError, struct.error)
+#: Unreadable frames in a row after which the bus is taken for broken and reopened.
+MAX_UNREADABLE = 1000
 
 
 class Bridge:
@@ -155,6 +157,7 @@ class CanBusBridge(Bridge):
         super().__init__(session, source, name)
         self._decoder = source.decoder()
         self.clock = BusClock()
+        self._unreadable = 0  # frames python-can could not read, in a row
 
     def handle(self, msg: can.Message) -> None:
         """Decode and publish one message (bad frames are counted, never raised),
@@ -187,7 +190,7 @@ class CanBusBridge(Bridge):
         adapter sent could not be read as a frame (counted as garbage: the device is
         still there, the next frame is read)."""
         try:
-            return bus.recv(timeout=0.1)
+            msg = bus.recv(timeout=0.1)
         except BAD_FRAME_ERRORS as exc:
             why = f"{type(exc).__name__}: {exc}"
         except can.CanOperationError as exc:
@@ -196,7 +199,14 @@ class CanBusBridge(Bridge):
             if not isinstance(exc.__cause__, UnicodeDecodeError) or not _drop_bad_line(bus):
                 raise
             why = f"not text: {exc.__cause__}"
+        else:
+            self._unreadable = 0
+            return msg
         self.publisher.reject(Rejected(Reason.GARBAGE, f"a frame python-can cannot read ({why})"))
+        self._unreadable += 1
+        if self._unreadable >= MAX_UNREADABLE:  # the same error over and over (a closed
+            self._unreadable = 0  # port's ValueError, say): no frame is coming, reopen
+            raise can.CanOperationError(f"{MAX_UNREADABLE} unreadable frames in a row ({why})")
         return None
 
     def run_replay(self, path: Path, stop: threading.Event, loop: bool = False) -> None:
