@@ -4,14 +4,17 @@ from __future__ import annotations
 
 import os
 import sys
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 import zenoh
 from hypothesis import HealthCheck, settings
 
 sys.path.insert(0, str(Path(__file__).parent))  # the helpers beside the tests
+
+from zenoh_helpers import Running
 
 settings.register_profile(
     "default", max_examples=200, deadline=None, suppress_health_check=[HealthCheck.too_slow]
@@ -104,3 +107,17 @@ def flagged(body_mcap: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
     out = tmp_path_factory.mktemp("flagged") / "flagged.mcap"
     write_flagged(body_mcap, out)
     return out
+
+
+@pytest.fixture
+def run_thread() -> Iterator[Callable[..., Running]]:
+    """Start a bridge's ``run`` in a thread; every one is stopped at teardown."""
+    started: list[Running] = []
+
+    def start(target: Callable[..., None], *args: Any, **kwargs: Any) -> Running:
+        started.append(Running(lambda stop: target(*args, stop, **kwargs), timeout=10))
+        return started[-1]
+
+    yield start
+    for running in started:
+        running.stop()

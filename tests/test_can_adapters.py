@@ -15,7 +15,6 @@ import random
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import Any
 
 import can
 import pytest
@@ -29,20 +28,6 @@ from bodynet.nodes.can_bridge import CanBridge
 from bodynet.nodes.hardware import PtyPort
 from bodynet.nodes.sources import live
 from bodynet.nodes.sources.can_transport import BusClock
-
-
-@pytest.fixture
-def run_thread() -> Iterator[Callable[..., Running]]:
-    """Start a bridge's ``run`` in a thread; every one is stopped at teardown."""
-    started: list[Running] = []
-
-    def start(target: Callable[..., None], *args: Any, **kwargs: Any) -> Running:
-        started.append(Running(lambda stop: target(*args, stop, **kwargs), timeout=10))
-        return started[-1]
-
-    yield start
-    for running in started:
-        running.stop()
 
 
 def slcan_line(node: int, encoder: int) -> bytes:

@@ -13,7 +13,7 @@ import math
 import os
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -54,20 +54,6 @@ def still_body(sensors: list[Any]) -> BodyEmulator:
 def expected(sensors: list[Any]) -> dict[int, Any]:
     readings, _ = still_body(sensors).sample(0.0)
     return {r.node: r for r in readings}
-
-
-@pytest.fixture
-def run_thread() -> Iterator[Callable[..., Running]]:
-    """Start a bridge's ``run`` in a thread; every one is stopped at teardown."""
-    started: list[Running] = []
-
-    def start(target: Callable[..., None], *args: Any, **kwargs: Any) -> Running:
-        started.append(Running(lambda stop: target(*args, stop, **kwargs), timeout=10))
-        return started[-1]
-
-    yield start
-    for running in started:
-        running.stop()
 
 
 def per_key(seen: list[tuple[str, RawSample]], n: int, keys: set[str]) -> bool:
