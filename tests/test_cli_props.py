@@ -106,7 +106,7 @@ def _candidates(files: dict[str, Path]) -> list[str]:
             str(files["new"].with_suffix(".md")), "tcp/127.0.0.1:7447",
             "body/**", "left_elbow", "x=left-arm/upperarm", "left-arm/upperarm",
             "aabbccddeeff-0", "aabbccddeeff-0=left-arm/upperarm", "127.0.0.1:6969", "0:1",
-            "rerun+http://127.0.0.1:9876/proxy", "sacrum:+z", "x"]  # fmt: skip
+            "rerun+http://127.0.0.1:9876/proxy", "sacrum:+z", "socketcan", "x"]  # fmt: skip
 
 
 def _valid(action: argparse.Action, files: dict[str, Path]) -> str:
