@@ -539,6 +539,7 @@ class Viewer:
                     failure = exc
             for rec in self.recs[:-1] if self.part is not None else self.recs:
                 self.stuck = True  # until it is closed: Rerun may wait on a viewer for ever
+                log.info("waiting up to %g s for %s to take the poses", patience, viewer)
                 try:
                     _flush(rec, patience)
                 except RuntimeError as exc:  # it stopped, or did not take it all in time

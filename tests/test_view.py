@@ -359,13 +359,16 @@ def test_a_viewer_that_takes_nothing_is_said_and_sigterm_ends_the_view(tmp_path:
     assert "cannot reach the viewer at rerun+http://127.0.0.1:" in result.stderr
     with socket.create_server(("127.0.0.1", 0)) as silent:
         url = f"rerun+http://127.0.0.1:{silent.getsockname()[1]}/proxy"
-        proc = subprocess.Popen([str(BODYNET), "view", recording, "--viewer", "connect",
+        proc = subprocess.Popen([str(BODYNET), "-v", "view", recording, "--viewer", "connect",
                                  "--url", url], stderr=subprocess.PIPE, text=True)  # fmt: skip
         silent.settimeout(60)
         peer, _ = silent.accept()  # Rerun connected: the view is logging, then flushing
-        time.sleep(1)
-        proc.send_signal(signal.SIGTERM)
         try:
+            assert proc.stderr is not None
+            said = ""  # SIGTERM once the view waits for the viewer (-v says so), not before
+            while "to take the poses" not in said and proc.poll() is None:
+                said = proc.stderr.readline()
+            proc.send_signal(signal.SIGTERM)
             _, err = proc.communicate(timeout=60)
         finally:
             proc.kill()
