@@ -54,6 +54,7 @@ import platform
 import struct
 import tempfile
 import time
+from array import array
 from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -441,10 +442,20 @@ class McapSink:
 
     A message it cannot store (a time MCAP cannot hold, see :func:`check_time`)
     raises ``DecodeError`` before anything of it is written: the file goes on
-    and closes complete."""
+    and closes complete.
+
+    Each message's ``publish_time`` is its source time (the ``t_ns`` it
+    carries, the time given to ``write_*``); its ``log_time`` is when it was
+    written (``receive_time``: the recorder's clock, ``time.time_ns()``) or,
+    without a receive time (``bodynet process``), its source time. Either way
+    the log time never goes back in file order (the MCAP spec's order, what
+    ``mcap doctor --strict-message-order`` checks): a message that would is
+    logged at the latest log time so far. Readers take the source time from
+    ``publish_time`` (:func:`read_poses` ...)."""
 
     def __init__(self, path: Path, chunk_size: int = CHUNK_BYTES, max_chunk_s: float = 0.5,
-                 tf_min_gap_ns: int = TF_MIN_GAP_NS, exclusive: bool = False) -> None:  # fmt: skip
+                 tf_min_gap_ns: int = TF_MIN_GAP_NS, exclusive: bool = False,
+                 receive_time: bool = False) -> None:  # fmt: skip
         # exclusive: FileExistsError rather than a file of that name emptied
         fd = os.open(path, os.O_WRONLY | os.O_CREAT | (os.O_EXCL if exclusive else os.O_TRUNC),
                      0o600)  # fmt: skip
@@ -468,6 +479,17 @@ class McapSink:
         self._segments_at = 0  # where the last pose's segments began: looked at first
         self._tf_min_gap_ns = tf_min_gap_ns
         self._tf_last: int | None = None  # the time of the last pose given transforms
+        self._receive_time = receive_time
+        self._log_last = 0  # the latest log time written: the next is no earlier
+
+    def _log_time(self, t_ns: int) -> int:
+        """The log time of a message written now whose source time is ``t_ns``:
+        now (``receive_time``) or ``t_ns``, never before the last one written."""
+        t = time.time_ns() if self._receive_time else t_ns
+        if t < self._log_last:
+            return self._log_last
+        self._log_last = t
+        return t
 
     def _next(self, channel: int) -> int:
         """The channel's next message sequence number (1, 2, 3...): salvage
@@ -484,20 +506,21 @@ class McapSink:
             )
         return channel
 
-    def write_pose(self, topic: str, frame: pose.PoseFrame, log_time_ns: int,
+    def write_pose(self, topic: str, frame: pose.PoseFrame, t_ns: int,
                    data: bytes | None = None) -> None:  # fmt: skip
         """``data``: the frame's message as received, stored as it is (encoding a
         pose again costs twice as much as decoding it)."""
-        check_time(log_time_ns)  # before the pose: its transforms share its time
+        check_time(t_ns)  # before the pose: its transforms share its time
         data = pose.encode(frame) if data is None else data
-        if topic == keys.pose_key() and self._tf_due(log_time_ns):
+        if topic == keys.pose_key() and self._tf_due(t_ns):
             rows = [[*p, *q] for p, q in frame.segments.values()]
-            self._pending(log_time_ns, None, (tuple(frame.segments), rows))
-        self._add(self._channel(topic, "pose"), log_time_ns, data)
+            self._pending(t_ns, None, (tuple(frame.segments), rows))
+        self._add(self._channel(topic, "pose"), t_ns, data)
 
     def write_pose_message(self, topic: str, data: bytes) -> tuple[int, int]:
         """A pose message as received, stored as it is; returns its sequence
-        number and its log time (its ``t_ns``; when that is 0, now).
+        number and its source time, the message's publish time (its ``t_ns``;
+        when that is 0, now).
 
         Only what the file needs is read of it: the header (``pose.glance``)
         and, for a whole-body pose due its transforms (:data:`TF_MIN_GAP_NS`),
@@ -588,20 +611,22 @@ class McapSink:
         first = self._sequence.get(channel, 0) + 1  # numbered as _next numbers them
         self._sequence[channel] = first + len(messages) - 1
         self._writer.add_messages(
-            channel, [(t, m, t) for t, m in zip(times, messages, strict=True)], first
+            channel,
+            [(self._log_time(t), m, t) for t, m in zip(times, messages, strict=True)],
+            first,
         )
         self.messages += len(messages)
 
-    def write_raw(self, topic: str, sample: RawSample, log_time_ns: int) -> None:
+    def write_raw(self, topic: str, sample: RawSample, t_ns: int) -> None:
         try:
             data = orjson.dumps(raw_json(sample))  # the recorder's hot path: orjson is ~5x json
         except orjson.JSONEncodeError as exc:  # a number past 64 bits
             raise DecodeError(Reason.OUT_OF_RANGE, f"raw sample not storable: {exc}") from None
-        self._add(self._channel(topic, "raw"), log_time_ns, data)
+        self._add(self._channel(topic, "raw"), t_ns, data)
 
-    def _add(self, channel: int, log_time_ns: int, data: bytes) -> None:
-        t = check_time(log_time_ns)  # log and publish time: the writer's uint64 fields
-        self._writer.add_message(channel, t, data, t, self._next(channel))
+    def _add(self, channel: int, t_ns: int, data: bytes) -> None:
+        t = check_time(t_ns)  # the publish time: a uint64 field
+        self._writer.add_message(channel, self._log_time(t), data, t, self._next(channel))
         self.messages += 1
         now = time.monotonic()
         if now - self._chunk_opened >= self._max_chunk_s:
@@ -610,21 +635,21 @@ class McapSink:
             self._writer.flush()  # closes the open chunk: on disk, salvageable
             self._chunk_opened = now
 
-    def write_truth(self, topic: str, truth_json: bytes, log_time_ns: int) -> None:
+    def write_truth(self, topic: str, truth_json: bytes, t_ns: int) -> None:
         """An emulator's ground-truth message, as published (JSON bytes)."""
-        self._add(self._channel(topic, "truth"), log_time_ns, truth_json)
+        self._add(self._channel(topic, "truth"), t_ns, truth_json)
 
-    def write_topology(self, topic: str, data: bytes, log_time_ns: int) -> None:
+    def write_topology(self, topic: str, data: bytes, t_ns: int) -> None:
         """A topology message (``body/@topology``), as published (JSON bytes)."""
-        self._add(self._channel(topic, "topology"), log_time_ns, data)
+        self._add(self._channel(topic, "topology"), t_ns, data)
 
-    def write_health(self, topic: str, data: bytes, log_time_ns: int) -> None:
+    def write_health(self, topic: str, data: bytes, t_ns: int) -> None:
         """A health message (``body/@health/<source>``), as published (JSON bytes)."""
-        self._add(self._channel(topic, "health"), log_time_ns, data)
+        self._add(self._channel(topic, "health"), t_ns, data)
 
-    def write_metrics(self, topic: str, data: bytes, log_time_ns: int) -> None:
+    def write_metrics(self, topic: str, data: bytes, t_ns: int) -> None:
         """A metrics message (``body/@metrics``), as published (JSON bytes)."""
-        self._add(self._channel(topic, "metrics"), log_time_ns, data)
+        self._add(self._channel(topic, "metrics"), t_ns, data)
 
     def write_gap(self, gap: Gap) -> None:
         data = orjson.dumps(asdict(gap))
@@ -651,17 +676,17 @@ def _decoded_rows(data: bytes | None) -> tuple[tuple[str, ...], list[list[float]
 
 
 def read_poses(path: Path, topic: str = "body/pose") -> Iterator[tuple[int, pose.PoseFrame]]:
-    """(log time ns, pose) of every message on ``topic``, in log-time order;
+    """(source time ns, pose) of every message on ``topic``, in source-time order;
     ``StoreError`` at a message that is not a pose."""
     for _, _, message in _messages(path, [topic]):
         try:
             frame = pose.decode(message.data)
         except DecodeError as exc:
             raise StoreError(
-                f"{path}: the message on {topic} at {message.log_time} ns is not a bodynet "
+                f"{path}: the message on {topic} at {message.publish_time} ns is not a bodynet "
                 f"pose ({exc})"
             ) from None
-        yield message.log_time, frame
+        yield message.publish_time, frame
 
 
 _READ_ERRORS = (McapError, ValueError, EOFError, OSError, struct.error, zstandard.ZstdError,
@@ -695,14 +720,74 @@ def _damaged(path: Path, f: IO[bytes], exc: BaseException) -> StoreError:
     )
 
 
+#: how much of a recording's messages a reader holds (their bytes, and about
+#: :data:`_HELD_OVERHEAD` more each) to put them in source-time order as it reads
+#: the file once; a larger recording is read twice: its source times, then its
+#: messages, held only as long as one comes before others it came after
+SORT_IN_MEMORY_BYTES = 32 << 20
+_HELD_OVERHEAD = 256
+
+
 def _messages(path: Path, topics: Iterable[str] | None) -> Iterator[Any]:
+    """(schema, channel, message) of a recording's messages on ``topics`` (None:
+    all), in source-time order: by ``publish_time``, messages of the same time
+    in the order they were recorded. The recorder logs each message at the time
+    it came (``log_time``, see :class:`McapSink`), the order of the file; a
+    recording written before it did had ``log_time == publish_time``."""
+    topics = None if topics is None else list(topics)
+    held: list[Any] | None = []
+    size = 0
+    times = array("Q")
+    error: StoreError | None = None
+    try:
+        for item in _file_messages(path, topics):
+            times.append(item[2].publish_time)
+            if held is not None:
+                held.append(item)
+                size += len(item[2].data) + _HELD_OVERHEAD
+                if size > SORT_IN_MEMORY_BYTES:
+                    held = None
+    except StoreError as exc:  # what was read before the damage, then the error
+        error = exc
+    if held is not None:
+        held.sort(key=lambda item: item[2].publish_time)  # stable: same times as recorded
+        yield from held
+        if error is not None:
+            raise error
+        return
+    yield from _in_order(_file_messages(path, topics), times)
+
+
+def _in_order(items: Iterator[Any], times: array[int]) -> Iterator[Any]:
+    """``items`` (whose publish times are ``times``) by publish time, each held
+    only until the ones before it in that order have come."""
+    order = np.argsort(np.frombuffer(times, dtype=np.uint64), kind="stable")
+    rank = np.empty_like(order)
+    rank[order] = np.arange(len(order))
+    waiting: dict[int, Any] = {}
+    due = 0
+    for i, item in enumerate(items):
+        if i >= len(rank):
+            break
+        if rank[i] != due:
+            waiting[int(rank[i])] = item
+            continue
+        yield item
+        due += 1
+        while due in waiting:
+            yield waiting.pop(due)
+            due += 1
+
+
+def _file_messages(path: Path, topics: list[str] | None) -> Iterator[Any]:
+    """A recording's messages in log-time order (the order of the file)."""
     try:
         f = path.open("rb")
     except OSError as exc:
         raise StoreError(f"{path}: cannot read it ({exc.strerror})") from None
     with f:
         try:
-            yield from make_reader(f).iter_messages(topics=None if topics is None else list(topics))
+            yield from make_reader(f).iter_messages(topics=topics)
         # the mcap reader raises struct.error, not an McapError, on some truncated files, and
         # zstandard's error on a corrupt chunk
         except _READ_ERRORS as exc:
@@ -729,14 +814,15 @@ def raw_from_json(data: bytes) -> RawSample:
 def read_raw(
     path: Path, topics: Iterable[str] | None = None
 ) -> Iterator[tuple[str, int, RawSample]]:
-    """(topic, log time ns, sample) of the raw samples of a recording, in log-time order."""
+    """(topic, source time ns, sample) of the raw samples of a recording, in
+    source-time order."""
     for schema, channel, message in _messages(path, topics):
         if schema is not None and schema.name == "bodynet.RawSample":
-            yield channel.topic, message.log_time, raw_from_json(message.data)
+            yield channel.topic, message.publish_time, raw_from_json(message.data)
 
 
 def read_gaps(path: Path) -> list[Gap]:
-    """The gap records of a recording (see :class:`Gap`), in log-time order."""
+    """The gap records of a recording (see :class:`Gap`), in source-time order."""
     try:
         return [Gap(**json.loads(m.data)) for _, _, m in _messages(path, [GAPS_TOPIC])]
     except (ValueError, TypeError) as exc:
@@ -744,7 +830,7 @@ def read_gaps(path: Path) -> list[Gap]:
 
 
 def read_truth(path: Path) -> Iterator[tuple[str, int, dict[str, float]]]:
-    """(topic, log time ns, true joint angles) of the ground truth a recording holds."""
+    """(topic, source time ns, true joint angles) of the ground truth a recording holds."""
     for schema, channel, message in _messages(path, None):
         if schema is not None and schema.name == "bodynet.Truth":
             try:
@@ -752,22 +838,22 @@ def read_truth(path: Path) -> Iterator[tuple[str, int, dict[str, float]]]:
                 values = {str(k): float(v) for k, v in angles.items()}
             except (ValueError, KeyError, TypeError, AttributeError) as exc:
                 raise StoreError(f"{path}: not a ground-truth message: {exc}") from None
-            yield channel.topic, message.log_time, values
+            yield channel.topic, message.publish_time, values
 
 
 def read_topology(path: Path) -> Iterator[tuple[str, int, dict[str, Any]]]:
-    """(topic, log time ns, message) of the topology messages of a recording."""
+    """(topic, source time ns, message) of the topology messages of a recording."""
     return _read_json(path, "bodynet.Topology")
 
 
 def read_health(path: Path) -> Iterator[tuple[str, int, dict[str, Any]]]:
-    """(topic, log time ns, message) of the health messages of a recording
+    """(topic, source time ns, message) of the health messages of a recording
     (every source's: ``body/@health/<source>``)."""
     return _read_json(path, "bodynet.Health")
 
 
 def read_metrics(path: Path) -> Iterator[tuple[str, int, dict[str, Any]]]:
-    """(topic, log time ns, message) of the clinical metrics of a recording
+    """(topic, source time ns, message) of the clinical metrics of a recording
     (``body/@metrics``, see ``core/metrics.py``)."""
     return _read_json(path, "bodynet.Metrics")
 
@@ -782,7 +868,7 @@ def _read_json(path: Path, schema_name: str) -> Iterator[tuple[str, int, dict[st
                                  f"({exc})") from None  # fmt: skip
             if not isinstance(d, dict):
                 raise StoreError(f"{path}: a {schema_name} message that is not a JSON object")
-            yield channel.topic, message.log_time, d
+            yield channel.topic, message.publish_time, d
 
 
 @dataclass(frozen=True)

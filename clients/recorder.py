@@ -1,7 +1,8 @@
 """Recording what the body network carries into MCAP (see ``mcap_store``).
 
 Subscribes to the chosen key expressions (by default raw samples, poses,
-topology and health) and writes each message with its source time; the file
+topology and health) and writes each message with its source time (MCAP's
+``publish_time``) and the time the recorder wrote it (``log_time``); the file
 is complete once :meth:`close` runs. The topology is also asked for once at
 the start (the gateway publishes it on change), so a recording begins with it.
 
@@ -61,7 +62,6 @@ log = logging.getLogger(__name__)
 #: (no wildcard matches them): the admin keys are named.
 DEFAULT_KEYS = (keys.all_raw(), keys.all_poses(), keys.TOPOLOGY, keys.all_health(),
                 keys.METRICS)  # fmt: skip
-
 #: Samples each subscription holds for the recorder before Zenoh is held back:
 #: about a second of twenty bodies' raw samples.
 FIFO_DEPTH = 1 << 15
@@ -144,7 +144,8 @@ class Recorder:
             name = self.path if index == 0 else self.path.with_name(
                 f"{self.path.stem}-{index:03d}{self.path.suffix}")  # fmt: skip
             try:
-                return index, name, McapSink(name, exclusive=True)
+                # log time: when the message is written (under the lock, so in order)
+                return index, name, McapSink(name, exclusive=True, receive_time=True)
             except FileExistsError:
                 index += 1
 

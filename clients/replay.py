@@ -82,11 +82,11 @@ def replay(
     with tqdm(total=total or None, unit="msg", disable=not progress, desc=path.name) as bar:
         while not stop.is_set():
             start, first = time.monotonic(), None
-            for topic, log_time, sample in read_raw(path, chosen):
+            for topic, t_ns, sample in read_raw(path, chosen):
                 if chosen is None and not wanted(topic):
                     continue
-                first = log_time if first is None else first
-                due = start + (log_time - first) / 1e9 / speed
+                first = t_ns if first is None else first
+                due = start + (t_ns - first) / 1e9 / speed
                 if stop.wait(max(0.0, due - time.monotonic())):
                     return sent
                 pub = publishers.get(topic) or publishers.setdefault(

@@ -91,8 +91,8 @@ def load_recording(path: Path) -> Recording:
     left_out: dict[str, dict[str, int]] = {}
     calibrated_at: int | None = None
     try:
-        for log_time, frame in read_poses(path):
-            times.append(log_time)
+        for t_ns, frame in read_poses(path):
+            times.append(t_ns)
             row = dict(frame.angles_deg)
             for n, f in frame.flags.items():
                 if n in row and not pose.is_measured(frame, n):
@@ -121,8 +121,8 @@ def load_recording(path: Path) -> Recording:
 def _truth(path: Path) -> Series | None:
     by_time: dict[int, dict[str, float]] = {}
     try:
-        for _, log_time, angles in read_truth(path):
-            by_time.setdefault(log_time, {}).update(angles)
+        for _, t_ns, angles in read_truth(path):
+            by_time.setdefault(t_ns, {}).update(angles)
     except StoreError as exc:
         raise ReportError(str(exc)) from None
     if not by_time:

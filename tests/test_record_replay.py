@@ -4,6 +4,7 @@ recording (a recorder killed mid-write: test_faults)."""
 
 from __future__ import annotations
 
+import itertools
 import json
 import os
 import platform
@@ -25,6 +26,7 @@ from zenoh_helpers import Collector, Running, client, raw_collector
 
 from bodynet.cli.main import main
 from bodynet.clients.mcap_store import (
+    GAPS_TOPIC,
     MAX_TIME_NS,
     McapSink,
     count_messages,
@@ -601,3 +603,132 @@ def test_recorder_refuses_admin_messages_that_are_not_json_objects(
     assert {t for t, _, _ in read_health(out)} == topics
     assert list(read_raw(out)) == []
     assert _schemas(out)[keys.health_key("pose")]["title"] == "bodynet.Health"
+
+
+def _file_times(path: Path) -> list[tuple[str, int, int, bytes]]:
+    """(topic, log_time, publish_time, data) of every message, in file order, as
+    the mcap library reads them (not bodynet's readers)."""
+    with path.open("rb") as f:
+        return [(c.topic, m.log_time, m.publish_time, m.data)
+                for _, c, m in make_reader(f).iter_messages(log_time_order=False)]  # fmt: skip
+
+
+def _source_time(topic: str, data: bytes) -> int | None:
+    """The ``t_ns`` a message carries (None: transforms, which carry theirs in protobuf)."""
+    if topic == keys.TRANSFORMS:
+        return None
+    if topic.endswith(f"/{keys.POSE}"):
+        return pose.decode(data).t_ns
+    d = json.loads(data)  # raw samples, topology, health, gaps
+    t_ns = d.get("to_t_ns") if topic == GAPS_TOPIC else d.get("t_ns")
+    return None if t_ns is None else int(t_ns)
+
+
+def _check_times(path: Path) -> list[tuple[str, int, int, bytes]]:
+    """Log times never go back in file order (``mcap doctor --strict-message-order``)
+    and each message's publish time is the source time it carries."""
+    messages = _file_times(path)
+    assert messages
+    logs = [log_time for _, log_time, _, _ in messages]
+    back = [(a, b) for a, b in itertools.pairwise(logs) if b < a]
+    assert not back, f"{len(back)} log times go back in file order, first {back[0]}"
+    for topic, _, publish_time, data in messages:
+        t_ns = _source_time(topic, data)
+        assert t_ns is None or publish_time == t_ns, (topic, publish_time, t_ns)
+    return messages
+
+
+def test_a_live_recording_logs_when_messages_came_and_publishes_their_source_time(
+    live_arm: None, zsession: zenoh.Session, router_endpoint: str, tmp_path: Path
+) -> None:
+    """Raw samples, poses, transforms, topology and health of several sources in one
+    file: log_time the recorder's receive time, in file order; publish_time each
+    message's t_ns; on one host a message is never logged before it was made."""
+    gw_session = client(router_endpoint)
+    gateway = Gateway(gw_session, profile_path=tmp_path / "subject.toml")
+    worker = Running(gateway.run)
+    out = tmp_path / "times.mcap"
+    try:
+        poses = Collector(zsession, keys.pose_key(), pose.decode)
+        poses.wait_for(lambda s: len(s) >= 10, timeout=20)
+        recorder = Recorder(zsession, out, DEFAULT_KEYS)
+        _wait(lambda: recorder.messages >= 1500, timeout=30)
+        recorder.close()
+    finally:
+        worker.stop()
+        gateway.close()
+        gw_session.close()
+    messages = _check_times(out)
+    topics = {topic for topic, _, _, _ in messages}
+    assert {keys.pose_key(), keys.TRANSFORMS, "body/arm/left/elbow/raw"} <= topics
+    assert any(t.startswith("body/@health/") for t in topics)
+    lag = [log_time - publish_time for _, log_time, publish_time, _ in messages]
+    assert min(lag) >= -1_000_000, f"a message logged {-min(lag)} ns before it was made"
+    # bodynet's readers: source times (not when they came), poses in source-time order
+    times = [t for t, _ in read_poses(out)]
+    assert times == sorted(times)
+    assert all(t == frame.t_ns for t, frame in read_poses(out))
+    assert all(t == s.t_ns for _, t, s in read_raw(out))
+
+
+def test_a_processed_capture_logs_in_file_order(tmp_path: Path, data_dir: Path) -> None:
+    """``bodynet process``: no receive time, log times still never go back in file
+    order (its transforms come after later raw samples); publish_time the t_ns."""
+    mcap = processed_arm(tmp_path, data_dir)
+    messages = _check_times(mcap)
+    assert any(topic == keys.TRANSFORMS for topic, _, _, _ in messages)
+
+
+def _pose_bytes(seq: int, t_ns: int) -> bytes:
+    frame = pose.PoseFrame(seq=seq, t_ns=t_ns, segments={}, joints_m={}, angles_deg={"x": seq},
+                           rel_deg={}, flags={})  # fmt: skip
+    return pose.encode(frame)
+
+
+@pytest.mark.parametrize("held", [32 << 20, 0])  # sorted in memory; read twice
+def test_readers_give_source_times_of_old_and_new_recordings_alike(
+    tmp_path: Path, held: int, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The same poses and raw samples, written as bodynet wrote them before
+    (log_time == publish_time == t_ns, file order not time order) and as it does now
+    (log_time when they came, publish_time the t_ns): bodynet's readers give the
+    same source times, in source-time order, from both."""
+    from mcap.writer import Writer
+
+    from bodynet.clients import mcap_store
+    from bodynet.clients.mcap_store import POSE_SCHEMA, RAW_SCHEMA, raw_json
+
+    monkeypatch.setattr(mcap_store, "SORT_IN_MEMORY_BYTES", held)
+    t0 = 1_700_000_000_000_000_000
+    # as they came: a source 2 s behind, another on time, poses in between
+    came = []
+    for i in range(30):
+        came.append(("raw", "body/arm/left/elbow/raw", t0 + i * 10_000_000))
+        came.append(("raw", "body/arm/right/elbow/raw", t0 - 2_000_000_000 + i * 10_000_000))
+        came.append(("pose", keys.pose_key(), t0 + i * 10_000_000 - (5_000_000 if i % 3 else 0)))
+    files = {}
+    for style in ("old", "new"):
+        path = files[style] = tmp_path / f"{style}.mcap"
+        with path.open("wb") as f:
+            writer = Writer(f)
+            writer.start()
+            schemas = {k: writer.register_schema(str(s["title"]), "jsonschema",
+                                                 json.dumps(s).encode())
+                       for k, s in (("raw", RAW_SCHEMA), ("pose", POSE_SCHEMA))}  # fmt: skip
+            channels: dict[str, int] = {}
+            for i, (kind, topic, t_ns) in enumerate(came):
+                if topic not in channels:
+                    channels[topic] = writer.register_channel(topic, "json", schemas[kind])
+                data = (_pose_bytes(i, t_ns) if kind == "pose"
+                        else json.dumps(raw_json(_raw(i, t_ns))).encode())  # fmt: skip
+                log_time = t_ns if style == "old" else t0 + 1_000_000_000 + i * 1000
+                writer.add_message(channels[topic], log_time, data, t_ns)
+            writer.finish()
+    poses = {style: [(t, f.seq, f.t_ns) for t, f in read_poses(p)] for style, p in files.items()}
+    raws = {style: [(k, t, s.seq) for k, t, s in read_raw(p)] for style, p in files.items()}
+    assert poses["new"] == poses["old"]
+    assert raws["new"] == raws["old"]
+    assert [t for t, _, _ in poses["new"]] == sorted(t for k, _, t in came if k == "pose")
+    assert all(t == t_ns for t, _, t_ns in poses["new"])
+    assert [t for _, t, _ in raws["new"]] == sorted(t for k, _, t in came if k == "raw")
+

@@ -97,17 +97,17 @@ def load_track(recording: Path, progress: bool = True, every_tick: bool = False)
     bar = tqdm(total=total or None, unit="pose", desc=recording.name, leave=False,
                disable=None if progress else True)  # fmt: skip
     with bar:
-        for log_time, frame in read_poses(recording):
+        for t_ns, frame in read_poses(recording):
             missing = [s for s in segments if s not in frame.segments]
             if missing:
-                raise StoreError(f"{recording}: the pose at {log_time} ns lacks segments "
+                raise StoreError(f"{recording}: the pose at {t_ns} ns lacks segments "
                                  f"{', '.join(missing)}")  # fmt: skip
             if n == len(t):
                 t, seg_p, seg_q, joint_p, angle_deg, rel_deg, measured = (
                     np.concatenate([a, np.empty_like(a)])
                     for a in (t, seg_p, seg_q, joint_p, angle_deg, rel_deg, measured)
                 )
-            t[n] = log_time
+            t[n] = t_ns
             seg_p[n] = [frame.segments[s][0] for s in segments]
             seg_q[n] = [frame.segments[s][1] for s in segments]
             joint_p[n] = [frame.joints_m.get(j, nan3) for j in joints]
