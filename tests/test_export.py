@@ -195,6 +195,19 @@ def test_c3d_read_by_ezc3d_matches_the_poses(body_mcap: Path, tmp_path: Path) ->
     assert "x flexion, y abduction, z rotation" in description
 
 
+def test_c3d_keeps_the_first_frame_s_absolute_time(body_mcap: Path, tmp_path: Path) -> None:
+    """The first frame's time (the first pose's source time, ns since the Unix
+    epoch) is ``BODYNET:START_NS``, a string exact to the nanosecond, resampled or not."""
+    first_ns = next(read_poses(body_mcap))[1].t_ns
+    for rate in ([], ["--rate-hz", "60"]):
+        out = tmp_path / f"start{len(rate)}.c3d"
+        result = run("export", "c3d", body_mcap, "-o", out, *rate)
+        assert result.returncode == 0, result.stderr
+        bodynet = ezc3d.c3d(str(out))["parameters"]["BODYNET"]
+        assert bodynet["START_NS"]["value"] == [str(first_ns)]
+        assert int(bodynet["START_NS"]["value"][0]) == first_ns
+
+
 def test_recordings_carry_foxglove_transforms(body_mcap: Path) -> None:
     """`bodynet process` (McapSink) writes foxglove.FrameTransforms beside the
     poses; composing each frame's chain from `world` gives the pose's segments."""

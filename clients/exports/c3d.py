@@ -21,6 +21,12 @@ stored as floats (``POINT:SCALE`` -1), in bodynet's world frame (+X forward,
   so readers that know it plot them as angles, and ``POINT:DESCRIPTIONS``
   names each component.
 
+The first frame's absolute time (its pose's source time, nanoseconds since the
+Unix epoch, what CSV's ``t_s`` and ``.sto``'s ``bodynet_start_ns`` give) is
+``BODYNET:START_NS``, a string: C3D has no parameter for it (``TRIAL`` counts
+frames only) and its numbers, float32 or 16-bit integers, cannot hold it whole.
+Frame ``i`` is at ``START_NS + i / POINT:RATE`` seconds.
+
 A value the recording lacks is NaN, and so is a joint angle with no
 measurement behind it (``is_measured`` false): such a point is written
 invalid, C3D's way (residual -1, all its coordinates NaN).
@@ -92,6 +98,8 @@ def write(track: PoseTrack, out: Path, options: Mapping[str, Any]) -> Written:
     c3d["data"]["meta_points"] = {"residuals": np.where(invalid, -1.0, 0.0)[None]}
     c3d.add_parameter("POINT", "ANGLES", [lab for lab in labels if lab.endswith(ANGLE_SUFFIX)])
     c3d.add_parameter("POINT", "ANGLE_UNITS", ["deg"])
+    c3d.add_parameter("BODYNET", "START_NS", str(int(track.t_ns[0])),
+                      "time of the first frame: ns since the Unix epoch")  # fmt: skip
     # ezc3d adds ".c3d" to a name without it: the temporary file has it already
     # (so it has a name: one a killed run leaves is removed by the next run)
     with output_file(out, ".part.c3d", named=True) as tmp:
