@@ -234,7 +234,7 @@ def cmd_record(args: argparse.Namespace) -> int:
     limit_malloc_arenas()  # before any thread (numpy's, Zenoh's) takes an arena of its own
     from bodynet.cli.nodes import stop_on_signals
     from bodynet.clients.mcap_store import StoreError, salvage_report
-    from bodynet.clients.recorder import DEFAULT_KEYS, Recorder
+    from bodynet.clients.recorder import ADMIN_KEYS, DEFAULT_KEYS, Recorder, admin_left_out
 
     if args.salvage:
         from bodynet.session.outputs import check_output
@@ -251,6 +251,10 @@ def cmd_record(args: argparse.Namespace) -> int:
         if uncounted:
             print(f"bodynet record: {args.salvage}: {uncounted}", file=sys.stderr)
         return 0
+    if args.keys and admin_left_out(args.keys):
+        print("bodynet record: warning: these key expressions match no admin key, so the "
+              "recording holds no topology, health or metrics (wildcards never match Zenoh's "
+              f"'@' chunks); add {' '.join(ADMIN_KEYS)} to keep them", file=sys.stderr)  # fmt: skip
     stop = stop_on_signals()
     session = open_session(config_from_args(args))
     try:
@@ -339,8 +343,10 @@ def _rotate_s(text: str) -> float:
 
 def add_record_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("keys", nargs="*", type=argtypes.key_expr,
-                   help="key expressions (default: every raw sample and pose, "
-                                           "the topology and every health)")  # fmt: skip
+                   help="key expressions (default: every raw sample and pose, the topology, "
+                        "every health and the metrics). Wildcards never match Zenoh's '@' "
+                        "chunks: 'body/**' leaves out topology, health and metrics; name "
+                        "them too (body/@topology 'body/@health/**' body/@metrics)")  # fmt: skip
     p.add_argument("-o", "--output", type=argtypes.output_file, required=True,
                    help="the MCAP file")  # fmt: skip
     p.add_argument("--rotate-mb", type=_rotate_mb, default=0.0,

@@ -62,6 +62,18 @@ log = logging.getLogger(__name__)
 #: (no wildcard matches them): the admin keys are named.
 DEFAULT_KEYS = (keys.all_raw(), keys.all_poses(), keys.TOPOLOGY, keys.all_health(),
                 keys.METRICS)  # fmt: skip
+#: The admin keys a recording holds by default (also after a subject).
+ADMIN_KEYS = (keys.TOPOLOGY, keys.all_health(), keys.METRICS)
+
+
+def admin_left_out(key_exprs: Sequence[str]) -> bool:
+    """Whether ``key_exprs`` match none of the admin keys (topology, health,
+    metrics, :data:`ADMIN_KEYS`): a Zenoh wildcard never matches a ``@`` chunk,
+    so ``body/**`` leaves them all out."""
+    admin = [zenoh.KeyExpr(k) for a in ADMIN_KEYS for k in (a, f"{keys.ANY_SUBJECT}/{a}")]
+    return not any(zenoh.KeyExpr(k).intersects(a) for k in key_exprs for a in admin)
+
+
 #: Samples each subscription holds for the recorder before Zenoh is held back:
 #: about a second of twenty bodies' raw samples.
 FIFO_DEPTH = 1 << 15

@@ -732,3 +732,25 @@ def test_readers_give_source_times_of_old_and_new_recordings_alike(
     assert all(t == t_ns for t, _, t_ns in poses["new"])
     assert [t for _, t, _ in raws["new"]] == sorted(t for k, _, t in came if k == "raw")
 
+
+def test_record_warns_once_when_its_keys_match_no_admin_key(
+    router_endpoint: str, tmp_path: Path
+) -> None:
+    """``record 'body/**'``: Zenoh's wildcards never match ``@`` chunks, so topology,
+    health and metrics are left out; told once at the start (and in ``--help``), not
+    when an admin key is named too, nor with the default keys."""
+    warning = "match no admin key"
+    told = {}
+    for name, extra in {"wild": ["body/**"], "named": ["body/**", "body/@topology"],
+                        "default": []}.items():  # fmt: skip
+        out = tmp_path / f"{name}.mcap"
+        rec = start_recorder(router_endpoint, out, *extra)
+        _wait(out.exists)  # recording: the warning comes before
+        rec.send_signal(signal.SIGINT)
+        _, err = rec.communicate(timeout=20)
+        assert rec.returncode == 0, err
+        told[name] = err.count(warning)
+    assert told == {"wild": 1, "named": 0, "default": 0}
+    helped = subprocess.run([str(BODYNET), "record", "--help"], capture_output=True,
+                            text=True, check=True, timeout=30)  # fmt: skip
+    assert "leaves out topology, health and metrics" in " ".join(helped.stdout.split())
