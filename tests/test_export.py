@@ -226,7 +226,7 @@ def test_recordings_carry_foxglove_transforms(body_mcap: Path) -> None:
         raw_topics = [t for t in by_topic if t.endswith("/raw")]
         assert len(raw_topics) == 15
         counts = summary.statistics.channel_message_counts
-        transforms = [(m.log_time, tf_message(m.data))
+        transforms = [(m.publish_time, tf_message(m.data))
                       for _, _, m in reader.iter_messages(topics=[keys.TRANSFORMS])]  # fmt: skip
     frames = list(read_poses(body_mcap))
     assert counts[tf.id] == len(frames) == len(transforms)

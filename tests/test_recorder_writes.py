@@ -115,8 +115,12 @@ def test_lean_writer_refuses_a_time_before_writing_any_of_it() -> None:
 
 
 def _messages(path: Path, topic: str) -> list[tuple[int, bytes]]:
+    """(source time, data) of the messages on ``topic``, in source-time order
+    (``publish_time``; ``log_time`` is when they were written)."""
     with path.open("rb") as f:
-        return [(m.log_time, m.data) for _, _, m in make_reader(f).iter_messages(topics=[topic])]
+        messages = [(m.publish_time, m.data)
+                    for _, _, m in make_reader(f).iter_messages(topics=[topic])]  # fmt: skip
+    return sorted(messages, key=lambda m: m[0])
 
 
 def _foxglove_terms(path: Path) -> list[tuple[str, str, str, str]]:
@@ -339,7 +343,7 @@ def test_the_recording_s_transforms_decode_with_their_schema(body_mcap: Path) ->
     decodes every transforms message: the mcap protobuf decoder."""
     with body_mcap.open("rb") as f:
         reader = make_reader(f, decoder_factories=[DecoderFactory()])
-        decoded = [(schema.encoding, channel.message_encoding, message.log_time, proto)
+        decoded = [(schema.encoding, channel.message_encoding, message.publish_time, proto)
                    for schema, channel, message, proto in reader.iter_decoded_messages(
                        topics=[TF])]  # fmt: skip
     assert len(decoded) > 100
