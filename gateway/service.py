@@ -9,7 +9,10 @@ body on ``body/pose`` and each branch's view on ``body/<limb>/<side>/pose``.
 Nodes are tracked through their liveliness tokens; the topology is published
 on ``body/@topology`` when it changes and answered as a query there. A site that stops delivering
 keeps its last sample, flagged stale; other branches carry on. Garbage on the
-raw keys is counted (``body/@health/gateway``), never fatal.
+raw keys is counted (``body/@health/gateway``), never fatal. Each site's clock
+offset (its node host's clock against the gateway's, from the most a sample's
+time led its arrival) is shown in topology and health, and logged as a warning
+past ``CLOCK_WARN_MS``: detected, not corrected.
 ``body/@calibrate/tpose`` answers a query by calibrating the IMU mounts from
 the last ``seconds`` of samples (the subject standing still in the T-pose, or
 with ``pose=npose`` the N-pose), or refuses with the reason and a report;
@@ -80,6 +83,16 @@ MAX_FOREIGN_KEYS = 1 << 14
 #: How long the idle worker sleeps before it looks again: while samples flow and a
 #: frame may come whole (``rounds.next_window``), and at most.
 IDLE_S, IDLE_QUIET_S = 0.0003, 0.005
+#: A source's clock offset (its host's clock minus the gateway's) is the most its
+#: samples' times led their arrival over the last one to two windows of this many
+#: seconds: network delay only delays, so the least delayed sample tells.
+CLOCK_WINDOW_S = 2.0
+#: An offset past this (ms, beyond a LAN's delay) is logged as a warning, once, and
+#: again when it has moved by ``CLOCK_REWARN_MS``.
+CLOCK_WARN_MS, CLOCK_REWARN_MS = 20.0, 100.0
+#: The offset shown (topology, health) moves only by this much (ms) at least: the
+#: topology, which goes out when it changes, does not follow the network's jitter.
+CLOCK_STEP_MS = 5.0
 
 
 class _Site:
@@ -90,7 +103,8 @@ class _Site:
     (``fields``) and made a :class:`RawSample` only when read: most samples are
     superseded before a solve reads them when the gateway is busy."""
 
-    __slots__ = ("_sample", "arrived", "fields", "fresh", "history", "kept_at", "owed")
+    __slots__ = ("_sample", "arrived", "fields", "fresh", "history", "kept_at", "lead",
+                 "lead_before", "offset_ms", "owed", "warned_ms")  # fmt: skip
 
     def __init__(self, sample: RawSample, arrived: float) -> None:
         self._sample: RawSample | None = sample
@@ -107,6 +121,11 @@ class _Site:
         # the sample time of the history's last entry, beside it: every sample asks,
         # and a field of this record is at hand where the history's last tuple is not
         self.kept_at = -math.inf
+        # the most a sample's time has led its arrival (s, the gateway's wall clock) in
+        # this window of CLOCK_WINDOW_S and in the one before: the clock offset
+        self.lead = self.lead_before = -math.inf
+        self.offset_ms: float | None = None  # the offset shown (see _Body.clock_check)
+        self.warned_ms: float | None = None  # the offset last warned of
 
     @property
     def sample(self) -> RawSample:
@@ -149,6 +168,7 @@ class _Body:
         self.first_new: float | None = None  # when the oldest unsolved sample came
         self.cadence = Cadence(period_s)  # when its frames come whole (monotonic)
         self.next_housekeeping = 0.0  # monotonic: when its topology and health go out next
+        self.clock_window_end = 0.0  # monotonic: when the clock offsets' window rolls on
         cc = zenoh.CongestionControl.BLOCK
         self.body_pub = session.declare_publisher(prefix + keys.pose_key(), congestion_control=cc)
         self.branch_pubs = {
@@ -171,38 +191,48 @@ class _Body:
             # meanwhile (a subscriber arriving): that one stands
             self.matching.setdefault(view, pub.matching_status.matching)
 
-    def take(self, site: Site, sample: RawSample, now: float) -> _Site:
+    def take(self, site: Site, sample: RawSample, now: float, wall: float | None = None) -> _Site:
         """Keep a sample as its site's latest (and, for T-pose, in its recent
         history of ``HISTORY_S``, trimmed as it grows: a second's trim of every
         site at once took milliseconds at twenty bodies, a stall every pose
-        behind it felt). Returns the site's record, for :meth:`take_into`."""
+        behind it felt). Returns the site's record, for :meth:`take_into`.
+        ``now`` is the monotonic clock, ``wall`` the wall clock (s; now if None)
+        when the samples were taken."""
         kept = self.latest.get(site)
         if kept is None:
             kept = self.latest[site] = _Site(sample, now)
-        self.take_into(kept, sample, now)
+        self.take_into(kept, sample, now, time.time() if wall is None else wall)
         return kept
 
-    def take_into(self, kept: _Site, sample: RawSample, now: float) -> None:
+    def take_into(self, kept: _Site, sample: RawSample, now: float, wall: float) -> None:
         """:meth:`take` for a site whose record the caller holds (a key's first
         sample, and samples that are not plain quaternion messages)."""
         reading = sample.reading
         if type(reading) is Quat:
             w, x, y, z = reading.wxyz
             fields = (reading.node, sample.seq, sample.t_ns, int(sample.source), w, x, y, z)
-            self.take_fields(kept, fields, now)
+            self.take_fields(kept, fields, now, wall)
         else:
             self._count(kept, now)
+            if (lead := sample.t_ns / 1e9 - wall) > kept.lead:
+                kept.lead = lead
         kept.sample = sample  # as it came (with a quaternion's extra bytes)
 
-    def take_fields(self, kept: _Site, fields: raw_sample.QuatFields, now: float) -> None:
+    def take_fields(self, kept: _Site, fields: raw_sample.QuatFields, now: float,
+                    wall: float) -> None:  # fmt: skip
         """:meth:`take_into` for a quaternion message's numbers
         (:func:`raw_sample.quat_fields`), on every IMU sample's path: the sample is
-        made only when read (``_Site.sample``)."""
+        made only when read (``_Site.sample``). ``wall``: the gateway's wall clock
+        (s) when the round took it, for the clock offset."""
         self._count(kept, now)
         kept.fields = fields
         # kept by the sample's own time: the worker takes samples in rounds, and
         # by arrival a round's samples would all have one time (one kept a round)
         t = fields[2] / 1e9
+        # the clock offset: the most a sample's time led its arrival (no max() call,
+        # and a store only when it grows: this runs for every sample)
+        if t - wall > kept.lead:  # noqa: PLR1730
+            kept.lead = t - wall
         if t - kept.kept_at >= HISTORY_STEP_S:
             hist = kept.history
             if hist is None:
@@ -307,10 +337,41 @@ class _Body:
             nodes = branch["nodes"]
             assert isinstance(nodes, dict)
             nodes[key] = {"state": state, "node": seen.sample.reading.node if seen else None,
-                          "last_t_ns": seen.sample.t_ns if seen else None}  # fmt: skip
+                          "last_t_ns": seen.sample.t_ns if seen else None,
+                          "clock_offset_ms": seen.offset_ms if seen else None}  # fmt: skip
         out: dict[str, object] = {"t_ns": time.time_ns(), "branches": branches}
         if self.unassigned:
             out["unassigned"] = sorted(self.unassigned)
+        return out
+
+    def clock_check(self, now: float) -> list[tuple[bool, str, str, float]]:
+        """Each site's clock offset (its host's clock minus the gateway's, ms): the
+        most its samples' times led their arrival in this window and the one
+        before (``CLOCK_WINDOW_S`` each; the offset less the least network delay),
+        shown once it has moved by ``CLOCK_STEP_MS``; a new window when this one
+        is over. Returns the sites to warn of (True: beyond ``CLOCK_WARN_MS``, new
+        or moved by ``CLOCK_REWARN_MS``; False: back within it), as (warn, branch,
+        raw key, offset)."""
+        roll = now >= self.clock_window_end
+        if roll:
+            self.clock_window_end = now + CLOCK_WINDOW_S
+        out = []
+        for site, kept in self.latest.items():
+            lead = max(kept.lead, kept.lead_before)
+            if roll:
+                kept.lead_before, kept.lead = kept.lead, -math.inf
+            if lead == -math.inf:
+                continue  # nothing came for two windows: the last offset shown stays
+            if kept.offset_ms is None or abs(lead * 1e3 - kept.offset_ms) >= CLOCK_STEP_MS:
+                kept.offset_ms = round(lead * 1e3, 1)
+            ms, warned = kept.offset_ms, kept.warned_ms
+            if abs(ms) > CLOCK_WARN_MS:
+                if warned is None or abs(ms - warned) >= CLOCK_REWARN_MS:
+                    kept.warned_ms = ms
+                    out.append((True, str(site.branch), site.raw_key, ms))
+            elif warned is not None:
+                kept.warned_ms = None
+                out.append((False, str(site.branch), site.raw_key, ms))
         return out
 
     def tpose_window(self, now: float, seconds: float
@@ -449,6 +510,7 @@ class Gateway:
         until = now + self.period_s  # a flood (of garbage, say) still leaves time to solve
         routes, foreign, share = self._routes, self._foreign, self.share
         quat_fields = raw_sample.quat_fields
+        wall = time.time()  # the arrival time of the round's samples, for the clock offset
         with self._lock:
             for sub in self._subs:
                 while (taken % 256 or time.monotonic() < until) and (
@@ -461,7 +523,7 @@ class Gateway:
                         payload = sample.payload.to_bytes()
                         fields = quat_fields(payload)
                         if fields is not None:  # the common case: no RawSample made
-                            route[0].take_fields(route[1], fields, now)
+                            route[0].take_fields(route[1], fields, now, wall)
                             touched.add(route[0])
                             continue
                     else:
@@ -490,10 +552,10 @@ class Gateway:
                     if route is None:  # a key's first good sample: its body is made now
                         if (body := self._body(subject)) is None:
                             continue
-                        self._route(key, body, body.take(site, raw, now))
+                        self._route(key, body, body.take(site, raw, now, wall))
                     else:
                         body = route[0]
-                        body.take_into(route[1], raw, now)
+                        body.take_into(route[1], raw, now, wall)
                     touched.add(body)
         # the loops stop at an empty queue, or on a 256th sample past the period
         return taken, touched, not taken % 256 and time.monotonic() >= until
@@ -882,10 +944,33 @@ class Gateway:
         body.next_housekeeping = now + 1.0
         with self._lock:
             stale = body.newly_stale(now)
+            clocks = body.clock_check(now)
+        self._log_clocks(body, clocks)
         if stale:
             self._solve_and_publish({body: True}, now)
         self._publish_topology(body)
         body.health_pub.put(json.dumps(self.health(body)).encode())
+
+    @staticmethod
+    def _log_clocks(body: _Body, clocks: list[tuple[bool, str, str, float]]) -> None:
+        """Warn of the sources whose host's clock is off (``_Body.clock_check``), a
+        line per branch; and say when they are back within ``CLOCK_WARN_MS``."""
+        by_branch: dict[tuple[bool, str], list[tuple[str, float]]] = {}
+        for warn, branch, key, ms in clocks:
+            by_branch.setdefault((warn, branch), []).append((key, ms))
+        for (warn, branch), found in sorted(by_branch.items()):
+            lo, hi = min(ms for _, ms in found), max(ms for _, ms in found)
+            off = f"{lo:+.0f} ms" if hi - lo < 1 else f"{lo:+.0f} to {hi:+.0f} ms"
+            where = f"{body.prefix}{branch} ({', '.join(sorted(k for k, _ in found))})"
+            if warn:
+                log.warning("gateway: the clock of the host sending %s is off by %s against "
+                            "the gateway's (+: ahead): its samples' times, and the poses, "
+                            "recordings and LSL times taken from them, are off by as much; "
+                            "synchronise that node's host clock (NTP, chrony or PTP)",
+                            where, off)  # fmt: skip
+            else:
+                log.info("gateway: the clock of the host sending %s is back within %g ms "
+                         "(%s)", where, CLOCK_WARN_MS, off)  # fmt: skip
 
     def _solve_and_publish(self, due: dict[_Body, bool], now: float) -> None:
         """Solve the bodies ``due`` (body -> even with nothing new) together, one
@@ -965,7 +1050,11 @@ class Gateway:
             # sites by the source they come through, ids this version has no name for too
             with self._lock:
                 kinds = Counter(source_name(s.sample.source) for s in body.latest.values())
+                # each site's host clock against the gateway's (ms, + ahead; clock_check)
+                clocks = {s.raw_key: k.offset_ms for s, k in body.latest.items()
+                          if k.offset_ms is not None}  # fmt: skip
             out["sources"] = dict(sorted(kinds.items()))
+            out["clock_offset_ms"] = dict(sorted(clocks.items()))
         return out
 
     def close(self) -> None:

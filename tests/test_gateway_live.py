@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import gc
 import json
+import logging
 import queue
+import re
 import threading
 import time
 from collections.abc import Iterator
@@ -684,3 +686,176 @@ def test_the_raw_keys_a_gateway_serves_are_declared_to_zenoh(router_endpoint: st
                 assert not gw._declared
         for s in (sa, sb, feeder):
             s.close()
+
+
+def _feed_skewed(
+    endpoint: str, skew_s: dict[str, float], stop: threading.Event
+) -> threading.Thread:
+    """Every IMU site's quaternions at 50 Hz, each site's ``t_ns`` its host's clock:
+    the wall clock shifted by its branch's ``skew_s`` (0 if not there), as a node
+    host whose clock is off stamps them."""
+    feeder = client(endpoint)
+    quat = BodyEmulator(ROUTINES["tpose"], imu_tags()[:1]).sample(0.0)[0][0]
+    pubs = [(n, site, feeder.declare_publisher(site.raw_key)) for n, site in IMU_SITES.items()]
+
+    def feed() -> None:
+        seq = 0
+        while not stop.wait(0.02):
+            for node, site, pub in pubs:
+                t_ns = time.time_ns() + round(skew_s.get(str(site.branch), 0.0) * 1e9)
+                sample = RawSample(Quat(node, quat.wxyz), seq, t_ns, Source.IMU_CENTRAL)
+                pub.put(raw_sample.encode(sample))
+            seq += 1
+        feeder.close()
+
+    thread = threading.Thread(target=feed, daemon=True)
+    thread.start()
+    return thread
+
+
+def _offsets_settled(
+    topology: dict[str, Any], health: dict[str, Any], expected: dict[str, float], tol_ms: float
+) -> bool:
+    """Does every IMU site show, in the topology and the gateway's health, the clock
+    offset (ms) its branch has in ``expected`` (0 if not there), within ``tol_ms``?"""
+    shown = {key: node.get("clock_offset_ms") for branch in topology["branches"].values()
+             for key, node in branch["nodes"].items()}  # fmt: skip
+    healthy = health.get("clock_offset_ms", {})
+    for site in IMU_SITES.values():
+        want = expected.get(str(site.branch), 0.0)
+        for got in (shown.get(site.raw_key), healthy.get(site.raw_key)):
+            if got is None or abs(got - want) > tol_ms:
+                return False
+    return True
+
+
+def _clock_warnings(caplog: pytest.LogCaptureFixture) -> list[str]:
+    return [r.getMessage() for r in caplog.records
+            if r.levelno >= logging.WARNING and "clock" in r.getMessage()]  # fmt: skip
+
+
+def test_a_node_host_whose_clock_is_off_is_shown_and_warned_of(
+    gateway: Gateway, router_endpoint: str, zsession: zenoh.Session,
+    caplog: pytest.LogCaptureFixture,
+) -> None:  # fmt: skip
+    """A sample's ``t_ns`` is its node host's clock: the left arm's host 2 s ahead
+    and the right arm's 2 s behind show as clock offsets of about +2000 and -2000
+    ms in the topology and the gateway's health (the others about 0), and the
+    log warns of those two branches by name, with the number and what to do."""
+    caplog.set_level(logging.INFO, logger="bodynet.gateway.service")
+    skew = {"left-arm": 2.0, "right-arm": -2.0}
+    stop = threading.Event()
+    feeding = _feed_skewed(router_endpoint, skew, stop)
+    health = Collector(zsession, keys.health_key("gateway"), json.loads)
+    try:
+        expected = {branch: s * 1e3 for branch, s in skew.items()}
+
+        def settled() -> bool:
+            topology = json.loads(
+                next(iter(zsession.get(keys.TOPOLOGY, timeout=5))).ok.payload.to_bytes()
+            )
+            return bool(health.seen) and _offsets_settled(
+                topology, health.seen[-1][1], expected, 50.0
+            )
+
+        for _ in range(2):  # the health that went out after the topology said so, too
+            n = len(health.seen)
+            health.wait_for(lambda s, n=n: len(s) > n, timeout=20)
+            wait_until(settled, 20, "the clock offsets in the topology and health")
+        assert _offsets_settled(gateway.topology(), gateway.health(gateway._bodies[None]),
+                                expected, 50.0)  # fmt: skip
+    finally:
+        stop.set()
+        feeding.join(timeout=10)
+    warnings = _clock_warnings(caplog)
+    ahead = [w for w in warnings if "left-arm (" in w]
+    behind = [w for w in warnings if "right-arm (" in w]
+    assert len(ahead) == 1, warnings  # once, not every second
+    assert len(behind) == 1, warnings
+    assert all("body/arm/left/" in w and "NTP" in w and "chrony" in w for w in ahead)
+    number = re.search(r"off by ([+-]\d+)", ahead[0])
+    assert number is not None, ahead[0]
+    assert abs(int(number[1]) - 2000) <= 50, ahead[0]
+    number = re.search(r"off by ([+-]\d+)", behind[0])
+    assert number is not None, behind[0]
+    assert abs(int(number[1]) + 2000) <= 50, behind[0]
+    assert len(warnings) == 2, warnings  # the branches on time are not warned of
+
+
+def test_node_hosts_on_time_show_no_clock_offset_and_no_warning(
+    gateway: Gateway, router_endpoint: str, zsession: zenoh.Session,
+    caplog: pytest.LogCaptureFixture,
+) -> None:  # fmt: skip
+    """Every node host on the gateway's clock (loopback): offsets about 0 in the
+    topology and health, and no warning of a clock in the log."""
+    caplog.set_level(logging.INFO, logger="bodynet.gateway.service")
+    stop = threading.Event()
+    feeding = _feed_skewed(router_endpoint, {}, stop)
+    health = Collector(zsession, keys.health_key("gateway"), json.loads)
+    try:
+        for _ in range(2):
+            n = len(health.seen)
+            health.wait_for(lambda s, n=n: len(s) > n, timeout=20)
+            wait_until(
+                lambda: (
+                    bool(health.seen)
+                    and _offsets_settled(gateway.topology(), health.seen[-1][1], {}, 15.0)
+                ),
+                20,
+                "offsets of about 0",
+            )
+    finally:
+        stop.set()
+        feeding.join(timeout=10)
+    assert _clock_warnings(caplog) == []
+
+
+def test_a_clock_offset_is_warned_of_once_and_again_when_it_moves_a_lot(
+    router_endpoint: str,
+) -> None:
+    """``_Body.clock_check`` with explicit clocks: the offset is the most a sample's
+    time led its arrival over the window and the one before; a source past
+    ``CLOCK_WARN_MS`` is warned of once, again when its offset has moved by
+    ``CLOCK_REWARN_MS``, and said back when within; the shown offset ignores
+    moves under ``CLOCK_STEP_MS``."""
+    from bodynet.gateway.service import CLOCK_WINDOW_S
+
+    session = client(router_endpoint)
+    gw = Gateway(session)
+    try:
+        body = gw._bodies[None]
+        site, quat = IMU_SITES[2], Quat(2, (1.0, 0.0, 0.0, 0.0))
+        branch = str(site.branch)
+        now, wall, seq = 0.0, 1.7e9, 0
+
+        def feed(lead_s: float, delays: tuple[float, ...] = (0.003, 0.0005, 0.002)) -> None:
+            nonlocal seq
+            for delay in delays:  # the least delayed sample tells
+                t_ns = round((wall + lead_s - delay) * 1e9)
+                body.take(site, RawSample(quat, seq, t_ns, Source.IMU_CENTRAL), now, wall)
+                seq += 1
+
+        def check() -> list[tuple[bool, str, str, float]]:
+            nonlocal now, wall
+            said = body.clock_check(now)
+            now, wall = now + CLOCK_WINDOW_S, wall + CLOCK_WINDOW_S
+            return said
+
+        feed(0.5)
+        assert check() == [(True, branch, site.raw_key, 499.5)]
+        feed(0.502)  # moved by less than CLOCK_STEP_MS: shown as it was
+        assert check() == []
+        assert body.latest[site].offset_ms == 499.5
+        feed(0.55)  # moved, not by CLOCK_REWARN_MS: shown, not warned of
+        assert check() == []
+        assert body.latest[site].offset_ms == 549.5
+        feed(0.7)
+        assert check() == [(True, branch, site.raw_key, 699.5)]
+        feed(0.0)
+        check()  # the window before still holds 0.7
+        feed(0.0)
+        assert check() == [(False, branch, site.raw_key, -0.5)]
+        assert gw.topology()["branches"][branch]["nodes"][site.raw_key]["clock_offset_ms"] == -0.5
+    finally:
+        gw.close()
+        session.close()
