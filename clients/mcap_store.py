@@ -19,7 +19,7 @@ MCAP tools (Foxglove, the ``mcap`` CLI) can open and plot them:
   poses themselves are all there).
 - ``body/@topology``: schema ``bodynet.Topology``, the gateway's topology as it
   publishes it or answers it (``t_ns``, ``branches`` -> ``nodes`` ->
-  ``state``, ``node``, ``last_t_ns``);
+  ``state``, ``node``, ``last_t_ns``, ``clock_offset_ms``);
 - ``body/@health/<source>``: schema ``bodynet.Health``, a bridge's or the
   gateway's health as published (``source``, ``t_ns``, then ``device``,
   ``rejected``, ``nodes``... or ``samples``, ``ticks``...). Log time: the
@@ -154,6 +154,7 @@ TOPOLOGY_SCHEMA = {
                                 "state": {"type": "string", "enum": ["alive", "stale", "gone"]},
                                 "node": {"type": ["integer", "null"]},
                                 "last_t_ns": {"type": ["integer", "null"]},
+                                "clock_offset_ms": {"type": ["number", "null"]},
                             },
                         },
                     }
