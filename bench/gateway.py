@@ -25,6 +25,8 @@ from typing import Any
 
 import numpy as np
 
+from bodynet.nodes.timing import JITTER_S, Sends, feed_schedule
+
 RATE_HZ = 100.0
 
 
@@ -39,39 +41,6 @@ def subject(i: int, bodies: int) -> str:
     return "" if bodies == 1 else f"s{i:02d}/"
 
 
-LINE_S = 55 * 10 / 230_400  # one IMU-central line at 230,400 baud (55 bytes, 8N1)
-JITTER_S = 1e-3  # a send is late by up to this much (OS and radio)
-DRIFT_PPM = 100.0  # each node's own timer runs this much fast or slow at most
-
-
-def feed_schedule(bodies: range, nodes: int, rate_hz: float, feed: str,
-                  seed: int = 0) -> list[tuple[float, float]]:  # fmt: skip
-    """When each node of each body first sends, and its own period, in seconds:
-    ``(offset, period)`` per (body, node), bodies in order, nodes in order.
-
-    ``locked``: every node of every body at once, every period (the gateway's
-    best case). ``realistic``: as real suits are: each body at its own phase;
-    even bodies are CAN suits, each node on its own timer (own phase in the
-    period, own clock error up to ``DRIFT_PPM``); odd bodies are serial
-    receivers, whose lines go out one after another (``LINE_S`` apart, spread
-    over the period when they do not fit). Jitter is added per send."""
-    period = 1.0 / rate_hz
-    if feed == "locked":
-        return [(0.0, period) for _ in bodies for _ in range(nodes)]
-    rng = np.random.default_rng(seed + bodies.start)
-    out = []
-    for b in bodies:
-        phase = float(rng.uniform(0, period))
-        if b % 2 == 0:  # CAN: independent node timers
-            offsets = rng.uniform(0, period, nodes)
-            periods = period * (1 + rng.uniform(-DRIFT_PPM, DRIFT_PPM, nodes) * 1e-6)
-        else:  # serial receiver: line after line, one clock
-            offsets = np.arange(nodes) * min(LINE_S, period / nodes)
-            periods = np.full(nodes, period)
-        out += [(phase + float(o), float(p)) for o, p in zip(offsets, periods, strict=True)]
-    return out
-
-
 def _feed(endpoint: str, seconds: float, sent: Any, ready: Any, bodies: range, total: int,
           rate_hz: float = RATE_HZ, feed: str = "locked", finished: Any = None,
           hold: Any = None, bridges: bool = False) -> None:  # fmt: skip
@@ -82,8 +51,6 @@ def _feed(endpoint: str, seconds: float, sent: Any, ready: Any, bodies: range, t
     BLOCK). With ``hold``: once done, add one to ``finished`` and keep the
     session open until ``hold`` is set (closing it drops what its queues still
     hold, which a subscriber that is behind has not yet had)."""
-    import heapq
-
     import zenoh
 
     from bodynet.core.codecs import raw_sample
@@ -112,27 +79,20 @@ def _feed(endpoint: str, seconds: float, sent: Any, ready: Any, bodies: range, t
     jitter = JITTER_S if feed == "realistic" else 0.0
     ready.wait()
     start = time.monotonic()
-    end = start + seconds
-    # (due, node index, tick): a node's next send; locked nodes all come due together
-    due = [(start + off, i, 0) for i, (off, _) in enumerate(schedule)]
-    heapq.heapify(due)
+    # each node's next send (nodes.timing.Sends); locked nodes all come due together
+    sends = Sends(schedule, start, jitter, rng, end=start + seconds)
     count = 0
-    while due:
+    while sends:
         now = time.monotonic()
-        if due[0][0] > now:
+        if sends.next_due > now:
             with sent.get_lock():
                 sent.value += count
             count = 0
-            time.sleep(due[0][0] - now)
-        _, i, tick = heapq.heappop(due)
+            time.sleep(sends.next_due - now)
+        _, i, tick = sends.pop()
         reading = frames[tick % len(frames)][i % len(tags)]
         pubs[i].put(raw_sample.encode(RawSample(reading, tick, time.time_ns(), Source.IMU_CENTRAL)))
         count += 1
-        offset, period = schedule[i]
-        nxt = start + offset + (tick + 1) * period
-        if nxt < end:
-            late = float(rng.uniform(0, jitter)) if jitter else 0.0
-            heapq.heappush(due, (nxt + late, i, tick + 1))
     with sent.get_lock():
         sent.value += count
     if hold is not None:

@@ -277,7 +277,7 @@ def with_gateway(bodies: int = 20, seconds: float = 10.0, feed: str = "realistic
     """``bodies`` bodies' raw samples, poses, topology and health recorded by
     ``bodynet record`` in the same run as ``bodynet gateway`` (processes, on
     loopback), each body's 15 nodes at ``rate_hz`` as ``feed`` says
-    (``bench.gateway.feed_schedule``); what was sent and published against what
+    (``nodes.timing.feed_schedule``); what was sent and published against what
     the file holds. Lost: raw samples sent and not in the file, poses missing from
     their topic's run of sequence numbers (1 to the last the gateway published:
     its ticks, from each body's health), topology and health messages a probe saw

@@ -154,7 +154,7 @@ def test_realistic_feed_is_not_phase_locked() -> None:
     """The realistic feed sends as real suits do: each body at its own phase, CAN
     nodes on their own timers, a serial receiver's lines one after another; the
     locked feed sends every node of every body at once."""
-    from bodynet.bench.gateway import DRIFT_PPM, LINE_S, feed_schedule
+    from bodynet.nodes.timing import DRIFT_PPM, LINE_S, feed_schedule
 
     period = 0.01
     locked = feed_schedule(range(4), 15, 100.0, "locked")

@@ -18,7 +18,6 @@ import pytest
 import zenoh
 from zenoh_helpers import Collector, Running, client, wait_until
 
-from bodynet.bench.gateway import feed_schedule
 from bodynet.clients.view import status_text
 from bodynet.core import keys
 from bodynet.core.codecs import pose, raw_sample
@@ -31,6 +30,7 @@ from bodynet.gateway.solver import BodySolver
 from bodynet.nodes.emulator import BodyEmulator, Realism, imu_tags
 from bodynet.nodes.motion import ROUTINES, Routine
 from bodynet.nodes.services import EmulationOptions, NodePlan, run_node
+from bodynet.nodes.timing import feed_schedule
 from bodynet.session import profile_file
 
 IDEAL_RANDOM_MOUNTS = Realism(0.0, 0.0, 0.0, 0.0, 0.0, random_tag_mounts=True)
