@@ -64,7 +64,25 @@ def _options(args: argparse.Namespace):  # type: ignore[no-untyped-def]
     )  # fmt: skip
     # where the subject faces and the tags' heading references hold even for --ideal
     realism = replace(realism, facing_deg=args.facing, headings=Headings(args.tag_headings))
-    return EmulationOptions(args.routine, realism, args.seed)
+    return EmulationOptions(args.routine, realism, args.seed, _timing(args))
+
+
+def _timing(args: argparse.Namespace):  # type: ignore[no-untyped-def]
+    """The link's timing: healthy real hardware, or with ``--ideal`` an ideal link;
+    the timing flags given say otherwise where they do."""
+    from dataclasses import replace
+
+    from bodynet.nodes.timing import LinkTiming, Timers
+
+    base = LinkTiming.ideal() if args.ideal else LinkTiming.realistic()
+    given = {
+        "timers": Timers(args.timers) if args.timers else None,
+        "clock_ppm": args.clock_ppm,
+        "jitter_s": None if args.jitter_ms is None else args.jitter_ms / 1000,
+        "drop": args.drop,
+        "late": args.late,
+    }
+    return replace(base, seed=args.seed, **{k: v for k, v in given.items() if v is not None})
 
 
 def _with_session(
@@ -175,7 +193,9 @@ def _emulation_args(p: argparse.ArgumentParser) -> None:
         help="left-arm, right-arm, left-leg, right-leg or trunk (repeatable; default all)",
     )
     p.add_argument("--sensors", type=_numbers, help="IMU sensor numbers, e.g. 1-15 or 3,5,7")
-    p.add_argument("--ideal", action="store_true", help="noise-free, bias-free sensors")
+    p.add_argument("--ideal", action="store_true",
+                   help="noise-free, bias-free sensors on an ideal link (lock-step timers, "
+                        "no jitter, nothing lost; timing flags given still apply)")  # fmt: skip
     p.add_argument("--slack-mm", type=argtypes.non_negative_float(50.0, "mm of slack"),
                    default=0.0, help="OLE cable slack (buckling)")  # fmt: skip
     p.add_argument("--drift", default=0.0, type=argtypes.bounded_float(-360.0, 360.0, "deg/min"),
@@ -197,6 +217,30 @@ def _emulation_args(p: argparse.ArgumentParser) -> None:
                    help="tags mounted with their axes along their segments' (default: "
                         "arbitrary mountings)")  # fmt: skip
     p.add_argument("--seed", type=argtypes.bounded_int(0, 2**32 - 1, "a 32-bit seed"), default=0)
+    _timing_args(p)
+
+
+def _timing_args(p: argparse.ArgumentParser) -> None:
+    """The link's timing (``nodes.timing.LinkTiming``); None: the default's."""
+    p.add_argument("--timers", choices=("independent", "locked"),
+                   help="CAN nodes each on a timer of their own (own phase in the period, own "
+                        "clock error) or all sending at once (default independent; locked "
+                        "with --ideal)")  # fmt: skip
+    p.add_argument("--clock-ppm", type=argtypes.non_negative_float(10_000.0, "ppm"),
+                   metavar="PPM",
+                   help="independent timers: each node's clock error drawn within +/- this "
+                        "(default 100)")  # fmt: skip
+    p.add_argument("--jitter-ms", type=argtypes.non_negative_float(100.0, "ms"), metavar="MS",
+                   help="CAN nodes: each send late by up to this (default 1; 0 with "
+                        "--ideal)")  # fmt: skip
+    p.add_argument("--drop", type=argtypes.bounded_float(0.0, 1.0, "a fraction"),
+                   metavar="FRACTION",
+                   help="share of frames lost: CAN frames (not sent), IMU-central tag lines "
+                        "(no new data), concentrator replies (none) (default 0)")  # fmt: skip
+    p.add_argument("--late", type=argtypes.bounded_float(0.0, 1.0, "a fraction"),
+                   metavar="FRACTION",
+                   help="concentrator: share of replies given after the bridge's timeout "
+                        "(default 0)")  # fmt: skip
 
 
 def add_bridge_args(bridge: argparse.ArgumentParser) -> None:

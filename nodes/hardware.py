@@ -10,6 +10,15 @@
   pseudo-terminal, with SmartSuit nodes behind it, so python-can's ``slcan``
   interface is exercised end to end.
 
+How their link's timing falls short of an ideal one is a
+:class:`~bodynet.nodes.timing.LinkTiming` (the default: lock-step, nothing
+lost): CAN nodes on timers of their own (own phase, own clock error), each
+send late by up to the jitter, frames lost (not sent, counted in ``dropped``
+per node); a concentrator answering late now and then, past the bridge's
+reply timeout, or not at all; an IMU central whose tags' lines are lost (it
+prints "no new data" for them). The truth of each reading that goes out is
+handed to the ``truth`` sink, with the time the reading was taken.
+
 Each pseudo-terminal is reached through a stable symlink (like udev's
 ``/dev/serial/by-id/...``), so :meth:`PtyPort.unplug` and :meth:`PtyPort.plug`
 emulate pulling the USB cable and putting it back.
@@ -19,6 +28,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import math
 import os
 import secrets
 import select
@@ -26,6 +36,7 @@ import termios
 import threading
 import time
 import tty
+from collections import Counter
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
@@ -37,6 +48,8 @@ from bodynet.core.messages import NoNewData, OleAccel, Quat, Reading, SensorAbse
 from bodynet.nodes.emulator import BodyEmulator, Truth
 from bodynet.nodes.loop import Loop
 from bodynet.nodes.sources.base import EmulatorError
+from bodynet.nodes.sources.concentrator import LATE_WINDOW_S, REPLY_TIMEOUT_S
+from bodynet.nodes.timing import LinkTiming, NodeTimers
 from bodynet.session.argtypes import is_pty_link
 
 log = logging.getLogger(__name__)
@@ -47,6 +60,13 @@ CAN_PERIOD_S = smartsuit_can.PERIOD_S
 CONCENTRATOR_CYCLE_S = concentrator.CYCLE_S
 IMU_TICK_S = imu_matrix.TICK_S
 _BAUD = {115200: termios.B115200, 230400: termios.B230400}
+#: A node's reading is the body at most this long before its send: sends due this
+#: close together share one sample of the body (which costs as much for one sensor
+#: as for all)
+SAMPLE_REUSE_S = 0.002
+#: When a late concentrator answers, after the request: past the bridge's reply
+#: timeout, early in the window in which it still takes the reply as late
+LATE_REPLY_S = REPLY_TIMEOUT_S + LATE_WINDOW_S / 4
 
 
 class Clock:
@@ -59,17 +79,44 @@ class Clock:
         return time.monotonic() - self.t0
 
 
-def _sample(body: BodyEmulator, clock: Clock, truth: TruthSink | None) -> list[Reading]:
-    readings, truths = body.sample(clock.now())
-    if truth is not None:
-        t_ns = time.time_ns()
-        for reading, tr in zip(readings, truths, strict=True):
-            truth(reading.node, tr, t_ns)
-    return readings
+class _Sampler:
+    """The body's readings for a device's sends, and the truth of each one sent.
+
+    :meth:`readings` samples the body now, or gives the last sample when it is
+    less than ``reuse_s`` old; :meth:`sent` hands the truth of a reading of it
+    that went out to the sink, with the time it was taken."""
+
+    def __init__(self, body: BodyEmulator, clock: Clock, truth: TruthSink | None,
+                 reuse_s: float = 0.0) -> None:  # fmt: skip
+        self.body, self.clock, self.truth, self.reuse_s = body, clock, truth, reuse_s
+        self._at = -math.inf
+        self._readings: dict[int, Reading] = {}
+        self._truths: dict[int, Truth] = {}
+        self._t_ns = 0
+
+    def readings(self) -> dict[int, Reading]:
+        """Every emulated sensor's reading, by node."""
+        now = time.monotonic()
+        if now - self._at >= self.reuse_s:
+            readings, truths = self.body.sample(self.clock.now())
+            self._at, self._t_ns = now, time.time_ns()
+            self._readings = {r.node: r for r in readings}
+            self._truths = {r.node: t for r, t in zip(readings, truths, strict=True)}
+        return self._readings
+
+    def sent(self, reading: Reading) -> None:
+        """``reading`` (of the last :meth:`readings`) went out."""
+        if self.truth is not None:
+            self.truth(reading.node, self._truths[reading.node], self._t_ns)
 
 
 class CanNodes(Loop):
-    """SmartSuit nodes on a python-can bus, one frame each every 10 ms."""
+    """SmartSuit nodes on a python-can bus, each sending a frame every 10 ms.
+
+    When each node sends, and which frames are lost, ``timing`` says (default:
+    all at once, none lost); a lost frame is not sent and is counted in
+    :attr:`dropped`. :attr:`drop` is the probability of a loss in force (it may
+    be changed while the nodes run)."""
 
     def __init__(
         self,
@@ -78,25 +125,49 @@ class CanNodes(Loop):
         clock: Clock | None = None,
         truth: TruthSink | None = None,
         period_s: float = CAN_PERIOD_S,
+        timing: LinkTiming | None = None,
     ) -> None:
         super().__init__("can-nodes")
         self.bus, self.body, self.clock, self.truth = bus, body, clock or Clock(), truth
         self.period_s = period_s
-        self.sent = 0
+        self.timers = NodeTimers([s.node for s in body.sensors], period_s, timing or LinkTiming())
+        #: frames sent, by node
+        self.sent: Counter[int] = Counter()
+        self._sampler = _Sampler(body, self.clock, truth, SAMPLE_REUSE_S)
+
+    @property
+    def dropped(self) -> Counter[int]:
+        """Frames lost, by node."""
+        return self.timers.dropped
+
+    @property
+    def drop(self) -> float:
+        return self.timers.drop
+
+    @drop.setter
+    def drop(self, value: float) -> None:
+        self.timers.drop = value
 
     def run(self) -> None:
-        deadline = time.monotonic()
+        timers = self.timers
+        timers.start(time.monotonic())
         while not self.stop_event.is_set():
-            for reading in _sample(self.body, self.clock, self.truth):
+            wait = timers.next_due - time.monotonic()
+            if wait > 0:
+                self.stop_event.wait(wait)
+                continue
+            nodes = timers.due(time.monotonic())
+            readings = self._sampler.readings() if nodes else {}
+            for node in nodes:
+                reading = readings[node]
                 frame = smartsuit_can.encode_reading(reading)
                 self.bus.send(
                     can.Message(
                         arbitration_id=frame.arbitration_id, data=frame.data, is_extended_id=True
                     )
                 )
-                self.sent += 1
-            deadline += self.period_s
-            self.stop_event.wait(max(0.0, deadline - time.monotonic()))
+                self.sent[node] += 1
+                self._sampler.sent(reading)
 
 
 class PtyPort:
@@ -213,13 +284,12 @@ class _PtyEmulator(Loop):
     """A device on a pseudo-terminal, driven by an emulated body."""
 
     def __init__(self, name: str, link: Path, baud: int, body: BodyEmulator,
-                 clock: Clock | None, truth: TruthSink | None) -> None:  # fmt: skip
+                 clock: Clock | None, truth: TruthSink | None,
+                 reuse_s: float = 0.0) -> None:  # fmt: skip
         super().__init__(name)
         self.port = PtyPort(link, baud)
         self.body, self.clock, self.truth = body, clock or Clock(), truth
-
-    def sample(self) -> list[Reading]:
-        return _sample(self.body, self.clock, self.truth)
+        self._sampler = _Sampler(body, self.clock, truth, reuse_s)
 
     @property
     def link(self) -> Path:
@@ -239,7 +309,12 @@ class ConcentratorEmulator(_PtyEmulator):
     """The Data Concentrator: one reply per ~22 ms cycle to each request.
 
     Requests are short (``'I'`` for node 1...) or extended lines; replies come
-    in the same form. Nodes in ``silent`` never answer (a dead sensor).
+    in the same form. Nodes in ``silent`` never answer (a dead sensor). Of the
+    other requests, a share ``timing.late`` is answered ``late_s`` after it
+    came, past the bridge's reply timeout (counted in :attr:`answered_late`),
+    and a share ``timing.drop`` not at all (counted in :attr:`dropped`); the
+    probabilities in force are :attr:`late` and :attr:`drop` (they may be
+    changed while it runs).
     """
 
     def __init__(
@@ -250,22 +325,31 @@ class ConcentratorEmulator(_PtyEmulator):
         truth: TruthSink | None = None,
         cycle_s: float = CONCENTRATOR_CYCLE_S,
         silent: Sequence[int] = (),
+        timing: LinkTiming | None = None,
+        late_s: float = LATE_REPLY_S,
     ) -> None:
         super().__init__("concentrator-emulator", link, concentrator.BAUD, body, clock, truth)
         self.cycle_s = cycle_s
         self.silent = set(silent)
+        timing = timing or LinkTiming()
+        self.drop, self.late, self.late_s = timing.drop, timing.late, late_s
+        self._rng = timing.draws()
         self.replies = 0
+        #: replies given late, and requests never answered (not ``silent``), by node
+        self.answered_late: Counter[int] = Counter()
+        self.dropped: Counter[int] = Counter()
 
     def run(self) -> None:
-        pending: list[tuple[int, bool]] = []  # (node, extended)
+        pending: list[tuple[int, bool, float, str]] = []  # (node, extended, when, fate)
         line = bytearray()
         next_cycle = time.monotonic()
         while not self.stop_event.is_set():
-            wait = max(0.0, next_cycle - time.monotonic()) if pending else 0.05
+            due = max(next_cycle, pending[0][2]) if pending else math.inf
+            wait = max(0.0, due - time.monotonic()) if pending else 0.05
             for b in self.port.read(wait):
                 node = concentrator.node_of_request(b)
                 if node is not None and not line:
-                    pending.append((node, False))
+                    pending.append(self._request(node, False))
                 elif b in b"\r\n":
                     if line:
                         try:
@@ -273,26 +357,40 @@ class ConcentratorEmulator(_PtyEmulator):
                         except ValueError:
                             result = None
                         if isinstance(result, int):
-                            pending.append((result, True))
+                            pending.append(self._request(result, True))
                         line.clear()
                 elif 0x30 <= b <= 0x39 or b in b" +-":
                     line.append(b)
-            if pending and time.monotonic() >= next_cycle:
-                node, extended = pending.pop(0)
-                self._answer(node, extended)
+            if pending and time.monotonic() >= max(next_cycle, pending[0][2]):  # its turn
+                node, extended, _, fate = pending.pop(0)
+                self._answer(node, extended, fate)
                 next_cycle = time.monotonic() + self.cycle_s
 
-    def _answer(self, node: int, extended: bool) -> None:
+    def _request(self, node: int, extended: bool) -> tuple[int, bool, float, str]:
+        """A request just came: when it is to be answered, and how."""
+        now = time.monotonic()
+        if self.drop and self._rng.random() < self.drop:
+            return node, extended, now, "lost"
+        if self.late and self._rng.random() < self.late:
+            return node, extended, now + self.late_s, "late"
+        return node, extended, now, "on time"
+
+    def _answer(self, node: int, extended: bool, fate: str) -> None:
         if node in self.silent:
             return
-        for reading in self.sample():
-            if reading.node == node and isinstance(reading, OleAccel):
-                self.port.write(
-                    concentrator.encode_extended_reply(reading)
-                    if extended
-                    else concentrator.encode_reply(reading)
-                )
-                self.replies += 1
+        if fate == "lost":
+            self.dropped[node] += 1
+            return
+        reading = self._sampler.readings().get(node)
+        if isinstance(reading, OleAccel):
+            self.port.write(
+                concentrator.encode_extended_reply(reading)
+                if extended
+                else concentrator.encode_reply(reading)
+            )
+            self.replies += 1
+            self.answered_late[node] += fate == "late"
+            self._sampler.sent(reading)
 
 
 class ImuCentralEmulator(_PtyEmulator):
@@ -300,7 +398,11 @@ class ImuCentralEmulator(_PtyEmulator):
 
     Emulated tags print flag 01 with their quaternion; slots with no tag print
     ff (never seen); a tag in ``dropouts`` prints 00 (no new data) on every
-    ``dropout_every``-th tick.
+    ``dropout_every``-th tick, and any tag's line is lost with the probability
+    ``timing.drop`` (:attr:`drop` in force, it may be changed while it runs):
+    then it prints 00 too. Its ticks keep the one clock of the receiver (no
+    timers of the tags' own, no jitter). :attr:`dropped` counts the 00 lines of
+    each tag.
     """
 
     def __init__(
@@ -312,26 +414,39 @@ class ImuCentralEmulator(_PtyEmulator):
         tick_s: float = IMU_TICK_S,
         dropouts: Sequence[int] = (),
         dropout_every: int = 4,
+        timing: LinkTiming | None = None,
     ) -> None:
         super().__init__("imu-central-emulator", link, imu_matrix.BAUD, body, clock, truth)
         self.tick_s = tick_s
         self.dropouts, self.dropout_every = set(dropouts), dropout_every
+        timing = timing or LinkTiming()
+        self.drop = timing.drop
+        self._rng = timing.draws()
         self.ticks = 0
+        #: lines of no new data (00) of each tag
+        self.dropped: Counter[int] = Counter()
+
+    def _lost(self, slot: int) -> bool:
+        if slot in self.dropouts and self.ticks % self.dropout_every == 1:
+            return True
+        return bool(self.drop) and self._rng.random() < self.drop
 
     def run(self) -> None:
         deadline = time.monotonic()
         while not self.stop_event.is_set():
-            readings = {r.node: r for r in self.sample()}
+            readings = self._sampler.readings()
             lines = []
             for slot in range(1, imu_matrix.MAX_SENSORS + 1):
                 reading = readings.get(slot)
                 if not isinstance(reading, Quat):
                     lines.append(imu_matrix.encode_line(SensorAbsent(slot)))
-                elif slot in self.dropouts and self.ticks % self.dropout_every == 1:
+                elif self._lost(slot):
                     lines.append(imu_matrix.encode_line(NoNewData(slot)))
+                    self.dropped[slot] += 1
                 else:
                     extra = (self.ticks & 0xFFFF).to_bytes(2, "little")  # a line counter
                     lines.append(imu_matrix.encode_line(Quat(slot, reading.wxyz, extra)))
+                    self._sampler.sent(reading)
             self.port.write(b"".join(lines))
             self.ticks += 1
             deadline += self.tick_s
@@ -343,7 +458,8 @@ class SlcanAdapterEmulator(_PtyEmulator):
 
     Answers the host's commands (``S``/``s`` bitrate, ``O``/``L`` open,
     ``C`` close, ``V`` version, ``N`` serial number, ``T``/``t`` transmit) and,
-    while open, forwards a frame of each node every 10 ms as a ``T`` line.
+    while open, forwards each node's frame every 10 ms as a ``T`` line: when,
+    and which are lost, ``timing`` says, as for :class:`CanNodes`.
     """
 
     def __init__(
@@ -353,26 +469,48 @@ class SlcanAdapterEmulator(_PtyEmulator):
         clock: Clock | None = None,
         truth: TruthSink | None = None,
         period_s: float = CAN_PERIOD_S,
+        timing: LinkTiming | None = None,
     ) -> None:
-        super().__init__("slcan-emulator", link, 115200, body, clock, truth)
+        super().__init__("slcan-emulator", link, 115200, body, clock, truth, SAMPLE_REUSE_S)
         self.period_s = period_s
+        self.timers = NodeTimers([s.node for s in body.sensors], period_s, timing or LinkTiming())
         self.is_open = False
-        self.sent = 0
+        #: frames forwarded, by node
+        self.sent: Counter[int] = Counter()
         self.received: list[smartsuit_can.CanFrame] = []
+
+    @property
+    def dropped(self) -> Counter[int]:
+        """Frames lost on the CAN side while the adapter was open, by node."""
+        return self.timers.dropped
+
+    @property
+    def drop(self) -> float:
+        return self.timers.drop
+
+    @drop.setter
+    def drop(self, value: float) -> None:
+        self.timers.drop = value
 
     def run(self) -> None:
         decoder = SlcanDecoder()
-        deadline = time.monotonic()
+        timers = self.timers
+        timers.start(time.monotonic())
         while not self.stop_event.is_set():
-            for event in decoder.feed(self.port.read(max(0.0, deadline - time.monotonic()))):
+            for event in decoder.feed(self.port.read(max(0.0, timers.next_due - time.monotonic()))):
                 self._command(event)
-            if time.monotonic() < deadline:
+            now = time.monotonic()
+            if now < timers.next_due:
                 continue
-            deadline += self.period_s
-            if self.is_open:
-                frames = [smartsuit_can.encode_reading(r) for r in self.sample()]
-                self.port.write(b"".join(map(smartsuit_can.encode_slcan, frames)))
-                self.sent += len(frames)
+            nodes = timers.due(now, lossy=self.is_open)
+            if self.is_open and nodes:
+                readings = self._sampler.readings()
+                sent = [readings[n] for n in nodes]
+                frames = [smartsuit_can.encode_slcan(smartsuit_can.encode_reading(r)) for r in sent]
+                self.port.write(b"".join(frames))
+                for reading in sent:
+                    self.sent[reading.node] += 1
+                    self._sampler.sent(reading)
 
     def _command(self, event: object) -> None:
         if isinstance(event, smartsuit_can.CanFrame):

@@ -32,6 +32,7 @@ from bodynet.nodes import sources
 from bodynet.nodes.emulator import BodyEmulator, Realism, Truth
 from bodynet.nodes.hardware import Clock, TruthSink
 from bodynet.nodes.motion import ROUTINES, Routine
+from bodynet.nodes.timing import LinkTiming
 
 log = logging.getLogger(__name__)
 
@@ -66,9 +67,15 @@ def truth_sink(session: zenoh.Session, sites: Mapping[int, Site]) -> TruthSink:
 
 @dataclass(frozen=True)
 class EmulationOptions:
+    """What emulated hardware does: its body's motion, how its sensors fall short
+    of ideal ones (``realism``) and how its link's timing does (``timing``: by
+    default an ideal link, lock-step and lossless; ``bodynet emulate`` and
+    ``node`` default to ``LinkTiming.realistic()``)."""
+
     routine: str | Routine = "random"  # a name in ROUTINES, or a routine
     realism: Realism = field(default_factory=Realism)
     seed: int = 0
+    timing: LinkTiming = field(default_factory=LinkTiming)
 
 
 def _body(options: EmulationOptions, sensors: Sequence[Any]) -> BodyEmulator:
@@ -98,7 +105,8 @@ def emulate(
     sites = {s.node: s.site for s in emulated}
     sink = truth_sink(truth_session, sites) if truth_session is not None else None
     body = _body(options, emulated)
-    opts = {"link": link, "silent": silent, "bus_args": bus_args, **device_args}
+    opts = {"link": link, "silent": silent, "bus_args": bus_args, **device_args,
+            "timing": options.timing}  # fmt: skip
     device = source.emulator(kind, body, sink, opts)
     device.start()
     where = device.link
@@ -152,7 +160,7 @@ def run_node(
             body = _body(options, sensors)
             truth = truth_sink(session, {s.node: s.site for s in sensors})
             emulator, target, kwargs = source.node(
-                plan.via, body, tmp, clock, truth, sensors, label
+                plan.via, body, tmp, clock, truth, sensors, label, timing=options.timing
             )
             emulator.start()
             stack.callback(emulator.stop)

@@ -108,13 +108,14 @@ class Concentrator(SerialSource):
         from bodynet.nodes.hardware import ConcentratorEmulator
 
         return ConcentratorEmulator(opts["link"], body, truth=truth,
-                                    silent=opts.get("silent", ()))  # fmt: skip
+                                    silent=opts.get("silent", ()),
+                                    timing=opts.get("timing"))  # fmt: skip
 
     def node(self, device: str, body: Any, where: Path, clock: Any, truth: Any,
-             sensors: list[Any], label: str) -> NodeParts:  # fmt: skip
+             sensors: list[Any], label: str, timing: Any = None) -> NodeParts:  # fmt: skip
         from bodynet.nodes.hardware import ConcentratorEmulator
 
-        emulator = ConcentratorEmulator(where / label, body, clock, truth)
+        emulator = ConcentratorEmulator(where / label, body, clock, truth, timing=timing)
         nodes = tuple(s.node for s in sensors)
         source = Concentrator(self.sites, None, nodes)
         return emulator, source.run_bridge, {"port": str(where / label)}

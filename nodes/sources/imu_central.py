@@ -39,11 +39,11 @@ class ImuCentral(SerialSource):
     def emulator(self, device: str, body: Any, truth: Any, opts: dict[str, Any]) -> Any:
         from bodynet.nodes.hardware import ImuCentralEmulator
 
-        return ImuCentralEmulator(opts["link"], body, truth=truth)
+        return ImuCentralEmulator(opts["link"], body, truth=truth, timing=opts.get("timing"))
 
     def node(self, device: str, body: Any, where: Path, clock: Any, truth: Any,
-             sensors: list[Any], label: str) -> NodeParts:  # fmt: skip
+             sensors: list[Any], label: str, timing: Any = None) -> NodeParts:  # fmt: skip
         from bodynet.nodes.hardware import ImuCentralEmulator
 
-        emulator = ImuCentralEmulator(where / label, body, clock, truth)
+        emulator = ImuCentralEmulator(where / label, body, clock, truth, timing=timing)
         return emulator, self.run_bridge, {"port": str(where / label)}

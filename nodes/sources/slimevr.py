@@ -138,7 +138,9 @@ class SlimeVR(Source):
                                 opts.get("rate_hz") or 100.0, truth=truth)  # fmt: skip
 
     def node(self, device: str, body: Any, where: Path, clock: Any, truth: Any,
-             sensors: list[Any], label: str) -> NodeParts:  # fmt: skip
+             sensors: list[Any], label: str, timing: Any = None) -> NodeParts:  # fmt: skip
+        """Emulated trackers and their bridge; the trackers keep their own pace
+        (``timing`` is not applied to UDP)."""
         from bodynet.nodes.slimevr_bridge import run_bridge
 
         listen = ("127.0.0.1", free_udp_port())

@@ -136,20 +136,21 @@ class SmartSuitCan(Source):
     def emulator(self, device: str, body: Any, truth: Any, opts: dict[str, Any]) -> Any:
         from bodynet.nodes.hardware import SlcanAdapterEmulator
 
+        timing = opts.get("timing")
         if device == "can":
-            return _BusNodes(dict(opts.get("bus_args") or {}), body, truth)
-        return SlcanAdapterEmulator(opts["link"], body, truth=truth)
+            return _BusNodes(dict(opts.get("bus_args") or {}), body, truth, timing=timing)
+        return SlcanAdapterEmulator(opts["link"], body, truth=truth, timing=timing)
 
     def node(self, device: str, body: Any, where: Path, clock: Any, truth: Any,
-             sensors: list[Any], label: str) -> NodeParts:  # fmt: skip
+             sensors: list[Any], label: str, timing: Any = None) -> NodeParts:  # fmt: skip
         from bodynet.nodes.hardware import SlcanAdapterEmulator
 
         if device == "can":
             channel = f"bodynet-{label}-{time.monotonic_ns()}"
             bus_args = {"interface": "virtual", "channel": channel}
-            return _BusNodes(bus_args, body, truth, clock), run_bridge, bus_args
+            return _BusNodes(bus_args, body, truth, clock, timing), run_bridge, bus_args
         link = str(where / label)
-        emulator = SlcanAdapterEmulator(where / label, body, clock, truth)
+        emulator = SlcanAdapterEmulator(where / label, body, clock, truth, timing=timing)
         return emulator, run_bridge, {"interface": "slcan", "channel": link,
                                       "sleep_after_open": 0}  # fmt: skip
 
@@ -157,8 +158,10 @@ class SmartSuitCan(Source):
 class _BusNodes:
     """Emulated nodes on a python-can bus this object opens and closes."""
 
-    def __init__(self, bus_args: dict[str, Any], body: Any, truth: Any, clock: Any = None):
+    def __init__(self, bus_args: dict[str, Any], body: Any, truth: Any, clock: Any = None,
+                 timing: Any = None) -> None:  # fmt: skip
         self.bus_args, self.body, self.truth, self.clock = bus_args, body, truth, clock
+        self.timing = timing
         self.link = bus_args.get("channel")
         self._bus: can.BusABC | None = None
         self._nodes: Any = None
@@ -171,7 +174,7 @@ class _BusNodes:
         except (can.CanError, OSError) as exc:  # no such interface, channel or port
             where = ", ".join(f"{k} {v}" for k, v in self.bus_args.items() if v is not None)
             raise EmulatorError(f"cannot open the CAN bus ({where}): {exc}") from None
-        self._nodes = CanNodes(self._bus, self.body, self.clock, self.truth)
+        self._nodes = CanNodes(self._bus, self.body, self.clock, self.truth, timing=self.timing)
         self._nodes.start()
 
     def stop(self) -> None:
