@@ -142,6 +142,7 @@ class CanNodes(Loop):
 
     @property
     def drop(self) -> float:
+        """The probability a frame is lost, in force now (settable)."""
         return self.timers.drop
 
     @drop.setter
@@ -486,6 +487,7 @@ class SlcanAdapterEmulator(_PtyEmulator):
 
     @property
     def drop(self) -> float:
+        """The probability a frame is lost, in force now (settable)."""
         return self.timers.drop
 
     @drop.setter

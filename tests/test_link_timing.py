@@ -38,9 +38,15 @@ from bodynet.core.profile import SMARTSUIT_SITES
 from bodynet.gateway.service import Gateway
 from bodynet.nodes.can_bridge import CanBridge
 from bodynet.nodes.concentrator_bridge import ConcentratorBridge
-from bodynet.nodes.emulator import BodyEmulator, Realism, Truth, smartsuit_sensors
-from bodynet.nodes.hardware import CAN_PERIOD_S, CanNodes, ConcentratorEmulator
-from bodynet.nodes.motion import Routine
+from bodynet.nodes.emulator import BodyEmulator, Realism, Truth, imu_tags, smartsuit_sensors
+from bodynet.nodes.hardware import (
+    CAN_PERIOD_S,
+    CanNodes,
+    ConcentratorEmulator,
+    ImuCentralEmulator,
+)
+from bodynet.nodes.imu_bridge import ImuCentralBridge
+from bodynet.nodes.motion import ROUTINES, Routine
 from bodynet.nodes.services import EmulationOptions, NodePlan, run_node
 from bodynet.nodes.timing import LinkTiming, NodeTimers, Timers
 
@@ -300,6 +306,42 @@ def test_concentrator_answering_late_never_puts_a_reading_on_another_node(
     for n in NODES:  # every reply on time published but the one in flight at the stop
         on_time = truths.count[n] - dc.answered_late[n]
         assert on_time - 1 <= bridge.publisher.nodes[n].samples <= on_time
+
+
+def test_imu_central_tag_lines_lost_are_the_gaps_the_bridge_counts(
+    zsession: zenoh.Session, tmp_path: Path, run_thread: Callable[..., Running]
+) -> None:
+    """The IMU central with 5% of its tags' lines lost (printed as no new data):
+    the bridge's gaps per tag are the lines the emulator lost, and the truth is
+    given for each line that went out, none for a lost one."""
+    tags = imu_tags(range(1, 5))
+    truths = Truths()
+    central = ImuCentralEmulator(tmp_path / "imu", BodyEmulator(ROUTINES["tpose"], tags,
+                                 realism=Realism.ideal()), truth=truths, tick_s=0.01,
+                                 timing=LinkTiming(drop=0.05, seed=5))  # fmt: skip
+    central.drop = 0.0  # as on the CAN bus: none lost before the bridge has each tag
+    central.start()
+    bridge = ImuCentralBridge(zsession, "imu-lossy")
+    running = run_thread(bridge.run, str(central.link))
+    counted = bridge.publisher.nodes
+    try:
+        wait_until(lambda: all(n in counted for n in range(1, 5)), what="every tag bridged")
+        central.drop = 0.05
+        wait_until(lambda: min(central.dropped[n] for n in range(1, 5)) >= 8, 30.0, "losses")
+        central.drop = 0.0  # and none at the end: a loss shows at the tag's next line
+        wait_until(lambda: all(counted[n].gaps >= central.dropped[n] for n in range(1, 5)),
+                   10.0, "the bridge to count every loss")  # fmt: skip
+        running.stop()
+    finally:
+        central.stop()
+        bridge.close()
+    lost = Counter(central.dropped)
+    print(
+        f"\nticks {central.ticks}, lost {dict(lost)}, gaps { ({n: counted[n].gaps for n in lost}) }"
+    )
+    for n in range(1, 5):
+        assert counted[n].gaps == lost[n]
+        assert truths.count[n] + lost[n] == central.ticks  # each tick a line, or its loss
 
 
 def test_emulation_flags_make_the_link_timing() -> None:
