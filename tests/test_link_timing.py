@@ -274,12 +274,15 @@ def test_concentrator_answering_late_never_puts_a_reading_on_another_node(
     timing = LinkTiming(late=0.2, drop=0.05, seed=4)
     dc = ConcentratorEmulator(tmp_path / "dc", BodyEmulator(routine, sensors,
                               realism=Realism.ideal()), truth=truths, timing=timing)  # fmt: skip
+    dc.late = dc.drop = 0.0  # every node on time until the bridge has it (counts per node)
     dc.start()
     raw = raw_collector(zsession)
     bridge = ConcentratorBridge(zsession, "dc-late", nodes=NODES)
     running = run_thread(bridge.run, str(dc.link))
-    rejected = bridge.publisher.rejected
+    rejected, counted = bridge.publisher.rejected, bridge.publisher.nodes
     try:
+        wait_until(lambda: all(n in counted for n in NODES), what="every node bridged")
+        dc.late, dc.drop = timing.late, timing.drop
         wait_until(lambda: sum(dc.answered_late.values()) >= 8 and sum(dc.dropped.values()) >= 2,
                    30.0, "late and missing replies")  # fmt: skip
         dc.late = dc.drop = 0.0  # the counts settle: a missing reply is one at the next poll
@@ -295,7 +298,9 @@ def test_concentrator_answering_late_never_puts_a_reading_on_another_node(
         bridge.close()
     late, lost = sum(dc.answered_late.values()), sum(dc.dropped.values())
     print(f"\nreplies {dc.replies}, late {late}, none {lost}; bridge {counts}")
-    assert counts.get("late_reply", 0) == late
+    # each late reply is counted, and maybe a reply on time that the host held past
+    # the bridge's 100 ms (both ends share this process): late to the bridge too
+    assert late <= counts.get("late_reply", 0) <= late + 2
     assert counts.get("no_reply", 0) == lost
     assert set(counts) <= {"late_reply", "no_reply"}
     for key, sample in seen:
@@ -303,9 +308,10 @@ def test_concentrator_answering_late_never_puts_a_reading_on_another_node(
         assert key == SMARTSUIT_SITES[node].raw_key
         assert sample.reading == want[node], f"node {node}'s key got {sample.reading}"
         assert truths.last[node].angles_deg == truth_of[node - 1].angles_deg
-    for n in NODES:  # every reply on time published but the one in flight at the stop
-        on_time = truths.count[n] - dc.answered_late[n]
-        assert on_time - 1 <= bridge.publisher.nodes[n].samples <= on_time
+    for n in NODES:  # each reply given is published or counted late, once (but the one
+        late_n = counted[n].rejected.get("late_reply", 0)  # in flight at the stop)
+        assert late_n >= dc.answered_late[n]
+        assert truths.count[n] - 1 <= counted[n].samples + late_n <= truths.count[n]
 
 
 def test_imu_central_tag_lines_lost_are_the_gaps_the_bridge_counts(
