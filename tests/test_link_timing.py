@@ -125,7 +125,7 @@ def test_node_timers_send_each_node_on_its_own_timer_and_count_what_is_lost() ->
     [(1e-3, 0.05), (0.02, 0.0)],
     # held back: sends late by up to two periods (a busy host, an adapter handing
     # frames on in bursts), which the bridge numbering frames by the time since the
-    # last one took for hundreds of lost frames
+    # last one took for lost frames (88 of ~200 in a run)
     ids=["jitter-1ms-5%-lost", "held-back-20ms"],
 )
 def test_can_nodes_on_their_own_timers_the_bridge_counts_every_loss(
