@@ -110,7 +110,28 @@ class _Sampler:
             self.truth(reading.node, self._truths[reading.node], self._t_ns)
 
 
-class CanNodes(Loop):
+class _OnTimers:
+    """Nodes that send on their own timers (:class:`NodeTimers`): the frames they
+    lost, and the loss in force."""
+
+    timers: NodeTimers
+
+    @property
+    def dropped(self) -> Counter[int]:
+        """Frames lost, by node (an slcan adapter's: while it was open)."""
+        return self.timers.dropped
+
+    @property
+    def drop(self) -> float:
+        """The probability a frame is lost, in force now (settable)."""
+        return self.timers.drop
+
+    @drop.setter
+    def drop(self, value: float) -> None:
+        self.timers.drop = value
+
+
+class CanNodes(_OnTimers, Loop):
     """SmartSuit nodes on a python-can bus, each sending a frame every 10 ms.
 
     When each node sends, and which frames are lost, ``timing`` says (default:
@@ -134,20 +155,6 @@ class CanNodes(Loop):
         #: frames sent, by node
         self.sent: Counter[int] = Counter()
         self._sampler = _Sampler(body, self.clock, truth, SAMPLE_REUSE_S)
-
-    @property
-    def dropped(self) -> Counter[int]:
-        """Frames lost, by node."""
-        return self.timers.dropped
-
-    @property
-    def drop(self) -> float:
-        """The probability a frame is lost, in force now (settable)."""
-        return self.timers.drop
-
-    @drop.setter
-    def drop(self, value: float) -> None:
-        self.timers.drop = value
 
     def run(self) -> None:
         timers = self.timers
@@ -454,7 +461,7 @@ class ImuCentralEmulator(_PtyEmulator):
             self.port.read(max(0.0, deadline - time.monotonic()))  # drain, and pace
 
 
-class SlcanAdapterEmulator(_PtyEmulator):
+class SlcanAdapterEmulator(_OnTimers, _PtyEmulator):
     """A Lawicel slcan adapter with SmartSuit nodes on its CAN side.
 
     Answers the host's commands (``S``/``s`` bitrate, ``O``/``L`` open,
@@ -479,20 +486,6 @@ class SlcanAdapterEmulator(_PtyEmulator):
         #: frames forwarded, by node
         self.sent: Counter[int] = Counter()
         self.received: list[smartsuit_can.CanFrame] = []
-
-    @property
-    def dropped(self) -> Counter[int]:
-        """Frames lost on the CAN side while the adapter was open, by node."""
-        return self.timers.dropped
-
-    @property
-    def drop(self) -> float:
-        """The probability a frame is lost, in force now (settable)."""
-        return self.timers.drop
-
-    @drop.setter
-    def drop(self, value: float) -> None:
-        self.timers.drop = value
 
     def run(self) -> None:
         decoder = SlcanDecoder()

@@ -121,3 +121,20 @@ def run_thread() -> Iterator[Callable[..., Running]]:
     yield start
     for running in started:
         running.stop()
+
+
+@pytest.fixture
+def gateway(router_endpoint: str, tmp_path: Path) -> Iterator[Any]:
+    """A gateway on a client session of ``router_endpoint``, running, its profile
+    in ``tmp_path``; stopped and closed at teardown."""
+    from zenoh_helpers import client
+
+    from bodynet.gateway.service import Gateway
+
+    session = client(router_endpoint)
+    gw = Gateway(session, profile_path=tmp_path / "subject.toml")
+    running = Running(gw.run)
+    yield gw
+    running.stop()
+    gw.close()
+    session.close()

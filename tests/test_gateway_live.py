@@ -9,7 +9,6 @@ import queue
 import re
 import threading
 import time
-from collections.abc import Iterator
 from functools import partial
 from pathlib import Path
 from typing import Any
@@ -42,17 +41,6 @@ TARGET = {
     "right_elbow_flexion_deg": 90.0,
     "left_knee_flexion_deg": 45.0,
 }
-
-
-@pytest.fixture
-def gateway(router_endpoint: str, tmp_path: Path) -> Iterator[Gateway]:
-    session = client(router_endpoint)
-    gw = Gateway(session, profile_path=tmp_path / "subject.toml")
-    running = Running(gw.run)
-    yield gw
-    running.stop()
-    gw.close()
-    session.close()
 
 
 def close_to(frame: pose.PoseFrame, target: dict[str, float], tol: float) -> bool:

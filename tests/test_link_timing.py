@@ -19,7 +19,7 @@ import math
 import queue
 import time
 from collections import Counter, defaultdict
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from functools import partial
 from pathlib import Path
 from typing import Any
@@ -189,17 +189,6 @@ def test_can_nodes_on_their_own_timers_the_bridge_counts_every_loss(
         apart = [apart_s(a, b, CAN_PERIOD_S) for a, b in itertools.combinations(phases, 2)]
         print(f"phases (ms) {[round(p * 1e3, 2) for p in phases]}")
         assert min(apart) > 1e-3
-
-
-@pytest.fixture
-def gateway(router_endpoint: str, tmp_path: Path) -> Iterator[Gateway]:
-    session = client(router_endpoint)
-    gw = Gateway(session, profile_path=tmp_path / "subject.toml")
-    running = Running(gw.run)
-    yield gw
-    running.stop()
-    gw.close()
-    session.close()
 
 
 def test_gateway_follows_the_truth_over_a_jittery_lossy_can_link(
