@@ -346,6 +346,8 @@ class ConcentratorEmulator(_PtyEmulator):
         #: replies given late, and requests never answered (not ``silent``), by node
         self.answered_late: Counter[int] = Counter()
         self.dropped: Counter[int] = Counter()
+        #: requests received, by node
+        self.asked: Counter[int] = Counter()
 
     def run(self) -> None:
         pending: list[tuple[int, bool, float, str]] = []  # (node, extended, when, fate)
@@ -377,6 +379,7 @@ class ConcentratorEmulator(_PtyEmulator):
     def _request(self, node: int, extended: bool) -> tuple[int, bool, float, str]:
         """A request just came: when it is to be answered, and how."""
         now = time.monotonic()
+        self.asked[node] += 1
         if self.drop and self._rng.random() < self.drop:
             return node, extended, now, "lost"
         if self.late and self._rng.random() < self.late:

@@ -36,6 +36,8 @@ from bodynet.session import argtypes
 #: still counts as the late answer to that request before the next one is sent.
 REPLY_TIMEOUT_S = 0.1
 LATE_WINDOW_S = 0.1
+#: A node unanswered this many cycles in a row is asked only every DEAD_EVERY th cycle.
+DEAD_AFTER, DEAD_EVERY = 3, 10
 
 
 class CycleAdapter(Adapter):
@@ -77,15 +79,21 @@ class Concentrator(SerialSource):
         return CycleAdapter(self.period_s, rate_hz)
 
     def serve(self, link: Any, stop: threading.Event, bridge: Feed) -> None:
-        """Poll each node in turn, a cycle after another, until ``stop``."""
+        """Poll each node in turn, a cycle after another, until ``stop``. A node
+        that has not answered ``DEAD_AFTER`` cycles in a row is asked only every
+        ``DEAD_EVERY`` th cycle until it answers again: each unanswered request
+        costs the timeout and the late window, which would slow every live node."""
         decoder = codec.ConcentratorDecoder(replies_only=True)
+        silent = dict.fromkeys(self.nodes, 0)  # cycles in a row without a reply
         cycle = 0
         while not stop.is_set():
             bridge.feed([Tick(cycle)])
             for node in self.nodes:
                 if stop.is_set():
                     break
-                _ask(link, decoder, node, stop, bridge)
+                if silent[node] >= DEAD_AFTER and cycle % DEAD_EVERY:
+                    continue
+                silent[node] = 0 if _ask(link, decoder, node, stop, bridge) else silent[node] + 1
             cycle += 1
 
     @classmethod
@@ -122,16 +130,18 @@ class Concentrator(SerialSource):
 
 
 def _ask(link: Any, decoder: codec.ConcentratorDecoder, node: int, stop: threading.Event,
-         bridge: Feed) -> None:  # fmt: skip
+         bridge: Feed) -> bool:  # fmt: skip
     """One exchange on the open port (pyserial's ``Serial``): request ``node``'s
-    reading and wait for it, then, if it is overdue, for its late reply."""
+    reading and wait for it, then, if it is overdue, for its late reply. Whether
+    it answered (on time or late)."""
     if link.in_waiting:  # left from before: later than its late window, or a banner
         bridge.feed(decoder.feed(link.read(link.in_waiting)))
     bridge.feed(decoder.poll(node))
     link.write(codec.request(node))
-    if not _listen(link, decoder, REPLY_TIMEOUT_S, stop, bridge):
-        decoder.overdue()
-        _listen(link, decoder, LATE_WINDOW_S, stop, bridge)
+    if _listen(link, decoder, REPLY_TIMEOUT_S, stop, bridge):
+        return True
+    decoder.overdue()
+    return _listen(link, decoder, LATE_WINDOW_S, stop, bridge)
 
 
 def _listen(link: Any, decoder: codec.ConcentratorDecoder, timeout_s: float,
