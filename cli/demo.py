@@ -24,7 +24,7 @@ from pathlib import Path
 import zenoh
 
 from bodynet.clients.recorder import Recorder
-from bodynet.clients.view import GRPC_PORT, WEB_PORT, Viewer, _check_free, view_live
+from bodynet.clients.view import GRPC_PORT, WEB_PORT, Viewer, check_free, view_live
 from bodynet.core import keys
 from bodynet.core.codecs import pose
 from bodynet.core.errors import DecodeError
@@ -146,8 +146,8 @@ def run_demo(endpoint: str, routine: str, seconds: float | None, record: Path,
                     check_output(output)
                     PendingOutput(output).discard()  # a folder that takes no file: /proc
             if viewer_mode == "web":  # `view` has --grpc-port for Rerun's data port; the demo not
-                _check_free(web_port or WEB_PORT, "--web-port")
-                _check_free(GRPC_PORT, "Rerun's data port, fixed in the demo; free it, or "
+                check_free(web_port or WEB_PORT, "--web-port")
+                check_free(GRPC_PORT, "Rerun's data port, fixed in the demo; free it, or "
                                        "--viewer none")  # fmt: skip
             parts = _start(stack, endpoint, routine, record, stop, viewer_mode, rrd, web_port)
         except (OSError, SessionError) as exc:

@@ -395,7 +395,7 @@ class ViewerError(OSError):
 GRPC_PORT, WEB_PORT = 9876, 9090
 
 
-def _check_free(port: int, option: str) -> None:
+def check_free(port: int, option: str) -> None:
     """``ViewerError`` unless ``port`` can be listened on (Rerun says so only in
     its log, and fails later)."""
     try:
@@ -615,8 +615,8 @@ def _sink(mode: str, bp: rrb.Blueprint, recording_id: str, url: str | None,
         if mode == "native":
             rec.spawn(default_blueprint=bp)
         elif mode == "web":
-            _check_free(web_port or WEB_PORT, "--web-port")
-            _check_free(grpc_port or GRPC_PORT, "--grpc-port")
+            check_free(web_port or WEB_PORT, "--web-port")
+            check_free(grpc_port or GRPC_PORT, "--grpc-port")
             uri = rec.serve_grpc(grpc_port=grpc_port, default_blueprint=bp)
             rr.serve_web_viewer(open_browser=False, connect_to=uri, web_port=web_port)
         else:

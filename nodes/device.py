@@ -10,7 +10,7 @@ import os
 import stat
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from typing import TYPE_CHECKING, TypeVar
 
 from bodynet.core.errors import RejectCounts
@@ -47,32 +47,30 @@ def never_opens(exc: BaseException, path: str | None = None) -> str | None:
 
     ``path``: the device's path if it has one (a serial port), to say what it
     is instead."""
-    seen: BaseException | None = exc
-    for _ in range(5):  # python-can wraps pyserial's error, which wraps the OS's
-        if seen is None:
-            break
+    for seen, code in _causes(exc):
         if isinstance(seen, DeviceError):  # said by the opener (a CAN driver missing)
             return str(seen)
-        code = getattr(seen, "errno", None) or (seen.args[0] if seen.args else None)
         if code == errno.EAFNOSUPPORT:
             return f"{seen.args[-1] if seen.args else seen} (this kernel has no SocketCAN?)"
         if code in (errno.EISDIR, errno.ENOTTY):
             return _not_a_port(path) or str(seen)
-        seen = seen.__cause__ or seen.__context__
     return None
 
 
 def in_use(exc: BaseException) -> bool:
     """Whether the error ``exc`` of opening a device says another program holds it."""
+    return any(code in IN_USE_ERRNOS for _, code in _causes(exc))
+
+
+def _causes(exc: BaseException) -> Iterator[tuple[BaseException, object]]:
+    """``exc`` and what caused it, a few deep (python-can wraps pyserial's error,
+    which wraps the OS's), each with its error number (or first argument)."""
     seen: BaseException | None = exc
     for _ in range(5):
         if seen is None:
-            break
-        code = getattr(seen, "errno", None) or (seen.args[0] if seen.args else None)
-        if code in IN_USE_ERRNOS:
-            return True
+            return
+        yield seen, getattr(seen, "errno", None) or (seen.args[0] if seen.args else None)
         seen = seen.__cause__ or seen.__context__
-    return False
 
 
 def _not_a_port(path: str | None) -> str | None:

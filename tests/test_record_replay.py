@@ -494,35 +494,31 @@ def _schemas(path: Path) -> dict[str, dict[str, object]]:
 
 
 def test_record_keeps_topology_and_health_by_default(
-    live_arm: None, zsession: zenoh.Session, router_endpoint: str, tmp_path: Path
+    live_arm: None,
+    gateway: Gateway,
+    zsession: zenoh.Session,
+    router_endpoint: str,
+    tmp_path: Path,
 ) -> None:
     """The left arm through its CAN bridge, a gateway, and `bodynet record` with no
     keys: raw samples, poses, the topology and every health, each readable with
     the schema its channel names."""
-    gw_session = client(router_endpoint)
-    gateway = Gateway(gw_session, profile_path=tmp_path / "subject.toml")
-    worker = Running(gateway.run)
     out = tmp_path / "all.mcap"
-    try:
-        poses = Collector(zsession, keys.pose_key(), pose.decode)
-        poses.wait_for(lambda s: len(s) >= 10, timeout=20)  # the gateway has its topology
-        health = Collector(zsession, keys.all_health(), json.loads)
-        rec = start_recorder(router_endpoint, out)
-        wait_for_size(out, 1)
-        mark = time.time_ns() + 500_000_000  # the recorder subscribes as it creates its file
+    poses = Collector(zsession, keys.pose_key(), pose.decode)
+    poses.wait_for(lambda s: len(s) >= 10, timeout=20)  # the gateway has its topology
+    health = Collector(zsession, keys.all_health(), json.loads)
+    rec = start_recorder(router_endpoint, out)
+    wait_for_size(out, 1)
+    mark = time.time_ns() + 500_000_000  # the recorder subscribes as it creates its file
 
-        def rounds(seen: list[tuple[str, dict[str, int]]], source: str) -> int:
-            return sum(k == keys.health_key(source) and m["t_ns"] > mark for k, m in seen)
+    def rounds(seen: list[tuple[str, dict[str, int]]], source: str) -> int:
+        return sum(k == keys.health_key(source) and m["t_ns"] > mark for k, m in seen)
 
-        # two rounds of health after the recorder came (each source: every second)
-        health.wait_for(lambda s: rounds(s, "gateway") >= 2 and rounds(s, "rec-test") >= 2,
-                        timeout=20)  # fmt: skip
-        rec.send_signal(signal.SIGINT)
-        assert rec.wait(timeout=20) == 0
-    finally:
-        worker.stop()
-        gateway.close()
-        gw_session.close()
+    # two rounds of health after the recorder came (each source: every second)
+    health.wait_for(lambda s: rounds(s, "gateway") >= 2 and rounds(s, "rec-test") >= 2,
+                    timeout=20)  # fmt: skip
+    rec.send_signal(signal.SIGINT)
+    assert rec.wait(timeout=20) == 0
     topology = list(read_topology(out))
     assert topology, "no topology recorded"
     assert [t for t, _, _ in topology] == [keys.TOPOLOGY] * len(topology)
@@ -639,25 +635,17 @@ def _check_times(path: Path) -> list[tuple[str, int, int, bytes]]:
 
 
 def test_a_live_recording_logs_when_messages_came_and_publishes_their_source_time(
-    live_arm: None, zsession: zenoh.Session, router_endpoint: str, tmp_path: Path
+    live_arm: None, gateway: Gateway, zsession: zenoh.Session, tmp_path: Path
 ) -> None:
     """Raw samples, poses, transforms, topology and health of several sources in one
     file: log_time the recorder's receive time, in file order; publish_time each
     message's t_ns; on one host a message is never logged before it was made."""
-    gw_session = client(router_endpoint)
-    gateway = Gateway(gw_session, profile_path=tmp_path / "subject.toml")
-    worker = Running(gateway.run)
     out = tmp_path / "times.mcap"
-    try:
-        poses = Collector(zsession, keys.pose_key(), pose.decode)
-        poses.wait_for(lambda s: len(s) >= 10, timeout=20)
-        recorder = Recorder(zsession, out, DEFAULT_KEYS)
-        _wait(lambda: recorder.messages >= 1500, timeout=30)
-        recorder.close()
-    finally:
-        worker.stop()
-        gateway.close()
-        gw_session.close()
+    poses = Collector(zsession, keys.pose_key(), pose.decode)
+    poses.wait_for(lambda s: len(s) >= 10, timeout=20)
+    recorder = Recorder(zsession, out, DEFAULT_KEYS)
+    _wait(lambda: recorder.messages >= 1500, timeout=30)
+    recorder.close()
     messages = _check_times(out)
     topics = {topic for topic, _, _, _ in messages}
     assert {keys.pose_key(), keys.TRANSFORMS, "body/arm/left/elbow/raw"} <= topics
