@@ -18,6 +18,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from bodynet.clients import foxglove_pb
+from bodynet.core.codecs.pose import PoseFrame, is_measured
 from bodynet.core.skeleton import Skeleton, build_skeleton
 
 ROOT_SEGMENT = "pelvis"
@@ -33,6 +34,26 @@ def segment_parents(skeleton: Skeleton | None = None) -> dict[str, str]:
 @functools.cache  # each recording file asks for it (building the skeleton: a fraction of a ms)
 def _default_parents() -> dict[str, str]:
     return segment_parents(build_skeleton())
+
+
+@functools.cache
+def default_chains() -> Mapping[str, tuple[str, ...]]:
+    """The default skeleton's ``segment_chains`` (one copy for every caller)."""
+    return build_skeleton().segment_chains()
+
+
+def unmeasured_segments(frame: PoseFrame,
+                        chains: Mapping[str, Sequence[str]] | None = None) -> frozenset[str]:  # fmt: skip
+    """The segments whose world pose rests on an angle ``frame`` does not
+    measure (``is_measured`` false on their chain from the pelvis, ``chains``:
+    ``Skeleton.segment_chains``, the default skeleton's if None)."""
+    if not frame.flags:
+        return frozenset()
+    unmeasured = {a for a in frame.flags if not is_measured(frame, a)}
+    if not unmeasured:
+        return frozenset()
+    return frozenset(s for s, chain in (chains or default_chains()).items()
+                     if not unmeasured.isdisjoint(chain))  # fmt: skip
 
 
 def local_poses(

@@ -140,21 +140,6 @@ def segment_channels(skeleton: Skeleton) -> list[Channel]:
             for suffix, kind in group]  # fmt: skip
 
 
-def segment_chains(skeleton: Skeleton) -> dict[str, tuple[str, ...]]:
-    """Every angle name on the chain from the pelvis to each segment (its world
-    pose rests on all of them)."""
-    parent_joint = {j.child: j for j in skeleton.joints}
-    chains: dict[str, tuple[str, ...]] = {}
-    for seg in skeleton.segments:
-        names: list[str] = []
-        s = seg
-        while s in parent_joint:
-            names.extend(parent_joint[s].angle_names())
-            s = parent_joint[s].parent
-        chains[seg] = tuple(names)
-    return chains
-
-
 def segment_values(frame: pose.PoseFrame, chains: Mapping[str, Sequence[str]]) -> list[float]:
     """Position and quaternion of every segment in channel order; NaN for a segment
     the pose lacks or whose chain holds an angle without measurement."""
@@ -232,7 +217,7 @@ class LslOutput(LiveOutput):
         self.skeleton = skeleton or build_skeleton()
         self.clock = clock or estimate_clock_map(pylsl.local_clock, time.time_ns)
         self._names = angle_names(self.skeleton)
-        self._chains = segment_chains(self.skeleton)
+        self._chains = self.skeleton.segment_chains()
         self._outlets: dict[tuple[str, str], Any] = {}
         self.pushed = 0
 

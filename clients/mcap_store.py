@@ -83,7 +83,7 @@ from mcap.stream_reader import breakup_chunk
 from mcap.writer import CompressionType, Writer
 
 from bodynet.clients import foxglove_pb
-from bodynet.clients.body_tree import Transforms, segment_parents
+from bodynet.clients.body_tree import Transforms, segment_parents, unmeasured_segments
 from bodynet.clients.mcap_writer import LeanWriter
 from bodynet.core import keys
 from bodynet.core.codecs import pose
@@ -477,6 +477,8 @@ class McapSink:
         # whole-body poses awaiting their transforms: (time, the message or None, its
         # segments' text or (names, rows))
         self._tf_pending: list[tuple[int, bytes | None, Any]] = []
+        # and the segments of each whose transform is left out (resting on an unmeasured angle)
+        self._tf_unmeasured: list[frozenset[str]] = []
         self._segments_at = 0  # where the last pose's segments began: looked at first
         self._tf_min_gap_ns = tf_min_gap_ns
         self._tf_last: int | None = None  # the time of the last pose given transforms
@@ -515,7 +517,7 @@ class McapSink:
         data = pose.encode(frame) if data is None else data
         if topic == keys.pose_key() and self._tf_due(t_ns):
             rows = [[*p, *q] for p, q in frame.segments.values()]
-            self._pending(t_ns, None, (tuple(frame.segments), rows))
+            self._pending(t_ns, None, (tuple(frame.segments), rows), unmeasured_segments(frame))
         self._add(self._channel(topic, "pose"), t_ns, data)
 
     def write_pose_message(self, topic: str, data: bytes) -> tuple[int, int]:
@@ -545,14 +547,15 @@ class McapSink:
         if topic == keys.pose_key() and self._tf_due(t):  # its segments, for its transforms
             if frame is None:
                 head = pose.glance(data, segments=True, hint=self._segments_at)
-                if head is not None:
+                flags = None if head is None else _flags_before(data, head.at)
+                if head is not None and flags is not None:
                     self._segments_at = head.at
-                    self._pending(t, data, head.segments)
+                    self._pending(t, data, head.segments, _unmeasured(flags))
                 else:  # not laid out as the gateway lays it out past its header
                     frame = pose.decode(data)
             if frame is not None:
                 rows = [[*p, *q] for p, q in frame.segments.values()]
-                self._pending(t, None, (tuple(frame.segments), rows))
+                self._pending(t, None, (tuple(frame.segments), rows), unmeasured_segments(frame))
         self._add(self._channel(topic, "pose"), t, data)
         return seq, t
 
@@ -562,16 +565,19 @@ class McapSink:
         last = self._tf_last
         return last is None or not last <= t_ns < last + self._tf_min_gap_ns
 
-    def _pending(self, t_ns: int, data: bytes | None, segments: Any) -> None:
+    def _pending(self, t_ns: int, data: bytes | None, segments: Any,
+                 unmeasured: frozenset[str]) -> None:  # fmt: skip
         # its transforms are made with the next ones' (at most TF_BATCH), and
         # before the writer closes a chunk on time, so salvage keeps them
         self._tf_last = t_ns
         self._tf_pending.append((t_ns, data, segments))
+        self._tf_unmeasured.append(unmeasured)
         if len(self._tf_pending) >= TF_BATCH:
             self._write_transforms()
 
     def _write_transforms(self) -> None:
         pending, self._tf_pending = self._tf_pending, []
+        unmeasured, self._tf_unmeasured = self._tf_unmeasured, []
         texts = [s for _, _, s in pending if isinstance(s, bytes)]
         try:
             names, flat = pose.segment_numbers(texts)
@@ -588,6 +594,7 @@ class McapSink:
         times = [t for t, _, _ in pending]
         if (
             len(texts) == len(pending)
+            and not any(unmeasured)
             and names
             and names[0]
             and names.count(names[0]) == len(names)
@@ -607,7 +614,9 @@ class McapSink:
                         segments = (these, rows[at : at + len(these)])
                         at += len(these)
                 poses.append((t_ns, *segments))
-            messages = self._transforms.messages(poses)
+            messages = self._transforms.messages(
+                [_without(p, u) for p, u in zip(poses, unmeasured, strict=True)]
+            )
         channel = self._channel(keys.TRANSFORMS, "tf")
         first = self._sequence.get(channel, 0) + 1  # numbered as _next numbers them
         self._sequence[channel] = first + len(messages) - 1
@@ -665,6 +674,46 @@ class McapSink:
             if self.chunk_indexes is not None:
                 self.chunk_indexes.close()
         self._stream.close()
+
+
+_FLAGS = b',"flags":'
+
+
+def _flags_before(data: bytes, at: int) -> dict[str, str] | None:
+    """The ``flags`` object of a pose message laid out as the gateway lays it
+    out: the member just before its ``segments`` (found at ``at`` by
+    ``pose.glance``); None if it is not there so (then decode the message)."""
+    start = data.rfind(_FLAGS, 0, at)
+    if start < 0:
+        return None
+    text = data[start + len(_FLAGS) : at]
+    if text == b"{}":
+        return {}
+    try:
+        flags = orjson.loads(text)
+    except orjson.JSONDecodeError:
+        return None
+    if not isinstance(flags, dict) or not all(isinstance(v, str) for v in flags.values()):
+        return None
+    return flags
+
+
+def _unmeasured(flags: Mapping[str, str]) -> frozenset[str]:
+    """``unmeasured_segments`` of a pose with these flags (all it reads of one)."""
+    if not flags:
+        return frozenset()
+    return unmeasured_segments(pose.PoseFrame(0, 0, {}, {}, {}, {}, flags))
+
+
+def _without(given: tuple[int, Any, Any], unmeasured: frozenset[str]) -> tuple[int, Any, Any]:
+    """A pose ``(t_ns, segment names, rows)`` for ``Transforms.messages``
+    without the ``unmeasured`` segments (names may be UTF-8 bytes)."""
+    if not unmeasured:
+        return given
+    t_ns, names, rows = given
+    keep = [i for i, n in enumerate(names)
+            if (n.decode("utf-8", "replace") if isinstance(n, bytes) else n) not in unmeasured]  # fmt: skip
+    return t_ns, tuple(names[i] for i in keep), [rows[i] for i in keep]
 
 
 def _decoded_rows(data: bytes | None) -> tuple[tuple[str, ...], list[list[float]]]:

@@ -102,6 +102,22 @@ class Skeleton:
     def angle_names(self) -> tuple[str, ...]:
         return tuple(n for j in self.joints for n in j.angle_names())
 
+    def segment_chains(self) -> dict[str, tuple[str, ...]]:
+        """Every angle name on the chain from the pelvis to each segment (the
+        pelvis: none). The segment's world orientation rests on all of them, and
+        the place of every joint centre on it (where its children hang) too: a
+        number drawn from any of them while one is unmeasured is no measurement."""
+        parent_joint = {j.child: j for j in self.joints}
+        chains: dict[str, tuple[str, ...]] = {}
+        for segment in self.segments:
+            names: list[str] = []
+            s = segment
+            while s in parent_joint:
+                names.extend(parent_joint[s].angle_names())
+                s = parent_joint[s].parent
+            chains[segment] = tuple(names)
+        return chains
+
     def segment_length(self, segment: str) -> float:
         kind = segment.split("_", 1)[-1]
         return self.lengths.get(kind, 0.0)

@@ -17,6 +17,7 @@ from export_recordings import WINDOW, export
 from bodynet.clients.mcap_store import read_poses
 from bodynet.core.codecs import pose
 from bodynet.core.codecs.pose import is_measured as measured
+from bodynet.core.skeleton import build_skeleton
 
 
 @pytest.fixture(scope="module")
@@ -165,3 +166,84 @@ def test_opensim_files_write_nan(
         for k in range(1, 5):
             values = flat.getDependentColumn(f"{label}_{k}").to_numpy()
             np.testing.assert_array_equal(np.isnan(values), want, label)
+
+
+#: Joint centres and the flagged angle their place rests on in WINDOW (the
+#: left knee's flexion is on the ankle's chain, the elbow's pronation on the
+#: wrist's); the knee and elbow centres sit above them, measured.
+CENTRES = {"left_ankle": True, "left_wrist": True, "left_knee": False, "left_elbow": False,
+           "right_wrist": False}  # fmt: skip
+
+
+def centre_measured(frame: pose.PoseFrame, joint: str) -> bool:
+    """The angles from the pelvis to the segment the joint centre sits on are measured."""
+    chain = SKELETON.segment_chains()[SKELETON.joint(joint).parent]
+    return all(measured(frame, a) for a in chain)
+
+
+SKELETON = build_skeleton()
+
+
+def test_csv_and_c3d_joint_centres_resting_on_an_unmeasured_angle_are_not_given(
+    flagged: Path, frames: list[pose.PoseFrame], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """CSV: empty cells; C3D: the point invalid (residual -1, NaN), as for an
+    angle point; elsewhere the pose's joint centre."""
+    out = tmp_path / "f.csv"
+    export(capsys, "csv", flagged, "-o", out)
+    with out.open() as f:
+        rows = list(csv.DictReader(f))
+    c3d_out = tmp_path / "f.c3d"
+    export(capsys, "c3d", flagged, "-o", c3d_out)
+    c3d = ezc3d.c3d(str(c3d_out))
+    labels = list(c3d["parameters"]["POINT"]["LABELS"]["value"])
+    points = c3d["data"]["points"]
+    residuals = c3d["data"]["meta_points"]["residuals"][0]
+    assert len(rows) == points.shape[2] == len(frames)  # regular ticks: frame for frame
+    for joint, below_window in CENTRES.items():
+        ok = np.array([centre_measured(f, joint) for f in frames])
+        assert (not ok[WINDOW.start : WINDOW.stop].any()) == below_window, joint
+        cells = np.array([[row[f"{joint}_{a}_m"] for a in "xyz"] for row in rows])
+        assert (cells[~ok] == "").all(), joint
+        want = np.array([f.joints_m[joint] for f in frames])
+        np.testing.assert_allclose(cells[ok].astype(float), want[ok], atol=1e-5, err_msg=joint)
+        p = labels.index(joint)
+        np.testing.assert_array_equal(residuals[p] < 0, ~ok, joint)
+        assert np.isnan(points[:3, p, ~ok]).all(), joint
+        np.testing.assert_allclose(points[:3, p, ok].T, want[ok] * 1000, atol=1e-3, err_msg=joint)
+
+
+def test_foxglove_transforms_leave_out_a_segment_resting_on_an_unmeasured_angle(
+    flagged: Path, frames: list[pose.PoseFrame], tmp_path: Path
+) -> None:
+    """``body/tf`` read with the mcap reader and Foxglove's message class: in
+    WINDOW no transform of the segments below the flagged angles, whichever
+    way the poses were stored (decoded, or as received: the recorder's way)."""
+    from foxglove_schemas_protobuf.FrameTransforms_pb2 import FrameTransforms
+    from mcap.reader import make_reader
+
+    from bodynet.clients.mcap_store import McapSink
+    from bodynet.core import keys
+
+    as_received = tmp_path / "received.mcap"
+    sink = McapSink(as_received, tf_min_gap_ns=1)
+    for frame in frames:
+        sink.write_pose_message(keys.pose_key(), pose.encode(frame))
+    sink.close()
+    below = {"left_forearm", "left_hand", "left_shank", "left_foot"}
+    for path in (flagged, as_received):
+        with path.open("rb") as f:
+            stamped = {}
+            for _, _, message in make_reader(f).iter_messages(topics=[keys.TRANSFORMS]):
+                parsed = FrameTransforms()
+                parsed.ParseFromString(message.data)
+                stamped[message.publish_time] = {t.child_frame_id for t in parsed.transforms}
+        assert len(stamped) > len(frames) // 2
+        for index, frame in enumerate(frames):
+            got = stamped.get(frame.t_ns)
+            if got is None:
+                continue  # no transforms for this pose (a display's rate)
+            want = {s for s in SKELETON.segments
+                    if all(measured(frame, a) for a in SKELETON.segment_chains()[s])}  # fmt: skip
+            assert got == want, (path.name, index)
+            assert below.isdisjoint(got) == (index in WINDOW), (path.name, index)

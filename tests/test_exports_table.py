@@ -78,6 +78,27 @@ def test_a_resampled_angle_is_measured_only_between_measured_poses() -> None:
     assert resample(t, 50.0).measured[:, 0].tolist() == [True, True, False, True]  # as it was
 
 
+@pytest.mark.parametrize("tick_ms", [10, 40])
+def test_a_frame_in_a_gap_in_the_poses_is_no_measurement(tick_ms: int) -> None:
+    """Poses every ``tick_ms`` with one tick missing (bridged: a tick lost is
+    no gap) and then five (a gap): the frames resampled inside the gap stand
+    on no pose, whatever the tick (the limit is the recording's own)."""
+    ticks = [0, 1, 2, 4, 5, 11, 12]  # 3 missing, then 6 to 10
+    t = track([True] * len(ticks), [k * tick_ms for k in ticks])
+    out = resample(t, 2000.0 / tick_ms)  # half a tick: every pose and one between each pair
+    half = (out.t_ns - out.t_ns[0]) / 1e6 / tick_ms * 2
+    inside = (half > 10) & (half < 22)  # strictly between the poses at ticks 5 and 11
+    assert inside.sum() == 11
+    np.testing.assert_array_equal(out.frame_posed(), ~inside)
+    np.testing.assert_array_equal(out.measured.all(axis=1), ~inside)
+    assert not out.measured[inside].any()
+    assert not out.chain_measured()[inside].any()  # the pelvis's orientation too
+    assert out.chain_measured()[~inside].all()
+    # the frames on poses keep their values
+    np.testing.assert_array_equal(out.angle_deg[np.isin(half, [2 * k for k in ticks])],
+                                  t.angle_deg)  # fmt: skip
+
+
 def test_mot_has_every_coordinate_of_the_brief() -> None:
     names = {c.name for c in COORDINATES}
     for side in "rl":

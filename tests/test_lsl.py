@@ -68,7 +68,7 @@ def test_unmeasured_angles_and_the_segments_they_carry_are_nan() -> None:
     assert values["left_knee_flexion_deg"] == f.angles_deg["left_knee_flexion_deg"]  # clamped
     assert values["right_elbow_flexion_deg"] == f.angles_deg["right_elbow_flexion_deg"]
 
-    chains = lsl.segment_chains(SKELETON)
+    chains = SKELETON.segment_chains()
     assert chains["left_hand"] == (*SKELETON.joint("left_wrist").angle_names(),
                                    *SKELETON.joint("left_elbow").angle_names(),
                                    *SKELETON.joint("left_shoulder").angle_names(),
@@ -97,7 +97,7 @@ def test_angles_resting_on_a_stale_sensor_are_nan() -> None:
     assert nan == {*SKELETON.joint("left_elbow").angle_names(),
                    *SKELETON.joint("left_wrist").angle_names()}  # fmt: skip
     labels = [c.label for c in lsl.segment_channels(SKELETON)]
-    seg = lsl.segment_values(stale, lsl.segment_chains(SKELETON))
+    seg = lsl.segment_values(stale, SKELETON.segment_chains())
     got = dict(zip(labels, seg, strict=True))
     assert math.isnan(got["left_forearm_qw"])
     assert math.isnan(got["left_hand_x"])

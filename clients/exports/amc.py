@@ -31,7 +31,8 @@ on +X, as the CMU files; ``--up z``: bodynet's).
 Acclaim has no way to say "not measured": a joint angle with no measurement
 behind it (``is_measured`` false) holds its last measured value (0, neutral,
 before the first), the joint's rotation is rebuilt from its dofs with it, and
-the export counts the held values.
+the export counts the held values; in a frame inside a gap in the poses every
+bone holds its last rotation, and the root its place too.
 """
 
 from __future__ import annotations
@@ -50,6 +51,7 @@ from bodynet.clients.exports.track import (
     PoseTrack,
     euler_deg,
     held_note,
+    hold_gaps,
     hold_unmeasured,
     output_file,
 )
@@ -201,6 +203,9 @@ def write(track: PoseTrack, out: Path, options: Mapping[str, Any]) -> Written:
     local = file_axes * local_rotations(track, skeleton) * file_axes.inv()
     xyz = euler_deg(local, "ZYX")[:, ::-1].reshape(len(track), len(track.segments), 3)
     root = track.segment_p[:, index[ROOT_SEGMENT]] @ m.T * scale
+    posed = track.frame_posed()
+    root = hold_gaps(root, posed, np.zeros(3))
+    xyz = hold_gaps(xyz.reshape(len(track), -1), posed, np.zeros(xyz[0].size)).reshape(xyz.shape)
     moving = [b.name for b in bone_list if b.moves]
     asf = out.with_suffix(".asf")
     rate = track.rate_hz or track.measured_rate_hz()

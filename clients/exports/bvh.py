@@ -27,7 +27,9 @@ Units: metres (Blender's unit) or centimetres.
 BVH has no way to say "not measured": a joint angle with no measurement
 behind it (``is_measured`` false) holds the last measured value of its channel
 (0, the neutral pose, before the first one), and the export counts the held
-values (:class:`~bodynet.clients.exports.Written`'s note, on stderr).
+values (:class:`~bodynet.clients.exports.Written`'s note, on stderr); in a
+frame inside a gap in the poses (``PoseTrack.posed``) every channel holds its
+last value, the root's six too, counted likewise.
 """
 
 from __future__ import annotations
@@ -45,6 +47,7 @@ from bodynet.clients.exports.track import (
     PoseTrack,
     euler_deg,
     held_note,
+    hold_gaps,
     hold_unmeasured,
     output_file,
 )
@@ -155,6 +158,7 @@ def write(track: PoseTrack, out: Path, options: Mapping[str, Any]) -> Written:
     lines += ["MOTION", f"Frames: {len(track)}", f"Frame Time: {1.0 / rate_hz:.8f}"]
     angle_columns, column_angles = channel_angles(track, skeleton, written)
     held_from = np.zeros(len(angle_columns))  # each column's held value before a chunk
+    row_from = np.zeros(6 + 3 * (len(segs) - 1))  # the last row before a chunk, for gaps
 
     def motion(frames: slice) -> np.ndarray:
         """The MOTION rows of some frames: root position, then every joint's channels."""
@@ -170,7 +174,7 @@ def write(track: PoseTrack, out: Path, options: Mapping[str, Any]) -> Written:
         table = np.hstack(columns)
         measured = track.measured[frames][:, column_angles]
         table[:, angle_columns] = hold_unmeasured(table[:, angle_columns], measured, held_from)
-        return table
+        return hold_gaps(table, track.frame_posed()[frames], row_from)
 
     with output_file(out) as tmp, tmp.open("w") as f:
         f.write("\n".join(lines) + "\n")

@@ -28,8 +28,10 @@ frames only) and its numbers, float32 or 16-bit integers, cannot hold it whole.
 Frame ``i`` is at ``START_NS + i / POINT:RATE`` seconds.
 
 A value the recording lacks is NaN, and so is a joint angle with no
-measurement behind it (``is_measured`` false): such a point is written
-invalid, C3D's way (residual -1, all its coordinates NaN).
+measurement behind it (``is_measured`` false), a joint centre whose place
+rests on one (``PoseTrack.centre_measured``) and any point in a frame inside a
+gap in the poses: such a point is written invalid, C3D's way (residual -1,
+all its coordinates NaN).
 """
 
 from __future__ import annotations
@@ -58,12 +60,10 @@ def c3d_points(track: PoseTrack) -> tuple[list[str], list[str], np.ndarray]:
     labels = [*track.joints, ROOT_SEGMENT]
     descriptions = [f"{j} joint centre (mm)" for j in track.joints]
     descriptions.append("pelvis: root, midway between the hip centres (mm)")
-    mm = (
-        np.concatenate(
-            [track.joint_p, track.segment_p[:, [track.segments.index(ROOT_SEGMENT)]]], axis=1
-        )
-        * 1000.0
-    )  # (F, P, 3)
+    root = track.segments.index(ROOT_SEGMENT)
+    places = np.concatenate([track.joint_p, track.segment_p[:, [root]]], axis=1)
+    measured = np.concatenate([track.centre_measured(), track.chain_measured()[:, [root]]], axis=1)
+    mm = np.where(measured[..., None], places * 1000.0, np.nan)  # (F, P, 3)
     angle_index = {name: i for i, name in enumerate(track.angles)}
     angle_points = np.zeros((len(track), len(skeleton.joints), 3))
     for k, joint in enumerate(skeleton.joints):

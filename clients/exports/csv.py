@@ -4,10 +4,12 @@ Columns: ``t_s`` (the recording's time base: for a processed capture, the same
 as ``bodynet decode`` gives it), then every joint angle ``<joint>_<dof>_deg``,
 every joint's total rotation from the calibration pose ``<joint>_rel_deg``,
 and every joint centre ``<joint>_x_m``, ``_y_m``, ``_z_m`` (world frame, the
-model's: computed with every angle, measured or not).
+model's).
 
 An angle with no measurement behind it (flagged other than ``clamped``) is an
-empty cell, and so is the ``rel_deg`` of a joint with such an angle.
+empty cell, and so is the ``rel_deg`` of a joint with such an angle, and a
+joint centre whose place rests on one (an angle on the chain from the pelvis
+to the segment it sits on: ``PoseTrack.centre_measured``).
 """
 
 from __future__ import annotations
@@ -34,7 +36,8 @@ def write(track: PoseTrack, out: Path, options: Mapping[str, Any]) -> Written:
     """Write ``track`` (every tick, see ``load_track(every_tick=True)``) as CSV."""
     angles = np.where(track.measured, track.angle_deg, np.nan)
     rel = np.where(track.joint_measured(), track.rel_deg, np.nan)
-    values = np.hstack([angles, rel, track.joint_p.reshape(len(track), -1)])
+    centres = np.where(track.centre_measured()[..., None], track.joint_p, np.nan)
+    values = np.hstack([angles, rel, centres.reshape(len(track), -1)])
     with output_file(out) as tmp, tmp.open("w", newline="") as f:
         writer = csv.writer(f)
         writer.writerow(columns(track))

@@ -47,7 +47,9 @@ translations (OpenSim's pelvis origin is not bodynet's hip-centre midpoint).
 OpenSim's elbow and forearm axes are oblique (the carrying angle): the values
 agree for the flexion and the forearm's rotation, not for off-axis motion.
 
-An angle with no measurement behind it (``is_measured`` false) is NaN.
+An angle with no measurement behind it (``is_measured`` false) is NaN, and
+so is every coordinate, the pelvis's too, in a frame inside a gap in the
+poses (``PoseTrack.posed``).
 """
 
 from __future__ import annotations
@@ -110,7 +112,8 @@ def coordinates_deg(track: PoseTrack) -> tuple[list[str], np.ndarray]:
     pelvis = Rotation.from_quat(track.segment_q[:, track.segments.index("pelvis")],
                                 scalar_first=True)  # fmt: skip
     m = Rotation.from_matrix(TO_OPENSIM)
-    columns = [euler_deg(m * pelvis * m.inv(), "ZXY")]  # intrinsic: tilt, list, rotation
+    tilt_list_rotation = euler_deg(m * pelvis * m.inv(), "ZXY")  # intrinsic
+    columns = [np.where(track.frame_posed()[:, None], tilt_list_rotation, np.nan)]
     for c in COORDINATES:
         i = index[c.angle]
         value = c.sign * track.angle_deg[:, i] + c.offset

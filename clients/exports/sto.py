@@ -19,7 +19,9 @@ X: ``q = m * q_bodynet * m^-1``), so the header declares
 
 A segment's orientation is NaN (all four components) in a frame where an
 angle of a joint between the pelvis and it has no measurement behind it
-(``is_measured`` false): its orientation then rests on a value nothing measured.
+(``is_measured`` false): its orientation then rests on a value nothing measured;
+every segment's, the pelvis's too, in a frame inside a gap in the poses
+(``PoseTrack.chain_measured``).
 """
 
 from __future__ import annotations
@@ -38,31 +40,12 @@ from bodynet.core.opensim import IMU_BODIES, OPENSIM_VERSION, SENSOR_TO_OPENSIM,
 from bodynet.core.skeleton import build_skeleton
 
 
-def chain_measured(track: PoseTrack) -> np.ndarray:
-    """(F, S) bool: every angle of every joint from the pelvis to the segment
-    is measured (the pelvis: always)."""
-    skeleton = build_skeleton()
-    index = {a: i for i, a in enumerate(track.angles)}
-    joint_of = {j.child: j for j in skeleton.joints}
-    out = np.ones((len(track), len(track.segments)), dtype=bool)
-    for s, segment in enumerate(track.segments):
-        angles: list[int] = []
-        below = segment
-        while below in joint_of:
-            joint = joint_of[below]
-            angles += [index[a] for a in joint.angle_names()]
-            below = joint.parent
-        if angles:
-            out[:, s] = track.measured[:, angles].all(axis=1)
-    return out
-
-
 def orientations(track: PoseTrack) -> tuple[list[str], np.ndarray]:
     """The column labels after ``time`` and the (F, C, 4) quaternions w, x, y, z
     in OpenSim's ground frame, NaN where not measured."""
     segments = [s for s in IMU_BODIES if s in track.segments]
     m = Rotation.from_matrix(TO_OPENSIM)
-    measured = chain_measured(track)
+    measured = track.chain_measured()
     out = np.empty((len(track), len(segments), 4))
     for c, segment in enumerate(segments):
         s = track.segments.index(segment)

@@ -5,8 +5,15 @@ which of its joint angles were measured (``is_measured``). Formats with a
 frame rate (BVH, C3D, OpenSim's tables...) want frames at a constant rate:
 :func:`resample` puts a track on a regular grid (segment orientations by
 slerp, positions and angles linearly; a resampled angle is measured only
-where both poses around it were). A recording whose ticks are already
-regular comes out frame for frame.
+where both poses around it were, and those were no more than
+:data:`GAP_TICKS` tick intervals apart: a frame in a gap in the poses is
+no measurement). A recording whose ticks are already regular comes out
+frame for frame.
+
+Segment orientations and joint centres carry no flag of their own: they rest
+on every angle of their chain from the pelvis (``Skeleton.segment_chains``),
+and are measured where all of those are (:meth:`PoseTrack.chain_measured`,
+:meth:`PoseTrack.centre_measured`).
 """
 
 from __future__ import annotations
@@ -32,6 +39,10 @@ from bodynet.session.outputs import atomic_path
 DEFAULT_RATE_HZ = 100.0
 #: How many held angles a note names (the count covers them all).
 NOTE_ANGLES = 8
+#: Poses further apart than this many of the recording's tick intervals (its
+#: median) leave a gap: nothing measured the frames resampled between them.
+#: 2.5: one tick missing (2 intervals) and some jitter still bridge; two do not.
+GAP_TICKS = 2.5
 
 
 @dataclass(frozen=True)
@@ -54,6 +65,9 @@ class PoseTrack:
     measured: np.ndarray  # (F, A) bool: a measurement is behind the angle (is_measured)
     rate_hz: float | None = None  # set by resample: the frames are 1 / rate_hz apart
     source: str = ""  # the recording it was read from, for messages about its poses
+    #: (F,) bool: the frame stands on poses (False: resampled inside a gap in them,
+    #: where nothing measured even the pelvis); None: every frame does
+    posed: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.t_ns)
@@ -64,6 +78,27 @@ class PoseTrack:
         index = {a: i for i, a in enumerate(self.angles)}
         return np.stack([self.measured[:, [index[a] for a in j.angle_names()]].all(axis=1)
                          for j in names], axis=1)  # fmt: skip
+
+    def frame_posed(self) -> np.ndarray:
+        """(F,) bool: :attr:`posed`, every frame if None."""
+        return np.ones(len(self), dtype=bool) if self.posed is None else self.posed
+
+    def chain_measured(self) -> np.ndarray:
+        """(F, S) bool: the segment's orientation is measured: its frame stands
+        on poses and every angle from the pelvis to it is measured (the pelvis:
+        the frame alone, it carries no flag)."""
+        index = {a: i for i, a in enumerate(self.angles)}
+        chains = build_skeleton().segment_chains()
+        posed = self.frame_posed()
+        return np.stack([posed & self.measured[:, [index[a] for a in chains[s]]].all(axis=1)
+                         for s in self.segments], axis=1)  # fmt: skip
+
+    def centre_measured(self) -> np.ndarray:
+        """(F, J) bool: the joint centre's place is measured: that of the segment
+        it sits on (its parent's chain; the joint's own angles do not move it)."""
+        segment = {s: i for i, s in enumerate(self.segments)}
+        parent = {j.name: j.parent for j in build_skeleton().joints}
+        return self.chain_measured()[:, [segment[parent[j]] for j in self.joints]]
 
     def measured_rate_hz(self) -> float:
         """The recording's tick rate (median interval), to 0.01 Hz."""
@@ -132,8 +167,10 @@ def load_track(recording: Path, progress: bool = True, every_tick: bool = False)
 
 def resample(track: PoseTrack, rate_hz: float) -> PoseTrack:
     """``track`` at ``rate_hz`` from its first pose to its last: segment
-    orientations by slerp, positions and angles linearly (gaps included); an
-    angle is measured where both poses around it were."""
+    orientations by slerp, positions and angles linearly. An angle is measured
+    where both poses around it were and were no more than :data:`GAP_TICKS`
+    of the recording's tick intervals apart; a frame between poses further
+    apart is no pose at all (``posed`` False, no angle measured)."""
     if rate_hz <= 0 or not np.isfinite(rate_hz):
         raise ValueError(f"frame rate must be positive, not {rate_hz}")
     if len(track) < 2:
@@ -154,11 +191,26 @@ def resample(track: PoseTrack, rate_hz: float) -> PoseTrack:
         quats[:, s] = Slerp(rel, rot)(grid).as_quat(scalar_first=True)
     # 1.0 only where every pose the value is drawn from was measured
     measured = linear(track.measured.astype(np.float64)) > 1.0 - 1e-9
+    posed = linear(track.frame_posed().astype(np.float64)) > 1.0 - 1e-9
+    posed &= ~in_gaps(rel, grid, period_ns)
+    measured &= posed[:, None]
     return replace(track, t_ns=track.t_ns[0] + np.round(grid).astype(np.int64),
                    segment_p=linear(track.segment_p), segment_q=quats,
                    joint_p=linear(track.joint_p), angle_deg=linear(track.angle_deg),
-                   rel_deg=linear(track.rel_deg), measured=measured,
+                   rel_deg=linear(track.rel_deg), measured=measured, posed=posed,
                    rate_hz=rate_hz)  # fmt: skip
+
+
+def in_gaps(rel: np.ndarray, grid: np.ndarray, period_ns: float) -> np.ndarray:
+    """(G,) bool: the grid time falls strictly between two poses (times ``rel``)
+    more than :data:`GAP_TICKS` median intervals apart (a grid time on a pose,
+    within a thousandth of the grid's period, stands on it)."""
+    steps = np.diff(rel)
+    limit = GAP_TICKS * float(np.median(steps))
+    after = np.clip(np.searchsorted(rel, grid, side="right") - 1, 0, len(rel) - 2)
+    near = period_ns * 1e-3
+    on_pose = (np.abs(grid - rel[after]) <= near) | (np.abs(rel[after + 1] - grid) <= near)
+    return (steps[after] > limit) & ~on_pose
 
 
 @contextlib.contextmanager
@@ -203,5 +255,17 @@ def held_note(track: PoseTrack) -> tuple[str, ...]:
     shown = ", ".join(names[:NOTE_ANGLES])
     if len(names) > NOTE_ANGLES:
         shown += f" and {len(names) - NOTE_ANGLES} more"
-    return (f"{int(held.sum())} values of {len(names)} joint angles had no measurement behind "
-            f"them and hold their last measured value: {shown}",)  # fmt: skip
+    notes = [f"{int(held.sum())} values of {len(names)} joint angles had no measurement behind "
+             f"them and hold their last measured value: {shown}"]  # fmt: skip
+    gap = int((~track.frame_posed()).sum())
+    if gap:
+        notes.append(f"{gap} frames fall in gaps in the poses (more than {GAP_TICKS:g} ticks "
+                     "apart): the root holds its last measured place and orientation there")
+    return tuple(notes)
+
+
+def hold_gaps(values: np.ndarray, posed: np.ndarray, last: np.ndarray) -> np.ndarray:
+    """``values`` (F, C) (a frame's channels, the root's place and orientation
+    among them) held over the frames in a gap in the poses (``posed`` (F,)
+    False), as :func:`hold_unmeasured` holds (``last``: those before the first row)."""
+    return hold_unmeasured(values, np.repeat(posed[:, None], values.shape[1], axis=1), last)
