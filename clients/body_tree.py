@@ -42,8 +42,9 @@ def default_chains() -> Mapping[str, tuple[str, ...]]:
     return build_skeleton().segment_chains()
 
 
-def unmeasured_segments(frame: PoseFrame,
-                        chains: Mapping[str, Sequence[str]] | None = None) -> frozenset[str]:  # fmt: skip
+def unmeasured_segments(
+    frame: PoseFrame, chains: Mapping[str, Sequence[str]] | None = None
+) -> frozenset[str]:
     """The segments whose world pose rests on an angle ``frame`` does not
     measure (``is_measured`` false on their chain from the pelvis, ``chains``:
     ``Skeleton.segment_chains``, the default skeleton's if None)."""

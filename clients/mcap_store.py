@@ -711,8 +711,8 @@ def _without(given: tuple[int, Any, Any], unmeasured: frozenset[str]) -> tuple[i
     if not unmeasured:
         return given
     t_ns, names, rows = given
-    keep = [i for i, n in enumerate(names)
-            if (n.decode("utf-8", "replace") if isinstance(n, bytes) else n) not in unmeasured]  # fmt: skip
+    text = [n.decode("utf-8", "replace") if isinstance(n, bytes) else n for n in names]
+    keep = [i for i, n in enumerate(text) if n not in unmeasured]
     return t_ns, tuple(names[i] for i in keep), [rows[i] for i in keep]
 
 

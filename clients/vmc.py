@@ -38,22 +38,29 @@ Rx(+90 deg) for the right's, identity elsewhere. The local rotation sent is
 ``W(parent)^-1 W(bone)`` in Unity's frame; the local position is the bone's
 joint centre from its parent's, in the parent's frame.
 
-VMC has no mark for "not measured": bones are sent with the gateway's values
-(held ones included, as in BVH) and the tracking status tells a stale body.
+VMC has no mark for "not measured" on a bone (``/VMC/Ext/OK``'s tracking
+status is the whole body's): a bone whose local rotation rests on an angle
+the pose does not measure (``is_measured`` false on the joint between it and
+its parent bone: :func:`unmeasured_bones`) is sent with its last measured
+local rotation, as BVH holds a channel (the pose's own value until one was
+measured), and :class:`HeldBones` counts those sends; the tracking status
+tells a stale body.
 """
 
 from __future__ import annotations
 
+import functools
 import math
 import socket
 import time
-from collections.abc import Sequence
-from dataclasses import dataclass
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, replace
 
 import numpy as np
 from pythonosc.osc_bundle_builder import IMMEDIATELY, OscBundleBuilder
 from pythonosc.osc_message_builder import OscMessageBuilder
 
+from bodynet.clients.body_tree import default_chains
 from bodynet.clients.live import LiveOutput
 from bodynet.core.codecs import pose
 
@@ -168,6 +175,48 @@ def bones(frame: pose.PoseFrame) -> list[Bone]:
     return out
 
 
+@functools.cache
+def bone_angles() -> Mapping[str, tuple[str, ...]]:
+    """The angles each bone's local rotation rests on: those on its segment's
+    chain from the pelvis and not on its parent bone's (Chest and Head: none)."""
+    chains = default_chains()
+    out: dict[str, tuple[str, ...]] = {}
+    for bone, (segment, parent) in BONES.items():
+        above = set(chains[BONES[parent][0]]) if parent is not None else set()
+        out[bone] = tuple(a for a in chains[segment] if a not in above)
+    return out
+
+
+def unmeasured_bones(frame: pose.PoseFrame) -> frozenset[str]:
+    """The bones whose local rotation rests on an angle ``frame`` does not measure."""
+    if not frame.flags:
+        return frozenset()
+    return frozenset(bone for bone, angles in bone_angles().items()
+                     if not all(pose.is_measured(frame, a) for a in angles))  # fmt: skip
+
+
+class HeldBones:
+    """Each bone's last measured local rotation, sent instead of one that rests
+    on an unmeasured angle (VMC has no per-bone mark); ``held`` counts those."""
+
+    def __init__(self) -> None:
+        self.last: dict[str, Quat] = {}
+        self.held = 0
+
+    def apply(self, frame: pose.PoseFrame, sent: list[Bone]) -> list[Bone]:
+        """``sent`` (the bones of ``frame``) with the unmeasured ones held."""
+        unmeasured = unmeasured_bones(frame)
+        out: list[Bone] = []
+        for bone in sent:
+            if bone.name in unmeasured:
+                self.held += 1
+                out.append(replace(bone, rotation=self.last.get(bone.name, bone.rotation)))
+            else:
+                self.last[bone.name] = bone.rotation
+                out.append(bone)
+        return out
+
+
 def ok_args(frame: pose.PoseFrame | None, fresh: bool) -> tuple[int, int, int, int]:
     """``/VMC/Ext/OK``: loaded, calibration state, calibration mode, tracking."""
     if frame is None:
@@ -176,14 +225,16 @@ def ok_args(frame: pose.PoseFrame | None, fresh: bool) -> tuple[int, int, int, i
     return (1, state, MODE_NORMAL, int(fresh and not frame.stale))
 
 
-def messages(frame: pose.PoseFrame | None, fresh: bool, t_s: float
-             ) -> list[tuple[str, list[object]]]:  # fmt: skip
-    """The OSC messages of one bundle: address and arguments."""
+def messages(frame: pose.PoseFrame | None, fresh: bool, t_s: float,
+             held: HeldBones | None = None) -> list[tuple[str, list[object]]]:  # fmt: skip
+    """The OSC messages of one bundle: address and arguments; with ``held``, a
+    bone resting on an unmeasured angle keeps its last measured rotation."""
     out: list[tuple[str, list[object]]] = [("/VMC/Ext/OK", list(ok_args(frame, fresh))),
                                            ("/VMC/Ext/T", [float(t_s)])]  # fmt: skip
     if frame is not None:
         out.append(("/VMC/Ext/Root/Pos", ["root", 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0]))
-        for b in bones(frame):
+        sent = bones(frame)
+        for b in sent if held is None else held.apply(frame, sent):
             w, x, y, z = b.rotation
             out.append(("/VMC/Ext/Bone/Pos", [b.name, *map(float, b.position), x, y, z, w]))
     return out
@@ -223,6 +274,8 @@ class VmcOutput(LiveOutput):
         self._received = -math.inf
         self.sent = 0
         self.send_errors = 0
+        #: the bones sent with their last measured rotation (``held.held`` of them)
+        self.held = HeldBones()
 
     def describe(self) -> str:
         return f"VMC bundles at {self.rate_hz:g} Hz to {self.address[0]}:{self.address[1]}"
@@ -236,7 +289,7 @@ class VmcOutput(LiveOutput):
 
     def tick(self, now: float) -> None:
         fresh = now - self._received < STALE_S
-        data = bundle(messages(self._frame, fresh, now - self._start))
+        data = bundle(messages(self._frame, fresh, now - self._start, self.held))
         try:
             self._sock.sendto(data, self.address)
             self.sent += 1

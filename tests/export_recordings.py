@@ -8,6 +8,8 @@ import dataclasses
 from pathlib import Path
 from typing import Any
 
+import ezc3d
+import numpy as np
 import pytest
 from foxglove_schemas_protobuf.FrameTransforms_pb2 import FrameTransforms
 
@@ -53,3 +55,11 @@ def tf_message(data: bytes) -> dict[str, Any]:
          "translation": {a: getattr(t.translation, a) for a in "xyz"},
          "rotation": {a: getattr(t.rotation, a) for a in "xyzw"}}
         for t in message.transforms]}  # fmt: skip
+
+
+def read_c3d(path: Path) -> tuple[list[str], np.ndarray, np.ndarray]:
+    """A C3D file read with ezc3d: its point labels, points (4, P, F) and
+    residuals (P, F)."""
+    c3d = ezc3d.c3d(str(path))
+    labels = list(c3d["parameters"]["POINT"]["LABELS"]["value"])
+    return labels, c3d["data"]["points"], c3d["data"]["meta_points"]["residuals"][0]

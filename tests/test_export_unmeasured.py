@@ -12,7 +12,7 @@ from pathlib import Path
 import ezc3d
 import numpy as np
 import pytest
-from export_recordings import WINDOW, export
+from export_recordings import WINDOW, export, read_c3d
 
 from bodynet.clients.mcap_store import read_poses
 from bodynet.core.codecs import pose
@@ -195,10 +195,7 @@ def test_csv_and_c3d_joint_centres_resting_on_an_unmeasured_angle_are_not_given(
         rows = list(csv.DictReader(f))
     c3d_out = tmp_path / "f.c3d"
     export(capsys, "c3d", flagged, "-o", c3d_out)
-    c3d = ezc3d.c3d(str(c3d_out))
-    labels = list(c3d["parameters"]["POINT"]["LABELS"]["value"])
-    points = c3d["data"]["points"]
-    residuals = c3d["data"]["meta_points"]["residuals"][0]
+    labels, points, residuals = read_c3d(c3d_out)
     assert len(rows) == points.shape[2] == len(frames)  # regular ticks: frame for frame
     for joint, below_window in CENTRES.items():
         ok = np.array([centre_measured(f, joint) for f in frames])

@@ -211,6 +211,42 @@ def test_every_ok_state_on_the_wire_is_one_the_spec_allows(receiver: socket.sock
     assert [m.params for m in got] == want
 
 
+def test_a_bone_resting_on_an_unmeasured_angle_holds_its_last_measured_rotation(
+    receiver: socket.socket,
+) -> None:
+    """VMC has no per-bone mark: the forearm whose elbow the pose does not
+    measure keeps the rotation it had when it was measured (its child, the
+    hand, measured, follows the new pose); the output counts what it held."""
+    output = vmc.VmcOutput("127.0.0.1", receiver.getsockname()[1], rate_hz=50)
+    first, second = random_frame(5), random_frame(6)
+    flags = {"left_elbow_flexion_deg": pose.UNOBSERVED, "right_knee_flexion_deg": pose.CLAMPED}
+    unmeasured = pose.PoseFrame(7, 7, {}, {}, second.segments, {}, flags)
+    try:
+        got = []
+        for frame in (first, unmeasured, unmeasured):
+            output.on_pose("s", frame)
+            output.tick(time.monotonic())
+            got.append(next_bundle_with_bones(receiver))
+    finally:
+        output.close()
+
+    def local(frame: pose.PoseFrame, bone: str) -> Rotation:
+        b = next(b for b in vmc.bones(frame) if b.name == bone)
+        w, x, y, z = b.rotation
+        return Rotation.from_quat([x, y, z, w])
+
+    def angle_deg(a: Rotation, b: Rotation) -> float:
+        return math.degrees((a * b.inv()).magnitude())
+
+    for bones in got[1:]:
+        sent = unity_rotation(bones["LeftLowerArm"][4:8])
+        assert angle_deg(sent, local(first, "LeftLowerArm")) < 0.01
+        assert angle_deg(local(first, "LeftLowerArm"), local(second, "LeftLowerArm")) > 1.0
+        for bone in ("LeftHand", "RightLowerLeg", "LeftUpperArm", "Hips"):  # measured
+            assert angle_deg(unity_rotation(bones[bone][4:8]), local(second, bone)) < 0.01, bone
+    assert output.held.held == 2  # the forearm, in each of the two bundles
+
+
 def test_vmc_receiver_rebuilds_every_segment_orientation(
     zsession: zenoh.Session, router_endpoint: str, receiver: socket.socket
 ) -> None:

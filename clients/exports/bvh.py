@@ -157,8 +157,8 @@ def write(track: PoseTrack, out: Path, options: Mapping[str, Any]) -> Written:
     emit(ROOT_SEGMENT, 0)
     lines += ["MOTION", f"Frames: {len(track)}", f"Frame Time: {1.0 / rate_hz:.8f}"]
     angle_columns, column_angles = channel_angles(track, skeleton, written)
-    held_from = np.zeros(len(angle_columns))  # each column's held value before a chunk
-    row_from = np.zeros(6 + 3 * (len(segs) - 1))  # the last row before a chunk, for gaps
+    # each angle column's held value before a chunk, and the last row before it (gaps)
+    held_from, row_from = np.zeros(len(angle_columns)), np.zeros(6 + 3 * (len(segs) - 1))
 
     def motion(frames: slice) -> np.ndarray:
         """The MOTION rows of some frames: root position, then every joint's channels."""

@@ -37,7 +37,6 @@ from bodynet.clients.exports import Written
 from bodynet.clients.exports.opensim import TO_OPENSIM, format_rows, header, number
 from bodynet.clients.exports.track import PoseTrack, output_file
 from bodynet.core.opensim import IMU_BODIES, OPENSIM_VERSION, SENSOR_TO_OPENSIM, imu_label
-from bodynet.core.skeleton import build_skeleton
 
 
 def orientations(track: PoseTrack) -> tuple[list[str], np.ndarray]:

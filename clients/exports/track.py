@@ -260,7 +260,8 @@ def held_note(track: PoseTrack) -> tuple[str, ...]:
     gap = int((~track.frame_posed()).sum())
     if gap:
         notes.append(f"{gap} frames fall in gaps in the poses (more than {GAP_TICKS:g} ticks "
-                     "apart): the root holds its last measured place and orientation there")
+                     "apart): nothing measured them, they hold the last frame, the root's "
+                     "place and orientation too")  # fmt: skip
     return tuple(notes)
 
 
