@@ -547,10 +547,10 @@ class McapSink:
         if topic == keys.pose_key() and self._tf_due(t):  # its segments, for its transforms
             if frame is None:
                 head = pose.glance(data, segments=True, hint=self._segments_at)
-                flags = None if head is None else _flags_before(data, head.at)
-                if head is not None and flags is not None:
+                unmeasured = None if head is None else _unmeasured_before(data, head.at)
+                if head is not None and unmeasured is not None:
                     self._segments_at = head.at
-                    self._pending(t, data, head.segments, _unmeasured(flags))
+                    self._pending(t, data, head.segments, unmeasured)
                 else:  # not laid out as the gateway lays it out past its header
                     frame = pose.decode(data)
             if frame is not None:
@@ -679,29 +679,25 @@ class McapSink:
 _FLAGS = b',"flags":'
 
 
-def _flags_before(data: bytes, at: int) -> dict[str, str] | None:
-    """The ``flags`` object of a pose message laid out as the gateway lays it
-    out: the member just before its ``segments`` (found at ``at`` by
-    ``pose.glance``); None if it is not there so (then decode the message)."""
+def _unmeasured_before(data: bytes, at: int) -> frozenset[str] | None:
+    """``unmeasured_segments`` of a pose message laid out as the gateway lays
+    it out, from its ``flags``: the member just before its ``segments`` (found
+    at ``at`` by ``pose.glance``); None if it is not there so (then decode the
+    message)."""
     start = data.rfind(_FLAGS, 0, at)
-    if start < 0:
-        return None
-    text = data[start + len(_FLAGS) : at]
+    return None if start < 0 else _unmeasured(data[start + len(_FLAGS) : at])
+
+
+@functools.lru_cache(maxsize=256)  # a recording's poses repeat a few sets of flags
+def _unmeasured(text: bytes) -> frozenset[str] | None:
     if text == b"{}":
-        return {}
+        return frozenset()
     try:
         flags = orjson.loads(text)
     except orjson.JSONDecodeError:
         return None
     if not isinstance(flags, dict) or not all(isinstance(v, str) for v in flags.values()):
         return None
-    return flags
-
-
-def _unmeasured(flags: Mapping[str, str]) -> frozenset[str]:
-    """``unmeasured_segments`` of a pose with these flags (all it reads of one)."""
-    if not flags:
-        return frozenset()
     return unmeasured_segments(pose.PoseFrame(0, 0, {}, {}, {}, {}, flags))
 
 
