@@ -75,11 +75,11 @@ def _calibrated(body: BodyEmulator, profile: Profile, start: float, end: float,
 def heading_tick(heading: BodyHeading, solver: BodySolver, t_s: float,
                  samples: Mapping[Any, RawSample]) -> BodySolver:  # fmt: skip
     """The gateway's heading step for the tick at ``t_s`` (as the live gateway and
-    ``bodynet process`` take it): a heading found is a new calibration, a new
-    solver; a turn of drifting tags is held in the body's solver. Returns the
-    body's solver from then on."""
+    ``bodynet process`` take it): a heading found (or ``auto`` switched to tags'
+    own headings) is a new calibration, a new solver; a turn of drifting tags is
+    held in the body's solver. Returns the body's solver from then on."""
     step = heading.step(t_s, samples, solver.profile)
-    if step is not None and step[0] == "found":
+    if step is not None and step[0] in ("found", "switched"):
         return BodySolver(step[1])
     if step is not None:
         heading.hold(solver, step[1])

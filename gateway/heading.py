@@ -1102,13 +1102,121 @@ def _rz_batch(psi: np.ndarray) -> np.ndarray:
     return out
 
 
+class SharedCheck:
+    """Checks, in ``auto`` mode, that the tags share one heading reference, as the
+    heading a hinge gives (:class:`HingeHeading`) assumes.
+
+    Under the heading a hinge gave, every hinge and two-dof joint (knees, ankles,
+    elbows, wrists: ``DRIFT_JOINTS``) must keep its constraint (a knee's axes the
+    same line, the others' perpendicular). With tags sharing a reference they do,
+    to the tags' noise; with tags of their own (6-axis: the 003 seed's, SlimeVR
+    trackers) a tag's heading error leaves its segment right only while it does
+    not tilt, and once it tilts the constraint breaks by up to the heading error
+    (measured on the emulator, 0.3 deg noise: 0.1-1.9 deg sharing a reference,
+    a joint at 9 to 130 deg with references of their own, in every motion tried).
+    Each joint is judged on the median of its constraint's error (deg) over
+    ``SAMPLES`` samples in which one of its tags has tilted past ``TILT_DEG``
+    since calibration (a tag that has not tilted says nothing): beyond
+    ``FAIL_DEG`` the tags have references of their own (``"own"``); the heading is
+    taken (``"shared"``) once ``MIN_JOINTS`` joints have been judged and every
+    joint that tilted has been, all within it. Once taken, the joints are watched
+    on (every ``EVERY_S``): a joint breaking its constraint later is ``"own"``
+    too (the backstop of a check that saw few joints)."""
+
+    TILT_DEG = 10.0
+    SAMPLES = 10
+    FAIL_DEG = 6.0
+    MIN_JOINTS = 2
+    EVERY_S = 0.05
+
+    def __init__(self, profile: Profile) -> None:
+        """``profile``: calibrated, the tags' headings unknown (mounts for 0)."""
+        by_segment: dict[str, str] = {}
+        for key, seg in _segments_of(profile.imu_mounts).items():
+            by_segment.setdefault(seg, key)
+        segments = pose_segments(profile)
+        #: joint -> (parent key, child key, parent axis, child axis, kind)
+        self.joints: dict[str, tuple[str, str, int, int, str]] = {}
+        for joint, parent, child, p_axis, c_axis, kind in DRIFT_JOINTS:
+            for side in ("left", "right"):
+                p, c = by_segment.get(f"{side}_{parent}"), by_segment.get(f"{side}_{child}")
+                if p is not None and c is not None:
+                    self.joints[f"{side}_{joint}"] = (p, c, p_axis, c_axis, kind)
+        #: each tag in its reference frame at calibration
+        self._tag0 = {k: segments[seg] @ _quat_matrix(profile.imu_mounts[k])
+                      for k, seg in _segments_of(profile.imu_mounts).items()}  # fmt: skip
+        self.errors: dict[str, list[float]] = {j: [] for j in self.joints}
+        self.verdict: str | None = None
+        self.failed: tuple[str, float] | None = None  # the joint that broke, its error
+        self._last = -math.inf
+
+    def _tilted(self, key: str, rot: np.ndarray) -> bool:
+        rotvec = _rotvec(rot @ self._tag0[key].T)  # the tag's turn since calibration
+        return math.hypot(rotvec[0], rotvec[1]) >= math.radians(self.TILT_DEG)
+
+    def medians(self) -> dict[str, float]:
+        """Per joint judged so far, its constraint's median error (deg)."""
+        return {j: round(float(np.median(e)), 2) for j, e in self.errors.items()
+                if len(e) >= self.SAMPLES}  # fmt: skip
+
+    def update(self, t_s: float, orientations: Mapping[str, QuatWxyz],
+               profile: Profile) -> str | None:  # fmt: skip
+        """One tick's tag orientations, judged under ``profile`` (the tags'
+        headings as the hinge gave them); the verdict once there is one."""
+        if self.verdict == "own":
+            return self.verdict
+        if self.verdict == "shared":
+            if t_s - self._last < self.EVERY_S - 1e-6:
+                return self.verdict
+            self._last = t_s
+        rots: dict[str, np.ndarray] = {}
+        for joint, (p, c, p_axis, c_axis, kind) in self.joints.items():
+            if p not in orientations or c not in orientations or p not in self._tag0:
+                continue
+            for k in (p, c):
+                if k not in rots:
+                    rots[k] = _quat_matrix(orientations[k])
+            if not (self._tilted(p, rots[p]) or self._tilted(c, rots[c])):
+                continue
+            a = JointDrift._segment(profile, p, rots[p])[:, p_axis]
+            b = JointDrift._segment(profile, c, rots[c])[:, c_axis]
+            error = _parallel_error(a, b) if kind == "parallel" else _perpendicular_error(a, b)
+            if error is None:  # no grip on the heading at this pose
+                continue
+            errors = self.errors[joint]
+            errors.append(abs(error))
+            del errors[: -self.SAMPLES]
+        judged = self.medians()
+        broken = [(e, j) for j, e in judged.items() if e > self.FAIL_DEG]
+        if broken:
+            error, joint = max(broken)
+            self.verdict, self.failed = "own", (joint, error)
+        elif (
+            self.verdict is None
+            and len(judged) >= self.MIN_JOINTS
+            and all(len(e) >= self.SAMPLES or not e for e in self.errors.values())
+        ):
+            self.verdict = "shared"
+        return self.verdict
+
+
 class BodyHeading:
     """A body's heading between calibration and the solver.
 
     With tags of unknown heading (``auto`` mode, nothing declared) it feeds each
-    tick to a :class:`HingeHeading`, and once that finds the heading returns the
-    profile with it (:meth:`update`); :meth:`state` says where it stands, for the
-    pose's health and the user."""
+    tick to a :class:`HingeHeading`, and once that finds the heading and the
+    joints it drives confirm that the tags share it (:class:`SharedCheck`),
+    returns the profile with it (:meth:`update`); when they do not, the tags
+    have headings of their own, and it estimates each tag's as ``independent``
+    mode does, from the calibration on (the profile's ``heading`` becomes
+    ``independent``; :meth:`step` says so once, ``switched``). :meth:`state`
+    says where it stands, for the pose's health and the user."""
+
+    #: what the user is told when ``auto`` finds tags with headings of their own
+    SWITCHED = (
+        "tags have headings of their own (6-axis tags): estimating each tag's heading "
+        "(walk, reach after an N-pose, bow; --heading independent says so at once)"
+    )
 
     def __init__(self, profile: Profile) -> None:
         self.profile = profile
@@ -1122,6 +1230,13 @@ class BodyHeading:
         self.children = ChildHeadings(profile) if self.unknown and independent else None
         self.elbows = ElbowPairs(profile) if self.unknown and independent else None
         self.trunk = TrunkBow(profile) if self.unknown and independent else None
+        #: auto: the check that the tags share the heading a hinge gives, the profile
+        #: with that heading while it is checked, and the calibration to go back to
+        self.check = SharedCheck(profile) if self.finder is not None else None
+        self.candidate: Profile | None = None
+        self.calibrated = profile
+        self.switched: str | None = None  # why auto went on as independent
+        self._announce = False  # the switch not reported by step yet
         if profile.heading == "fixed":
             self.how = "fixed"
         elif not profile.imu_mounts:
@@ -1179,29 +1294,64 @@ class BodyHeading:
             self.unknown = [k for k in self.unknown if k not in found]
             self.how = "partly found" if self.unknown else "found"
             return self.profile
-        psi = self.finder.update(t_s, orientations)
-        if psi is None:
+        if self.candidate is None:
+            psi = self.finder.update(t_s, orientations)
+            if psi is None:
+                return None
+            self.candidate = with_headings(self.profile, dict.fromkeys(self.unknown, psi))
+        assert self.check is not None
+        verdict = self.check.update(t_s, orientations, self.candidate)
+        if verdict == "own":
+            self._switch()
             return None
-        self.profile = with_headings(self.profile, dict.fromkeys(self.unknown, psi))
+        if verdict != "shared":
+            return None  # not taken before the joints it drives confirm it
+        self.profile, self.candidate = self.candidate, None
+        self.finder.found_t = t_s
         self.unknown = []
         self.how = "found"
         return self.profile
+
+    def _switch(self) -> None:
+        """``auto`` met tags with headings of their own: each tag's heading is
+        estimated from the calibration on, as ``independent`` mode does."""
+        assert self.check is not None
+        assert self.check.failed is not None
+        joint, error = self.check.failed
+        ended = self.ended
+        self.__init__(replace(self.calibrated, heading="independent"))  # type: ignore[misc]
+        self.ended = ended
+        self.switched = f"{self.SWITCHED}; {joint} was {error:.0f} deg off its axes"
+        self._announce = True
 
     def step(self, t_s: float, samples: Mapping[Site, Any],
              current: Profile) -> tuple[str, Profile] | None:  # fmt: skip
         """One solved tick (site -> RawSample; ``current``: the profile it was solved
         with), the same for the live gateway and ``bodynet process``: while the
         heading is searched, ``("found", profile)`` once it is (a new calibration:
-        a new solver, the profile saved); once known, ``("turned", profile)`` when
-        the joints' constraints turn drifting tags' headings (the same body:
-        ``BodySolver.set_profile``); else None."""
+        a new solver, the profile saved); ``("switched", profile)`` once, when
+        ``auto`` found tags with headings of their own (the calibration with
+        ``independent`` headings, none known: a new solver, flagged); once known,
+        ``("turned", profile)`` when the joints' constraints turn drifting tags'
+        headings (the same body: ``BodySolver.set_profile``); else None."""
         if self.searching:
             self.profile = current  # the known tags' headings as held so far
             found = self.update(t_s, samples)
             if found is not None:
                 return "found", found
+            if self._announce:
+                self._announce = False
+                return "switched", self.profile
             if self.pairs is None:  # one shared heading: nothing is known until found
                 return None
+        elif self.check is not None and self.check.verdict == "shared":
+            # the found heading's joints watched on: a check that saw few joints
+            orientations = {site.raw_key: s.reading.wxyz for site, s in samples.items()
+                            if hasattr(s.reading, "wxyz")}  # fmt: skip
+            if self.check.update(t_s, orientations, current) == "own":
+                self._switch()
+                self._announce = False
+                return "switched", self.profile
         # tags of their own: the known ones are held while others' are still searched
         if self.drift is not None and self.drift.pairs:
             turns = self.drift.update(t_s, samples, current)
@@ -1225,7 +1375,8 @@ class BodyHeading:
     def state(self) -> dict[str, Any]:
         """Where the heading stands: ``state`` (fixed, declared, found, unknown or
         uncalibrated), ``deg`` (the tags' shared heading against the body's
-        forward), and how it was or will be found."""
+        forward), and how it was or will be found (``switched``: why ``auto``
+        went on estimating each tag's heading)."""
         out: dict[str, Any] = {"state": self.how, "deg": None}
         values = [self.profile.heading_of(k) for k in self.profile.imu_mounts
                   if self.profile.heading_known(k)]  # fmt: skip
@@ -1240,6 +1391,16 @@ class BodyHeading:
                 out["waiting_for"] = (
                     finder.informative or "no hinge with both tags: declare a heading reference"
                 )
+            if self.candidate is not None:
+                out["waiting_for"] = [
+                    "move the arms and legs (knees, ankles, elbows, wrists "
+                    "bending): they check that the tags share one heading"
+                ]
+        if self.check is not None and self.check.errors:
+            # per hinge and two-dof joint, how far off its axes under the heading found
+            out["shared_check_deg"] = self.check.medians()
+        if self.switched is not None:
+            out["switched"] = self.switched
         if self.pairs is not None and self.unknown:
             out["waiting_for"] = self._motions_wanted()
         return out

@@ -788,12 +788,14 @@ class Gateway:
                 continue
             what, profile = step
             with self._lock:
-                if what == "found":
+                if what in ("found", "switched"):  # switched: auto met 6-axis tags
                     body.set_profile(profile, body.heading)
                 else:  # the joints' constraints turned drifting tags' headings
                     body.heading.hold(body.solver, profile)
             if what == "found":
                 log.info("heading found: %s", body.heading.state())
+            elif what == "switched":
+                log.warning("heading: %s", body.heading.switched)
 
     # --- the work loop -----------------------------------------------------------------
     def run(self, stop: threading.Event) -> None:

@@ -160,7 +160,7 @@ def _hold_drift(heading: BodyHeading, t_s: float, latest: Mapping[Site, RawSampl
     """The tags' headings held against drift after a solved tick, the live gateway's
     own step (the heading's search ended with the first pass)."""
     step = heading.step(t_s, latest, solver.profile)
-    if step is not None and step[0] == "turned":
+    if step is not None and step[0] in ("turned", "switched"):  # switched: none known
         heading.hold(solver, step[1])
 
 

@@ -951,3 +951,29 @@ def test_a_hanging_forearms_tag_drifts_on_at_the_rate_its_elbow_learnt(seed: int
     rates = [heading.drift.rate_deg_s[k] for k in heading.drift.rate_deg_s if "forearm" in k]
     assert any(abs(r) > 0.5 / 60 for r in rates)  # deg/s: a forearm's drift was learnt
     assert 0.0 < worst <= 2.5
+
+
+@pytest.mark.parametrize(("seed", "facing", "turn"), [(1, 0.0, 0.0), (3, 200.0, 120.0)])
+def test_auto_meeting_tags_of_their_own_estimates_each_tags_heading(
+    seed: int, facing: float, turn: float
+) -> None:
+    """The default profile (``auto``: tags assumed to share one reference) fed by
+    6-axis tags each with a heading of its own: the heading a knee gives is
+    checked against the joints it drives before it is taken; they break their
+    constraints, so it is not, and each tag's heading is estimated instead (said
+    once, ``switched``). No dof is ever shown measured more than 2.5 deg from the
+    truth (the feet's test's bound: an ankle's 2.04 here); after a walk with the
+    arms reaching and a bow, all 32 are measured."""
+    body = BodyEmulator(_bow_protocol("npose", turn, bow_first=False), imu_tags(),
+                        realism=Realism(facing_deg=facing, headings=Headings.INDEPENDENT),
+                        seed=seed)  # fmt: skip
+    auto = Profile(pose="npose")
+    heading = BodyHeading(calibrate_window(_window(body, 0.2, 0.95), auto,
+                                           "npose").apply(auto, "npose"))  # fmt: skip
+    ticks = _follow(body, heading, 17.8)
+    worst = max(((e, n, t) for t, errors, _ in ticks for n, e in errors.items()))
+    assert worst[0] <= 2.5, worst
+    assert "headings of their own" in heading.state()["switched"]
+    assert heading.profile.heading == "independent"
+    assert not heading.unknown
+    assert len(ticks[-1][1]) == 32  # every dof measured
