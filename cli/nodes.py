@@ -81,8 +81,28 @@ def _timing(args: argparse.Namespace):  # type: ignore[no-untyped-def]
         "jitter_s": None if args.jitter_ms is None else args.jitter_ms / 1000,
         "drop": args.drop,
         "late": args.late,
+        "reorder": args.reorder,
     }
     return replace(base, seed=args.seed, **{k: v for k, v in given.items() if v is not None})
+
+
+#: each timing flag by the ``LinkTiming`` field it sets
+_TIMING_FLAGS = {"timers": "--timers", "clock_ppm": "--clock-ppm", "jitter_s": "--jitter-ms",
+                 "drop": "--drop", "late": "--late", "reorder": "--reorder"}  # fmt: skip
+
+
+def _unused_timing(args: argparse.Namespace, devices: Sequence[str]) -> str | None:
+    """Why a timing flag given does nothing on ``devices`` (None if each is used)."""
+    from bodynet.nodes import sources
+
+    used = set().union(*(sources.by_device(d).TIMING for d in devices))
+    given = {"timers": args.timers, "clock_ppm": args.clock_ppm, "jitter_s": args.jitter_ms,
+             "drop": args.drop, "late": args.late, "reorder": args.reorder}  # fmt: skip
+    unused = [_TIMING_FLAGS[k] for k, v in given.items() if v is not None and k not in used]
+    if not unused:
+        return None
+    takes = " ".join(_TIMING_FLAGS[k] for k in _TIMING_FLAGS if k in used) or "no timing flag"
+    return f"{' '.join(unused)} does nothing here ({', '.join(devices)} takes {takes})"
 
 
 def _with_session(
@@ -113,6 +133,9 @@ def cmd_emulate(args: argparse.Namespace) -> int:
     from bodynet.nodes import services
     from bodynet.nodes.sources.base import EmulatorError
 
+    if unused := _unused_timing(args, [args.device]):
+        print(f"bodynet emulate {args.device}: {unused}", file=sys.stderr)
+        return 2
     stop = stop_on_signals()
     session = open_session(config_from_args(args)) if args.truth else None
     # what the device's own options say (its source added them), for its emulator
@@ -156,6 +179,9 @@ def cmd_node(args: argparse.Namespace) -> int:
     if empty := _no_sensor(plans):
         print(f"bodynet node {args.system}: {_selection(args)} matches no {empty.system} "
               "sensor; nothing to emulate", file=sys.stderr)  # fmt: skip
+        return 2
+    if unused := _unused_timing(args, [p.via for p in plans]):
+        print(f"bodynet node {args.system}: {unused}", file=sys.stderr)
         return 2
     return _with_session(args, run_node, plans, _options(args), args.name or f"node-{args.system}")
 
@@ -223,23 +249,30 @@ def _emulation_args(p: argparse.ArgumentParser) -> None:
 def _timing_args(p: argparse.ArgumentParser) -> None:
     """The link's timing (``nodes.timing.LinkTiming``); None: the default's."""
     p.add_argument("--timers", choices=("independent", "locked"),
-                   help="CAN nodes each on a timer of their own (own phase in the period, own "
-                        "clock error) or all sending at once (default independent; locked "
-                        "with --ideal)")  # fmt: skip
+                   help="CAN nodes, IMU tags, SlimeVR trackers each on a timer of their own "
+                        "(own phase in the period, own clock error) or all sending at once "
+                        "(default independent; locked with --ideal)")  # fmt: skip
     p.add_argument("--clock-ppm", type=argtypes.non_negative_float(10_000.0, "ppm"),
                    metavar="PPM",
                    help="independent timers: each node's clock error drawn within +/- this "
                         "(default 100)")  # fmt: skip
     p.add_argument("--jitter-ms", type=argtypes.non_negative_float(100.0, "ms"), metavar="MS",
-                   help="CAN nodes: each send late by up to this (default 1; 0 with "
+                   help="each send late by up to this (CAN frames, IMU tags' notifications "
+                        "and the central's lines, SlimeVR rotations) (default 1; 0 with "
                         "--ideal)")  # fmt: skip
     p.add_argument("--drop", type=argtypes.bounded_float(0.0, 1.0, "a fraction"),
                    metavar="FRACTION",
-                   help="share of frames lost: CAN frames (not sent), IMU-central tag lines "
-                        "(no new data), concentrator replies (none) (default 0)")  # fmt: skip
+                   help="share of frames lost: CAN frames (not sent), IMU tags' notifications "
+                        "(the central prints no new data when none came), SlimeVR rotations "
+                        "(numbered, not sent), concentrator replies (none) "
+                        "(default 0)")  # fmt: skip
     p.add_argument("--late", type=argtypes.bounded_float(0.0, 1.0, "a fraction"),
                    metavar="FRACTION",
                    help="concentrator: share of replies given after the bridge's timeout "
+                        "(default 0)")  # fmt: skip
+    p.add_argument("--reorder", type=argtypes.bounded_float(0.0, 1.0, "a fraction"),
+                   metavar="FRACTION",
+                   help="SlimeVR: share of rotation datagrams overtaken by the next one "
                         "(default 0)")  # fmt: skip
 
 

@@ -5,7 +5,7 @@
 - :class:`ConcentratorEmulator`: a Data Concentrator on a pseudo-terminal
   answering request characters on its ~22 ms cycle (115200 baud).
 - :class:`ImuCentralEmulator`: the IMU central on a pseudo-terminal printing the
-  data matrix every tick (230400 baud).
+  data matrix every tick (230400 baud), its BLE tags each on a timer of its own.
 - :class:`SlcanAdapterEmulator`: a Lawicel slcan USB-CAN adapter on a
   pseudo-terminal, with SmartSuit nodes behind it, so python-can's ``slcan``
   interface is exercised end to end.
@@ -15,9 +15,11 @@ How their link's timing falls short of an ideal one is a
 lost): CAN nodes on timers of their own (own phase, own clock error), each
 send late by up to the jitter, frames lost (not sent, counted in ``dropped``
 per node); a concentrator answering late now and then, past the bridge's
-reply timeout, or not at all; an IMU central whose tags' lines are lost (it
-prints "no new data" for them). The truth of each reading that goes out is
-handed to the ``truth`` sink, with the time the reading was taken.
+reply timeout, or not at all; IMU tags on timers of their own whose
+notifications are lost (the central prints "no new data" when none came since
+its last line). A CAN node or an IMU tag can be silenced for a span (an
+outage: ``silence``). The truth of each reading that goes out is handed to the
+``truth`` sink, with the time the reading was taken.
 
 Each pseudo-terminal is reached through a stable symlink (like udev's
 ``/dev/serial/by-id/...``), so :meth:`PtyPort.unplug` and :meth:`PtyPort.plug`
@@ -39,6 +41,7 @@ import tty
 from collections import Counter
 from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import NamedTuple
 
 import can
 
@@ -49,7 +52,7 @@ from bodynet.nodes.emulator import BodyEmulator, Truth
 from bodynet.nodes.loop import Loop
 from bodynet.nodes.sources.base import EmulatorError
 from bodynet.nodes.sources.concentrator import LATE_WINDOW_S, REPLY_TIMEOUT_S
-from bodynet.nodes.timing import LinkTiming, NodeTimers
+from bodynet.nodes.timing import LinkTiming, NodeTimers, Sends, link_schedule
 from bodynet.session.argtypes import is_pty_link
 
 log = logging.getLogger(__name__)
@@ -59,6 +62,10 @@ TruthSink = Callable[[int, Truth, int], None]  # node, truth, t_ns
 CAN_PERIOD_S = smartsuit_can.PERIOD_S
 CONCENTRATOR_CYCLE_S = concentrator.CYCLE_S
 IMU_TICK_S = imu_matrix.TICK_S
+#: how often an IMU tag sends its reading: its BLE connection interval, the longest
+#: the tags allow (003 seed, Table 7.6: 10 to 30 ms); shorter than the central's tick,
+#: so a tag whose notifications get through has a new reading at every tick
+TAG_INTERVAL_S = 0.03
 _BAUD = {115200: termios.B115200, 230400: termios.B230400}
 #: A node's reading is the body at most this long before its send: sends due this
 #: close together share one sample of the body (which costs as much for one sensor
@@ -77,6 +84,14 @@ class Clock:
 
     def now(self) -> float:
         return time.monotonic() - self.t0
+
+
+class Held(NamedTuple):
+    """A reading kept to be sent later, with its truth and when it was taken."""
+
+    reading: Reading
+    truth: Truth
+    t_ns: int
 
 
 class _Sampler:
@@ -106,8 +121,17 @@ class _Sampler:
 
     def sent(self, reading: Reading) -> None:
         """``reading`` (of the last :meth:`readings`) went out."""
+        self.give(Held(reading, self._truths[reading.node], self._t_ns))
+
+    def held(self, node: int) -> Held:
+        """``node``'s reading now (as :meth:`readings`), with its truth, to send later."""
+        reading = self.readings()[node]
+        return Held(reading, self._truths[node], self._t_ns)
+
+    def give(self, held: Held) -> None:
+        """``held`` went out: its truth, as of when it was taken, to the sink."""
         if self.truth is not None:
-            self.truth(reading.node, self._truths[reading.node], self._t_ns)
+            self.truth(held.reading.node, held.truth, held.t_ns)
 
 
 class _OnTimers:
@@ -129,6 +153,10 @@ class _OnTimers:
     @drop.setter
     def drop(self, value: float) -> None:
         self.timers.drop = value
+
+    def silence(self, node: int, seconds: float) -> None:
+        """Lose every frame of ``node`` from now for ``seconds`` (an outage)."""
+        self.timers.silence(node, time.monotonic(), seconds)
 
 
 class CanNodes(_OnTimers, Loop):
@@ -404,16 +432,20 @@ class ConcentratorEmulator(_PtyEmulator):
             self._sampler.sent(reading)
 
 
-class ImuCentralEmulator(_PtyEmulator):
-    """The IMU central: every tick one line per sensor slot 1..15.
+class ImuCentralEmulator(_OnTimers, _PtyEmulator):
+    """The IMU central and its BLE tags: every tick one line per sensor slot 1..15.
 
-    Emulated tags print flag 01 with their quaternion; slots with no tag print
-    ff (never seen); a tag in ``dropouts`` prints 00 (no new data) on every
-    ``dropout_every``-th tick, and any tag's line is lost with the probability
-    ``timing.drop`` (:attr:`drop` in force, it may be changed while it runs):
-    then it prints 00 too. Its ticks keep the one clock of the receiver (no
-    timers of the tags' own, no jitter). :attr:`dropped` counts the 00 lines of
-    each tag.
+    Each tag sends its reading every ``interval_s`` (its connection interval) on
+    a timer of its own as ``timing`` says (own phase and clock error when
+    independent, late by up to the jitter), and a share ``timing.drop`` of its
+    notifications is lost on the air (:attr:`dropped`, :attr:`drop` in force;
+    :meth:`silence` loses all of a tag's for a span). The central keeps each
+    tag's latest reading, with the truth at the time it was taken, and prints
+    its lines on a clock of its own every ``tick_s`` (its own clock error and
+    jitter): flag 01 with the quaternion when a reading came since its last
+    line, 00 (no new data) when none did, ff for a slot no tag has sent on yet.
+    A tag in ``dropouts`` prints 00 on every ``dropout_every``-th tick too.
+    :attr:`no_new` counts the 00 lines of each tag.
     """
 
     def __init__(
@@ -426,42 +458,57 @@ class ImuCentralEmulator(_PtyEmulator):
         dropouts: Sequence[int] = (),
         dropout_every: int = 4,
         timing: LinkTiming | None = None,
+        interval_s: float = TAG_INTERVAL_S,
     ) -> None:
-        super().__init__("imu-central-emulator", link, imu_matrix.BAUD, body, clock, truth)
+        super().__init__("imu-central-emulator", link, imu_matrix.BAUD, body, clock, truth,
+                         SAMPLE_REUSE_S)  # fmt: skip
         self.tick_s = tick_s
         self.dropouts, self.dropout_every = set(dropouts), dropout_every
         timing = timing or LinkTiming()
-        self.drop = timing.drop
-        self._rng = timing.draws()
+        self.timers = NodeTimers([s.node for s in body.sensors], interval_s, timing)
+        self._central = timing.of(0)  # the central's own clock and jitter, not a tag's
         self.ticks = 0
         #: lines of no new data (00) of each tag
-        self.dropped: Counter[int] = Counter()
-
-    def _lost(self, slot: int) -> bool:
-        if slot in self.dropouts and self.ticks % self.dropout_every == 1:
-            return True
-        return bool(self.drop) and self._rng.random() < self.drop
+        self.no_new: Counter[int] = Counter()
 
     def run(self) -> None:
-        deadline = time.monotonic()
+        tags, central = self.timers, self._central
+        start = time.monotonic()
+        tags.start(start)
+        ticks = Sends(link_schedule(1, self.tick_s, central), start, central.jitter_s,
+                      central.draws())  # fmt: skip
+        latest: dict[int, Held] = {}  # each tag's reading not yet printed
+        heard: set[int] = set()
         while not self.stop_event.is_set():
-            readings = self._sampler.readings()
-            lines = []
-            for slot in range(1, imu_matrix.MAX_SENSORS + 1):
-                reading = readings.get(slot)
-                if not isinstance(reading, Quat):
-                    lines.append(imu_matrix.encode_line(SensorAbsent(slot)))
-                elif self._lost(slot):
-                    lines.append(imu_matrix.encode_line(NoNewData(slot)))
-                    self.dropped[slot] += 1
-                else:
-                    extra = (self.ticks & 0xFFFF).to_bytes(2, "little")  # a line counter
-                    lines.append(imu_matrix.encode_line(Quat(slot, reading.wxyz, extra)))
-                    self._sampler.sent(reading)
-            self.port.write(b"".join(lines))
-            self.ticks += 1
-            deadline += self.tick_s
-            self.port.read(max(0.0, deadline - time.monotonic()))  # drain, and pace
+            due = min(tags.next_due, ticks.next_due)
+            self.port.read(max(0.0, due - time.monotonic()))  # drain, and pace
+            now = time.monotonic()
+            for node in tags.due(now):
+                latest[node] = self._sampler.held(node)
+                heard.add(node)
+            if ticks.next_due <= now:
+                ticks.pop()
+                self.port.write(self._lines(latest, heard))
+                self.ticks += 1
+
+    def _lines(self, latest: dict[int, Held], heard: set[int]) -> bytes:
+        """One tick's lines; the readings printed are taken out of ``latest``."""
+        lines = []
+        dropout = self.ticks % self.dropout_every == 1
+        for slot in range(1, imu_matrix.MAX_SENSORS + 1):
+            held = latest.pop(slot, None)
+            if slot not in heard:
+                lines.append(imu_matrix.encode_line(SensorAbsent(slot)))
+            elif held is None or not isinstance(held.reading, Quat) or (
+                dropout and slot in self.dropouts
+            ):
+                lines.append(imu_matrix.encode_line(NoNewData(slot)))
+                self.no_new[slot] += 1
+            else:
+                extra = (self.ticks & 0xFFFF).to_bytes(2, "little")  # a line counter
+                lines.append(imu_matrix.encode_line(Quat(slot, held.reading.wxyz, extra)))
+                self._sampler.give(held)
+        return b"".join(lines)
 
 
 class SlcanAdapterEmulator(_OnTimers, _PtyEmulator):

@@ -22,7 +22,7 @@ import heapq
 import math
 from collections import Counter
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from enum import StrEnum
 
 import numpy as np
@@ -50,11 +50,14 @@ class LinkTiming:
     ``INDEPENDENT`` ones each at a phase of its own, drawn in the period, on a
     clock off by a rate drawn within +/- ``clock_ppm``. ``jitter_s``: each send is
     late by a time drawn in [0, ``jitter_s``]. ``drop``: the probability a frame
-    (a CAN frame, a tag's line of the IMU central, a concentrator's reply) is
-    lost. ``late``: the probability a polled device (the Data Concentrator)
-    answers a request only after the bridge's reply timeout. ``seed`` makes the
-    draws repeatable. The default is the ideal link: lock-step, no jitter, no
-    loss; :meth:`realistic` is healthy real hardware."""
+    (a CAN frame, an IMU tag's notification, a SlimeVR tracker's rotation, a
+    concentrator's reply) is lost. ``late``: the probability a polled device
+    (the Data Concentrator) answers a request only after the bridge's reply
+    timeout. ``reorder``: the
+    probability a datagram (UDP: a SlimeVR tracker's rotation) is overtaken by
+    the one after it. ``seed`` makes the draws repeatable. The default is the
+    ideal link: lock-step, no jitter, no loss; :meth:`realistic` is healthy
+    real hardware."""
 
     timers: Timers = Timers.LOCKED
     clock_ppm: float = DRIFT_PPM
@@ -62,13 +65,14 @@ class LinkTiming:
     drop: float = 0.0
     late: float = 0.0
     seed: int = 0
+    reorder: float = 0.0
 
     def __post_init__(self) -> None:
         for name in ("clock_ppm", "jitter_s"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0):
                 raise ValueError(f"{name} must be a finite number >= 0, not {value}")
-        for name in ("drop", "late"):
+        for name in ("drop", "late", "reorder"):
             value = getattr(self, name)
             if not 0.0 <= value <= 1.0:
                 raise ValueError(f"{name} is a probability (0 to 1), not {value}")
@@ -87,6 +91,13 @@ class LinkTiming:
     def draws(self) -> np.random.Generator:
         """The generator of the per-send draws (jitter, losses, late replies)."""
         return np.random.default_rng([self.seed, 1])
+
+    def of(self, part: int) -> LinkTiming:
+        """This timing for one of several devices on the link (a SlimeVR tracker, an
+        IMU central beside its tags), with draws of its own: the same seed would
+        give each the same phase and the same losses."""
+        seed = int(np.random.SeedSequence([self.seed, part]).generate_state(1)[0])
+        return replace(self, seed=seed)
 
 
 def independent_timers(rng: np.random.Generator, nodes: int, period_s: float,
@@ -182,9 +193,10 @@ class NodeTimers:
     (:func:`link_schedule`, :class:`Sends`), and which of them are lost.
 
     :meth:`due` gives the nodes whose frame is due; a frame lost on the way
-    (probability :attr:`drop`) is not among them but counted in :attr:`dropped`.
-    :attr:`drop` starts as ``timing.drop`` and may be changed while the device
-    runs (a test turns losses off to let a receiver's counts settle)."""
+    (probability :attr:`drop`, or any while the node is silenced: :meth:`silence`)
+    is not among them but counted in :attr:`dropped`. :attr:`drop` starts as
+    ``timing.drop`` and may be changed while the device runs (a test turns
+    losses off to let a receiver's counts settle)."""
 
     def __init__(self, nodes: Sequence[int], period_s: float, timing: LinkTiming) -> None:
         self.nodes = list(nodes)
@@ -196,6 +208,23 @@ class NodeTimers:
         self.dropped: Counter[int] = Counter()
         self._rng = timing.draws()
         self._sends = Sends(self.schedule, 0.0, timing.jitter_s, self._rng)
+        self._silent: dict[int, tuple[float, float]] = {}  # node -> [from, until)
+
+    def silence(self, node: int, start: float, seconds: float) -> None:
+        """Lose every frame of ``node`` due from ``start`` for ``seconds`` (a tag
+        out of range, a tracker behind a wall, a node's connector working loose):
+        an outage, where :attr:`drop` loses frames one at a time."""
+        if node not in self.nodes:
+            raise ValueError(f"node {node} is not one of {self.nodes}")
+        if not (math.isfinite(seconds) and seconds >= 0):
+            raise ValueError(f"seconds must be a finite number >= 0, not {seconds}")
+        self._silent[node] = (start, start + seconds)
+
+    def _lost(self, node: int, due: float) -> bool:
+        start, until = self._silent.get(node, (0.0, 0.0))
+        if start <= due < until:
+            return True
+        return bool(self.drop) and self._rng.random() < self.drop
 
     def start(self, now: float) -> None:
         """The nodes are switched on at ``now`` (monotonic seconds): each first
@@ -212,9 +241,9 @@ class NodeTimers:
         lost are left out and counted, without it (nothing listens) none is."""
         out = []
         while self._sends.next_due <= now:
-            _, i, _ = self._sends.pop()
+            due, i, _ = self._sends.pop()
             node = self.nodes[i]
-            if lossy and self.drop and self._rng.random() < self.drop:
+            if lossy and self._lost(node, due):
                 self.dropped[node] += 1
             else:
                 out.append(node)

@@ -38,7 +38,14 @@ from bodynet.core.profile import SMARTSUIT_SITES
 from bodynet.gateway.service import Gateway
 from bodynet.nodes.can_bridge import CanBridge
 from bodynet.nodes.concentrator_bridge import ConcentratorBridge
-from bodynet.nodes.emulator import BodyEmulator, Realism, Truth, imu_tags, smartsuit_sensors
+from bodynet.nodes.emulator import (
+    BodyEmulator,
+    Realism,
+    Truth,
+    angle_between_deg,
+    imu_tags,
+    smartsuit_sensors,
+)
 from bodynet.nodes.hardware import (
     CAN_PERIOD_S,
     CanNodes,
@@ -303,40 +310,73 @@ def test_concentrator_answering_late_never_puts_a_reading_on_another_node(
         assert truths.count[n] - 1 <= counted[n].samples + late_n <= truths.count[n]
 
 
-def test_imu_central_tag_lines_lost_are_the_gaps_the_bridge_counts(
+class Given:
+    """A truth sink keeping, in order, each node's truths and their times."""
+
+    def __init__(self) -> None:
+        self.of: dict[int, list[tuple[Truth, int]]] = defaultdict(list)
+
+    def __call__(self, node: int, truth: Truth, t_ns: int) -> None:
+        self.of[node].append((truth, t_ns))
+
+
+TAGS = range(1, 5)  # the head, the chest and both upper arms
+
+
+def test_imu_tags_on_their_own_timers_the_bridge_counts_each_line_of_no_new_data(
     zsession: zenoh.Session, tmp_path: Path, run_thread: Callable[..., Running]
 ) -> None:
-    """The IMU central with 5% of its tags' lines lost (printed as no new data):
-    the bridge's gaps per tag are the lines the emulator lost, and the truth is
-    given for each line that went out, none for a lost one."""
-    tags = imu_tags(range(1, 5))
-    truths = Truths()
-    central = ImuCentralEmulator(tmp_path / "imu", BodyEmulator(ROUTINES["tpose"], tags,
-                                 realism=Realism.ideal()), truth=truths, tick_s=0.01,
-                                 timing=LinkTiming(drop=0.05, seed=5))  # fmt: skip
+    """The IMU central's tags each on a timer of its own (own phase and clock
+    error, notifications late by up to 1 ms, 15% of them lost), the central
+    printing its lines on its own clock, the arms moving: the bridge's gaps per
+    tag are the lines of no new data the central printed, each of which had a
+    notification lost (a tag sends faster than the central prints); every
+    sample published is its tag's reading with the truth as of when the tag
+    took it; and the tags took their readings at instants of their own."""
+    timing = LinkTiming(Timers.INDEPENDENT, jitter_s=1e-3, drop=0.15, seed=3)
+    given = Given()
+    central = ImuCentralEmulator(tmp_path / "imu", BodyEmulator(ROUTINES["upper-body"],
+                                 imu_tags(TAGS), realism=Realism.ideal()), truth=given,
+                                 tick_s=0.02, interval_s=0.015, timing=timing)  # fmt: skip
     central.drop = 0.0  # as on the CAN bus: none lost before the bridge has each tag
     central.start()
-    bridge = ImuCentralBridge(zsession, "imu-lossy")
+    raw = raw_collector(zsession)
+    bridge = ImuCentralBridge(zsession, "imu-tags")
     running = run_thread(bridge.run, str(central.link))
     counted = bridge.publisher.nodes
     try:
-        wait_until(lambda: all(n in counted for n in range(1, 5)), what="every tag bridged")
-        central.drop = 0.05
-        wait_until(lambda: min(central.dropped[n] for n in range(1, 5)) >= 8, 30.0, "losses")
+        wait_until(lambda: all(n in counted for n in TAGS), what="every tag bridged")
+        central.drop = timing.drop
+        wait_until(lambda: min(central.no_new[n] for n in TAGS) >= 8, 30.0, "lines of no data")
         central.drop = 0.0  # and none at the end: a loss shows at the tag's next line
-        wait_until(lambda: all(counted[n].gaps >= central.dropped[n] for n in range(1, 5)),
-                   10.0, "the bridge to count every loss")  # fmt: skip
+        wait_until(lambda: all(counted[n].gaps >= central.no_new[n] for n in TAGS),
+                   10.0, "the bridge to count every line of no new data")  # fmt: skip
+        central.stop()
+        wait_until(lambda: all(counted[n].samples + 1 >= len(given.of[n]) for n in TAGS),
+                   10.0, "the last lines bridged")  # fmt: skip
         running.stop()
     finally:
         central.stop()
         bridge.close()
-    lost = Counter(central.dropped)
-    print(
-        f"\nticks {central.ticks}, lost {dict(lost)}, gaps { ({n: counted[n].gaps for n in lost}) }"
-    )
-    for n in range(1, 5):
-        assert counted[n].gaps == lost[n]
-        assert truths.count[n] + lost[n] == central.ticks  # each tick a line, or its loss
+    print(f"\nticks {central.ticks}, notifications lost {dict(central.dropped)}, no new data "
+          f"{dict(central.no_new)}, gaps { ({n: counted[n].gaps for n in TAGS}) }")
+    assert not bridge.publisher.rejected
+    seen = raw.wait_for(lambda s: all(sum(x.reading.node == n for _, x in s) >= counted[n].samples
+                                      for n in TAGS), timeout=10)  # fmt: skip
+    for n in TAGS:
+        assert counted[n].gaps == central.no_new[n]
+        assert 0 < central.no_new[n] <= central.dropped[n]
+        samples = [x for _, x in seen if x.reading.node == n]
+        truths = given.of[n]
+        assert len(truths) - 1 <= len(samples) <= len(truths)  # (one line maybe cut at the stop)
+        # each line's reading against the truth handed out for it, as of its sample time
+        for sample, (truth, t_ns) in zip(samples, truths, strict=False):
+            assert angle_between_deg(sample.reading.wxyz, truth.segment_quat_wxyz) < 0.01
+            assert t_ns <= sample.t_ns  # taken before the bridge read it
+    # not lock-step: a tag's readings were taken at instants no other tag's were
+    instants = [{t for _, t in given.of[n]} for n in TAGS]
+    for a, b in itertools.combinations(instants, 2):
+        assert len(a & b) < min(len(a), len(b)) / 2
 
 
 def test_emulation_flags_make_the_link_timing() -> None:

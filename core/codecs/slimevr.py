@@ -65,8 +65,13 @@ Sequence numbers come from the packet counter: a sensor's sample is numbered
 one after its last plus every packet of its tracker lost since (numbers
 skipped), so a lost packet is a gap of the sensors it could have carried (an
 upper bound: a lost battery packet is counted too). A packet whose number is
-not above the last one (a duplicate or reordered datagram) is rejected
-(``out_of_order``), as the server drops it. Number 0 is the exception, as in the
+not above the last one is dropped, as the server drops it: one of the last
+:data:`REORDER_WINDOW` numbers skipped (a datagram overtaken by a later one)
+is a late packet, already counted as its gap, so counted no more than that
+(its tracker's sensors get status ``late_packets``, how many came late); any
+other (a duplicate, one older still) is rejected (``out_of_order``). The
+server counts a swapped pair as one packet lost too (its refused one), and
+no gap. Number 0 is the exception, as in the
 server (``UDPDevice.isNextPacket``): always taken, no gap counted, the last
 number left as it was. Every packet the server sends is numbered 0, and the
 firmware answers a ping (10) by sending the server's datagram back verbatim.
@@ -106,6 +111,9 @@ PORT = 6969
 HEARTBEAT_S = 1.0
 #: The tracker gives up on a server it has not heard from for about this long.
 TRACKER_TIMEOUT_S = 3.0
+#: A packet up to this many numbers behind the last one taken, whose number was
+#: skipped, is taken for a late one (overtaken on the way), not a duplicate.
+REORDER_WINDOW = 64
 
 HEARTBEAT, SERVER_HEARTBEAT, HANDSHAKE = 0, 1, 3
 PING, BATTERY, SENSOR_INFO, ROTATION_DATA, SIGNAL_STRENGTH, ROTATION_ACCEL = 10, 12, 15, 17, 19, 23
@@ -397,6 +405,8 @@ class Connection:
     #: the number of the tracker's last packet taken; none since its handshake
     last_number: int | None = None
     lost: int = 0  # packets whose numbers were skipped
+    late: int = 0  # of those, packets that came after all (dropped: too late)
+    missing: set[int] = field(default_factory=set)  # the last numbers skipped
     ignored: int = 0
     nodes: dict[int, int] = field(default_factory=dict)  # sensor id -> node
     pending_lost: dict[int, int] = field(default_factory=dict)  # node -> lost since
@@ -457,6 +467,10 @@ class SlimeVRServer:
         if packet.number != SERVER_NUMBER:  # 0 is always taken and moves nothing (see _take)
             last = conn.last_number
             if packet.number < 0 or (last is not None and packet.number <= last):
+                if packet.number in conn.missing:  # overtaken: its gap is counted
+                    conn.missing.discard(packet.number)
+                    conn.late += 1
+                    return [NodeStatus(n, "late_packets", conn.late) for n in conn.nodes.values()]
                 node = next(iter(conn.nodes.values()), None)
                 after = "its handshake" if last is None else last
                 detail = f"packet {packet.number} after {after}"
@@ -490,6 +504,8 @@ class SlimeVRServer:
         skipped = number - last - 1
         if skipped:
             conn.lost += skipped
+            conn.missing = {m for m in conn.missing if m > number - REORDER_WINDOW}
+            conn.missing.update(range(max(last + 1, number - REORDER_WINDOW), number))
             for node in conn.nodes.values():
                 conn.pending_lost[node] = conn.pending_lost.get(node, 0) + skipped
 
@@ -498,6 +514,7 @@ class SlimeVRServer:
         conn = self.connections.get(address)
         if conn is not None and conn.handshake.mac == hs.mac:
             conn.last_number = None  # a reconnect: its counter runs on, from no last number
+            conn.missing.clear()
             return []
         if conn is None and len(self.connections) >= self.max_trackers:
             self._replies.pop()

@@ -343,7 +343,9 @@ class Source:
     - ``transport``: what carries its bytes;
     - ``sites``/``period_s``: node number -> site, and how often a node sends;
     - ``formats``: capture formats it reads (``decode``/``process --format``);
-    - ``emulators``: emulated devices it offers (``emulate DEVICE``, ``node --via``).
+    - ``emulators``: emulated devices it offers (``emulate DEVICE``, ``node --via``);
+    - ``TIMING``: the fields of ``nodes.timing.LinkTiming`` its emulators honour
+      (the CLI refuses a timing flag no emulated device given would use).
     """
 
     name: ClassVar[str]
@@ -354,6 +356,7 @@ class Source:
     PERIOD_S: ClassVar[float] = 0.01
     formats: ClassVar[Mapping[str, str]] = {}
     emulators: ClassVar[Mapping[str, str]] = {}
+    TIMING: ClassVar[frozenset[str]] = frozenset()
     #: suffixes of capture files whose format goes without saying
     suffixes: ClassVar[Mapping[str, str]] = {}
     #: serial sources: the link's speed, and how long one read waits

@@ -66,6 +66,7 @@ class Concentrator(SerialSource):
     BAUD = codec.BAUD
     formats: ClassVar = {"concentrator": "a capture of the concentrator's serial exchange"}
     emulators: ClassVar = {"concentrator": "a Data Concentrator with SmartSuit nodes"}
+    TIMING: ClassVar = frozenset({"drop", "late"})  # polled: it answers when asked
 
     def __init__(self, sites: Mapping[int, Site] | None = None, period_s: float | None = None,
                  nodes: Sequence[int] = (1, 2, 3)) -> None:  # fmt: skip

@@ -27,6 +27,7 @@ class ImuCentral(SerialSource):
     BAUD = codec.BAUD
     formats: ClassVar = {"imu-central": "the IMU central's data matrix (hex lines)"}
     emulators: ClassVar = {"imu-central": "the IMU central with its tags"}
+    TIMING: ClassVar = frozenset({"timers", "clock_ppm", "jitter_s", "drop"})
 
     def decoder(self) -> codec.ImuMatrixDecoder:
         return codec.ImuMatrixDecoder()

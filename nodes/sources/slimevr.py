@@ -30,6 +30,7 @@ from bodynet.core.keys import KeySpaceError, Site, site_named
 from bodynet.core.messages import Source as SourceId
 from bodynet.nodes.loop import Loop
 from bodynet.nodes.sources.base import EmulatorError, NodeParts, Source, Transport
+from bodynet.nodes.timing import LinkTiming, NodeTimers
 from bodynet.session import argtypes
 
 log = logging.getLogger(__name__)
@@ -86,6 +87,7 @@ class SlimeVR(Source):
     help = "SlimeVR trackers over Wi-Fi (their server's protocol, UDP 6969)"
     PERIOD_S = 0.01
     emulators: ClassVar = {"slimevr": "SlimeVR trackers on UDP, for a bridge to take"}
+    TIMING: ClassVar = frozenset({"timers", "clock_ppm", "jitter_s", "drop", "reorder"})
 
     def __init__(self, sites: Mapping[int, Site] | None = None, period_s: float | None = None,
                  assignments: Mapping[str, Site] | None = None) -> None:  # fmt: skip
@@ -135,16 +137,16 @@ class SlimeVR(Source):
 
     def emulator(self, device: str, body: Any, truth: Any, opts: dict[str, Any]) -> Any:
         return EmulatedTrackers(body, opts.get("server") or ("127.0.0.1", codec.PORT),
-                                opts.get("rate_hz") or 100.0, truth=truth)  # fmt: skip
+                                opts.get("rate_hz") or 100.0, truth=truth,
+                                timing=opts.get("timing"))  # fmt: skip
 
     def node(self, device: str, body: Any, where: Path, clock: Any, truth: Any,
              sensors: list[Any], label: str, timing: Any = None) -> NodeParts:  # fmt: skip
-        """Emulated trackers and their bridge; the trackers keep their own pace
-        (``timing`` is not applied to UDP)."""
+        """Emulated trackers, each on its own timer as ``timing`` says, and their bridge."""
         from bodynet.nodes.slimevr_bridge import run_bridge
 
         listen = ("127.0.0.1", free_udp_port())
-        trackers = EmulatedTrackers(body, listen, 100.0, clock, truth)
+        trackers = EmulatedTrackers(body, listen, 100.0, clock, truth, timing=timing)
         assignments = {trackers.tracker_of(s.node): s.site for s in sensors}
         return trackers, run_bridge, {"listen": listen, "assignments": assignments}
 
@@ -175,14 +177,21 @@ class EmulatedTracker(Loop):
     """One SlimeVR tracker on its own UDP socket; see the module docstring.
 
     ``orientation(sensor, t_s)`` gives each sensor's quaternion (w, x, y, z).
-    :meth:`pause` and :meth:`resume` unplug and plug it (silence, then a new
-    handshake once the server forgets it... or the same connection if not),
-    :meth:`skip` jumps its packet counter, :meth:`send` sends any bytes."""
+    Its rotations go out every ``1 / rate_hz`` on a timer of its own as
+    ``timing`` says (own phase and clock error when independent, late by up to
+    the jitter); a share ``timing.drop`` of them is lost on the air, after the
+    packet counter counted it (:attr:`dropped`; :meth:`silence` loses all for a
+    span), and a share ``timing.reorder`` is overtaken by the datagram after it
+    (:attr:`reordered`). :meth:`pause` and :meth:`resume` unplug and plug it
+    (silence, then a new handshake once the server forgets it... or the same
+    connection if not), :meth:`reboot` restarts its firmware (counter from 0, a
+    new handshake), :meth:`skip` jumps its packet counter, :meth:`send` sends
+    any bytes."""
 
     def __init__(self, server: tuple[str, int], mac: bytes, sensors: Sequence[int],
                  orientation: Callable[[int, float], tuple[float, float, float, float]],
                  rate_hz: float = 100.0, compact: bool = False, clock: Any = None,
-                 name: str = "tracker") -> None:  # fmt: skip
+                 name: str = "tracker", timing: LinkTiming | None = None) -> None:  # fmt: skip
         super().__init__(name)
         self.server = resolve(server)  # once: a name looked up for each datagram could block
         self.mac = mac
@@ -201,8 +210,27 @@ class EmulatedTracker(Loop):
         self.pings_echoed = 0
         self.heartbeats = 0
         self.acked: set[int] = set()
+        self.timing = timing or LinkTiming()
+        self.timers = NodeTimers([0], self.period_s, self.timing)  # 0: the tracker
+        #: rotation datagrams sent after the one numbered after them
+        self.reordered = 0
+        self._held: bytes | None = None  # a datagram to go out after the next one
+        self._reboot = threading.Event()
         self._heard = 0.0
         self._t0 = time.monotonic()
+
+    @property
+    def dropped(self) -> int:
+        """Rotation datagrams lost on the air (their numbers taken all the same)."""
+        return self.timers.dropped[0]
+
+    def silence(self, seconds: float) -> None:
+        """Lose every rotation from now for ``seconds`` (the tracker out of reach)."""
+        self.timers.silence(0, time.monotonic(), seconds)
+
+    def reboot(self) -> None:
+        """Restart the firmware: its packet counter from 0 and a new handshake."""
+        self._reboot.set()
 
     @property
     def address(self) -> tuple[str, int]:
@@ -271,14 +299,23 @@ class EmulatedTracker(Loop):
                 self.acked.add(packet.sensor)
 
     def run(self) -> None:
-        next_send = next_status = next_handshake = time.monotonic()
+        timers = self.timers
+        timers.start(time.monotonic())
+        rng = self.timing.draws()
+        next_status = next_handshake = time.monotonic()
         while not self.stop_event.is_set():
             now = time.monotonic()
+            if self._reboot.is_set():
+                self._reboot.clear()
+                self.number, self._held = 0, None
+                self.connected.clear()
+                next_handshake = now
             if self.paused.is_set():
                 self.stop_event.wait(0.01)
                 with contextlib.suppress(OSError, BlockingIOError):
                     while self.sock.recvfrom(2048):  # what comes meanwhile is lost
                         pass
+                timers.due(time.monotonic(), lossy=False)  # and nothing is sent
                 continue
             self._read()
             if self.connected.is_set() and now - self._heard > codec.TRACKER_TIMEOUT_S:
@@ -288,25 +325,39 @@ class EmulatedTracker(Loop):
                     self._handshake()
                     next_handshake = now + 0.2
                 self.stop_event.wait(0.01)
+                timers.due(time.monotonic(), lossy=False)  # no rotations before the server
                 continue
             if now >= next_status:
                 self._status()
                 next_status = now + STATUS_S
-            if now >= next_send:
-                t = self._now()
-                for sensor in self.sensors:
-                    w, x, y, z = self.orientation(sensor, t)
-                    if self.compact:
-                        data = codec.encode_rotation_accel(self._next(), sensor, (x, y, z, w),
-                                                           (0.0, 0.0, 9.81))  # fmt: skip
-                    else:
-                        data = codec.encode_rotation(self._next(), sensor, (x, y, z, w), 3)
-                    self.send(data)
-                    self.sent += 1
-                next_send += self.period_s
-                if next_send < now:  # fell behind (a loaded machine): no burst to catch up
-                    next_send = now + self.period_s
-            self.stop_event.wait(max(0.0, min(next_send, next_status) - time.monotonic()))
+            lost = timers.dropped[0]
+            sends = len(timers.due(now))
+            for _ in range(timers.dropped[0] - lost):  # numbered, then lost on the air
+                for _sensor in self.sensors:
+                    self._next()
+            for _ in range(sends):
+                self._rotations(rng)
+            self.stop_event.wait(max(0.0, min(timers.next_due, next_status) - time.monotonic()))
+
+    def _rotations(self, rng: Any) -> None:
+        """One rotation datagram per sensor, each maybe overtaken by the next."""
+        t = self._now()
+        for sensor in self.sensors:
+            w, x, y, z = self.orientation(sensor, t)
+            if self.compact:
+                data = codec.encode_rotation_accel(self._next(), sensor, (x, y, z, w),
+                                                   (0.0, 0.0, 9.81))  # fmt: skip
+            else:
+                data = codec.encode_rotation(self._next(), sensor, (x, y, z, w), 3)
+            held, self._held = self._held, None
+            if held is None and self.timing.reorder and rng.random() < self.timing.reorder:
+                self._held = data  # goes out after the next one
+                self.reordered += 1
+            else:
+                self.send(data)
+            if held is not None:
+                self.send(held)
+            self.sent += 1
 
     def _status(self) -> None:
         for sensor in self.sensors:
@@ -322,7 +373,8 @@ class EmulatedTrackers:
     the ground truth published through ``truth`` as the other emulators do."""
 
     def __init__(self, body: Any, server: tuple[str, int], rate_hz: float = 100.0,
-                 clock: Any = None, truth: Any = None, compact: bool = False) -> None:  # fmt: skip
+                 clock: Any = None, truth: Any = None, compact: bool = False,
+                 timing: LinkTiming | None = None) -> None:  # fmt: skip
         self.body = body
         self.truth = truth
         self.link = f"{server[0]}:{server[1]}"
@@ -330,16 +382,25 @@ class EmulatedTrackers:
         self._lock = threading.Lock()
         self._cache: tuple[float, dict[int, tuple[float, float, float, float]]] = (-1.0, {})
         nodes = [s.node for s in body.sensors]
+        timing = timing or LinkTiming()
         self.trackers = [
             EmulatedTracker(server, emulated_mac(node), [0],
                             lambda _sensor, t, node=node: self._quat(node, t),
-                            rate_hz, compact, clock, f"slimevr-tracker-{node}")
+                            rate_hz, compact, clock, f"slimevr-tracker-{node}", timing.of(node))
             for node in nodes
         ]  # fmt: skip
         self._by_node = dict(zip(nodes, self.trackers, strict=True))
 
     def tracker_of(self, node: int) -> str:
         return self._by_node[node].tracker_ids()[0]
+
+    def of(self, node: int) -> EmulatedTracker:
+        """The tracker of ``node``."""
+        return self._by_node[node]
+
+    def silence(self, node: int, seconds: float) -> None:
+        """Lose every rotation of ``node``'s tracker from now for ``seconds``."""
+        self._by_node[node].silence(seconds)
 
     def _quat(self, node: int, t: float) -> tuple[float, float, float, float]:
         with self._lock:  # one body sample a period for every tracker

@@ -76,6 +76,7 @@ class SmartSuitCan(Source):
         "slcan": "a slcan USB-CAN adapter with SmartSuit nodes",
         "can": "SmartSuit nodes on a python-can bus",
     }
+    TIMING: ClassVar = frozenset({"timers", "clock_ppm", "jitter_s", "drop"})
 
     def decoder(self) -> FrameDecoder:
         return FrameDecoder()
