@@ -34,7 +34,7 @@ from bodynet.core import keys
 from bodynet.core.codecs import pose
 from bodynet.core.keys import LEFT_ARM
 from bodynet.core.messages import OleAccel
-from bodynet.core.profile import SMARTSUIT_SITES
+from bodynet.core.profile import IMU_SITES, SMARTSUIT_SITES
 from bodynet.gateway.service import Gateway
 from bodynet.nodes.can_bridge import CanBridge
 from bodynet.nodes.concentrator_bridge import ConcentratorBridge
@@ -61,6 +61,7 @@ NODES = (1, 2, 3)  # the left arm's shoulder, elbow and wrist modules
 #: the hard case: own timers, sends late by up to 1 ms, 5% lost (this seed's three
 #: timers are over 2 ms apart in the period, so a phase check can tell them apart)
 HARD = LinkTiming(Timers.INDEPENDENT, jitter_s=1e-3, drop=0.05, seed=9)
+HARD_NO_LOSS = LinkTiming(Timers.INDEPENDENT, jitter_s=1e-3, seed=9)
 #: each joint of the arm held at an angle of its own, so each node's reading is its own
 HELD = {"left_shoulder_flexion_deg": 30.0, "left_elbow_flexion_deg": 80.0,
         "left_wrist_flexion_deg": 20.0}  # fmt: skip
@@ -125,6 +126,25 @@ def test_node_timers_send_each_node_on_its_own_timer_and_count_what_is_lost() ->
     locked = NodeTimers([1, 2, 3], 0.01, LinkTiming())
     locked.start(0.0)
     assert [locked.due(k * 0.005) for k in range(5)] == [[1, 2, 3], [], [1, 2, 3], [], [1, 2, 3]]
+
+
+def test_a_silenced_node_loses_every_frame_of_its_span_and_only_those() -> None:
+    """No I/O: a node silenced for a second from 0.5 s loses its hundred frames
+    of that second (counted in ``dropped``) and sends all the others; the other
+    nodes lose none."""
+    timers = NodeTimers([1, 2, 3], 0.01, LinkTiming(Timers.INDEPENDENT, jitter_s=1e-3, seed=9))
+    timers.start(0.0)
+    timers.silence(2, 0.5, 1.0)
+    due = {k: timers.due(k * 1e-3) for k in range(2000)}  # each millisecond
+    sent_by_2 = [k for k, d in due.items() if 2 in d]
+    assert timers.dropped == Counter({2: 100})
+    assert not [k for k in sent_by_2 if 500 < k < 1500]
+    assert len(sent_by_2) + 100 in (199, 200)
+    assert all(sum(n in d for d in due.values()) in (199, 200) for n in (1, 3))
+    with pytest.raises(ValueError, match="node 7"):
+        timers.silence(7, 0.0, 1.0)
+    with pytest.raises(ValueError, match="seconds"):
+        timers.silence(1, 0.0, math.inf)
 
 
 @pytest.mark.parametrize(
@@ -379,6 +399,50 @@ def test_imu_tags_on_their_own_timers_the_bridge_counts_each_line_of_no_new_data
         assert len(a & b) < min(len(a), len(b)) / 2
 
 
+LEG = (9, 10, 12, 14)  # sacrum, left thigh, shank and foot
+SHANK = IMU_SITES[12].raw_key
+
+
+def test_a_tag_silent_for_two_seconds_is_its_gaps_and_its_site_goes_stale(
+    gateway: Gateway, zsession: zenoh.Session, tmp_path: Path,
+    run_thread: Callable[..., Running],
+) -> None:  # fmt: skip
+    """One leg's tags on their own timers, the shank's silent for two seconds
+    (out of range): the central prints no new data for it all the while, the
+    bridge counts each such line as a gap of the shank (and none of the others),
+    and the gateway's poses list the shank's site as stale while the other tags'
+    samples keep coming; afterwards it is fresh again."""
+    central = ImuCentralEmulator(tmp_path / "imu", BodyEmulator(ROUTINES["tpose"], imu_tags(LEG),
+                                 realism=Realism.ideal()), timing=HARD_NO_LOSS)  # fmt: skip
+    central.start()
+    bridge = ImuCentralBridge(zsession, "imu-outage")
+    running = run_thread(bridge.run, str(central.link))
+    counted = bridge.publisher.nodes
+    poses = Collector(zsession, keys.pose_key(), pose.decode)
+    try:
+        seen = poses.wait_for(lambda s: bool(s) and set(s[-1][1].sources) >= {
+            IMU_SITES[n].raw_key for n in LEG}, timeout=20)  # fmt: skip
+        count = len(seen)
+        central.silence(12, 2.0)
+        seen = poses.wait_for(lambda s: SHANK in s[-1][1].stale, timeout=10)
+        stale_from = len(seen) - 1
+        seen = poses.wait_for(lambda s: not s[-1][1].stale and len(s) > stale_from, timeout=10)
+        wait_until(lambda: counted[12].gaps >= central.no_new[12], 10.0, "the gaps counted")
+        running.stop()
+    finally:
+        central.stop()
+        bridge.close()
+    print(f"\nno new data {dict(central.no_new)}, lost {dict(central.dropped)}, "
+          f"gaps { ({n: counted[n].gaps for n in LEG}) }")
+    lines_2s = 2.0 / central.tick_s
+    assert lines_2s - 2 <= central.no_new[12] == counted[12].gaps <= lines_2s + 2
+    assert all(counted[n].gaps == central.no_new[n] == 0 for n in LEG if n != 12)
+    stale = [f for _, f in seen[count:] if f.stale]
+    assert stale and all(f.stale == [SHANK] for f in stale)  # only the shank's site
+    thigh = IMU_SITES[10].raw_key
+    assert stale[-1].sources[thigh] > stale[0].sources[thigh]  # the others flowed meanwhile
+
+
 def test_emulation_flags_make_the_link_timing() -> None:
     """``bodynet emulate``/``node``: healthy real hardware by default (own timers,
     1 ms jitter, nothing lost), an ideal link with ``--ideal``; flags given apply
@@ -402,6 +466,35 @@ def test_emulation_flags_make_the_link_timing() -> None:
             build_parser(only=("node",)).parse_args(["node", "smartsuit", *bad])
 
 
+def test_a_timing_flag_no_emulated_device_uses_is_refused(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``--late`` (polled devices) on the IMU central, ``--reorder`` (UDP) on CAN,
+    ``--timers`` on the Data Concentrator (it answers when asked): refused with
+    the flags the device takes, before anything starts; a flag one of a body's
+    devices uses is taken."""
+    from bodynet.cli.main import build_parser, main
+    from bodynet.cli.nodes import _unused_timing
+
+    link = str(tmp_path / "x")
+    for argv, flag, takes in (
+        (["emulate", "imu-central", "--link", link, "--late", "0.1"], "--late", "--drop"),
+        (["node", "smartsuit", "--reorder", "0.1"], "--reorder", "--jitter-ms"),
+        (["emulate", "concentrator", "--link", link, "--timers", "locked", "--jitter-ms", "0"],
+         "--timers --jitter-ms", "--drop --late"),
+    ):  # fmt: skip
+        assert main(argv) == 2
+        err = capsys.readouterr().err
+        assert f"{flag} does nothing here" in err and takes in err, err
+        assert "Traceback" not in err
+    assert not (tmp_path / "x").exists()
+    body = build_parser(only=("node",)).parse_args(["node", "body", "--late", "0.1", "--drop", "0.1"])
+    assert _unused_timing(body, ["can", "concentrator", "imu-central"]) is None
+    slime = build_parser(only=("emulate",)).parse_args(["emulate", "slimevr", "--reorder", "0.2",
+                                                        "--jitter-ms", "5"])  # fmt: skip
+    assert _unused_timing(slime, ["slimevr"]) is None
+
+
 def test_emulated_devices_take_the_timing_they_are_given(tmp_path: Path) -> None:
     """What ``bodynet emulate`` and ``node`` hand a source reaches its emulator."""
     from bodynet.nodes import sources
@@ -418,3 +511,16 @@ def test_emulated_devices_take_the_timing_they_are_given(tmp_path: Path) -> None
     )
     assert dc.late == 0.3
     assert np.isclose(LinkTiming.realistic().jitter_s, 1e-3)
+    tags = BodyEmulator(held(HELD), imu_tags([1, 2]), realism=Realism.ideal())
+    imu = sources.by_device("imu-central")()
+    central = imu.emulator("imu-central", tags, None, {"link": tmp_path / "imu", "timing": HARD})
+    assert central.timers.timing == HARD
+    assert imu.node("imu-central", tags, tmp_path, Clock(), None, [], "y",
+                    timing=HARD)[0].timers.timing == HARD  # fmt: skip
+    slimevr = sources.by_device("slimevr")()
+    made = [slimevr.emulator("slimevr", tags, None, {"server": ("127.0.0.1", 9), "timing": HARD}),
+            slimevr.node("slimevr", tags, tmp_path, Clock(), None, [], "z", timing=HARD)[0]]
+    for trackers in made:  # each tracker its own draws of the timing
+        assert [t.timing for t in trackers.trackers] == [HARD.of(1), HARD.of(2)]
+        assert HARD.of(1) != HARD.of(2) and HARD.of(1).drop == HARD.drop
+        trackers.stop()
