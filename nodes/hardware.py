@@ -483,7 +483,8 @@ class ImuCentralEmulator(_OnTimers, _PtyEmulator):
             due = min(tags.next_due, ticks.next_due)
             self.port.read(max(0.0, due - time.monotonic()))  # drain, and pace
             now = time.monotonic()
-            for node in tags.due(now):
+            # in time order, also when behind: the notifications before the next line
+            for node in tags.due(min(now, ticks.next_due)):
                 latest[node] = self._sampler.held(node)
                 heard.add(node)
             if ticks.next_due <= now:

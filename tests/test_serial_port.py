@@ -212,7 +212,7 @@ def test_a_device_unplugged_and_back_is_retried_every_half_second_quietly(
     (a replug is found within half a second), says so once, and resumes."""
     caplog.set_level(logging.DEBUG, logger="bodynet.nodes.device")
     body = BodyEmulator(ROUTINES["tpose"], imu_tags([1, 2]), realism=Realism.ideal())
-    central = ImuCentralEmulator(tmp_path / "imu", body, tick_s=0.01)
+    central = ImuCentralEmulator(tmp_path / "imu", body, tick_s=0.01, interval_s=0.005)
     central.start()
     bridge = ImuCentralBridge(zsession, "replug")
     stop = RecordedStop()
