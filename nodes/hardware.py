@@ -500,8 +500,10 @@ class ImuCentralEmulator(_OnTimers, _PtyEmulator):
             held = latest.pop(slot, None)
             if slot not in heard:
                 lines.append(imu_matrix.encode_line(SensorAbsent(slot)))
-            elif held is None or not isinstance(held.reading, Quat) or (
-                dropout and slot in self.dropouts
+            elif (
+                held is None
+                or not isinstance(held.reading, Quat)
+                or (dropout and slot in self.dropouts)
             ):
                 lines.append(imu_matrix.encode_line(NoNewData(slot)))
                 self.no_new[slot] += 1

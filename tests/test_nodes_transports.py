@@ -144,8 +144,9 @@ def test_imu_central_over_pty_counts_gaps(
     zsession: zenoh.Session, tmp_path: Path, run_thread: Callable[..., Running]
 ) -> None:
     tags = imu_tags(range(1, 9))  # tags 9-15 absent: the central prints ff for them
-    central = ImuCentralEmulator(tmp_path / "imu", still_body(tags), dropouts=[3], tick_s=0.01,
-                                 interval_s=0.005)  # tags sending faster than it prints
+    central = ImuCentralEmulator(
+        tmp_path / "imu", still_body(tags), dropouts=[3], tick_s=0.01, interval_s=0.005
+    )  # tags sending faster than it prints
     central.start()
     raw = raw_collector(zsession)
     bridge = ImuCentralBridge(zsession, "imu-test")

@@ -638,12 +638,14 @@ def test_a_swapped_pair_is_one_gap_and_the_late_packet_no_rejection() -> None:
     assert (conn.lost, conn.late) == (1, 1)
     for again in (packets[3], packets[2]):
         (rejected,) = server.receive(again, addr)
-        assert isinstance(rejected, Rejected) and rejected.reason is Reason.OUT_OF_ORDER
+        assert isinstance(rejected, Rejected)
+        assert rejected.reason is Reason.OUT_OF_ORDER
 
 
 def slimevr_sites() -> dict[str, Site]:
     """Three emulated trackers (1, 2, 3) assigned to sites."""
-    return {codec.tracker_id(emulated_mac(n), 0): s for n, s in zip((1, 2, 3), (UPPER, FORE, THIGH))}
+    sites = (UPPER, FORE, THIGH)
+    return {codec.tracker_id(emulated_mac(n), 0): s for n, s in zip((1, 2, 3), sites, strict=True)}
 
 
 @pytest.fixture
@@ -735,7 +737,8 @@ def test_a_tracker_rebooting_starts_its_counter_over_with_no_gap(
     tracker.reboot()
     wait_until(lambda: health.samples >= samples + 20, 10.0, "samples after the reboot")
     conn = next(c for c in bridge.server.connections.values() if c.handshake.mac == tracker.mac)
-    assert conn.last_number is not None and conn.last_number < number  # counted from 0 again
+    assert conn.last_number is not None
+    assert conn.last_number < number
     wait_until(lambda: health.samples >= samples + 100, 10.0, "more samples")
     assert (health.gaps, dict(bridge.publisher.rejected)) == (0, {})
     assert set(bridge.server.nodes) == {tracker.tracker_ids()[0]}
