@@ -20,6 +20,7 @@ import json
 import os
 import random
 import re
+import shutil
 import signal
 import subprocess
 import sys
@@ -1086,11 +1087,18 @@ SMALL_DISK = ["sh", "-c", 'trap \'\' XFSZ; ulimit -f 40; exec "$0" "$@"', str(BO
 def test_a_full_disk_names_the_output_and_leaves_no_half_file(
     corpus: dict[str, Path], tmp_path: Path
 ) -> None:
+    whole = tmp_path / "whole" / "big.csv"  # the export's size, on a disk with room
+    whole.parent.mkdir()
+    assert main(["export", "csv", "-q", str(corpus["recording"]), "-o", str(whole)]) == 0
+    blocks = whole.stat().st_size // 2 // 512  # sh's ulimit -f counts 512-byte blocks
+    shutil.rmtree(whole.parent)
     out = tmp_path / "big.csv"
     out.write_text("an earlier export\n")
     with unchanged(corpus["recording"], out):
-        result = subprocess.run([*SMALL_DISK, "export", "csv", "-q", str(corpus["recording"]),
-                                 "-o", str(out)], capture_output=True, text=True, timeout=60,
+        limited = ["sh", "-c", f'trap \'\' XFSZ; ulimit -f {blocks}; exec "$0" "$@"']
+        result = subprocess.run([*limited, str(BODYNET), "export", "csv", "-q",
+                                 str(corpus["recording"]), "-o", str(out)],
+                                capture_output=True, text=True, timeout=60,
                                 check=False)  # fmt: skip
     assert result.returncode == 2, result.stderr
     assert f"bodynet export: cannot write {out}: File too large" in result.stderr
