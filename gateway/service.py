@@ -8,7 +8,8 @@ tick (``rate_hz``), the bodies that are due together, publishing the whole
 body on ``body/pose`` and each branch's view on ``body/<limb>/<side>/pose``.
 Nodes are tracked through their liveliness tokens; the topology is published
 on ``body/@topology`` when it changes and answered as a query there. A site that stops delivering
-keeps its last sample, flagged stale; other branches carry on. Garbage on the
+keeps its last sample, listed stale, and the dofs resting on it are flagged
+``unobserved`` (reason ``stale``); other branches carry on. Garbage on the
 raw keys is counted (``body/@health/gateway``), never fatal. Each site's clock
 offset (its node host's clock against the gateway's, from the most a sample's
 time led its arrival) is shown in topology and health, and logged as a warning
@@ -60,12 +61,11 @@ from bodynet.gateway.heading import (
 )
 from bodynet.gateway.rounds import Cadence, Rounds, next_window
 from bodynet.gateway.shards import Share
-from bodynet.gateway.solver import BodyOutput, BodySolver, solve_bodies
+from bodynet.gateway.solver import STALE_S, BodyOutput, BodySolver, solve_bodies
 from bodynet.session import profile_file
 
 log = logging.getLogger(__name__)
 
-STALE_S = 0.5
 HISTORY_S = 5.0
 #: The T-pose history keeps a site's orientation at most this often: fifty a second
 #: average a still pose as well as a thousand, and a short history is a short walk
@@ -302,6 +302,7 @@ class _Body:
         self.published_stale = set(stale)
         self.first_new = None
         self.solver.expect(self.alive)
+        self.solver.set_stale(stale)
         return latest, stale, self.solver
 
     def listened(self) -> tuple[bool, list[Branch]]:

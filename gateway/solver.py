@@ -16,7 +16,8 @@ Every dof comes with an uncertainty (degrees, about two standard deviations)
 and, where its number is no plain measurement, its reasons (the pose
 message's vocabulary, :mod:`bodynet.core.codecs.pose`): ``uncalibrated`` (an
 orientation sensor it rests on has no T-pose mount yet), ``unobserved``
-(nothing measures it, or an expected sensor above it has not delivered),
+(nothing measures it, or an expected sensor above it has not delivered; with
+``stale`` where a sensor it rests on stopped delivering, :meth:`BodySolver.set_stale`),
 ``held`` (gravity does not determine this tilt dof in this posture: its last
 measured value, held) and ``clamped``. How well gravity determines a tilt dof
 is geometric: how far the accelerometers' "up" moves per radian of that dof,
@@ -52,6 +53,8 @@ from bodynet.core import keys
 from bodynet.core.codecs.pose import (
     CLAMPED,
     HELD,
+    REASONS,
+    STALE,
     UNCALIBRATED,
     UNOBSERVED,
     WholeBodyEncoder,
@@ -65,16 +68,19 @@ from bodynet.core.subject import Profile, QuatWxyz
 from bodynet.gateway import kernels
 from bodynet.kinematics.model import BodyModel, accel_axes
 
-_REASON_ORDER = {r: i for i, r in enumerate((UNCALIBRATED, UNOBSERVED, HELD, CLAMPED))}
+_REASON_ORDER = {r: i for i, r in enumerate(REASONS)}
 #: a dof's reasons -> (in order, its flag): the few sets that occur, each worked out once
 #: (every dof of an uncalibrated body has some, every tick)
 _ORDERED: dict[frozenset[str], tuple[tuple[str, ...], str]] = {}
 
 
 def _order(reasons: frozenset[str]) -> tuple[tuple[str, ...], str]:
-    """A dof's reasons in order, and its flag (the first); remembered (``_ORDERED``)."""
+    """A dof's reasons in order, and its flag (the first); remembered (``_ORDERED``).
+    ``stale`` comes with ``unobserved`` (the flag), also where a step of the solve
+    took that reason away from the dof's others (:meth:`BodySolver._wrist_and_elbow`)."""
     order = _REASON_ORDER
-    ordered = tuple(sorted(reasons, key=lambda x: (order.get(x, len(order)), x)))
+    every = reasons | _UNOBS if STALE in reasons else reasons
+    ordered = tuple(sorted(every, key=lambda x: (order.get(x, len(order)), x)))
     if len(_ORDERED) < 256:  # reasons are a handful of names: a few combinations
         _ORDERED[reasons] = (ordered, primary(ordered))
     return ordered, primary(ordered)
@@ -105,12 +111,18 @@ DAMPING = 0.01 * (math.pi / 180.0) ** 2
 
 #: Raw keys :meth:`BodySolver.expect` remembers having taken (then it starts over).
 MAX_TOLD = 4096
+#: A site that has not delivered for longer than this (seconds) is stale: what rests
+#: on its last sample is flagged (:meth:`BodySolver.set_stale`; the gateway's and
+#: ``bodynet process``'s one rule).
+STALE_S = 0.5
 
 _UP = np.array([0.0, 0.0, 1.0])
 _NOTHING: frozenset[str] = frozenset()
 _UNCAL = frozenset({UNCALIBRATED})
 _UNOBS = frozenset({UNOBSERVED})
 _CLAMPED = frozenset({CLAMPED})
+_STALE = frozenset({UNOBSERVED, STALE})
+_UNCAL_STALE = _UNCAL | _STALE
 #: a dof's reasons -> the same and uncalibrated, one shared set each (worked out once)
 _PLUS_UNCAL: dict[frozenset[str], frozenset[str]] = {}
 
@@ -444,8 +456,8 @@ class _Tick:
 
     __slots__ = ("angles", "direct_rot", "direct_rows", "harm", "held_tilt", "last", "lefts",
                  "measured", "modules", "mounts", "plan", "quats", "reasons", "rel", "rests",
-                 "segs", "solver", "sort", "sources", "t_ns", "unc", "uncal",
-                 "unknown")  # fmt: skip
+                 "segs", "solver", "sort", "sources", "stale", "stale_modules", "t_ns", "unc",
+                 "uncal", "unknown")  # fmt: skip
 
     def __init__(self, solver: BodySolver, last: np.ndarray | None, sort: _Sorted) -> None:
         self.solver = solver
@@ -454,6 +466,7 @@ class _Tick:
         self.segs, self.plan = sort.segs, sort.plan
         self.unknown, self.uncal = sort.unknown, sort.uncal
         self.lefts, self.mounts = sort.lefts, sort.mounts
+        self.stale, self.stale_modules = sort.stale_segs, sort.stale_modules
         self.quats: list[QuatWxyz] = []  # the quaternions of ``sort.used``
         self.modules: dict[str, tuple[Site, OleAccel]] = {}  # SmartSuit modules by segment
         self.sources: dict[str, int] = {}  # raw key -> the source time of its sample
@@ -480,10 +493,15 @@ class _Sorted:
     tenth of a hot solve)."""
 
     __slots__ = ("flagged", "keys", "kinds", "lefts", "modules", "mounts", "pelvis", "plan",
-                 "quats", "reasons", "segs", "sites", "uncal", "unknown", "used")  # fmt: skip
+                 "quats", "reasons", "segs", "sites", "stale", "stale_modules", "stale_segs",
+                 "uncal", "unknown", "used")  # fmt: skip
 
-    def __init__(self, sites: tuple[Site, ...], kinds: tuple[type, ...]) -> None:
+    def __init__(self, sites: tuple[Site, ...], kinds: tuple[type, ...],
+                 stale: frozenset[str]) -> None:  # fmt: skip
         self.sites, self.kinds = sites, kinds
+        self.stale = stale  # the stale raw keys it was sorted with (BodySolver.set_stale)
+        self.stale_segs: set[str] = set()  # segments of ``segs`` whose sensor is stale
+        self.stale_modules: set[str] = set()  # segments whose SmartSuit module is stale
         self.keys: list[str] = []  # each site's raw key
         self.segs: list[str] = []  # segments with an orientation sensor (the first one wins)
         self.used: list[Site] = []  # the orientation sensors of ``segs``, in that order
@@ -585,6 +603,7 @@ class BodySolver:
         self._stacked: dict[tuple[Site, ...], tuple[np.ndarray, np.ndarray]] = {}
         self._told: set[str] = set()  # raw keys ``expect`` has taken (parsing 15 cost 15 us)
         self._sorted: _Sorted | None = None  # how the last tick's samples sorted
+        self._stale: frozenset[str] = frozenset()  # see set_stale
 
     def _site(self, site: Site) -> tuple[str, np.ndarray, str, bool, np.ndarray, bool, bool]:
         """The segment a sensor rides on, its mount's inverse (for orientation
@@ -722,7 +741,8 @@ class BodySolver:
         values = list(samples.values())
         sites, kinds = tuple(samples), tuple([type(s.reading) for s in values])
         sort = self._sorted
-        if sort is None or sort.sites != sites or sort.kinds != kinds:
+        if sort is None or sort.sites != sites or sort.kinds != kinds or \
+                sort.stale is not self._stale:  # fmt: skip
             sort = self._sorted = self._sort(sites, kinds)
         tick = _Tick(self, self._memory.last, sort)
         times = [s.t_ns for s in values]
@@ -741,7 +761,8 @@ class BodySolver:
         """How a tick of samples from ``sites``, of readings ``kinds``, sorts (see
         :class:`_Sorted`): each segment's first orientation sensor measures it,
         SmartSuit modules by segment."""
-        sorted_ = _Sorted(sites, kinds)
+        stale = self._stale
+        sorted_ = _Sorted(sites, kinds, stale)
         seen: set[str] = set()
         for i, (site, kind) in enumerate(zip(sites, kinds, strict=True)):
             seg, _, key, module, _, heading_known, calibrated = self._site(site)
@@ -756,8 +777,12 @@ class BodySolver:
                         sorted_.unknown.add(seg)
                     if not calibrated:
                         sorted_.uncal.add(seg)
+                    if key in stale:
+                        sorted_.stale_segs.add(seg)
             elif module:
                 sorted_.modules.append((seg, i))
+                if key in stale:
+                    sorted_.stale_modules.add(seg)
         if sorted_.segs:
             if "pelvis" in seen:
                 sorted_.pelvis = sorted_.segs.index("pelvis")
@@ -795,6 +820,17 @@ class BodySolver:
                 continue
             if site.name not in OLE_DOF:
                 self._memory.expected.add(mount(site).segment)
+
+    def set_stale(self, raw_keys: Iterable[str]) -> None:
+        """The sites (raw keys) whose latest sample is stale: they stopped
+        delivering (for longer than ``STALE_S``, or their node is gone). Until
+        they are no longer named here, every dof resting on such a sample is
+        flagged ``unobserved`` with reason ``stale``; one another source
+        determines (a SmartSuit module beside a stale tag, dof by dof) stays
+        measured. The set changes rarely: what it flags is worked out once per set."""
+        stale = frozenset(raw_keys)
+        if stale != self._stale:
+            self._stale = stale
 
     def _solve_direct(self, ticks: Sequence[_Tick], segments: np.ndarray, angles: np.ndarray,
                       rel: np.ndarray, unc: np.ndarray) -> None:  # fmt: skip
@@ -859,7 +895,7 @@ class BodySolver:
         mine, parent_at, child_at = plan.rows, plan.parents, plan.children
         names = self._batch.names
         out: dict[str, frozenset[str]] = {}
-        if not tick.uncal:  # every measured segment rests on its measurement alone
+        if not tick.uncal and not tick.stale:  # each measured segment rests on its measurement
             if pelvis:
                 for row in mine[parent_at < 0].tolist():
                     out.update(dict.fromkeys(names[row], pelvis))
@@ -991,7 +1027,7 @@ class BodySolver:
                 tick.held_tilt = 0.0
                 values, unc, why = self._from_module(joint, parent, site, reading, previous,
                                                      inherited, tick)  # fmt: skip
-                rests[child] = inherited
+                rests[child] = inherited | self._module_stale(child, tick)
                 if len(names) == 2:  # elbow, wrist, ankle: the second dof from gravity
                     self._distal_tilt(joint, values, unc, why, world, site, reading, tick)
                 harm[child] += tick.held_tilt
@@ -1010,6 +1046,8 @@ class BodySolver:
         """What a segment's own orientation rests on besides measurement: its
         sensor uncalibrated, or (the pelvis) expected but not delivering."""
         if segment in tick.measured:
+            if segment in tick.stale:
+                return _UNCAL_STALE if segment in tick.uncal else _STALE
             return _UNCAL if segment in tick.uncal else _NOTHING
         if segment == "pelvis":
             memory = self._memory
@@ -1035,7 +1073,7 @@ class BodySolver:
         if len(values) == 2:
             values[1], unc[1], why[1] = self._gravity_dof(joint, values, world, site, reading,
                                                           previous, tick)  # fmt: skip
-            why[1] |= inherited
+            why[1] |= inherited | self._module_stale(joint.child, tick)
         ax = self.axes[joint.name]
         have = tick.angles[sl].copy()
         have_unc = tick.unc[sl].copy()
@@ -1129,6 +1167,9 @@ class BodySolver:
             for i in range(len(names)):
                 if i != ole_index:  # decided by _distal_tilt
                     why[i].add(UNOBSERVED)
+        if joint.child in tick.stale_modules:
+            for w in why:
+                w.update(_STALE)
         return values, unc, why
 
     def _up(self, site: Site, reading: OleAccel) -> tuple[np.ndarray, float] | None:
@@ -1181,7 +1222,7 @@ class BodySolver:
             last = tick.last[self._slices[joint.name]] if tick.last is not None else None
             values[1], unc[1], why[1] = self._gravity_dof(joint, values, world, site, reading,
                                                           last, tick)  # fmt: skip
-            why[1] |= self._inherited(joint.parent, tick)
+            why[1] |= self._inherited(joint.parent, tick) | self._module_stale(joint.child, tick)
             self._commit(tick, world, joint, values, unc, why)
             return
         self._wrist_and_elbow(joint, upstream, values, unc, why, world, site, reading, tick)
@@ -1250,7 +1291,9 @@ class BodySolver:
             sol = _refit(predict, sol, sol_why, target)
         else:
             sol, sol_unc, sol_why = self._settle(names, prev, np.zeros(2), prev, 1.0)
-        inherited_up = self._inherited(upstream.parent, tick)
+        inherited_up = (self._inherited(upstream.parent, tick)  # and both accelerometers'
+                        | self._module_stale(joint.child, tick)
+                        | self._module_stale(joint.parent, tick))  # fmt: skip
         up_values[1], up_unc[1], up_why[1] = sol[0], sol_unc[0], sol_why[0] | inherited_up
         values[1], unc[1], why[1] = sol[1], sol_unc[1], sol_why[1] | inherited_up
         self._commit(tick, world, upstream, up_values, up_unc, up_why)
@@ -1258,6 +1301,12 @@ class BodySolver:
 
     def _inherited(self, segment: str, tick: _Tick) -> frozenset[str]:
         return tick.rests.get(segment, _NOTHING)
+
+    @staticmethod
+    def _module_stale(segment: str, tick: _Tick) -> frozenset[str]:
+        """The reasons of what rests on the SmartSuit module on ``segment``: ``stale``
+        if it is."""
+        return _STALE if segment in tick.stale_modules else _NOTHING
 
     def _gravity_dof(self, joint: Joint, values: np.ndarray, world: dict[str, np.ndarray],
                      site: Site, reading: OleAccel, previous: np.ndarray | None,

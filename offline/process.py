@@ -17,7 +17,10 @@ heading is unknown (``auto``), a first pass finds it from a hinge's motion
 (gateway/heading.py), so that every tick is solved with it; if no hinge moves,
 the dofs the tags drive stay flagged ``uncalibrated``. Once known, the tags'
 headings are held against drift by the joints' constraints tick by tick, the
-same step as the live gateway's (``BodyHeading.step``).
+same step as the live gateway's (``BodyHeading.step``). A site whose latest
+sample is older than the gateway's ``STALE_S`` at a tick's time (a tag gone
+missing, its cells empty) is stale there, as live: listed in the pose's
+``stale`` and the dofs resting on it flagged (``BodySolver.set_stale``).
 """
 
 from __future__ import annotations
@@ -41,7 +44,7 @@ from bodynet.gateway.heading import (
     WindowCalibration,
     calibrate_window,
 )
-from bodynet.gateway.solver import BodySolver
+from bodynet.gateway.solver import STALE_S, BodySolver
 from bodynet.nodes import sources
 from bodynet.nodes.sources.base import CapturedSample, CaptureError, CaptureStats
 
@@ -164,6 +167,13 @@ def _hold_drift(heading: BodyHeading, t_s: float, latest: Mapping[Site, RawSampl
         heading.hold(solver, step[1])
 
 
+def stale_sites(times: Mapping[Site, float], t_s: float) -> list[str]:
+    """The raw keys, sorted, of the sites whose latest sample (its time in
+    ``times``, seconds) is older than ``STALE_S`` at ``t_s``: the live gateway's rule,
+    in the capture's time."""
+    return sorted(site.raw_key for site, t in times.items() if t_s - t > STALE_S)
+
+
 def _write_raw(sink: McapSink, site: Site, sample: RawSample, path: Path) -> None:
     """A raw sample into the recording; one MCAP cannot hold (a time before 1970)
     is a ``CaptureError`` naming the capture and the sample's time."""
@@ -231,6 +241,7 @@ def process(path: Path, fmt: str, out: Path, profile: Profile | None = None,
     stats = CaptureStats()
     sink = McapSink(out)
     latest: dict[Site, RawSample] = {}
+    times: dict[Site, float] = {}  # the time of each site's latest sample
     seqs: dict[Site, int] = {}
     ticks = 0
     first_t: float | None = None
@@ -243,10 +254,13 @@ def process(path: Path, fmt: str, out: Path, profile: Profile | None = None,
                 seq = seqs[s.site] = seqs.get(s.site, -1) + 1
                 sample = RawSample(s.reading, seq, round(s.t_s * 1e9), source.wire_id)
                 latest[s.site] = sample
+                times[s.site] = s.t_s
                 _write_raw(sink, s.site, sample, path)
             ticks += 1
             t_ns = round(tick[-1].t_s * 1e9)
-            frame = pose_frame(solver.solve(latest), ticks, [])
+            stale = stale_sites(times, tick[-1].t_s)
+            solver.set_stale(stale)
+            frame = pose_frame(solver.solve(latest), ticks, stale)
             _hold_drift(heading, tick[-1].t_s, latest, solver)
             sink.write_pose(keys.pose_key(), frame, t_ns)
             for branch, view in branch_views(frame, BRANCHES).items():

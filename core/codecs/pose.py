@@ -21,9 +21,11 @@ w, x, y, z. ``t_ns`` is the newest source timestamp that went into the tick;
 has the same shape, limited to that branch's joints and segments.
 
 Quality of each dof (new in version 2): ``reasons`` lists every reason a dof
-is not a plain measurement (``uncalibrated``, ``unobserved``, ``held``,
+is not a plain measurement (``uncalibrated``, ``unobserved``, ``stale``, ``held``,
 ``clamped``: :data:`REASONS`); ``flags`` keeps one of them per dof, the first in
-that order, as version 1 did. ``unc_deg`` is each measured dof's uncertainty
+that order, as version 1 did. A dof resting on a sensor in ``stale`` has
+``unobserved`` and ``stale``: its flag is ``unobserved``, one readers of
+version 1 know. ``unc_deg`` is each measured dof's uncertainty
 (degrees, an error bound of about two standard deviations), ``null`` where no
 measurement stands behind the number. A dof is *measured* when it has no flag
 or only ``clamped`` (:func:`is_measured`); any other flag means the number is
@@ -53,11 +55,14 @@ VERSIONS = (1, 2)  # what decode reads
 #: of a dof with several reasons is the first of these it has.
 UNCALIBRATED = "uncalibrated"  # its sensors' calibration (the T-pose) does not exist yet
 UNOBSERVED = "unobserved"  # nothing measures it: the model's rest value (or what it last was)
+#: a sensor it rests on stopped delivering (always with ``unobserved``, the flag)
+STALE = "stale"
 HELD = "held"  # not determined now (a tilt along gravity): its last measured value, held
 CLAMPED = "clamped"  # measured, then clamped to the range of motion
 REASONS: Mapping[str, str] = {
     UNCALIBRATED: "not calibrated yet (waiting for the T-pose)",
     UNOBSERVED: "no sensor measures it now",
+    STALE: "a sensor it rests on stopped delivering: the number rests on its last sample",
     HELD: "gravity cannot see it in this posture: held at its last measured value",
     CLAMPED: "measured beyond the range of motion, clamped to it",
 }
