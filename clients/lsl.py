@@ -23,10 +23,10 @@ apps give it (``channels/channel/{label, type, unit}``, plus the segment or
 joint a channel belongs to).
 
 Channels that no measurement stands behind carry NaN, never a held value:
-an angle flagged anything but ``clamped``, or resting on a stale sensor (a
-site in the pose's ``stale``: the angles of the joints at either end of the
-segment it rides on); a segment whose chain from the pelvis crosses such an
-angle (its world pose rests on a guess); anything the pose message lacks.
+an angle flagged anything but ``clamped`` (``pose.is_measured``: the gateway
+flags what rests on a stale sensor, reason ``stale``); a segment whose chain
+from the pelvis crosses such an angle (its world pose rests on a guess);
+anything the pose message lacks.
 
 Timestamps: each sample carries its own source time (the pose's ``t_ns``,
 the raw sample's ``t_ns``: Unix nanoseconds of the bridge that received it)
@@ -121,7 +121,7 @@ def angle_channels(skeleton: Skeleton) -> list[Channel]:
 
 def angle_values(frame: pose.PoseFrame, names: Sequence[str]) -> list[float]:
     """The angles of ``frame`` in channel order; NaN where nothing was measured
-    (flagged, or resting on a stale sensor: ``core.metrics.measured_angles``)."""
+    (flagged: ``core.metrics.measured_angles``)."""
     measured = measured_angles(frame)
     return [measured.get(n, NAN) for n in names]
 

@@ -33,6 +33,7 @@ from typing import Any
 
 from bodynet.clients.mcap_store import McapSink
 from bodynet.core import keys
+from bodynet.core.codecs.pose import PoseFrame
 from bodynet.core.errors import DecodeError
 from bodynet.core.keys import BRANCHES, Site
 from bodynet.core.messages import Quat, RawSample, Reading
@@ -167,11 +168,14 @@ def _hold_drift(heading: BodyHeading, t_s: float, latest: Mapping[Site, RawSampl
         heading.hold(solver, step[1])
 
 
-def stale_sites(times: Mapping[Site, float], t_s: float) -> list[str]:
-    """The raw keys, sorted, of the sites whose latest sample (its time in
-    ``times``, seconds) is older than ``STALE_S`` at ``t_s``: the live gateway's rule,
+def _solve_at(solver: BodySolver, latest: Mapping[Site, RawSample], times: Mapping[Site, float],
+              t_s: float, seq: int) -> PoseFrame:  # fmt: skip
+    """The pose of tick ``seq`` at ``t_s``: the sites whose latest sample (its time
+    in ``times``) is older than ``STALE_S`` then are stale, the live gateway's rule
     in the capture's time."""
-    return sorted(site.raw_key for site, t in times.items() if t_s - t > STALE_S)
+    stale = sorted(site.raw_key for site, t in times.items() if t_s - t > STALE_S)
+    solver.set_stale(stale)
+    return pose_frame(solver.solve(latest), seq, stale)
 
 
 def _write_raw(sink: McapSink, site: Site, sample: RawSample, path: Path) -> None:
@@ -258,9 +262,7 @@ def process(path: Path, fmt: str, out: Path, profile: Profile | None = None,
                 _write_raw(sink, s.site, sample, path)
             ticks += 1
             t_ns = round(tick[-1].t_s * 1e9)
-            stale = stale_sites(times, tick[-1].t_s)
-            solver.set_stale(stale)
-            frame = pose_frame(solver.solve(latest), ticks, stale)
+            frame = _solve_at(solver, latest, times, tick[-1].t_s, ticks)
             _hold_drift(heading, tick[-1].t_s, latest, solver)
             sink.write_pose(keys.pose_key(), frame, t_ns)
             for branch, view in branch_views(frame, BRANCHES).items():
