@@ -8,11 +8,12 @@ from typing import Any
 import numpy as np
 import pytest
 
-from bodynet.core.keys import LEFT_ARM, Site
+from bodynet.core.keys import LEFT_ARM, LEFT_LEG, RIGHT_ARM, Site
 from bodynet.core.messages import OleAccel, RawSample
 from bodynet.core.profile import IMU_SITES, SMARTSUIT_SITES
+from bodynet.core.skeleton import build_skeleton
 from bodynet.core.subject import Profile
-from bodynet.gateway.solver import BodySolver, solve_bodies, tpose_mounts
+from bodynet.gateway.solver import STALE_S, BodySolver, solve_bodies, tpose_mounts
 from bodynet.nodes.emulator import (
     BodyEmulator,
     EmulatedSensor,
@@ -551,3 +552,95 @@ def test_uncalibrated_flags_follow_the_sensors_that_deliver() -> None:
             flags_seen.add(frozenset(uncal))
     assert len(flags_seen) > 20  # the sets of sensors, and so the flags, kept changing
     assert any("left_elbow_flexion_deg" in f for f in flags_seen)
+
+
+def angles_of(*joints: str) -> set[str]:
+    return {n for j in joints for n in build_skeleton().joint(j).angle_names()}
+
+
+def frozen_run(solver: BodySolver, body: BodyEmulator, frozen: set[str], gap: tuple[float, float],
+               end: float) -> list[tuple[float, Any]]:  # fmt: skip
+    """Solve at 100 Hz from 0 s to ``end`` as the gateway does, the sites ``frozen``
+    (raw keys) delivering nothing from ``gap[0]`` until ``gap[1]``: their last
+    sample stays in use, and the solver is told they are stale once ``STALE_S``
+    has passed. Every tick's (time, output)."""
+    out, last = [], {}
+    for tick in range(round(end * 100)):
+        t = tick / 100
+        readings, _ = body.sample(t)
+        for s, r in zip(body.sensors, readings, strict=True):
+            if not (s.site.raw_key in frozen and gap[0] <= t < gap[1]):
+                last[s.site] = RawSample(r, tick, tick * 10_000_000)
+        solver.set_stale(frozen if gap[0] + STALE_S < t < gap[1] else ())
+        out.append((t, solver.solve(dict(last))))
+    return out
+
+
+def test_a_stale_tag_flags_exactly_the_dofs_resting_on_it_until_it_delivers_again() -> None:
+    """An IMU body walking; the left leg's tags stop for 2 s and come back: the
+    hip, knee and ankle are flagged ``unobserved`` (reason ``stale``, no
+    uncertainty) while they are stale, every other dof keeps the truth, and the
+    leg's dofs are the truth again once the tags deliver."""
+    tags = imu_tags()
+    routine = ROUTINES["full-body"]
+    body = BodyEmulator(routine, tags, realism=IDEAL_RANDOM_MOUNTS, seed=SEED)
+    leg = {t.site.raw_key for t in tags if t.site.branch == LEFT_LEG}
+    assert len(leg) == 3
+    resting = angles_of("left_hip", "left_knee", "left_ankle")
+    stale_ticks, frozen_off = 0, 0.0
+    for t, out in frozen_run(BodySolver(calibrated_profile(tags)), body, leg, (3.0, 5.0), 6.0):
+        truth = routine.angles(t)
+        stale = 3.0 + STALE_S < t < 5.0
+        for name, value in out.angles_deg.items():
+            if stale and name in resting:
+                assert out.flags.get(name) == "unobserved", (t, name)
+                assert out.reasons[name] == ("unobserved", "stale"), (t, name)
+                assert np.isnan(out.unc[list(out.names.angles).index(name)]), (t, name)
+                frozen_off = max(frozen_off, abs(value - truth.get(name, 0.0)))
+            elif not 3.0 <= t <= 3.0 + STALE_S or name not in resting:  # (not yet stale)
+                assert name not in out.flags, (t, name, out.reasons.get(name))
+                assert value == pytest.approx(truth.get(name, 0.0), abs=1e-6), (t, name)
+        stale_ticks += stale
+    assert stale_ticks > 100
+    assert frozen_off > 10  # the leg moved meanwhile: its frozen numbers were wrong
+
+
+@pytest.mark.parametrize("case", ["smartsuit elbow module", "hybrid upper-arm tag"])
+def test_a_stale_source_flags_what_rests_on_it_and_a_fresh_one_keeps_its_own(case: str) -> None:
+    """SmartSuit arms, the left elbow's module stale: the elbow's dofs and the tilt
+    the wrist's accelerometers give against the forearm are flagged, the wrist's
+    encoder and the shoulder stay measured. The hybrid arm (an IMU tag beside
+    the shoulder module on the upper arm), the tag stale: the module's shoulder
+    dofs and the encoders win (issue 22) and stay measured; the tilts against
+    the upper arm's orientation, the tag's, are flagged."""
+    reach = {"left_shoulder_flexion_deg": 60.0, "left_shoulder_abduction_deg": 40.0,
+             "left_shoulder_rotation_deg": 20.0, "left_elbow_flexion_deg": 100.0,
+             "left_wrist_flexion_deg": 30.0}  # fmt: skip
+    routine = Routine("reach", "", keyframes([(0.0, {}), (2.0, {}), (4.0, reach), (7.0, reach)],
+                                             loop=False))  # fmt: skip
+    if case == "smartsuit elbow module":
+        sensors = smartsuit_sensors([LEFT_ARM, RIGHT_ARM])
+        profile, frozen = Profile(), {"body/arm/left/elbow/raw"}
+        flagged = {"left_elbow_flexion_deg", "left_elbow_pronation_deg",
+                   "left_wrist_deviation_deg"}  # fmt: skip
+    else:
+        tags = [t for t in imu_tags() if t.site.branch != LEFT_ARM or t.site.name == "upperarm"]
+        sensors = [*smartsuit_sensors([LEFT_ARM]), *tags]
+        profile, frozen = calibrated_profile(tags), {"body/arm/left/upperarm/raw"}
+        flagged = {"left_elbow_pronation_deg", "left_wrist_deviation_deg"}
+    body = BodyEmulator(routine, sensors, realism=IDEAL_RANDOM_MOUNTS, seed=SEED)
+    kept = ("left_shoulder_flexion_deg", "left_shoulder_abduction_deg",
+            "left_shoulder_rotation_deg", "left_wrist_flexion_deg")  # fmt: skip
+    if case != "smartsuit elbow module":
+        kept += ("left_elbow_flexion_deg",)
+    for t, out in frozen_run(BodySolver(profile), body, frozen, (2.5, 7.0), 8.0):
+        stale = {n for n, r in out.reasons.items() if "stale" in r}
+        if 2.5 + STALE_S < t < 7.0:
+            assert stale == flagged, t
+            assert all(out.flags[n] == "unobserved" for n in stale)
+        else:
+            assert not stale, t
+        if t >= 5.0:  # still (the accelerometers' filter has settled): the truth
+            for name in kept:
+                assert name not in out.flags, (t, name)
+                assert out.angles_deg[name] == pytest.approx(reach[name], abs=SMARTSUIT_TOL)
