@@ -19,10 +19,15 @@ from zenoh_helpers import Collector, Running, free_port
 from bodynet.clients import live, lsl
 from bodynet.core import keys
 from bodynet.core.codecs import pose, raw_sample
-from bodynet.core.keys import LEFT_ARM
+from bodynet.core.keys import LEFT_ARM, TRUNK
 from bodynet.core.messages import OleAccel, Quat, RawSample, Source
 from bodynet.core.skeleton import build_skeleton
+from bodynet.core.subject import Profile
+from bodynet.gateway.frames import pose_frame
 from bodynet.gateway.service import Gateway
+from bodynet.gateway.solver import BodySolver
+from bodynet.nodes.emulator import BodyEmulator, Realism, smartsuit_sensors
+from bodynet.nodes.motion import Routine
 from bodynet.nodes.services import EmulationOptions, NodePlan, run_node
 from bodynet.session import open_session, session_config
 
@@ -86,18 +91,32 @@ def test_unmeasured_angles_and_the_segments_they_carry_are_nan() -> None:
 
 
 def test_angles_resting_on_a_stale_sensor_are_nan() -> None:
-    """The left elbow module rides on the forearm: elbow and wrist lose their
-    measurement while it is stale; the upper arm's sensor keeps the shoulder's."""
-    f = frame(4, 0)
-    stale = pose.PoseFrame(4, 0, f.angles_deg, {}, f.segments, {}, {}, {},
-                           ["body/arm/left/elbow/raw", "not/a/key"])  # fmt: skip
+    """The left elbow module (on the forearm) stale, as the gateway solves it: the
+    elbow and the wrist's tilt lose their measurement, and so the forearm's and
+    hand's poses; the wrist's encoder and the upper arm's sensor keep theirs."""
+    body = BodyEmulator(Routine("still", "", lambda t: {"left_elbow_flexion_deg": 60.0,
+                                                        "left_wrist_flexion_deg": 20.0}),
+                        smartsuit_sensors([LEFT_ARM, TRUNK]), realism=Realism.ideal())  # fmt: skip
+    solver = BodySolver(Profile(heading="fixed"))
+    solver.assume_calibrated()  # the ideal trunk sensors sit square on their segments
+    for tick in range(50):
+        readings, _ = body.sample(tick / 100)
+        samples = {s.site: RawSample(r, tick, tick * 10_000_000)
+                   for s, r in zip(body.sensors, readings, strict=True)}  # fmt: skip
+        output = solver.solve(samples)
+    stale_key = keys.raw_key("arm", "left", "elbow")
+    solver.set_stale([stale_key])
+    f = pose_frame(solver.solve(samples), 1, [stale_key])
     names = lsl.angle_names(SKELETON)
-    values = dict(zip(names, lsl.angle_values(stale, names), strict=True))
-    nan = {n for n, v in values.items() if math.isnan(v)}
-    assert nan == {*SKELETON.joint("left_elbow").angle_names(),
-                   *SKELETON.joint("left_wrist").angle_names()}  # fmt: skip
+    values = dict(zip(names, lsl.angle_values(f, names), strict=True))
+    arm = {n for j in ("left_shoulder", "left_elbow", "left_wrist")
+           for n in SKELETON.joint(j).angle_names()}  # fmt: skip
+    nan = {n for n in arm if math.isnan(values[n])}
+    assert nan == {*SKELETON.joint("left_elbow").angle_names(), "left_wrist_deviation_deg"}
+    assert values["left_wrist_flexion_deg"] == pytest.approx(20.0, abs=0.3)
+    assert output.angles_deg["left_elbow_flexion_deg"] == pytest.approx(60.0, abs=0.3)  # fresh
     labels = [c.label for c in lsl.segment_channels(SKELETON)]
-    seg = lsl.segment_values(stale, SKELETON.segment_chains())
+    seg = lsl.segment_values(f, SKELETON.segment_chains())
     got = dict(zip(labels, seg, strict=True))
     assert math.isnan(got["left_forearm_qw"])
     assert math.isnan(got["left_hand_x"])

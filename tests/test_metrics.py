@@ -109,29 +109,30 @@ def test_body_metrics_snapshot_is_json_and_counts_only_what_it_is_given() -> Non
 
 def elbow_poses(n: int, t0_ns: int) -> list[pose.PoseFrame]:
     """Elbow flexion cycling 10..100 deg at 100 Hz; every 7th pose flagged held at
-    150 deg, every 11th at 160 deg while the elbow's module is stale (no
-    measurement either: neither may reach the range of motion)."""
+    150 deg, every 11th at 160 deg while the elbow's module is stale, as the
+    gateway flags it (no measurement either: neither may reach the range of motion)."""
     out = []
     for i in range(n):
         t = i / FS
         angle = round(55 - 45 * math.cos(2 * math.pi * t / 1.0), 6)
-        flags = {}
+        flags, reasons = {}, {}
         stale = []
         if i % 7 == 3:
             angle, flags = 150.0, {"left_elbow_flexion_deg": "held"}
         elif i % 11 == 5:  # the elbow module stopped delivering: its last sample held
             angle, stale = 160.0, [keys.raw_key("arm", "left", "elbow")]
+            flags = {"left_elbow_flexion_deg": "unobserved"}
+            reasons = {"left_elbow_flexion_deg": ["unobserved", "stale"]}
         angles = {"left_elbow_flexion_deg": angle, "left_knee_flexion_deg": 5.0}
         out.append(pose.PoseFrame(i, t0_ns + i * 10_000_000, angles, {}, {}, {}, flags, {},
-                                  stale))  # fmt: skip
+                                  stale, reasons))  # fmt: skip
     return out
 
 
 def measured_here(f: pose.PoseFrame) -> dict[str, float]:
-    """This test's own rule for its poses: flagged or stale elbow out; the knee
-    (no sensor on the forearm takes part in it) stays."""
-    return {n: v for n, v in f.angles_deg.items()
-            if n not in f.flags and not (f.stale and n.startswith("left_elbow"))}  # fmt: skip
+    """This test's own rule for its poses: flagged out (the stale elbow too); the
+    knee (no sensor on the forearm takes part in it) stays."""
+    return {n: v for n, v in f.angles_deg.items() if n not in f.flags}
 
 
 def test_metrics_are_published_live_per_subject(router_endpoint: str,
