@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import json
+import math
 import subprocess
 import sys
 from pathlib import Path
@@ -202,3 +203,65 @@ def test_a_sample_before_1970_is_refused_naming_the_capture(tmp_path: Path) -> N
             f"{Reason.OUT_OF_RANGE}: "), result.stderr  # fmt: skip
         assert result.stderr.count("\n") == 1
     assert sorted(p.name for p in tmp_path.iterdir()) == ["neg.csv", "neg.log"]
+
+
+def test_process_flags_a_tag_gone_for_a_stretch_and_one_dead_from_the_start(
+    tmp_path: Path,
+) -> None:
+    """Segment orientations at 50 Hz (ideal tags, square on their segments): the
+    left forearm's tag never sends (no column), the right forearm's sends nothing
+    from 2 s to 4 s (empty cells). The left elbow and wrist are unobserved
+    throughout; the right ones are flagged stale once its last sample is older
+    than the gateway's STALE_S, and the truth again when it is back; everything
+    else is the truth all along."""
+    from bodynet.cli.main import main
+    from bodynet.clients.mcap_store import read_poses
+    from bodynet.core.profile import mount
+    from bodynet.core.skeleton import build_skeleton
+    from bodynet.gateway.solver import STALE_S
+
+    motion = ROUTINES["full-body"]
+    tags = [t for t in imu_tags() if mount(t.site).segment != "left_forearm"]
+    body = BodyEmulator(motion, tags, realism=Realism.ideal(), seed=3)
+    header = ["time"] + [f"{mount(t.site).segment}_{c}" for t in tags for c in "wxyz"]
+    lines = [",".join(header)]
+    for k in range(300):
+        readings, _ = body.sample(k / 50)
+        gone = 2.0 <= k / 50 < 4.0
+        lines.append(",".join([repr(k / 50)] + [
+            "nan" if gone and mount(t.site).segment == "right_forearm" else repr(c)
+            for t, r in zip(tags, readings, strict=True) for c in r.wxyz  # type: ignore[union-attr]
+        ]))  # fmt: skip
+    capture = tmp_path / "trial.csv"
+    capture.write_text("\n".join(lines) + "\n")
+    out = tmp_path / "trial.mcap"
+    assert main(["process", str(capture), "--tpose-s", "0", "-o", str(out)]) == 0
+    skeleton = build_skeleton()
+    dead = set(skeleton.joint("left_elbow").angle_names())
+    # (the left wrist, its hand's tag against a forearm nothing measures, is not
+    # this test's matter: a capture's topology does not know the dead tag)
+    wrist = set(skeleton.joint("left_wrist").angle_names())
+    gap = {n for j in ("right_elbow", "right_wrist") for n in skeleton.joint(j).angle_names()}
+    poses = list(read_poses(out))
+    assert len(poses) == 300
+    stale_poses, frozen_off = 0, 0.0
+    for t_ns, frame in poses:
+        t, truth = t_ns / 1e9, motion.angles(t_ns / 1e9)
+        stale = 2.0 - 0.02 + STALE_S < t < 4.0  # its last sample came at 1.98 s
+        assert frame.stale == (["body/arm/right/forearm/raw"] if stale else []), t
+        for name, value in frame.angles_deg.items():
+            if name in wrist:
+                continue
+            if name in dead:
+                assert frame.reasons[name] == ("unobserved",), (t, name)
+            elif name in gap and stale:
+                assert frame.flags[name] == "unobserved", (t, name)
+                assert frame.reasons[name][:2] == ("unobserved", "stale"), (t, name)
+                assert math.isnan(frame.unc_deg[name]), (t, name)
+                frozen_off = max(frozen_off, abs(value - truth.get(name, 0.0)))
+            elif name not in gap or not 2.0 <= t < 4.0:
+                assert name not in frame.flags, (t, name, frame.reasons.get(name))
+                assert value == pytest.approx(truth.get(name, 0.0), abs=1e-3), (t, name)
+        stale_poses += stale
+    assert stale_poses > 50
+    assert frozen_off > 10  # the frozen forearm's numbers were far from the truth
