@@ -5,6 +5,7 @@ from __future__ import annotations
 import gc
 import json
 import logging
+import math
 import queue
 import re
 import threading
@@ -20,7 +21,7 @@ from zenoh_helpers import Collector, Running, client, wait_until
 from bodynet.clients.view import status_text
 from bodynet.core import keys
 from bodynet.core.codecs import pose, raw_sample
-from bodynet.core.keys import LEFT_ARM
+from bodynet.core.keys import LEFT_ARM, RIGHT_ARM
 from bodynet.core.messages import Quat, RawSample, Source
 from bodynet.core.profile import IMU_SITES
 from bodynet.core.skeleton import TPOSE
@@ -847,3 +848,60 @@ def test_a_clock_offset_is_warned_of_once_and_again_when_it_moves_a_lot(
     finally:
         gw.close()
         session.close()
+
+
+def test_a_node_that_stops_has_its_dofs_flagged_until_it_returns(
+    gateway: Gateway, router_endpoint: str, zsession: zenoh.Session
+) -> None:
+    """Two SmartSuit arms on two nodes; the right arm's node stops while both arms
+    move on: once its sites are stale the right arm's dofs are flagged
+    ``unobserved`` (reason ``stale``) while the left arm's stay measured and
+    true; a new right-arm node brings its measured dofs back, true again."""
+    current = {"pose": {"left_elbow_flexion_deg": 30.0, "right_elbow_flexion_deg": 40.0}}
+    routine = Routine("scripted", "", lambda t: dict(current["pose"]))
+    options = EmulationOptions(routine, Realism.ideal())
+
+    def arm(branch: Any, name: str) -> tuple[Running, zenoh.Session]:
+        session = client(router_endpoint)
+        plans = [NodePlan("smartsuit", "can", (branch,))]
+        return Running(partial(run_node, session, plans=plans, options=options, name=name)), session
+
+    left, left_session = arm(LEFT_ARM, "left")
+    right, right_session = arm(RIGHT_ARM, "right")
+    poses = Collector(zsession, keys.pose_key(), pose.decode)
+    try:
+        poses.wait_for(lambda s: bool(s) and close_to(s[-1][1], current["pose"], 0.3), timeout=20)
+        right.stop()
+        right_session.close()
+        current["pose"] = {"left_elbow_flexion_deg": 70.0, "right_elbow_flexion_deg": 100.0}
+
+        def right_stale(s: list[tuple[str, pose.PoseFrame]]) -> bool:
+            f = s[-1][1] if s else None
+            return f is not None and any(k.startswith("body/arm/right/") for k in f.stale) and \
+                abs(f.angles_deg["left_elbow_flexion_deg"] - 70.0) <= 0.3  # fmt: skip
+
+        frame = poses.wait_for(right_stale, timeout=20)[-1][1]
+        right_dofs = [n for n in frame.angles_deg if n.startswith("right_") and
+                      n.split("_")[1] in ("shoulder", "elbow", "wrist")]  # fmt: skip
+        for name in right_dofs:
+            assert not pose.is_measured(frame, name), name
+            assert "stale" in frame.reasons[name], name
+            assert math.isnan(frame.unc_deg[name]), name
+        assert frame.angles_deg["right_elbow_flexion_deg"] == pytest.approx(40.0, abs=0.3)  # held
+        for name in ("left_elbow_flexion_deg", "left_wrist_flexion_deg",
+                     "left_shoulder_rotation_deg"):  # fmt: skip
+            assert pose.is_measured(frame, name), (name, frame.reasons.get(name))
+            assert frame.angles_deg[name] == pytest.approx(current["pose"].get(name, 0.0), abs=0.3)
+
+        right, right_session = arm(RIGHT_ARM, "right-again")
+        frame = poses.wait_for(
+            lambda s: not s[-1][1].stale and "right_elbow_flexion_deg" not in s[-1][1].flags,
+            timeout=20,
+        )[-1][1]
+        assert frame.angles_deg["right_elbow_flexion_deg"] == pytest.approx(100.0, abs=0.3)
+        assert not any("stale" in r for r in frame.reasons.values())
+    finally:
+        right.stop()
+        left.stop()
+        right_session.close()
+        left_session.close()
