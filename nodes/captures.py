@@ -72,7 +72,7 @@ def add_capture_args(parser: argparse.ArgumentParser) -> None:
 
 
 def capture_options(args: argparse.Namespace) -> dict[str, Any]:
-    return {k: v for k, v in vars(args).items() if k in ("map",)}
+    return {k: v for k, v in vars(args).items() if k in ("map", "time_unit")}
 
 
 def sample_json(sample: CapturedSample) -> dict[str, object]:
@@ -92,6 +92,8 @@ _SNIFFERS: tuple[tuple[str, re.Pattern[bytes]], ...] = (
     ("a BLF CAN log (--format can-log, named .blf)", re.compile(rb"\ALOGG")),
     ("a candump CAN log (--format can-log, named .log)",
      re.compile(rb"^\(\d+\.\d+\)\s+\S+\s+[0-9A-Fa-f]+#", re.M)),
+    ("candump's screen output, not a log: record with `candump -l` (or `candump -L`)",
+     re.compile(rb"^\s*(\(\d+\.\d+\)\s+)?\S+\s+[0-9A-Fa-f]{3,8}\s+\[\d+\]", re.M)),
     ("a Vector ASC CAN log (--format can-log, named .asc)",
      re.compile(rb"^\s*(date\s|base\s+(hex|dec)|begin triggerblock)", re.M | re.I)),
     ("a PCAN TRC CAN log (--format can-log, named .trc)", re.compile(rb"^;\$FILEVERSION", re.M)),

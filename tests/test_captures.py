@@ -150,3 +150,96 @@ def test_missing_file_is_a_clear_error(tmp_path: Path) -> None:
     assert result.returncode == 2
     assert "cannot read" in result.stderr
     assert "Traceback" not in result.stderr
+
+
+def _arm_frames(data_dir: Path) -> list[can.Message]:
+    return [m for m in can_log_messages(data_dir / "smartsuit_arm.log", CaptureStats())
+            if not m.is_error_frame and not m.is_remote_frame]  # fmt: skip
+
+
+def test_a_relative_asc_log_reads_as_its_absolute_twin(tmp_path: Path, data_dir: Path) -> None:
+    """Vector's `timestamps relative` (each frame's time since the one before; python-can's
+    reader gives them as they are): the same samples at the same times as the
+    absolute log python-can's writer makes of the frames, and as many ticks."""
+    absolute, relative = tmp_path / "abs.asc", tmp_path / "rel.asc"
+    with can.ASCWriter(absolute) as writer:
+        for msg in _arm_frames(data_dir):
+            writer.on_message_received(msg)
+    lines, last = [], 0.0
+    for line in absolute.read_text().splitlines():
+        head = line.split(maxsplit=1)
+        try:
+            t = float(head[0])
+        except (ValueError, IndexError):
+            lines.append(line.replace("timestamps absolute", "timestamps relative"))
+            continue
+        lines.append(f"{t - last:.6f} {head[1]}")
+        last = t
+    relative.write_text("\n".join(lines) + "\n")
+    assert "timestamps relative" in relative.read_text()
+    decoded = [run_decode("--format", "can-log", path) for path in (absolute, relative)]
+    assert [d.returncode for d in decoded] == [0, 0], decoded[1].stderr
+    samples = [[json.loads(line) for line in d.stdout.splitlines()] for d in decoded]
+    assert len(samples[0]) == 400
+    assert [s["t_s"] for s in samples[1]] == pytest.approx([s["t_s"] for s in samples[0]])
+    assert [{**s, "t_s": 0} for s in samples[1]] == [{**s, "t_s": 0} for s in samples[0]]
+    told = []
+    for path in (absolute, relative):
+        result = subprocess.run([str(BODYNET), "process", str(path), "-o", str(path) + ".mcap"],
+                                capture_output=True, text=True, timeout=60, check=False)  # fmt: skip
+        assert result.returncode == 0, result.stderr
+        told.append(result.stderr.split(" ticks")[0].split("\n")[-1])
+    assert told[1] == told[0] == "100"
+
+
+def test_a_can_log_whose_clock_steps_back_is_refused_naming_the_line(
+    tmp_path: Path, data_dir: Path
+) -> None:
+    """A candump log whose times go back an hour halfway and stay back: refused with
+    the line (not half the ticks); one frame's time out of order is only itself."""
+    frames = _arm_frames(data_dir)
+    half = len(frames) // 2
+    log = tmp_path / "step.log"
+    with can.CanutilsLogWriter(log) as writer:
+        for i, msg in enumerate(frames):  # (frames are python-can's own: a new one, shifted)
+            msg = can.Message(timestamp=msg.timestamp - (3600.0 if i >= half else 0.0),
+                              arbitration_id=msg.arbitration_id, data=msg.data,
+                              is_extended_id=msg.is_extended_id)  # fmt: skip
+            writer.on_message_received(msg)
+    result = run_decode("--format", "can-log", log)
+    assert result.returncode == 2
+    assert result.stderr.startswith(f"bodynet decode: {log}: line {half + 1}: time "), result.stderr
+    assert "goes back" in result.stderr
+    assert result.stderr.count("\n") == 1
+    out = tmp_path / "x.mcap"
+    result = subprocess.run([str(BODYNET), "process", str(log), "-o", str(out)],
+                            capture_output=True, text=True, timeout=60, check=False)  # fmt: skip
+    assert result.returncode == 2
+    assert f"{log}: line {half + 1}: " in result.stderr
+    assert "Traceback" not in result.stderr
+    assert not out.exists()
+    one = tmp_path / "one.log"  # only one frame an hour back: it costs itself
+    with can.CanutilsLogWriter(one) as writer:
+        for i, msg in enumerate(frames):
+            msg = can.Message(timestamp=msg.timestamp - (3600.0 if i == half else 0.0),
+                              arbitration_id=msg.arbitration_id, data=msg.data,
+                              is_extended_id=msg.is_extended_id)  # fmt: skip
+            writer.on_message_received(msg)
+    stats = CaptureStats()
+    kept = list(can_log_messages(one, stats))
+    assert len(kept) == len(frames) - 1
+    assert stats.bad_places == [f"line {half + 1}"]
+    assert stats.rejected[Reason.OUT_OF_ORDER] == 1
+
+
+def test_candump_screen_output_is_told_to_record_with_l(tmp_path: Path, data_dir: Path) -> None:
+    """`candump can0` prints frames for the eye, not a log: said, with how to record one."""
+    screen = tmp_path / "screen.log"
+    screen.write_text("".join(
+        f"  can0  {m.arbitration_id:08X}   [{m.dlc}]  {' '.join(f'{b:02X}' for b in m.data)}\n"
+        for m in _arm_frames(data_dir)))  # fmt: skip
+    result = run_decode("--format", "can-log", screen)
+    assert result.returncode == 2
+    assert result.stderr.splitlines()[-1] == (
+        f"bodynet decode: no can-log samples in {screen}; it looks like candump's screen "
+        "output, not a log: record with `candump -l` (or `candump -L`)")

@@ -10,7 +10,9 @@ import struct
 import threading
 import time
 import zlib
+from collections import deque
 from collections.abc import Iterable, Iterator
+from itertools import chain
 from pathlib import Path
 from typing import IO, Any
 
@@ -19,7 +21,7 @@ from can.io.blf import BLFParseError
 
 from bodynet.core.codecs.smartsuit_can import CanFrame
 from bodynet.core.errors import Reason, Rejected
-from bodynet.nodes.sources.base import CaptureStats, time_refused
+from bodynet.nodes.sources.base import CaptureError, CaptureStats, time_refused
 
 #: suffixes of the logs python-can's ``LogReader`` reads that bodynet takes
 LOG_SUFFIXES = (".log", ".asc", ".blf", ".trc")
@@ -338,11 +340,24 @@ def can_log_messages(path: Path, stats: CaptureStats) -> Iterator[can.Message]:
 
     python-can's readers stop at the first line they cannot parse: here the
     same reader, its header already read, is started again after that line.
+
+    Times are the log's, in order: a Vector ASC log's ``timestamps relative``
+    (each the time since the event before, which python-can's reader gives as
+    they are) are added up; a frame whose time is out of order with the frames
+    on both sides of it (a garbled time) is counted and skipped like a garbled
+    line; times that go back and stay back (a clock stepped back, logs joined out
+    of order) are a :class:`CaptureError` naming the line, as in an orientation file.
     """
+    if path.suffix.lower() == ".blf":
+        blf = _blf_messages(path, stats)
+        yield from _in_order(path, stats, ((m, f"frame {n}") for n, m in enumerate(blf, 1)))
+    else:
+        yield from _in_order(path, stats, _text_log_messages(path, stats))
+
+
+def _text_log_messages(path: Path, stats: CaptureStats) -> Iterator[tuple[can.Message, str]]:
+    """A text log's messages and their lines (see :func:`can_log_messages`)."""
     suffix = path.suffix.lower()
-    if suffix == ".blf":
-        yield from _blf_messages(path, stats)
-        return
     reader_type = _TEXT_READERS.get(suffix)
     if reader_type is None:
         stats.count(
@@ -377,6 +392,7 @@ def can_log_messages(path: Path, stats: CaptureStats) -> Iterator[can.Message]:
                 stats.bad_places.append(where)
 
         messages = iter(reader)
+        elapsed = 0.0  # a relative ASC log's: the sum of its times
         while True:
             try:  # only the reader's errors are the file's (not this function's own)
                 msg = next(messages)
@@ -398,8 +414,50 @@ def can_log_messages(path: Path, stats: CaptureStats) -> Iterator[can.Message]:
                 continue
             passed_over(lines.take(last_used=True), then_frame=True)
             frames += 1
-            if not _untimed(msg, f"line {lines.number}", path, stats):
-                yield msg
+            where = f"line {lines.number}"
+            if _untimed(msg, where, path, stats):
+                continue
+            if getattr(reader, "timestamps_format", None) == "relative":
+                elapsed += msg.timestamp - reader.start_time  # type: ignore[attr-defined]
+                msg.timestamp = reader.start_time + elapsed  # type: ignore[attr-defined]
+            yield msg, where
+
+
+def _order(before: float | None, t_s: float, later: list[float]) -> str:
+    """``ok``, ``odd`` (out of order with the frames around it, which are in order
+    with each other) or ``step`` (it and the next go back from ``before``): the
+    order of a frame at ``t_s`` after one at ``before``, the next two at ``later``."""
+    after = later[0] if later else None
+    if before is not None and t_s < before:
+        return "step" if after is not None and after < before else "odd"
+    if after is None or t_s <= after or (len(later) > 1 and later[1] >= t_s):
+        return "ok"  # in order, or the next is the odd one
+    return "odd" if before is None or after >= before else "ok"  # else the next steps back
+
+
+def _in_order(path: Path, stats: CaptureStats,
+              frames: Iterator[tuple[can.Message, str]]) -> Iterator[can.Message]:  # fmt: skip
+    """A log's frames whose times keep order (see :func:`can_log_messages`)."""
+    before: float | None = None
+    window: deque[tuple[can.Message, str]] = deque()
+    for frame in chain(frames, [None]):
+        if frame is not None:
+            window.append(frame)
+        while len(window) == 3 or (frame is None and window):
+            msg, where = window.popleft()
+            t_s = msg.timestamp
+            order = _order(before, t_s, [m.timestamp for m, _ in window])
+            if order == "step":
+                raise CaptureError(f"{path}: {where}: time {t_s:.6f} s goes back from "
+                                   f"{before:.6f} s, and the frames after it too (a clock "
+                                   "stepped back?): a log's times must not decrease")  # fmt: skip
+            if order == "odd":
+                stats.count(Rejected(Reason.OUT_OF_ORDER, f"{path.name} {where}: time "
+                                     f"{t_s:.6f} s out of order with the frames around it"))  # fmt: skip
+                stats.bad_places.append(where)
+                continue
+            before = t_s
+            yield msg
 
 
 def _untimed(msg: can.Message, where: str, path: Path, stats: CaptureStats) -> bool:
