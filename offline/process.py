@@ -2,7 +2,8 @@
 
 The input is any capture ``bodynet decode`` reads (any format of a registered
 source, ``nodes.sources``). Samples are taken in the
-capture's time order and grouped into ticks of ``1 / tick_hz`` (a data-matrix
+capture's time order and grouped into ticks of at most ``1 / tick_hz``, a tick
+ending early where a sensor already in it samples again (a data-matrix
 frame, or a concentrator reply, is always one tick); after each tick the body
 is solved as the live gateway would and the pose written to MCAP at the
 tick's time, together with the raw samples. Orientation sensors are first
@@ -115,12 +116,19 @@ def calibrate_recording(samples: Iterator[tuple[float, Site, Reading]], profile:
 
 
 def _ticks(samples: Iterator[CapturedSample], period_s: float) -> Iterator[list[CapturedSample]]:
+    """Samples grouped into ticks of at most ``period_s``; a tick ends early where
+    a sensor already in it gives its next sample (a file sampled faster than the
+    ticks, or whose times jitter across a tick's edge: none of its poses merged)."""
     tick: list[CapturedSample] = []
+    seen: set[tuple[Site, type]] = set()
     for s in samples:
-        if tick and s.t_s >= tick[0].t_s + period_s - 1e-9:
+        kind = (s.site, type(s.reading))
+        again = kind in seen and s.t_s > tick[-1].t_s  # not the same frame's
+        if tick and (again or s.t_s >= tick[0].t_s + period_s - 1e-9):
             yield tick
-            tick = []
+            tick, seen = [], set()
         tick.append(s)
+        seen.add(kind)
     if tick:
         yield tick
 

@@ -191,7 +191,7 @@ def test_a_sample_before_1970_is_refused_naming_the_capture(tmp_path: Path) -> N
     """A time decode takes but a recording cannot hold (MCAP's times are from
     1970 on): process says which capture and sample, exit 2, nothing written."""
     csv_file, log = tmp_path / "neg.csv", tmp_path / "neg.log"
-    csv_file.write_text("time,pelvis_w,pelvis_x,pelvis_y,pelvis_z\n-1,1,0,0,0\n0,1,0,0,0\n")
+    csv_file.write_text("t_s,pelvis_w,pelvis_x,pelvis_y,pelvis_z\n-1,1,0,0,0\n0,1,0,0,0\n")
     log.write_text("(-5.000000) can0 0006FFFF#0100020003000400\n")
     for capture, fmt, site, t in ((csv_file, "orientation-csv", "body/trunk/mid/sacrum/raw", -1),
                                   (log, "can-log", "body/arm/left/shoulder/raw", -5)):  # fmt: skip
@@ -265,3 +265,26 @@ def test_process_flags_a_tag_gone_for_a_stretch_and_one_dead_from_the_start(
         stale_poses += stale
     assert stale_poses > 50
     assert frozen_off > 10  # the frozen forearm's numbers were far from the truth
+
+
+@pytest.mark.parametrize(("name", "times"), [
+    ("128 Hz", [k / 128 for k in range(256)]),
+    ("100 Hz, +-4 ms jitter", [0.01 * k + 0.004 * (-1) ** k for k in range(200)]),
+])  # fmt: skip
+def test_every_row_of_a_fast_or_jittery_file_is_a_pose(
+    name: str, times: list[float], tmp_path: Path
+) -> None:
+    """Ticks of 1/100 s: a file sampled faster, or whose times jitter across a
+    tick's edge, keeps a pose per row (a tick ends where a sensor samples again)."""
+    from bodynet.clients.mcap_store import read_poses
+
+    path = tmp_path / "trial.csv"
+    lines = ["time,pelvis_w,pelvis_x,pelvis_y,pelvis_z,thorax_w,thorax_x,thorax_y,thorax_z"]
+    lines += [f"{t + 0.004!r},1,0,0,0,1,0,0,0" for t in times]
+    path.write_text("\n".join(lines) + "\n")
+    out = tmp_path / "trial.mcap"
+    result = run("process", path, "--tpose-s", "0", "-o", out)
+    assert result.returncode == 0, result.stderr
+    poses = [t for t, _ in read_poses(out)]
+    assert len(poses) == len(times), name
+    assert [t / 1e9 for t in poses] == pytest.approx([t + 0.004 for t in times])
