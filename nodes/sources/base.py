@@ -250,6 +250,10 @@ class CaptureStats:
     foreign: Counter[str] = field(default_factory=Counter)
     #: where each line (byte, in a binary log) skipped as garbled was: "line 12"
     bad_places: list[str] = field(default_factory=list)
+    #: a file's cells with no sample (a NaN or empty orientation cell: a dropped sample)
+    no_sample: int = 0
+    #: what else the reader says of the capture ("left out 3 columns ...")
+    notes: list[str] = field(default_factory=list)
 
     def summary(self) -> str:
         """``decoded N, rejected M (reason: count, ...)`` plus idle lines if any."""
@@ -259,14 +263,15 @@ class CaptureStats:
             text += f" ({self.rejected.summary()})"
         idle = [(n, what) for n, what in ((self.no_new_data, "no new data"),
                 (self.sensor_absent, "sensor absent"),
-                (sum(self.foreign.values()), "other devices' frames")) if n]  # fmt: skip
+                (sum(self.foreign.values()), "other devices' frames"),
+                (self.no_sample, "empty or NaN cells")) if n]  # fmt: skip
         if idle:
             text += "; not samples: " + ", ".join(f"{what} {n}" for n, what in idle)
         if self.bad_places:
             shown = ", ".join(self.bad_places[:10])
             more = f" and {len(self.bad_places) - 10} more" if len(self.bad_places) > 10 else ""
             text += f"; skipped garbled {shown}{more}"
-        return text
+        return "; ".join([text, *self.notes])
 
     def count(self, rejected: Rejected) -> None:
         self.rejected[rejected.reason] += 1

@@ -6,7 +6,10 @@ column to a site and gives the samples the file's own times (no
 (``pelvis_imu``, ``torso_imu``, ``femur_r_imu``... see ``core.opensim``) and
 bodynet's segment names (``pelvis``, ``thorax``, ``left_forearm``...), each on
 the IMU site of its segment; ``--map COLUMN=SITE`` (``left-arm/upperarm``)
-overrides it or adds a column.
+overrides it or adds a column, ``--map COLUMN=`` leaves one out. Two columns on
+one site (``pelvis`` and ``pelvis_imu``; a ``--map`` onto a taken site), or a
+``--map`` of a column the file does not have, are refused: never two sensors'
+samples mixed into one.
 
 Frames: a ``.sto`` file's orientations are taken as OpenSense gives them to
 OpenSim: rotated by the header's ``sensor_to_opensim_rotations`` (X, Y, Z
@@ -32,7 +35,13 @@ from typing import Any, ClassVar
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from bodynet.core.codecs.orientation import OrientationFileError, Table, parse_csv, parse_sto
+from bodynet.core.codecs.orientation import (
+    TIME_UNITS,
+    OrientationFileError,
+    Table,
+    parse_csv,
+    parse_sto,
+)
 from bodynet.core.errors import Reason, Rejected
 from bodynet.core.keys import (
     LEFT_ARM,
@@ -42,6 +51,7 @@ from bodynet.core.keys import (
     TRUNK,
     KeySpaceError,
     Site,
+    site_name,
     site_named,
 )
 from bodynet.core.messages import Quat, StreamEvent, Tick
@@ -84,13 +94,13 @@ DEFAULT_MAP: Mapping[str, Site] = {
 }
 
 
-def parse_map(text: str) -> tuple[str, Site]:
-    """``COLUMN=SITE`` (an argparse type)."""
+def parse_map(text: str) -> tuple[str, Site | None]:
+    """``COLUMN=SITE`` (an argparse type); ``COLUMN=``: the column left out (None)."""
     column, sep, site = text.partition("=")
     try:
         if not sep or not column.strip():
             raise ValueError(f"not COLUMN=SITE: {text!r}")
-        return column.strip(), site_named(site)
+        return column.strip(), site_named(site) if site.strip() else None
     except (ValueError, KeySpaceError) as exc:
         raise argparse.ArgumentTypeError(str(exc)) from None
 
@@ -128,6 +138,14 @@ def _start_s(table: Table) -> float:
     return start
 
 
+def _encoding(path: Path) -> str:
+    """UTF-16 for a file that starts with its byte order mark (Excel's "Unicode
+    text", a Windows editor's "Unicode"), else UTF-8 (its mark, if any, skipped)."""
+    with path.open("rb") as f:
+        head = f.read(2)
+    return "utf-16" if head in (b"\xff\xfe", b"\xfe\xff") else "utf-8-sig"
+
+
 class OrientationFile(Source):
     name = "orientation-file"
     wire_id = SourceId.ORIENTATION_FILE
@@ -140,20 +158,26 @@ class OrientationFile(Source):
     suffixes: ClassVar = {".sto": "sto", ".csv": "orientation-csv"}
 
     def __init__(self, sites: Mapping[int, Site] | None = None, period_s: float | None = None,
-                 column_map: Mapping[str, Site] | None = None) -> None:  # fmt: skip
+                 column_map: Mapping[str, Site | None] | None = None,
+                 time_unit: str | None = None) -> None:  # fmt: skip
         super().__init__(sites, period_s)
-        self.column_map = {**DEFAULT_MAP, **(column_map or {})}
+        self.asked = dict(column_map or {})
+        self.column_map = {**DEFAULT_MAP, **self.asked}
+        self.time_unit = time_unit
 
     @classmethod
     def from_options(cls, options: Mapping[str, Any]) -> OrientationFile:
-        return cls(column_map=dict(options.get("map") or ()))
+        return cls(column_map=dict(options.get("map") or ()), time_unit=options.get("time_unit"))
 
     @classmethod
     def add_capture_args(cls, p: argparse.ArgumentParser) -> None:
         p.add_argument("--map", type=parse_map, action="append", default=[],
                        metavar="COLUMN=SITE",
-                       help="orientation files: put a column on a site (left-arm/upperarm), "
-                            "over the default map (repeatable)")  # fmt: skip
+                       help="orientation files: put a column on a site (left-arm/upperarm) "
+                            "over the default map; COLUMN= leaves it out (repeatable)")  # fmt: skip
+        p.add_argument("--time-unit", choices=sorted(TIME_UNITS, key=TIME_UNITS.__getitem__),
+                       help="orientation CSV: the time column's unit where its name says none "
+                            "(default s)")  # fmt: skip
 
     def read(self, path: Path, fmt: str, stats: CaptureStats,
              rate_hz: float | None = None) -> Iterator[CapturedSample]:  # fmt: skip
@@ -161,33 +185,69 @@ class OrientationFile(Source):
             log.warning("%s: an orientation file keeps its own times; --rate-hz is not used",
                         path)  # fmt: skip
         try:
-            with path.open(encoding="utf-8-sig", errors="replace", newline="") as f:
-                table = parse_sto(f) if fmt == "sto" else parse_csv(f)
+            with path.open(encoding=_encoding(path), errors="replace", newline="") as f:
+                table = parse_sto(f) if fmt == "sto" else parse_csv(f, self.time_unit)
             to_bodynet = _to_bodynet(table) if fmt == "sto" else None
             start = _start_s(table) if fmt == "sto" else 0.0
         except OrientationFileError as exc:
             raise CaptureError(f"{path}: {exc}") from None
-        sites, events = {}, []
-        for i, column in enumerate(table.columns):
-            site = self.column_map.get(column)
-            if site is None:
-                events.append(Rejected(Reason.UNKNOWN_NODE, f"column {column!r} has no site "
-                                                            "(--map COLUMN=SITE)"))  # fmt: skip
-            else:
-                sites[i + 1] = site
-        self.sites = sites
-        adapter, sink = self.adapter(), CaptureSink(sites, stats)
-        adapter.events(events, None, sink)
-        for row, (line, t, quats) in enumerate(table.rows):
+        sites, events = self._sites(path, table)
+        for line, t, _ in table.rows:  # all refused before a sample is given
             why = time_refused(start + t)
             if why is not None:
                 raise CaptureError(f"{path}: line {line}: {why}")
+        if (doubt := table.unit_doubt()) is not None:
+            raise CaptureError(f"{path}: {doubt}")
+        self.sites = sites
+        stats.no_sample += table.empty
+        if table.ignored:
+            shown = ", ".join(table.ignored[:6]) + (", ..." if len(table.ignored) > 6 else "")
+            stats.notes.append(f"left out {len(table.ignored)} columns that are not "
+                               f"quaternions ({shown})")  # fmt: skip
+        adapter, sink = self.adapter(), CaptureSink(sites, stats)
+        adapter.events(events, None, sink)
+        for row, (_, t, quats) in enumerate(table.rows):
             found: list[StreamEvent] = [Tick(row)]
             for i, q in quats.items():
                 if i + 1 in sites:
                     found.append(Quat(i + 1, self._frame(q, to_bodynet)))
             adapter.events(found, start + t, sink)
             yield from sink.take()
+
+    def _sites(self, path: Path, table: Table) -> tuple[dict[int, Site], list[StreamEvent]]:
+        """Node (column number) -> site, and a rejection per column with none;
+        :class:`CaptureError` for two columns on one site, a ``--map`` of a column
+        the file does not have, or no column with a site."""
+        where = f"{path}: line {table.labels_line}"
+        columns = ", ".join(table.columns)
+        for column in self.asked:
+            if column not in table.columns:
+                raise CaptureError(f"{where}: --map {column}: no such column (the file's: "
+                                   f"{columns})")  # fmt: skip
+        sites: dict[int, Site] = {}
+        events: list[StreamEvent] = []
+        taken: dict[Site, str] = {}
+        for i, column in enumerate(table.columns):
+            site = self.column_map.get(column)
+            if site is None:
+                if column not in self.asked:  # not left out on purpose
+                    why = f"column {column!r} has no site (--map COLUMN=SITE)"
+                    events.append(Rejected(Reason.UNKNOWN_NODE, why))
+                continue
+            if site in taken:
+                raise CaptureError(f"{where}: columns {taken[site]} and {column} are both on "
+                                   f"{site_name(site)} (use --map COLUMN=SITE, or COLUMN= to "
+                                   "leave one out)")  # fmt: skip
+            taken[site] = column
+            sites[i + 1] = site
+        if not sites:
+            one = (f"; a file of one sensor (as Movella DOT exports): --map {table.columns[0]}"
+                   "=SITE, and, to solve sensors together, their columns in one file "
+                   "(<name>_w, _x, _y, _z each) on one time column"
+                   if len(table.columns) == 1 else "")  # fmt: skip
+            raise CaptureError(f"{where}: no column is on a site ({columns}): --map "
+                               f"COLUMN=SITE (left-arm/upperarm){one}")  # fmt: skip
+        return sites, events
 
     @staticmethod
     def _frame(q: tuple[float, float, float, float],
