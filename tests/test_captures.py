@@ -185,11 +185,20 @@ def test_a_relative_asc_log_reads_as_its_absolute_twin(tmp_path: Path, data_dir:
     assert [{**s, "t_s": 0} for s in samples[1]] == [{**s, "t_s": 0} for s in samples[0]]
     told = []
     for path in (absolute, relative):
-        result = subprocess.run([str(BODYNET), "process", str(path), "-o", str(path) + ".mcap"],
-                                capture_output=True, text=True, timeout=60, check=False)  # fmt: skip
+        argv = [str(BODYNET), "process", str(path), "-o", f"{path}.mcap"]
+        result = subprocess.run(argv, capture_output=True, text=True, timeout=60, check=False)
         assert result.returncode == 0, result.stderr
         told.append(result.stderr.split(" ticks")[0].split("\n")[-1])
     assert told[1] == told[0] == "100"
+
+
+def shifted(msg: can.Message, back_s: float) -> can.Message:
+    return can.Message(
+        timestamp=msg.timestamp - back_s,
+        arbitration_id=msg.arbitration_id,
+        data=msg.data,
+        is_extended_id=msg.is_extended_id,
+    )
 
 
 def test_a_can_log_whose_clock_steps_back_is_refused_naming_the_line(
@@ -201,11 +210,8 @@ def test_a_can_log_whose_clock_steps_back_is_refused_naming_the_line(
     half = len(frames) // 2
     log = tmp_path / "step.log"
     with can.CanutilsLogWriter(log) as writer:
-        for i, msg in enumerate(frames):  # (frames are python-can's own: a new one, shifted)
-            msg = can.Message(timestamp=msg.timestamp - (3600.0 if i >= half else 0.0),
-                              arbitration_id=msg.arbitration_id, data=msg.data,
-                              is_extended_id=msg.is_extended_id)  # fmt: skip
-            writer.on_message_received(msg)
+        for i, msg in enumerate(frames):
+            writer.on_message_received(shifted(msg, 3600.0 if i >= half else 0.0))
     result = run_decode("--format", "can-log", log)
     assert result.returncode == 2
     assert result.stderr.startswith(f"bodynet decode: {log}: line {half + 1}: time "), result.stderr
@@ -221,10 +227,7 @@ def test_a_can_log_whose_clock_steps_back_is_refused_naming_the_line(
     one = tmp_path / "one.log"  # only one frame an hour back: it costs itself
     with can.CanutilsLogWriter(one) as writer:
         for i, msg in enumerate(frames):
-            msg = can.Message(timestamp=msg.timestamp - (3600.0 if i == half else 0.0),
-                              arbitration_id=msg.arbitration_id, data=msg.data,
-                              is_extended_id=msg.is_extended_id)  # fmt: skip
-            writer.on_message_received(msg)
+            writer.on_message_received(shifted(msg, 3600.0 if i == half else 0.0))
     stats = CaptureStats()
     kept = list(can_log_messages(one, stats))
     assert len(kept) == len(frames) - 1
@@ -242,4 +245,5 @@ def test_candump_screen_output_is_told_to_record_with_l(tmp_path: Path, data_dir
     assert result.returncode == 2
     assert result.stderr.splitlines()[-1] == (
         f"bodynet decode: no can-log samples in {screen}; it looks like candump's screen "
-        "output, not a log: record with `candump -l` (or `candump -L`)")
+        "output, not a log: record with `candump -l` (or `candump -L`)"
+    )

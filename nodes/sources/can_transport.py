@@ -11,7 +11,7 @@ import threading
 import time
 import zlib
 from collections import deque
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from itertools import chain
 from pathlib import Path
 from typing import IO, Any
@@ -392,7 +392,7 @@ def _text_log_messages(path: Path, stats: CaptureStats) -> Iterator[tuple[can.Me
                 stats.bad_places.append(where)
 
         messages = iter(reader)
-        elapsed = 0.0  # a relative ASC log's: the sum of its times
+        add_up = _relative_times(reader)
         while True:
             try:  # only the reader's errors are the file's (not this function's own)
                 msg = next(messages)
@@ -417,10 +417,23 @@ def _text_log_messages(path: Path, stats: CaptureStats) -> Iterator[tuple[can.Me
             where = f"line {lines.number}"
             if _untimed(msg, where, path, stats):
                 continue
-            if getattr(reader, "timestamps_format", None) == "relative":
-                elapsed += msg.timestamp - reader.start_time  # type: ignore[attr-defined]
-                msg.timestamp = reader.start_time + elapsed  # type: ignore[attr-defined]
+            add_up(msg)
             yield msg, where
+
+
+def _relative_times(reader: object) -> Callable[[can.Message], None]:
+    """What makes a message's time absolute: an ASC log's ``timestamps relative``
+    added up (the header is read with the first message)."""
+    elapsed = 0.0
+
+    def add_up(msg: can.Message) -> None:
+        nonlocal elapsed
+        if getattr(reader, "timestamps_format", None) == "relative":
+            start = reader.start_time  # type: ignore[attr-defined]
+            elapsed += msg.timestamp - start
+            msg.timestamp = start + elapsed
+
+    return add_up
 
 
 def _order(before: float | None, t_s: float, later: list[float]) -> str:
@@ -452,8 +465,8 @@ def _in_order(path: Path, stats: CaptureStats,
                                    f"{before:.6f} s, and the frames after it too (a clock "
                                    "stepped back?): a log's times must not decrease")  # fmt: skip
             if order == "odd":
-                stats.count(Rejected(Reason.OUT_OF_ORDER, f"{path.name} {where}: time "
-                                     f"{t_s:.6f} s out of order with the frames around it"))  # fmt: skip
+                why = f"time {t_s:.6f} s out of order with the frames around it"
+                stats.count(Rejected(Reason.OUT_OF_ORDER, f"{path.name} {where}: {why}"))
                 stats.bad_places.append(where)
                 continue
             before = t_s
