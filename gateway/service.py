@@ -71,6 +71,9 @@ HISTORY_S = 5.0
 #: average a still pose as well as a thousand, and a short history is a short walk
 #: for Python's cyclic collector.
 HISTORY_STEP_S = 0.02
+#: A calibration asked before its window has filled waits while a sensor was heard
+#: within this (longer than STALE_S: a loaded machine's sensors and worker lag).
+FILL_HEARD_S = 2.0
 #: Bodies one gateway takes on; samples of further subjects are counted, not served
 #: (a publisher inventing subject names must not exhaust the gateway).
 MAX_SUBJECTS = 64
@@ -709,8 +712,9 @@ class Gateway:
             now = time.monotonic()
             with self._lock:
                 reach = body.history_s()
-                # only live sensors fill a window: with every one stale, waiting is no use
-                filling = any(now - k.arrived < STALE_S for k in body.latest.values() if k.history)
+                # only live sensors fill a window: with every one silent, waiting is no use
+                filling = any(now - k.arrived < FILL_HEARD_S
+                              for k in body.latest.values() if k.history)  # fmt: skip
             filled = reach is None or reach >= seconds or not filling
             if filled or now >= deadline:
                 break
