@@ -89,7 +89,12 @@ class Realism:
     at ``yaw_drift_deg_per_min``. With ``INDEPENDENT`` headings each sensor's
     frame has a random heading of its own and drifts at a rate drawn within
     +/- ``yaw_drift_deg_per_min``; ``DRIFTING`` tags start as ``SHARED`` ones and
-    drift as ``INDEPENDENT`` ones. The truth stays in the body's frame."""
+    drift as ``INDEPENDENT`` ones. The truth stays in the body's frame.
+
+    ``tissue_wobble_deg``: soft tissue under the tags (orientation sensors) lets
+    each turn on its segment, up to this far: a smooth oscillation (0.5-3 Hz about
+    each axis, random per tag) whose amplitude grows with the segment's angular
+    speed (all of it from 100 deg/s on), as a tag on the skin shakes in a walk."""
 
     accel_noise_g: float = 0.01
     accel_bias_g: float = 0.02  # bias of each axis drawn within +/- this
@@ -99,6 +104,7 @@ class Realism:
     random_tag_mounts: bool = True
     facing_deg: float = 0.0
     headings: Headings = Headings.SHARED
+    tissue_wobble_deg: float = 0.0
 
     @classmethod
     def ideal(cls) -> Realism:
@@ -183,6 +189,24 @@ class BodyEmulator:
             headings,
         )
 
+        # the wobble's own draws (the noise's stream stays the same without it)
+        wobble = np.random.default_rng(seed + 7919)
+        self._wobble_freq = wobble.uniform(0.5, 3.0, (k, 3))
+        self._wobble_phase = wobble.uniform(0.0, 2 * math.pi, (k, 3))
+
+    def _wobbled(self, t_s: float, seg_rot: np.ndarray) -> np.ndarray:
+        """The orientation sensors' segments (``seg_rot``, at ``t_s``) turned by the
+        soft tissue under their tags (``Realism.tissue_wobble_deg``)."""
+        dt = 0.01
+        frames = [self._segment_frames[i] for i in self._quat_idx]
+        before, _ = self.model.frame_placements(self._q(self.angles(t_s - dt)), frames)
+        cos = (np.trace(before.transpose(0, 2, 1) @ seg_rot, axis1=1, axis2=2) - 1) / 2
+        speed = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))) / dt
+        amp = self.realism.tissue_wobble_deg * np.minimum(1.0, speed / 100.0)
+        turn = np.sin(2 * math.pi * self._wobble_freq * t_s + self._wobble_phase)
+        rotvec = np.radians(amp[:, None] * turn / math.sqrt(3))
+        return seg_rot @ Rotation.from_rotvec(rotvec).as_matrix()  # type: ignore[no-any-return]
+
     def _angles_of(self, segment: str) -> tuple[str, ...]:
         for joint in self.skeleton.joints:
             if joint.child == segment:
@@ -222,7 +246,10 @@ class BodyEmulator:
                     self.sensors[i].node, ole.read(angles.get(ole_angle, 0.0)), (x, y, z)
                 )
         if len(self._quat_idx):
-            quats = self._quat.read(seg_rot[self._quat_idx], t_s)
+            on = seg_rot[self._quat_idx]
+            if self.realism.tissue_wobble_deg:
+                on = self._wobbled(t_s, on)
+            quats = self._quat.read(on, t_s)
             for row, i in enumerate(self._quat_idx):
                 w, x, y, z = (float(c) for c in quats[row])
                 readings[i] = Quat(self.sensors[i].node, (w, x, y, z))
