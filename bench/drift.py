@@ -80,7 +80,7 @@ def heading_tick(heading: BodyHeading, solver: BodySolver, t_s: float,
     held in the body's solver. Returns the body's solver from then on."""
     step = heading.step(t_s, samples, solver.profile)
     if step is not None and step[0] in ("found", "switched"):
-        return BodySolver(step[1])
+        solver = BodySolver(step[1])
     if step is not None:
         heading.hold(solver, step[1])
     return solver

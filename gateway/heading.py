@@ -47,8 +47,12 @@ POSE_ANGLES = CALIBRATION_POSES
 #: A calibration window shorter than this, or with fewer samples of a tag, is refused.
 MIN_WINDOW_S = 0.4
 MIN_SAMPLES = 5
-#: A tag turning further than this from its mean orientation in the window: the
-#: subject moved, and the window is refused.
+#: A tag whose orientation, low-passed (the mean of each run of a tenth of its
+#: samples, at least 3), turned further than this from its mean in the window, past
+#: what its own scatter gives a low-passed mean (three standard deviations): the
+#: subject moved, and the window is refused. (The maximum of the raw samples grows
+#: with the tags' noise and the samples' count: at 1 deg of noise a still pose of
+#: 50 samples went past 3 deg.)
 STILL_DEG = 3.0
 
 #: Hinge joints whose motion reveals the heading: (joint, parent, child, the flexion
@@ -68,6 +72,9 @@ HINGE_TOTAL_DEG = 500.0
 HINGE_AGREEMENT = 0.97
 #: An axis whose horizontal part (in the calibration pose) is below this gives no heading.
 HORIZONTAL_MIN = 0.5
+#: A foot's or hand's best heading leaving its joint's axes off perpendicular by more
+#: than this (RMS, deg) is not that joint's motion (noise of 2 deg a tag gives about 3)
+CHILD_MISFIT_DEG = 6.0
 
 
 class CalibrationRefused(ValueError):
@@ -220,9 +227,11 @@ def calibrate_window(
     Refused (:class:`CalibrationRefused`) when a tag of ``expected`` has no sample
     in it, when it is shorter than ``MIN_WINDOW_S`` (or than ``seconds``, the
     length asked for, by more than a fifth) or holds fewer than ``MIN_SAMPLES`` of
-    a tag, or when a tag turned more than ``STILL_DEG`` in it. The report gives,
-    per tag, its samples, the time they span, how far it turned from its mean
-    (its stillness), and its residual against the profile's current calibration
+    a tag, or when a tag turned more than ``STILL_DEG`` in it (low-passed, past
+    its own noise). The report gives, per tag, its samples, the time they span,
+    how far it turned from its mean, low-passed (``still_deg``), its scatter (RMS,
+    ``scatter_deg``), the limit they give (``still_limit_deg``), and its residual
+    against the profile's current calibration
     (the angle between where the old mount puts it in the pose and where it was:
     a tag moved on the body, or another pose than before)."""
     pose = pose or profile.pose
@@ -258,13 +267,16 @@ def calibrate_window(
             f"the window is too short: {span_all:.2f} s"
             + (f" ({what})" if what else "") + f"; it needs at least {want:.2f} s", report
         )  # fmt: skip
-    moved = {k: t["still_deg"] for k, t in tags.items() if t["still_deg"] > STILL_DEG}
+    moved = {k: t["still_deg"] for k, t in tags.items() if t["still_deg"] > t["still_limit_deg"]}
     if moved:
         worst = sorted(moved, key=moved.__getitem__, reverse=True)
+        noisy = [k for k in worst if tags[k]["scatter_deg"] > STILL_DEG]
         raise CalibrationRefused(
-            f"the subject moved: {len(moved)} tag(s) turned more than {STILL_DEG:g} deg in the "
-            "window (" + ", ".join(f"{k} {moved[k]:.1f} deg" for k in worst[:4])
-            + ("..." if len(worst) > 4 else "") + "); stand still in the pose and try again",
+            f"the subject moved: {len(moved)} tag(s) turned more than {STILL_DEG:g} deg (past "
+            "their noise) in the window (" + ", ".join(f"{k} {moved[k]:.1f} deg" for k in worst[:4])
+            + ("..." if len(worst) > 4 else "") + "); stand still in the pose and try again"
+            + "".join(f"; tag {k} is noisy (sigma ~ {tags[k]['scatter_deg']:.1f} deg)"
+                      for k in noisy[:4]),
             report,
         )  # fmt: skip
     headings = _window_heading(profile, means, report)
@@ -276,10 +288,21 @@ def calibrate_window(
 def _tag_stats(key: str, samples: Sequence[tuple[float, QuatWxyz]], seg: np.ndarray,
                profile: Profile) -> tuple[np.ndarray, dict[str, Any]]:  # fmt: skip
     """A tag's mean orientation in a window, and its line of the report."""
-    times = np.array([t for t, _ in samples])
-    rots = Rotation.from_quat([[x, y, z, w] for _, (w, x, y, z) in samples])
+    order = np.argsort([t for t, _ in samples], kind="stable")
+    times = np.array([samples[i][0] for i in order])
+    rots = Rotation.from_quat([[x, y, z, w] for _, (w, x, y, z) in (samples[i] for i in order)])
     mean = rots.mean()
-    spread = float(np.degrees((mean.inv() * rots).magnitude()).max())
+    # the turns from the mean (rotation vectors: small, so they average), low-passed
+    dev = (mean.inv() * rots).as_rotvec()
+    scatter = math.degrees(math.sqrt(float((dev**2).sum(axis=1).mean())))
+    run = max(3, len(samples) // 10)
+    if len(samples) >= run:
+        cum = np.cumsum(np.vstack([np.zeros(3), dev]), axis=0)
+        smooth = (cum[run:] - cum[:-run]) / run
+        spread = math.degrees(float(np.linalg.norm(smooth, axis=1).max()))
+    else:
+        spread = math.degrees(float(np.linalg.norm(dev, axis=1).max()))
+    limit = STILL_DEG + 3.0 * scatter / math.sqrt(run)
     residual = None
     if key in profile.imu_mounts:
         expect = rz(profile.heading_of(key)) @ seg @ _matrix(profile.imu_mounts[key])
@@ -287,7 +310,9 @@ def _tag_stats(key: str, samples: Sequence[tuple[float, QuatWxyz]], seg: np.ndar
                                       .magnitude()), 2)  # fmt: skip
     return mean.as_matrix(), {"samples": len(samples),
                               "span_s": round(float(times.max() - times.min()), 3),
-                              "still_deg": round(spread, 2), "residual_deg": residual}  # fmt: skip
+                              "still_deg": round(spread, 2), "scatter_deg": round(scatter, 2),
+                              "still_limit_deg": round(limit, 2),
+                              "residual_deg": residual}  # fmt: skip
 
 
 def _window_heading(profile: Profile, means: Mapping[str, np.ndarray],
@@ -424,12 +449,21 @@ class KneePairs:
     the knee's axis alone: the two headings are found by a search over both
     (every 10 deg, then every degree) minimising the rotation off that axis, the
     knee flexing positively (the pair turned by 180 deg fits as well, flexing
-    the wrong way). Needs both segments to move (a swing, a walk): taken once
-    ``PAIR_SAMPLES`` samples have the knee past 15 deg, each segment past 10.
-    The other tags' headings stay unknown (their joints have three dofs, or
-    reach no knee), and their dofs stay flagged."""
+    the wrong way). Needs both segments to move (a swing, a walk): samples are
+    taken every ``EVERY_S`` while the knee is past 15 deg, each segment past 10;
+    from ``PAIR_SAMPLES`` on, every ``TRY_EVERY``, the pair is searched (none
+    while a pair far from the best fits nearly as well) and refined, and taken
+    once its uncertainty is within ``MAX_UNC_DEG`` (``FULL_UNC_DEG`` once
+    ``MAX_SAMPLES`` have come; beyond, the oldest make way), as
+    :class:`ChildHeadings` does. The other tags' headings stay unknown (their
+    joints have three dofs, or reach no knee), and their dofs stay flagged."""
 
     PAIR_SAMPLES = 40
+    EVERY_S = 0.02
+    TRY_EVERY = 20
+    MAX_SAMPLES = 200
+    MAX_UNC_DEG = 2.0
+    FULL_UNC_DEG = 3.0
 
     def __init__(self, profile: Profile) -> None:
         by_segment: dict[str, str] = {}
@@ -447,13 +481,20 @@ class KneePairs:
             self.pairs[side] = (p, c, p0, c0)
         self.samples: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {s: [] for s in self.pairs}
         self.found: dict[str, float] = {}
+        #: per tag found, the uncertainty (deg) of its pair's headings when taken
+        self.unc_deg: dict[str, float] = {}
         self.done: set[str] = set()
+        self._last: dict[str, float] = {}
 
-    def update(self, orientations: Mapping[str, QuatWxyz]) -> dict[str, float]:
-        """Take one tick's tag orientations; the headings found at this tick."""
+    def update(self, orientations: Mapping[str, QuatWxyz],
+               t_s: float | None = None) -> dict[str, float]:  # fmt: skip
+        """Take one tick's tag orientations (``t_s``: the tick's time, None taking
+        every tick); the headings found at this tick."""
         out: dict[str, float] = {}
         for side, (p, c, p0, c0) in self.pairs.items():
             if side in self.done or p not in orientations or c not in orientations:
+                continue
+            if t_s is not None and t_s - self._last.get(side, -math.inf) < self.EVERY_S - 1e-6:
                 continue
             a_p = _quat_matrix(orientations[p]) @ p0.T  # each tag's turn since calibration
             a_c = _quat_matrix(orientations[c]) @ c0.T
@@ -461,12 +502,21 @@ class KneePairs:
             knee = np.linalg.norm(_rotvec(a_p.T @ a_c))
             if moved_p < math.radians(10) or knee < math.radians(15):
                 continue
-            self.samples[side].append((a_p, a_c))
-            if len(self.samples[side]) >= self.PAIR_SAMPLES:
-                found = _knee_pair_headings(self.samples[side])
+            if t_s is not None:
+                self._last[side] = t_s
+            samples = self.samples[side]
+            samples.append((a_p, a_c))
+            n = len(samples)
+            if n < self.PAIR_SAMPLES or (n - self.PAIR_SAMPLES) % self.TRY_EVERY:
+                continue
+            fit = _knee_pair_headings(samples)
+            full = n >= self.MAX_SAMPLES
+            if fit is not None and fit[2] <= (self.FULL_UNC_DEG if full else self.MAX_UNC_DEG):
                 self.done.add(side)
-                if found is not None:
-                    out[p], out[c] = found
+                out[p], out[c] = fit[:2]
+                self.unc_deg[p] = self.unc_deg[c] = round(fit[2], 3)
+            elif full:  # not telling yet: the next samples may (a drifting tag's old ones
+                del samples[: self.TRY_EVERY]  # say less of its heading now)
         self.found.update(out)
         return out
 
@@ -483,11 +533,23 @@ class ChildHeadings:
     apart (the joint's axes stay perpendicular whichever way the child's turn is
     laid); of those, the one whose joint turns least from the pose wins (the
     others put the segment's swing across its joint: 30-40 deg of ankle against
-    5 in a walk). Taken once ``SAMPLES`` samples have the child turned past
-    ``MOVED_DEG`` since calibration; one try per tag."""
+    5 in a walk), when it beats the runner-up by more than the samples' noise.
+    Samples are taken every ``EVERY_S`` once the child has turned past
+    ``MOVED_DEG`` since calibration; from ``SAMPLES`` on, every ``TRY_EVERY``,
+    the fit is tried and taken once its uncertainty (about two standard
+    deviations, :func:`_fit_unc_deg`) is within ``MAX_UNC_DEG`` (within
+    ``FULL_UNC_DEG`` once ``MAX_SAMPLES`` have come; beyond, the oldest make
+    way): with noisy tags, or tags wobbling on the skin, 40 samples left a foot's
+    heading 10-20 deg off. ``unc_deg`` keeps each found tag's uncertainty, which
+    the dofs its heading drives carry in the pose's."""
 
     SAMPLES = 40
     MOVED_DEG = 10.0
+    EVERY_S = KneePairs.EVERY_S
+    TRY_EVERY = KneePairs.TRY_EVERY
+    MAX_SAMPLES = KneePairs.MAX_SAMPLES
+    MAX_UNC_DEG = KneePairs.MAX_UNC_DEG
+    FULL_UNC_DEG = KneePairs.FULL_UNC_DEG
 
     def __init__(self, profile: Profile) -> None:
         by_segment: dict[str, str] = {}
@@ -508,34 +570,49 @@ class ChildHeadings:
         self.samples: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {c: [] for c in self.joints}
         self.done: set[str] = set()
         self.found: dict[str, float] = {}
+        #: per child key found, the uncertainty (deg) of its heading when taken
+        self.unc_deg: dict[str, float] = {}
+        self._last: dict[str, float] = {}
 
     def pending(self, profile: Profile, coming: Iterable[str] = ()) -> bool:
-        """Whether a tag may still be found: its heading unknown, not tried yet, and
+        """Whether a tag may still be found: its heading unknown, not found yet, and
         its parent's known (or among ``coming``, being found)."""
         soon = set(coming)
         return any(c not in self.done and not profile.heading_known(c)
                    and (profile.heading_known(p) or p in soon)
                    for c, (p, *_) in self.joints.items())  # fmt: skip
 
-    def update(self, orientations: Mapping[str, QuatWxyz], profile: Profile) -> dict[str, float]:
-        """Take one tick's tag orientations (``profile``: the known headings so far);
-        the headings found at this tick."""
+    def update(self, orientations: Mapping[str, QuatWxyz], profile: Profile,
+               t_s: float | None = None) -> dict[str, float]:  # fmt: skip
+        """Take one tick's tag orientations (``profile``: the known headings so far;
+        ``t_s``: the tick's time, None taking every tick); the headings found at
+        this tick."""
         out: dict[str, float] = {}
         for c, (p, p_axis, c_axis, seg_p, seg_c, c0) in self.joints.items():
             if c in self.done or profile.heading_known(c) or not profile.heading_known(p):
                 continue
             if p not in orientations or c not in orientations:
                 continue
+            if t_s is not None and t_s - self._last.get(c, -math.inf) < self.EVERY_S - 1e-6:
+                continue
             a_c = _quat_matrix(orientations[c]) @ c0.T  # the tag's turn since calibration
             if np.linalg.norm(_rotvec(a_c)) < math.radians(self.MOVED_DEG):
                 continue
+            if t_s is not None:
+                self._last[c] = t_s
             parent = JointDrift._segment(profile, p, _quat_matrix(orientations[p]))
-            self.samples[c].append((parent, a_c))
-            if len(self.samples[c]) >= self.SAMPLES:
+            samples = self.samples[c]
+            samples.append((parent, a_c))
+            n = len(samples)
+            if n < self.SAMPLES or (n - self.SAMPLES) % self.TRY_EVERY:
+                continue
+            fit = _child_heading(samples, seg_p, seg_c, p_axis, c_axis)
+            full = n >= self.MAX_SAMPLES
+            if fit is not None and fit[1] <= (self.FULL_UNC_DEG if full else self.MAX_UNC_DEG):
                 self.done.add(c)
-                psi = _child_heading(self.samples[c], seg_p, seg_c, p_axis, c_axis)
-                if psi is not None:
-                    out[c] = psi
+                out[c], self.unc_deg[c] = fit[0], round(fit[1], 3)
+            elif full:  # not telling yet: the next samples may (a drifting tag's old ones
+                del samples[: self.TRY_EVERY]  # say less of its heading now)
         self.found.update(out)
         return out
 
@@ -556,11 +633,14 @@ class ElbowPairs:
     there is none) and the best refined (least squares, continuous); it is taken
     once its uncertainty (about two standard deviations, from the misfit's spread
     and the fit's Jacobian: how well the samples constrain the two headings) is
-    within ``MAX_UNC_DEG``: as soon as the reach has told, not after a fixed count
-    (the lift of a straight arm tells only the two headings' difference; the
-    elbow bending, both; with sensors noisier than the emulator's 0.3 deg it may
-    never come that low: at ``MAX_SAMPLES`` it is taken within ``FULL_UNC_DEG``).
-    Beyond ``MAX_SAMPLES`` the older half make way."""
+    within ``MAX_UNC_DEG``, or ``MISFIT_SHARE`` of the misfit's RMS (deg; the
+    sensors' noise: a fixed 0.3 deg, right for the emulator's 0.3 deg, was never
+    reached at 1.5): as soon as the reach has told, not after a fixed count (the
+    lift of a straight arm tells only the two headings' difference; the elbow
+    bending, both); at ``MAX_SAMPLES`` within ``FULL_UNC_DEG`` or the misfit's
+    RMS, never past ``LIMIT_UNC_DEG``. Beyond ``MAX_SAMPLES`` the older half make
+    way. ``last_unc_deg`` keeps each side's latest fit's uncertainty (what the
+    search waits for)."""
 
     EVERY_S = 0.05
     MOVED_DEG = 10.0
@@ -569,6 +649,8 @@ class ElbowPairs:
     MAX_SAMPLES = 120
     MAX_UNC_DEG = 0.3
     FULL_UNC_DEG = 1.0
+    MISFIT_SHARE = 0.75
+    LIMIT_UNC_DEG = KneePairs.FULL_UNC_DEG
 
     def __init__(self, profile: Profile) -> None:
         by_segment: dict[str, str] = {}
@@ -586,8 +668,9 @@ class ElbowPairs:
             self.pairs[side] = (p, c, p0, c0, seg_p, seg_c)
         self.samples: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {s: [] for s in self.pairs}
         self.found: dict[str, float] = {}
-        #: per side, the uncertainty (deg) of the pair when taken
+        #: per side, the uncertainty (deg) of the pair when taken, and of its latest fit
         self.unc_deg: dict[str, float] = {}
+        self.last_unc_deg: dict[str, float] = {}
         self.done: set[str] = set()
         self._last: dict[str, float] = {}
         self._basin: dict[str, tuple[float, float]] = {}  # the grid's best (rad), refined on
@@ -629,7 +712,12 @@ class ElbowPairs:
         start = self._basin.get(side) or _elbow_pair_grid(samples, seg_p, seg_c)
         fit = None if start is None else _elbow_pair_refine(samples, seg_p, seg_c, start)
         full = n >= self.MAX_SAMPLES
-        if fit is None or fit[2] > (self.FULL_UNC_DEG if full else self.MAX_UNC_DEG):
+        if fit is not None:
+            self.last_unc_deg[side] = round(fit[2], 2)
+            misfit = fit[3] if full else self.MISFIT_SHARE * fit[3]
+            bound = min(max(self.FULL_UNC_DEG if full else self.MAX_UNC_DEG, misfit),
+                        self.LIMIT_UNC_DEG)  # fmt: skip
+        if fit is None or fit[2] > bound:
             if fit is None or full:  # no basin (yet), or a new start
                 self._basin.pop(side, None)
             else:  # refined on from here with the next samples
@@ -637,7 +725,7 @@ class ElbowPairs:
             if full:  # not telling yet: the next samples may (a reach)
                 del samples[: n // 2]
             return None
-        psi_p, psi_c, unc = fit
+        psi_p, psi_c, unc, _ = fit
         grid = _elbow_pair_grid(samples, seg_p, seg_c)  # still the best basin, with all samples
         if grid is None or _apart_deg(grid, (psi_p, psi_c)) > 10.0:
             self._basin.pop(side, None)
@@ -983,12 +1071,13 @@ def _elbow_pair_grid(samples: Sequence[tuple[np.ndarray, np.ndarray]], seg_p: np
 
 def _elbow_pair_refine(samples: Sequence[tuple[np.ndarray, np.ndarray]], seg_p: np.ndarray,
                        seg_c: np.ndarray, start: tuple[float, float]
-                       ) -> tuple[float, float, float] | None:  # fmt: skip
+                       ) -> tuple[float, float, float, float] | None:  # fmt: skip
     """The pair of headings (rad) near ``start`` that keeps the elbow's axes
-    perpendicular (least squares), and its uncertainty (deg, about two standard
-    deviations: the misfit's spread through the fit's Jacobian); None when it is
-    not an elbow's motion (the axes off perpendicular by more than 3 deg, the
-    flexion out of range) or the fit left the basin (10 deg)."""
+    perpendicular (least squares), its uncertainty (deg, about two standard
+    deviations: the misfit's spread through the fit's Jacobian) and the misfit's
+    RMS (deg off perpendicular); None when it is not an elbow's motion (the axes
+    off perpendicular by more than ``CHILD_MISFIT_DEG``, the flexion out of range)
+    or the fit left the basin (10 deg)."""
     from scipy.optimize import least_squares
 
     def residuals(x: np.ndarray) -> np.ndarray:
@@ -1001,91 +1090,150 @@ def _elbow_pair_refine(samples: Sequence[tuple[np.ndarray, np.ndarray]], seg_p: 
         return None
     n = len(samples)
     perp, outside = _elbow_pair_cost(samples, seg_p, seg_c, fit.x[:1], fit.x[1:])
-    if math.degrees(math.asin(min(1.0, float(perp[0, 0])))) > 3.0 or outside[0, 0] > 5.0 * n:
+    misfit = math.degrees(math.asin(min(1.0, float(perp[0, 0]))))
+    if misfit > CHILD_MISFIT_DEG or outside[0, 0] > 5.0 * n:
         return None  # not an elbow's motion
     jtj = fit.jac.T @ fit.jac
     if abs(np.linalg.det(jtj)) < 1e-12:
         return None
     cov = float(fit.fun @ fit.fun) / max(1, n - 2) * np.linalg.inv(jtj)
     unc = 2.0 * math.degrees(math.sqrt(max(float(np.linalg.eigvalsh(cov).max()), 0.0)))
-    return psi_p, psi_c, unc
+    return psi_p, psi_c, unc, misfit
+
+
+def _fit_unc_deg(residuals: np.ndarray, jacobian: np.ndarray) -> float:
+    """A least-squares fit's uncertainty (deg, about two standard deviations of its
+    worst-known direction): the misfit's spread through the fit's Jacobian
+    (``jacobian``: (n, parameters), per rad), the samples counted as independent
+    only as far as their misfits are (a wobble of the tags on the skin lasts many
+    samples: the lag-one autocorrelation of the misfit, in time order, shrinks n)."""
+    n, k = jacobian.shape
+    jtj = jacobian.T @ jacobian
+    if n <= k or abs(np.linalg.det(jtj)) < 1e-12:
+        return math.inf
+    r = residuals - residuals.mean()
+    rho = float(r[1:] @ r[:-1]) / max(float(r @ r), 1e-300) if n > 2 else 0.0
+    rho = max(0.0, min(0.95, rho))
+    cov = float(residuals @ residuals) / (n - k) * np.linalg.inv(jtj) * (1 + rho) / (1 - rho)
+    return 2.0 * math.degrees(math.sqrt(max(float(np.linalg.eigvalsh(cov).max()), 0.0)))
 
 
 def _child_heading(samples: Sequence[tuple[np.ndarray, np.ndarray]], seg_p: np.ndarray,
-                   seg_c: np.ndarray, p_axis: int, c_axis: int) -> float | None:  # fmt: skip
+                   seg_c: np.ndarray, p_axis: int, c_axis: int
+                   ) -> tuple[float, float] | None:  # fmt: skip
     """The child tag's heading (deg) that keeps the joint's axes perpendicular and
-    turns the joint least from the pose; None when no heading keeps them so."""
+    turns the joint least from the pose, and its uncertainty (deg,
+    :func:`_fit_unc_deg`); None when no heading keeps them so (the misfit past
+    ``CHILD_MISFIT_DEG``), or the runner-up (the next perpendicular fit) does not
+    turn the joint more by more than the samples' noise."""
     parents = np.array([p for p, _ in samples])  # the parent segment, body frame
     turns = np.array([a for _, a in samples])
+    p_axes, c_axis0 = parents[:, :, p_axis], seg_c[:, c_axis]
     pose_rel = seg_p.T @ seg_c
 
-    def cost(psi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def perp(psi: np.ndarray) -> np.ndarray:
+        """Per heading and sample (k, n): the axes' dot product (0: perpendicular)."""
+        rc = _rz_batch(psi)
+        axis = np.einsum("kji,njl,kl->kni", rc, turns, rc @ c_axis0)  # Rz(-psi) A Rz(psi) c
+        return np.einsum("ni,kni->kn", p_axes, axis)  # type: ignore[no-any-return]
+
+    def turn(psi: np.ndarray) -> np.ndarray:
+        """Per heading and sample (k, n): the joint's turn (deg) from the pose."""
         rc = _rz_batch(psi)
         child = np.einsum("kji,njl,klm->knim", rc, turns, rc) @ seg_c  # (k, n, 3, 3)
-        perp = np.einsum("ni,kni->kn", parents[:, :, p_axis], child[:, :, :, c_axis])
         rel = np.einsum("nji,knjl->knil", parents, child)  # parent^T child
-        off = np.einsum("ji,knjl->knil", pose_rel, rel)  # the joint's turn from the pose
-        angle = np.arccos(np.clip((np.trace(off, axis1=-2, axis2=-1) - 1) / 2, -1.0, 1.0))
-        return np.sqrt((perp**2).mean(axis=1)), np.degrees(angle).mean(axis=1)
+        off = np.einsum("ji,knjl->knil", pose_rel, rel)
+        cos = (np.trace(off, axis1=-2, axis2=-1) - 1) / 2
+        return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))  # type: ignore[no-any-return]
 
     grid = np.radians(np.arange(0.0, 360.0, 5.0))
-    perp, _ = cost(grid)
+    rms = np.sqrt((perp(grid) ** 2).mean(axis=1))
     # each local minimum of the misfit, refined (on the coarse grid alone a true fit
     # between two of its points can look worse than a rival's falling on one) ...
-    minima = np.flatnonzero((perp <= np.roll(perp, 1)) & (perp <= np.roll(perp, -1)))
+    minima = np.flatnonzero((rms <= np.roll(rms, 1)) & (rms <= np.roll(rms, -1)))
     step = np.radians(np.arange(-5.0, 5.25, 0.25))
     fine = (grid[minima][:, None] + step[None, :]).ravel()
-    perp, turn = cost(fine)
-    perp, turn, fine = (a.reshape(len(minima), len(step)) for a in (perp, turn, fine))
-    at = np.argmin(perp, axis=1)
+    rms = np.sqrt((perp(fine) ** 2).mean(axis=1)).reshape(len(minima), len(step))
+    at = np.argmin(rms, axis=1)
     rows = np.arange(len(minima))
-    perp, turn, fine = perp[rows, at], turn[rows, at], fine[rows, at]
+    rms, fine = rms[rows, at], fine.reshape(len(minima), len(step))[rows, at]
     # ... the perpendicular fits (within twice the best), then the least turned joint
-    fits = np.flatnonzero(perp <= 2 * perp.min() + 1e-3)
-    k = int(fits[np.argmin(turn[fits])])
-    if math.degrees(math.asin(min(1.0, perp[k]))) > 3.0:  # not this joint's motion
+    fits = np.flatnonzero(rms <= 2 * rms.min() + 1e-3)
+    turns_fit = turn(fine[fits])
+    order = np.argsort(turns_fit.mean(axis=1))
+    k = int(fits[order[0]])
+    if math.degrees(math.asin(min(1.0, rms[k]))) > CHILD_MISFIT_DEG:  # not this joint's motion
         return None
-    return _wrap(math.degrees(fine[k]))
+    if len(order) > 1:  # the runner-up turns the joint more, beyond the samples' noise
+        diff = turns_fit[order[1]] - turns_fit[order[0]]
+        noise = _fit_unc_deg(np.radians(diff - diff.mean()), np.ones((len(diff), 1)))
+        if diff.mean() <= noise:
+            return None
+    h = math.radians(0.1)
+    around = perp(np.array([fine[k] - h, fine[k], fine[k] + h]))
+    unc = _fit_unc_deg(around[1], ((around[2] - around[0]) / (2 * h))[:, None])
+    return _wrap(math.degrees(fine[k])), unc
 
 
 def _knee_pair_headings(samples: Sequence[tuple[np.ndarray, np.ndarray]]
-                        ) -> tuple[float, float] | None:  # fmt: skip
+                        ) -> tuple[float, float, float] | None:  # fmt: skip
     """The thigh's and shank's tag headings (deg) that make every sample's knee a
-    positive turn about the thighs' lateral axis; None when no pair fits."""
+    positive turn about the thighs' lateral axis, and their uncertainty (deg,
+    :func:`_fit_unc_deg`); None when no pair fits, or a pair far from it (20 deg
+    or more in either heading, as much in the knee's range) fits nearly as well
+    (within twice its misfit: the motion does not tell them apart)."""
+    from scipy.optimize import least_squares
+
     a_p = np.array([a for a, _ in samples])
     a_c = np.array([b for _, b in samples])
 
     lo, hi = rom("left_knee_flexion_deg")
 
-    def cost(psi_p: np.ndarray, psi_c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Per candidate: the rotation off the knee's axis, and how far its knee
-        angles fall outside the knee's range of motion (both summed over samples)."""
+    def parts(psi_p: np.ndarray, psi_c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Per candidate and sample: the knee's rotation vector's parts off its axis
+        (x, z: twice the sine of the turn off it), and the knee's angle (deg)."""
         rp, rc = _rz_batch(psi_p), _rz_batch(psi_c)  # (k, 3, 3)
         # segments' turns in the body's frame: Rz(-psi) A Rz(psi)
         b_p = np.einsum("kji,njl,klm->knim", rp, a_p, rp)
         b_c = np.einsum("kji,njl,klm->knim", rc, a_c, rc)
         rel = np.einsum("knji,knjl->knil", b_p, b_c)
-        vee = np.stack([rel[..., 2, 1] - rel[..., 1, 2], rel[..., 0, 2] - rel[..., 2, 0],
-                        rel[..., 1, 0] - rel[..., 0, 1]], axis=-1)  # fmt: skip
-        off = vee[..., 0] ** 2 + vee[..., 2] ** 2  # off the lateral (y) axis
-        knee = np.degrees(np.arctan2(vee[..., 1] / 2, (np.trace(rel, axis1=-2, axis2=-1) - 1) / 2))
+        vee = np.stack([rel[..., 2, 1] - rel[..., 1, 2], rel[..., 1, 0] - rel[..., 0, 1],
+                        rel[..., 0, 2] - rel[..., 2, 0]], axis=-1)  # fmt: skip
+        knee = np.degrees(np.arctan2(vee[..., 2] / 2, (np.trace(rel, axis1=-2, axis2=-1) - 1) / 2))
+        return vee[..., :2], knee
+
+    def cost(psi_p: np.ndarray, psi_c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Per candidate: the rotation off the knee's axis, and how far its knee
+        angles fall outside the knee's range of motion (both summed over samples)."""
+        off, knee = parts(psi_p, psi_c)
         outside = np.maximum(0.0, np.maximum(lo - knee, knee - hi)).sum(axis=1)
-        return off.sum(axis=1), outside
+        return (off**2).sum(axis=(1, 2)), outside
 
     # in a plane motion each tag's heading fits turned by 180 deg too (its turns'
     # axis is a line): the knee's range of motion picks the pair, then the hinge
     grid = np.radians(np.arange(0.0, 360.0, 10.0))
     gp, gc = (g.ravel() for g in np.meshgrid(grid, grid, indexing="ij"))
     off, outside = cost(gp, gc)
-    best = int(np.lexsort((off, np.round(outside, 0)))[0])
-    fine = np.radians(np.arange(-10.0, 10.5, 0.5))
-    fp, fc = (g.ravel() for g in np.meshgrid(gp[best] + fine, gc[best] + fine, indexing="ij"))
-    off, outside = cost(fp, fc)
-    k = int(np.lexsort((off, np.round(outside, 0)))[0])
-    off_deg = math.degrees(math.sqrt(off[k] / len(samples)) / 2)  # mean turn off the axis
-    if off_deg > 5.0 or outside[k] > 5.0 * len(samples):  # not a knee's motion
+    inside = np.round(outside, 0)
+    best = int(np.lexsort((off, inside))[0])
+    far = np.maximum(np.abs(_wrap_rad(gp - gp[best])), np.abs(_wrap_rad(gc - gc[best])))
+    rivals = (far > math.radians(20.0)) & (inside <= inside[best])
+    if rivals.any() and off[rivals].min() < 2.0 * off[best]:
+        return None  # the motion does not tell (the knee barely bent, or noise)
+
+    def residuals(x: np.ndarray) -> np.ndarray:
+        return parts(x[:1], x[1:])[0][0].T.ravel()  # type: ignore[no-any-return]
+
+    start = np.array([gp[best], gc[best]])
+    fit = least_squares(residuals, start, method="lm")
+    if _apart_deg(tuple(fit.x), tuple(start)) > 10.0:
+        return None  # left the basin
+    off, outside = cost(fit.x[:1], fit.x[1:])
+    off_deg = math.degrees(math.sqrt(off[0] / len(samples)) / 2)  # mean turn off the axis
+    if off_deg > 5.0 or outside[0] > 5.0 * len(samples):  # not a knee's motion
         return None
-    return _wrap(math.degrees(fp[k])), _wrap(math.degrees(fc[k]))
+    unc = _fit_unc_deg(fit.fun, fit.jac)
+    return _wrap(math.degrees(fit.x[0])), _wrap(math.degrees(fit.x[1])), unc
 
 
 def _wrap_rad(a: np.ndarray) -> np.ndarray:
@@ -1272,11 +1420,11 @@ class BodyHeading:
         orientations = {site.raw_key: s.reading.wxyz for site, s in samples.items()
                         if hasattr(s.reading, "wxyz")}  # fmt: skip
         if self.pairs is not None:  # each tag its own: the knees' tags, pair by pair,
-            found = self.pairs.update(orientations)
+            found = self.pairs.update(orientations, t_s)
             if self.elbows is not None:  # and the arms' from the elbows' (after an N-pose)
                 found.update(self.elbows.update(t_s, orientations))
             if self.children is not None:  # then the feet's and hands' below them
-                found.update(self.children.update(orientations, self.profile))
+                found.update(self.children.update(orientations, self.profile, t_s))
             trunk: dict[str, float] = {}
             if self.trunk is not None:  # and the pelvis', chest's and head's from a bow
                 trunk = self.trunk.update(t_s, orientations, self.profile)
@@ -1365,12 +1513,30 @@ class BodyHeading:
         self.ended = True
 
     def hold(self, solver: Any, profile: Profile) -> None:
-        """A ``("turned", profile)`` step applied to the body's ``solver`` (a
-        ``BodySolver``, kept): the tags' headings, and how well the three-dof
-        joints' holds know them (``unc_deg``)."""
+        """A step applied to the body's ``solver`` (a ``BodySolver``: kept for a
+        ``("turned", profile)``, the new one for a ``("found", profile)``): the
+        tags' headings, and how well they are known (:meth:`heading_unc`)."""
         solver.set_profile(profile)
+        solver.set_heading_unc(self.heading_unc())
+
+    def heading_unc(self) -> dict[str, float]:
+        """Per segment, how well its tag's heading is known against its parent's
+        (deg, about two standard deviations), for the joint above it to carry in
+        the pose's ``unc_deg``: the fits that found it (a knee's or elbow's pair,
+        a foot or hand below its parent) and the three-dof joints' holds
+        (``JointDrift.link_unc``), in quadrature."""
+        by_key = _segments_of(self.profile.imu_mounts)
+        out: dict[str, float] = {}
+        for finder in (self.pairs, self.children):
+            for key, unc in (finder.unc_deg if finder is not None else {}).items():
+                out[by_key[key]] = unc
+        if self.elbows is not None:
+            for side, unc in self.elbows.unc_deg.items():
+                out[f"{side}_upperarm"] = out[f"{side}_forearm"] = unc
         if self.drift is not None and self.drift.twist0:
-            solver.set_heading_unc(self.drift.link_unc())
+            for seg, unc in self.drift.link_unc().items():
+                out[seg] = round(math.hypot(out.get(seg, 0.0), unc), 2)
+        return out
 
     def state(self) -> dict[str, Any]:
         """Where the heading stands: ``state`` (fixed, declared, found, unknown or
@@ -1412,9 +1578,17 @@ class BodyHeading:
         if segments & {"thigh", "shank"}:
             want.append("walk or swing a leg: the thighs' and shanks' tags")
         if segments & {"upperarm", "forearm"}:
-            want.append("reach, the elbows bending: the arms' tags"
-                        if self.elbows is not None and self.elbows.pairs
-                        else "the arms' tags: calibrate in an N-pose, then reach")  # fmt: skip
+            elbows = self.elbows
+            pending = {s: u for s, u in elbows.last_unc_deg.items()
+                       if s not in elbows.done} if elbows is not None else {}  # fmt: skip
+            if pending:  # the reach tells; the fit's uncertainty is what waits
+                uncs = ", ".join(f"{s} {u:.1f} deg" for s, u in sorted(pending.items()))
+                want.append(f"the arms' tags: the elbows' fit is still {uncs} uncertain "
+                            "(sensor noise): keep reaching, the elbows bending")  # fmt: skip
+            else:
+                want.append("reach, the elbows bending: the arms' tags"
+                            if self.elbows is not None and self.elbows.pairs
+                            else "the arms' tags: calibrate in an N-pose, then reach")  # fmt: skip
         if segments & {"foot", "hand"}:
             want.append("move the feet and hands: their tags, once the legs' and arms' are known")
         if segments & {"pelvis", "thorax", "head"}:

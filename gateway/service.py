@@ -795,8 +795,9 @@ class Gateway:
             with self._lock:
                 if what in ("found", "switched"):  # switched: auto met 6-axis tags
                     body.set_profile(profile, body.heading)
-                else:  # the joints' constraints turned drifting tags' headings
-                    body.heading.hold(body.solver, profile)
+                # the joints' constraints turned drifting tags' headings, or a new
+                # solver: how well the headings are known (unc_deg)
+                body.heading.hold(body.solver, profile)
             if what == "found":
                 log.info("heading found: %s", body.heading.state())
             elif what == "switched":

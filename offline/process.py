@@ -250,6 +250,7 @@ def process(path: Path, fmt: str, out: Path, profile: Profile | None = None,
                                       1.0 / tick_hz))  # fmt: skip
         heading.end_search()  # it had the whole capture
     solver = _solver(heading.profile, topology, as_given)
+    heading.hold(solver, heading.profile)  # how well the headings found are known
     stats = CaptureStats()
     sink = McapSink(out)
     latest: dict[Site, RawSample] = {}

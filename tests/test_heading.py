@@ -851,7 +851,9 @@ def test_tags_drifting_until_a_late_bow_are_joined_at_once() -> None:
             if t >= 31.0:
                 trunk = [e for n, e in errors.items() if n.startswith(TRUNK_DOFS)]
                 worst[snap] = max(worst[snap], *trunk, 0.0)
-        assert not heading.unknown
+        # every tag but a foot's (one of them, drifting 9 deg/min, fits only 3-5 deg
+        # uncertain: ChildHeadings leaves it unknown, flagged, not 3 deg off unflagged)
+        assert not [k for k in heading.unknown if "/foot/" not in k], heading.unknown
     assert 0.0 < worst[True] <= 2.5, worst
     assert worst[False] >= 5.0, worst
 
@@ -977,3 +979,100 @@ def test_auto_meeting_tags_of_their_own_estimates_each_tags_heading(
     assert heading.profile.heading == "independent"
     assert not heading.unknown
     assert len(ticks[-1][1]) == 32  # every dof measured
+
+
+def _walk_after(pose: str, realism: Realism, seed: int, seconds: float, arms: bool = False
+                ) -> tuple[BodyEmulator, BodyHeading, dict[str, tuple[float, float]]]:  # fmt: skip
+    """Independent tags: the ``pose`` held 1 s, then walking (``arms``: reaching with
+    both arms, not walking), through the gateway's heading step and solver; per
+    measured dof, its worst error against the truth and the ``unc_deg`` stated then."""
+    from bodynet.nodes.motion import ROUTINES, reach
+
+    walk, left, right = ROUTINES["walk"].angles, reach("left"), reach("right")
+    still = dict(CALIBRATION_POSES[pose])
+
+    def angles(t: float) -> dict[str, float]:
+        if t < 1.0:
+            return still
+        return {**still, **left(t - 1.0), **right(t - 1.0)} if arms else walk(t - 1.0)
+
+    body = BodyEmulator(Routine("pose-then-move", "", angles), imu_tags(), realism=realism,
+                        seed=seed)  # fmt: skip
+    independent = Profile(heading="independent", pose=pose)
+    heading = BodyHeading(calibrate_window(_window(body, 0.2, 0.95), independent,
+                                           pose).apply(independent, pose))  # fmt: skip
+    solver = BodySolver(heading.profile)
+    worst: dict[str, tuple[float, float]] = {}
+    for t in np.arange(1.0, 1.0 + seconds, 1 / RATE_HZ):
+        samples, truth = _samples(body, float(t))
+        solver = heading_tick(heading, solver, float(t), samples)
+        out = solver.solve(samples)
+        unc = dict(zip(out.names.angles, out.unc.tolist(), strict=True))
+        for name, error in measured_errors(out.angles_deg, out.flags, truth).items():
+            worst[name] = max(worst.get(name, (0.0, 0.0)), (error, unc[name]))
+    return body, heading, worst
+
+
+def _heading_errors(body: BodyEmulator, heading: BodyHeading, part: str) -> dict[str, float]:
+    """The known headings of the tags whose key holds ``part``, against the truth (deg)."""
+    truth = {s.site.raw_key: body.headings_deg[s.node] for s in body.sensors}
+    return {k: abs((heading.profile.heading_of(k) - truth[k] + 180) % 360 - 180)
+            for k in truth if part in k and heading.profile.heading_known(k)}  # fmt: skip
+
+
+def test_a_foot_heading_under_noise_and_soft_tissue_wobble_is_right_or_left_unknown() -> None:
+    """Noisier tags (1 deg) wobbling on the skin (3 deg, with the segments' speed),
+    walking: 40 samples left the right foot's heading 8 deg off and its ankle
+    13 deg off while it stated 2 deg. Now a foot's heading is taken once its fit's
+    uncertainty is low: each found within 3 deg of the truth, and the ankles carry
+    the fit's uncertainty (above the tags' 2 deg) and keep within twice it."""
+    realism = Realism(quat_noise_deg=1.0, tissue_wobble_deg=3.0, headings=Headings.INDEPENDENT)
+    body, heading, worst = _walk_after("tpose", realism, seed=3, seconds=11.0)
+    feet = _heading_errors(body, heading, "/foot/")
+    assert feet, "no foot's heading found"
+    assert max(feet.values()) <= 3.0, feet
+    ankles = {n: v for n, v in worst.items() if "ankle" in n}
+    assert ankles
+    assert all(unc > 2.0 and error <= 2.0 * unc for error, unc in ankles.values()), ankles
+
+
+@pytest.mark.parametrize("noise", [1.0, 2.0])
+def test_a_still_pose_of_noisy_tags_is_calibrated_and_a_moved_one_refused(noise: float) -> None:
+    """A still N-pose held 1 s (50 samples), the tags' noise 1-2 deg: the largest
+    turn of a raw sample from the mean went past 3 deg and the window was refused,
+    blaming the subject (10 of 10 seeds at 1 deg). Stillness is now judged on the
+    low-passed turn against each tag's own scatter: every seed is calibrated; the
+    subject moving (a knee bending 20 deg in the window) is still refused."""
+    held = dict(CALIBRATION_POSES["npose"])
+    realism = Realism(quat_noise_deg=noise, headings=Headings.INDEPENDENT)
+    for seed in range(5):
+        body = BodyEmulator(Routine("still", "", lambda t: held), imu_tags(), realism=realism,
+                            seed=seed)  # fmt: skip
+        report = calibrate_window(_window(body, 0.0, 1.0), Profile(), "npose").report
+        assert all(t["scatter_deg"] > noise for t in report["tags"].values())
+    bend = Routine("bend", "", keyframes([(0.0, held), (0.5, held),
+                                          (1.0, {**held, "left_knee_flexion_deg": 20.0})],
+                                         loop=False))  # fmt: skip
+    moved = _window(BodyEmulator(bend, imu_tags(), realism=realism, seed=1), 0.0, 1.0)
+    with pytest.raises(CalibrationRefused, match="the subject moved") as caught:
+        calibrate_window(moved, Profile(), "npose")
+    assert "body/leg/left/shank/raw" in str(caught.value)
+
+
+def test_the_arms_headings_are_found_with_noisy_tags() -> None:
+    """Tags of 1.5 deg noise, the N-pose, then reaching: the elbow pairs' fits never
+    came within the fixed 0.3 deg (1 deg at 120 samples) bound, so the arms' tags
+    stayed unknown. The bound now scales with the fit's misfit: both arms' upper
+    arm and forearm headings are found, within 2 deg of the truth, and the
+    elbows state the fit's uncertainty."""
+    realism = Realism(quat_noise_deg=1.5, headings=Headings.INDEPENDENT)
+    body, heading, worst = _walk_after("npose", realism, seed=2, seconds=9.0, arms=True)
+    arms = _heading_errors(body, heading, "/arm/")
+    pairs = {k for k in arms if "/upperarm/" in k or "/forearm/" in k}
+    assert len(pairs) == 4, sorted(arms)
+    assert max(arms[k] for k in pairs) <= 2.0, arms
+    assert heading.elbows is not None
+    assert all(u > 0.3 for u in heading.elbows.unc_deg.values())
+    elbows = {n: v for n, v in worst.items() if "elbow" in n}
+    assert elbows
+    assert all(unc > 2.0 for _, unc in elbows.values()), elbows
