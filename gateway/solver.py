@@ -12,6 +12,13 @@ Per joint, the angles come from the best source at hand:
    4.3.2, solved in closed form against the parent segment's vertical).
 3. Otherwise the dof is unobserved: it holds 0 and is flagged.
 
+A joint is measured only where both its segments' orientations are: from a
+sensor on the segment, or through joints that are measured themselves (a
+SmartSuit module's). A segment nothing measures (a dead tag) leaves the joint
+above it unobserved, and the joints below it too: a hand's tag against a
+forearm placed at the elbow's rest value gives no wrist angle. The trunk of a
+body with no pelvis sensor is the exception: it stands on the upright model.
+
 Every dof comes with an uncertainty (degrees, about two standard deviations)
 and, where its number is no plain measurement, its reasons (the pose
 message's vocabulary, :mod:`bodynet.core.codecs.pose`): ``uncalibrated`` (an
@@ -63,7 +70,7 @@ from bodynet.core.codecs.pose import (
 from bodynet.core.keys import Site
 from bodynet.core.messages import OleAccel, Quat, RawSample
 from bodynet.core.profile import OLE_DOF, mount
-from bodynet.core.skeleton import CALIBRATION_POSES, TPOSE, Joint, build_skeleton, rom
+from bodynet.core.skeleton import CALIBRATION_POSES, TPOSE, Joint, build_skeleton, part, rom
 from bodynet.core.subject import Profile, QuatWxyz
 from bodynet.gateway import kernels
 from bodynet.kinematics.model import BodyModel, accel_axes
@@ -117,6 +124,7 @@ MAX_TOLD = 4096
 STALE_S = 0.5
 
 _UP = np.array([0.0, 0.0, 1.0])
+_TRUNK = frozenset(part("trunk", "mid")[1])  # pelvis, thorax, head
 _NOTHING: frozenset[str] = frozenset()
 _UNCAL = frozenset({UNCALIBRATED})
 _UNOBS = frozenset({UNOBSERVED})
@@ -494,7 +502,7 @@ class _Sorted:
 
     __slots__ = ("flagged", "keys", "kinds", "lefts", "modules", "mounts", "pelvis", "plan",
                  "quats", "reasons", "segs", "sites", "stale", "stale_modules", "stale_segs",
-                 "uncal", "unknown", "used")  # fmt: skip
+                 "uncal", "unknown", "upright", "used")  # fmt: skip
 
     def __init__(self, sites: tuple[Site, ...], kinds: tuple[type, ...],
                  stale: frozenset[str]) -> None:  # fmt: skip
@@ -515,6 +523,9 @@ class _Sorted:
         self.plan = _NO_PLAN
         self.flagged: list[str] | None = None  # BodySolver._flag_uncalibrated's dofs
         self.pelvis = -1  # where the pelvis is in ``segs`` (-1: no sensor on it)
+        # the trunk's segments below an unmeasured pelvis that nothing measures either:
+        # the upright model, as the pelvis (BodySolver._rests); see BodySolver._sort
+        self.upright: frozenset[str] = _NOTHING
         # what the pelvis rests on -> the reasons of the joints of ``plan``
         # (BodySolver._direct_reasons)
         self.reasons: dict[frozenset[str], dict[str, frozenset[str]]] = {}
@@ -783,6 +794,15 @@ class BodySolver:
                 sorted_.modules.append((seg, i))
                 if key in stale:
                     sorted_.stale_modules.add(seg)
+        if "pelvis" not in seen:
+            # no sensor on the pelvis: the trunk stands on the upright model as far
+            # up as nothing measures it (what the lumbar and neck are taken against)
+            upright = {"pelvis"}
+            unsensed = _TRUNK - seen - {seg for seg, _ in sorted_.modules}
+            for joint in self.skeleton.joints:
+                if joint.parent in upright and joint.child in unsensed:
+                    upright.add(joint.child)
+            sorted_.upright = frozenset(upright)
         if sorted_.segs:
             if "pelvis" in seen:
                 sorted_.pelvis = sorted_.segs.index("pelvis")
@@ -1037,9 +1057,11 @@ class BodySolver:
                 values = np.zeros(len(names))
                 unc = np.full(len(names), math.nan)
                 why = [{UNOBSERVED} for _ in names]
-                # nothing measures this segment: the model's rest pose, which is what
-                # the chain below rests on only where a sensor is expected here
-                rests[child] = inherited | ({UNOBSERVED} if child in expected else frozenset())
+                # nothing measures this segment: the model's rest pose, and no joint
+                # below is measured against it, but for the trunk on the upright model
+                # with no sensor expected on it (a body with no pelvis sensor)
+                rests[child] = (inherited if child in tick.sort.upright and child not in expected
+                                else inherited | _UNOBS)  # fmt: skip
             self._commit(tick, world, joint, values, unc, why)
 
     def _rests(self, segment: str, tick: _Tick) -> frozenset[str]:

@@ -10,7 +10,7 @@ import pytest
 
 from bodynet.core.keys import LEFT_ARM, LEFT_LEG, RIGHT_ARM, Site
 from bodynet.core.messages import OleAccel, RawSample
-from bodynet.core.profile import IMU_SITES, SMARTSUIT_SITES
+from bodynet.core.profile import IMU_SITES, SMARTSUIT_SITES, mount
 from bodynet.core.skeleton import build_skeleton
 from bodynet.core.subject import Profile
 from bodynet.gateway.solver import STALE_S, BodySolver, solve_bodies, tpose_mounts
@@ -644,3 +644,49 @@ def test_a_stale_source_flags_what_rests_on_it_and_a_fresh_one_keeps_its_own(cas
             for name in kept:
                 assert name not in out.flags, (t, name)
                 assert out.angles_deg[name] == pytest.approx(reach[name], abs=SMARTSUIT_TOL)
+
+
+@pytest.mark.parametrize("dead", ["left_forearm", "right_shank", "left_thigh", "thorax"])
+def test_a_dead_tag_leaves_the_joints_of_its_segment_unobserved(dead: str) -> None:
+    """A tag dead from the start (never delivered, never announced): the joint
+    above its segment and every joint below it lose a segment their rotation is
+    taken from, so all their dofs are ``unobserved`` with no uncertainty (the
+    wrist of a forearm placed at the elbow's rest value is no measurement).
+    Every other dof is measured and equal to the truth; solved in a batch with
+    a whole suit it is what it is alone."""
+    tags = imu_tags()
+    alive = [t for t in tags if mount(t.site).segment != dead]
+    assert len(alive) == len(tags) - 1
+    profile = calibrated_profile(tags)
+    routine = ROUTINES["random"]  # every joint moves
+    whole = BodyEmulator(routine, tags, realism=IDEAL_RANDOM_MOUNTS, seed=SEED)
+    solver, alone, other = BodySolver(profile), BodySolver(profile), BodySolver(profile)
+    for s in (solver, alone):
+        s.expect([t.site.raw_key for t in alive], complete=True)
+    lost = {n for j in solver.skeleton.joints if dead in (j.parent, j.child)
+            for n in solver.axes[j.name].names}  # fmt: skip
+    # the joint above and at least one below
+    assert {dead} == {j.child for j in solver.skeleton.joints if j.child == dead}
+    assert any(j.parent == dead for j in solver.skeleton.joints)
+    moved = set()
+    for t in np.linspace(0.0, 13.0, 66).tolist():
+        readings, _ = whole.sample(t)  # the same suit (its random mounts), one tag dead
+        suit = {s.site: RawSample(r, 0, int(t * 1e9)) for s, r in zip(tags, readings, strict=True)}
+        samples = {t.site: suit[t.site] for t in alive}
+        out, _ = solve_bodies([(solver, samples), (other, suit)])
+        want = alone.solve(samples)
+        assert out.reasons == want.reasons, t
+        np.testing.assert_array_equal(out.unc, want.unc)
+        np.testing.assert_allclose(out.angles, want.angles, atol=1e-12)
+        truth = routine.angles(t)
+        for i, name in enumerate(out.names.angles):
+            if name in lost:
+                # (a number put against a segment at rest may be clamped too)
+                assert out.flags.get(name) == "unobserved", (t, name)
+                assert np.isnan(out.unc[i]), (t, name)
+                moved |= {name} if abs(truth.get(name, 0.0)) > 5.0 else set()
+            else:
+                assert name not in out.flags, (t, name, out.reasons.get(name))
+                assert out.unc[i] == 2.0, (t, name)
+                assert out.angles[i] == pytest.approx(truth.get(name, 0.0), abs=1e-6), (t, name)
+    assert moved  # the lost joints moved: their numbers were not the truth by chance
