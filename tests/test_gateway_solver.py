@@ -690,3 +690,34 @@ def test_a_dead_tag_leaves_the_joints_of_its_segment_unobserved(dead: str) -> No
                 assert out.unc[i] == 2.0, (t, name)
                 assert out.angles[i] == pytest.approx(truth.get(name, 0.0), abs=1e-6), (t, name)
     assert moved  # the lost joints moved: their numbers were not the truth by chance
+
+
+def test_below_a_dead_tag_encoders_still_measure_and_tilts_do_not() -> None:
+    """The hybrid suit with its upper-arm tag dead: the shoulder is unobserved;
+    below it the SmartSuit encoders still measure elbow and wrist flexion (an
+    encoder needs no segment's orientation), while the tilts that gravity gives
+    against the upper arm (elbow pronation, wrist deviation) are unobserved. With
+    the tag alive, the forearm (no tag) is determined through the elbow's module,
+    and the wrist's encoder dof is measured below it."""
+    tags = [t for t in imu_tags() if t.site.name in ("upperarm", "chest", "sacrum")]
+    arm = [s for s in smartsuit_sensors([LEFT_ARM]) if s.site.name != "shoulder"]
+    routine = ROUTINES["reach"]
+    body = BodyEmulator(routine, [*tags, *arm], realism=IDEAL_RANDOM_MOUNTS, seed=SEED)
+    alive, dead = BodySolver(calibrated_profile(tags)), BodySolver(calibrated_profile(tags))
+    encoders = ("left_elbow_flexion_deg", "left_wrist_flexion_deg")
+    tilts = ("left_elbow_pronation_deg", "left_wrist_deviation_deg")
+    for tick in range(0, 1300, 20):
+        readings, _ = body.sample(tick / 100)
+        samples = {s.site: RawSample(r, tick, tick * 10_000_000)
+                   for s, r in zip(body.sensors, readings, strict=True)}  # fmt: skip
+        truth = routine.angles(tick / 100)
+        with_tag = alive.solve(samples)
+        out = dead.solve({s: v for s, v in samples.items() if s.name != "upperarm"})
+        for name in encoders:
+            for got in (with_tag, out):
+                assert name not in got.flags, (tick, name)
+                assert got.angles_deg[name] == pytest.approx(truth.get(name, 0.0),
+                                                             abs=SMARTSUIT_TOL), (tick, name)  # fmt: skip
+        for name in (*tilts, *(n for n in out.names.angles if n.startswith("left_shoulder"))):
+            assert out.flags.get(name) == "unobserved", (tick, name)
+    assert with_tag.flags.get("left_shoulder_flexion_deg") is None
