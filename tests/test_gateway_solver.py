@@ -716,8 +716,8 @@ def test_below_a_dead_tag_encoders_still_measure_and_tilts_do_not() -> None:
         for name in encoders:
             for got in (with_tag, out):
                 assert name not in got.flags, (tick, name)
-                assert got.angles_deg[name] == pytest.approx(truth.get(name, 0.0),
-                                                             abs=SMARTSUIT_TOL), (tick, name)  # fmt: skip
+                want = pytest.approx(truth.get(name, 0.0), abs=SMARTSUIT_TOL)
+                assert got.angles_deg[name] == want, (tick, name)
         for name in (*tilts, *(n for n in out.names.angles if n.startswith("left_shoulder"))):
             assert out.flags.get(name) == "unobserved", (tick, name)
     assert with_tag.flags.get("left_shoulder_flexion_deg") is None
