@@ -1472,10 +1472,12 @@ class BodyHeading:
         self.switched = f"{self.SWITCHED}; {joint} was {error:.0f} deg off its axes"
         self._announce = True
 
-    def step(self, t_s: float, samples: Mapping[Site, Any],
-             current: Profile) -> tuple[str, Profile] | None:  # fmt: skip
+    def step(self, t_s: float, samples: Mapping[Site, Any], current: Profile,
+             encoder_zeros: Mapping[str, Any] | None = None
+             ) -> tuple[str, Profile] | None:  # fmt: skip
         """One solved tick (site -> RawSample; ``current``: the profile it was solved
-        with), the same for the live gateway and ``bodynet process``: while the
+        with; ``encoder_zeros``: the SmartSuit encoders' zeros by raw key, see
+        gateway/encoders.py), the same for the live gateway and ``bodynet process``: while the
         heading is searched, ``("found", profile)`` once it is (a new calibration:
         a new solver, the profile saved); ``("switched", profile)`` once, when
         ``auto`` found tags with headings of their own (the calibration with
@@ -1502,7 +1504,7 @@ class BodyHeading:
                 return "switched", self.profile
         # tags of their own: the known ones are held while others' are still searched
         if self.drift is not None and self.drift.pairs:
-            turns = self.drift.update(t_s, samples, current)
+            turns = self.drift.update(t_s, samples, current, encoder_zeros)
             if turns:
                 return "turned", turned_headings(current, turns)
         return None
@@ -1786,12 +1788,13 @@ class JointDrift:
         self._anchor[key] = (since, anchor, still)
         return still
 
-    def update(self, t_s: float, samples: Mapping[Site, Any],
-               profile: Profile) -> dict[str, float]:  # fmt: skip
+    def update(self, t_s: float, samples: Mapping[Site, Any], profile: Profile,
+               encoder_zeros: Mapping[str, Any] | None = None) -> dict[str, float]:  # fmt: skip
         """The turns (deg) to add to child tags' headings after the tick at ``t_s``
         whose samples (site -> RawSample) are ``samples``, solved with ``profile``
         (the segments as the tags measure them: the solver's output has the
-        joints' dofs already imposed)."""
+        joints' dofs already imposed); an encoder whose zero ``encoder_zeros``
+        says is lost holds nothing."""
         if self._last_t is not None and t_s - self._last_t < self.INTERVAL_S - 1e-6:
             return {}
         dt = 0.0 if self._last_t is None else t_s - self._last_t
@@ -1799,9 +1802,16 @@ class JointDrift:
         gain = min(1.0, dt / self.tau_s)
         tags = {site.raw_key: s.reading.wxyz for site, s in samples.items()
                 if hasattr(s.reading, "wxyz")}  # fmt: skip
-        encoders = {f"{site.branch.side}/{site.name}": s.reading.encoder
-                    for site, s in samples.items() if hasattr(s.reading, "encoder")
-                    } if self.encoders else {}  # fmt: skip
+        encoders: dict[str, int] = {}
+        if self.encoders:
+            zeros = encoder_zeros or {}
+            for site, s in samples.items():
+                if hasattr(s.reading, "encoder"):
+                    zero = zeros.get(site.raw_key)
+                    counts = (s.reading.encoder if zero is None
+                              else zero.angle_counts(s.reading.encoder))  # fmt: skip
+                    if counts is not None:
+                        encoders[f"{site.branch.side}/{site.name}"] = counts
         rots = {k: _quat_matrix(q) for k, q in tags.items()}
         still = {k: self._still(k, t_s, r) for k, r in rots.items()} if self.twist0 else {}
         turns: dict[str, float] = {}

@@ -50,8 +50,15 @@ from bodynet.core import keys
 from bodynet.core.codecs import pose, raw_sample
 from bodynet.core.errors import DecodeError, Reason, RejectCounts
 from bodynet.core.keys import BRANCHES, Branch, Site
-from bodynet.core.messages import Quat, RawSample, source_name
+from bodynet.core.messages import OleAccel, Quat, RawSample, source_name
+from bodynet.core.profile import OLE_DOF, mount
+from bodynet.core.skeleton import CALIBRATION_POSES
 from bodynet.core.subject import Profile, ProfileError, QuatWxyz
+from bodynet.gateway.encoders import (
+    EncoderZero,
+    states,
+    zero_from_window,
+)
 from bodynet.gateway.frames import branch_views, pose_frame, whole_body_message
 from bodynet.gateway.heading import (
     BodyHeading,
@@ -106,8 +113,8 @@ class _Site:
     (``fields``) and made a :class:`RawSample` only when read: most samples are
     superseded before a solve reads them when the gateway is busy."""
 
-    __slots__ = ("_sample", "arrived", "fields", "fresh", "history", "kept_at", "lead",
-                 "lead_before", "offset_ms", "owed", "warned_ms")  # fmt: skip
+    __slots__ = ("_sample", "arrived", "counts", "fields", "fresh", "history", "kept_at",
+                 "lead", "lead_before", "offset_ms", "owed", "warned_ms", "zero")  # fmt: skip
 
     def __init__(self, sample: RawSample, arrived: float) -> None:
         self._sample: RawSample | None = sample
@@ -129,6 +136,10 @@ class _Site:
         self.lead = self.lead_before = -math.inf
         self.offset_ms: float | None = None  # the offset shown (see _Body.clock_check)
         self.warned_ms: float | None = None  # the offset last warned of
+        # a SmartSuit module's: its encoder's zero (shared with the solver) and its
+        # recent (sample time, count) at HISTORY_STEP_S, for a calibration pose's zero
+        self.zero: EncoderZero | None = None
+        self.counts: deque[tuple[float, int]] | None = None
 
     @property
     def sample(self) -> RawSample:
@@ -154,7 +165,10 @@ class _Body:
                  period_s: float) -> None:  # fmt: skip
         self.prefix = prefix
         self.profile_path = profile_path
+        #: each SmartSuit encoder's zero, by raw key (gateway/encoders.py)
+        self.encoders: dict[str, EncoderZero] = {}
         self.solver = BodySolver(profile)
+        self.solver.encoder_zeros = self.encoders
         # the tags' heading: known, or being found; then held against drift
         self.heading = BodyHeading(profile)
         self.last_output: BodyOutput | None = None
@@ -204,6 +218,9 @@ class _Body:
         kept = self.latest.get(site)
         if kept is None:
             kept = self.latest[site] = _Site(sample, now)
+            if type(sample.reading) is OleAccel and site.name in OLE_DOF:
+                kept.zero = self.encoders[site.raw_key] = EncoderZero()
+                kept.counts = deque()
         self.take_into(kept, sample, now, time.time() if wall is None else wall)
         return kept
 
@@ -219,7 +236,24 @@ class _Body:
             self._count(kept, now)
             if (lead := sample.t_ns / 1e9 - wall) > kept.lead:
                 kept.lead = lead
+            if kept.zero is not None and type(reading) is OleAccel:
+                self._encoder(kept, kept.zero, sample)
         kept.sample = sample  # as it came (with a quaternion's extra bytes)
+
+    def _encoder(self, kept: _Site, zero: EncoderZero, sample: RawSample) -> None:
+        """A module's sample: its node's silence since the last one may have held a
+        reboot (its encoder's zero lost, gateway/encoders.py); its count kept."""
+        before = kept._sample
+        if before is not None and before is not sample and (lost := zero.observe(before, sample)):
+            log.warning("gateway: %s", lost)
+        t, counts = sample.t_ns / 1e9, kept.counts
+        assert counts is not None
+        if not counts or t - counts[-1][0] >= HISTORY_STEP_S or t < counts[-1][0]:
+            if counts and t < counts[-1][0]:
+                counts.clear()  # its clock went back (a bridge restarted): a new history
+            counts.append((t, sample.reading.encoder))  # type: ignore[union-attr]
+            while t - counts[0][0] > HISTORY_S:
+                counts.popleft()
 
     def take_fields(self, kept: _Site, fields: raw_sample.QuatFields, now: float,
                     wall: float) -> None:  # fmt: skip
@@ -389,6 +423,25 @@ class _Body:
             if kept.history is not None
         }  # fmt: skip
 
+    def encoder_window(self, now: float, seconds: float) -> dict[str, list[int]]:
+        """Each live encoder's counts of its last ``seconds``, by raw key."""
+        return {site.raw_key: [c for t, c in kept.counts if kept.counts[-1][0] - t <= seconds]
+                for site, kept in self.latest.items()
+                if kept.counts and now - kept.arrived <= STALE_S}  # fmt: skip
+
+    def zero_encoders(self, window: dict[str, list[int]], profile: Profile,
+                      pose: str) -> dict[str, int]:  # fmt: skip
+        """The encoders' zeros from a still window of the calibration ``pose``
+        (each joint's angle there): ``ZeroRefused`` if a joint moved in it."""
+        angles = CALIBRATION_POSES[pose]
+        out = {}
+        for key, counts in sorted(window.items()):
+            site, _ = keys.parse(key)
+            angle = mount(site).ole_angle or ""
+            out[key] = zero_from_window(counts, profile.ole.get(angle), angles.get(angle, 0.0),
+                                        key)  # fmt: skip
+        return out
+
     def history_s(self) -> float | None:
         """How far back every orientation site's history reaches (None: no such site)."""
         spans = [k.history[-1][0] - k.history[0][0] for k in self.latest.values() if k.history]
@@ -397,6 +450,7 @@ class _Body:
     def set_profile(self, profile: Profile, heading: BodyHeading | None = None) -> None:
         """A new calibration: a new solver, heading state and, if it has a file, saved."""
         self.solver = BodySolver(profile)
+        self.solver.encoder_zeros = self.encoders
         self.heading = heading or BodyHeading(profile)
         if self.profile_path is not None:
             profile_file.save(profile, self.profile_path)
@@ -721,9 +775,12 @@ class Gateway:
             time.sleep(0.02)
         with self._lock:
             window = body.tpose_window(now, seconds)
+            encoders = body.encoder_window(now, seconds)
             profile = body.solver.profile
         try:
-            result = calibrate_window(window, profile, pose, expected=window, seconds=seconds)
+            zeros = body.zero_encoders(encoders, profile, pose or profile.pose)
+            result = (calibrate_window(window, profile, pose, expected=window, seconds=seconds)
+                      if window or not zeros else None)  # fmt: skip
         except (CalibrationRefused, ValueError, ProfileError) as exc:
             log.warning("calibration refused: %s", str(exc))
             report = exc.report if isinstance(exc, CalibrationRefused) else {}
@@ -732,12 +789,22 @@ class Gateway:
                 "error": str(exc),
                 **{k: v for k, v in report.items() if k not in ("ok", "error")},
             }
-        profile = result.apply(profile, pose)
+        if result is not None:
+            profile = result.apply(profile, pose)
         with self._lock:
-            body.set_profile(profile)
+            if result is not None:
+                body.set_profile(profile)
+            for key, counts in zeros.items():  # the pose is each encoder's joint's zero
+                zero = body.encoders[key]
+                zero.counts, zero.lost, zero.rezeroed = counts, None, True
+        encoders = {k: {"zero_counts": v} for k, v in zeros.items()}
+        if result is None:  # SmartSuit modules alone (the seed's arm): their zeros only
+            log.info("calibration (%s) of %d encoders' zeros", pose or profile.pose, len(zeros))
+            return {"ok": True, "pose": pose or profile.pose, "calibrated": [],
+                    "encoders": encoders, "profile": str(body.profile_path or "")}  # fmt: skip
         log.info("calibration (%s) of %d sensors; heading %s", profile.pose, len(result.mounts),
                  result.report["heading"]["state"])  # fmt: skip
-        return {**result.report, "profile": str(body.profile_path or "")}
+        return {**result.report, "encoders": encoders, "profile": str(body.profile_path or "")}
 
     def _on_tpose_query(self, query: zenoh.Query) -> None:
         try:
@@ -788,7 +855,7 @@ class Gateway:
         tags' headings from drifting (JointDrift: the hinge and two-dof joints,
         and the three-dof joints' twist where the profile's ``drift`` says)."""
         for body, latest, _, _ in work:
-            step = body.heading.step(now, latest, body.solver.profile)
+            step = body.heading.step(now, latest, body.solver.profile, body.encoders)
             if step is None:
                 continue
             what, profile = step
@@ -1061,7 +1128,11 @@ class Gateway:
                 # each site's host clock against the gateway's (ms, + ahead; clock_check)
                 clocks = {s.raw_key: k.offset_ms for s, k in body.latest.items()
                           if k.offset_ms is not None}  # fmt: skip
+                # encoders whose zero is lost (their dofs flagged) or set by a pose
+                encoders = states(body.encoders)
             out["sources"] = dict(sorted(kinds.items()))
+            if encoders:
+                out["encoders"] = encoders
             out["clock_offset_ms"] = dict(sorted(clocks.items()))
         return out
 

@@ -73,12 +73,18 @@ from bodynet.core.profile import OLE_DOF, mount
 from bodynet.core.skeleton import CALIBRATION_POSES, TPOSE, Joint, build_skeleton, part, rom
 from bodynet.core.subject import Profile, QuatWxyz
 from bodynet.gateway import kernels
+from bodynet.gateway.encoders import EncoderZero
 from bodynet.kinematics.model import BodyModel, accel_axes
 
 _REASON_ORDER = {r: i for i, r in enumerate(REASONS)}
 #: a dof's reasons -> (in order, its flag): the few sets that occur, each worked out once
 #: (every dof of an uncalibrated body has some, every tick)
 _ORDERED: dict[frozenset[str], tuple[tuple[str, ...], str]] = {}
+
+
+def _ole_name(site: Site) -> str:
+    """The angle a SmartSuit module's encoder measures (``left_elbow_flexion_deg``)."""
+    return f"{site.branch.side}_{site.name}_{OLE_DOF[site.name]}_deg"
 
 
 def _order(reasons: frozenset[str]) -> tuple[tuple[str, ...], str]:
@@ -615,6 +621,9 @@ class BodySolver:
         self._told: set[str] = set()  # raw keys ``expect`` has taken (parsing 15 cost 15 us)
         self._sorted: _Sorted | None = None  # how the last tick's samples sorted
         self._stale: frozenset[str] = frozenset()  # see set_stale
+        #: each SmartSuit encoder's zero by raw key (gateway/encoders.py; absent: its
+        #: node's power-on), shared with the gateway, which finds a zero lost
+        self.encoder_zeros: Mapping[str, EncoderZero] = {}
 
     def _site(self, site: Site) -> tuple[str, np.ndarray, str, bool, np.ndarray, bool, bool]:
         """The segment a sensor rides on, its mount's inverse (for orientation
@@ -668,7 +677,7 @@ class BodySolver:
                 module = tick.modules.get(joint.child)
                 # an encoder measures its dof whatever the heading of the segments around it
                 absolute = (
-                    f"{module[0].branch.side}_{module[0].name}_{OLE_DOF[module[0].name]}_deg"
+                    _ole_name(module[0])
                     if module is not None and joint.child not in unknown
                     else None
                 )
@@ -1047,7 +1056,9 @@ class BodySolver:
                 tick.held_tilt = 0.0
                 values, unc, why = self._from_module(joint, parent, site, reading, previous,
                                                      inherited, tick)  # fmt: skip
-                rests[child] = inherited | self._module_stale(child, tick)
+                # a segment turned by an encoder that does not measure rests on that
+                rests[child] = (inherited | self._module_stale(child, tick)
+                                | (why[names.index(_ole_name(site))] & _UNCAL))  # fmt: skip
                 if len(names) == 2:  # elbow, wrist, ankle: the second dof from gravity
                     self._distal_tilt(joint, values, unc, why, world, site, reading, tick)
                 harm[child] += tick.held_tilt
@@ -1095,7 +1106,8 @@ class BodySolver:
         if len(values) == 2:
             values[1], unc[1], why[1] = self._gravity_dof(joint, values, world, site, reading,
                                                           previous, tick)  # fmt: skip
-            why[1] |= inherited | self._module_stale(joint.child, tick)
+            # from gravity through the encoder's dof: uncalibrated where that is
+            why[1] |= inherited | self._module_stale(joint.child, tick) | (why[0] & _UNCAL)
         ax = self.axes[joint.name]
         have = tick.angles[sl].copy()
         have_unc = tick.unc[sl].copy()
@@ -1155,11 +1167,13 @@ class BodySolver:
         values = previous.copy() if previous is not None else np.zeros(len(names))
         unc = np.full(len(names), math.nan)
         why: list[set[str]] = [set() for _ in names]
-        ole_name = f"{site.branch.side}_{site.name}_{OLE_DOF[site.name]}_deg"
+        ole_name = _ole_name(site)
         ole_index = names.index(ole_name)
         cal = self.profile.ole.get(ole_name)
-        if cal is not None:
-            values[ole_index] = float(cal.angle_deg(reading.encoder))
+        zero = self.encoder_zeros.get(site.raw_key)
+        counts = reading.encoder if zero is None else zero.angle_counts(reading.encoder)
+        if cal is not None and counts is not None:
+            values[ole_index] = float(cal.angle_deg(counts))
             unc[ole_index] = UNC_OLE_DEG
         else:
             why[ole_index].add(UNCALIBRATED)
@@ -1183,8 +1197,8 @@ class BodySolver:
                                                             noise, tick)  # fmt: skip
                 seg_axes = self._accel_axes[joint.child]
                 values[:2] = _refit(predict, values[:2], why[:2], seg_axes @ up[0])
-            for i in (0, 1):
-                why[i] |= inherited
+            for i in (0, 1):  # fitted with the encoder's rotation: uncalibrated where it is
+                why[i] |= inherited | (why[2] & _UNCAL)
         else:
             for i in range(len(names)):
                 if i != ole_index:  # decided by _distal_tilt
@@ -1244,7 +1258,9 @@ class BodySolver:
             last = tick.last[self._slices[joint.name]] if tick.last is not None else None
             values[1], unc[1], why[1] = self._gravity_dof(joint, values, world, site, reading,
                                                           last, tick)  # fmt: skip
-            why[1] |= self._inherited(joint.parent, tick) | self._module_stale(joint.child, tick)
+            # found from gravity through the encoder's dof: uncalibrated where that is
+            why[1] |= (self._inherited(joint.parent, tick) | self._module_stale(joint.child, tick)
+                       | (why[0] & _UNCAL))  # fmt: skip
             self._commit(tick, world, joint, values, unc, why)
             return
         self._wrist_and_elbow(joint, upstream, values, unc, why, world, site, reading, tick)
@@ -1313,9 +1329,11 @@ class BodySolver:
             sol = _refit(predict, sol, sol_why, target)
         else:
             sol, sol_unc, sol_why = self._settle(names, prev, np.zeros(2), prev, 1.0)
-        inherited_up = (self._inherited(upstream.parent, tick)  # and both accelerometers'
+        # both accelerometers', and both encoders' dofs: uncalibrated where either is
+        inherited_up = (self._inherited(upstream.parent, tick)
                         | self._module_stale(joint.child, tick)
-                        | self._module_stale(joint.parent, tick))  # fmt: skip
+                        | self._module_stale(joint.parent, tick)
+                        | ((up_why[0] | why[0]) & _UNCAL))  # fmt: skip
         up_values[1], up_unc[1], up_why[1] = sol[0], sol_unc[0], sol_why[0] | inherited_up
         values[1], unc[1], why[1] = sol[1], sol_unc[1], sol_why[1] | inherited_up
         self._commit(tick, world, upstream, up_values, up_unc, up_why)

@@ -207,6 +207,22 @@ class BodyEmulator:
         rotvec = np.radians(amp[:, None] * turn / math.sqrt(3))
         return seg_rot @ Rotation.from_rotvec(rotvec).as_matrix()  # type: ignore[no-any-return]
 
+    @property
+    def module_nodes(self) -> set[int]:
+        """The node numbers of the SmartSuit modules (an encoder each)."""
+        return {self.sensors[i].node for i in self._ole}
+
+    def power_on(self, node: int, t_s: float) -> None:
+        """SmartSuit module ``node`` starts (again) at ``t_s``: its encoder's count
+        restarts at 0 where its joint is then (``OleModel.power_on``); its other
+        sensors are absolute. ``KeyError`` if ``node`` is no module here."""
+        for i, sensor in enumerate(self.sensors):
+            if sensor.node == node and i in self._ole:
+                ole, angle = self._ole[i]
+                ole.power_on(self.angles(t_s).get(angle, 0.0))
+                return
+        raise KeyError(f"node {node} is no SmartSuit module of this body")
+
     def _angles_of(self, segment: str) -> tuple[str, ...]:
         for joint in self.skeleton.joints:
             if joint.child == segment:

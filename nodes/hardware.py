@@ -19,7 +19,11 @@ reply timeout, or not at all; IMU tags on timers of their own whose
 notifications are lost (the central prints "no new data" when none came since
 its last line). A CAN node or an IMU tag can be silenced for a span (an
 outage: ``silence``). The truth of each reading that goes out is handed to the
-``truth`` sink, with the time the reading was taken.
+``truth`` sink, with the time the reading was taken. A SmartSuit node behind
+the CAN emulators or the concentrator can be rebooted (``reboot(node)``: a
+brown-out, a loose connector): it says nothing for its start-up time, then its
+encoder counts from 0 where its joint is then, as the real firmware's QEI reset
+makes it (000 seed, ch. 3.4.1).
 
 Each pseudo-terminal is reached through a stable symlink (like udev's
 ``/dev/serial/by-id/...``), so :meth:`PtyPort.unplug` and :meth:`PtyPort.plug`
@@ -74,6 +78,10 @@ SAMPLE_REUSE_S = 0.002
 #: When a late concentrator answers, after the request: past the bridge's reply
 #: timeout, early in the window in which it still takes the reply as late
 LATE_REPLY_S = REPLY_TIMEOUT_S + LATE_WINDOW_S / 4
+#: How long a rebooted node says nothing: the dsPIC33F's power-up timer (128 ms
+#: in its default configuration), then the oscillator's and the CAN controller's
+#: start-up in the firmware's initialisation
+BOOT_S = 0.2
 
 
 class Clock:
@@ -119,6 +127,10 @@ class _Sampler:
             self._truths = {r.node: t for r, t in zip(readings, truths, strict=True)}
         return self._readings
 
+    def invalidate(self) -> None:
+        """The next :meth:`readings` samples the body afresh (a sensor changed)."""
+        self._at = -math.inf
+
     def sent(self, reading: Reading) -> None:
         """``reading`` (of the last :meth:`readings`) went out."""
         self.give(Held(reading, self._truths[reading.node], self._t_ns))
@@ -159,7 +171,45 @@ class _OnTimers:
         self.timers.silence(node, time.monotonic(), seconds)
 
 
-class CanNodes(_OnTimers, Loop):
+class _Reboots:
+    """SmartSuit nodes that can be rebooted (:meth:`reboot`)."""
+
+    body: BodyEmulator
+    clock: Clock
+    _sampler: _Sampler
+    #: node -> when (monotonic) it is up again, while it is starting
+    _off: dict[int, float]
+    #: reboots, by node
+    reboots: Counter[int]
+
+    def reboot(self, node: int, boot_s: float = BOOT_S) -> None:
+        """Node ``node`` loses power now: it sends nothing for ``boot_s``, then
+        starts again, its encoder counting from 0 where its joint is then.
+        ``KeyError`` if ``node`` is no SmartSuit module."""
+        if node not in self.body.module_nodes:
+            raise KeyError(f"node {node} is no SmartSuit module of this body")
+        self._off[node] = time.monotonic() + boot_s
+        self.reboots[node] += 1
+
+    def _powered(self, nodes: Sequence[int]) -> list[int]:
+        """Of ``nodes``, those up now; a node whose start-up just ended is powered
+        on (its encoder's zero where its joint is now)."""
+        if not self._off:
+            return list(nodes)
+        now, up = time.monotonic(), []
+        for node in nodes:
+            until = self._off.get(node)
+            if until is not None:
+                if now < until:
+                    continue
+                del self._off[node]
+                self.body.power_on(node, self.clock.now())
+                self._sampler.invalidate()
+            up.append(node)
+        return up
+
+
+class CanNodes(_Reboots, _OnTimers, Loop):
     """SmartSuit nodes on a python-can bus, each sending a frame every 10 ms.
 
     When each node sends, and which frames are lost, ``timing`` says (default:
@@ -183,6 +233,7 @@ class CanNodes(_OnTimers, Loop):
         #: frames sent, by node
         self.sent: Counter[int] = Counter()
         self._sampler = _Sampler(body, self.clock, truth, SAMPLE_REUSE_S)
+        self._off, self.reboots = {}, Counter()
 
     def run(self) -> None:
         timers = self.timers
@@ -192,7 +243,7 @@ class CanNodes(_OnTimers, Loop):
             if wait > 0:
                 self.stop_event.wait(wait)
                 continue
-            nodes = timers.due(time.monotonic())
+            nodes = self._powered(timers.due(time.monotonic()))
             readings = self._sampler.readings() if nodes else {}
             for node in nodes:
                 reading = readings[node]
@@ -341,7 +392,7 @@ class _PtyEmulator(Loop):
             self.port.unplug()
 
 
-class ConcentratorEmulator(_PtyEmulator):
+class ConcentratorEmulator(_Reboots, _PtyEmulator):
     """The Data Concentrator: one reply per ~22 ms cycle to each request.
 
     Requests are short (``'I'`` for node 1...) or extended lines; replies come
@@ -376,6 +427,7 @@ class ConcentratorEmulator(_PtyEmulator):
         self.dropped: Counter[int] = Counter()
         #: requests received, by node
         self.asked: Counter[int] = Counter()
+        self._off, self.reboots = {}, Counter()
 
     def run(self) -> None:
         pending: list[tuple[int, bool, float, str]] = []  # (node, extended, when, fate)
@@ -415,7 +467,7 @@ class ConcentratorEmulator(_PtyEmulator):
         return node, extended, now, "on time"
 
     def _answer(self, node: int, extended: bool, fate: str) -> None:
-        if node in self.silent:
+        if node in self.silent or not self._powered([node]):
             return
         if fate == "lost":
             self.dropped[node] += 1
@@ -514,7 +566,7 @@ class ImuCentralEmulator(_OnTimers, _PtyEmulator):
         return b"".join(lines)
 
 
-class SlcanAdapterEmulator(_OnTimers, _PtyEmulator):
+class SlcanAdapterEmulator(_Reboots, _OnTimers, _PtyEmulator):
     """A Lawicel slcan adapter with SmartSuit nodes on its CAN side.
 
     Answers the host's commands (``S``/``s`` bitrate, ``O``/``L`` open,
@@ -539,6 +591,7 @@ class SlcanAdapterEmulator(_OnTimers, _PtyEmulator):
         #: frames forwarded, by node
         self.sent: Counter[int] = Counter()
         self.received: list[smartsuit_can.CanFrame] = []
+        self._off, self.reboots = {}, Counter()
 
     def run(self) -> None:
         decoder = SlcanDecoder()
@@ -550,7 +603,7 @@ class SlcanAdapterEmulator(_OnTimers, _PtyEmulator):
             now = time.monotonic()
             if now < timers.next_due:
                 continue
-            nodes = timers.due(now, lossy=self.is_open)
+            nodes = self._powered(timers.due(now, lossy=self.is_open))
             if self.is_open and nodes:
                 readings = self._sampler.readings()
                 sent = [readings[n] for n in nodes]

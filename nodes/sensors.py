@@ -3,7 +3,10 @@
 - OLE (000 seed, ch. 2): the joint angle becomes cable travel through the
   inverse of the calibration curve, quantised to 0.1 mm counts; optionally the
   cable buckles at fast onsets and reversals (ch. 5.2.2), modelled as play:
-  the reading only follows once the travel has moved past the slack.
+  the reading only follows once the travel has moved past the slack. The count
+  is relative, as the node's: its firmware resets the QEI's counter (``POSCNT``)
+  at start-up (ch. 3.4.1), so it reads 0 wherever the joint was at power-on
+  (:meth:`OleModel.power_on`; by default at the joint's zero).
 - Accelerometer (ch. 3.3): specific force (motion acceleration minus gravity)
   in the sensor frame, plus bias and noise, 1024 counts per g, saturating at
   +/-2 g (12 bits). Mounted with x along the segment pointing away from the
@@ -42,6 +45,15 @@ class OleModel:
         self._travel = np.linspace(-4 * math.pi * r, 4 * math.pi * r, 20001)
         self._angle = np.asarray(calibration.angle_deg(self._travel / MM_PER_COUNT))
         self._reading: float | None = None
+        #: the cable's travel (mm) at which the counter reads 0: where it was at power-on
+        self.zero_mm = 0.0
+
+    def power_on(self, angle_deg: float) -> None:
+        """The node starts (again) with the joint at ``angle_deg``: its counter
+        restarts at 0 there (the firmware's QEI reset)."""
+        if self._reading is None or self.slack_mm <= 0:
+            self._reading = self.travel_mm(angle_deg)
+        self.zero_mm = self._reading
 
     def travel_mm(self, angle_deg: float) -> float:
         return float(np.interp(angle_deg, self._angle, self._travel))
@@ -55,7 +67,7 @@ class OleModel:
             self._reading = travel - self.slack_mm
         elif travel < self._reading - self.slack_mm:
             self._reading = travel + self.slack_mm
-        return round(self._reading / MM_PER_COUNT)
+        return round((self._reading - self.zero_mm) / MM_PER_COUNT)
 
 
 @dataclass

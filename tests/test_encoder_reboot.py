@@ -1,0 +1,239 @@
+"""A SmartSuit node that reboots mid-session, against the emulator's truth.
+
+The node's firmware resets its encoder's counter at start-up (000 seed, ch.
+3.4.1), so a node rebooted with its joint bent counts from that angle on: the
+emulated nodes do the same (``CanNodes.reboot``), and through the real CAN
+bridge (python-can's ``virtual`` bus) and the gateway (Zenoh on loopback) no
+pose may then give that encoder's dof as measured until a calibration pose has
+set its zero again; after one it is measured and right. Conditions are waited
+for; nothing is timed.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from typing import Any
+
+import can
+import pytest
+import zenoh
+from zenoh_helpers import Collector, Running, health_collector, wait_until
+
+from bodynet.core import keys
+from bodynet.core.codecs import pose
+from bodynet.core.codecs.pose import UNCALIBRATED, is_measured
+from bodynet.core.keys import LEFT_ARM
+from bodynet.core.messages import OleAccel, RawSample
+from bodynet.core.profile import SMARTSUIT_SITES
+from bodynet.core.skeleton import TPOSE
+from bodynet.gateway.encoders import REBOOT_SILENCE_S, EncoderZero, silence
+from bodynet.gateway.service import Gateway
+from bodynet.nodes.can_bridge import CanBridge
+from bodynet.nodes.emulator import BodyEmulator, Realism, Truth, smartsuit_sensors
+from bodynet.nodes.hardware import CanNodes
+from bodynet.nodes.motion import Routine
+
+NODES = (1, 2, 3)  # the left arm's shoulder, elbow and wrist modules
+ELBOW = 2
+ELBOW_KEY = SMARTSUIT_SITES[ELBOW].raw_key
+ELBOW_DOF = "left_elbow_flexion_deg"
+SLACK_DEG = 0.3  # a measured dof within its uncertainty and this
+
+
+def _sample(t_s: float) -> RawSample:
+    return RawSample(OleAccel(ELBOW, 0, (0, 0, 1024)), 0, round(t_s * 1e9))
+
+
+@pytest.mark.parametrize(
+    ("t_s", "interval_s", "reboot"),
+    [
+        (0.01, 0.01, False),  # the next frame
+        (0.03, 0.01, False),  # two frames lost
+        (REBOOT_SILENCE_S * 0.9, 0.01, False),  # frames lost, but too short
+        (REBOOT_SILENCE_S * 1.1, 0.01, True),  # a CAN node silent long enough: a reboot
+        (REBOOT_SILENCE_S * 1.1, None, False),  # its interval not known: not judged
+        (0.15, 0.066, False),  # a concentrator's lost reply (three nodes polled)
+        (0.25, 0.066, True),  # three
+        (0.66, 0.33, False),  # fifteen nodes polled, a reply lost
+    ],
+)
+def test_a_silence_long_enough_to_hold_a_reboot(t_s: float, interval_s: float | None,
+                                                reboot: bool) -> None:  # fmt: skip
+    """Of the gaps between two samples of a node, a silence of at least
+    ``REBOOT_SILENCE_S`` and long enough for ``REBOOT_MISSED`` of its samples in a
+    row to be missed may have held a reboot; a lost frame or reply did not."""
+    assert (silence(_sample(0.0), _sample(t_s), interval_s) is not None) is reboot
+
+
+def test_the_usual_interval_is_learnt_and_a_reboot_said_once() -> None:
+    """An encoder's zero learns its node's interval from its samples (a gap does
+    not stretch it), so a concentrator's slow node is not taken for rebooting
+    at each poll; the zero is lost once, with the silence in its reason."""
+    zero = EncoderZero()
+    t = 0.0
+    assert zero.observe(_sample(t), _sample(t + 1.0)) is None  # its interval not known yet
+    for _ in range(20):  # a node polled every 0.33 s: no silence
+        assert zero.observe(_sample(t), _sample(t + 0.33)) is None
+        t += 0.33
+    assert zero.interval_s == pytest.approx(0.33)
+    assert zero.observe(_sample(t), _sample(t + 0.66)) is None  # a reply lost
+    assert zero.interval_s == pytest.approx(0.33)
+    assert zero.angle_counts(500) == 500
+    reason = zero.observe(_sample(t), _sample(t + 1.2))
+    assert reason is not None
+    assert "silent 1.20 s" in reason
+    assert zero.angle_counts(500) is None
+    assert zero.observe(_sample(t), _sample(t + 1.2)) is None  # said once
+
+
+def test_emulated_encoder_counts_from_its_power_on() -> None:
+    """The emulator's encoder restarts at 0 where the joint is at power-on, then
+    counts the joint's travel from there (the firmware's QEI reset)."""
+    angles = {"left_elbow_flexion_deg": 0.0}
+    body = BodyEmulator(Routine("held", "", lambda t: dict(angles)),
+                        smartsuit_sensors([LEFT_ARM]), realism=Realism.ideal())  # fmt: skip
+
+    def elbow_counts() -> int:
+        reading = next(r for r in body.sample(0.0)[0] if r.node == ELBOW)
+        assert isinstance(reading, OleAccel)
+        return reading.encoder
+
+    angles[ELBOW_DOF] = 70.0
+    bent = elbow_counts()
+    assert bent > 300  # 70 deg of a 26.93 mm joint: some 330 counts from its zero
+    body.power_on(ELBOW, 0.0)
+    assert elbow_counts() == 0
+    angles[ELBOW_DOF] = 0.0
+    assert elbow_counts() == -bent
+    with pytest.raises(KeyError):
+        body.power_on(99, 0.0)
+
+
+class _Truths:
+    """The emulator's truth of each reading sent, by node: (send time, truth)."""
+
+    def __init__(self) -> None:
+        self.by_node: dict[int, list[tuple[int, Truth]]] = {n: [] for n in NODES}
+
+    def __call__(self, node: int, truth: Truth, t_ns: int) -> None:
+        self.by_node[node].append((t_ns, truth))
+
+    def at(self, node: int, t_ns: int) -> dict[str, float] | None:
+        """The truth of ``node``'s last reading sent at or before ``t_ns``."""
+        before = [t for when, t in self.by_node[node] if when <= t_ns]
+        return dict(before[-1].angles_deg) if before else None
+
+
+def _errors(frame: pose.PoseFrame, truths: _Truths) -> dict[str, tuple[float, float]]:
+    """Each measured dof of the arm's nodes: (its error against the truth of the
+    sample the pose used, its stated uncertainty)."""
+    out = {}
+    for node in NODES:
+        key = SMARTSUIT_SITES[node].raw_key
+        truth = truths.at(node, frame.sources[key]) if key in frame.sources else None
+        for dof, value in (truth or {}).items():
+            if dof in frame.angles_deg and is_measured(frame, dof):
+                out[dof] = (abs(frame.angles_deg[dof] - value), frame.unc_deg[dof])
+    return out
+
+
+class _Arm:
+    """The poses the gateway published of the arm, against the truth."""
+
+    def __init__(self, poses: Collector, truths: _Truths) -> None:
+        self.poses, self.truths = poses, truths
+
+    def since(self, t_ns: int) -> list[pose.PoseFrame]:
+        """The poses whose elbow sample was taken at ``t_ns`` or later."""
+        return [f for _, f in list(self.poses.seen) if f.sources.get(ELBOW_KEY, 0) >= t_ns]
+
+    def wait(self, count: int, since: int) -> None:
+        self.poses.wait_for(lambda _: len(self.since(since)) >= count, timeout=10)
+
+    def wait_elbow(self, target: float, since: int) -> None:
+        """Until a pose since ``since`` measures the elbow within 0.5 deg of ``target``."""
+
+        def done(_: list[Any]) -> bool:
+            frames = self.since(since)
+            return bool(frames) and is_measured(frames[-1], ELBOW_DOF) and abs(
+                frames[-1].angles_deg[ELBOW_DOF] - target) <= 0.5  # fmt: skip
+
+        self.poses.wait_for(done, timeout=15)
+
+    def check(self, frames: list[pose.PoseFrame]) -> int:
+        """No measured dof off the truth by more than its uncertainty (and 0.3
+        deg); how many frames had the elbow's flexion flagged uncalibrated."""
+        for frame in frames:
+            for dof, (error, unc) in _errors(frame, self.truths).items():
+                assert error <= unc + SLACK_DEG, (dof, error, unc, frame.seq)
+        return sum(frame.flags.get(ELBOW_DOF) == UNCALIBRATED for frame in frames)
+
+
+def test_a_node_rebooted_with_its_joint_bent_is_flagged_until_a_calibration_pose(
+    gateway: Gateway, zsession: zenoh.Session, run_thread: Callable[..., Running]
+) -> None:
+    """The left arm's nodes on a CAN bus through the bridge and the gateway; the
+    elbow's node reboots with the elbow bent 80 deg, so its encoder reads 0
+    there. From then on no pose gives a dof of the arm as measured that is off
+    the truth by more than its uncertainty (and 0.3 deg): the elbow's flexion,
+    and what the solver finds through it, are flagged ``uncalibrated``, and
+    health says why. A calibration pose sets the encoder's zero again: the
+    elbow is then measured, and right, bent to 60 deg."""
+    angles: dict[str, float] = {"left_shoulder_flexion_deg": 30.0, ELBOW_DOF: 80.0,
+                                "left_wrist_flexion_deg": 20.0}  # fmt: skip
+    truths = _Truths()
+    channel = f"reboot-can-{time.monotonic_ns()}"
+    bridge = CanBridge(zsession, "reboot-can")
+    run_thread(bridge.run_bus, interface="virtual", channel=channel)
+    arm = _Arm(Collector(zsession, keys.pose_key(), pose.decode), truths)
+    health = health_collector(zsession)
+    body = BodyEmulator(Routine("held", "", lambda t: dict(angles)), smartsuit_sensors([LEFT_ARM]),
+                        realism=Realism.ideal())  # fmt: skip
+    with can.Bus(interface="virtual", channel=channel) as bus:
+        nodes = CanNodes(bus, body, truth=truths)
+        nodes.start()
+        try:
+            start = time.time_ns()
+            arm.wait_elbow(80.0, start)
+            arm.wait(50, start)
+            assert arm.check(arm.since(start)) == 0
+            # the elbow's node reboots, the elbow bent
+            before = nodes.sent[ELBOW]
+            nodes.reboot(ELBOW)
+            wait_until(lambda: nodes.sent[ELBOW] > before + 100, 10.0, "the node back")
+            back = truths.by_node[ELBOW][-100][0]  # a sample taken after it came back
+            arm.wait(20, back)
+            angles[ELBOW_DOF] = 40.0  # moving while it is flagged
+            arm.wait(20, time.time_ns())
+            after = arm.since(back)
+            assert arm.check(after) == len(after)  # every one flagged, none wrong
+            said = health.wait_for(lambda h: any(
+                m.get("encoders", {}).get(ELBOW_KEY, {}).get("measured") is False
+                for _, m in h), timeout=10)  # fmt: skip
+            state = next(m["encoders"][ELBOW_KEY] for _, m in reversed(said) if "encoders" in m)
+            assert "rebooted" in state["reason"]
+            assert nodes.reboots[ELBOW] == 1
+            # the calibration pose (the profile's, the T-pose): the encoder's zero again
+            angles.clear()
+            angles.update(TPOSE)
+            posed = time.time_ns()
+            arm.poses.wait_for(lambda _: bool(arm.since(posed))
+                               and arm.since(posed)[-1].t_ns >= posed + 1.3e9,
+                               timeout=10)  # fmt: skip
+            report = gateway.calibrate_tpose(1.0)
+            assert report["ok"], report
+            assert ELBOW_KEY in report["encoders"]  # type: ignore[operator]
+            angles[ELBOW_DOF] = 60.0
+            calibrated = time.time_ns()
+            arm.wait_elbow(60.0, calibrated)
+            arm.wait(20, calibrated)
+            later = [f for f in arm.since(calibrated) if is_measured(f, ELBOW_DOF)]
+            assert len(later) >= 10
+            assert arm.check(later) == 0
+            errors = [_errors(f, truths)[ELBOW_DOF][0] for f in later[-10:]]
+            print(f"\nelbow after the new zero: worst error {max(errors):.3f} deg")
+            assert not math.isnan(later[-1].unc_deg[ELBOW_DOF])
+        finally:
+            nodes.stop()
