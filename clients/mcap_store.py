@@ -119,6 +119,7 @@ RAW_SCHEMA = {
         "seq": {"type": "integer"},
         "t_ns": {"type": "integer"},
         "source": {"type": "string"},
+        "flags": {"type": "integer"},
         "encoder": {"type": "integer"},
         "accel": {"type": "array", "items": {"type": "integer"}},
         "quat_wxyz": {"type": "array", "items": {"type": "number"}},
@@ -277,6 +278,8 @@ def raw_json(sample: RawSample) -> dict[str, Any]:
     r = sample.reading
     out: dict[str, Any] = {"node": r.node, "seq": sample.seq, "t_ns": sample.t_ns,
                            "source": source_name(sample.source)}  # fmt: skip
+    if sample.flags:  # RESUMED: the node may have rebooted (absent: 0)
+        out["flags"] = sample.flags
     if isinstance(r, OleAccel):
         out.update(encoder=r.encoder, accel=list(r.accel))
     else:
@@ -852,7 +855,8 @@ def raw_from_json(data: bytes) -> RawSample:
         else:
             ax, ay, az = (int(c) for c in d["accel"])
             reading = OleAccel(int(d["node"]), int(d["encoder"]), (ax, ay, az))
-        return RawSample(reading, int(d["seq"]), int(d["t_ns"]), source_of(str(d["source"])))
+        return RawSample(reading, int(d["seq"]), int(d["t_ns"]), source_of(str(d["source"])),
+                         int(d.get("flags", 0)) if "quat_wxyz" not in d else 0)  # fmt: skip
     except (ValueError, KeyError, TypeError) as exc:
         raise StoreError(f"not a raw-sample message: {exc}") from None
 

@@ -94,7 +94,9 @@ def replay(
                 )
                 pub.put(
                     raw_sample.encode(
-                        RawSample(sample.reading, sample.seq, time.time_ns(), sample.source)
+                        RawSample(
+                            sample.reading, sample.seq, time.time_ns(), sample.source, sample.flags
+                        )
                     )
                 )
                 sent += 1

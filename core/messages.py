@@ -96,13 +96,21 @@ class RawSample:
     ``t_ns`` is the source timestamp (integer ns, the receiver's clock or the
     capture's), ``seq`` the per-node sequence number (uint32, wraps), ``source``
     the id of the source it came through (a :class:`Source` where this version
-    knows it, any byte otherwise).
+    knows it, any byte otherwise), ``flags`` what its bridge says of it (a
+    SmartSuit sample's :data:`RESUMED`; 0 for an orientation sensor's).
     """
 
     reading: Reading
     seq: int
     t_ns: int
     source: int = Source.UNKNOWN
+    flags: int = 0
+
+
+#: A raw sample's flag: the first sample of its SmartSuit node after the node was
+#: silent, on a link its bridge saw alive, long enough to have rebooted (its encoder
+#: then counts from where its joint was); see docs/calibration.md.
+RESUMED = 0x01
 
 
 @dataclass(frozen=True, slots=True)

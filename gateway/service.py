@@ -241,11 +241,11 @@ class _Body:
         kept.sample = sample  # as it came (with a quaternion's extra bytes)
 
     def _encoder(self, kept: _Site, zero: EncoderZero, sample: RawSample) -> None:
-        """A module's sample: its node's silence since the last one may have held a
-        reboot (its encoder's zero lost, gateway/encoders.py); its count kept."""
-        before = kept._sample
-        if before is not None and before is not sample and (lost := zero.observe(before, sample)):
-            log.warning("gateway: %s", lost)
+        """A module's sample: one its bridge flagged ``RESUMED`` loses its encoder's
+        zero (gateway/encoders.py); its count kept."""
+        if lost := zero.take(sample):
+            log.warning("gateway: %s node %d: %s", source_name(sample.source),
+                        sample.reading.node, lost)  # fmt: skip
         t, counts = sample.t_ns / 1e9, kept.counts
         assert counts is not None
         if not counts or t - counts[-1][0] >= HISTORY_STEP_S or t < counts[-1][0]:

@@ -40,7 +40,7 @@ from bodynet.core import keys
 from bodynet.core.codecs import raw_sample
 from bodynet.core.errors import Reason, RejectCounts, Rejected
 from bodynet.core.keys import Site
-from bodynet.core.messages import RawSample, Reading, source_name
+from bodynet.core.messages import RESUMED, RawSample, Reading, source_name
 from bodynet.nodes.sources.base import PeriodicSeq
 
 __all__ = ["PeriodicSeq", "SitePublisher"]
@@ -59,6 +59,7 @@ class NodeHealth:
     site: Site
     samples: int = 0
     gaps: int = 0
+    resumed: int = 0  # samples flagged RESUMED: the node may have rebooted
     rejected: RejectCounts = field(default_factory=RejectCounts)
     last_seq: int | None = None
     last_seen: float = 0.0  # monotonic
@@ -76,6 +77,8 @@ class NodeHealth:
             "gaps": self.gaps,
             "rejected": dict(self.rejected),
         }
+        if self.resumed:
+            out["resumed"] = self.resumed
         if self.status:
             out["status"] = dict(self.status)
         return out
@@ -125,8 +128,10 @@ class SitePublisher:
         self._watch = threading.Thread(target=self._watchdog, name=f"{name}-watch", daemon=True)
         self._watch.start()
 
-    def publish(self, reading: Reading, seq: int, t_ns: int | None = None) -> None:
-        """Publish one reading of node ``reading.node`` (ignored if not in ``sites``)."""
+    def publish(self, reading: Reading, seq: int, t_ns: int | None = None,
+                flags: int = 0) -> None:  # fmt: skip
+        """Publish one reading of node ``reading.node`` (ignored if not in ``sites``),
+        with its raw sample's ``flags`` (``RESUMED``)."""
         site = self.sites.get(reading.node)
         if self._closed:
             return
@@ -134,7 +139,8 @@ class SitePublisher:
             self.reject(Rejected(Reason.UNKNOWN_NODE, f"node {reading.node} not in this profile"))
             return
         now = time.monotonic()
-        payload = raw_sample.encode(RawSample(reading, seq, t_ns or time.time_ns(), self.source))
+        payload = raw_sample.encode(RawSample(reading, seq, t_ns or time.time_ns(), self.source,
+                                                  flags))  # fmt: skip
         with self._lock:
             health = self.nodes.get(reading.node)
             if health is None:
@@ -144,6 +150,8 @@ class SitePublisher:
                 health.gaps += seq - health.last_seq - 1
             health.last_seq = seq
             health.samples += 1
+            if flags & RESUMED:
+                health.resumed += 1
             health.last_seen = now
             health.window.append(now)
             while now - health.window[0] > 1.0:

@@ -91,7 +91,7 @@ class SlimeVRBridge(Bridge):
                  self.publisher.name, tracker, tracker)  # fmt: skip
 
     # --- the adapter's sink -------------------------------------------------------------
-    def sample(self, reading: Reading, seq: int, t_s: float) -> None:
+    def sample(self, reading: Reading, seq: int, t_s: float, flags: int = 0) -> None:
         if reading.node not in self.publisher.sites:
             tracker = self.trackers.get(reading.node)
             site = self.assignments.get(tracker) if tracker else None
@@ -101,7 +101,7 @@ class SlimeVRBridge(Bridge):
                     self._unassigned_token(tracker)
                 return
             self.publisher.move(reading.node, site)
-        super().sample(reading, seq, t_s)
+        super().sample(reading, seq, t_s, flags)
 
     def status(self, event: NoNewData | SensorAbsent | NodeStatus) -> None:
         if isinstance(event, NodeStatus):

@@ -37,8 +37,10 @@ from bodynet.core import keys
 from bodynet.core.codecs.pose import PoseFrame
 from bodynet.core.errors import DecodeError
 from bodynet.core.keys import BRANCHES, Site
-from bodynet.core.messages import Quat, RawSample, Reading
+from bodynet.core.messages import OleAccel, Quat, RawSample, Reading
+from bodynet.core.profile import OLE_DOF
 from bodynet.core.subject import Profile, QuatWxyz
+from bodynet.gateway.encoders import EncoderZero
 from bodynet.gateway.frames import branch_views, pose_frame
 from bodynet.gateway.heading import (
     BodyHeading,
@@ -171,7 +173,7 @@ def _hold_drift(heading: BodyHeading, t_s: float, latest: Mapping[Site, RawSampl
                 solver: BodySolver) -> None:  # fmt: skip
     """The tags' headings held against drift after a solved tick, the live gateway's
     own step (the heading's search ended with the first pass)."""
-    step = heading.step(t_s, latest, solver.profile)
+    step = heading.step(t_s, latest, solver.profile, solver.encoder_zeros)
     if step is not None and step[0] in ("turned", "switched"):  # switched: none known
         heading.hold(solver, step[1])
 
@@ -186,6 +188,16 @@ def _solve_at(solver: BodySolver, latest: Mapping[Site, RawSample], times: Mappi
     return pose_frame(solver.solve(latest), seq, stale)
 
 
+def _raw(s: CapturedSample, seq: int, wire_id: int, zeros: dict[str, EncoderZero]) -> RawSample:
+    """A captured sample as the gateway takes it: a SmartSuit module's, flagged
+    ``RESUMED`` by the capture's reader (which judges silences as a live bridge
+    does), loses its encoder's zero in ``zeros`` (its node's power-on until then)."""
+    sample = RawSample(s.reading, seq, round(s.t_s * 1e9), wire_id, s.flags)
+    if type(s.reading) is OleAccel and s.site.name in OLE_DOF:
+        zeros.setdefault(s.site.raw_key, EncoderZero()).take(sample)
+    return sample
+
+
 def _write_raw(sink: McapSink, site: Site, sample: RawSample, path: Path) -> None:
     """A raw sample into the recording; one MCAP cannot hold (a time before 1970)
     is a ``CaptureError`` naming the capture and the sample's time."""
@@ -194,6 +206,16 @@ def _write_raw(sink: McapSink, site: Site, sample: RawSample, path: Path) -> Non
     except DecodeError as exc:
         raise CaptureError(f"{path}: the sample of {site.raw_key} at {sample.t_ns / 1e9:g} s "
                            f"cannot be recorded: {exc}") from None  # fmt: skip
+
+
+def _solver_of(heading: BodyHeading, topology: set[str], as_given: bool
+               ) -> tuple[BodySolver, dict[str, EncoderZero]]:  # fmt: skip
+    """The capture's solver once its heading is settled, told how well the headings
+    found are known, and its encoders' zeros (by raw key, lost on a RESUMED sample)."""
+    solver = _solver(heading.profile, topology, as_given)
+    heading.hold(solver, heading.profile)
+    solver.encoder_zeros = zeros = dict[str, EncoderZero]()
+    return solver, zeros
 
 
 def process(path: Path, fmt: str, out: Path, profile: Profile | None = None,
@@ -249,8 +271,7 @@ def process(path: Path, fmt: str, out: Path, profile: Profile | None = None,
         _find_heading(heading, _ticks(source.read(path, fmt, CaptureStats(), rate_hz),
                                       1.0 / tick_hz))  # fmt: skip
         heading.end_search()  # it had the whole capture
-    solver = _solver(heading.profile, topology, as_given)
-    heading.hold(solver, heading.profile)  # how well the headings found are known
+    solver, zeros = _solver_of(heading, topology, as_given)
     stats = CaptureStats()
     sink = McapSink(out)
     latest: dict[Site, RawSample] = {}
@@ -265,8 +286,7 @@ def process(path: Path, fmt: str, out: Path, profile: Profile | None = None,
             last_t = tick[-1].t_s
             for s in tick:
                 seq = seqs[s.site] = seqs.get(s.site, -1) + 1
-                sample = RawSample(s.reading, seq, round(s.t_s * 1e9), source.wire_id)
-                latest[s.site] = sample
+                sample = latest[s.site] = _raw(s, seq, source.wire_id, zeros)
                 times[s.site] = s.t_s
                 _write_raw(sink, s.site, sample, path)
             ticks += 1

@@ -9,12 +9,14 @@ import struct
 from collections.abc import Callable, Sequence
 from typing import Any, Protocol
 
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from bodynet.core.codecs import concentrator, imu_matrix, raw_sample, slimevr, smartsuit_can
 from bodynet.core.errors import DecodeError, Rejected
 from bodynet.core.messages import (
+    RESUMED,
     NodeStatus,
     NoNewData,
     OleAccel,
@@ -145,16 +147,37 @@ def test_imu_stream_any_chunking(events: list[Any], cut: list[int], crlf: bool) 
     assert [e.node for e in whole if not isinstance(e, Tick)] == [e.node for e in events]
 
 
-raw_samples = st.builds(
-    RawSample,
-    st.one_of(
-        ole(st.integers(1, 0xFFFF)),
-        st.builds(Quat, st.integers(1, 0xFFFF), unit_quats(), st.binary(max_size=255)),
-    ),
-    st.integers(0, 0xFFFFFFFF),
-    st.integers(-(2**63), 2**63 - 1),
-    st.sampled_from(Source),
-)
+raw_samples = st.one_of(
+    st.builds(RawSample, ole(st.integers(1, 0xFFFF)), st.integers(0, 0xFFFFFFFF),
+              st.integers(-(2**63), 2**63 - 1), st.sampled_from(Source),
+              st.integers(0, 0xFF)),  # a SmartSuit sample's flags: RESUMED, the rest kept
+    st.builds(RawSample,
+              st.builds(Quat, st.integers(1, 0xFFFF), unit_quats(), st.binary(max_size=255)),
+              st.integers(0, 0xFFFFFFFF), st.integers(-(2**63), 2**63 - 1),
+              st.sampled_from(Source)),
+)  # fmt: skip
+
+
+@given(ole(st.integers(1, 0xFFFF)), st.integers(0, 0xFFFFFFFF), st.integers(0, 2**62))
+def test_raw_sample_resumed_flag_round_trips_in_its_byte_alone(
+    reading: OleAccel, seq: int, t_ns: int
+) -> None:
+    """``RESUMED`` round-trips on a SmartSuit sample and is byte 5 alone (reserved
+    before, so a gateway that ignores it reads the rest as ever); a quaternion's
+    flags byte stays reserved: refused on encoding, read as 0."""
+    plain = raw_sample.encode(RawSample(reading, seq, t_ns, Source.CAN))
+    flagged = raw_sample.encode(RawSample(reading, seq, t_ns, Source.CAN, RESUMED))
+    assert raw_sample.decode(flagged).flags == RESUMED
+    assert raw_sample.decode(plain).flags == 0
+    assert flagged[5] == RESUMED
+    assert flagged[:5] + flagged[6:] == plain[:5] + plain[6:]
+    quat = RawSample(Quat(reading.node, (1.0, 0.0, 0.0, 0.0)), seq, t_ns, Source.IMU_CENTRAL)
+    with pytest.raises(ValueError, match="reserved"):
+        raw_sample.encode(RawSample(quat.reading, seq, t_ns, Source.IMU_CENTRAL, RESUMED))
+    sent = bytearray(raw_sample.encode(quat))
+    sent[5] = RESUMED
+    assert raw_sample.decode(bytes(sent)) == quat
+    assert raw_sample.decode_batch(bytes(sent)) == [quat]
 
 
 @given(raw_samples)
@@ -180,10 +203,10 @@ def _checked_decode(payload: bytes) -> Any:
        st.sampled_from([2, 2, 1, 3]), st.integers(0, 5), st.integers(0, 2),
        st.integers(0, 2**32 - 1), st.integers(-(2**63), 2**63 - 1),
        st.one_of(st.just([0.5, 0.5, -0.5, 0.5]), st.lists(st.floats(), min_size=4, max_size=4)),
-       st.sampled_from([0, 0, 1]))  # fmt: skip
+       st.sampled_from([0, 0, 1]), st.sampled_from([0, 0, 1, 0xFF]))  # fmt: skip
 def test_raw_sample_quaternion_shortcut_agrees_with_the_checks(
     magic: bytes, version: int, kind: int, source: int, node: int, seq: int, t_ns: int,
-    q: list[float], extra: int,
+    q: list[float], extra: int, flags: int,
 ) -> None:  # fmt: skip
     """53-byte messages take a one-unpack path; it accepts exactly what the
     field-by-field checks accept, with the same result, and leaves the rest to them."""
@@ -191,8 +214,8 @@ def test_raw_sample_quaternion_shortcut_agrees_with_the_checks(
 
     from bodynet.core.errors import DecodeError
 
-    payload = struct.pack("<2sBBBBHIq4dB", magic, version, kind, source, 0, node, seq, t_ns,
-                          *q, extra)  # fmt: skip
+    payload = struct.pack("<2sBBBBHIq4dB", magic, version, kind, source, flags, node, seq,
+                          t_ns, *q, extra)  # fmt: skip
     try:
         got: Any = raw_sample.decode(payload)
     except DecodeError as exc:

@@ -22,18 +22,23 @@ import zenoh
 from zenoh_helpers import Collector, Running, health_collector, wait_until
 
 from bodynet.core import keys
+from bodynet.core.codecs import concentrator as codec
 from bodynet.core.codecs import pose
 from bodynet.core.codecs.pose import UNCALIBRATED, is_measured
+from bodynet.core.codecs.smartsuit_can import PERIOD_S
+from bodynet.core.errors import Rejected
 from bodynet.core.keys import LEFT_ARM
-from bodynet.core.messages import OleAccel, RawSample
+from bodynet.core.messages import RESUMED, OleAccel, Reading
 from bodynet.core.profile import SMARTSUIT_SITES
 from bodynet.core.skeleton import TPOSE
-from bodynet.gateway.encoders import REBOOT_SILENCE_S, EncoderZero, silence
 from bodynet.gateway.service import Gateway
 from bodynet.nodes.can_bridge import CanBridge
 from bodynet.nodes.emulator import BodyEmulator, Realism, Truth, smartsuit_sensors
 from bodynet.nodes.hardware import CanNodes
 from bodynet.nodes.motion import Routine
+from bodynet.nodes.sources.base import REBOOT_SILENCE_S, Adapter
+from bodynet.nodes.sources.concentrator import Concentrator
+from bodynet.nodes.sources.smartsuit_can import SmartSuitCan
 
 NODES = (1, 2, 3)  # the left arm's shoulder, elbow and wrist modules
 ELBOW = 2
@@ -42,50 +47,120 @@ ELBOW_DOF = "left_elbow_flexion_deg"
 SLACK_DEG = 0.3  # a measured dof within its uncertainty and this
 
 
-def _sample(t_s: float) -> RawSample:
-    return RawSample(OleAccel(ELBOW, 0, (0, 0, 1024)), 0, round(t_s * 1e9))
+class _Flags:
+    """An adapter's sink: each sample's (node, flags), in order."""
+
+    def __init__(self) -> None:
+        self.samples: list[tuple[int, int]] = []
+
+    def sample(self, reading: Reading, seq: int, t_s: float, flags: int = 0) -> None:
+        self.samples.append((reading.node, flags))
+
+    def reject(self, rejected: Rejected) -> None:
+        pass
+
+    def status(self, event: object) -> None:
+        pass
+
+    def resumed(self) -> list[int]:
+        return [node for node, flags in self.samples if flags & RESUMED]
+
+
+def _frames(adapter: Adapter, sink: _Flags, t0: float, t1: float,
+            nodes: tuple[int, ...] = NODES) -> None:  # fmt: skip
+    """Each of ``nodes`` sends a frame every 10 ms from ``t0`` to before ``t1``."""
+    t = t0
+    while t < t1 - 1e-9:
+        for node in nodes:
+            adapter.events([OleAccel(node, 0, (0, 0, 1024))], t + node * 1e-3, sink)
+        t += PERIOD_S
 
 
 @pytest.mark.parametrize(
-    ("t_s", "interval_s", "reboot"),
+    ("silent_s", "resumed"),
     [
-        (0.01, 0.01, False),  # the next frame
-        (0.03, 0.01, False),  # two frames lost
-        (REBOOT_SILENCE_S * 0.9, 0.01, False),  # frames lost, but too short
-        (REBOOT_SILENCE_S * 1.1, 0.01, True),  # a CAN node silent long enough: a reboot
-        (REBOOT_SILENCE_S * 1.1, None, False),  # its interval not known: not judged
-        (0.15, 0.066, False),  # a concentrator's lost reply (three nodes polled)
-        (0.25, 0.066, True),  # three
-        (0.66, 0.33, False),  # fifteen nodes polled, a reply lost
+        (0.02, False),  # a frame lost
+        (0.05, False),  # five: no boot is that short
+        (REBOOT_SILENCE_S + 0.02, True),  # long enough to have rebooted
+        (0.5, True),
     ],
 )
-def test_a_silence_long_enough_to_hold_a_reboot(t_s: float, interval_s: float | None,
-                                                reboot: bool) -> None:  # fmt: skip
-    """Of the gaps between two samples of a node, a silence of at least
-    ``REBOOT_SILENCE_S`` and long enough for ``REBOOT_MISSED`` of its samples in a
-    row to be missed may have held a reboot; a lost frame or reply did not."""
-    assert (silence(_sample(0.0), _sample(t_s), interval_s) is not None) is reboot
+def test_a_node_silent_while_the_others_send_is_resumed(silent_s: float, resumed: bool) -> None:
+    """The CAN source's adapter (the bridge's and the capture reader's): a node
+    silent ``REBOOT_SILENCE_S`` or more while the bus carries the others' frames
+    may have rebooted, and its next sample alone is flagged ``RESUMED``; a lost
+    frame or a few are no reboot."""
+    adapter, sink = SmartSuitCan().adapter(), _Flags()
+    _frames(adapter, sink, 0.0, 1.0)
+    _frames(adapter, sink, 1.0, 1.0 + silent_s, (1, 3))
+    _frames(adapter, sink, 1.0 + silent_s, 2.0)
+    assert sink.resumed() == ([ELBOW] if resumed else [])
+    if resumed:
+        assert sink.samples.index((ELBOW, RESUMED)) > sink.samples.index((ELBOW, 0))
 
 
-def test_the_usual_interval_is_learnt_and_a_reboot_said_once() -> None:
-    """An encoder's zero learns its node's interval from its samples (a gap does
-    not stretch it), so a concentrator's slow node is not taken for rebooting
-    at each poll; the zero is lost once, with the silence in its reason."""
-    zero = EncoderZero()
-    t = 0.0
-    assert zero.observe(_sample(t), _sample(t + 1.0)) is None  # its interval not known yet
-    for _ in range(20):  # a node polled every 0.33 s: no silence
-        assert zero.observe(_sample(t), _sample(t + 0.33)) is None
-        t += 0.33
-    assert zero.interval_s == pytest.approx(0.33)
-    assert zero.observe(_sample(t), _sample(t + 0.66)) is None  # a reply lost
-    assert zero.interval_s == pytest.approx(0.33)
-    assert zero.angle_counts(500) == 500
-    reason = zero.observe(_sample(t), _sample(t + 1.2))
-    assert reason is not None
-    assert "silent 1.20 s" in reason
-    assert zero.angle_counts(500) is None
-    assert zero.observe(_sample(t), _sample(t + 1.2)) is None  # said once
+def test_a_silence_the_bridge_did_not_watch_or_across_a_reopen_claims_nothing() -> None:
+    """A live bridge's adapter (``watched``: frames may be stamped when read): the
+    whole bus quiet 0.3 s while the bridge read it (its reads that waited: the
+    suit's power gone) is a reboot of every node; the same 0.3 s in which it read
+    nothing (the host busy) claims nothing, nor does the adapter opened again
+    (``restart``), even where its times are the link's own (a capture's)."""
+    adapter, sink = SmartSuitCan().adapter(), _Flags()
+    adapter.watched = True
+    _frames(adapter, sink, 0.0, 1.0)
+    adapter.seen(1.01, 1.11)
+    adapter.seen(1.11, 1.21)
+    adapter.seen(1.21, 1.30)
+    _frames(adapter, sink, 1.3, 1.5)
+    assert sorted(sink.resumed()) == list(NODES)
+    sink.samples.clear()
+    _frames(adapter, sink, 1.8, 2.0)  # nothing read from 1.5 to 1.8
+    assert sink.resumed() == []
+    for watched in (True, False):
+        adapter, sink = SmartSuitCan().adapter(), _Flags()
+        adapter.watched = watched
+        _frames(adapter, sink, 0.0, 1.0)
+        adapter.seen(1.01, 1.11)  # read and quiet, then the adapter lost and opened again
+        adapter.restart()
+        _frames(adapter, sink, 1.6, 2.0)
+        assert sink.resumed() == []
+
+
+def test_a_concentrator_node_that_left_a_request_unanswered_is_resumed() -> None:
+    """The concentrator's adapter, for its bridge and its capture reader alike: a
+    node asked and unanswered (on time and late: 0.2 s silent, or skipped by the
+    dead-node backoff meanwhile) has its next reply flagged; a late reply is an
+    answer, and a port opened again claims nothing."""
+    source = Concentrator()
+    capture = b"IE0001X0000Y0000Z0400\r\nJE0002X0000Y0000Z0400\r\n"
+    capture += b"IJE0003X0000Y0000Z0400\r\nIE0004X0000Y0000Z0400\r\n"
+    capture += b"JE0005X0000Y0000Z0400\r\n"
+    decoder, adapter, sink = source.decoder(), source.adapter(), _Flags()
+    adapter.events(decoder.feed(capture), None, sink)
+    assert sink.samples == [(1, 0), (2, 0), (2, 0), (1, RESUMED), (2, 0)]
+    on_time = b"E0001X0000Y0000Z0400\r\n"
+    live, adapter, sink = codec.ConcentratorDecoder(replies_only=True), source.adapter(), _Flags()
+
+    def ask(node: int, reply: bytes, late: bool = False) -> None:
+        adapter.events(live.poll(node), 0.0, sink)
+        if late:
+            live.overdue()
+        adapter.events(live.feed(reply.replace(b"E0001", b"E%04d" % node)), 0.0, sink)
+
+    ask(1, on_time)
+    ask(2, on_time, late=True)  # late: published for no node, but an answer
+    ask(1, on_time)
+    ask(2, on_time)
+    assert sink.samples == [(1, 0), (1, 0), (2, 0)]
+    ask(1, b"")  # unanswered
+    ask(2, on_time)
+    ask(1, on_time)
+    assert sink.samples[-2:] == [(2, 0), (1, RESUMED)]
+    ask(1, b"")
+    adapter.restart()  # the port lost and opened again: a new exchange
+    live = codec.ConcentratorDecoder(replies_only=True)
+    ask(1, on_time)
+    assert sink.samples[-1] == (1, 0)
 
 
 def test_emulated_encoder_counts_from_its_power_on() -> None:

@@ -11,7 +11,11 @@ splits. Layout::
     4      1     source id: 0 unknown, 1 CAN, 2 concentrator, 3 IMU central,
                  4 SlimeVR, 5 orientation file; any other id is accepted too
                  (a source this version has not heard of), see ``Source``
-    5      1     flags, reserved: sent as 0, ignored on receipt
+    5      1     flags: kind 1, bit 0 ``messages.RESUMED`` (the node's first sample after
+                 it was silent, on a link its bridge saw alive, long enough
+                 to have rebooted: its encoder's zero is lost); the other
+                 bits, and a kind 2's byte, reserved: sent as 0, ignored on
+                 receipt (a kind 2 decodes with flags 0)
     6      2     node number (uint16, >= 1)
     8      4     sequence number (uint32, per node, wraps)
     12     8     source timestamp t_ns (int64, ns since the Unix epoch)
@@ -50,16 +54,22 @@ RawEvent = RawSample | Rejected
 
 
 def encode(sample: RawSample) -> bytes:
-    """One message for ``sample``."""
+    """One message for ``sample``; ``ValueError`` for flags on a quaternion (its
+    byte is reserved) or beyond a byte."""
     r = sample.reading
+    flags = sample.flags
     if isinstance(r, Quat):
         if len(r.extra) > 255:
             raise ValueError("extra bytes longer than 255")
+        if flags:
+            raise ValueError(f"flags {flags:#x} on a quaternion sample (reserved there)")
         kind, body = KIND_QUAT, _QUAT.pack(*r.wxyz, len(r.extra)) + r.extra
     else:
+        if not 0 <= flags <= 0xFF:
+            raise ValueError(f"flags {flags:#x} beyond a byte")
         kind, body = KIND_OLE_ACCEL, _OLE.pack(*ole_values(r))
     header = _HEADER.pack(
-        MAGIC, VERSION, kind, sample.source, 0, r.node, sample.seq & 0xFFFFFFFF, sample.t_ns
+        MAGIC, VERSION, kind, sample.source, flags, r.node, sample.seq & 0xFFFFFFFF, sample.t_ns
     )
     return header + body
 
@@ -95,17 +105,16 @@ def _length(buf: bytes | bytearray, pos: int) -> int | None:
 
 
 def _decode_at(buf: bytes | bytearray, pos: int, length: int) -> RawSample:
-    _, _, kind, source, _, node, seq, t_ns = _HEADER.unpack_from(buf, pos)
+    _, _, kind, source, flags, node, seq, t_ns = _HEADER.unpack_from(buf, pos)
     if node == 0:
         raise DecodeError(Reason.UNKNOWN_NODE, "node 0")
     body = pos + HEADER_LEN
     if kind == KIND_OLE_ACCEL:
         e, x, y, z = _OLE.unpack_from(buf, body)
-        reading: OleAccel | Quat = OleAccel(node, e, (x, y, z))
-    else:
-        w, qx, qy, qz, _ = _QUAT.unpack_from(buf, body)
-        extra = bytes(buf[body + _QUAT.size : pos + length])
-        reading = Quat(node, unit_quat(w, qx, qy, qz, normalise=False), extra)
+        return RawSample(OleAccel(node, e, (x, y, z)), seq, t_ns, _SOURCES[source], flags)
+    w, qx, qy, qz, _ = _QUAT.unpack_from(buf, body)
+    extra = bytes(buf[body + _QUAT.size : pos + length])
+    reading = Quat(node, unit_quat(w, qx, qy, qz, normalise=False), extra)
     return RawSample(reading, seq, t_ns, _SOURCES[source])
 
 

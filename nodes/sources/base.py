@@ -26,6 +26,7 @@ from typing import TYPE_CHECKING, Any, ClassVar, Protocol
 from bodynet.core.errors import Reason, RejectCounts, Rejected
 from bodynet.core.keys import Site
 from bodynet.core.messages import (
+    RESUMED,
     NodeStatus,
     NoNewData,
     OleAccel,
@@ -83,7 +84,7 @@ class Decoder(Protocol):
 class Sink(Protocol):
     """Where an adapter puts what it makes of the events."""
 
-    def sample(self, reading: Reading, seq: int, t_s: float) -> None: ...
+    def sample(self, reading: Reading, seq: int, t_s: float, flags: int = 0) -> None: ...
     def reject(self, rejected: Rejected) -> None: ...
     def status(self, event: NoNewData | SensorAbsent | NodeStatus) -> None: ...
 
@@ -161,6 +162,17 @@ class PeriodicSeq:
             grid.recent.clear()
 
 
+#: A SmartSuit node silent this long (s), and for this many of its periods or more
+#: in a row, on a link its bridge saw alive, may have rebooted: its next sample is
+#: ``RESUMED`` (a dsPIC33F's power-up timer alone is 128 ms; a lost frame is no reboot)
+REBOOT_SILENCE_S = 0.1
+REBOOT_MISSED = 2
+#: A stretch this long in which the link was not seen (nothing read: a host too busy
+#: to read, whose transport stamps frames when they are read) hides whether a node
+#: was silent in it: no silence across it counts.
+BLIND_S = REBOOT_SILENCE_S / 2
+
+
 class Adapter:
     """A source's decoder events -> readings with a sequence number and a time.
 
@@ -170,6 +182,12 @@ class Adapter:
     rate_hz``. The default numbers samples by the last :class:`Tick` (the
     stream's own, or the node's own when the tick names it); a source whose
     stream has no ticks numbers them otherwise (:meth:`stamp`).
+
+    A SmartSuit sample is flagged ``RESUMED`` when its node may have rebooted
+    since its last one (:meth:`resumed`): by default when the node was asked and
+    did not answer (a ``no_reply``: a polled source); :class:`PeriodicAdapter`
+    judges its nodes' silences too. A device opened again (:meth:`restart`)
+    claims nothing: its nodes' first samples are not flagged.
     """
 
     def __init__(self, period_s: float, rate_hz: float | None = None) -> None:
@@ -178,19 +196,43 @@ class Adapter:
         self.tick = 0
         self.node_ticks: dict[int, int] = {}
         self.base = 0  # ticks of earlier connections, so sequence numbers keep rising
+        self.unanswered: set[int] = set()  # nodes asked and silent since their last sample
+        #: whether the units' times may be when they were read, not when they came (a
+        #: live bridge's): then a stretch in which nothing was read is no silence
+        self.watched = False
 
     def events(self, events: Iterable[StreamEvent], t_s: float | None, sink: Sink) -> None:
-        """Hand each event to ``sink``: samples stamped, markers taken, the rest as is."""
+        """Hand each event to ``sink``: samples stamped (and flagged), markers taken,
+        the rest as is."""
         for event in events:
-            if isinstance(event, OleAccel | Quat):
+            if isinstance(event, OleAccel):
+                seq, t = self.stamp(event, t_s)
+                sink.sample(event, seq, t, RESUMED if self.resumed(event.node, t) else 0)
+            elif isinstance(event, Quat):
                 seq, t = self.stamp(event, t_s)
                 sink.sample(event, seq, t)
             elif isinstance(event, Tick):
                 self.take_tick(event)
             elif isinstance(event, Rejected):
+                if event.reason is Reason.NO_REPLY and event.node is not None:
+                    self.unanswered.add(event.node)
                 sink.reject(event)
             else:
                 sink.status(event)
+
+    def resumed(self, node: int, t_s: float) -> bool:
+        """Whether ``node``'s sample at ``t_s`` is its first after a silence that may
+        have held a reboot (its encoder's zero lost): here, after a request it left
+        unanswered (at least the reply's timeout and late window: 0.2 s)."""
+        if node in self.unanswered:
+            self.unanswered.discard(node)
+            return True
+        return False
+
+    def seen(self, t_from: float, t_to: float | None = None) -> None:
+        """The link was read and alive from ``t_from`` to ``t_to`` (at ``t_from``
+        alone if None): a unit of no node, or a read that waited and got nothing.
+        Only :class:`PeriodicAdapter` needs it."""
 
     def take_tick(self, tick: Tick) -> None:
         if tick.node is None:
@@ -203,20 +245,48 @@ class Adapter:
         return self.base + tick, (tick / self.rate_hz if t_s is None else t_s)
 
     def restart(self) -> None:
-        """The device was opened again: its ticks start over, ours go on."""
+        """The device was opened again: its ticks start over, ours go on; what its
+        nodes did while it was away is not known."""
         self.base += self.tick + 1
         self.tick = 0
+        self.unanswered.clear()
 
 
 class PeriodicAdapter(Adapter):
     """For a stream with no ticks of its own: numbered by arrival
     (:class:`PeriodicSeq`: a gap is a missed period), or, without times, by order
-    at ``rate_hz``."""
+    at ``rate_hz``.
+
+    A node's sample is ``RESUMED`` when the node said nothing for
+    ``REBOOT_SILENCE_S`` and ``REBOOT_MISSED`` or more of its periods (and half
+    one more, for jitter) while the link was seen alive: no stretch of ``BLIND_S``
+    in it without a unit of any node or a read that waited (:meth:`seen`). A
+    capture's times are its link's record, so the link counts as seen
+    throughout (``watched`` False); a live bridge, whose transport may stamp
+    frames when they are read, says when it read (``watched`` True)."""
 
     def __init__(self, period_s: float, rate_hz: float | None = None) -> None:
         super().__init__(period_s, rate_hz)
         self._periodic = PeriodicSeq(period_s)
         self.count = 0
+        self._last: dict[int, float] = {}  # each node's last sample since the link opened
+        self._seen = -math.inf  # the last time the link was seen alive
+        self._blind_end = -math.inf  # when it was seen again after a blind stretch
+        self._silence_s = max(REBOOT_SILENCE_S, (REBOOT_MISSED + 0.5) * period_s)
+
+    def seen(self, t_from: float, t_to: float | None = None) -> None:
+        if self.watched and t_from - self._seen > BLIND_S:
+            self._blind_end = t_from
+        self._seen = max(self._seen, t_from if t_to is None else t_to)
+
+    def resumed(self, node: int, t_s: float) -> bool:
+        self.seen(t_s)
+        last = self._last.get(node)
+        self._last[node] = t_s
+        asked = super().resumed(node, t_s)
+        if last is None:
+            return asked
+        return asked or (t_s - last >= self._silence_s and last >= self._blind_end)
 
     def stamp(self, reading: Reading, t_s: float | None) -> tuple[int, float]:
         if t_s is None:
@@ -227,6 +297,8 @@ class PeriodicAdapter(Adapter):
     def restart(self) -> None:
         super().restart()
         self._periodic.resync()
+        self._last.clear()
+        self._seen = self._blind_end = -math.inf
 
 
 @dataclass(frozen=True, slots=True)
@@ -236,6 +308,7 @@ class CapturedSample:
     t_s: float
     reading: Reading
     site: Site
+    flags: int = 0  # as a raw sample's (``RESUMED``)
 
 
 @dataclass(slots=True)
@@ -286,13 +359,13 @@ class CaptureSink:
         self.stats = stats
         self.out: list[CapturedSample] = []
 
-    def sample(self, reading: Reading, seq: int, t_s: float) -> None:
+    def sample(self, reading: Reading, seq: int, t_s: float, flags: int = 0) -> None:
         site = self.sites.get(reading.node)
         if site is None:
             self.reject(Rejected(Reason.UNKNOWN_NODE, f"node {reading.node} has no site"))
             return
         self.stats.decoded += 1
-        self.out.append(CapturedSample(round(t_s, 9), reading, site))
+        self.out.append(CapturedSample(round(t_s, 9), reading, site, flags))
 
     def reject(self, rejected: Rejected) -> None:
         self.stats.count(rejected)

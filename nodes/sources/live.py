@@ -23,7 +23,14 @@ import zenoh
 
 from bodynet.core.codecs import smartsuit_can as can_codec
 from bodynet.core.errors import Reason, Rejected
-from bodynet.core.messages import NodeStatus, NoNewData, Reading, SensorAbsent, StreamEvent
+from bodynet.core.messages import (
+    RESUMED,
+    NodeStatus,
+    NoNewData,
+    Reading,
+    SensorAbsent,
+    StreamEvent,
+)
 from bodynet.nodes.device import DecodeWatch, DeviceError, in_use, keep_connected
 from bodynet.nodes.publisher import SitePublisher
 from bodynet.nodes.sources.base import CaptureError, CaptureStats, Source
@@ -46,6 +53,8 @@ CAN_ERRORS = (can.CanError, OSError, serial.SerialException)
 BAD_FRAME_ERRORS = (ValueError, IndexError, TypeError, struct.error)
 #: Unreadable frames in a row after which the bus is taken for broken and reopened.
 MAX_UNREADABLE = 1000
+#: How long one read of the bus waits for a frame (s)
+RECV_TIMEOUT_S = 0.1
 
 
 class Bridge:
@@ -64,9 +73,13 @@ class Bridge:
         self.adapter.events(events, time.time() if t_s is None else t_s, self)
 
     # --- the adapter's sink -------------------------------------------------------------
-    def sample(self, reading: Reading, seq: int, t_s: float) -> None:
+    def sample(self, reading: Reading, seq: int, t_s: float, flags: int = 0) -> None:
         self.absent.discard(reading.node)
-        self.publisher.publish(reading, seq, round(t_s * 1e9))
+        if flags & RESUMED:
+            log.warning("%s: node %d sends again after a silence in which it may have "
+                        "rebooted: its encoder's zero is lost until a calibration pose",
+                        self.publisher.name, reading.node)  # fmt: skip
+        self.publisher.publish(reading, seq, round(t_s * 1e9), flags)
 
     def reject(self, rejected: Rejected) -> None:
         self.publisher.reject(rejected, rejected.node)
@@ -123,10 +136,10 @@ class SerialBridge(Bridge):
         keep_connected(self.publisher, open_port, serve, lambda link: link.close(),
                        SERIAL_ERRORS, stop, path=port)  # fmt: skip
 
-    def sample(self, reading: Reading, seq: int, t_s: float) -> None:
+    def sample(self, reading: Reading, seq: int, t_s: float, flags: int = 0) -> None:
         if self.watch is not None:
             self.watch.decoded()
-        super().sample(reading, seq, t_s)
+        super().sample(reading, seq, t_s, flags)
 
     def status(self, event: NoNewData | SensorAbsent | NodeStatus) -> None:
         if self.watch is not None:
@@ -158,16 +171,19 @@ class CanBusBridge(Bridge):
         self._decoder = source.decoder()
         self.clock = BusClock()
         self._unreadable = 0  # frames python-can could not read, in a row
+        self.adapter.watched = True  # an adapter may stamp frames when read (slcan)
 
     def handle(self, msg: can.Message) -> None:
         """Decode and publish one message (bad frames are counted, never raised),
         at its time on the wall clock (:class:`BusClock`); another device's frame
         is counted as foreign."""
         frame = frame_of(msg)
+        t_s = self.clock.wall(msg.timestamp, time.time())
         if (kind := can_codec.foreign(frame)) is not None:
             self.publisher.count_foreign(kind)
+            self.adapter.seen(t_s)  # the bus is alive
             return
-        self.feed(self._decoder.feed(frame), self.clock.wall(msg.timestamp, time.time()))
+        self.feed(self._decoder.feed(frame), t_s)
 
     def run_bus(self, stop: threading.Event, **bus_args: Any) -> None:
         """Serve ``can.Bus(**bus_args)`` until ``stop``, reopening it when it fails (not
@@ -189,8 +205,9 @@ class CanBusBridge(Bridge):
         """The bus's next message, or None: none came within 0.1 s, or what the
         adapter sent could not be read as a frame (counted as garbage: the device is
         still there, the next frame is read)."""
+        start = time.time()
         try:
-            msg = bus.recv(timeout=0.1)
+            msg = bus.recv(timeout=RECV_TIMEOUT_S)
         except BAD_FRAME_ERRORS as exc:
             why = f"{type(exc).__name__}: {exc}"
         except can.CanOperationError as exc:
@@ -201,6 +218,8 @@ class CanBusBridge(Bridge):
             why = f"not text: {exc.__cause__}"
         else:
             self._unreadable = 0
+            if msg is None:  # read and quiet that long, no more: the host may stall after
+                self.adapter.seen(start, min(time.time(), start + RECV_TIMEOUT_S))
             return msg
         self.publisher.reject(Rejected(Reason.GARBAGE, f"a frame python-can cannot read ({why})"))
         self._unreadable += 1
@@ -212,6 +231,7 @@ class CanBusBridge(Bridge):
     def run_replay(self, path: Path, stop: threading.Event, loop: bool = False) -> None:
         """Play a CAN log back at its recorded speed, stamped with the time of play."""
         self.publisher.set_device("replay")
+        self.adapter.watched = False  # the log's spacing is the bus's record
         while not stop.is_set():
             stats = CaptureStats()
             frames = 0
