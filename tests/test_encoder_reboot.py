@@ -11,15 +11,25 @@ for; nothing is timed.
 
 from __future__ import annotations
 
+import itertools
 import math
 import time
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 import can
 import pytest
 import zenoh
-from zenoh_helpers import Collector, Running, health_collector, wait_until
+from zenoh_helpers import (
+    Collector,
+    Running,
+    client,
+    free_port,
+    health_collector,
+    raw_collector,
+    wait_until,
+)
 
 from bodynet.core import keys
 from bodynet.core.codecs import concentrator as codec
@@ -34,11 +44,12 @@ from bodynet.core.skeleton import TPOSE
 from bodynet.gateway.service import Gateway
 from bodynet.nodes.can_bridge import CanBridge
 from bodynet.nodes.emulator import BodyEmulator, Realism, Truth, smartsuit_sensors
-from bodynet.nodes.hardware import CanNodes
+from bodynet.nodes.hardware import CanNodes, SlcanAdapterEmulator
 from bodynet.nodes.motion import Routine
 from bodynet.nodes.sources.base import REBOOT_SILENCE_S, Adapter
 from bodynet.nodes.sources.concentrator import Concentrator
 from bodynet.nodes.sources.smartsuit_can import SmartSuitCan
+from bodynet.session import open_session, session_config
 
 NODES = (1, 2, 3)  # the left arm's shoulder, elbow and wrist modules
 ELBOW = 2
@@ -312,3 +323,101 @@ def test_a_node_rebooted_with_its_joint_bent_is_flagged_until_a_calibration_pose
             assert not math.isnan(later[-1].unc_deg[ELBOW_DOF])
         finally:
             nodes.stop()
+
+
+def test_a_router_restart_between_bridge_and_gateway_keeps_every_encoder_zero(
+    tmp_path: Path, run_thread: Callable[..., Running]
+) -> None:
+    """The arm's nodes through the CAN bridge and the gateway, both clients of a
+    router that restarts: the gateway hears nothing of the arm for the outage, a
+    silence of its own link, not of the nodes. No zero is lost: the elbow is
+    measured, and right, in every pose after it, and health says no encoder lost."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    router = open_session(session_config("router", listen=[endpoint]))
+    sessions = [client(endpoint) for _ in range(3)]
+    bridge_session, gateway_session, watcher = sessions
+    gateway = Gateway(gateway_session, profile_path=tmp_path / "subject.toml")
+    gateway_run = Running(gateway.run)
+    angles = {"left_shoulder_flexion_deg": 30.0, ELBOW_DOF: 70.0}
+    truths = _Truths()
+    channel = f"outage-can-{time.monotonic_ns()}"
+    bridge = CanBridge(bridge_session, "outage-can")
+    run_thread(bridge.run_bus, interface="virtual", channel=channel)
+    arm = _Arm(Collector(watcher, keys.pose_key(), pose.decode), truths)
+    health = health_collector(watcher)
+    body = BodyEmulator(Routine("held", "", lambda t: dict(angles)), smartsuit_sensors([LEFT_ARM]),
+                        realism=Realism.ideal())  # fmt: skip
+    try:
+        with can.Bus(interface="virtual", channel=channel) as bus:
+            nodes = CanNodes(bus, body, truth=truths)
+            nodes.start()
+            try:
+                start = time.time_ns()
+                arm.wait_elbow(70.0, start)
+                before = arm.since(start)[-1].sources[ELBOW_KEY]
+                router.close()  # every client reconnects by itself
+                sent = nodes.sent[ELBOW]
+                wait_until(lambda: nodes.sent[ELBOW] > sent + 30, 10.0, "frames in the outage")
+                router = open_session(session_config("router", listen=[endpoint]))
+                angles[ELBOW_DOF] = 50.0
+                restarted = time.time_ns()
+                arm.wait_elbow(50.0, restarted)
+                arm.wait(30, restarted)
+            finally:
+                nodes.stop()
+        after = arm.since(before)
+        # the gateway did hear a silence of the elbow's node, long enough for a reboot
+        times = sorted({f.sources[ELBOW_KEY] for f in after})
+        assert max(b - a for a, b in itertools.pairwise(times)) >= REBOOT_SILENCE_S * 1e9
+        assert arm.check(after) == 0  # not one pose flagged, none wrong
+        assert all(is_measured(f, ELBOW_DOF) for f in after)
+        said = health.wait_for(lambda h: any(m.get("source") == "gateway"
+                                             and m["t_ns"] > restarted for _, m in h),
+                               timeout=10)  # fmt: skip
+        gateways = [m for _, m in said if m.get("source") == "gateway"]
+        assert not any("encoders" in m for m in gateways)  # none lost, none set by a pose
+        assert bridge.publisher.nodes[ELBOW].resumed == 0
+    finally:
+        gateway_run.stop()
+        gateway.close()
+        for s in sessions:
+            s.close()
+        router.close()
+
+
+def test_the_bridges_own_adapter_lost_and_reopened_flags_nothing_a_reboot_after_it_does(
+    zsession: zenoh.Session, tmp_path: Path, run_thread: Callable[..., Running]
+) -> None:
+    """The arm's nodes behind an emulated slcan adapter on a pseudo-terminal, through
+    python-can's slcan interface and the CAN bridge: the adapter unplugged, the
+    bridge reopening it until it is back, then its frames flow again; no sample is
+    flagged ``RESUMED`` (what the nodes did meanwhile is not known). The elbow's
+    node rebooted after that is flagged, once."""
+    truths = _Truths()
+    body = BodyEmulator(Routine("held", "", lambda t: {ELBOW_DOF: 40.0}),
+                        smartsuit_sensors([LEFT_ARM]), realism=Realism.ideal())  # fmt: skip
+    adapter = SlcanAdapterEmulator(tmp_path / "slcan0", body, truth=truths)
+    adapter.start()
+    raw, health = raw_collector(zsession), health_collector(zsession)
+    bridge = CanBridge(zsession, "slcan-reopened")
+    running = run_thread(
+        bridge.run_bus, interface="slcan", channel=str(adapter.link), sleep_after_open=0
+    )
+    try:
+        raw.wait_for(lambda s: len(s) >= 60)
+        adapter.port.unplug()
+        health.wait_for(lambda h: bool(h) and h[-1][1]["device"] == "disconnected")
+        elbow = bridge.publisher.nodes[ELBOW]
+        before = elbow.samples
+        adapter.port.plug()
+        wait_until(lambda: elbow.samples >= before + 50, what="samples after the plug")
+        assert elbow.resumed == 0
+        adapter.reboot(ELBOW)
+        wait_until(lambda: elbow.resumed == 1, what="the reboot flagged")
+        count = len(raw.wait_for(lambda s: any(x.flags for _, x in s)))
+        flagged = [(k, x) for k, x in raw.wait_for(lambda s: len(s) >= count + 30) if x.flags]
+        assert [(k, x.flags) for k, x in flagged] == [(ELBOW_KEY, RESUMED)]
+    finally:
+        running.stop()
+        adapter.stop()
+        bridge.close()

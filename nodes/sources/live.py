@@ -33,7 +33,7 @@ from bodynet.core.messages import (
 )
 from bodynet.nodes.device import DecodeWatch, DeviceError, in_use, keep_connected
 from bodynet.nodes.publisher import SitePublisher
-from bodynet.nodes.sources.base import CaptureError, CaptureStats, Source
+from bodynet.nodes.sources.base import BLIND_S, CaptureError, CaptureStats, Source
 from bodynet.nodes.sources.can_transport import (
     BusClock,
     can_log_messages,
@@ -218,8 +218,10 @@ class CanBusBridge(Bridge):
             why = f"not text: {exc.__cause__}"
         else:
             self._unreadable = 0
-            if msg is None:  # read and quiet that long, no more: the host may stall after
-                self.adapter.seen(start, min(time.time(), start + RECV_TIMEOUT_S))
+            # read and quiet all along; unless the read came back late: then this
+            # thread did not run (the host busy, or a lock held), nor perhaps the nodes'
+            if msg is None and (end := time.time()) - start <= RECV_TIMEOUT_S + BLIND_S / 2:
+                self.adapter.seen(start, end)
             return msg
         self.publisher.reject(Rejected(Reason.GARBAGE, f"a frame python-can cannot read ({why})"))
         self._unreadable += 1
