@@ -17,7 +17,7 @@ from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
-from bodynet.core.messages import OleAccel
+from bodynet.core.messages import RESUMED, OleAccel
 from bodynet.nodes import sources
 from bodynet.nodes.sources.base import CapturedSample, CaptureError, CaptureStats
 from bodynet.nodes.sources.can_transport import can_log_messages, frame_of
@@ -82,6 +82,8 @@ def sample_json(sample: CapturedSample) -> dict[str, object]:
     if isinstance(r, OleAccel):
         out["encoder"] = r.encoder
         out["accel"] = list(r.accel)
+        if sample.flags & RESUMED:
+            out["resumed"] = True
     else:
         out["quat_wxyz"] = list(r.wxyz)
     return out

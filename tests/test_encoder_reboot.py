@@ -31,9 +31,10 @@ from zenoh_helpers import (
     wait_until,
 )
 
+from bodynet.clients.mcap_store import read_poses, read_raw
 from bodynet.core import keys
 from bodynet.core.codecs import concentrator as codec
-from bodynet.core.codecs import pose
+from bodynet.core.codecs import pose, smartsuit_can
 from bodynet.core.codecs.pose import UNCALIBRATED, is_measured
 from bodynet.core.codecs.smartsuit_can import PERIOD_S
 from bodynet.core.errors import Rejected
@@ -49,6 +50,7 @@ from bodynet.nodes.motion import Routine
 from bodynet.nodes.sources.base import REBOOT_SILENCE_S, Adapter
 from bodynet.nodes.sources.concentrator import Concentrator
 from bodynet.nodes.sources.smartsuit_can import SmartSuitCan
+from bodynet.offline.process import process
 from bodynet.session import open_session, session_config
 
 NODES = (1, 2, 3)  # the left arm's shoulder, elbow and wrist modules
@@ -421,3 +423,45 @@ def test_the_bridges_own_adapter_lost_and_reopened_flags_nothing_a_reboot_after_
         running.stop()
         adapter.stop()
         bridge.close()
+
+
+def test_a_capture_with_a_node_rebooted_is_processed_with_its_encoder_flagged(
+    tmp_path: Path,
+) -> None:
+    """A candump log of the arm in which the elbow's node goes silent 0.2 s and
+    comes back counting from its bent elbow: ``bodynet process`` reads it with
+    the live bridge's rule (the capture reader shares its adapter), so the poses
+    before the silence measure the elbow, right, and every one after it has the
+    elbow's flexion flagged ``uncalibrated``; the raw sample recorded says
+    ``RESUMED``."""
+    angles = {ELBOW_DOF: 0.0}
+    body = BodyEmulator(Routine("held", "", lambda t: dict(angles)), smartsuit_sensors([LEFT_ARM]),
+                        realism=Realism.ideal())  # fmt: skip
+    log = tmp_path / "arm.log"
+    with log.open("w") as f:
+        for tick in range(300):
+            t = tick * 0.01
+            angles[ELBOW_DOF] = 60.0 if t >= 1.0 else 0.0
+            if tick == 150:
+                body.power_on(ELBOW, t)  # back from a reboot, the elbow bent
+            for r in body.sample(t)[0]:
+                if r.node == ELBOW and 130 <= tick < 150:
+                    continue  # silent while it boots
+                frame = smartsuit_can.encode_reading(r)
+                f.write(f"({1000 + t:.6f}) can0 "
+                        f"{frame.arbitration_id:08X}#{frame.data.hex().upper()}\n")  # fmt: skip
+    out = tmp_path / "arm.mcap"
+    process(log, "can-log", out, tpose_s=0)
+    frames = [f for _, f in read_poses(out)]
+    t_back = 1000 + 1.5
+    before = [f for f in frames if 1000 + 1.1 < f.t_ns / 1e9 < 1000 + 1.3 - 1e-6]
+    after = [f for f in frames if f.t_ns / 1e9 >= t_back - 1e-6]
+    assert before
+    assert after
+    assert all(is_measured(f, ELBOW_DOF) and abs(f.angles_deg[ELBOW_DOF] - 60.0) < 0.5
+               for f in before)  # fmt: skip
+    assert all(f.flags.get(ELBOW_DOF) == UNCALIBRATED for f in after)
+    flagged = [s for _, _, s in read_raw(out) if s.flags]
+    assert [(s.reading.node, s.flags, s.t_ns) for s in flagged] == [
+        (ELBOW, RESUMED, round(t_back * 1e9))
+    ]
