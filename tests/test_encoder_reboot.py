@@ -259,6 +259,21 @@ class _Arm:
         return sum(frame.flags.get(ELBOW_DOF) == UNCALIBRATED for frame in frames)
 
 
+def _can_arm(session: zenoh.Session, watcher: zenoh.Session, run_thread: Callable[..., Running],
+             angles: dict[str, float], name: str,
+             ) -> tuple[CanBridge, str, _Arm, Collector, BodyEmulator]:  # fmt: skip
+    """A CAN bridge on ``session`` reading a new virtual bus (its channel), the
+    poses (against the truth) and health seen on ``watcher``, and the arm held at
+    ``angles`` to emulate on that bus."""
+    channel = f"{name}-can-{time.monotonic_ns()}"
+    bridge = CanBridge(session, f"{name}-can")
+    run_thread(bridge.run_bus, interface="virtual", channel=channel)
+    arm = _Arm(Collector(watcher, keys.pose_key(), pose.decode), _Truths())
+    body = BodyEmulator(Routine("held", "", lambda t: dict(angles)), smartsuit_sensors([LEFT_ARM]),
+                        realism=Realism.ideal())  # fmt: skip
+    return bridge, channel, arm, health_collector(watcher), body
+
+
 def test_a_node_rebooted_with_its_joint_bent_is_flagged_until_a_calibration_pose(
     gateway: Gateway, zsession: zenoh.Session, run_thread: Callable[..., Running]
 ) -> None:
@@ -271,14 +286,8 @@ def test_a_node_rebooted_with_its_joint_bent_is_flagged_until_a_calibration_pose
     elbow is then measured, and right, bent to 60 deg."""
     angles: dict[str, float] = {"left_shoulder_flexion_deg": 30.0, ELBOW_DOF: 80.0,
                                 "left_wrist_flexion_deg": 20.0}  # fmt: skip
-    truths = _Truths()
-    channel = f"reboot-can-{time.monotonic_ns()}"
-    bridge = CanBridge(zsession, "reboot-can")
-    run_thread(bridge.run_bus, interface="virtual", channel=channel)
-    arm = _Arm(Collector(zsession, keys.pose_key(), pose.decode), truths)
-    health = health_collector(zsession)
-    body = BodyEmulator(Routine("held", "", lambda t: dict(angles)), smartsuit_sensors([LEFT_ARM]),
-                        realism=Realism.ideal())  # fmt: skip
+    _, channel, arm, health, body = _can_arm(zsession, zsession, run_thread, angles, "reboot")
+    truths = arm.truths
     with can.Bus(interface="virtual", channel=channel) as bus:
         nodes = CanNodes(bus, body, truth=truths)
         nodes.start()
@@ -341,14 +350,9 @@ def test_a_router_restart_between_bridge_and_gateway_keeps_every_encoder_zero(
     gateway = Gateway(gateway_session, profile_path=tmp_path / "subject.toml")
     gateway_run = Running(gateway.run)
     angles = {"left_shoulder_flexion_deg": 30.0, ELBOW_DOF: 70.0}
-    truths = _Truths()
-    channel = f"outage-can-{time.monotonic_ns()}"
-    bridge = CanBridge(bridge_session, "outage-can")
-    run_thread(bridge.run_bus, interface="virtual", channel=channel)
-    arm = _Arm(Collector(watcher, keys.pose_key(), pose.decode), truths)
-    health = health_collector(watcher)
-    body = BodyEmulator(Routine("held", "", lambda t: dict(angles)), smartsuit_sensors([LEFT_ARM]),
-                        realism=Realism.ideal())  # fmt: skip
+    bridge, channel, arm, health, body = _can_arm(bridge_session, watcher, run_thread, angles,
+                                                  "outage")  # fmt: skip
+    truths = arm.truths
     try:
         with can.Bus(interface="virtual", channel=channel) as bus:
             nodes = CanNodes(bus, body, truth=truths)
