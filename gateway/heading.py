@@ -264,8 +264,8 @@ def calibrate_window(
     if span_all < want or short:
         what = f"{len(short)} tag(s) with fewer than {MIN_SAMPLES} samples" if short else ""
         raise CalibrationRefused(
-            f"the window is too short: {span_all:.2f} s"
-            + (f" ({what})" if what else "") + f"; it needs at least {want:.2f} s", report
+            f"the window is too short: {span_all:.3g} s"
+            + (f" ({what})" if what else "") + f"; it needs at least {want:.3g} s", report
         )  # fmt: skip
     moved = {k: t["still_deg"] for k, t in tags.items() if t["still_deg"] > t["still_limit_deg"]}
     if moved:

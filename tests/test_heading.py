@@ -166,6 +166,11 @@ def test_bad_calibration_windows_are_refused_with_the_reason() -> None:
     assert "too short" in _refusal(still, seconds=2.0)  # asked for 2 s, got 0.8
     lost = {s: v for s, v in still.items() if s.name != "chest"}
     assert "body/trunk/mid/chest/raw" in _refusal(lost, expected=still)
+    # 7 samples 56.7 ms apart cover 0.397 s, short of 0.4 s: the message says so (it
+    # said "0.40 s; it needs at least 0.40 s" once, on a machine too loaded to sample)
+    sparse = {s: [(0.1 + 0.0567 * i, q) for i, (_, q) in enumerate(v[:7])]
+              for s, v in still.items()}  # fmt: skip
+    assert "too short: 0.397 s; it needs at least 0.4 s" in _refusal(sparse, seconds=0.5)
 
 
 def test_recalibration_reports_each_tags_residual() -> None:
