@@ -1494,20 +1494,28 @@ class BodyHeading:
                 return "switched", self.profile
             if self.pairs is None:  # one shared heading: nothing is known until found
                 return None
-        elif self.check is not None and self.check.verdict == "shared":
-            # the found heading's joints watched on: a check that saw few joints
-            orientations = {site.raw_key: s.reading.wxyz for site, s in samples.items()
-                            if hasattr(s.reading, "wxyz")}  # fmt: skip
-            if self.check.update(t_s, orientations, current) == "own":
-                self._switch()
-                self._announce = False
-                return "switched", self.profile
+        elif self.watch(t_s, samples, current):
+            return "switched", self.profile
         # tags of their own: the known ones are held while others' are still searched
         if self.drift is not None and self.drift.pairs:
             turns = self.drift.update(t_s, samples, current, encoder_zeros)
             if turns:
                 return "turned", turned_headings(current, turns)
         return None
+
+    def watch(self, t_s: float, samples: Mapping[Site, Any], current: Profile) -> bool:
+        """``auto``'s heading, once taken, checked on by the joints it drives (a check
+        that saw few joints may be broken by one that tilts later): True when they
+        break it, and each tag's heading is then searched (``independent``)."""
+        if self.ended or self.check is None or self.check.verdict != "shared":
+            return False
+        orientations = {site.raw_key: s.reading.wxyz for site, s in samples.items()
+                        if hasattr(s.reading, "wxyz")}  # fmt: skip
+        if self.check.update(t_s, orientations, current) != "own":
+            return False
+        self._switch()
+        self._announce = False
+        return True
 
     def end_search(self) -> None:
         """No heading is searched any more (``bodynet process``: its first pass had

@@ -159,14 +159,20 @@ def _solver(profile: Profile, topology: set[str], as_given: bool) -> BodySolver:
 
 
 def _find_heading(heading: BodyHeading, ticks: Iterator[list[CapturedSample]]) -> None:
-    """The first pass: the tags' heading from a hinge's motion, if one moves."""
+    """The first pass: the tags' heading from a hinge's motion, if one moves; an
+    ``auto`` heading taken is watched to the capture's end (a joint that tilts
+    later may break it: then each tag's is searched, and the ticks before are
+    not solved with it)."""
     latest: dict[Site, RawSample] = {}
     for tick in ticks:
         for s in tick:
             latest[s.site] = RawSample(s.reading, 0, 0)
-        heading.update(tick[-1].t_s, latest)
-        if not heading.searching:
+        if heading.searching:
+            heading.update(tick[-1].t_s, latest)
+        elif heading.check is None or heading.check.verdict != "shared":
             break
+        else:
+            heading.watch(tick[-1].t_s, latest, heading.profile)
 
 
 def _hold_drift(heading: BodyHeading, t_s: float, latest: Mapping[Site, RawSample],

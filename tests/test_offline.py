@@ -288,3 +288,62 @@ def test_every_row_of_a_fast_or_jittery_file_is_a_pose(
     poses = [t for t, _ in read_poses(out)]
     assert len(poses) == len(times), name
     assert [t / 1e9 for t in poses] == pytest.approx([t + 0.004 for t in times])
+
+
+def test_a_shared_heading_that_later_breaks_is_not_kept_by_process(tmp_path: Path) -> None:
+    """`auto` meeting 6-axis tags whose legs happen to share one reference (their
+    own, not the arms'): a walk with the arms still confirms the knees' heading
+    (the knees and ankles agree with it; no arm joint has tilted), and the arms'
+    reaches later break it. ``bodynet process`` has the whole capture: it does
+    not keep the shared heading for the ticks before the break (it switches to
+    each tag's own heading in its first pass), so no dof is ever shown measured
+    far from the truth; the legs' tags' headings are then found from the walk."""
+    from dataclasses import replace
+
+    import numpy as np
+
+    from bodynet.cli.main import main
+    from bodynet.clients.mcap_store import read_poses
+    from bodynet.core.profile import mount
+    from bodynet.core.skeleton import CALIBRATION_POSES
+    from bodynet.nodes.emulator import Headings
+    from bodynet.nodes.motion import reach
+
+    still, walk = dict(CALIBRATION_POSES["npose"]), ROUTINES["walk"].angles
+    left, right = reach("left"), reach("right")
+
+    def angles(t: float) -> dict[str, float]:
+        if t < 1.0:
+            return still
+        legs = {k: v for k, v in walk(t).items() if k.split("_")[1] in ("hip", "knee", "ankle")}
+        if t < 6.0:
+            return {**still, **legs}
+        return {**still, **walk(t), **left(t - 6.0), **right(t - 6.0)}
+
+    tags = imu_tags()
+    body = BodyEmulator(Routine("legs, then arms", "", angles), tags,
+                        realism=replace(Realism.ideal(), headings=Headings.INDEPENDENT),
+                        seed=2)  # fmt: skip
+    bank = body._quat
+    heads = np.array(bank.headings_deg, dtype=float)
+    legs = [j for j, i in enumerate(body._quat_idx) if "/leg/" in body.sensors[i].site.raw_key]
+    heads[legs] = heads[legs[0]]  # the legs' tags share a reference, the others' their own
+    bank.headings_deg = heads
+    header = ["time"] + [f"{mount(t.site).segment}_{c}" for t in tags for c in "wxyz"]
+    lines, truths = [",".join(header)], []
+    for k in range(700):
+        readings, _ = body.sample(k / 50)
+        truths.append(angles(k / 50))
+        lines.append(",".join([repr(k / 50)] + [repr(c) for r in readings
+                                                for c in r.wxyz]))  # type: ignore[union-attr]  # fmt: skip
+    capture = tmp_path / "trial.csv"
+    capture.write_text("\n".join(lines) + "\n")
+    out = tmp_path / "trial.mcap"
+    assert main(["process", str(capture), "--tpose-s", "0.9", "--pose", "npose",
+                 "-o", str(out)]) == 0  # fmt: skip
+    worst = (0.0, "", 0.0)
+    for k, (_, frame) in enumerate(read_poses(out)):
+        for name, value in frame.angles_deg.items():
+            if name not in frame.flags or frame.flags[name] == "clamped":
+                worst = max(worst, (abs(value - truths[k].get(name, 0.0)), name, k / 50))
+    assert worst[0] < 5.0, worst
