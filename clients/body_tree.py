@@ -18,7 +18,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from bodynet.clients import foxglove_pb
-from bodynet.core.codecs.pose import PoseFrame, is_measured
+from bodynet.core.codecs.pose import UNOBSERVED, UPRIGHT, PoseFrame, is_measured
 from bodynet.core.skeleton import Skeleton, build_skeleton
 
 ROOT_SEGMENT = "pelvis"
@@ -47,14 +47,28 @@ def unmeasured_segments(
 ) -> frozenset[str]:
     """The segments whose world pose rests on an angle ``frame`` does not
     measure (``is_measured`` false on their chain from the pelvis, ``chains``:
-    ``Skeleton.segment_chains``, the default skeleton's if None)."""
-    if not frame.flags:
-        return frozenset()
-    unmeasured = {a for a in frame.flags if not is_measured(frame, a)}
-    if not unmeasured:
+    ``Skeleton.segment_chains``, the default skeleton's if None), but for the
+    upright model's (:func:`chain_breaks`)."""
+    breaks = chain_breaks(frame)
+    if not breaks:
         return frozenset()
     return frozenset(s for s, chain in (chains or default_chains()).items()
-                     if not unmeasured.isdisjoint(chain))  # fmt: skip
+                     if not breaks.isdisjoint(chain))  # fmt: skip
+
+
+def chain_breaks(frame: PoseFrame) -> frozenset[str]:
+    """The angles of ``frame`` a segment's world pose below them cannot stand on:
+    those ``is_measured`` is false for, but for the upright model's (reasons
+    ``unobserved`` and ``upright`` only: the trunk of a body with no trunk sensor,
+    the reference its limbs are measured against, as the pelvis at the origin is)."""
+    if not frame.flags:
+        return frozenset()
+    reasons = frame.reasons
+    return frozenset(a for a in frame.flags if not is_measured(frame, a)
+                     and frozenset(reasons.get(a, ())) != _UPRIGHT)  # fmt: skip
+
+
+_UPRIGHT = frozenset({UNOBSERVED, UPRIGHT})
 
 
 def local_poses(

@@ -25,7 +25,8 @@ joint a channel belongs to).
 Channels that no measurement stands behind carry NaN, never a held value:
 an angle flagged anything but ``clamped`` (``pose.is_measured``: the gateway
 flags what rests on a stale sensor, reason ``stale``); a segment whose chain
-from the pelvis crosses such an angle (its world pose rests on a guess);
+from the pelvis crosses such an angle (its world pose rests on a guess; the
+upright model a body with no trunk sensor stands on is its reference, no guess);
 anything the pose message lacks.
 
 Timestamps: each sample carries its own source time (the pose's ``t_ns``,
@@ -51,6 +52,7 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
+from bodynet.clients.body_tree import unmeasured_segments
 from bodynet.clients.live import LiveOutput
 from bodynet.core.codecs import pose
 from bodynet.core.keys import parse
@@ -142,12 +144,14 @@ def segment_channels(skeleton: Skeleton) -> list[Channel]:
 
 def segment_values(frame: pose.PoseFrame, chains: Mapping[str, Sequence[str]]) -> list[float]:
     """Position and quaternion of every segment in channel order; NaN for a segment
-    the pose lacks or whose chain holds an angle without measurement."""
+    the pose lacks or whose chain holds an angle the pose lacks or does not measure
+    (``body_tree.unmeasured_segments``: the upright model's is no guess)."""
     out: list[float] = []
-    measured = measured_angles(frame)
+    unmeasured = unmeasured_segments(frame, chains)
+    angles = frame.angles_deg
     for seg, chain in chains.items():
         got = frame.segments.get(seg)
-        if got is None or not all(n in measured for n in chain):
+        if got is None or seg in unmeasured or not all(n in angles for n in chain):
             out.extend((NAN,) * 7)
         else:
             out.extend(got[0])

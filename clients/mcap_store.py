@@ -680,28 +680,41 @@ class McapSink:
 
 
 _FLAGS = b',"flags":'
+_REASONS, _UNC = b',"reasons":', b',"unc_deg":'
 
 
 def _unmeasured_before(data: bytes, at: int) -> frozenset[str] | None:
     """``unmeasured_segments`` of a pose message laid out as the gateway lays
     it out, from its ``flags``: the member just before its ``segments`` (found
-    at ``at`` by ``pose.glance``); None if it is not there so (then decode the
-    message)."""
+    at ``at`` by ``pose.glance``), and where a dof is ``unobserved`` (which the
+    upright model's are), its ``reasons``, between its ``stale`` and
+    ``unc_deg``; None if it is not there so (then decode the message)."""
     start = data.rfind(_FLAGS, 0, at)
-    return None if start < 0 else _unmeasured(data[start + len(_FLAGS) : at])
+    if start < 0:
+        return None
+    flags = data[start + len(_FLAGS) : at]
+    if pose.UNOBSERVED.encode() not in flags:
+        return _unmeasured(flags, b"{}")
+    begin = data.rfind(_REASONS, at)
+    end = data.find(_UNC, begin)
+    if begin < 0 or end < 0:
+        return None
+    return _unmeasured(flags, data[begin + len(_REASONS) : end])
 
 
 @functools.lru_cache(maxsize=256)  # a recording's poses repeat a few sets of flags
-def _unmeasured(text: bytes) -> frozenset[str] | None:
-    if text == b"{}":
+def _unmeasured(flags_text: bytes, reasons_text: bytes) -> frozenset[str] | None:
+    if flags_text == b"{}":
         return frozenset()
     try:
-        flags = orjson.loads(text)
+        flags, reasons = orjson.loads(flags_text), orjson.loads(reasons_text)
     except orjson.JSONDecodeError:
         return None
     if not isinstance(flags, dict) or not all(isinstance(v, str) for v in flags.values()):
         return None
-    return unmeasured_segments(pose.PoseFrame(0, 0, {}, {}, {}, {}, flags))
+    if not isinstance(reasons, dict) or not all(isinstance(v, list) for v in reasons.values()):
+        return None
+    return unmeasured_segments(pose.PoseFrame(0, 0, {}, {}, {}, {}, flags, reasons=reasons))
 
 
 def _without(given: tuple[int, Any, Any], unmeasured: frozenset[str]) -> tuple[int, Any, Any]:

@@ -17,7 +17,9 @@ sensor on the segment, or through joints that are measured themselves (a
 SmartSuit module's). A segment nothing measures (a dead tag) leaves the joint
 above it unobserved, and the joints below it too: a hand's tag against a
 forearm placed at the elbow's rest value gives no wrist angle. The trunk of a
-body with no pelvis sensor is the exception: it stands on the upright model.
+body with no pelvis sensor is the exception: it stands on the upright model,
+and the trunk dofs nothing measures say so (``unobserved`` with ``upright``:
+what hangs below them stands on that reference, as on the pelvis).
 
 Every dof comes with an uncertainty (degrees, about two standard deviations)
 and, where its number is no plain measurement, its reasons (the pose
@@ -64,6 +66,7 @@ from bodynet.core.codecs.pose import (
     STALE,
     UNCALIBRATED,
     UNOBSERVED,
+    UPRIGHT,
     WholeBodyEncoder,
     primary,
 )
@@ -134,6 +137,7 @@ _TRUNK = frozenset(part("trunk", "mid")[1])  # pelvis, thorax, head
 _NOTHING: frozenset[str] = frozenset()
 _UNCAL = frozenset({UNCALIBRATED})
 _UNOBS = frozenset({UNOBSERVED})
+_UPRIGHT = frozenset({UNOBSERVED, UPRIGHT})
 _CLAMPED = frozenset({CLAMPED})
 _STALE = frozenset({UNOBSERVED, STALE})
 _UNCAL_STALE = _UNCAL | _STALE
@@ -1067,12 +1071,13 @@ class BodySolver:
             else:
                 values = np.zeros(len(names))
                 unc = np.full(len(names), math.nan)
-                why = [{UNOBSERVED} for _ in names]
                 # nothing measures this segment: the model's rest pose, and no joint
                 # below is measured against it, but for the trunk on the upright model
-                # with no sensor expected on it (a body with no pelvis sensor)
-                rests[child] = (inherited if child in tick.sort.upright and child not in expected
-                                else inherited | _UNOBS)  # fmt: skip
+                # with no sensor expected on it (a body with no pelvis sensor): the
+                # reference, as the pelvis is (what a chain of segments may stand on)
+                upright = child in tick.sort.upright and child not in expected
+                why = [set(_UPRIGHT if upright and not inherited else _UNOBS) for _ in names]
+                rests[child] = inherited if upright else inherited | _UNOBS
             self._commit(tick, world, joint, values, unc, why)
 
     def _rests(self, segment: str, tick: _Tick) -> frozenset[str]:

@@ -244,3 +244,76 @@ def test_foxglove_transforms_leave_out_a_segment_resting_on_an_unmeasured_angle(
                     if all(measured(frame, a) for a in SKELETON.segment_chains()[s])}  # fmt: skip
             assert got == want, (path.name, index)
             assert below.isdisjoint(got) == (index in WINDOW), (path.name, index)
+
+
+def test_an_arm_alone_has_its_joint_centres_and_transforms(
+    arm_mcap: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The golden SmartSuit capture (a left arm and a head IMU: no pelvis or
+    thorax sensor) processed: its lumbar is the upright model's, not measured
+    (flag ``unobserved``, reason ``upright``: its CSV cells empty, its C3D angle
+    point invalid), and the arm, measured against that reference as against the
+    pelvis, has its CSV and C3D joint centres and its Foxglove transforms (as
+    ``bodynet process`` recorded them, and as the recorder writes them from the
+    messages as received)."""
+    from foxglove_schemas_protobuf.FrameTransforms_pb2 import FrameTransforms
+    from mcap.reader import make_reader
+
+    from bodynet.clients.exports.c3d import ANGLE_SUFFIX
+    from bodynet.clients.mcap_store import McapSink
+    from bodynet.core import keys
+
+    frames = [frame for _, frame in read_poses(arm_mcap)]
+    lumbar = SKELETON.joint("lumbar").angle_names()
+    assert {(f.flags[a], tuple(f.reasons[a])) for f in frames for a in lumbar} == {
+        (pose.UNOBSERVED, (pose.UNOBSERVED, pose.UPRIGHT))}  # fmt: skip
+    chains = SKELETON.segment_chains()
+
+    def stands(frame: pose.PoseFrame, segment: str) -> bool:  # on measures and the upright model
+        return all(measured(frame, a) or a in lumbar for a in chains[segment])
+
+    out = tmp_path / "arm.csv"
+    export(capsys, "csv", arm_mcap, "-o", out)
+    with out.open() as f:
+        rows = list(csv.DictReader(f))
+    assert len(rows) == len(frames)
+    assert all(row[a] == "" for row in rows for a in lumbar)
+    c3d_out = tmp_path / "arm.c3d"
+    export(capsys, "c3d", arm_mcap, "-o", c3d_out)
+    labels, points, residuals = read_c3d(c3d_out)
+    assert (residuals[labels.index("lumbar" + ANGLE_SUFFIX)] < 0).all()
+    for joint, segment in (("left_shoulder", "thorax"), ("left_elbow", "left_upperarm"),
+                           ("left_wrist", "left_forearm")):  # fmt: skip
+        ok = np.array([stands(f, segment) for f in frames])
+        # the encoders and tilts of the upper arm throughout; the elbow's pronation
+        # (the forearm's chain) only where the forearm is off the vertical
+        assert ok.all() if segment != "left_forearm" else ok.sum() > 10, joint
+        cells = np.array([[row[f"{joint}_{a}_m"] for a in "xyz"] for row in rows])
+        assert (cells[~ok] == "").all(), joint
+        want = np.array([f.joints_m[joint] for f in frames])
+        np.testing.assert_allclose(cells[ok].astype(float), want[ok], atol=1e-5, err_msg=joint)
+        p = labels.index(joint)
+        np.testing.assert_array_equal(residuals[p] < 0, ~ok, joint)
+        np.testing.assert_allclose(points[:3, p, ok].T, want[ok] * 1000, atol=1e-3, err_msg=joint)
+
+    as_received = tmp_path / "received.mcap"
+    sink = McapSink(as_received, tf_min_gap_ns=1)
+    for frame in frames:
+        sink.write_pose_message(keys.pose_key(), pose.encode(frame))
+    sink.close()
+    arm = {"left_upperarm", "left_forearm", "left_hand"}
+    for path in (arm_mcap, as_received):
+        with path.open("rb") as f:
+            stamped = {}
+            for _, _, message in make_reader(f).iter_messages(topics=[keys.TRANSFORMS]):
+                parsed = FrameTransforms()
+                parsed.ParseFromString(message.data)
+                stamped[message.publish_time] = {t.child_frame_id for t in parsed.transforms}
+        assert len(stamped) > len(frames) // 10, path.name
+        for index, frame in enumerate(frames):
+            got = stamped.get(frame.t_ns)
+            if got is None:
+                continue  # no transforms for this pose (a display's rate)
+            assert got == {s for s in SKELETON.segments if stands(frame, s)}, (path.name, index)
+        assert all("left_upperarm" in got for got in stamped.values()), path.name
+        assert any(arm <= got for got in stamped.values()), path.name

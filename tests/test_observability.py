@@ -275,3 +275,48 @@ def test_an_unknown_heading_leaves_the_encoders_measured() -> None:
     for encoder in ("left_shoulder_rotation_deg", "left_elbow_flexion_deg",
                     "left_wrist_flexion_deg"):  # fmt: skip
         assert pose.UNCALIBRATED not in out.reasons.get(encoder, ()), encoder
+
+
+@pytest.mark.parametrize("pelvis_announced", [False, True])
+def test_an_arm_alone_stands_on_the_upright_trunk(pelvis_announced: bool) -> None:
+    """The seed's device, a SmartSuit arm with no trunk sensor: its shoulder,
+    elbow and wrist are measured against the upright model of the trunk, whose
+    lumbar and neck dofs stay not measured (flag ``unobserved``, no angle output)
+    with the reason ``upright``; the arm's segments stand on that reference as
+    on the pelvis (``unmeasured_segments``, what the exports, LSL and Foxglove
+    transforms leave out, does not name them). With a pelvis tag announced but
+    silent the trunk is no reference: the arm's chain is unmeasured."""
+    from bodynet.clients import lsl
+    from bodynet.clients.body_tree import unmeasured_segments
+    from bodynet.core.metrics import measured_angles
+    from bodynet.core.skeleton import build_skeleton
+
+    # the forearm and hand off the vertical: gravity determines the pronation
+    bent = {"left_shoulder_flexion_deg": 40.0, "left_elbow_flexion_deg": 60.0}
+    body = BodyEmulator(still(bent), smartsuit_sensors([LEFT_ARM]), realism=Realism(), seed=1)
+    solver = BodySolver(Profile())
+    if pelvis_announced:
+        solver.expect([next(t for t in imu_tags() if t.site.name == "sacrum").site.raw_key])
+    for k in range(3):  # past the second the topology has to show a trunk sensor
+        readings, _ = body.sample(k * 0.6)
+        out = solver.solve({s.site: RawSample(r, k, int(k * 0.6e9))
+                            for s, r in zip(body.sensors, readings, strict=True)})  # fmt: skip
+    frame = pose_frame(out, 1, [])
+    trunk = [n for n in frame.angles_deg if n.startswith(("lumbar_", "neck_"))]
+    assert trunk
+    want = (pose.UNOBSERVED,) if pelvis_announced else (pose.UNOBSERVED, pose.UPRIGHT)
+    got = {n: (frame.flags[n], tuple(frame.reasons[n])) for n in trunk}
+    assert got == dict.fromkeys(trunk, (pose.UNOBSERVED, want))
+    assert not set(trunk) & set(measured_angles(frame))
+    arm = {"left_upperarm", "left_forearm", "left_hand"}
+    skeleton = build_skeleton()
+    chains = skeleton.segment_chains()
+    values = dict(zip([c.label for c in lsl.segment_channels(skeleton)],
+                      lsl.segment_values(frame, chains), strict=True))  # fmt: skip
+    if pelvis_announced:
+        assert arm <= unmeasured_segments(frame)
+        assert all(math.isnan(values[f"{s}_qw"]) for s in arm)
+    else:
+        assert all(pose.is_measured(frame, a) for s in arm for a in chains[s] if a not in trunk)
+        assert not arm & unmeasured_segments(frame)
+        assert [values[f"{s}_qw"] for s in arm] == [frame.segments[s][1][0] for s in arm]

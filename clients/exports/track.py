@@ -12,8 +12,9 @@ frame for frame.
 
 Segment orientations and joint centres carry no flag of their own: they rest
 on every angle of their chain from the pelvis (``Skeleton.segment_chains``),
-and are measured where all of those are (:meth:`PoseTrack.chain_measured`,
-:meth:`PoseTrack.centre_measured`).
+and are measured where all of those are, or are the upright model's, the
+reference of a body with no trunk sensor (:meth:`PoseTrack.chain_measured`,
+:meth:`PoseTrack.centre_measured`, ``body_tree.chain_breaks``).
 """
 
 from __future__ import annotations
@@ -29,6 +30,7 @@ from scipy.interpolate import make_interp_spline
 from scipy.spatial.transform import Rotation, Slerp
 from tqdm import tqdm
 
+from bodynet.clients.body_tree import chain_breaks
 from bodynet.clients.mcap_store import StoreError, count_messages, read_poses
 from bodynet.core import keys
 from bodynet.core.codecs.pose import is_measured
@@ -68,6 +70,10 @@ class PoseTrack:
     #: (F,) bool: the frame stands on poses (False: resampled inside a gap in them,
     #: where nothing measured even the pelvis); None: every frame does
     posed: np.ndarray | None = None
+    #: (F, A) bool: the angle is not measured but the upright model's, which the
+    #: segments below it stand on as on a measured one (``body_tree.chain_breaks``);
+    #: None: none is
+    upright: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.t_ns)
@@ -85,12 +91,13 @@ class PoseTrack:
 
     def chain_measured(self) -> np.ndarray:
         """(F, S) bool: the segment's orientation is measured: its frame stands
-        on poses and every angle from the pelvis to it is measured (the pelvis:
-        the frame alone, it carries no flag)."""
+        on poses and every angle from the pelvis to it is measured or the upright
+        model's (the pelvis: the frame alone, it carries no flag)."""
         index = {a: i for i, a in enumerate(self.angles)}
         chains = build_skeleton().segment_chains()
         posed = self.frame_posed()
-        return np.stack([posed & self.measured[:, [index[a] for a in chains[s]]].all(axis=1)
+        stands = self.measured if self.upright is None else self.measured | self.upright
+        return np.stack([posed & stands[:, [index[a] for a in chains[s]]].all(axis=1)
                          for s in self.segments], axis=1)  # fmt: skip
 
     def centre_measured(self) -> np.ndarray:
@@ -126,6 +133,7 @@ def load_track(recording: Path, progress: bool = True, every_tick: bool = False)
     angle_deg = np.empty((cap, len(angles)))
     rel_deg = np.empty((cap, len(joints)))
     measured = np.empty((cap, len(angles)), dtype=bool)
+    upright = np.zeros((cap, len(angles)), dtype=bool)
     nan3 = (np.nan, np.nan, np.nan)
     n = 0
     # disable=None: no bar when stderr is not a terminal
@@ -138,9 +146,9 @@ def load_track(recording: Path, progress: bool = True, every_tick: bool = False)
                 raise StoreError(f"{recording}: the pose at {t_ns} ns lacks segments "
                                  f"{', '.join(missing)}")  # fmt: skip
             if n == len(t):
-                t, seg_p, seg_q, joint_p, angle_deg, rel_deg, measured = (
-                    np.concatenate([a, np.empty_like(a)])
-                    for a in (t, seg_p, seg_q, joint_p, angle_deg, rel_deg, measured)
+                t, seg_p, seg_q, joint_p, angle_deg, rel_deg, measured, upright = (
+                    np.concatenate([a, np.zeros_like(a)])
+                    for a in (t, seg_p, seg_q, joint_p, angle_deg, rel_deg, measured, upright)
                 )
             t[n] = t_ns
             seg_p[n] = [frame.segments[s][0] for s in segments]
@@ -148,7 +156,13 @@ def load_track(recording: Path, progress: bool = True, every_tick: bool = False)
             joint_p[n] = [frame.joints_m.get(j, nan3) for j in joints]
             angle_deg[n] = [frame.angles_deg.get(a, np.nan) for a in angles]
             rel_deg[n] = [frame.rel_deg.get(j, np.nan) for j in joints]
-            measured[n] = [is_measured(frame, a) for a in angles] if frame.flags else True
+            if frame.flags:
+                measured[n] = [is_measured(frame, a) for a in angles]
+                breaks = chain_breaks(frame)
+                upright[n] = [not (m or a in breaks)
+                              for a, m in zip(angles, measured[n], strict=True)]  # fmt: skip
+            else:
+                measured[n] = True
             n += 1
             bar.update()
     if not n:
@@ -162,7 +176,8 @@ def load_track(recording: Path, progress: bool = True, every_tick: bool = False)
         keep = n - 1 - last_first
     return PoseTrack(t[keep], segments, seg_p[keep], seg_q[keep], joints, joint_p[keep], angles,
                      angle_deg[keep], rel_deg[keep], measured[keep],
-                     source=str(recording))  # fmt: skip
+                     source=str(recording),
+                     upright=upright[keep] if upright[:n].any() else None)  # fmt: skip
 
 
 def resample(track: PoseTrack, rate_hz: float) -> PoseTrack:
@@ -194,11 +209,14 @@ def resample(track: PoseTrack, rate_hz: float) -> PoseTrack:
     posed = linear(track.frame_posed().astype(np.float64)) > 1.0 - 1e-9
     posed &= ~in_gaps(rel, grid, period_ns)
     measured &= posed[:, None]
+    upright = None
+    if track.upright is not None:
+        upright = (linear(track.upright.astype(np.float64)) > 1.0 - 1e-9) & posed[:, None]
     return replace(track, t_ns=track.t_ns[0] + np.round(grid).astype(np.int64),
                    segment_p=linear(track.segment_p), segment_q=quats,
                    joint_p=linear(track.joint_p), angle_deg=linear(track.angle_deg),
                    rel_deg=linear(track.rel_deg), measured=measured, posed=posed,
-                   rate_hz=rate_hz)  # fmt: skip
+                   upright=upright, rate_hz=rate_hz)  # fmt: skip
 
 
 def in_gaps(rel: np.ndarray, grid: np.ndarray, period_ns: float) -> np.ndarray:

@@ -59,12 +59,17 @@ UNOBSERVED = "unobserved"  # nothing measures it: the model's rest value (or wha
 STALE = "stale"
 HELD = "held"  # not determined now (a tilt along gravity): its last measured value, held
 CLAMPED = "clamped"  # measured, then clamped to the range of motion
+#: nothing measures it (always with ``unobserved``, the flag): it is the upright
+#: model's, the reference a body with no trunk sensor is measured against (as the
+#: pelvis at the origin is every body's), so what hangs below it is measured
+UPRIGHT = "upright"
 REASONS: Mapping[str, str] = {
     UNCALIBRATED: "not calibrated yet (waiting for the T-pose)",
     UNOBSERVED: "no sensor measures it now",
     STALE: "a sensor it rests on stopped delivering: the number rests on its last sample",
     HELD: "gravity cannot see it in this posture: held at its last measured value",
     CLAMPED: "measured beyond the range of motion, clamped to it",
+    UPRIGHT: "no trunk sensor: the upright model's, the reference the limbs are measured against",
 }
 
 
