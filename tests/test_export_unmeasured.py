@@ -184,6 +184,24 @@ def centre_measured(frame: pose.PoseFrame, joint: str) -> bool:
 SKELETON = build_skeleton()
 
 
+C3dRead = tuple[list[str], np.ndarray, np.ndarray]  # read_c3d's labels, points, residuals
+
+
+def centres_given(joint: str, ok: np.ndarray, frames: list[pose.PoseFrame],
+                  rows: list[dict[str, str]], c3d: C3dRead) -> None:  # fmt: skip
+    """The joint's centre is the pose's in the frames ``ok``, else absent: an
+    empty CSV cell, an invalid C3D point (residual -1, NaN)."""
+    labels, points, residuals = c3d
+    cells = np.array([[row[f"{joint}_{a}_m"] for a in "xyz"] for row in rows])
+    assert (cells[~ok] == "").all(), joint
+    want = np.array([f.joints_m[joint] for f in frames])
+    np.testing.assert_allclose(cells[ok].astype(float), want[ok], atol=1e-5, err_msg=joint)
+    p = labels.index(joint)
+    np.testing.assert_array_equal(residuals[p] < 0, ~ok, joint)
+    assert np.isnan(points[:3, p, ~ok]).all(), joint
+    np.testing.assert_allclose(points[:3, p, ok].T, want[ok] * 1000, atol=1e-3, err_msg=joint)
+
+
 def test_csv_and_c3d_joint_centres_resting_on_an_unmeasured_angle_are_not_given(
     flagged: Path, frames: list[pose.PoseFrame], tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -195,27 +213,20 @@ def test_csv_and_c3d_joint_centres_resting_on_an_unmeasured_angle_are_not_given(
         rows = list(csv.DictReader(f))
     c3d_out = tmp_path / "f.c3d"
     export(capsys, "c3d", flagged, "-o", c3d_out)
-    labels, points, residuals = read_c3d(c3d_out)
-    assert len(rows) == points.shape[2] == len(frames)  # regular ticks: frame for frame
+    read = read_c3d(c3d_out)
+    assert len(rows) == read[1].shape[2] == len(frames)  # regular ticks: frame for frame
     for joint, below_window in CENTRES.items():
         ok = np.array([centre_measured(f, joint) for f in frames])
         assert (not ok[WINDOW.start : WINDOW.stop].any()) == below_window, joint
-        cells = np.array([[row[f"{joint}_{a}_m"] for a in "xyz"] for row in rows])
-        assert (cells[~ok] == "").all(), joint
-        want = np.array([f.joints_m[joint] for f in frames])
-        np.testing.assert_allclose(cells[ok].astype(float), want[ok], atol=1e-5, err_msg=joint)
-        p = labels.index(joint)
-        np.testing.assert_array_equal(residuals[p] < 0, ~ok, joint)
-        assert np.isnan(points[:3, p, ~ok]).all(), joint
-        np.testing.assert_allclose(points[:3, p, ok].T, want[ok] * 1000, atol=1e-3, err_msg=joint)
+        centres_given(joint, ok, frames, rows, read)
 
 
-def test_foxglove_transforms_leave_out_a_segment_resting_on_an_unmeasured_angle(
-    flagged: Path, frames: list[pose.PoseFrame], tmp_path: Path
-) -> None:
-    """``body/tf`` read with the mcap reader and Foxglove's message class: in
-    WINDOW no transform of the segments below the flagged angles, whichever
-    way the poses were stored (decoded, or as received: the recorder's way)."""
+def transformed(
+    path: Path, frames: list[pose.PoseFrame], tmp_path: Path
+) -> list[tuple[str, dict[int, set[str]]]]:
+    """The segments of each ``body/tf`` message (by time), read with the mcap
+    reader and Foxglove's message class, of the recording at ``path`` and of
+    one the recorder wrote from ``frames`` as received (encoded)."""
     from foxglove_schemas_protobuf.FrameTransforms_pb2 import FrameTransforms
     from mcap.reader import make_reader
 
@@ -227,14 +238,26 @@ def test_foxglove_transforms_leave_out_a_segment_resting_on_an_unmeasured_angle(
     for frame in frames:
         sink.write_pose_message(keys.pose_key(), pose.encode(frame))
     sink.close()
-    below = {"left_forearm", "left_hand", "left_shank", "left_foot"}
-    for path in (flagged, as_received):
-        with path.open("rb") as f:
+    out = []
+    for source in (path, as_received):
+        with source.open("rb") as f:
             stamped = {}
             for _, _, message in make_reader(f).iter_messages(topics=[keys.TRANSFORMS]):
                 parsed = FrameTransforms()
                 parsed.ParseFromString(message.data)
                 stamped[message.publish_time] = {t.child_frame_id for t in parsed.transforms}
+        out.append((source.name, stamped))
+    return out
+
+
+def test_foxglove_transforms_leave_out_a_segment_resting_on_an_unmeasured_angle(
+    flagged: Path, frames: list[pose.PoseFrame], tmp_path: Path
+) -> None:
+    """``body/tf`` read with the mcap reader and Foxglove's message class: in
+    WINDOW no transform of the segments below the flagged angles, whichever
+    way the poses were stored (decoded, or as received: the recorder's way)."""
+    below = {"left_forearm", "left_hand", "left_shank", "left_foot"}
+    for name, stamped in transformed(flagged, frames, tmp_path):
         assert len(stamped) > len(frames) // 2
         for index, frame in enumerate(frames):
             got = stamped.get(frame.t_ns)
@@ -242,8 +265,8 @@ def test_foxglove_transforms_leave_out_a_segment_resting_on_an_unmeasured_angle(
                 continue  # no transforms for this pose (a display's rate)
             want = {s for s in SKELETON.segments
                     if all(measured(frame, a) for a in SKELETON.segment_chains()[s])}  # fmt: skip
-            assert got == want, (path.name, index)
-            assert below.isdisjoint(got) == (index in WINDOW), (path.name, index)
+            assert got == want, (name, index)
+            assert below.isdisjoint(got) == (index in WINDOW), (name, index)
 
 
 def test_an_arm_alone_has_its_joint_centres_and_transforms(
@@ -256,12 +279,7 @@ def test_an_arm_alone_has_its_joint_centres_and_transforms(
     pelvis, has its CSV and C3D joint centres and its Foxglove transforms (as
     ``bodynet process`` recorded them, and as the recorder writes them from the
     messages as received)."""
-    from foxglove_schemas_protobuf.FrameTransforms_pb2 import FrameTransforms
-    from mcap.reader import make_reader
-
     from bodynet.clients.exports.c3d import ANGLE_SUFFIX
-    from bodynet.clients.mcap_store import McapSink
-    from bodynet.core import keys
 
     frames = [frame for _, frame in read_poses(arm_mcap)]
     lumbar = SKELETON.joint("lumbar").angle_names()
@@ -280,7 +298,7 @@ def test_an_arm_alone_has_its_joint_centres_and_transforms(
     assert all(row[a] == "" for row in rows for a in lumbar)
     c3d_out = tmp_path / "arm.c3d"
     export(capsys, "c3d", arm_mcap, "-o", c3d_out)
-    labels, points, residuals = read_c3d(c3d_out)
+    read = labels, _, residuals = read_c3d(c3d_out)
     assert (residuals[labels.index("lumbar" + ANGLE_SUFFIX)] < 0).all()
     for joint, segment in (("left_shoulder", "thorax"), ("left_elbow", "left_upperarm"),
                            ("left_wrist", "left_forearm")):  # fmt: skip
@@ -288,32 +306,15 @@ def test_an_arm_alone_has_its_joint_centres_and_transforms(
         # the encoders and tilts of the upper arm throughout; the elbow's pronation
         # (the forearm's chain) only where the forearm is off the vertical
         assert ok.all() if segment != "left_forearm" else ok.sum() > 10, joint
-        cells = np.array([[row[f"{joint}_{a}_m"] for a in "xyz"] for row in rows])
-        assert (cells[~ok] == "").all(), joint
-        want = np.array([f.joints_m[joint] for f in frames])
-        np.testing.assert_allclose(cells[ok].astype(float), want[ok], atol=1e-5, err_msg=joint)
-        p = labels.index(joint)
-        np.testing.assert_array_equal(residuals[p] < 0, ~ok, joint)
-        np.testing.assert_allclose(points[:3, p, ok].T, want[ok] * 1000, atol=1e-3, err_msg=joint)
+        centres_given(joint, ok, frames, rows, read)
 
-    as_received = tmp_path / "received.mcap"
-    sink = McapSink(as_received, tf_min_gap_ns=1)
-    for frame in frames:
-        sink.write_pose_message(keys.pose_key(), pose.encode(frame))
-    sink.close()
     arm = {"left_upperarm", "left_forearm", "left_hand"}
-    for path in (arm_mcap, as_received):
-        with path.open("rb") as f:
-            stamped = {}
-            for _, _, message in make_reader(f).iter_messages(topics=[keys.TRANSFORMS]):
-                parsed = FrameTransforms()
-                parsed.ParseFromString(message.data)
-                stamped[message.publish_time] = {t.child_frame_id for t in parsed.transforms}
-        assert len(stamped) > len(frames) // 10, path.name
+    for name, stamped in transformed(arm_mcap, frames, tmp_path):
+        assert len(stamped) > len(frames) // 10, name
         for index, frame in enumerate(frames):
             got = stamped.get(frame.t_ns)
             if got is None:
                 continue  # no transforms for this pose (a display's rate)
-            assert got == {s for s in SKELETON.segments if stands(frame, s)}, (path.name, index)
-        assert all("left_upperarm" in got for got in stamped.values()), path.name
-        assert any(arm <= got for got in stamped.values()), path.name
+            assert got == {s for s in SKELETON.segments if stands(frame, s)}, (name, index)
+        assert all("left_upperarm" in got for got in stamped.values()), name
+        assert any(arm <= got for got in stamped.values()), name
