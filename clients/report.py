@@ -19,8 +19,10 @@ plots (PNG, beside the report):
   start, else the ``still_s`` seconds after calibration in which the angles
   moved least).
 
-Only measured samples count (``pose.is_measured``: no flag, or ``clamped``):
-a sample flagged ``uncalibrated``, ``unobserved`` or ``held`` is left out of
+Only measured samples count (``core.metrics.measured_angles``: no flag, or
+``clamped``; in a recording from before the ``stale`` reason, not resting on a
+stale sensor either): a sample flagged ``uncalibrated``, ``unobserved`` or
+``held`` is left out of
 range of motion, RMS and correlation, trials, ICC and Type A, and the report
 says per joint angle how many it left out and why. Trials and the still
 window come from after the T-pose calibration (after the last pose with a dof
@@ -84,8 +86,9 @@ class Recording(Series):
 
 
 def load_recording(path: Path) -> Recording:
-    """The poses of a recording, each sample with no measurement behind it (any
-    flag but ``clamped``) left out (NaN) and counted by its flag."""
+    """The poses of a recording, each sample with no measurement behind it
+    (``metrics.measured_angles``) left out (NaN) and counted by its flag
+    (``stale`` for one an older gateway did not flag)."""
     times: list[int] = []
     rows: list[dict[str, float]] = []
     left_out: dict[str, dict[str, int]] = {}
@@ -94,11 +97,12 @@ def load_recording(path: Path) -> Recording:
         for t_ns, frame in read_poses(path):
             times.append(t_ns)
             row = dict(frame.angles_deg)
-            for n, f in frame.flags.items():
-                if n in row and not pose.is_measured(frame, n):
-                    row[n] = math.nan
-                    counts = left_out.setdefault(n, {})
-                    counts[f] = counts.get(f, 0) + 1
+            measured = metrics.measured_angles(frame)
+            for n in [n for n in row if n not in measured]:
+                row[n] = math.nan
+                f = frame.flags.get(n, pose.STALE)  # unflagged: on a stale sensor
+                counts = left_out.setdefault(n, {})
+                counts[f] = counts.get(f, 0) + 1
             if pose.UNCALIBRATED in frame.flags.values():
                 calibrated_at = len(rows) + 1  # after the last uncalibrated pose
             rows.append(row)

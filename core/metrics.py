@@ -5,7 +5,8 @@ One pure module (numpy only, no clock, no I/O) used by the live publisher of
 ``body/@metrics`` and by the offline report, so both give the same numbers
 for the same samples. Feed :class:`BodyMetrics` each pose's measured angles
 (:func:`measured_angles`: what the team's convention calls measured,
-``pose.is_measured``) and ask it for :meth:`BodyMetrics.snapshot`.
+``pose.is_measured``, less what rests on a stale sensor an older gateway did
+not flag) and ask it for :meth:`BodyMetrics.snapshot`.
 
 Per dof (``<joint>_<dof>_deg``):
 
@@ -36,12 +37,16 @@ import math
 from collections import deque
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from functools import lru_cache
 from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
-from .codecs.pose import PoseFrame, is_measured
+from . import keys
+from .codecs.pose import STALE, PoseFrame, is_measured
+from .profile import mount
+from .skeleton import build_skeleton
 
 MIN_SPAN_DEG = 5.0
 MOVING_DEG_S = 10.0
@@ -57,10 +62,40 @@ MAX_DOFS = 64
 FloatArray = npt.NDArray[np.float64]
 
 
+@lru_cache(maxsize=64)
+def _angles_at(segment: str) -> frozenset[str]:
+    """The angles of the joints on either end of ``segment`` (those a sensor on it
+    takes part in measuring)."""
+    return frozenset(n for j in build_skeleton().joints if segment in (j.parent, j.child)
+                     for n in j.angle_names())  # fmt: skip
+
+
+def unflagged_stale_angles(frame: PoseFrame) -> frozenset[str]:
+    """The angles resting on a stale sensor that ``frame`` does not flag: a pose
+    from a gateway (or recording) before the ``stale`` reason lists its stale
+    sites and flags none of their dofs. Then the old rule holds: the angles of the
+    joints at either end of the segment each stale sensor rides on (the default
+    profile's mounts; unknown keys passed over). Empty when nothing is stale or
+    some dof carries the ``stale`` reason (the gateway flagged them itself)."""
+    if not frame.stale or any(STALE in r for r in frame.reasons.values()):
+        return frozenset()
+    out: set[str] = set()
+    for key in frame.stale:
+        try:
+            site, _ = keys.parse(keys.split_subject(key)[1])
+        except keys.KeySpaceError:
+            continue
+        out |= _angles_at(mount(site).segment)
+    return frozenset(out)
+
+
 def measured_angles(frame: PoseFrame) -> dict[str, float]:
-    """The angles of ``frame`` a measurement stands behind now (:func:`is_measured`;
-    what rests on a stale sensor the gateway flags, reason ``stale``)."""
-    return {n: v for n, v in frame.angles_deg.items() if is_measured(frame, n)}
+    """The angles of ``frame`` a measurement stands behind now: :func:`is_measured`
+    (the gateway flags what rests on a stale sensor, reason ``stale``) and, for a
+    pose from before that reason, not resting on a stale sensor
+    (:func:`unflagged_stale_angles`). Every client's test of a pose's angles."""
+    stale = unflagged_stale_angles(frame)
+    return {n: v for n, v in frame.angles_deg.items() if is_measured(frame, n) and n not in stale}
 
 
 def sparc(speed: npt.ArrayLike, fs: float, pad_level: int = 4, fc: float = 10.0,

@@ -123,6 +123,25 @@ def test_angles_resting_on_a_stale_sensor_are_nan() -> None:
     assert got["left_upperarm_qw"] == f.segments["left_upperarm"][1][0]
 
 
+def test_a_pose_from_before_the_stale_reason_is_nan_where_it_rests_on_a_stale_sensor() -> None:
+    """A pose of an older gateway: the elbow module listed stale, no dof flagged
+    for it. The elbow and wrist (either end of the forearm) are NaN, and so the
+    forearm's and hand's poses; the knee and upper arm keep theirs."""
+    f = frame(3, 0)
+    old = pose.PoseFrame(f.seq, f.t_ns, f.angles_deg, {}, f.segments, {},
+                         stale=[keys.raw_key("arm", "left", "elbow")])  # fmt: skip
+    names = lsl.angle_names(SKELETON)
+    values = dict(zip(names, lsl.angle_values(old, names), strict=True))
+    nan = {n for n in names if math.isnan(values[n])}
+    assert nan == {*SKELETON.joint("left_elbow").angle_names(),
+                   *SKELETON.joint("left_wrist").angle_names()}  # fmt: skip
+    labels = [c.label for c in lsl.segment_channels(SKELETON)]
+    got = dict(zip(labels, lsl.segment_values(old, SKELETON.segment_chains()), strict=True))
+    assert math.isnan(got["left_forearm_qw"])
+    assert math.isnan(got["left_hand_x"])
+    assert got["left_upperarm_qw"] == f.segments["left_upperarm"][1][0]
+
+
 def test_channel_metadata() -> None:
     angles = lsl.angle_channels(SKELETON)
     assert [c.label + "_deg" for c in angles] == list(SKELETON.angle_names())

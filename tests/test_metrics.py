@@ -360,3 +360,21 @@ def test_a_message_an_output_fails_on_is_counted_and_the_output_goes_on(
     assert output.seen == [0, 1, 3]
     assert result[0].failed == 1
     assert "1 messages the output failed on" in result[0].summary()
+
+
+def test_a_pose_from_before_the_stale_reason_still_loses_what_rests_on_a_stale_sensor() -> None:
+    """A gateway (or recording) before the ``stale`` reason lists the stale site
+    and flags none of its dofs: the old rule holds (the joints at either end of
+    the forearm: elbow and wrist). A pose that flags some dof ``stale`` is taken
+    at its word (the wrist's encoder still measures)."""
+    key = keys.raw_key("arm", "left", "elbow")
+    angles = {"left_elbow_flexion_deg": 42.0, "left_wrist_flexion_deg": 3.0,
+              "left_knee_flexion_deg": 5.0}  # fmt: skip
+    old = pose.PoseFrame(1, 1, angles, {}, {}, {}, {}, {}, [key])
+    assert metrics.measured_angles(old) == {"left_knee_flexion_deg": 5.0}
+    flag, reasons = {"left_elbow_flexion_deg": "unobserved"}, ["unobserved", "stale"]
+    flagged = pose.PoseFrame(1, 1, angles, {}, {}, {}, flag, {}, [key],
+                             {"left_elbow_flexion_deg": reasons})  # fmt: skip
+    assert metrics.measured_angles(flagged) == {"left_wrist_flexion_deg": 3.0,
+                                                "left_knee_flexion_deg": 5.0}  # fmt: skip
+    assert metrics.measured_angles(pose.PoseFrame(1, 1, angles, {}, {}, {})) == angles

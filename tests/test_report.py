@@ -19,8 +19,9 @@ from bodynet.cli.main import main as cli_main
 from bodynet.clients import stats
 from bodynet.clients.mcap_store import McapSink, read_poses, read_raw, read_truth
 from bodynet.clients.recorder import Recorder
+from bodynet.clients.report import load_recording
 from bodynet.core import keys
-from bodynet.core.codecs import smartsuit_can
+from bodynet.core.codecs import pose, smartsuit_can
 from bodynet.core.keys import LEFT_ARM, Site, Stream
 from bodynet.core.profile import SMARTSUIT_SITES
 from bodynet.core.skeleton import build_skeleton
@@ -147,6 +148,29 @@ def test_still_window_finds_the_stretch_that_does_not_move() -> None:
 
 
 # -- ground truth in recordings ------------------------------------------------
+
+
+def test_a_recording_from_before_the_stale_reason_leaves_out_what_rests_on_a_stale_sensor(
+    tmp_path: Path,
+) -> None:
+    """Poses as an older gateway wrote them: the elbow module listed stale in the
+    second and third, no dof flagged for it. The elbow and wrist samples of those
+    are left out, counted ``stale``; the knee keeps all three."""
+    key = keys.raw_key("arm", "left", "elbow")
+    path = tmp_path / "old.mcap"
+    sink = McapSink(path)
+    for i in range(3):
+        angles = {"left_elbow_flexion_deg": 10.0 * i, "left_wrist_flexion_deg": 1.0 * i,
+                  "left_knee_flexion_deg": 5.0 + i}  # fmt: skip
+        t_ns = 1_700_000_000_000_000_000 + i * 10_000_000
+        frame = pose.PoseFrame(i, t_ns, angles, {}, {}, {}, stale=[key] if i else [])
+        sink.write_pose(keys.pose_key(), frame, t_ns)
+    sink.close()
+    rec = load_recording(path)
+    assert rec.left_out == {"left_elbow_flexion_deg": {"stale": 2},
+                            "left_wrist_flexion_deg": {"stale": 2}}  # fmt: skip
+    assert rec.angles["left_elbow_flexion_deg"].notna().tolist() == [True, False, False]
+    assert rec.angles["left_knee_flexion_deg"].tolist() == [5.0, 6.0, 7.0]
 
 
 def test_recorder_keeps_the_ground_truth_emulated_nodes_publish(
