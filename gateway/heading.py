@@ -44,6 +44,16 @@ from bodynet.core.subject import Profile, QuatWxyz
 from bodynet.kinematics.model import BodyModel
 
 POSE_ANGLES = CALIBRATION_POSES
+
+
+def pose_angles(pose: str) -> Mapping[str, float]:
+    """The joint angles (deg) of calibration ``pose``; ValueError naming the
+    poses there are when it is none of them."""
+    if pose not in POSE_ANGLES:
+        raise ValueError(f"unknown calibration pose {pose!r}; one of {', '.join(POSE_ANGLES)}")
+    return POSE_ANGLES[pose]
+
+
 #: A calibration window shorter than this, or with fewer samples of a tag, is refused.
 MIN_WINDOW_S = 0.4
 MIN_SAMPLES = 5
@@ -235,8 +245,7 @@ def calibrate_window(
     (the angle between where the old mount puts it in the pose and where it was:
     a tag moved on the body, or another pose than before)."""
     pose = pose or profile.pose
-    if pose not in POSE_ANGLES:
-        raise ValueError(f"unknown calibration pose {pose!r}; one of {', '.join(POSE_ANGLES)}")
+    pose_angles(pose)
     segments = pose_segments(profile, pose)
     present = {s: v for s, v in window.items() if v}
     missing = sorted(s.raw_key for s in set(expected) - set(present))

@@ -52,7 +52,6 @@ from bodynet.core.errors import DecodeError, Reason, RejectCounts
 from bodynet.core.keys import BRANCHES, Branch, Site
 from bodynet.core.messages import OleAccel, Quat, RawSample, source_name
 from bodynet.core.profile import OLE_DOF, mount
-from bodynet.core.skeleton import CALIBRATION_POSES
 from bodynet.core.subject import Profile, ProfileError, QuatWxyz
 from bodynet.gateway.encoders import (
     EncoderZero,
@@ -64,6 +63,7 @@ from bodynet.gateway.heading import (
     BodyHeading,
     CalibrationRefused,
     calibrate_window,
+    pose_angles,
     yaw_reset,
 )
 from bodynet.gateway.rounds import Cadence, Rounds, next_window
@@ -432,8 +432,9 @@ class _Body:
     def zero_encoders(self, window: dict[str, list[int]], profile: Profile,
                       pose: str) -> dict[str, int]:  # fmt: skip
         """The encoders' zeros from a still window of the calibration ``pose``
-        (each joint's angle there): ``ZeroRefused`` if a joint moved in it."""
-        angles = CALIBRATION_POSES[pose]
+        (each joint's angle there): ``ZeroRefused`` if a joint moved in it,
+        ValueError if ``pose`` is no calibration pose."""
+        angles = pose_angles(pose)
         out = {}
         for key, counts in sorted(window.items()):
             site, _ = keys.parse(key)
@@ -761,6 +762,11 @@ class Gateway:
         body = self._bodies.get(subject)
         if body is None:
             return {"ok": False, "error": "no samples of this subject"}
+        try:  # a raw query's ?pose= is anything
+            pose_angles(pose or body.solver.profile.pose)
+        except ValueError as exc:
+            log.warning("calibration refused: %s", exc)
+            return {"ok": False, "error": str(exc)}
         deadline = time.monotonic() + 2 * seconds + 2.0
         while True:
             now = time.monotonic()

@@ -22,7 +22,7 @@ from bodynet.clients.view import status_text
 from bodynet.core import keys
 from bodynet.core.codecs import pose, raw_sample
 from bodynet.core.keys import LEFT_ARM, RIGHT_ARM
-from bodynet.core.messages import Quat, RawSample, Source
+from bodynet.core.messages import OleAccel, Quat, RawSample, Source
 from bodynet.core.profile import IMU_SITES
 from bodynet.core.skeleton import TPOSE
 from bodynet.gateway.service import Gateway
@@ -617,6 +617,33 @@ def test_a_calibration_window_no_history_holds_is_refused_at_once(
             answer = answers.get(timeout=10)  # Empty: still waiting for the window
             assert answer["ok"] is False
             assert "at most 5" in str(answer["error"])
+    finally:
+        session.close()
+
+
+def test_a_calibration_query_for_an_unknown_pose_is_refused_with_the_poses(
+    gateway: Gateway, router_endpoint: str, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A raw query's ``?pose=`` is anything: an unknown pose, with an encoder
+    module delivering (whose zero the pose sets too), is refused naming the poses
+    there are, with no traceback in the log (it was a KeyError: "calibration
+    failed: 'bogus'")."""
+    session = client(router_endpoint)
+    try:
+        pub = session.declare_publisher(keys.raw_key("arm", "left", "elbow"))
+        deadline = time.monotonic() + 20
+        while gateway.samples == 0:
+            assert time.monotonic() < deadline, "the gateway never took a sample"
+            sample = RawSample(OleAccel(2, 100, (0, 0, 1024)), 0, time.time_ns(), Source.CAN)
+            pub.put(raw_sample.encode(sample))
+            threading.Event().wait(0.05)
+        with caplog.at_level(logging.WARNING, logger="bodynet.gateway.service"):
+            replies = list(session.get(f"{keys.CALIBRATE_TPOSE}?seconds=0.5;pose=bogus",
+                                       timeout=10))  # fmt: skip
+        answer = json.loads(replies[0].ok.payload.to_bytes())
+        error = "unknown calibration pose 'bogus'; one of tpose, npose"
+        assert answer == {"ok": False, "error": error}
+        assert not [r for r in caplog.records if r.exc_info]
     finally:
         session.close()
 
