@@ -36,11 +36,17 @@ class EncoderZero:
     counts: int = 0
     lost: str | None = None
     rezeroed: bool = False  # the zero was set by a calibration pose
+    #: how many samples its bridge flagged ``RESUMED`` (the node may have rebooted,
+    #: lost or not already): counts of one generation set no zero at another
+    generation: int = 0
 
     def take(self, sample: RawSample) -> str | None:
         """A sample of the encoder's node: the reason the zero is lost now, when
         its bridge flagged it ``RESUMED`` and the zero was still known; else None."""
-        if not sample.flags & RESUMED or self.lost is not None:
+        if not sample.flags & RESUMED:
+            return None
+        self.generation += 1
+        if self.lost is not None:
             return None
         self.lost = lost_reason(sample.t_ns)
         return self.lost

@@ -40,7 +40,7 @@ import queue
 import threading
 import time
 from collections import Counter, deque
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -242,12 +242,15 @@ class _Body:
 
     def _encoder(self, kept: _Site, zero: EncoderZero, sample: RawSample) -> None:
         """A module's sample: one its bridge flagged ``RESUMED`` loses its encoder's
-        zero (gateway/encoders.py); its count kept."""
+        zero (gateway/encoders.py) and the counts kept before it; its count kept."""
+        t, counts = sample.t_ns / 1e9, kept.counts
+        assert counts is not None
+        generation = zero.generation
         if lost := zero.take(sample):
             log.warning("gateway: %s node %d: %s", source_name(sample.source),
                         sample.reading.node, lost)  # fmt: skip
-        t, counts = sample.t_ns / 1e9, kept.counts
-        assert counts is not None
+        if zero.generation != generation:
+            counts.clear()  # counted from before a reboot: no zero comes of them
         if not counts or t - counts[-1][0] >= HISTORY_STEP_S or t < counts[-1][0]:
             if counts and t < counts[-1][0]:
                 counts.clear()  # its clock went back (a bridge restarted): a new history
@@ -428,6 +431,26 @@ class _Body:
         return {site.raw_key: [c for t, c in kept.counts if kept.counts[-1][0] - t <= seconds]
                 for site, kept in self.latest.items()
                 if kept.counts and now - kept.arrived <= STALE_S}  # fmt: skip
+
+    def encoder_generations(self) -> dict[str, int]:
+        """Each encoder's :attr:`EncoderZero.generation`, taken with its window
+        (:meth:`encoder_window`) for :meth:`set_zeros`."""
+        return {key: zero.generation for key, zero in self.encoders.items()}
+
+    def set_zeros(self, zeros: Mapping[str, int], generations: Mapping[str, int]
+                  ) -> dict[str, str]:  # fmt: skip
+        """Set the encoders' zeros found in a calibration window taken at
+        ``generations``; those whose zero was lost since (a node resumed: the
+        window counted from before its reboot) are left lost: returned, with why."""
+        skipped = {}
+        for key, counts in zeros.items():  # the pose is each encoder's joint's zero
+            zero = self.encoders[key]
+            if zero.generation != generations.get(key):
+                skipped[key] = ("its node resumed during the calibration window (it may have "
+                                "rebooted): hold the pose and calibrate again")  # fmt: skip
+                continue
+            zero.counts, zero.lost, zero.rezeroed = counts, None, True
+        return skipped
 
     def zero_encoders(self, window: dict[str, list[int]], profile: Profile,
                       pose: str) -> dict[str, int]:  # fmt: skip
@@ -782,6 +805,7 @@ class Gateway:
         with self._lock:
             window = body.tpose_window(now, seconds)
             encoders = body.encoder_window(now, seconds)
+            generations = body.encoder_generations()
             profile = body.solver.profile
         try:
             zeros = body.zero_encoders(encoders, profile, pose or profile.pose)
@@ -800,10 +824,11 @@ class Gateway:
         with self._lock:
             if result is not None:
                 body.set_profile(profile)
-            for key, counts in zeros.items():  # the pose is each encoder's joint's zero
-                zero = body.encoders[key]
-                zero.counts, zero.lost, zero.rezeroed = counts, None, True
-        encoders = {k: {"zero_counts": v} for k, v in zeros.items()}
+            skipped = body.set_zeros(zeros, generations)
+        encoders = {k: {"skipped": skipped[k]} if k in skipped else {"zero_counts": v}
+                    for k, v in zeros.items()}  # fmt: skip
+        for key, why in skipped.items():
+            log.warning("calibration: %s's zero not set: %s", key, why)
         if result is None:  # SmartSuit modules alone (the seed's arm): their zeros only
             log.info("calibration (%s) of %d encoders' zeros", pose or profile.pose, len(zeros))
             return {"ok": True, "pose": pose or profile.pose, "calibrated": [],

@@ -39,7 +39,7 @@ from bodynet.core.codecs.pose import UNCALIBRATED, is_measured
 from bodynet.core.codecs.smartsuit_can import PERIOD_S
 from bodynet.core.errors import Rejected
 from bodynet.core.keys import LEFT_ARM
-from bodynet.core.messages import RESUMED, OleAccel, Reading
+from bodynet.core.messages import RESUMED, OleAccel, RawSample, Reading, Source
 from bodynet.core.profile import SMARTSUIT_SITES
 from bodynet.core.skeleton import TPOSE
 from bodynet.gateway.service import Gateway
@@ -174,6 +174,46 @@ def test_a_concentrator_node_that_left_a_request_unanswered_is_resumed() -> None
     live = codec.ConcentratorDecoder(replies_only=True)
     ask(1, on_time)
     assert sink.samples[-1] == (1, 0)
+
+
+def test_a_calibration_window_across_a_reboot_sets_no_zero_from_before_it(
+    gateway: Gateway,
+) -> None:
+    """The elbow's node counting 5000 at the pose, then resumed (rebooted) counting
+    100 there: the window after holds only the counts after the reboot (a window
+    spanning it mixed both), and its zero is set from them. A node resuming between its
+    window taken and its zero set is left lost, and said why (the window's zero
+    was written over the lost one)."""
+    body = gateway._bodies[None]
+    site = SMARTSUIT_SITES[ELBOW]
+    t0 = time.time_ns()
+
+    def take(i: int, encoder: int, flags: int = 0) -> None:
+        sample = RawSample(OleAccel(ELBOW, encoder, (0, 0, 1024)), i, t0 + i * 30_000_000,
+                           Source.CAN, flags)  # fmt: skip
+        body.take(site, sample, time.monotonic())
+
+    with gateway._lock:  # nothing publishes the elbow: these are its only samples
+        for i in range(10):
+            take(i, 5000)
+        take(10, 100, RESUMED)
+        for i in range(11, 20):
+            take(i, 100)
+        window = body.encoder_window(time.monotonic(), 1.0)
+        assert window == {ELBOW_KEY: [100] * 10}
+        generations = body.encoder_generations()
+        zeros = body.zero_encoders(window, body.solver.profile, "tpose")
+        assert body.set_zeros(zeros, generations) == {}
+        assert (body.encoders[ELBOW_KEY].lost, body.encoders[ELBOW_KEY].counts) == (
+            None, zeros[ELBOW_KEY])  # fmt: skip
+
+        generations = body.encoder_generations()
+        zeros = body.zero_encoders(body.encoder_window(time.monotonic(), 1.0),
+                                   body.solver.profile, "tpose")  # fmt: skip
+        take(20, 700, RESUMED)  # rebooted again after the window was taken
+        skipped = body.set_zeros(zeros, generations)
+        assert "resumed during the calibration window" in skipped[ELBOW_KEY]
+        assert body.encoders[ELBOW_KEY].lost is not None
 
 
 def test_emulated_encoder_counts_from_its_power_on() -> None:
