@@ -868,8 +868,11 @@ def raw_from_json(data: bytes) -> RawSample:
         else:
             ax, ay, az = (int(c) for c in d["accel"])
             reading = OleAccel(int(d["node"]), int(d["encoder"]), (ax, ay, az))
+        flags = int(d.get("flags", 0)) if "quat_wxyz" not in d else 0
+        if not 0 <= flags <= 0xFF:  # the raw-sample message holds it in one byte
+            raise ValueError(f"flags {flags} is not a byte (0 to 255)")
         return RawSample(reading, int(d["seq"]), int(d["t_ns"]), source_of(str(d["source"])),
-                         int(d.get("flags", 0)) if "quat_wxyz" not in d else 0)  # fmt: skip
+                         flags)  # fmt: skip
     except (ValueError, KeyError, TypeError) as exc:
         raise StoreError(f"not a raw-sample message: {exc}") from None
 
@@ -881,7 +884,11 @@ def read_raw(
     source-time order."""
     for schema, channel, message in _messages(path, topics):
         if schema is not None and schema.name == "bodynet.RawSample":
-            yield channel.topic, message.publish_time, raw_from_json(message.data)
+            try:
+                sample = raw_from_json(message.data)
+            except StoreError as exc:
+                raise StoreError(f"{path}: {channel.topic}: {exc}") from None
+            yield channel.topic, message.publish_time, sample
 
 
 def read_gaps(path: Path) -> list[Gap]:

@@ -214,6 +214,36 @@ def _raw(seq: int, t_ns: int) -> RawSample:
     return RawSample(OleAccel(2, 1000 + seq, (1, 2, 3)), seq, t_ns, Source.CAN)
 
 
+@pytest.mark.parametrize("flags", [256, -1])
+def test_replay_refuses_a_raw_sample_whose_flags_are_not_a_byte(
+    flags: int, router_endpoint: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A recording's raw sample with ``flags`` the message's one byte cannot hold:
+    replay says which recording and why, exit 2 (it was a ValueError of the
+    encoder, a traceback, after the samples before it went out)."""
+    from mcap.writer import Writer
+
+    from bodynet.clients.mcap_store import RAW_SCHEMA, raw_json
+
+    path = tmp_path / "flags.mcap"
+    with path.open("wb") as f:
+        writer = Writer(f)
+        writer.start()
+        schema = writer.register_schema(str(RAW_SCHEMA["title"]), "jsonschema",
+                                        json.dumps(RAW_SCHEMA).encode())  # fmt: skip
+        channel = writer.register_channel("body/arm/left/elbow/raw", "json", schema)
+        for i in range(3):
+            t_ns = 1_700_000_000_000_000_000 + i * 10_000_000
+            message = raw_json(_raw(i, t_ns)) | ({"flags": flags} if i == 2 else {})
+            writer.add_message(channel, t_ns, json.dumps(message).encode(), t_ns)
+        writer.finish()
+    assert main(["replay", str(path), "-q", "-e", router_endpoint]) == 2
+    err = capsys.readouterr().err
+    said = f"{path}: body/arm/left/elbow/raw: not a raw-sample message: flags {flags} is not a"
+    assert f"bodynet replay: {said} byte (0 to 255)\n" in err
+    assert "Traceback" not in err
+
+
 def test_sink_refuses_times_mcap_cannot_hold_before_writing(tmp_path: Path) -> None:
     out = tmp_path / "times.mcap"
     sink = McapSink(out)
