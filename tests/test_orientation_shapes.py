@@ -265,6 +265,12 @@ TOLD = {
     "decimal commas": ("x.csv", "time;pelvis_w;pelvis_x;pelvis_y;pelvis_z\n0,01;1;0;0;0\n", 2,
                        "time '0,01' is not a number (a decimal comma? numbers are read "
                        "with '.')"),
+    "decimal commas in a quaternion": (
+        "x.csv", "time;pelvis_w;pelvis_x;pelvis_y;pelvis_z\n0.01;0,5;0;0;0\n", 2,
+        "pelvis: not four numbers: '0,5,0,0,0' (a decimal comma? numbers are read with '.')"),
+    "one component in two columns": (
+        "x.csv", "time,pelvis_w,pelvis_x,pelvis_y,pelvis_z,pelvis_qw\n0,1,0,0,0,1\n", 1,
+        "pelvis: two columns of its w: 'pelvis_w' and 'pelvis_qw'"),
     "utf-16 without its mark": ("x.csv", "time,pelvis_w,pelvis_x,pelvis_y,pelvis_z\n", 1,
                                 "NUL characters: UTF-16 text? (save it as UTF-8)"),
 }  # fmt: skip
@@ -284,3 +290,27 @@ def test_a_file_written_another_way_is_told_how(
     assert (code, samples) == (2, [])
     assert err == f"bodynet decode: {path}: line {line}: {told}" + err.split(told, 1)[1]
     assert err.count("\n") == 1
+
+
+def test_a_quaternion_that_is_no_number_gets_no_decimal_comma_hint(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The cells are joined with commas in the message: that comma is no hint
+    of a decimal comma (every bad quaternion got one)."""
+    path = tmp_path / "x.csv"
+    path.write_text("time,pelvis_w,pelvis_x,pelvis_y,pelvis_z\n0,abc,0,0,0\n")
+    code, samples, err = decode(capsys, path)
+    assert (code, samples) == (2, [])
+    assert err == f"bodynet decode: {path}: line 2: pelvis: not four numbers: 'abc,0,0,0'\n"
+
+
+def test_a_metadata_line_with_a_cell_t_is_not_the_header(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """An exporter's metadata line ``t,5`` (a cell named as a time column) before
+    the header: the header is the line with quaternion columns too."""
+    path = tmp_path / "x.csv"
+    path.write_text("t,5\n" + csv_text(PLAIN))
+    code, samples, err = decode(capsys, path)
+    assert code == 0, err
+    assert len(samples) == 2 * len(ROWS)

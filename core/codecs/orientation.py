@@ -115,7 +115,7 @@ def _quat(values: list[str], line: int, what: str) -> QuatWxyz | None:
         w, x, y, z = (float(v) for v in values)
     except ValueError:
         cell = ",".join(values)
-        hint = _comma(cell) if len(values) == 4 else ""
+        hint = _comma("".join(values))  # a comma within a value, not the one joining them
         raise OrientationFileError(line, f"{what}: not four numbers: {cell!r}{hint}") from None
     if all(math.isnan(c) for c in (w, x, y, z)):
         return None
@@ -259,18 +259,33 @@ def _time_column(name: str) -> tuple[str | None, int | None] | None:
     return (m.group(2), None) if m else None
 
 
+def _has_w(cells: list[str]) -> bool:
+    """Whether ``cells`` name a quaternion's w (``<name>_w`` or ``<name>_qw``)."""
+    for cell in cells:
+        base, _, comp = cell.strip().strip('"').rpartition("_")
+        if base and _COMPONENT.get(comp.lower()) == "w":
+            return True
+    return False
+
+
 def _find_header(lines: list[str]) -> tuple[int, str]:
-    """The index of a CSV's header line (the first with a time column, within
-    :data:`HEADER_WITHIN` lines) and its separator."""
-    first = None
+    """The index of a CSV's header line (the first with a time column and a
+    quaternion's w, within :data:`HEADER_WITHIN` lines; else the first with a time
+    column: an exporter's metadata can hold a cell ``t``) and its separator."""
+    first, timed = None, None
     for i, line in enumerate(lines[:HEADER_WITHIN]):
         _no_nul(line, i + 1)
         if not line.strip():
             continue
         first = i if first is None else first
         for sep in DELIMITERS:
-            if any(_time_column(cell) is not None for cell in line.split(sep)):
-                return i, sep
+            cells = line.split(sep)
+            if any(_time_column(cell) is not None for cell in cells):
+                if _has_w(cells):
+                    return i, sep
+                timed = timed or (i, sep)
+    if timed is not None:
+        return timed  # no quaternion columns: _columns says so
     if first is None:
         raise OrientationFileError(1, "empty file: no header row")
     names = ", ".join((*TIME_NAMES, "time_ms", "time_us", "SampleTimeFine"))
@@ -294,7 +309,11 @@ def _columns(names: list[str], n: int, time_unit: str | None,
         base, _, comp = name.rpartition("_")
         c = _COMPONENT.get(comp.lower())
         if i != time_index and c and base:
-            seen.setdefault(base, {})[c] = i
+            comps = seen.setdefault(base, {})
+            if c in comps:
+                raise OrientationFileError(n, f"{base}: two columns of its {c}: "
+                                              f"{names[comps[c]]!r} and {name!r}")  # fmt: skip
+            comps[c] = i
     groups = []
     for base, comps in seen.items():
         if "w" not in comps:
