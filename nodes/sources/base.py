@@ -229,10 +229,9 @@ class Adapter:
             return True
         return False
 
-    def seen(self, t_from: float, t_to: float | None = None) -> None:
-        """The link was read and alive from ``t_from`` to ``t_to`` (at ``t_from``
-        alone if None): a unit of no node, or a read that waited and got nothing.
-        Only :class:`PeriodicAdapter` needs it."""
+    def seen(self, t_s: float) -> None:
+        """The link was seen alive at ``t_s``: a unit of no node (another device's
+        frame). Only :class:`PeriodicAdapter` needs it."""
 
     def take_tick(self, tick: Tick) -> None:
         if tick.node is None:
@@ -259,11 +258,14 @@ class PeriodicAdapter(Adapter):
 
     A node's sample is ``RESUMED`` when the node said nothing for
     ``REBOOT_SILENCE_S`` and ``REBOOT_MISSED`` or more of its periods (and half
-    one more, for jitter) while the link was seen alive: no stretch of ``BLIND_S``
-    in it without a unit of any node or a read that waited (:meth:`seen`). A
-    capture's times are its link's record, so the link counts as seen
-    throughout (``watched`` False); a live bridge, whose transport may stamp
-    frames when they are read, says when it read (``watched`` True)."""
+    one more, for jitter) while the link was seen alive. A capture's times are
+    its link's record, so the link counts as seen throughout (``watched``
+    False): a whole bus quiet is a reboot of every node. A live bridge, whose
+    transport may stamp frames when they are read, counts only units (``watched``
+    True; of any node, or of none: :meth:`seen`): a stretch of ``BLIND_S`` in
+    which none came claims nothing across it, a whole bus quiet included (the
+    bridge's reads that waited are no sign of life: nodes emulated beside it
+    stall with it under load)."""
 
     def __init__(self, period_s: float, rate_hz: float | None = None) -> None:
         super().__init__(period_s, rate_hz)
@@ -274,10 +276,10 @@ class PeriodicAdapter(Adapter):
         self._blind_end = -math.inf  # when it was seen again after a blind stretch
         self._silence_s = max(REBOOT_SILENCE_S, (REBOOT_MISSED + 0.5) * period_s)
 
-    def seen(self, t_from: float, t_to: float | None = None) -> None:
-        if self.watched and t_from - self._seen > BLIND_S:
-            self._blind_end = t_from
-        self._seen = max(self._seen, t_from if t_to is None else t_to)
+    def seen(self, t_s: float) -> None:
+        if self.watched and t_s - self._seen > BLIND_S:
+            self._blind_end = t_s
+        self._seen = max(self._seen, t_s)
 
     def resumed(self, node: int, t_s: float) -> bool:
         self.seen(t_s)
