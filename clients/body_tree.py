@@ -18,7 +18,8 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from bodynet.clients import foxglove_pb
-from bodynet.core.codecs.pose import UNOBSERVED, UPRIGHT, PoseFrame, is_measured
+from bodynet.core.codecs.pose import UNOBSERVED, UPRIGHT, PoseFrame
+from bodynet.core.metrics import measured_angles
 from bodynet.core.skeleton import Skeleton, build_skeleton
 
 ROOT_SEGMENT = "pelvis"
@@ -45,26 +46,26 @@ def default_chains() -> Mapping[str, tuple[str, ...]]:
 def unmeasured_segments(
     frame: PoseFrame, chains: Mapping[str, Sequence[str]] | None = None
 ) -> frozenset[str]:
-    """The segments whose world pose rests on an angle ``frame`` does not
-    measure (``is_measured`` false on their chain from the pelvis, ``chains``:
-    ``Skeleton.segment_chains``, the default skeleton's if None), but for the
-    upright model's (:func:`chain_breaks`)."""
-    breaks = chain_breaks(frame)
-    if not breaks:
-        return frozenset()
+    """The segments whose world pose rests on an angle no measurement stands
+    behind: on their chain from the pelvis (``chains``: ``Skeleton.segment_chains``,
+    the default skeleton's if None), one the pose lacks or one of
+    :func:`chain_breaks`. Every client's test of a segment's pose."""
+    breaks, angles = chain_breaks(frame), frame.angles_deg
     return frozenset(s for s, chain in (chains or default_chains()).items()
-                     if not breaks.isdisjoint(chain))  # fmt: skip
+                     if not breaks.isdisjoint(chain)
+                     or not all(a in angles for a in chain))  # fmt: skip
 
 
 def chain_breaks(frame: PoseFrame) -> frozenset[str]:
     """The angles of ``frame`` a segment's world pose below them cannot stand on:
-    those ``is_measured`` is false for, but for the upright model's (reasons
-    ``unobserved`` and ``upright`` only: the trunk of a body with no trunk sensor,
-    the reference its limbs are measured against, as the pelvis at the origin is)."""
-    if not frame.flags:
+    those :func:`~bodynet.core.metrics.measured_angles` leaves out, but for the
+    upright model's (reasons ``unobserved`` and ``upright`` only: the trunk of a
+    body with no trunk sensor, the reference its limbs are measured against, as
+    the pelvis at the origin is)."""
+    if not frame.flags and not frame.stale:
         return frozenset()
-    reasons = frame.reasons
-    return frozenset(a for a in frame.flags if not is_measured(frame, a)
+    measured, reasons = measured_angles(frame), frame.reasons
+    return frozenset(a for a in frame.angles_deg if a not in measured
                      and frozenset(reasons.get(a, ())) != _UPRIGHT)  # fmt: skip
 
 

@@ -148,10 +148,9 @@ def segment_values(frame: pose.PoseFrame, chains: Mapping[str, Sequence[str]]) -
     (``body_tree.unmeasured_segments``: the upright model's is no guess)."""
     out: list[float] = []
     unmeasured = unmeasured_segments(frame, chains)
-    angles = frame.angles_deg
-    for seg, chain in chains.items():
+    for seg in chains:
         got = frame.segments.get(seg)
-        if got is None or seg in unmeasured or not all(n in angles for n in chain):
+        if got is None or seg in unmeasured:
             out.extend((NAN,) * 7)
         else:
             out.extend(got[0])

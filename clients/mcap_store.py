@@ -58,6 +58,7 @@ from array import array
 from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from types import MappingProxyType
 from typing import IO, Any
 
 import numpy as np
@@ -89,6 +90,7 @@ from bodynet.core import keys
 from bodynet.core.codecs import pose
 from bodynet.core.errors import DecodeError, Reason
 from bodynet.core.messages import OleAccel, RawSample, source_name
+from bodynet.core.skeleton import build_skeleton
 
 POSE_SCHEMA = {
     "title": "bodynet.PoseFrame",
@@ -714,7 +716,15 @@ def _unmeasured(flags_text: bytes, reasons_text: bytes) -> frozenset[str] | None
         return None
     if not isinstance(reasons, dict) or not all(isinstance(v, list) for v in reasons.values()):
         return None
-    return unmeasured_segments(pose.PoseFrame(0, 0, {}, {}, {}, {}, flags, reasons=reasons))
+    return unmeasured_segments(pose.PoseFrame(0, 0, _every_angle(), {}, {}, {}, flags,
+                                              reasons=reasons))  # fmt: skip
+
+
+@functools.cache
+def _every_angle() -> Mapping[str, float]:
+    """Every angle of the default skeleton, for :func:`_unmeasured`'s pose of
+    flags alone (the gateway's whole-body pose carries them all)."""
+    return MappingProxyType(dict.fromkeys(build_skeleton().angle_names(), 0.0))
 
 
 def _without(given: tuple[int, Any, Any], unmeasured: frozenset[str]) -> tuple[int, Any, Any]:

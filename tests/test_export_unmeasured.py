@@ -318,3 +318,33 @@ def test_an_arm_alone_has_its_joint_centres_and_transforms(
             assert got == {s for s in SKELETON.segments if stands(frame, s)}, (name, index)
         assert all("left_upperarm" in got for got in stamped.values()), name
         assert any(arm <= got for got in stamped.values()), name
+
+
+def test_a_recording_from_before_the_stale_reason_exports_no_angle_resting_on_a_stale_sensor(
+    tmp_path: Path,
+) -> None:
+    """Poses as an older gateway wrote them (the elbow module listed stale, no dof
+    flagged): the export's track takes the elbow and wrist as unmeasured (as LSL,
+    metrics and the report do), and the forearm's orientation with them."""
+    from bodynet.clients.exports.track import load_track
+    from bodynet.clients.mcap_store import McapSink
+    from bodynet.core import keys
+
+    skeleton = build_skeleton()
+    stale = [keys.raw_key("arm", "left", "elbow")]
+    path = tmp_path / "old.mcap"
+    sink = McapSink(path)
+    for i in range(3):
+        t_ns = 1_700_000_000_000_000_000 + i * 10_000_000
+        segments = dict.fromkeys(skeleton.segments, ((0.0, 0.0, 1.0), (1.0, 0.0, 0.0, 0.0)))
+        frame = pose.PoseFrame(i, t_ns, dict.fromkeys(skeleton.angle_names(), 1.0), {},
+                               segments, {}, stale=stale if i else [])  # fmt: skip
+        sink.write_pose(keys.pose_key(), frame, t_ns)
+    sink.close()
+    track = load_track(path, progress=False, every_tick=True)
+    unmeasured = {a for k, a in enumerate(track.angles) if not track.measured[1:, k].any()}
+    assert unmeasured == {*skeleton.joint("left_elbow").angle_names(),
+                          *skeleton.joint("left_wrist").angle_names()}  # fmt: skip
+    assert track.measured[0].all()
+    forearm = track.segments.index("left_forearm")
+    assert track.chain_measured()[:, forearm].tolist() == [True, False, False]

@@ -30,10 +30,10 @@ from scipy.interpolate import make_interp_spline
 from scipy.spatial.transform import Rotation, Slerp
 from tqdm import tqdm
 
-from bodynet.clients.body_tree import chain_breaks
+from bodynet.clients.body_tree import chain_breaks, default_chains
 from bodynet.clients.mcap_store import StoreError, count_messages, read_poses
 from bodynet.core import keys
-from bodynet.core.codecs.pose import is_measured
+from bodynet.core.metrics import measured_angles
 from bodynet.core.skeleton import build_skeleton
 from bodynet.session.outputs import atomic_path
 
@@ -64,7 +64,7 @@ class PoseTrack:
     angles: tuple[str, ...]
     angle_deg: np.ndarray  # (F, A)
     rel_deg: np.ndarray  # (F, J) each joint's total rotation from the calibration pose
-    measured: np.ndarray  # (F, A) bool: a measurement is behind the angle (is_measured)
+    measured: np.ndarray  # (F, A) bool: a measurement is behind the angle (measured_angles)
     rate_hz: float | None = None  # set by resample: the frames are 1 / rate_hz apart
     source: str = ""  # the recording it was read from, for messages about its poses
     #: (F,) bool: the frame stands on poses (False: resampled inside a gap in them,
@@ -94,7 +94,7 @@ class PoseTrack:
         on poses and every angle from the pelvis to it is measured or the upright
         model's (the pelvis: the frame alone, it carries no flag)."""
         index = {a: i for i, a in enumerate(self.angles)}
-        chains = build_skeleton().segment_chains()
+        chains = default_chains()
         posed = self.frame_posed()
         stands = self.measured if self.upright is None else self.measured | self.upright
         return np.stack([posed & stands[:, [index[a] for a in chains[s]]].all(axis=1)
@@ -156,8 +156,9 @@ def load_track(recording: Path, progress: bool = True, every_tick: bool = False)
             joint_p[n] = [frame.joints_m.get(j, nan3) for j in joints]
             angle_deg[n] = [frame.angles_deg.get(a, np.nan) for a in angles]
             rel_deg[n] = [frame.rel_deg.get(j, np.nan) for j in joints]
-            if frame.flags:
-                measured[n] = [is_measured(frame, a) for a in angles]
+            if frame.flags or frame.stale:
+                got = measured_angles(frame)
+                measured[n] = [a in got for a in angles]
                 breaks = chain_breaks(frame)
                 upright[n] = [not (m or a in breaks)
                               for a, m in zip(angles, measured[n], strict=True)]  # fmt: skip
