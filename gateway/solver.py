@@ -1329,7 +1329,8 @@ class BodySolver:
             fit, strength = _gravity_fit(predict, prev, target, names)
             sol, sol_unc, sol_why = self._settle(names, fit, strength,
                                                  prev if tick.last is not None else None,
-                                                 max(noise) + tick.harm[upstream.parent],
+                                                 max(noise) + tick.harm[upstream.parent]
+                                                 + _miss(predict, fit, target),
                                                  tick)  # fmt: skip
             sol = _refit(predict, sol, sol_why, target)
         else:
@@ -1374,7 +1375,7 @@ class BodySolver:
 
         start = prev if prev is not None else np.zeros(1)
         fit, strength = _gravity_fit(predict, start, target, (name,))
-        noise = up[1] + tick.harm[joint.parent]
+        noise = up[1] + tick.harm[joint.parent] + _miss(predict, fit, target)
         v, u, w = self._settle((name,), fit, strength, prev, noise, tick)
         return float(v[0]), float(u[0]), w[0]
 
@@ -1539,6 +1540,16 @@ def _gravity_fit(predict: Any, x0: np.ndarray, target: np.ndarray,
         fits.append(_gauss_newton(predict, np.zeros(len(x0)), target))
     best = min(fits, key=rank)
     return best, _strengths(predict, best)
+
+
+def _miss(predict: Any, x: np.ndarray, target: np.ndarray) -> float:
+    """How far (rad) the best fit leaves a measured "up" off its predicted one:
+    the largest miss over the fit's accelerometers. The chain above and the
+    encoders fix more of each segment's tilt than the fit's dofs can change, so
+    what they cannot explain is the limb's own acceleration across gravity (or a
+    model error), and a dof fitted through it is as far off (the hand's deviation
+    swings as the lifted arm's reach accelerates)."""
+    return float(np.linalg.norm((predict(x) - target).reshape(-1, 3), axis=1).max())
 
 
 def _refit(predict: Any, values: np.ndarray, why: Sequence[set[str]],
