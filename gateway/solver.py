@@ -1039,7 +1039,9 @@ class BodySolver:
             inherited = rests[joint.parent]
             harm[child] = 0.0 if child in measured else harm[joint.parent]
             if joint.name in direct:
-                world[child] = parent @ direct[joint.name]
+                # the measured orientation, not the clamped dofs': what hangs below
+                # (a module's tilt) is fitted against where the segment really is
+                world[child] = measured[child] if child in measured else parent @ direct[joint.name]
                 rests[child] = self._rests(child, tick)
                 if child in modules:  # a module on the same segment: dof by dof
                     self._merge_module(tick, world, joint, parent, previous, inherited)

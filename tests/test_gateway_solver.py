@@ -757,3 +757,25 @@ def test_a_hybrid_arms_tilts_are_right_or_flagged_while_the_arm_accelerates() ->
                 wrong.append((tick, name, round(float(err), 1), round(float(out.unc[i]), 1)))
     assert not wrong, wrong[:10]
     assert measured > 500  # the deviation is measured most of the time, not flagged away
+
+
+def test_a_clamped_shoulder_leaves_the_forearm_where_its_tag_puts_it() -> None:
+    """An upper arm turned beyond its range (the split clamps the rotation, as
+    near the shoulder's gimbal lock, where noise throws a tag's split between
+    branches): the modules below are fitted against where the tag measures the
+    upper arm, not against the clamped dofs (which put the elbow's pronation 1.7
+    degrees off with a miss that widened it to 14 and held the wrist's deviation
+    at -11 against 0)."""
+    pose = {"left_shoulder_flexion_deg": 30.0, "left_shoulder_rotation_deg": 110.0,
+            "left_elbow_flexion_deg": 60.0, "left_elbow_pronation_deg": 30.0}  # fmt: skip
+    routine = Routine("beyond", "", keyframes([(0.0, {}), (1.0, {}), (3.0, pose), (4.0, pose)],
+                                              loop=False))  # fmt: skip
+    for tick, (out, truth) in enumerate(solve_hybrid_arm(routine, 400)):
+        if tick < 330:
+            continue
+        assert out.reasons.get("left_shoulder_rotation_deg") == ("clamped",)
+        for name in ("left_elbow_pronation_deg", "left_wrist_deviation_deg"):
+            assert name not in out.reasons, (tick, name)
+            want = pytest.approx(truth.get(name, 0.0), abs=1.0)
+            assert out.angles_deg[name] == want, (tick, name)
+            assert out.unc[out.names.angles.index(name)] < 12.0, (tick, name)
