@@ -192,19 +192,16 @@ def unix_to_lsl_offset() -> float:
 
 #: The joints a stale SmartSuit left-arm module takes part in: those at either end
 #: of the segment it rides on (shoulder module: upper arm; elbow: forearm; wrist: hand).
-STALE_JOINTS = {"shoulder": ("left_shoulder", "left_elbow"), "elbow": ("left_elbow", "left_wrist"),
-                "wrist": ("left_wrist",)}  # fmt: skip
-
-
 def expected_angles(f: pose.PoseFrame, labels: list[str]) -> list[float]:
-    """The pose's angle under each channel label; NaN where the team's convention
-    says nothing was measured (flagged, and not merely clamped) or a stale module
-    of the left arm takes part in it."""
-    stale = {j for k in f.stale for j in STALE_JOINTS[k.split("/")[3]]}
+    """The pose's angle under each channel label; NaN where the pose says nothing
+    measured it: flagged (not merely clamped), or resting on a sensor gone stale
+    (the gateway flags that too; the solver's tests hold its flags to the truth)."""
     out = []
     for label in labels:
         name = label + "_deg"
-        measured = f.flags.get(name) in (None, "clamped") and name.rsplit("_", 2)[0] not in stale
+        measured = f.flags.get(name) in (None, "clamped") and not (
+            f.stale and pose.STALE in f.reasons.get(name, ())
+        )
         out.append(f.angles_deg[name] if measured else math.nan)
     return out
 
