@@ -8,8 +8,9 @@ tick (``rate_hz``), the bodies that are due together, publishing the whole
 body on ``body/pose`` and each branch's view on ``body/<limb>/<side>/pose``.
 Nodes are tracked through their liveliness tokens; the topology is published
 on ``body/@topology`` when it changes and answered as a query there. A site that stops delivering
-keeps its last sample, listed stale, and the dofs resting on it are flagged
-``unobserved`` (reason ``stale``); other branches carry on. Garbage on the
+keeps its last sample and, once that is older than a few of its usual
+intervals (``solver.Rhythm``), is listed stale and the dofs resting on it are
+flagged ``unobserved`` (reason ``stale``); other branches carry on. Garbage on the
 raw keys is counted (``body/@health/gateway``), never fatal. Each site's clock
 offset (its node host's clock against the gateway's, from the most a sample's
 time led its arrival) is shown in topology and health, and logged as a warning
@@ -68,7 +69,14 @@ from bodynet.gateway.heading import (
 )
 from bodynet.gateway.rounds import Cadence, Rounds, next_window
 from bodynet.gateway.shards import Share
-from bodynet.gateway.solver import STALE_S, BodyOutput, BodySolver, solve_bodies
+from bodynet.gateway.solver import (
+    STALE_S,
+    BodyOutput,
+    BodySolver,
+    Rhythm,
+    fresh_samples,
+    solve_bodies,
+)
 from bodynet.session import profile_file
 
 log = logging.getLogger(__name__)
@@ -114,12 +122,14 @@ class _Site:
     superseded before a solve reads them when the gateway is busy."""
 
     __slots__ = ("_sample", "arrived", "counts", "fields", "fresh", "history", "kept_at",
-                 "lead", "lead_before", "offset_ms", "owed", "warned_ms", "zero")  # fmt: skip
+                 "lead", "lead_before", "offset_ms", "owed", "rhythm", "warned_ms",
+                 "zero")  # fmt: skip
 
     def __init__(self, sample: RawSample, arrived: float) -> None:
         self._sample: RawSample | None = sample
         self.fields: raw_sample.QuatFields | None = None  # the latest, not read yet
         self.arrived = arrived  # monotonic
+        self.rhythm = Rhythm()  # its usual interval between arrivals: when it is stale
         self.fresh = False  # not yet in a solved tick
         # how many of the body's frames this site has delivered for, counted from the
         # last solve (at most 2): a sample taken before a solve that the frame being
@@ -294,6 +304,7 @@ class _Body:
                 self.ready_sites += 1
             kept.owed = owed + 1
         kept.arrived = now
+        kept.rhythm.seen(now)
         if self.first_new is None:
             self.first_new = now
 
@@ -305,10 +316,10 @@ class _Body:
             return False  # a node's first sample is on its way; a new body waits a period
         if self.ready_sites < len(self.latest) - len(self.published_stale):
             return False  # some live site has not delivered yet: the common, cheap answer
-        return all(v.owed or now - v.arrived > STALE_S for v in self.latest.values())
+        return all(v.owed or now - v.arrived > v.rhythm.after_s for v in self.latest.values())
 
     def newly_stale(self, now: float) -> bool:
-        return any(now - v.arrived > STALE_S and s.raw_key not in self.published_stale
+        return any(now - v.arrived > v.rhythm.after_s and s.raw_key not in self.published_stale
                    for s, v in self.latest.items())  # fmt: skip
 
     def snapshot(self, now: float) -> tuple[dict[Site, RawSample], list[str], BodySolver]:
@@ -324,7 +335,7 @@ class _Body:
         stale, behind, gone = [], True, self.gone
         for site, s in self.latest.items():
             latest[site] = s.sample
-            if now - s.arrived > STALE_S:
+            if now - s.arrived > s.rhythm.after_s:  # a few of its usual intervals
                 stale.append(site.raw_key)
             else:
                 behind = behind and s.owed > 1
@@ -372,7 +383,7 @@ class _Body:
                 continue
             seen = self.latest.get(site)
             state = "alive" if key in self.alive else "gone"
-            if seen is None or now - seen.arrived > STALE_S:
+            if seen is None or now - seen.arrived > seen.rhythm.after_s:
                 state = "stale" if key in self.alive else state
             branch = branches.setdefault(str(site.branch), {"nodes": {}})
             nodes = branch["nodes"]
@@ -884,9 +895,11 @@ class Gateway:
         ``bodynet process`` does): while unknown, a heading once found (a new
         solver, the profile saved); once known, the joints' constraints keep the
         tags' headings from drifting (JointDrift: the hinge and two-dof joints,
-        and the three-dof joints' twist where the profile's ``drift`` says)."""
-        for body, latest, _, _ in work:
-            step = body.heading.step(now, latest, body.solver.profile, body.encoders)
+        and the three-dof joints' twist where the profile's ``drift`` says); never
+        from a stale site's frozen sample."""
+        for body, latest, stale, _ in work:
+            step = body.heading.step(now, fresh_samples(latest, stale), body.solver.profile,
+                                     body.encoders)  # fmt: skip
             if step is None:
                 continue
             what, profile = step

@@ -127,10 +127,61 @@ DAMPING = 0.01 * (math.pi / 180.0) ** 2
 
 #: Raw keys :meth:`BodySolver.expect` remembers having taken (then it starts over).
 MAX_TOLD = 4096
-#: A site that has not delivered for longer than this (seconds) is stale: what rests
-#: on its last sample is flagged (:meth:`BodySolver.set_stale`; the gateway's and
-#: ``bodynet process``'s one rule).
+#: A site is stale once its latest sample is older than ``STALE_INTERVALS`` of its
+#: usual intervals (:class:`Rhythm`), ``STALE_FLOOR_S`` at least (a Wi-Fi tracker's
+#: jitter) and ``STALE_S`` at most (also until its interval is known): what rests on
+#: its last sample is flagged (:meth:`BodySolver.set_stale`; the gateway's and
+#: ``bodynet process``'s one rule). Frozen values are shown measured for that long.
 STALE_S = 0.5
+STALE_INTERVALS, STALE_FLOOR_S = 3.0, 0.05
+#: A site's usual interval: the median of the mean intervals of its last
+#: ``RHYTHM_SPANS`` runs of ``RHYTHM_RUN`` samples (a run's mean, not each interval:
+#: the gateway takes samples in rounds, several of a site at one arrival time).
+RHYTHM_RUN, RHYTHM_SPANS = 8, 7
+
+
+class Rhythm:
+    """A site's usual interval between samples, learnt from their times (arrival
+    live, the capture's offline), and ``after_s``: the age past which its latest
+    sample is stale. :meth:`seen` costs an addition and a comparison per sample;
+    the median is taken once a run."""
+
+    __slots__ = ("_next", "_spans", "_start", "after_s", "n")
+
+    def __init__(self) -> None:
+        self.after_s = STALE_S
+        self.n = -1  # samples in this run since its first (the first sample starts one)
+        self._start = 0.0
+        self._spans: list[float] = []
+        self._next = 0  # where the next run's mean goes in ``_spans`` once full
+
+    def seen(self, t: float) -> None:
+        """A sample came at ``t`` (s)."""
+        self.n += 1
+        if self.n >= RHYTHM_RUN or self.n <= 0:
+            self._run(t)
+
+    def _run(self, t: float) -> None:
+        """A run of ``RHYTHM_RUN`` intervals ended at ``t`` (or the first sample came,
+        or the times went back: a new run)."""
+        if self.n > 0 and t >= self._start:
+            spans = self._spans
+            mean = (t - self._start) / self.n
+            if len(spans) < RHYTHM_SPANS:
+                spans.append(mean)
+            else:
+                spans[self._next] = mean
+                self._next = (self._next + 1) % RHYTHM_SPANS
+            usual = sorted(spans)[len(spans) // 2]
+            self.after_s = min(STALE_S, max(STALE_FLOOR_S, STALE_INTERVALS * usual))
+        self._start, self.n = t, 0
+
+
+def fresh_samples(samples: Mapping[Site, Any], stale: Iterable[str]) -> Mapping[Site, Any]:
+    """``samples`` (site -> sample) without the stale sites' (raw keys): what a
+    heading's search or hold may feed on (a frozen sample is no motion)."""
+    gone = set(stale)
+    return {s: v for s, v in samples.items() if s.raw_key not in gone} if gone else samples
 
 _UP = np.array([0.0, 0.0, 1.0])
 _TRUNK = frozenset(part("trunk", "mid")[1])  # pelvis, thorax, head
@@ -856,7 +907,8 @@ class BodySolver:
 
     def set_stale(self, raw_keys: Iterable[str]) -> None:
         """The sites (raw keys) whose latest sample is stale: they stopped
-        delivering (for longer than ``STALE_S``, or their node is gone). Until
+        delivering (for a few of their usual intervals, :class:`Rhythm`, or their
+        node is gone). Until
         they are no longer named here, every dof resting on such a sample is
         flagged ``unobserved`` with reason ``stale``; one another source
         determines (a SmartSuit module beside a stale tag, dof by dof) stays

@@ -19,9 +19,11 @@ heading is unknown (``auto``), a first pass finds it from a hinge's motion
 the dofs the tags drive stay flagged ``uncalibrated``. Once known, the tags'
 headings are held against drift by the joints' constraints tick by tick, the
 same step as the live gateway's (``BodyHeading.step``). A site whose latest
-sample is older than the gateway's ``STALE_S`` at a tick's time (a tag gone
-missing, its cells empty) is stale there, as live: listed in the pose's
-``stale`` and the dofs resting on it flagged (``BodySolver.set_stale``).
+sample is older than a few of its usual intervals at a tick's time (a tag gone
+missing, its cells empty; the gateway's rule, ``solver.Rhythm``, in the
+capture's time) is stale there, as live: listed in the pose's ``stale``, the
+dofs resting on it flagged (``BodySolver.set_stale``), and the headings' search
+and hold do not take its frozen sample.
 """
 
 from __future__ import annotations
@@ -48,7 +50,7 @@ from bodynet.gateway.heading import (
     WindowCalibration,
     calibrate_window,
 )
-from bodynet.gateway.solver import STALE_S, BodySolver
+from bodynet.gateway.solver import BodySolver, Rhythm, fresh_samples
 from bodynet.nodes import sources
 from bodynet.nodes.sources.base import CapturedSample, CaptureError, CaptureStats
 
@@ -158,21 +160,46 @@ def _solver(profile: Profile, topology: set[str], as_given: bool) -> BodySolver:
     return solver
 
 
+class _Ages:
+    """When each site's latest sample was taken, and its rhythm: which are stale at a
+    tick's time (the live gateway's rule, in the capture's time)."""
+
+    def __init__(self) -> None:
+        self.times: dict[Site, float] = {}
+        self.rhythms: dict[Site, Rhythm] = {}
+
+    def seen(self, s: CapturedSample) -> None:
+        self.times[s.site] = s.t_s
+        rhythm = self.rhythms.get(s.site)
+        if rhythm is None:
+            rhythm = self.rhythms[s.site] = Rhythm()
+        rhythm.seen(s.t_s)
+
+    def stale(self, t_s: float) -> list[str]:
+        """The raw keys of the sites stale at ``t_s``, sorted."""
+        rhythms = self.rhythms
+        return sorted(site.raw_key for site, t in self.times.items()
+                      if t_s - t > rhythms[site].after_s)  # fmt: skip
+
+
 def _find_heading(heading: BodyHeading, ticks: Iterator[list[CapturedSample]]) -> None:
-    """The first pass: the tags' heading from a hinge's motion, if one moves; an
-    ``auto`` heading taken is watched to the capture's end (a joint that tilts
-    later may break it: then each tag's is searched, and the ticks before are
-    not solved with it)."""
+    """The first pass: the tags' heading from a hinge's motion, if one moves (not
+    from a stale site's frozen sample); an ``auto`` heading taken is watched to
+    the capture's end (a joint that tilts later may break it: then each tag's is
+    searched, and the ticks before are not solved with it)."""
     latest: dict[Site, RawSample] = {}
+    ages = _Ages()
     for tick in ticks:
         for s in tick:
             latest[s.site] = RawSample(s.reading, 0, 0)
+            ages.seen(s)
+        fresh = fresh_samples(latest, ages.stale(tick[-1].t_s))
         if heading.searching:
-            heading.update(tick[-1].t_s, latest)
+            heading.update(tick[-1].t_s, fresh)
         elif heading.check is None or heading.check.verdict != "shared":
             break
         else:
-            heading.watch(tick[-1].t_s, latest, heading.profile)
+            heading.watch(tick[-1].t_s, fresh, heading.profile)
 
 
 def _hold_drift(heading: BodyHeading, t_s: float, latest: Mapping[Site, RawSample],
@@ -184,12 +211,9 @@ def _hold_drift(heading: BodyHeading, t_s: float, latest: Mapping[Site, RawSampl
         heading.hold(solver, step[1])
 
 
-def _solve_at(solver: BodySolver, latest: Mapping[Site, RawSample], times: Mapping[Site, float],
-              t_s: float, seq: int) -> PoseFrame:  # fmt: skip
-    """The pose of tick ``seq`` at ``t_s``: the sites whose latest sample (its time
-    in ``times``) is older than ``STALE_S`` then are stale, the live gateway's rule
-    in the capture's time."""
-    stale = sorted(site.raw_key for site, t in times.items() if t_s - t > STALE_S)
+def _solve_at(solver: BodySolver, latest: Mapping[Site, RawSample], stale: list[str],
+              seq: int) -> PoseFrame:  # fmt: skip
+    """The pose of tick ``seq``, the sites ``stale`` (``_Ages.stale``) flagged."""
     solver.set_stale(stale)
     return pose_frame(solver.solve(latest), seq, stale)
 
@@ -281,7 +305,7 @@ def process(path: Path, fmt: str, out: Path, profile: Profile | None = None,
     stats = CaptureStats()
     sink = McapSink(out)
     latest: dict[Site, RawSample] = {}
-    times: dict[Site, float] = {}  # the time of each site's latest sample
+    ages = _Ages()
     seqs: dict[Site, int] = {}
     ticks = 0
     first_t: float | None = None
@@ -293,12 +317,13 @@ def process(path: Path, fmt: str, out: Path, profile: Profile | None = None,
             for s in tick:
                 seq = seqs[s.site] = seqs.get(s.site, -1) + 1
                 sample = latest[s.site] = _raw(s, seq, source.wire_id, zeros)
-                times[s.site] = s.t_s
+                ages.seen(s)
                 _write_raw(sink, s.site, sample, path)
             ticks += 1
             t_ns = round(tick[-1].t_s * 1e9)
-            frame = _solve_at(solver, latest, times, tick[-1].t_s, ticks)
-            _hold_drift(heading, tick[-1].t_s, latest, solver)
+            stale = ages.stale(tick[-1].t_s)
+            frame = _solve_at(solver, latest, stale, ticks)
+            _hold_drift(heading, tick[-1].t_s, fresh_samples(latest, stale), solver)
             sink.write_pose(keys.pose_key(), frame, t_ns)
             for branch, view in branch_views(frame, BRANCHES).items():
                 sink.write_pose(keys.pose_key(branch), view, t_ns)

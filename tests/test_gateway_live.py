@@ -24,7 +24,7 @@ from bodynet.core.codecs import pose, raw_sample
 from bodynet.core.keys import LEFT_ARM, RIGHT_ARM
 from bodynet.core.messages import OleAccel, Quat, RawSample, Source
 from bodynet.core.profile import IMU_SITES
-from bodynet.core.skeleton import TPOSE
+from bodynet.core.skeleton import TPOSE, build_skeleton
 from bodynet.gateway.service import Gateway
 from bodynet.gateway.solver import BodySolver
 from bodynet.nodes.emulator import BodyEmulator, Realism, imu_tags
@@ -932,3 +932,69 @@ def test_a_node_that_stops_has_its_dofs_flagged_until_it_returns(
         left.stop()
         right_session.close()
         left_session.close()
+
+
+def test_a_tag_dropping_out_in_a_fast_movement_is_flagged_within_a_few_of_its_intervals(
+    router_endpoint: str, zsession: zenoh.Session
+) -> None:
+    """Fifteen ideal tags at 50 Hz on their own clock, the right elbow swinging at up
+    to 160 deg/s; the right forearm's tag drops out for 0.3 s three times, each
+    at the swing's fastest. While it is out, its frozen sample is 25-50 deg off
+    the truth by the gap's end; every pose either flags the elbow's and wrist's
+    dofs (stale) or has them within 25 deg of the truth (some 150 ms of the swing:
+    three of the tag's 20 ms intervals and room for a loaded machine). Only
+    STALE_S (0.5 s) of silence flagged them before."""
+    from test_gateway_solver import IDEAL_RANDOM_MOUNTS as MOUNTS
+    from test_gateway_solver import SEED, calibrated_profile
+
+    tags = imu_tags()
+    routine = Routine("swing", "",
+                      lambda t: {"right_elbow_flexion_deg": 60 + 50 * math.sin(math.pi * t)})  # fmt: skip
+    body = BodyEmulator(routine, tags, realism=MOUNTS, seed=SEED)
+    forearm = "body/arm/right/forearm/raw"
+    gaps = [(k - 0.15, k + 0.15) for k in (1.0, 2.0, 3.0)]
+    skeleton = build_skeleton()
+    resting = {n for j in ("right_elbow", "right_wrist") for n in skeleton.joint(j).angle_names()}
+    session = client(router_endpoint)
+    gw = Gateway(session, profile=calibrated_profile(tags))
+    running = Running(gw.run)
+    poses = Collector(zsession, keys.pose_key(), pose.decode)
+    feeder = client(router_endpoint)
+    pubs = [feeder.declare_publisher(t.site.raw_key) for t in tags]
+    start_ns = time.time_ns()
+    try:
+        seq, t = 0, 0.0
+        while t < 3.5:
+            t = (time.time_ns() - start_ns) / 1e9  # the tags' own clock, the truth's time
+            readings, _ = body.sample(t)
+            out = any(a <= t < b for a, b in gaps)
+            for tag, reading, pub in zip(tags, readings, pubs, strict=True):
+                if not (out and tag.site.raw_key == forearm):
+                    pub.put(raw_sample.encode(RawSample(reading, seq, start_ns + round(t * 1e9),
+                                                        Source.IMU_CENTRAL)))  # fmt: skip
+            seq += 1
+            time.sleep(0.02)
+    finally:
+        feeder.close()
+        running.stop()
+        gw.close()
+        session.close()
+    frames = []
+    while not poses.queue.empty():
+        frames.append(poses.queue.get_nowait()[1])
+    stale_in_gap, frozen_off = [0] * len(gaps), 0.0
+    for frame in frames:
+        t = (frame.t_ns - start_ns) / 1e9
+        truth = routine.angles(t)
+        for name in resting:
+            off = abs(frame.angles_deg[name] - truth.get(name, 0.0))
+            if forearm in frame.stale:
+                assert frame.reasons[name][:2] == ("unobserved", "stale"), (t, name)
+                frozen_off = max(frozen_off, off)
+            else:
+                assert name not in frame.flags, (t, name, frame.reasons.get(name))
+                assert off < 25.0, (t, name, frame.angles_deg[name], truth.get(name, 0.0))
+        for i, (a, b) in enumerate(gaps):
+            stale_in_gap[i] += a <= t < b and forearm in frame.stale
+    assert all(stale_in_gap), stale_in_gap
+    assert frozen_off > 25.0  # the frozen forearm was far off: flagged, not shown
