@@ -183,6 +183,7 @@ def fresh_samples(samples: Mapping[Site, Any], stale: Iterable[str]) -> Mapping[
     gone = set(stale)
     return {s: v for s, v in samples.items() if s.raw_key not in gone} if gone else samples
 
+
 _UP = np.array([0.0, 0.0, 1.0])
 _TRUNK = frozenset(part("trunk", "mid")[1])  # pelvis, thorax, head
 _NOTHING: frozenset[str] = frozenset()

@@ -948,8 +948,8 @@ def test_a_tag_dropping_out_in_a_fast_movement_is_flagged_within_a_few_of_its_in
     from test_gateway_solver import SEED, calibrated_profile
 
     tags = imu_tags()
-    routine = Routine("swing", "",
-                      lambda t: {"right_elbow_flexion_deg": 60 + 50 * math.sin(math.pi * t)})  # fmt: skip
+    swing = {"right_elbow_flexion_deg": lambda t: 60 + 50 * math.sin(math.pi * t)}
+    routine = Routine("swing", "", lambda t: {n: f(t) for n, f in swing.items()})
     body = BodyEmulator(routine, tags, realism=MOUNTS, seed=SEED)
     forearm = "body/arm/right/forearm/raw"
     gaps = [(k - 0.15, k + 0.15) for k in (1.0, 2.0, 3.0)]

@@ -205,20 +205,22 @@ def test_a_sample_before_1970_is_refused_naming_the_capture(tmp_path: Path) -> N
     assert sorted(p.name for p in tmp_path.iterdir()) == ["neg.csv", "neg.log"]
 
 
+@pytest.mark.parametrize(("end", "least_stale"), [(4.0, 50), (2.3, 10)])
 def test_process_flags_a_tag_gone_for_a_stretch_and_one_dead_from_the_start(
-    tmp_path: Path,
+    end: float, least_stale: int, tmp_path: Path
 ) -> None:
     """Segment orientations at 50 Hz (ideal tags, square on their segments): the
     left forearm's tag never sends (no column), the right forearm's sends nothing
-    from 2 s to 4 s (empty cells). The left elbow and wrist are unobserved
-    throughout; the right ones are flagged stale once its last sample is older
-    than the gateway's STALE_S, and the truth again when it is back; everything
-    else is the truth all along."""
+    from 2 s to ``end`` (empty cells: 2 s, or a 0.3 s dropout). The left elbow
+    and wrist are unobserved throughout; the right ones are flagged stale once
+    its last sample is older than three of its 20 ms intervals (not the 0.5 s
+    of ``STALE_S``), and the truth again when it is back; everything else is
+    the truth all along."""
     from bodynet.cli.main import main
     from bodynet.clients.mcap_store import read_poses
     from bodynet.core.profile import mount
     from bodynet.core.skeleton import build_skeleton
-    from bodynet.gateway.solver import STALE_S
+    from bodynet.gateway.solver import STALE_FLOOR_S, STALE_INTERVALS
 
     motion = ROUTINES["full-body"]
     tags = [t for t in imu_tags() if mount(t.site).segment != "left_forearm"]
@@ -227,7 +229,7 @@ def test_process_flags_a_tag_gone_for_a_stretch_and_one_dead_from_the_start(
     lines = [",".join(header)]
     for k in range(300):
         readings, _ = body.sample(k / 50)
-        gone = 2.0 <= k / 50 < 4.0
+        gone = 2.0 <= k / 50 < end
         lines.append(",".join([repr(k / 50)] + [
             "nan" if gone and mount(t.site).segment == "right_forearm" else repr(c)
             for t, r in zip(tags, readings, strict=True) for c in r.wxyz  # type: ignore[union-attr]
@@ -244,10 +246,13 @@ def test_process_flags_a_tag_gone_for_a_stretch_and_one_dead_from_the_start(
     gap = {n for j in ("right_elbow", "right_wrist") for n in skeleton.joint(j).angle_names()}
     poses = list(read_poses(out))
     assert len(poses) == 300
+    after = max(STALE_FLOOR_S, STALE_INTERVALS * 0.02)
     stale_poses, frozen_off = 0, 0.0
     for t_ns, frame in poses:
         t, truth = t_ns / 1e9, motion.angles(t_ns / 1e9)
-        stale = 2.0 - 0.02 + STALE_S < t < 4.0  # its last sample came at 1.98 s
+        stale = 1.98 + after < t < end  # its last sample came at 1.98 s
+        if abs(t - 1.98 - after) < 1e-6:  # on the edge, to rounding: either
+            stale = bool(frame.stale)
         assert frame.stale == (["body/arm/right/forearm/raw"] if stale else []), t
         for name, value in frame.angles_deg.items():
             if name in wrist:
@@ -259,12 +264,59 @@ def test_process_flags_a_tag_gone_for_a_stretch_and_one_dead_from_the_start(
                 assert frame.reasons[name][:2] == ("unobserved", "stale"), (t, name)
                 assert math.isnan(frame.unc_deg[name]), (t, name)
                 frozen_off = max(frozen_off, abs(value - truth.get(name, 0.0)))
-            elif name not in gap or not 2.0 <= t < 4.0:
+            elif name not in gap or not 2.0 <= t < end:
                 assert name not in frame.flags, (t, name, frame.reasons.get(name))
                 assert value == pytest.approx(truth.get(name, 0.0), abs=1e-3), (t, name)
         stale_poses += stale
-    assert stale_poses > 50
+    assert stale_poses > least_stale
     assert frozen_off > 10  # the frozen forearm's numbers were far from the truth
+
+
+def test_a_slow_polled_site_and_a_jittering_tracker_are_not_stale_on_their_rhythm(
+    tmp_path: Path,
+) -> None:
+    """A still body: the pelvis a Wi-Fi tracker at 100 Hz whose times jitter by
+    +/-10 ms, the head one at 200 Hz as jittery (its gaps up to five of its
+    intervals: the floor), the thorax a concentrator's node asked every 0.33 s.
+    None is ever stale while it delivers on its rhythm, and every dof
+    they measure is the truth (0); the thorax's node stops at 4 s: it is stale
+    once its last sample is older than ``STALE_S`` (three of its intervals are
+    more), not before."""
+    import numpy as np
+
+    from bodynet.clients.mcap_store import read_poses
+    from bodynet.gateway.solver import STALE_S
+
+    rng = np.random.default_rng(5)
+    rows = [(0.01 * k + rng.uniform(-0.01, 0.01), "pelvis") for k in range(1, 600)]
+    rows += [(0.33 * k, "thorax") for k in range(13)]  # the last at 3.96 s
+    rows += [(0.005 * k + rng.uniform(-0.01, 0.01), "head") for k in range(2, 1200)]
+    segments = ["pelvis", "thorax", "head"]
+    lines = ["time," + ",".join(f"{g}_{c}" for g in segments for c in "wxyz")]
+    at: dict[float, set[str]] = {}
+    for t, seg in rows:
+        at.setdefault(t, set()).add(seg)
+    for t, segs in sorted(at.items()):
+        lines.append(f"{t!r}," + ",".join("1,0,0,0" if g in segs else ",,," for g in segments))
+    path = tmp_path / "trial.csv"
+    path.write_text("\n".join(lines) + "\n")
+    out = tmp_path / "trial.mcap"
+    result = run("process", path, "--tpose-s", "0", "-o", out)
+    assert result.returncode == 0, result.stderr
+    poses = list(read_poses(out))
+    assert len(poses) > 500
+    thorax_last = 0.33 * 12
+    for t_ns, frame in poses:
+        t = t_ns / 1e9
+        if t > thorax_last + STALE_S + 1e-6:
+            assert frame.stale == ["body/trunk/mid/chest/raw"], t
+            continue
+        assert frame.stale == [], t
+        if t < 0.02:
+            continue  # the trackers have not sent yet
+        for name in ("lumbar_flexion_deg", "lumbar_lateral_deg", "neck_flexion_deg"):
+            assert name not in frame.flags, (t, name, frame.reasons.get(name))
+            assert frame.angles_deg[name] == pytest.approx(0.0, abs=1e-6), (t, name)
 
 
 @pytest.mark.parametrize(("name", "times"), [
