@@ -386,7 +386,9 @@ class _Body:
                 continue
             seen = self.latest.get(site)
             state = "alive" if key in self.alive else "gone"
-            if seen is None or now - seen.arrived > seen.rhythm.after_s:
+            # a node's state for people: stale past STALE_S (a tag late by a few of
+            # its intervals is flagged in the poses, not flapped here)
+            if seen is None or now - seen.arrived > STALE_S:
                 state = "stale" if key in self.alive else state
             branch = branches.setdefault(str(site.branch), {"nodes": {}})
             nodes = branch["nodes"]
