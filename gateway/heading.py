@@ -187,6 +187,14 @@ def with_headings(profile: Profile, headings: Mapping[str, float]) -> Profile:
                    imu_headings=MappingProxyType(known))  # fmt: skip
 
 
+def _tag_by_segment(keys: Iterable[str]) -> dict[str, str]:
+    """Segment -> the raw key of its tag (the first of the keys on it)."""
+    out: dict[str, str] = {}
+    for key, seg in _segments_of(keys).items():
+        out.setdefault(seg, key)
+    return out
+
+
 def _segments_of(keys: Iterable[str]) -> dict[str, str]:
     """Raw key -> the segment its sensor rides on (for the keys that name a site)."""
     from bodynet.core import keys as keyspace
@@ -378,9 +386,7 @@ class HingeHeading:
 
     def __init__(self, profile: Profile) -> None:
         segments = pose_segments(profile)
-        by_segment: dict[str, str] = {}
-        for key, seg in _segments_of(profile.imu_mounts).items():
-            by_segment.setdefault(seg, key)
+        by_segment = _tag_by_segment(profile.imu_mounts)
         self.hinges: dict[str, _Hinge] = {}
         for joint, parent, child, axis in HINGES:
             for side in ("left", "right"):
@@ -475,9 +481,7 @@ class KneePairs:
     FULL_UNC_DEG = 3.0
 
     def __init__(self, profile: Profile) -> None:
-        by_segment: dict[str, str] = {}
-        for key, seg in _segments_of(profile.imu_mounts).items():
-            by_segment.setdefault(seg, key)
+        by_segment = _tag_by_segment(profile.imu_mounts)
         segments = pose_segments(profile)
         self.pairs: dict[str, tuple[str, str, np.ndarray, np.ndarray]] = {}
         for side in ("left", "right"):
@@ -561,9 +565,7 @@ class ChildHeadings:
     FULL_UNC_DEG = KneePairs.FULL_UNC_DEG
 
     def __init__(self, profile: Profile) -> None:
-        by_segment: dict[str, str] = {}
-        for key, seg in _segments_of(profile.imu_mounts).items():
-            by_segment.setdefault(seg, key)
+        by_segment = _tag_by_segment(profile.imu_mounts)
         segments = pose_segments(profile)
         #: child key -> (parent key, parent axis, child axis, parent's and child's
         #: segment in the pose, the child tag at calibration for a heading of 0)
@@ -662,9 +664,7 @@ class ElbowPairs:
     LIMIT_UNC_DEG = KneePairs.FULL_UNC_DEG
 
     def __init__(self, profile: Profile) -> None:
-        by_segment: dict[str, str] = {}
-        for key, seg in _segments_of(profile.imu_mounts).items():
-            by_segment.setdefault(seg, key)
+        by_segment = _tag_by_segment(profile.imu_mounts)
         segments = pose_segments(profile)
         self.pairs: dict[str, tuple[str, str, np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = {}
         for side in ("left", "right"):
@@ -799,9 +799,7 @@ class TrunkBow:
     RATE_SINCE_S = 60.0
 
     def __init__(self, profile: Profile) -> None:
-        by_segment: dict[str, str] = {}
-        for key, seg in _segments_of(profile.imu_mounts).items():
-            by_segment.setdefault(seg, key)
+        by_segment = _tag_by_segment(profile.imu_mounts)
         segments = pose_segments(profile)
         #: segment -> (its tag, the tag at calibration for a heading of 0, the pose's segment)
         self.tags: dict[str, tuple[str, np.ndarray, np.ndarray]] = {}
@@ -1288,9 +1286,7 @@ class SharedCheck:
 
     def __init__(self, profile: Profile) -> None:
         """``profile``: calibrated, the tags' headings unknown (mounts for 0)."""
-        by_segment: dict[str, str] = {}
-        for key, seg in _segments_of(profile.imu_mounts).items():
-            by_segment.setdefault(seg, key)
+        by_segment = _tag_by_segment(profile.imu_mounts)
         segments = pose_segments(profile)
         #: joint -> (parent key, child key, parent axis, child axis, kind)
         self.joints: dict[str, tuple[str, str, int, int, str]] = {}
@@ -1742,9 +1738,7 @@ class JointDrift:
     def __init__(self, profile: Profile, tau_s: float = 5.0, twist: bool | None = None) -> None:
         """Which joints hold which tags: the profile's ``drift`` says (``twist``, when
         given, whether the three-dof joints do, whatever it says)."""
-        by_segment: dict[str, str] = {}
-        for key, seg in _segments_of(profile.imu_mounts).items():
-            by_segment.setdefault(seg, key)
+        by_segment = _tag_by_segment(profile.imu_mounts)
         hinges, twists = profile.drift_joints
         twist = twists if twist is None else twist
         self.tau_s = tau_s
