@@ -23,7 +23,8 @@ outage: ``silence``). The truth of each reading that goes out is handed to the
 the CAN emulators or the concentrator can be rebooted (``reboot(node)``: a
 brown-out, a loose connector): it says nothing for its start-up time, then its
 encoder counts from 0 where its joint is then, as the real firmware's QEI reset
-makes it (000 seed, ch. 3.4.1).
+makes it (000 seed, ch. 3.4.1); or the whole suit switched off and on
+(``power_cycle``: a battery swap), every node at once.
 
 Each pseudo-terminal is reached through a stable symlink (like udev's
 ``/dev/serial/by-id/...``), so :meth:`PtyPort.unplug` and :meth:`PtyPort.plug`
@@ -82,6 +83,8 @@ LATE_REPLY_S = REPLY_TIMEOUT_S + LATE_WINDOW_S / 4
 #: in its default configuration), then the oscillator's and the CAN controller's
 #: start-up in the firmware's initialisation
 BOOT_S = 0.2
+#: How long a suit switched off and on is off: a battery swapped by hand
+SWAP_S = 1.5
 
 
 class Clock:
@@ -191,6 +194,16 @@ class _Reboots:
         self._off[node] = time.monotonic() + boot_s
         self.reboots[node] += 1
 
+    def power_cycle(self, off_s: float = SWAP_S) -> None:
+        """The whole suit switched off now and on ``off_s`` later (a battery swap):
+        every node (the trunk's IMUs too) says nothing until then; each module then
+        starts as after :meth:`reboot`, its encoder counting from 0 where its joint
+        is then."""
+        until = time.monotonic() + off_s
+        for sensor in self.body.sensors:
+            self._off[sensor.node] = until
+            self.reboots[sensor.node] += 1
+
     def _powered(self, nodes: Sequence[int]) -> list[int]:
         """Of ``nodes``, those up now; a node whose start-up just ended is powered
         on (its encoder's zero where its joint is now)."""
@@ -203,7 +216,8 @@ class _Reboots:
                 if now < until:
                     continue
                 del self._off[node]
-                self.body.power_on(node, self.clock.now())
+                if node in self.body.module_nodes:  # an IMU's orientation is absolute
+                    self.body.power_on(node, self.clock.now())
                 self._sampler.invalidate()
             up.append(node)
         return up

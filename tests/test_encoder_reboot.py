@@ -40,14 +40,14 @@ from bodynet.core.codecs.smartsuit_can import PERIOD_S
 from bodynet.core.errors import Rejected
 from bodynet.core.keys import LEFT_ARM
 from bodynet.core.messages import RESUMED, OleAccel, RawSample, Reading, Source
-from bodynet.core.profile import SMARTSUIT_SITES
+from bodynet.core.profile import SMARTSUIT_SITES, mount
 from bodynet.core.skeleton import TPOSE
 from bodynet.gateway.service import Gateway
 from bodynet.nodes.can_bridge import CanBridge
 from bodynet.nodes.emulator import BodyEmulator, Realism, Truth, smartsuit_sensors
 from bodynet.nodes.hardware import CanNodes, SlcanAdapterEmulator
 from bodynet.nodes.motion import Routine
-from bodynet.nodes.sources.base import REBOOT_SILENCE_S, Adapter
+from bodynet.nodes.sources.base import REBOOT_SILENCE_S, SUIT_QUIET_S, Adapter
 from bodynet.nodes.sources.concentrator import Concentrator
 from bodynet.nodes.sources.smartsuit_can import SmartSuitCan
 from bodynet.offline.process import process
@@ -112,18 +112,64 @@ def test_a_node_silent_while_the_others_send_is_resumed(silent_s: float, resumed
         assert sink.samples.index((ELBOW, RESUMED)) > sink.samples.index((ELBOW, 0))
 
 
+def _reads(adapter: Adapter, t0: float, t1: float, late: tuple[int, ...] = ()) -> None:
+    """A live bridge's reads one after the other from ``t0``, each waiting 0.1 s and
+    getting nothing, the last one a frame at ``t1``: each told to the adapter as
+    back on time (:meth:`Adapter.quiet`) but those numbered in ``late`` (-2: the
+    one before the last; their thread was held, and so perhaps were the nodes)."""
+    starts = [t0 + 0.1 * k for k in range(math.ceil((t1 - t0) / 0.1))]
+    late_ones = {k % len(starts) for k in late}
+    for k, start in enumerate(starts):
+        if k not in late_ones:
+            adapter.quiet(start, min(start + 0.1, t1))
+
+
+@pytest.mark.parametrize(
+    ("watched", "quiet", "reads", "resumed"),
+    [
+        (False, (1.0, 1.6), None, True),  # a capture: its times are the bus's record
+        (False, (1.0, 1.3), None, False),  # too short for a suit switched off and on
+        (True, (1.0, 2.5), (), True),  # a live bridge's reads watched it all along
+        (True, (1.0, 1.6), (), True),
+        (True, (1.0, 1.3), (), False),
+        (True, (1.0, 2.5), None, False),  # no read came back on time: the bridge held
+        (True, (1.0, 2.5), (0,), False),  # held when it began (the nodes too, maybe)
+        (True, (1.0, 2.5), (7,), False),  # held across it
+        (True, (1.0, 2.5), (-2,), False),  # held near its end
+    ],
+)
+def test_a_whole_bus_quiet_long_and_watched_is_a_suit_switched_off_and_on(
+    watched: bool, quiet: tuple[float, float], reads: tuple[int, ...] | None, resumed: bool
+) -> None:
+    """Every node silent at once (the whole suit switched off and on) is a reboot
+    of every node, once, when the bus was quiet ``SUIT_QUIET_S`` or longer and
+    seen quiet all along: in a capture its times say so; a live bridge's reads
+    (of its own thread, which may have been held with the nodes emulated beside
+    it) must have waited and come back on time, one after the other, from the
+    last frame to the next. A shorter quiet claims nothing either way."""
+    assert SUIT_QUIET_S == 0.5
+    adapter, sink = SmartSuitCan().adapter(), _Flags()
+    adapter.watched = watched
+    _frames(adapter, sink, 0.0, 1.0)
+    t0, t1 = quiet[0] - PERIOD_S + 3e-3, quiet[1] + 1e-3  # the last frame and the next
+    if reads is not None:
+        _reads(adapter, t0, t1, reads)
+    _frames(adapter, sink, quiet[1], quiet[1] + 0.5)
+    assert sorted(sink.resumed()) == (list(NODES) if resumed else [])
+
+
 def test_a_silence_the_bridge_did_not_watch_or_across_a_reopen_claims_nothing() -> None:
-    """The whole bus quiet 0.3 s: in a capture (``watched`` False: its times are
+    """The whole bus quiet 0.6 s: in a capture (``watched`` False: its times are
     the bus's record) a reboot of every node; to a live bridge's adapter
-    (``watched``: frames may be stamped when read, and only frames show the bus
-    alive) nothing is claimed, but other devices' frames through it (:meth:`seen`)
-    show the bus alive. The adapter opened again (``restart``) claims nothing
-    either way."""
+    (``watched``: frames may be stamped when read) nothing is claimed without its
+    reads (:meth:`Adapter.quiet`), but other devices' frames through it
+    (:meth:`seen`) show the bus alive. The adapter opened again (``restart``)
+    claims nothing either way."""
     for watched, resumed in ((False, list(NODES)), (True, [])):
         adapter, sink = SmartSuitCan().adapter(), _Flags()
         adapter.watched = watched
         _frames(adapter, sink, 0.0, 1.0)
-        _frames(adapter, sink, 1.3, 1.5)
+        _frames(adapter, sink, 1.6, 1.8)
         assert sorted(sink.resumed()) == resumed, watched
     adapter, sink = SmartSuitCan().adapter(), _Flags()
     adapter.watched = True
@@ -137,6 +183,7 @@ def test_a_silence_the_bridge_did_not_watch_or_across_a_reopen_claims_nothing() 
         adapter.watched = watched
         _frames(adapter, sink, 0.0, 1.0)
         adapter.seen(1.01)  # alive, quiet, then the adapter lost and opened again
+        _reads(adapter, 1.01, 1.6)
         adapter.restart()
         _frames(adapter, sink, 1.6, 2.0)
         assert sink.resumed() == []
@@ -375,6 +422,78 @@ def test_a_node_rebooted_with_its_joint_bent_is_flagged_until_a_calibration_pose
             errors = [_errors(f, truths)[ELBOW_DOF][0] for f in later[-10:]]
             print(f"\nelbow after the new zero: worst error {max(errors):.3f} deg")
             assert not math.isnan(later[-1].unc_deg[ELBOW_DOF])
+        finally:
+            nodes.stop()
+
+
+ENCODER_DOFS = tuple(str(mount(SMARTSUIT_SITES[n]).ole_angle) for n in NODES)
+
+
+def test_a_whole_suit_switched_off_and_on_is_flagged_until_a_calibration_pose(
+    gateway: Gateway, zsession: zenoh.Session, run_thread: Callable[..., Running]
+) -> None:
+    """The arm's nodes through the CAN bridge (python-can's ``virtual`` bus) and
+    the gateway; the whole suit switched off and on 1.5 s later (a battery swap:
+    every node silent at once, no other frame on the bus), the joints bent, so
+    every encoder counts from 0 there. Every pose after it has every encoder's
+    dof flagged ``uncalibrated`` and none measured wrong, each node's first sample
+    after it alone is flagged ``RESUMED``; a calibration pose sets the zeros again,
+    and the dofs are then measured and right, the arm moved."""
+    angles: dict[str, float] = {"left_shoulder_flexion_deg": 30.0, ENCODER_DOFS[0]: 20.0,
+                                ELBOW_DOF: 80.0, ENCODER_DOFS[2]: 20.0}  # fmt: skip
+    bridge, channel, arm, health, body = _can_arm(zsession, zsession, run_thread, angles, "swap")
+    raw = raw_collector(zsession, "body/arm/left/*/raw")
+    truths = arm.truths
+    with can.Bus(interface="virtual", channel=channel) as bus:
+        nodes = CanNodes(bus, body, truth=truths)
+        nodes.start()
+        try:
+            start = time.time_ns()
+            arm.wait_elbow(80.0, start)
+            arm.wait(50, start)
+            assert arm.check(arm.since(start)) == 0
+            before = {n: nodes.sent[n] for n in NODES}
+            nodes.power_cycle(1.5)
+            wait_until(lambda: all(nodes.sent[n] > before[n] + 100 for n in NODES), 15.0,
+                       "the suit back")  # fmt: skip
+            back = max(truths.by_node[n][-100][0] for n in NODES)  # after it came back
+            arm.wait(20, back)
+            angles[ELBOW_DOF] = 40.0  # moving while they are flagged
+            arm.wait(20, time.time_ns())
+            after = [f for f in arm.since(back)
+                     if all(f.sources[SMARTSUIT_SITES[n].raw_key] >= back for n in NODES)]  # fmt: skip
+            assert len(after) >= 20
+            arm.check(after)  # none measured wrong
+            for frame in after:
+                assert all(frame.flags.get(dof) == UNCALIBRATED for dof in ENCODER_DOFS), frame
+            assert all(bridge.publisher.nodes[n].resumed == 1 for n in NODES)
+            seen = raw.wait_for(lambda s: sum(x.t_ns >= back for _, x in s) >= 150)
+            assert sorted(x.reading.node for _, x in seen if x.flags & RESUMED) == list(NODES)
+            said = health.wait_for(lambda h: any(
+                all(m.get("encoders", {}).get(SMARTSUIT_SITES[n].raw_key, {}).get("measured")
+                    is False for n in NODES) for _, m in h), timeout=10)  # fmt: skip
+            assert said
+            # the calibration pose: every encoder's zero again
+            angles.clear()
+            angles.update(TPOSE)
+            posed = time.time_ns()
+            arm.poses.wait_for(lambda _: bool(arm.since(posed))
+                               and arm.since(posed)[-1].t_ns >= posed + 1.3e9,
+                               timeout=10)  # fmt: skip
+            report = gateway.calibrate_tpose(1.0)
+            assert report["ok"], report
+            assert {SMARTSUIT_SITES[n].raw_key for n in NODES} <= set(report["encoders"])  # type: ignore[arg-type]
+            angles.update({ENCODER_DOFS[0]: 15.0, ELBOW_DOF: 60.0, ENCODER_DOFS[2]: 25.0})
+            calibrated = time.time_ns()
+            arm.wait_elbow(60.0, calibrated)
+            arm.wait(20, calibrated)
+            later = arm.since(calibrated)[-10:]
+            assert all(is_measured(f, dof) for f in later for dof in ENCODER_DOFS)
+            assert arm.check(later) == 0
+            errors = _errors(later[-1], truths)
+            assert set(ENCODER_DOFS) <= set(errors)
+            print("\nencoders after the new zeros: errors (deg) "
+                  + ", ".join(f"{d} {errors[d][0]:.3f}" for d in ENCODER_DOFS))  # fmt: skip
         finally:
             nodes.stop()
 

@@ -171,6 +171,13 @@ REBOOT_MISSED = 2
 #: to read, whose transport stamps frames when they are read) hides whether a node
 #: was silent in it: no silence across it counts.
 BLIND_S = REBOOT_SILENCE_S / 2
+#: A whole bus quiet this long (s) or longer is a suit switched off and on (a battery
+#: swap takes a person a second or more), every node's next sample ``RESUMED``; a
+#: shorter one claims nothing (a logger or a bridge held up loses the whole bus at
+#: once). A live bridge must have watched it all along: ``QUIET_READS`` or more
+#: reads in a row that waited for a frame and came back on time (:meth:`Adapter.quiet`).
+SUIT_QUIET_S = 0.5
+QUIET_READS = 3
 
 
 class Adapter:
@@ -233,6 +240,11 @@ class Adapter:
         """The link was seen alive at ``t_s``: a unit of no node (another device's
         frame). Only :class:`PeriodicAdapter` needs it."""
 
+    def quiet(self, t_from: float, t_to: float) -> None:
+        """A live bridge watched the link from ``t_from`` to ``t_to`` and no unit
+        came: a read that waited for one and came back on time (its thread ran all
+        along). Only :class:`PeriodicAdapter` needs it."""
+
     def take_tick(self, tick: Tick) -> None:
         if tick.node is None:
             self.tick = tick.index
@@ -258,14 +270,15 @@ class PeriodicAdapter(Adapter):
 
     A node's sample is ``RESUMED`` when the node said nothing for
     ``REBOOT_SILENCE_S`` and ``REBOOT_MISSED`` or more of its periods (and half
-    one more, for jitter) while the link was seen alive. A capture's times are
-    its link's record, so the link counts as seen throughout (``watched``
-    False): a whole bus quiet is a reboot of every node. A live bridge, whose
-    transport may stamp frames when they are read, counts only units (``watched``
-    True; of any node, or of none: :meth:`seen`): a stretch of ``BLIND_S`` in
-    which none came claims nothing across it, a whole bus quiet included (the
-    bridge's reads that waited are no sign of life: nodes emulated beside it
-    stall with it under load)."""
+    one more, for jitter) while the link was seen alive: other units came (of
+    any node, or of none: :meth:`seen`), no ``BLIND_S`` apart. A stretch of
+    ``BLIND_S`` in which none came (the whole bus quiet) claims nothing across
+    it, unless it lasted ``SUIT_QUIET_S`` (a suit switched off and on) and, for a
+    live bridge (``watched`` True: its transport may stamp frames when they are
+    read), it watched it all along (:meth:`quiet`). A capture's times are its
+    link's record (``watched`` False): its quiet stretches need no watching. A
+    bridge's single read that waited is no proof: nodes emulated beside it stall
+    with it under load, and send what they owe at once."""
 
     def __init__(self, period_s: float, rate_hz: float | None = None) -> None:
         super().__init__(period_s, rate_hz)
@@ -275,11 +288,30 @@ class PeriodicAdapter(Adapter):
         self._seen = -math.inf  # the last time the link was seen alive
         self._blind_end = -math.inf  # when it was seen again after a blind stretch
         self._silence_s = max(REBOOT_SILENCE_S, (REBOOT_MISSED + 0.5) * period_s)
+        #: the reads in a row that watched the link quiet since then: (from, to, count)
+        self._quiet: tuple[float, float, int] | None = None
+
+    def quiet(self, t_from: float, t_to: float) -> None:
+        q = self._quiet
+        if q is not None and t_from - q[1] <= BLIND_S:
+            self._quiet = (q[0], max(q[1], t_to), q[2] + 1)
+        else:
+            self._quiet = (t_from, t_to, 1)
 
     def seen(self, t_s: float) -> None:
-        if self.watched and t_s - self._seen > BLIND_S:
+        gap = t_s - self._seen
+        if gap > BLIND_S and not (gap >= SUIT_QUIET_S and self._watched_quiet(t_s)):
             self._blind_end = t_s
+        self._quiet = None
         self._seen = max(self._seen, t_s)
+
+    def _watched_quiet(self, t_s: float) -> bool:
+        """Whether the link was watched all along from its last unit to ``t_s``."""
+        if not self.watched:
+            return True
+        q = self._quiet
+        return (q is not None and q[2] >= QUIET_READS
+                and q[0] - self._seen <= BLIND_S and t_s - q[1] <= BLIND_S)  # fmt: skip
 
     def resumed(self, node: int, t_s: float) -> bool:
         self.seen(t_s)
@@ -301,6 +333,7 @@ class PeriodicAdapter(Adapter):
         self._periodic.resync()
         self._last.clear()
         self._seen = self._blind_end = -math.inf
+        self._quiet = None
 
 
 @dataclass(frozen=True, slots=True)

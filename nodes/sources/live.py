@@ -33,7 +33,7 @@ from bodynet.core.messages import (
 )
 from bodynet.nodes.device import DecodeWatch, DeviceError, in_use, keep_connected
 from bodynet.nodes.publisher import SitePublisher
-from bodynet.nodes.sources.base import CaptureError, CaptureStats, Source
+from bodynet.nodes.sources.base import BLIND_S, CaptureError, CaptureStats, Source
 from bodynet.nodes.sources.can_transport import (
     BusClock,
     can_log_messages,
@@ -173,12 +173,15 @@ class CanBusBridge(Bridge):
         self._unreadable = 0  # frames python-can could not read, in a row
         self.adapter.watched = True  # an adapter may stamp frames when read (slcan)
 
-    def handle(self, msg: can.Message) -> None:
+    def handle(self, msg: can.Message, read_from: float | None = None) -> None:
         """Decode and publish one message (bad frames are counted, never raised),
         at its time on the wall clock (:class:`BusClock`); another device's frame
-        is counted as foreign."""
+        is counted as foreign. ``read_from``: when the read that got it began, if
+        it came back on time (the bus was watched quiet from then to the frame)."""
         frame = frame_of(msg)
         t_s = self.clock.wall(msg.timestamp, time.time())
+        if read_from is not None and t_s > read_from:
+            self.adapter.quiet(read_from, t_s)
         if (kind := can_codec.foreign(frame)) is not None:
             self.publisher.count_foreign(kind)
             self.adapter.seen(t_s)  # the bus is alive
@@ -193,18 +196,26 @@ class CanBusBridge(Bridge):
             self.clock.reset()  # the adapter's own clock may have started over
             self.adapter.restart()  # and how late its frames came tells nothing now
             while not stop.is_set():
-                msg = self._receive(bus)
+                msg, read_from = self._receive(bus)
                 if msg is not None:
-                    self.handle(msg)
+                    self.handle(msg, read_from)
 
         keep_connected(self.publisher, lambda: open_bus(**bus_args), serve,
                        lambda bus: bus.shutdown(), CAN_ERRORS, stop,
                        path=str(bus_args.get("channel") or "") or None)  # fmt: skip
 
-    def _receive(self, bus: can.BusABC) -> can.Message | None:
+    def _receive(self, bus: can.BusABC) -> tuple[can.Message | None, float | None]:
         """The bus's next message, or None: none came within 0.1 s, or what the
         adapter sent could not be read as a frame (counted as garbage: the device is
-        still there, the next frame is read)."""
+        still there, the next frame is read); and when the read began if it came
+        back on time (else None: this thread did not run all along).
+
+        A read that waited, got nothing and came back on time watched the bus quiet
+        (:meth:`Adapter.quiet`). One such read is no proof that the bus was: nodes
+        emulated beside the bridge stall with it under load (and then send what
+        they owe at once), so only several in a row across a long quiet count
+        (a whole suit switched off and on: base.PeriodicAdapter)."""
+        start = time.time()
         try:
             msg = bus.recv(timeout=RECV_TIMEOUT_S)
         except BAD_FRAME_ERRORS as exc:
@@ -216,18 +227,19 @@ class CanBusBridge(Bridge):
                 raise
             why = f"not text: {exc.__cause__}"
         else:
-            # a read that waited and got nothing is no sign of the bus's life: nodes
-            # emulated beside the bridge stall with it under load (and then send
-            # what they owe at once), so only frames count (a whole suit switched
-            # off and on is not told from that: base.PeriodicAdapter)
             self._unreadable = 0
-            return msg
+            end = time.time()
+            if end - start > RECV_TIMEOUT_S + BLIND_S / 2:
+                return msg, None
+            if msg is None:
+                self.adapter.quiet(start, end)
+            return msg, start
         self.publisher.reject(Rejected(Reason.GARBAGE, f"a frame python-can cannot read ({why})"))
         self._unreadable += 1
         if self._unreadable >= MAX_UNREADABLE:  # the same error over and over (a closed
             self._unreadable = 0  # port's ValueError, say): no frame is coming, reopen
             raise can.CanOperationError(f"{MAX_UNREADABLE} unreadable frames in a row ({why})")
-        return None
+        return None, None
 
     def run_replay(self, path: Path, stop: threading.Event, loop: bool = False) -> None:
         """Play a CAN log back at its recorded speed, stamped with the time of play."""
