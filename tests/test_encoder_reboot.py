@@ -13,6 +13,10 @@ from __future__ import annotations
 
 import itertools
 import math
+import os
+import signal
+import subprocess
+import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -58,6 +62,7 @@ ELBOW = 2
 ELBOW_KEY = SMARTSUIT_SITES[ELBOW].raw_key
 ELBOW_DOF = "left_elbow_flexion_deg"
 SLACK_DEG = 0.3  # a measured dof within its uncertainty and this
+BODYNET = Path(sys.executable).with_name("bodynet")
 
 
 class _Flags:
@@ -496,6 +501,38 @@ def test_a_whole_suit_switched_off_and_on_is_flagged_until_a_calibration_pose(
                   + ", ".join(f"{d} {errors[d][0]:.3f}" for d in ENCODER_DOFS))  # fmt: skip
         finally:
             nodes.stop()
+
+
+def test_a_bridge_held_with_the_nodes_beside_it_flags_no_reboot(router_endpoint: str) -> None:
+    """``bodynet node`` with the arm's nodes emulated on a CAN bus and their bridge
+    in one process, stopped (SIGSTOP: the host too busy to run it, as in CI at
+    load 10 and more) for twice ``SUIT_QUIET_S``, then let go: every node was
+    silent that long, the whole bus too, but no read of the bridge watched it, so
+    no sample is flagged ``RESUMED`` (nothing rebooted)."""
+    watcher = client(router_endpoint)
+    raw = raw_collector(watcher, "body/arm/left/*/raw")
+    proc = subprocess.Popen([str(BODYNET), "node", "smartsuit", "--branch", "left-arm", "--via",
+                             "can", "--ideal", "-e", router_endpoint],
+                            stderr=subprocess.PIPE, text=True)  # fmt: skip
+    keys = [SMARTSUIT_SITES[n].raw_key for n in NODES]
+
+    def each(count: int) -> Callable[[list[tuple[str, RawSample]]], bool]:
+        return lambda s: all(sum(k == key for k, _ in s) >= count for key in keys)
+
+    try:
+        raw.wait_for(each(100), timeout=60)
+        os.kill(proc.pid, signal.SIGSTOP)
+        time.sleep(2 * SUIT_QUIET_S)  # held: neither the bridge nor its nodes run
+        os.kill(proc.pid, signal.SIGCONT)
+        seen = raw.wait_for(each(400), timeout=30)
+    finally:
+        proc.terminate()
+        _, err = proc.communicate(timeout=20)
+        watcher.close()
+    for key in keys:
+        times = [x.t_ns for k, x in seen if k == key]
+        assert max(b - a for a, b in itertools.pairwise(times)) >= SUIT_QUIET_S * 1e9, key
+    assert [(k, x.t_ns) for k, x in seen if x.flags & RESUMED] == [], err
 
 
 def test_a_router_restart_between_bridge_and_gateway_keeps_every_encoder_zero(
