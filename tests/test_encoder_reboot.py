@@ -48,8 +48,9 @@ from bodynet.core.profile import SMARTSUIT_SITES, mount
 from bodynet.core.skeleton import TPOSE
 from bodynet.gateway.service import Gateway
 from bodynet.nodes.can_bridge import CanBridge
+from bodynet.nodes.concentrator_bridge import ConcentratorBridge
 from bodynet.nodes.emulator import BodyEmulator, Realism, Truth, smartsuit_sensors
-from bodynet.nodes.hardware import CanNodes, SlcanAdapterEmulator
+from bodynet.nodes.hardware import CanNodes, ConcentratorEmulator, SlcanAdapterEmulator
 from bodynet.nodes.motion import Routine
 from bodynet.nodes.sources.base import REBOOT_SILENCE_S, SUIT_QUIET_S, Adapter
 from bodynet.nodes.sources.concentrator import Concentrator
@@ -229,6 +230,43 @@ def test_a_concentrator_node_that_left_a_request_unanswered_is_resumed() -> None
     live = codec.ConcentratorDecoder(replies_only=True)
     ask(1, on_time)
     assert sink.samples[-1] == (1, 0)
+
+
+def test_a_concentrator_whose_whole_suit_was_switched_off_and_on_flags_every_node_once(
+    zsession: zenoh.Session, tmp_path: Path, run_thread: Callable[..., Running]
+) -> None:
+    """The arm's nodes behind an emulated Data Concentrator on a pseudo-terminal,
+    through the concentrator bridge; the whole suit switched off and on 1 s later,
+    the elbow bent 50 deg: every node leaves its requests unanswered, and each
+    one's first reply after it alone is flagged ``RESUMED`` (the elbow's counting
+    from 0 there). The rule needs no other node alive: every request is its own
+    proof that the link was watched."""
+    body = BodyEmulator(Routine("held", "", lambda t: {ELBOW_DOF: 50.0}),
+                        smartsuit_sensors([LEFT_ARM]), realism=Realism.ideal())  # fmt: skip
+    dc = ConcentratorEmulator(tmp_path / "dc", body)
+    dc.start()
+    raw = raw_collector(zsession, "body/arm/left/*/raw")
+    bridge = ConcentratorBridge(zsession, "dc-swap", nodes=NODES)
+    running = run_thread(bridge.run, str(dc.link))
+    keys = {SMARTSUIT_SITES[n].raw_key: n for n in NODES}
+    try:
+        seen = raw.wait_for(lambda s: {k for k, _ in s} >= set(keys))
+        before = len(seen)
+        dc.power_cycle(1.0)
+        seen = raw.wait_for(lambda s: all(sum(k == key and x.flags & RESUMED for k, x in s[before:])
+                                          and sum(k == key for k, _ in s[before:]) >= 40
+                                          for key in keys), timeout=30)  # fmt: skip
+    finally:
+        running.stop()
+        dc.stop()
+        bridge.close()
+    after = seen[before:]
+    assert sorted(keys[k] for k, x in after if x.flags & RESUMED) == list(NODES)
+    assert all(dc.reboots[n] == 1 for n in NODES)
+    elbow = [x.reading for k, x in seen if k == ELBOW_KEY]
+    counts = [r.encoder for r in elbow if isinstance(r, OleAccel)]
+    assert counts[0] > 200  # 50 deg from its zero
+    assert abs(counts[-1]) < 5  # from 0 there
 
 
 def test_a_calibration_window_across_a_reboot_sets_no_zero_from_before_it(
@@ -465,8 +503,8 @@ def test_a_whole_suit_switched_off_and_on_is_flagged_until_a_calibration_pose(
             arm.wait(20, back)
             angles[ELBOW_DOF] = 40.0  # moving while they are flagged
             arm.wait(20, time.time_ns())
-            after = [f for f in arm.since(back)
-                     if all(f.sources[SMARTSUIT_SITES[n].raw_key] >= back for n in NODES)]  # fmt: skip
+            arm_keys = [SMARTSUIT_SITES[n].raw_key for n in NODES]
+            after = [f for f in arm.since(back) if all(f.sources[k] >= back for k in arm_keys)]
             assert len(after) >= 20
             arm.check(after)  # none measured wrong
             for frame in after:
@@ -678,3 +716,44 @@ def test_a_capture_with_a_node_rebooted_is_processed_with_its_encoder_flagged(
     assert [(s.reading.node, s.flags, s.t_ns) for s in flagged] == [
         (ELBOW, RESUMED, round(t_back * 1e9))
     ]
+
+
+@pytest.mark.parametrize(("off_ticks", "resumed"), [(150, True), (30, False)])
+def test_a_capture_with_the_whole_suit_switched_off_and_on_is_judged_as_live(
+    tmp_path: Path, off_ticks: int, resumed: bool
+) -> None:
+    """A candump log of the arm in which the whole bus goes quiet: ``bodynet
+    process`` judges it as a live bridge that watched it does. Quiet 1.5 s (a
+    battery swap: every node back counting from where its joint is, the elbow
+    bent): every encoder's dof is flagged ``uncalibrated`` from then on, and each
+    node's first raw sample after it says ``RESUMED``. Quiet 0.3 s, under
+    ``SUIT_QUIET_S`` (the logger held up, the nodes counting on): nothing is
+    claimed, and the elbow is measured right after it."""
+    angles = {ELBOW_DOF: 0.0}
+    body = BodyEmulator(Routine("held", "", lambda t: dict(angles)), smartsuit_sensors([LEFT_ARM]),
+                        realism=Realism.ideal())  # fmt: skip
+    log, back = tmp_path / "arm.log", 100 + off_ticks
+    with log.open("w") as f:
+        for tick in range(back + 150):
+            t = tick * 0.01
+            angles[ELBOW_DOF] = 60.0 if tick >= 80 else 0.0
+            if 100 <= tick < back:
+                continue  # the suit off
+            if tick == back and resumed:
+                for node in NODES:
+                    body.power_on(node, t)
+            for r in body.sample(t)[0]:
+                frame = smartsuit_can.encode_reading(r)
+                f.write(f"({1000 + t:.6f}) can0 "
+                        f"{frame.arbitration_id:08X}#{frame.data.hex().upper()}\n")  # fmt: skip
+    out = tmp_path / "arm.mcap"
+    process(log, "can-log", out, tpose_s=0)
+    after = [f for _, f in read_poses(out) if f.t_ns >= round((1000 + back * 0.01) * 1e9)]
+    assert after
+    for frame in after:
+        flagged = {dof for dof in ENCODER_DOFS if frame.flags.get(dof) == UNCALIBRATED}
+        assert flagged == (set(ENCODER_DOFS) if resumed else set()), frame.seq
+        if not resumed:
+            assert abs(frame.angles_deg[ELBOW_DOF] - 60.0) < 0.5, frame.seq
+    flagged_raw = sorted(s.reading.node for _, _, s in read_raw(out) if s.flags & RESUMED)
+    assert flagged_raw == (list(NODES) if resumed else [])
