@@ -11,6 +11,7 @@ for; nothing is timed.
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import math
 import os
@@ -18,7 +19,7 @@ import signal
 import subprocess
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -383,6 +384,27 @@ class _Arm:
 
         self.poses.wait_for(done, timeout=15)
 
+    def settled(self, elbow: float) -> None:
+        """Until the poses measure the elbow at ``elbow`` (deg) and 50 more came,
+        none of them wrong."""
+        start = time.time_ns()
+        self.wait_elbow(elbow, start)
+        self.wait(50, start)
+        assert self.check(self.since(start)) == 0
+
+    def calibrated(self, gateway: Gateway, angles: dict[str, float]) -> dict[str, object]:
+        """The arm held in the profile's calibration pose (the T-pose) and calibrated:
+        the report, which says so."""
+        angles.clear()
+        angles.update(TPOSE)
+        posed = time.time_ns()
+        self.poses.wait_for(lambda _: bool(self.since(posed))
+                            and self.since(posed)[-1].t_ns >= posed + 1.3e9,
+                            timeout=10)  # fmt: skip
+        report = gateway.calibrate_tpose(1.0)
+        assert report["ok"], report
+        return report
+
     def check(self, frames: list[pose.PoseFrame]) -> int:
         """No measured dof off the truth by more than its uncertainty (and 0.3
         deg); how many frames had the elbow's flexion flagged uncalibrated."""
@@ -407,6 +429,18 @@ def _can_arm(session: zenoh.Session, watcher: zenoh.Session, run_thread: Callabl
     return bridge, channel, arm, health_collector(watcher), body
 
 
+@contextlib.contextmanager
+def _nodes_on(channel: str, body: BodyEmulator, truths: _Truths) -> Iterator[CanNodes]:
+    """``body``'s nodes emulated on the virtual bus ``channel``, running until the end."""
+    with can.Bus(interface="virtual", channel=channel) as bus:
+        nodes = CanNodes(bus, body, truth=truths)
+        nodes.start()
+        try:
+            yield nodes
+        finally:
+            nodes.stop()
+
+
 def test_a_node_rebooted_with_its_joint_bent_is_flagged_until_a_calibration_pose(
     gateway: Gateway, zsession: zenoh.Session, run_thread: Callable[..., Running]
 ) -> None:
@@ -421,52 +455,37 @@ def test_a_node_rebooted_with_its_joint_bent_is_flagged_until_a_calibration_pose
                                 "left_wrist_flexion_deg": 20.0}  # fmt: skip
     _, channel, arm, health, body = _can_arm(zsession, zsession, run_thread, angles, "reboot")
     truths = arm.truths
-    with can.Bus(interface="virtual", channel=channel) as bus:
-        nodes = CanNodes(bus, body, truth=truths)
-        nodes.start()
-        try:
-            start = time.time_ns()
-            arm.wait_elbow(80.0, start)
-            arm.wait(50, start)
-            assert arm.check(arm.since(start)) == 0
-            # the elbow's node reboots, the elbow bent
-            before = nodes.sent[ELBOW]
-            nodes.reboot(ELBOW)
-            wait_until(lambda: nodes.sent[ELBOW] > before + 100, 10.0, "the node back")
-            back = truths.by_node[ELBOW][-100][0]  # a sample taken after it came back
-            arm.wait(20, back)
-            angles[ELBOW_DOF] = 40.0  # moving while it is flagged
-            arm.wait(20, time.time_ns())
-            after = arm.since(back)
-            assert arm.check(after) == len(after)  # every one flagged, none wrong
-            said = health.wait_for(lambda h: any(
-                m.get("encoders", {}).get(ELBOW_KEY, {}).get("measured") is False
-                for _, m in h), timeout=10)  # fmt: skip
-            state = next(m["encoders"][ELBOW_KEY] for _, m in reversed(said) if "encoders" in m)
-            assert "rebooted" in state["reason"]
-            assert nodes.reboots[ELBOW] == 1
-            # the calibration pose (the profile's, the T-pose): the encoder's zero again
-            angles.clear()
-            angles.update(TPOSE)
-            posed = time.time_ns()
-            arm.poses.wait_for(lambda _: bool(arm.since(posed))
-                               and arm.since(posed)[-1].t_ns >= posed + 1.3e9,
-                               timeout=10)  # fmt: skip
-            report = gateway.calibrate_tpose(1.0)
-            assert report["ok"], report
-            assert ELBOW_KEY in report["encoders"]  # type: ignore[operator]
-            angles[ELBOW_DOF] = 60.0
-            calibrated = time.time_ns()
-            arm.wait_elbow(60.0, calibrated)
-            arm.wait(20, calibrated)
-            later = [f for f in arm.since(calibrated) if is_measured(f, ELBOW_DOF)]
-            assert len(later) >= 10
-            assert arm.check(later) == 0
-            errors = [_errors(f, truths)[ELBOW_DOF][0] for f in later[-10:]]
-            print(f"\nelbow after the new zero: worst error {max(errors):.3f} deg")
-            assert not math.isnan(later[-1].unc_deg[ELBOW_DOF])
-        finally:
-            nodes.stop()
+    with _nodes_on(channel, body, truths) as nodes:
+        arm.settled(80.0)
+        # the elbow's node reboots, the elbow bent
+        before = nodes.sent[ELBOW]
+        nodes.reboot(ELBOW)
+        wait_until(lambda: nodes.sent[ELBOW] > before + 100, 10.0, "the node back")
+        back = truths.by_node[ELBOW][-100][0]  # a sample taken after it came back
+        arm.wait(20, back)
+        angles[ELBOW_DOF] = 40.0  # moving while it is flagged
+        arm.wait(20, time.time_ns())
+        after = arm.since(back)
+        assert arm.check(after) == len(after)  # every one flagged, none wrong
+        said = health.wait_for(lambda h: any(
+            m.get("encoders", {}).get(ELBOW_KEY, {}).get("measured") is False
+            for _, m in h), timeout=10)  # fmt: skip
+        state = next(m["encoders"][ELBOW_KEY] for _, m in reversed(said) if "encoders" in m)
+        assert "rebooted" in state["reason"]
+        assert nodes.reboots[ELBOW] == 1
+        # the calibration pose (the profile's, the T-pose): the encoder's zero again
+        report = arm.calibrated(gateway, angles)
+        assert ELBOW_KEY in report["encoders"]  # type: ignore[operator]
+        angles[ELBOW_DOF] = 60.0
+        calibrated = time.time_ns()
+        arm.wait_elbow(60.0, calibrated)
+        arm.wait(20, calibrated)
+        later = [f for f in arm.since(calibrated) if is_measured(f, ELBOW_DOF)]
+        assert len(later) >= 10
+        assert arm.check(later) == 0
+        errors = [_errors(f, truths)[ELBOW_DOF][0] for f in later[-10:]]
+        print(f"\nelbow after the new zero: worst error {max(errors):.3f} deg")
+        assert not math.isnan(later[-1].unc_deg[ELBOW_DOF])
 
 
 ENCODER_DOFS = tuple(str(mount(SMARTSUIT_SITES[n]).ole_angle) for n in NODES)
@@ -487,58 +506,43 @@ def test_a_whole_suit_switched_off_and_on_is_flagged_until_a_calibration_pose(
     bridge, channel, arm, health, body = _can_arm(zsession, zsession, run_thread, angles, "swap")
     raw = raw_collector(zsession, "body/arm/left/*/raw")
     truths = arm.truths
-    with can.Bus(interface="virtual", channel=channel) as bus:
-        nodes = CanNodes(bus, body, truth=truths)
-        nodes.start()
-        try:
-            start = time.time_ns()
-            arm.wait_elbow(80.0, start)
-            arm.wait(50, start)
-            assert arm.check(arm.since(start)) == 0
-            before = {n: nodes.sent[n] for n in NODES}
-            nodes.power_cycle(1.5)
-            wait_until(lambda: all(nodes.sent[n] > before[n] + 100 for n in NODES), 15.0,
-                       "the suit back")  # fmt: skip
-            back = max(truths.by_node[n][-100][0] for n in NODES)  # after it came back
-            arm.wait(20, back)
-            angles[ELBOW_DOF] = 40.0  # moving while they are flagged
-            arm.wait(20, time.time_ns())
-            arm_keys = [SMARTSUIT_SITES[n].raw_key for n in NODES]
-            after = [f for f in arm.since(back) if all(f.sources[k] >= back for k in arm_keys)]
-            assert len(after) >= 20
-            arm.check(after)  # none measured wrong
-            for frame in after:
-                assert all(frame.flags.get(dof) == UNCALIBRATED for dof in ENCODER_DOFS), frame
-            assert all(bridge.publisher.nodes[n].resumed == 1 for n in NODES)
-            seen = raw.wait_for(lambda s: sum(x.t_ns >= back for _, x in s) >= 150)
-            assert sorted(x.reading.node for _, x in seen if x.flags & RESUMED) == list(NODES)
-            said = health.wait_for(lambda h: any(
-                all(m.get("encoders", {}).get(SMARTSUIT_SITES[n].raw_key, {}).get("measured")
-                    is False for n in NODES) for _, m in h), timeout=10)  # fmt: skip
-            assert said
-            # the calibration pose: every encoder's zero again
-            angles.clear()
-            angles.update(TPOSE)
-            posed = time.time_ns()
-            arm.poses.wait_for(lambda _: bool(arm.since(posed))
-                               and arm.since(posed)[-1].t_ns >= posed + 1.3e9,
-                               timeout=10)  # fmt: skip
-            report = gateway.calibrate_tpose(1.0)
-            assert report["ok"], report
-            assert {SMARTSUIT_SITES[n].raw_key for n in NODES} <= set(report["encoders"])  # type: ignore[arg-type]
-            angles.update({ENCODER_DOFS[0]: 15.0, ELBOW_DOF: 60.0, ENCODER_DOFS[2]: 25.0})
-            calibrated = time.time_ns()
-            arm.wait_elbow(60.0, calibrated)
-            arm.wait(20, calibrated)
-            later = arm.since(calibrated)[-10:]
-            assert all(is_measured(f, dof) for f in later for dof in ENCODER_DOFS)
-            assert arm.check(later) == 0
-            errors = _errors(later[-1], truths)
-            assert set(ENCODER_DOFS) <= set(errors)
-            print("\nencoders after the new zeros: errors (deg) "
-                  + ", ".join(f"{d} {errors[d][0]:.3f}" for d in ENCODER_DOFS))  # fmt: skip
-        finally:
-            nodes.stop()
+    with _nodes_on(channel, body, truths) as nodes:
+        arm.settled(80.0)
+        before = {n: nodes.sent[n] for n in NODES}
+        nodes.power_cycle(1.5)
+        wait_until(lambda: all(nodes.sent[n] > before[n] + 100 for n in NODES), 15.0,
+                   "the suit back")  # fmt: skip
+        back = max(truths.by_node[n][-100][0] for n in NODES)  # after it came back
+        arm.wait(20, back)
+        angles[ELBOW_DOF] = 40.0  # moving while they are flagged
+        arm.wait(20, time.time_ns())
+        arm_keys = [SMARTSUIT_SITES[n].raw_key for n in NODES]
+        after = [f for f in arm.since(back) if all(f.sources[k] >= back for k in arm_keys)]
+        assert len(after) >= 20
+        arm.check(after)  # none measured wrong
+        for frame in after:
+            assert all(frame.flags.get(dof) == UNCALIBRATED for dof in ENCODER_DOFS), frame
+        assert all(bridge.publisher.nodes[n].resumed == 1 for n in NODES)
+        seen = raw.wait_for(lambda s: sum(x.t_ns >= back for _, x in s) >= 150)
+        assert sorted(x.reading.node for _, x in seen if x.flags & RESUMED) == list(NODES)
+        said = health.wait_for(lambda h: any(
+            all(m.get("encoders", {}).get(SMARTSUIT_SITES[n].raw_key, {}).get("measured")
+                is False for n in NODES) for _, m in h), timeout=10)  # fmt: skip
+        assert said
+        # the calibration pose: every encoder's zero again
+        report = arm.calibrated(gateway, angles)
+        assert {SMARTSUIT_SITES[n].raw_key for n in NODES} <= set(report["encoders"])  # type: ignore[arg-type]
+        angles.update({ENCODER_DOFS[0]: 15.0, ELBOW_DOF: 60.0, ENCODER_DOFS[2]: 25.0})
+        calibrated = time.time_ns()
+        arm.wait_elbow(60.0, calibrated)
+        arm.wait(20, calibrated)
+        later = arm.since(calibrated)[-10:]
+        assert all(is_measured(f, dof) for f in later for dof in ENCODER_DOFS)
+        assert arm.check(later) == 0
+        errors = _errors(later[-1], truths)
+        assert set(ENCODER_DOFS) <= set(errors)
+        print("\nencoders after the new zeros: errors (deg) "
+              + ", ".join(f"{d} {errors[d][0]:.3f}" for d in ENCODER_DOFS))  # fmt: skip
 
 
 def test_a_bridge_held_with_the_nodes_beside_it_flags_no_reboot(router_endpoint: str) -> None:
