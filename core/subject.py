@@ -28,6 +28,9 @@ sf = [1.0, 1.0, 1.007, 1.084, 1.161, 1.261]
 [imu_headings]         # each tag's heading reference against the body's forward (deg), once known
 "body/arm/left/upperarm/raw" = 0.0
 
+[imu_scatter_deg]      # each tag's scatter (RMS, deg) in its calibration's still window
+"body/arm/left/upperarm/raw" = 0.52
+
 [heading_reference]    # optional, declared: this tag's axis pointed forward during calibration
 key = "body/trunk/mid/sacrum/raw"
 axis = "+z"
@@ -81,7 +84,8 @@ DRIFT_MODES = ("auto", "joints", "hinges", "off")
 AXES = ("+x", "-x", "+y", "-y", "+z", "-z")
 
 #: The keys of a profile that hold tables.
-TABLES = ("ole", "imu_mounts", "segments", "trackers", "imu_headings", "heading_reference")
+TABLES = ("ole", "imu_mounts", "segments", "trackers", "imu_headings", "heading_reference",
+          "imu_scatter_deg")
 #: The keys a profile may hold (what ``Profile.to_dict`` writes): any other is refused
 #: by name, as a misspelt key would otherwise be dropped (a saved profile drops it too).
 KEYS = (
@@ -106,6 +110,9 @@ MOUNT_NORM = (1e-3, 1e3)
 #: The largest heading (deg, either way) in ``[imu_headings]``; the gateway writes
 #: them within +-180.
 MAX_HEADING_DEG = 360.0
+#: The largest scatter (deg) in ``[imu_scatter_deg]``: a tag turning further at random
+#: in a still window measures nothing (calibration refuses far less).
+MAX_SCATTER_DEG = 90.0
 
 
 def default_ole_table() -> dict[str, OleCalibration]:
@@ -140,6 +147,10 @@ class Profile:
     #: declared: (raw key, sensor axis such as "+z") that pointed forward in calibration
     heading_reference: tuple[str, str] | None = None
     drift: str = "auto"  # DRIFT_MODES
+    #: raw key -> the tag's scatter (RMS of its turns from its mean, deg) in the still
+    #: window it was calibrated from: its noise, which the dofs it drives carry in
+    #: their uncertainty (a tag without one: what good IMUs claim, ``UNC_TAG_DEG``)
+    imu_scatter_deg: Mapping[str, float] = field(default_factory=dict)
     version: int = VERSION
 
     def __post_init__(self) -> None:
@@ -202,6 +213,8 @@ class Profile:
             "heading": self.heading,
             **({"drift": self.drift} if self.drift != "auto" else {}),
             "imu_headings": dict(sorted(self.imu_headings.items())),
+            **({"imu_scatter_deg": dict(sorted(self.imu_scatter_deg.items()))}
+               if self.imu_scatter_deg else {}),
             "trackers": dict(sorted(self.trackers.items())),
             **({"heading_reference": {"key": self.heading_reference[0],
                                       "axis": self.heading_reference[1]}}
@@ -250,6 +263,7 @@ class Profile:
                 heading=str(data.get("heading", "auto")),
                 drift=str(data.get("drift", "auto")),
                 imu_headings=MappingProxyType(_headings(data.get("imu_headings", {}))),
+                imu_scatter_deg=MappingProxyType(_scatters(data.get("imu_scatter_deg", {}))),
                 heading_reference=reference,
                 subject=str(data.get("subject", "subject-1")),
                 lengths=MappingProxyType(_lengths(data.get("segments", {}))),
@@ -330,6 +344,14 @@ def _headings(headings: Mapping[str, Any]) -> dict[str, float]:
         )
         for k, v in headings.items()
     }
+
+
+def _scatters(scatters: Mapping[str, Any]) -> dict[str, float]:
+    return {
+        str(k): _within(f"imu_scatter_deg[{k!r}]", v, (0.0, MAX_SCATTER_DEG),
+                        "a tag's scatter in its calibration window", unit=" deg")
+        for k, v in scatters.items()
+    }  # fmt: skip
 
 
 def _mounts(mounts: Mapping[str, Any]) -> dict[str, QuatWxyz]:

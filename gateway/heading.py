@@ -220,11 +220,16 @@ class WindowCalibration:
     report: dict[str, Any]
 
     def apply(self, profile: Profile, pose: str | None = None) -> Profile:
-        """``profile`` calibrated: these mounts, the pose, and the headings (the
-        tags recalibrated here lose any heading they had, until it is found)."""
+        """``profile`` calibrated: these mounts, the tags' scatter in the window
+        (their noise, which their dofs' uncertainty carries), the pose, and the
+        headings (the tags recalibrated here lose any heading they had, until it
+        is found)."""
+        tags = self.report.get("tags", {})
+        scatter = {k: float(tags[k]["scatter_deg"]) for k in self.mounts if k in tags}
         calibrated = replace(
             profile.with_mounts(self.mounts),
             pose=pose or profile.pose,
+            imu_scatter_deg=MappingProxyType({**profile.imu_scatter_deg, **scatter}),
             imu_headings=MappingProxyType(
                 {k: v for k, v in profile.imu_headings.items() if k not in self.mounts}
             ),

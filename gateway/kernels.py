@@ -73,16 +73,21 @@ def _axis_rotation(x, y, z, angle_rad, out):
 _A3, _A2, _I1, _F1 = "float64[:, :, :]", "float64[:, :]", "int64[:]", "float64[:]"
 
 
-@_compiled(f"({_A3}, {_A2}, {_I1}, {_I1}, {_I1}, {_F1}, {_A2}, {_I1}, {_A2}, {_A2}, float64)")
-def split_rows(rel, previous, i, j, k, e, signs, n, lo, hi, gimbal_cos):
+@_compiled(f"({_A3}, {_A2}, {_I1}, {_I1}, {_I1}, {_F1}, {_A2}, {_I1}, {_A2}, {_A2}, float64, "
+           f"{_A2}, float64)")  # fmt: skip
+def split_rows(rel, previous, i, j, k, e, signs, n, lo, hi, gimbal_cos, unc, unc_max):
     """Angles (deg, (m, 3), absent dofs 0) of joints for relative rotations ``rel``
     (m, 3, 3), continuous with ``previous`` (m, 3); the joints' Euler axes
     ``i, j, k``, cyclic sign ``e``, dof signs, dof count ``n`` and ranges of
     motion ``lo, hi`` (m, 3). Also which rows are at a gimbal lock (three dofs,
-    ``|cos b| < gimbal_cos``), for the scalar split."""
+    ``|cos b| < gimbal_cos``), for the scalar split, and each dof's uncertainty
+    from the relative rotation's, ``unc`` (m, 3): a three-dof joint's outer dofs
+    carry it divided by ``|cos b|`` at ``b`` moved its own uncertainty toward the
+    lock, at most ``unc_max`` (``JointAxes.unc``)."""
     m = rel.shape[0]
     chosen = np.zeros((m, 3))
     gimbal = np.zeros(m, dtype=np.bool_)
+    stated = unc.copy()
     first = np.empty(3)
     second = np.empty(3)
     for r in range(m):
@@ -105,6 +110,9 @@ def split_rows(rel, previous, i, j, k, e, signs, n, lo, hi, gimbal_cos):
                 d2 += abs(second[d] - previous[r, d])
             pick = out2 < out1 or (out2 == out1 and d2 < d1)
             gimbal[r] = abs(math.cos(b)) < gimbal_cos
+            for d in (0, 2):
+                near = math.pi / 2 - abs(b) - unc[r, 1] * _RAD
+                stated[r, d] = min(unc_max, unc[r, d] / math.sin(near)) if near > 0.0 else unc_max
         else:  # fewer dofs: the candidate whose unused angles vanish
             u1 = u2 = 0.0
             for d in range(nn, 3):
@@ -119,7 +127,7 @@ def split_rows(rel, previous, i, j, k, e, signs, n, lo, hi, gimbal_cos):
             b2 = math.atan2(ee * R[ii, kk], col_k)
             chosen[r, 0] = a2 * _DEG * signs[r, 0]
             chosen[r, 1] = b2 * _DEG * signs[r, 1]
-    return chosen, gimbal
+    return chosen, gimbal, stated
 
 
 @_compiled(f"({_A2}, {_A2}, {_A2}, {_A3}, {_A3}, {_A3})")

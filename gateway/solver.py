@@ -107,7 +107,12 @@ TILT_MIN = 0.05  # |component| below this: the tilt has no unique answer
 MISS = 0.05  # a gravity fit further off than this (about 3 degrees) is no fit
 
 #: Stated uncertainties (deg, about two standard deviations) of each kind of source.
-UNC_TAG_DEG = 2.0  # a dof split from orientation sensors (what good IMUs claim; not per tick)
+#: a dof split from orientation sensors: at least what good IMUs claim, more for tags that
+#: scattered more in their calibration window (``Profile.imu_scatter_deg``, :func:`tag_unc`)
+UNC_TAG_DEG = 2.0
+#: A three-dof joint's outer dofs near its gimbal lock: the tags' uncertainty over
+#: ``|cos|`` of the middle dof (the split's Jacobian), at most this: any angle at all.
+UNC_SPLIT_MAX_DEG = 180.0
 UNC_OLE_DEG = 0.5  # an encoder's dof: 0.1 mm of travel is at most 0.23 deg, plus slack
 #: a module's filtered "up": the accelerometer's bias and noise (about 0.03), and the
 #: body's own acceleration up to about 0.07 g (a 90 degree lift of the arm in 3 s, at the
@@ -199,6 +204,17 @@ _PLUS_UNCAL: dict[frozenset[str], frozenset[str]] = {}
 
 # Per-tick maths uses Pinocchio's rotation functions: scipy's Rotation objects cost
 # hundreds of microseconds a call, which a solver at 100 Hz per body cannot pay.
+def tag_unc(scatter_deg: Iterable[float]) -> float:
+    """The stated uncertainty (deg, about two standard deviations) of a dof split
+    from the relative rotation of tags whose calibration windows scattered this
+    much (RMS of their turns, deg; 0 where not known): each tag's noise is
+    about ``scatter / sqrt(3)`` about each axis, the two tags' add, and
+    ``UNC_TAG_DEG`` is the floor (what a still window does not show: bias,
+    soft tissue)."""
+    var = sum(s * s for s in scatter_deg) / 3.0
+    return max(UNC_TAG_DEG, 2.0 * math.sqrt(var))
+
+
 def _rot(axis: np.ndarray, angle_rad: float) -> np.ndarray:
     return pin.exp3(axis * angle_rad)  # type: ignore[no-any-return]
 
@@ -276,6 +292,23 @@ class JointAxes:
     def dof(self, i: int, angle_deg: float) -> np.ndarray:
         """The rotation of dof ``i`` alone."""
         return _rot(self.axes[i], math.radians(angle_deg))
+
+    def unc(self, rel: np.ndarray, unc_deg: float) -> np.ndarray:
+        """The uncertainty (deg) of each dof :meth:`split` gives for ``rel``, a
+        relative rotation known within ``unc_deg`` about each axis: that, but a
+        three-dof joint's outer dofs carry it over ``|cos b|`` (the split's
+        Jacobian: near the gimbal lock, ``b`` at +/-90, the two outer axes nearly
+        coincide and only their sum is known), ``b`` taken ``unc_deg`` nearer the
+        lock (where the truth may be: a measured ``b`` a few degrees off the lock
+        stated a tenth of the outer dofs' error), at most ``UNC_SPLIT_MAX_DEG``."""
+        out = np.full(len(self.axes), unc_deg)
+        if len(self.axes) == 3:
+            i, k = "XYZ".index(self.seq[0]), "XYZ".index(self.seq[2])
+            b = math.asin(min(1.0, abs(float(rel[i, k]))))
+            near = math.pi / 2 - b - math.radians(unc_deg)
+            out[[0, 2]] = (min(UNC_SPLIT_MAX_DEG, unc_deg / math.sin(near)) if near > 0.0
+                           else UNC_SPLIT_MAX_DEG)  # fmt: skip
+        return out
 
     def split(self, rel: np.ndarray, previous: np.ndarray | None) -> np.ndarray:
         """Angles (deg) of the joint's dofs for a relative rotation.
@@ -359,15 +392,20 @@ class _SplitBatch:
         return _Rows(self, rows)
 
     def split(self, rows: np.ndarray, rel: np.ndarray, previous: np.ndarray,
-              prep: _Rows | None = None) -> np.ndarray:  # fmt: skip
+              prep: _Rows | None = None, unc: np.ndarray | None = None,
+              ) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
         """Angles (deg, (m, 3), absent dofs 0) of joints ``rows`` for relative
-        rotations ``rel`` (m, 3, 3), continuous with ``previous`` (m, 3)."""
+        rotations ``rel`` (m, 3, 3), continuous with ``previous`` (m, 3), and
+        their uncertainties (:meth:`JointAxes.unc`) for relative rotations known
+        within ``unc`` (m, 3: per dof, the same across a row; None: 1 deg)."""
         p = prep or self.prepare(rows)
-        chosen, gimbal = kernels.split_rows(rel, previous, p.i, p.j, p.k, p.e, p.signs, p.n,
-                                            p.lo, p.hi, GIMBAL_COS)  # fmt: skip
+        base = unc if unc is not None else np.ones((len(rows), 3))
+        chosen, gimbal, stated = kernels.split_rows(rel, previous, p.i, p.j, p.k, p.e, p.signs,
+                                                    p.n, p.lo, p.hi, GIMBAL_COS, base,
+                                                    UNC_SPLIT_MAX_DEG)  # fmt: skip
         for r in np.flatnonzero(gimbal).tolist():
             chosen[r] = self.axes[rows[r]].split(rel[r], previous[r])
-        return chosen  # type: ignore[no-any-return]
+        return chosen, stated
 
     def commit(
         self,
@@ -405,18 +443,21 @@ class _Plan:
     arrays, the indices in the measured segments of each one's ``parents`` (-1:
     the unmeasured pelvis) and ``children``, where its dofs sit in the angle
     vector (``index``) and its calibration pose's rotation inverted
-    (``cal_inv``, (rows, 3, 3)). What a batch of bodies gathers from each
-    (:class:`_Layout`), worked out once per set of measured segments."""
+    (``cal_inv``, (rows, 3, 3)), and how well its two tags give its relative
+    rotation (``unc``, deg, (rows, 3): :func:`tag_unc`). What a batch of bodies
+    gathers from each (:class:`_Layout`), worked out once per set of measured
+    segments and their tags' scatter."""
 
-    __slots__ = ("cal_inv", "children", "index", "parents", "rows")
+    __slots__ = ("cal_inv", "children", "index", "parents", "rows", "unc")
 
     def __init__(self, rows: np.ndarray, parents: np.ndarray, children: np.ndarray,
-                 index: np.ndarray, cal_inv: np.ndarray) -> None:  # fmt: skip
+                 index: np.ndarray, cal_inv: np.ndarray, unc: np.ndarray) -> None:  # fmt: skip
         self.rows, self.parents, self.children = rows, parents, children
-        self.index, self.cal_inv = index, cal_inv
+        self.index, self.cal_inv, self.unc = index, cal_inv, unc
 
 
-_NO_PLAN = _Plan(*(np.zeros(0, dtype=int),) * 3, np.zeros((0, 3), dtype=int), np.zeros((0, 3, 3)))
+_NO_PLAN = _Plan(*(np.zeros(0, dtype=int),) * 3, np.zeros((0, 3), dtype=int),
+                 np.zeros((0, 3, 3)), np.zeros((0, 3)))  # fmt: skip
 
 
 class _Layout:
@@ -427,7 +468,7 @@ class _Layout:
     plans costs half of gathering each set from the batch."""
 
     __slots__ = ("cal_inv", "children", "index", "keys", "owner", "parents", "prep", "rows",
-                 "unc_index")  # fmt: skip
+                 "spans", "unc", "unc_index")  # fmt: skip
 
     def __init__(self, ticks: Sequence[_Tick], batch: _SplitBatch) -> None:
         self.keys = [(t.solver, t.plan) for t in ticks]
@@ -447,6 +488,9 @@ class _Layout:
         self.cal_inv = np.concatenate([p.cal_inv for p in plans])
         self.prep = batch.prepare(rows)
         self.unc_index = [p.index for p in plans]
+        self.unc = np.concatenate([p.unc for p in plans])  # the tags' (deg), before headings
+        ends = np.cumsum(counts).tolist()
+        self.spans = [slice(end - c, end) for end, c in zip(ends, counts, strict=True)]
 
     def fits(self, ticks: Sequence[_Tick]) -> bool:
         return len(ticks) == len(self.keys) and all(
@@ -563,8 +607,8 @@ class _Sorted:
     tenth of a hot solve)."""
 
     __slots__ = ("flagged", "keys", "kinds", "lefts", "modules", "mounts", "pelvis", "plan",
-                 "quats", "reasons", "segs", "sites", "stale", "stale_modules", "stale_segs",
-                 "uncal", "unknown", "upright", "used")  # fmt: skip
+                 "quats", "reasons", "scatter", "segs", "sites", "stale", "stale_modules",
+                 "stale_segs", "uncal", "unknown", "upright", "used")  # fmt: skip
 
     def __init__(self, sites: tuple[Site, ...], kinds: tuple[type, ...],
                  stale: frozenset[str]) -> None:  # fmt: skip
@@ -575,6 +619,7 @@ class _Sorted:
         self.keys: list[str] = []  # each site's raw key
         self.segs: list[str] = []  # segments with an orientation sensor (the first one wins)
         self.used: list[Site] = []  # the orientation sensors of ``segs``, in that order
+        self.scatter: list[float] = []  # and each one's in calibration (deg, 0: not known)
         self.quats: list[int] = []  # where their samples are among the tick's
         self.unknown: set[str] = set()  # segments whose sensor's heading is not known
         self.uncal: set[str] = set()  # segments whose orientation sensor has no mount yet
@@ -670,7 +715,7 @@ class BodySolver:
         self._memory = _Memory()
         self._all_mounted = False  # assume_calibrated
         self._sites: dict[Site, tuple[str, np.ndarray, str, bool, np.ndarray, bool, bool]] = {}
-        self._plans: dict[tuple[str, ...], _Plan] = {}
+        self._plans: dict[tuple[tuple[str, ...], tuple[float, ...]], _Plan] = {}
         self._layouts: dict[tuple[tuple[int, int], ...], _Layout] = {}  # see _solve_direct
         # the sensors' stacked frames (turns, mounts) by the sensors used, see _frames
         self._stacked: dict[tuple[Site, ...], tuple[np.ndarray, np.ndarray]] = {}
@@ -849,6 +894,7 @@ class BodySolver:
                     sorted_.segs.append(seg)
                     sorted_.quats.append(i)
                     sorted_.used.append(site)
+                    sorted_.scatter.append(self.profile.imu_scatter_deg.get(key, 0.0))
                     if not heading_known:
                         sorted_.unknown.add(seg)
                     if not calibrated:
@@ -872,7 +918,7 @@ class BodySolver:
             if "pelvis" in seen:
                 sorted_.pelvis = sorted_.segs.index("pelvis")
             sorted_.lefts, sorted_.mounts = self._frames(tuple(sorted_.used))
-            sorted_.plan = self._direct_plan(tuple(sorted_.segs))
+            sorted_.plan = self._direct_plan(tuple(sorted_.segs), tuple(sorted_.scatter))
         return sorted_
 
     def assume_calibrated(self) -> None:
@@ -940,19 +986,17 @@ class BodySolver:
         nothing = np.zeros(angles.shape[1])  # a body's first tick: no previous angles
         last = np.stack([t.last if t.last is not None else nothing for t in ticks])
         prep = layout.prep
-        values, clamped, matrices, total = batch.commit(
-            rows,
-            batch.split(rows, relative, last[owner[:, None], index], prep),
-            layout.cal_inv,
-            relative,
-            prep,
-        )
-        angles[owner[:, None], index] = values
-        unc[owner[:, None], index] = UNC_TAG_DEG
-        for tick, at in zip(ticks, layout.unc_index, strict=True):
+        known = layout.unc  # how well the tags give each relative rotation
+        for tick, at, span in zip(ticks, layout.unc_index, layout.spans, strict=True):
             extra = tick.solver._heading_unc
             if extra is not None:  # a tag whose heading a three-dof joint holds widens them
-                tick.unc[at] = np.hypot(UNC_TAG_DEG, extra[at])  # (gateway/heading.py)
+                known = known.copy() if known is layout.unc else known
+                known[span] = np.hypot(known[span], extra[at])  # (gateway/heading.py)
+        split, stated = batch.split(rows, relative, last[owner[:, None], index], prep, known)
+        values, clamped, matrices, total = batch.commit(rows, split, layout.cal_inv, relative,
+                                                        prep)  # fmt: skip
+        angles[owner[:, None], index] = values
+        unc[owner[:, None], index] = stated
         angles[:, -1] = 0.0  # the absent dofs' column
         rel[owner, rows] = total
         start = 0
@@ -1043,10 +1087,11 @@ class BodySolver:
             self._stacked[used] = stacked
         return stacked
 
-    def _direct_plan(self, measured: tuple[str, ...]) -> _Plan:
-        """For segments ``measured`` (in this order), the joints between two of them
-        (or the root and one): see :class:`_Plan`."""
-        plan = self._plans.get(measured)
+    def _direct_plan(self, measured: tuple[str, ...], scatter: tuple[float, ...]) -> _Plan:
+        """For segments ``measured`` (in this order) whose tags scattered ``scatter``
+        in calibration, the joints between two of them (or the root and one): see
+        :class:`_Plan`."""
+        plan = self._plans.get((measured, scatter))
         if plan is None:
             at = {s: i for i, s in enumerate(measured)}
             direct = [
@@ -1056,11 +1101,15 @@ class BodySolver:
             ]  # fmt: skip
             rows, parents, children = (np.array([d[k] for d in direct], dtype=int)
                                        for k in range(3))  # fmt: skip
+            own = (*scatter, 0.0)  # an unmeasured pelvis (-1) adds nothing
+            unc = [tag_unc((own[p], own[c])) for p, c in zip(parents.tolist(), children.tolist(),
+                                                             strict=True)]  # fmt: skip
             plan = _Plan(rows, parents, children, self._batch.angle_index[rows],
-                         self._calibration_inv[rows])  # fmt: skip
+                         self._calibration_inv[rows],
+                         np.repeat(np.array(unc, dtype=float).reshape(-1, 1), 3, axis=1))  # fmt: skip
             if len(self._plans) >= 64:  # which sensors deliver changes rarely: a small cache
                 self._plans.clear()
-            self._plans[measured] = plan
+            self._plans[measured, scatter] = plan
         return plan
 
     def _solve_rest(self, tick: _Tick) -> None:
@@ -1102,7 +1151,8 @@ class BodySolver:
             if child in measured:
                 relative = parent.T @ measured[child]
                 values = ax.split(relative, previous)
-                unc = np.full(len(names), UNC_TAG_DEG)
+                sort = tick.sort
+                unc = ax.unc(relative, tag_unc((sort.scatter[sort.segs.index(child)],)))
                 own = self._rests(child, tick)
                 why = [set(inherited | own) for _ in names]
                 rests[child] = own

@@ -70,6 +70,11 @@ def test_profile_toml_round_trip(tmp_path: Path) -> None:
     held = replace(profile, drift="joints")  # which joints hold drifting tags' headings
     profile_file.save(held, path)
     assert profile_file.load(path) == held
+    assert "imu_scatter_deg" not in path.read_text()  # none known: none written
+    # each tag's noise from its calibration window, which its dofs' uncertainty carries
+    noisy = replace(held, imu_scatter_deg={"body/arm/left/upperarm/raw": 1.73})
+    profile_file.save(noisy, path)
+    assert profile_file.load(path) == noisy
 
 
 @pytest.mark.parametrize(
@@ -109,6 +114,9 @@ MOUNT = "'body/arm/left/upperarm/raw'"
         ("[imu_headings]\n'a/b/raw' = nan", r"imu_headings\['a/b/raw'\] must be a finite number"),
         ("[imu_headings]\n'a/b/raw' = -inf", r"imu_headings\['a/b/raw'\] must be a finite"),
         ("[imu_headings]\n'a/b/raw' = 1e300", r"imu_headings\['a/b/raw'\] must be at least -360"),
+        (f"[imu_scatter_deg]\n{MOUNT} = -0.5", r"imu_scatter_deg\[.*\] must be at least 0 deg"),
+        (f"[imu_scatter_deg]\n{MOUNT} = 400", r"imu_scatter_deg\[.*\] must be .* at most 90 deg"),
+        (f"[imu_scatter_deg]\n{MOUNT} = 'low'", r"imu_scatter_deg\[.*\] must be a number"),
         (f"[imu_mounts]\n{MOUNT} = [0, 0, 0, 0]", r"imu_mounts\[.*\] must be a rotation .*norm"),
         (f"[imu_mounts]\n{MOUNT} = [1e300, 0, 0, 0]", r"norm at least 0\.001 and at most 1000"),
         (f"[imu_mounts]\n{MOUNT} = [1, 0, nan, 0]", r"imu_mounts\[.*\] must be a finite number"),

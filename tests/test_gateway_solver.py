@@ -219,6 +219,79 @@ def test_gimbal_lock_holds_the_ambiguous_dof() -> None:
     assert Kind.TAG is tags[0].kind
 
 
+def _through_the_shoulders_lock() -> Routine:
+    """From the T-pose (both shoulders in their gimbal lock), the arms lowered and
+    raised through abduction 90 with flexion and rotation, other joints moving."""
+    left, right = "left_shoulder_", "right_shoulder_"
+    lock = {left + "abduction_deg": 90.0, right + "abduction_deg": 90.0}
+    return Routine("through-lock", "", keyframes([
+        (0.0, lock),
+        (1.0, lock),
+        (3.0, {left + "abduction_deg": 40.0, left + "flexion_deg": 30.0,
+               left + "rotation_deg": 20.0, right + "abduction_deg": 60.0,
+               right + "flexion_deg": -10.0, "left_elbow_flexion_deg": 40.0}),
+        (5.0, {left + "abduction_deg": 120.0, left + "flexion_deg": 10.0,
+               left + "rotation_deg": -30.0, right + "abduction_deg": 95.0,
+               right + "flexion_deg": 20.0, right + "rotation_deg": 30.0,
+               "left_knee_flexion_deg": 40.0, "lumbar_flexion_deg": 10.0}),
+        (7.0, {left + "abduction_deg": 85.0, left + "flexion_deg": 40.0,
+               left + "rotation_deg": 10.0, right + "abduction_deg": 30.0}),
+        (9.0, {}),
+    ], loop=False))  # fmt: skip
+
+
+@pytest.mark.parametrize("noise", [0.3, 1.0, 2.0])
+def test_stated_uncertainty_holds_against_the_truth(noise: float) -> None:
+    """Tags of ``noise`` deg, calibrated from a still T-pose (its window's scatter
+    kept per tag), then the arms through the shoulders' gimbal lock: a measured
+    dof is off by more than its ``unc_deg`` (about two standard deviations) about
+    as often as a true 2-sigma bound allows (4.6 % of Gaussian errors; 4.0-4.6 %
+    measured at 1 and 2 deg, none at 0.3, where the 2 deg floor rules), by twice
+    it next to never (0.01 %), and near the lock the shoulders' flexion and
+    rotation state that they may be anything. Every tag stated 2 deg, and the
+    split no more near the lock: 4-52 % beyond it, 2-22 % beyond twice it,
+    flexion 110 deg off stating 2."""
+    from bodynet.gateway.heading import calibrate_window
+    from bodynet.gateway.solver import UNC_SPLIT_MAX_DEG
+
+    tags = imu_tags()
+    realism = Realism(quat_noise_deg=noise)
+    still = BodyEmulator(ROUTINES["tpose"], tags, realism=realism, seed=SEED)
+    window: dict[Site, list[tuple[float, Any]]] = {}
+    for t in np.arange(0.0, 1.0, 0.02):
+        readings, _ = still.sample(float(t))
+        for sensor, r in zip(tags, readings, strict=True):
+            window.setdefault(sensor.site, []).append((float(t), r.wxyz))  # type: ignore[union-attr]
+    profile = calibrate_window(window, Profile(heading="fixed"), "tpose").apply(
+        Profile(heading="fixed"))
+    assert set(profile.imu_scatter_deg) == {t.site.raw_key for t in tags}
+    solver = BodySolver(profile)
+    routine = _through_the_shoulders_lock()
+    body = BodyEmulator(routine, tags, realism=realism, seed=SEED)
+    errors, stated, near_lock = [], [], []
+    for tick in range(450):  # 9 s at 50 Hz
+        t = tick / 50
+        readings, _ = body.sample(t)
+        out = solver.solve({s.site: RawSample(r, tick, round(t * 1e9))
+                            for s, r in zip(tags, readings, strict=True)})  # fmt: skip
+        truth = routine.angles(t)
+        for i, name in enumerate(out.names.angles):
+            if out.flags.get(name, "clamped") != "clamped":
+                continue
+            errors.append(abs(out.angles[i] - truth.get(name, 0.0)))
+            stated.append(out.unc[i])
+            side = name.split("_")[0]
+            if name.startswith(f"{side}_shoulder") and "abduction" not in name and \
+                    abs(truth.get(f"{side}_shoulder_abduction_deg", 0.0) - 90.0) < 1.0:  # fmt: skip
+                near_lock.append(out.unc[i])
+    err, unc = np.array(errors), np.array(stated)
+    assert len(err) == 450 * len(solver.names.angles)  # nothing flagged away
+    assert np.mean(err > unc) < 0.08, (np.mean(err > unc), noise)
+    assert np.mean(err > 2 * unc) < 0.002, (np.mean(err > 2 * unc), noise)
+    assert len(near_lock) > 100
+    assert min(near_lock) > 20.0 and np.median(near_lock) == UNC_SPLIT_MAX_DEG
+
+
 def test_batch_split_agrees_with_the_scalar_split_of_every_joint() -> None:
     """The array split the solver uses for IMU joints gives the scalar split's
     answer for every joint, rotation and previous value, gimbal locks included."""
@@ -243,11 +316,13 @@ def test_batch_split_agrees_with_the_scalar_split_of_every_joint() -> None:
     for m, prev in enumerate(previous):
         if prev is not None:
             padded[m, : len(prev)] = prev
-    got = batch.split(rows, rotations, padded)
-    for r, rel, prev, values in zip(rows, rotations, previous, got, strict=True):
+    known = rng.uniform(0.5, 6.0, size=len(rows))  # each relative rotation's uncertainty
+    got, unc = batch.split(rows, rotations, padded, unc=np.repeat(known[:, None], 3, axis=1))
+    for r, rel, prev, values, u, k in zip(rows, rotations, previous, got, unc, known, strict=True):
         n = len(axes[r].axes)
         np.testing.assert_allclose(values[:n], axes[r].split(rel, prev), atol=1e-9)
         assert not values[n:].any()  # absent dofs are 0
+        np.testing.assert_allclose(u[:n], axes[r].unc(rel, k), rtol=1e-9)
 
 
 def test_batch_commit_agrees_with_each_joints_own_rotation() -> None:
@@ -518,7 +593,7 @@ def test_a_two_dof_joints_first_angle_takes_a_misfit_once(joint: str) -> None:
     for misfit in misfits.as_matrix():
         rel = exact @ misfit
         scalar = axes.split(rel, None)
-        batched = batch.split(np.array([0]), rel[None], np.zeros((1, 3)))[0, :2]
+        batched = batch.split(np.array([0]), rel[None], np.zeros((1, 3)))[0][0, :2]
         assert scalar == pytest.approx(batched, abs=1e-9)
         worst["scalar"] = max(worst["scalar"], abs(scalar[0] - truth[0]))
         worst["batched"] = max(worst["batched"], abs(batched[0] - truth[0]))
@@ -679,6 +754,10 @@ def test_a_dead_tag_leaves_the_joints_of_its_segment_unobserved(dead: str) -> No
         np.testing.assert_array_equal(out.unc, want.unc)
         np.testing.assert_allclose(out.angles, want.angles, atol=1e-12)
         truth = routine.angles(t)
+        # ideal tags: 2 deg, a three-dof joint's outer dofs over |cos| of its middle one
+        stated = {n: u for ax in solver.axes.values()
+                  for n, u in zip(ax.names, ax.unc(ax.matrix(np.array(
+                      [truth.get(n, 0.0) for n in ax.names])), 2.0), strict=True)}  # fmt: skip
         for i, name in enumerate(out.names.angles):
             if name in lost:
                 # (a number put against a segment at rest may be clamped too)
@@ -687,7 +766,7 @@ def test_a_dead_tag_leaves_the_joints_of_its_segment_unobserved(dead: str) -> No
                 moved |= {name} if abs(truth.get(name, 0.0)) > 5.0 else set()
             else:
                 assert name not in out.flags, (t, name, out.reasons.get(name))
-                assert out.unc[i] == 2.0, (t, name)
+                assert out.unc[i] == pytest.approx(stated[name], rel=1e-6), (t, name)
                 assert out.angles[i] == pytest.approx(truth.get(name, 0.0), abs=1e-6), (t, name)
     assert moved  # the lost joints moved: their numbers were not the truth by chance
 
