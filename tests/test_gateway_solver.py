@@ -289,7 +289,7 @@ def test_stated_uncertainty_holds_against_the_truth(noise: float) -> None:
     assert np.mean(err > unc) < 0.08, (np.mean(err > unc), noise)
     assert np.mean(err > 2 * unc) < 0.002, (np.mean(err > 2 * unc), noise)
     assert len(near_lock) > 100
-    assert min(near_lock) > 20.0 and np.median(near_lock) == UNC_SPLIT_MAX_DEG
+    assert min(near_lock) > 50.0 and np.median(near_lock) == UNC_SPLIT_MAX_DEG
 
 
 def test_batch_split_agrees_with_the_scalar_split_of_every_joint() -> None:
