@@ -85,7 +85,7 @@ AXES = ("+x", "-x", "+y", "-y", "+z", "-z")
 
 #: The keys of a profile that hold tables.
 TABLES = ("ole", "imu_mounts", "segments", "trackers", "imu_headings", "heading_reference",
-          "imu_scatter_deg")
+          "imu_scatter_deg")  # fmt: skip
 #: The keys a profile may hold (what ``Profile.to_dict`` writes): any other is refused
 #: by name, as a misspelt key would otherwise be dropped (a saved profile drops it too).
 KEYS = (

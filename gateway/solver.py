@@ -1102,11 +1102,10 @@ class BodySolver:
             rows, parents, children = (np.array([d[k] for d in direct], dtype=int)
                                        for k in range(3))  # fmt: skip
             own = (*scatter, 0.0)  # an unmeasured pelvis (-1) adds nothing
-            unc = [tag_unc((own[p], own[c])) for p, c in zip(parents.tolist(), children.tolist(),
-                                                             strict=True)]  # fmt: skip
+            pairs = zip(parents.tolist(), children.tolist(), strict=True)
+            unc = np.array([[tag_unc((own[p], own[c]))] * 3 for p, c in pairs]).reshape(-1, 3)
             plan = _Plan(rows, parents, children, self._batch.angle_index[rows],
-                         self._calibration_inv[rows],
-                         np.repeat(np.array(unc, dtype=float).reshape(-1, 1), 3, axis=1))  # fmt: skip
+                         self._calibration_inv[rows], unc)  # fmt: skip
             if len(self._plans) >= 64:  # which sensors deliver changes rarely: a small cache
                 self._plans.clear()
             self._plans[measured, scatter] = plan
