@@ -316,7 +316,11 @@ def _tag_stats(key: str, samples: Sequence[tuple[float, QuatWxyz]], seg: np.ndar
     mean = rots.mean()
     # the turns from the mean (rotation vectors: small, so they average), low-passed
     dev = (mean.inv() * rots).as_rotvec()
-    scatter = math.degrees(math.sqrt(float((dev**2).sum(axis=1).mean())))
+    # its noise (RMS), from the samples' second differences (six times the noise's
+    # square for white noise): a smooth turn hardly moves them, even one the whole
+    # window long, which the RMS about the mean took for noise and let through
+    sq = (dev[2:] - 2.0 * dev[1:-1] + dev[:-2]) ** 2 / 6.0 if len(dev) >= 3 else dev**2
+    scatter = math.degrees(math.sqrt(float(sq.sum(axis=1).mean())))
     run = max(3, len(samples) // 10)
     if len(samples) >= run:
         cum = np.cumsum(np.vstack([np.zeros(3), dev]), axis=0)

@@ -1064,6 +1064,28 @@ def test_a_still_pose_of_noisy_tags_is_calibrated_and_a_moved_one_refused(noise:
     assert "body/leg/left/shank/raw" in str(caught.value)
 
 
+@pytest.mark.parametrize("noise", [0.3, 2.0])
+def test_a_pose_turning_smoothly_through_the_whole_window_is_refused(noise: float) -> None:
+    """The arms lowering 20 deg from the pose smoothly through the whole 1 s window
+    (a subject settling into it): the tags' scatter about their mean was that
+    motion (14 deg), which the stillness limit took for noise, and the window was
+    calibrated. The noise is now judged from the samples' second differences: each
+    tag's scatter is its noise (within 1.5 times the emulator's), the window refused."""
+    held = dict(CALIBRATION_POSES["tpose"])
+    lower = {"left_shoulder_abduction_deg": 70.0, "right_shoulder_abduction_deg": 70.0}
+    settling = Routine("settling", "", keyframes([(0.0, held), (1.0, {**held, **lower})],
+                                                 loop=False))  # fmt: skip
+    realism = Realism(quat_noise_deg=noise)
+    window = _window(BodyEmulator(settling, imu_tags(), realism=realism, seed=2), 0.0, 1.0)
+    with pytest.raises(CalibrationRefused, match="the subject moved") as caught:
+        calibrate_window(window, Profile(), "tpose")
+    tags = caught.value.report["tags"]
+    arm = tags["body/arm/left/upperarm/raw"]
+    assert arm["still_deg"] > arm["still_limit_deg"], arm
+    # the emulator's noise is about each axis: its turns' RMS is sqrt(3) times it
+    assert all(t["scatter_deg"] < 1.5 * math.sqrt(3) * noise for t in tags.values()), tags
+
+
 def test_the_arms_headings_are_found_with_noisy_tags() -> None:
     """Tags of 1.5 deg noise, the N-pose, then reaching: the elbow pairs' fits never
     came within the fixed 0.3 deg (1 deg at 120 samples) bound, so the arms' tags
