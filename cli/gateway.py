@@ -389,10 +389,12 @@ class _Unusable(Exception):
 
 
 def cmd_process(args: argparse.Namespace) -> int:
-    from bodynet.nodes.captures import CaptureError, capture_options, format_of
+    from bodynet.clients.mcap_store import StoreError
+    from bodynet.nodes.captures import RECORDING, CaptureError, capture_options, format_of
     from bodynet.offline.process import process
 
-    fmt = args.format or format_of(args.input)
+    recording = RECORDING if args.input.suffix.lower() == ".mcap" else None
+    fmt = args.format or format_of(args.input) or recording
     if fmt is None:
         from bodynet.nodes.captures import looks_like
 
@@ -407,7 +409,7 @@ def cmd_process(args: argparse.Namespace) -> int:
 
     calibration = None
     if args.calibration is not None:  # a recording by its suffix, as `calibrate --from`'s
-        mcap = "mcap" if args.calibration.suffix.lower() == ".mcap" else None
+        mcap = RECORDING if args.calibration.suffix.lower() == ".mcap" else None
         calibration = (args.calibration, format_of(args.calibration) or mcap or fmt)
     tpose_s = 3.0 if args.tpose_s is None else args.tpose_s
     try:
@@ -426,7 +428,8 @@ def cmd_process(args: argparse.Namespace) -> int:
     except CalibrationRefused as exc:
         print(f"bodynet process: calibration refused: {exc}; nothing written", file=sys.stderr)
         return 1
-    except (ProfileError, OSError, CaptureError, DecodeError, _Unusable, ValueError) as exc:
+    except (ProfileError, OSError, CaptureError, DecodeError, StoreError, _Unusable,
+            ValueError) as exc:  # fmt: skip
         print(f"bodynet process: {exc}", file=sys.stderr)
         return 2
     heading = result.heading or {}
@@ -455,11 +458,12 @@ def cmd_process(args: argparse.Namespace) -> int:
 
 
 def add_process_args(p: argparse.ArgumentParser) -> None:
-    from bodynet.nodes.captures import add_capture_args, formats
+    from bodynet.nodes.captures import RECORDING, add_capture_args, formats
 
     p.add_argument("input", type=argtypes.input_file,
-                   help="a capture (any format of `bodynet decode`)")  # fmt: skip
-    p.add_argument("--format", choices=formats())
+                   help="a capture (any format of `bodynet decode`), or a recording's raw "
+                        "samples (.mcap: solved again, e.g. from another window)")  # fmt: skip
+    p.add_argument("--format", choices=[*formats(), RECORDING])
     add_capture_args(p)
     p.add_argument("--rate-hz", type=argtypes.RATE_HZ, default=None,
                    help="as for `bodynet decode`")  # fmt: skip

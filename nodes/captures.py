@@ -23,6 +23,7 @@ from bodynet.nodes.sources.base import CapturedSample, CaptureError, CaptureStat
 from bodynet.nodes.sources.can_transport import can_log_messages, frame_of
 
 __all__ = [
+    "RECORDING",
     "CaptureError",
     "CaptureStats",
     "CapturedSample",
@@ -35,6 +36,10 @@ __all__ = [
     "read_capture",
     "sample_json",
 ]
+
+
+#: The format of a bodynet recording (MCAP) read as a capture: its raw samples.
+RECORDING = "mcap"
 
 
 def formats() -> list[str]:

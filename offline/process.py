@@ -1,7 +1,8 @@
 """``bodynet process``: exactly the gateway's solver, run over a capture.
 
 The input is any capture ``bodynet decode`` reads (any format of a registered
-source, ``nodes.sources``). Samples are taken in the
+source, ``nodes.sources``), or a bodynet recording's raw samples (MCAP, with
+their flags: solved again). Samples are taken in the
 capture's time order and grouped into ticks of at most ``1 / tick_hz``, a tick
 ending early where a sensor already in it samples again (a data-matrix
 frame, or a concentrator reply, is always one tick); after each tick the body
@@ -37,7 +38,7 @@ from typing import Any
 from bodynet.clients.mcap_store import McapSink
 from bodynet.core import keys
 from bodynet.core.codecs.pose import PoseFrame
-from bodynet.core.errors import DecodeError
+from bodynet.core.errors import DecodeError, Reason
 from bodynet.core.keys import BRANCHES, Site
 from bodynet.core.messages import OleAccel, Quat, RawSample, Reading
 from bodynet.core.profile import OLE_DOF
@@ -52,6 +53,7 @@ from bodynet.gateway.heading import (
 )
 from bodynet.gateway.solver import BodySolver, Rhythm, fresh_samples
 from bodynet.nodes import sources
+from bodynet.nodes.captures import RECORDING
 from bodynet.nodes.sources.base import CapturedSample, CaptureError, CaptureStats
 
 
@@ -77,26 +79,42 @@ def recorded_samples(path: Path, fmt: str | None, stats: CaptureStats,
     if fmt is None:
         from bodynet.nodes.captures import format_of, looks_like
 
-        fmt = "mcap" if path.suffix.lower() == ".mcap" else format_of(path)
+        fmt = RECORDING if path.suffix.lower() == ".mcap" else format_of(path)
         if fmt is None:
             what = looks_like(path)
             suffix = f"its suffix {path.suffix!r} names none" if path.suffix else "no suffix"
             raise ValueError(f"{path}: say which --format the recording is in ({suffix}"
                              + (f"; it looks like {what})" if what else ")"))  # fmt: skip
-    if fmt == "mcap":
-        from bodynet.clients.mcap_store import read_raw
-
-        for topic, _, sample in read_raw(path):
-            try:
-                site, _stream = keys.parse(topic)
-            except keys.KeySpaceError:
-                continue
-            stats.decoded += 1
-            yield sample.t_ns / 1e9, site, sample.reading
-        return
-    source = sources.by_format(fmt).from_options(options or {})
-    for s in source.read(path, fmt, stats, rate_hz):
+    for s in _captured(path, fmt, stats, rate_hz, options):
         yield s.t_s, s.site, s.reading
+
+
+def _captured(path: Path, fmt: str, stats: CaptureStats, rate_hz: float | None,
+              options: Mapping[str, Any] | None, wires: dict[Site, int] | None = None,
+              ) -> Iterator[CapturedSample]:  # fmt: skip
+    """A capture's samples in time order, each site's source byte into ``wires``: a
+    source's file, or a bodynet recording's raw samples with their flags (a raw
+    sample on another subject's key, ``alice/body/...``, is counted and left out:
+    one body is processed at a time)."""
+    if fmt != RECORDING:
+        source = sources.by_format(fmt).from_options(options or {})
+        for s in source.read(path, fmt, stats, rate_hz):
+            if wires is not None:
+                wires[s.site] = source.wire_id
+            yield s
+        return
+    from bodynet.clients.mcap_store import read_raw
+
+    for topic, _, sample in read_raw(path):
+        try:
+            site, _stream = keys.parse(topic)
+        except keys.KeySpaceError:
+            stats.rejected[Reason.UNKNOWN_NODE] += 1  # another subject's
+            continue
+        stats.decoded += 1
+        if wires is not None:
+            wires[site] = sample.source
+        yield CapturedSample(sample.t_ns / 1e9, sample.reading, site, sample.flags)
 
 
 def calibrate_recording(samples: Iterator[tuple[float, Site, Reading]], profile: Profile,
@@ -262,7 +280,6 @@ def process(path: Path, fmt: str, out: Path, profile: Profile | None = None,
     window (``window``, ``calibration``) cannot be used; when the default one
     (the first ``tpose_s``) cannot, the capture is solved without it
     (``ProcessResult.refused`` says why)."""
-    source = sources.by_format(fmt).from_options(options or {})
     profile = profile or Profile()
     topology, uncalibrated = _survey(path, fmt, rate_hz, options, profile)
     # no calibration window: the orientations are the segments' own, as given
@@ -298,7 +315,7 @@ def process(path: Path, fmt: str, out: Path, profile: Profile | None = None,
             profile = calibrated.apply(profile, pose)
     heading = BodyHeading(profile)
     if heading.unknown:  # a first pass: the heading from a hinge's motion, if one moves
-        _find_heading(heading, _ticks(source.read(path, fmt, CaptureStats(), rate_hz),
+        _find_heading(heading, _ticks(_captured(path, fmt, CaptureStats(), rate_hz, options),
                                       1.0 / tick_hz))  # fmt: skip
         heading.end_search()  # it had the whole capture
     solver, zeros = _solver_of(heading, topology, as_given)
@@ -307,16 +324,17 @@ def process(path: Path, fmt: str, out: Path, profile: Profile | None = None,
     latest: dict[Site, RawSample] = {}
     ages = _Ages()
     seqs: dict[Site, int] = {}
+    wires: dict[Site, int] = {}  # each site's source byte
     ticks = 0
     first_t: float | None = None
     last_t = 0.0
     try:
-        for tick in _ticks(source.read(path, fmt, stats, rate_hz), 1.0 / tick_hz):
+        for tick in _ticks(_captured(path, fmt, stats, rate_hz, options, wires), 1.0 / tick_hz):
             first_t = tick[0].t_s if first_t is None else first_t
             last_t = tick[-1].t_s
             for s in tick:
                 seq = seqs[s.site] = seqs.get(s.site, -1) + 1
-                sample = latest[s.site] = _raw(s, seq, source.wire_id, zeros)
+                sample = latest[s.site] = _raw(s, seq, wires[s.site], zeros)
                 ages.seen(s)
                 _write_raw(sink, s.site, sample, path)
             ticks += 1

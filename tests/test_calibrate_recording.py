@@ -33,9 +33,16 @@ def _record(path: Path, pose: str, facing: float) -> BodyEmulator:
     motion = Routine("still-then-knee", "", keyframes(
         [(0.0, held), (2.0, held), (3.0, {**held, **bend}), (3.5, held)], loop=False))  # fmt: skip
     body = BodyEmulator(motion, imu_tags(), realism=Realism(facing_deg=facing), seed=3)
+    record_tags(path, body, 3.5)
+    return body
+
+
+def record_tags(path: Path, body: BodyEmulator, seconds: float) -> None:
+    """A recording of ``body``'s tags at 50 Hz for ``seconds``, as the recorder
+    writes the IMU central's raw samples, from ``T0_NS``."""
     sink = McapSink(path)
     try:
-        for k, t in enumerate(np.arange(0.0, 3.5, 1 / 50)):
+        for k, t in enumerate(np.arange(0.0, seconds, 1 / 50)):
             readings, _ = body.sample(float(t))
             t_ns = T0_NS + round(float(t) * 1e9)
             for sensor, reading in zip(body.sensors, readings, strict=True):
@@ -43,7 +50,6 @@ def _record(path: Path, pose: str, facing: float) -> BodyEmulator:
                                t_ns)  # fmt: skip
     finally:
         sink.close()
-    return body
 
 
 @pytest.fixture(scope="module")

@@ -680,6 +680,12 @@ def test_the_bridges_own_adapter_lost_and_reopened_flags_nothing_a_reboot_after_
         bridge.close()
 
 
+def candump_line(t: float, reading: Reading) -> str:
+    """A SmartSuit reading as a candump log's line, at capture time 1000 + ``t``."""
+    frame = smartsuit_can.encode_reading(reading)
+    return f"({1000 + t:.6f}) can0 {frame.arbitration_id:08X}#{frame.data.hex().upper()}\n"
+
+
 def test_a_capture_with_a_node_rebooted_is_processed_with_its_encoder_flagged(
     tmp_path: Path,
 ) -> None:
@@ -702,9 +708,7 @@ def test_a_capture_with_a_node_rebooted_is_processed_with_its_encoder_flagged(
             for r in body.sample(t)[0]:
                 if r.node == ELBOW and 130 <= tick < 150:
                     continue  # silent while it boots
-                frame = smartsuit_can.encode_reading(r)
-                f.write(f"({1000 + t:.6f}) can0 "
-                        f"{frame.arbitration_id:08X}#{frame.data.hex().upper()}\n")  # fmt: skip
+                f.write(candump_line(t, r))
     out = tmp_path / "arm.mcap"
     process(log, "can-log", out, tpose_s=0)
     frames = [f for _, f in read_poses(out)]
@@ -747,9 +751,7 @@ def test_a_capture_with_the_whole_suit_switched_off_and_on_is_judged_as_live(
                 for node in NODES:
                     body.power_on(node, t)
             for r in body.sample(t)[0]:
-                frame = smartsuit_can.encode_reading(r)
-                f.write(f"({1000 + t:.6f}) can0 "
-                        f"{frame.arbitration_id:08X}#{frame.data.hex().upper()}\n")  # fmt: skip
+                f.write(candump_line(t, r))
     out = tmp_path / "arm.mcap"
     process(log, "can-log", out, tpose_s=0)
     after = [f for _, f in read_poses(out) if f.t_ns >= round((1000 + back * 0.01) * 1e9)]
