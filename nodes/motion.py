@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import math
 import random
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 
 from bodynet.core.skeleton import CALIBRATION_POSES, TPOSE, build_skeleton, rom
@@ -25,6 +25,9 @@ Pose = Mapping[str, float]
 #: positive down on the right) and its turn (about +Z), applied turn, tilt, list.
 #: Without them the pelvis stays upright, facing +X.
 ROOT_ANGLES = ("pelvis_turn_deg", "pelvis_tilt_deg", "pelvis_list_deg")
+
+#: How long the heading protocol takes to go from one motion to the next (s).
+PROTOCOL_EASE_S = 0.5
 
 
 @dataclass(frozen=True)
@@ -59,10 +62,16 @@ def keyframes(
         if i == len(times) - 1:
             return {n: frames[i][1].get(n, 0.0) for n in names}
         (t0, a), (t1, b) = frames[i], frames[i + 1]
-        w = 0.5 - 0.5 * math.cos(math.pi * (t - t0) / (t1 - t0))
-        return {n: (1 - w) * a.get(n, 0.0) + w * b.get(n, 0.0) for n in names}
+        return _eased(a, b, (t - t0) / (t1 - t0), names)
 
     return angles
+
+
+def _eased(a: Pose, b: Pose, x: float, names: Iterable[str] | None = None) -> dict[str, float]:
+    """From pose ``a`` (``x`` = 0) to ``b`` (``x`` = 1), cosine-eased (no jump in
+    angle or speed at either end); a name missing from a pose is 0 there."""
+    w = 0.5 - 0.5 * math.cos(math.pi * min(max(x, 0.0), 1.0))
+    return {n: (1 - w) * a.get(n, 0.0) + w * b.get(n, 0.0) for n in names or {*a, *b}}
 
 
 def _both(stem: str, value: float) -> dict[str, float]:
@@ -216,18 +225,34 @@ def heading_protocol(bow_at_s: float = 31.0, reach_until_s: float = math.inf,
     000 seed's task, every 16.5 s; their tags' headings come from the elbows'
     bending), the walk alone from ``reach_until_s`` (the arms hanging), and a bow
     from the hips at ``bow_at_s`` (the trunk's tags), in the pose, ``bow_extra``
-    joint angles added at its bottom (a twist, say)."""
+    joint angles added at its bottom (a twist, say). Each change of motion is eased
+    over ``PROTOCOL_EASE_S`` (into the walk after the pose, into the pose before
+    the bow, out of it after, into the walk alone): no joint jumps."""
     still = dict(CALIBRATION_POSES[pose])
     down, left, right = bow(**bow_extra), reach("left"), reach("right")
-    bow_s = 2 * 1.2 + 0.5  # bow()'s own length
+    ease = PROTOCOL_EASE_S
+    bow_end = bow_at_s + 2 * 1.2 + 0.5  # bow()'s own length
+
+    def moving(t: float) -> dict[str, float]:
+        walk = _walk(t)
+        if t >= reach_until_s + ease:
+            return walk
+        reaching = {**walk, **left((t - 1.0) % 16.5), **right((t - 1.0) % 16.5)}
+        if t < reach_until_s:
+            return reaching
+        return _eased(reaching, walk, (t - reach_until_s) / ease)
 
     def angles(t: float) -> dict[str, float]:
         if t < 1.0:
             return dict(still)
-        if bow_at_s <= t < bow_at_s + bow_s:
+        if bow_at_s <= t < bow_end:
             return {**still, **down(t - bow_at_s)}
-        if t >= reach_until_s:
-            return _walk(t)
-        return {**_walk(t), **left((t - 1.0) % 16.5), **right((t - 1.0) % 16.5)}
+        if t < 1.0 + ease:
+            return _eased(still, moving(t), (t - 1.0) / ease)
+        if bow_at_s - ease <= t < bow_at_s:
+            return _eased(moving(t), still, (t - bow_at_s + ease) / ease)
+        if bow_end <= t < bow_end + ease:
+            return _eased(still, moving(t), (t - bow_end) / ease)
+        return moving(t)
 
     return Routine("heading-protocol", "calibration pose, walking and reaching, a bow", angles)

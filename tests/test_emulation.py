@@ -5,6 +5,7 @@ from __future__ import annotations
 import itertools
 import math
 import random
+from collections.abc import Callable
 
 import numpy as np
 import pytest
@@ -13,7 +14,7 @@ from scipy.spatial.transform import Rotation
 from bodynet.core.calibration import default_ole
 from bodynet.core.keys import LEFT_ARM
 from bodynet.core.messages import OleAccel, Quat
-from bodynet.core.skeleton import build_skeleton, rom
+from bodynet.core.skeleton import CALIBRATION_POSES, build_skeleton, rom
 from bodynet.nodes.emulator import (
     BodyEmulator,
     Kind,
@@ -22,7 +23,7 @@ from bodynet.nodes.emulator import (
     imu_tags,
     smartsuit_sensors,
 )
-from bodynet.nodes.motion import ROUTINES, keyframes
+from bodynet.nodes.motion import PROTOCOL_EASE_S, ROUTINES, heading_protocol, keyframes
 from bodynet.nodes.publisher import PeriodicSeq
 from bodynet.nodes.sensors import OleModel
 
@@ -64,6 +65,40 @@ def test_keyframes_are_smooth_and_loop() -> None:
     motion = keyframes([(0.0, {}), (1.0, {"a": 10.0})])
     assert motion(0.5)["a"] == pytest.approx(5.0)
     assert motion(1.25)["a"] == pytest.approx(motion(0.25)["a"])
+
+
+def _fastest(angles: Callable[[float], dict[str, float]], times: np.ndarray
+             ) -> tuple[float, str, float]:  # fmt: skip
+    """The fastest any joint turns between two of ``times`` (deg/s), which, when."""
+    fastest, prev = (0.0, "", 0.0), None
+    for t0, t1 in itertools.pairwise(times):
+        a, prev = prev or angles(float(t0)), angles(float(t1))
+        for name in {*a, *prev}:
+            speed = abs(prev.get(name, 0.0) - a.get(name, 0.0)) / (t1 - t0)
+            fastest = max(fastest, (speed, name, float(t1)))
+    return fastest
+
+
+@pytest.mark.parametrize(("bow_at_s", "reach_until_s"), [(31.0, math.inf), (11.0, 20.0)])
+def test_the_heading_protocol_eases_from_motion_to_motion(
+    bow_at_s: float, reach_until_s: float
+) -> None:
+    """A person does not teleport: from the pose into the walk, into the pose before
+    the bow, out of it after and into the walk alone, no joint turns faster than the
+    walk's own (its knees: was 90 deg of elbow in one 5 ms step at the bow); the
+    bow still starts at ``bow_at_s`` from the pose."""
+    step = 0.005
+    walk = _fastest(ROUTINES["walk"].angles, np.arange(0.0, 2.0, step))
+    protocol = heading_protocol(bow_at_s=bow_at_s, reach_until_s=reach_until_s, pose="npose")
+    ends = [1.0, bow_at_s, bow_at_s + 2.9] + ([reach_until_s] if reach_until_s < 60 else [])
+    for end in ends:  # every change of motion, and just past the ease
+        times = np.arange(end - PROTOCOL_EASE_S - 0.1, end + PROTOCOL_EASE_S + 0.1, step)
+        fastest = _fastest(protocol.angles, times)
+        assert fastest[0] <= walk[0] * 1.01, (end, fastest, walk)
+    still, at_bow = CALIBRATION_POSES["npose"], protocol.angles(bow_at_s)
+    assert {n: at_bow.get(n, 0.0) for n in {*at_bow, *still}} == pytest.approx(
+        {n: still.get(n, 0.0) for n in {*at_bow, *still}}
+    )
 
 
 def test_ole_model_inverts_the_calibration() -> None:
