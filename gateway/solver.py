@@ -608,7 +608,7 @@ class _Sorted:
 
     __slots__ = ("flagged", "keys", "kinds", "lefts", "modules", "mounts", "pelvis", "plan",
                  "quats", "reasons", "scatter", "segs", "sites", "stale", "stale_modules",
-                 "stale_segs", "uncal", "unknown", "upright", "used")  # fmt: skip
+                 "stale_segs", "tainted", "uncal", "unknown", "upright", "used")  # fmt: skip
 
     def __init__(self, sites: tuple[Site, ...], kinds: tuple[type, ...],
                  stale: frozenset[str]) -> None:  # fmt: skip
@@ -629,6 +629,7 @@ class _Sorted:
         # the joints between two of ``segs`` (see _direct_plan)
         self.plan = _NO_PLAN
         self.flagged: list[str] | None = None  # BodySolver._flag_uncalibrated's dofs
+        self.tainted: frozenset[str] | None = None  # BodySolver._tainted's segments
         self.pelvis = -1  # where the pelvis is in ``segs`` (-1: no sensor on it)
         # the trunk's segments below an unmeasured pelvis that nothing measures either:
         # the upright model, as the pelvis (BodySolver._rests); see BodySolver._sort
@@ -768,22 +769,29 @@ class BodySolver:
 
     def _driven_by_unknown(self, tick: _Tick) -> list[str]:
         """The dofs that the tick's sensors of unknown heading drive (see
-        :meth:`_flag_uncalibrated`)."""
-        unknown, tainted, measured = tick.unknown, set(tick.unknown), tick.measured
+        :meth:`_flag_uncalibrated`), but an encoder's: it measures its dof whatever
+        the heading of the segments around it (where a tag beside it gives that dof
+        too, :meth:`_merge_module` takes the tag's for uncalibrated)."""
+        tainted = self._tainted(tick)
         names = []
         for joint in self.skeleton.joints:
-            if joint.parent in tainted or joint.child in unknown:
-                if joint.child not in measured:
-                    tainted.add(joint.child)
+            if joint.parent in tainted or joint.child in tick.unknown:
                 module = tick.modules.get(joint.child)
-                # an encoder measures its dof whatever the heading of the segments around it
-                absolute = (
-                    _ole_name(module[0])
-                    if module is not None and joint.child not in unknown
-                    else None
-                )
+                absolute = _ole_name(module[0]) if module is not None else None
                 names += [name for name in self.axes[joint.name].names if name != absolute]
         return names
+
+    def _tainted(self, tick: _Tick) -> frozenset[str]:
+        """The segments whose orientation rests on a tag of unknown heading: those
+        tags' own and the unmeasured ones below them (worked out once per sort)."""
+        sort = tick.sort
+        if sort.tainted is None:
+            tainted = set(tick.unknown)
+            for joint in self.skeleton.joints:
+                if joint.parent in tainted and joint.child not in tick.measured:
+                    tainted.add(joint.child)
+            sort.tainted = frozenset(tainted)
+        return sort.tainted
 
     def set_profile(self, profile: Profile) -> None:
         """Take a profile of the same body (lengths, calibration pose) whose mounts or
@@ -1221,6 +1229,9 @@ class BodySolver:
         have = tick.angles[sl].copy()
         have_unc = tick.unc[sl].copy()
         have_why = [set(tick.reasons.get(n, ())) - {CLAMPED} for n in ax.names]
+        if tick.unknown and (joint.child in tick.unknown or joint.parent in self._tainted(tick)):
+            for w in have_why:  # the tags' relative rotation, one of unknown heading
+                w.add(UNCALIBRATED)
         for i, name in enumerate(ax.names):
             mine_ok = not (why[i] - {CLAMPED})
             have_ok = not have_why[i]

@@ -277,6 +277,46 @@ def test_an_unknown_heading_leaves_the_encoders_measured() -> None:
         assert pose.UNCALIBRATED not in out.reasons.get(encoder, ()), encoder
 
 
+@pytest.mark.parametrize(("beside", "encoders_calibrated"), [(False, True), (True, True),
+                                                               (True, False)])
+def test_encoders_beside_tags_of_unknown_heading_stay_measured(
+    beside: bool, encoders_calibrated: bool
+) -> None:
+    """The IMU suit's 6-axis tags (each a heading of its own, none found yet) with
+    a SmartSuit left arm beside its tags (``beside``) or instead of them: the arm's
+    encoders (shoulder rotation, elbow and wrist flexion) need no heading, so they
+    are measured, within 1 deg of the truth, either way (beside the tags they were
+    all flagged, the encoders' data lost); every dof the tags drive is flagged. With
+    the encoders not calibrated (no R and SF) neither source is sure: flagged."""
+    from bodynet.core.skeleton import TPOSE
+    from bodynet.gateway.solver import tpose_mounts
+    from bodynet.nodes.emulator import Headings
+
+    tags = [t for t in imu_tags() if beside or t.site.branch != LEFT_ARM]
+    held = {**TPOSE, "left_shoulder_rotation_deg": 30.0, "left_elbow_flexion_deg": 60.0,
+            "left_wrist_flexion_deg": 20.0, "right_elbow_flexion_deg": 45.0}  # fmt: skip
+    body = BodyEmulator(Routine("bent", "", lambda t: dict(TPOSE) if t < 1.0 else dict(held)),
+                        [*tags, *smartsuit_sensors([LEFT_ARM])],
+                        realism=Realism(headings=Headings.INDEPENDENT), seed=1)  # fmt: skip
+    readings, _ = body.sample(0.0)
+    window = {s.site: [r.wxyz] for s, r in zip(body.sensors, readings, strict=True)
+              if s in tags}  # type: ignore[union-attr]  # fmt: skip
+    profile = Profile(heading="auto").with_mounts(tpose_mounts(window))
+    solver = BodySolver(profile if encoders_calibrated else dataclasses.replace(profile, ole={}))
+    for k, t in enumerate((0.0, 1.5, 2.0)):
+        readings, _ = body.sample(t)
+        out = solver.solve({s.site: RawSample(r, k, round(t * 1e9))
+                            for s, r in zip(body.sensors, readings, strict=True)})  # fmt: skip
+    truth = body.angles(2.0)
+    encoders = ("left_shoulder_rotation_deg", "left_elbow_flexion_deg", "left_wrist_flexion_deg")
+    for encoder in encoders if encoders_calibrated else ():
+        assert encoder not in out.flags, (encoder, out.reasons.get(encoder))
+        assert out.angles_deg[encoder] == pytest.approx(truth[encoder], abs=1.0), encoder
+    tagged = [n for n in out.angles_deg if not n.startswith("left_")
+              or (beside and (n not in encoders or not encoders_calibrated))]  # fmt: skip
+    assert all(out.flags.get(n) for n in tagged), [n for n in tagged if not out.flags.get(n)]
+
+
 @pytest.mark.parametrize("pelvis_announced", [False, True])
 def test_an_arm_alone_stands_on_the_upright_trunk(pelvis_announced: bool) -> None:
     """The seed's device, a SmartSuit arm with no trunk sensor: its shoulder,
