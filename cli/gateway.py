@@ -210,6 +210,11 @@ def cmd_calibrate_tpose(args: argparse.Namespace) -> int:
             print(json.dumps(result, indent=2))
             if not result.get("ok"):
                 print(f"bodynet calibrate: refused: {result.get('error')}", file=sys.stderr)
+            else:
+                from bodynet.gateway.heading import dropped_note
+
+                if note := dropped_note(result):
+                    print(f"bodynet calibrate: {note}", file=sys.stderr)
             return 0 if result.get("ok") else 1
     print("bodynet calibrate tpose: no gateway answered", file=sys.stderr)
     return 1
@@ -220,7 +225,7 @@ def _calibrate_from_recording(args: argparse.Namespace) -> int:
     still window of a recording, written into the profile; a refusal (subject
     moved, too short, a tag missing) prints why, exits 1 and leaves it as it was."""
     from bodynet.clients.mcap_store import StoreError
-    from bodynet.gateway.heading import CalibrationRefused
+    from bodynet.gateway.heading import CalibrationRefused, dropped_note
     from bodynet.nodes.captures import CaptureError, capture_options
     from bodynet.nodes.sources.base import CaptureStats
     from bodynet.offline.process import calibrate_recording, recorded_samples
@@ -237,6 +242,7 @@ def _calibrate_from_recording(args: argparse.Namespace) -> int:
         result = calibrate_recording(samples, profile, args.window or (0.0, args.seconds),
                                      args.pose)  # fmt: skip
         profile_file.save(result.apply(profile, args.pose), args.profile)
+        note = dropped_note(result.report)
     except CalibrationRefused as exc:
         print(json.dumps({"ok": False, "error": str(exc), **exc.report}, indent=2))
         print(f"bodynet calibrate tpose: refused: {exc}; {args.profile} is unchanged",
@@ -246,6 +252,8 @@ def _calibrate_from_recording(args: argparse.Namespace) -> int:
         print(f"bodynet calibrate tpose: {exc}", file=sys.stderr)
         return 2
     print(json.dumps({**result.report, "profile": str(args.profile)}, indent=2))
+    if note:
+        print(f"bodynet calibrate tpose: {note}", file=sys.stderr)
     return 0
 
 
@@ -403,7 +411,7 @@ def cmd_process(args: argparse.Namespace) -> int:
               + (f" (it looks like {what})" if what else ""), file=sys.stderr)  # fmt: skip
         return 2
     from bodynet.core.errors import DecodeError
-    from bodynet.gateway.heading import CalibrationRefused
+    from bodynet.gateway.heading import CalibrationRefused, dropped_note
     from bodynet.nodes.captures import looks_else
     from bodynet.session.outputs import atomic_path
 
@@ -451,7 +459,9 @@ def cmd_process(args: argparse.Namespace) -> int:
             f"NOT calibrated: {result.refused} (the tags' dofs are flagged "
             "uncalibrated; say where the still pose is with --window START:END)"
         )
-    told = "; ".join(part for part in (calibrated, note, result.stats.summary()) if part)
+    dropped = dropped_note(result.calibration) if result.calibration else None
+    told = "; ".join(part for part in (calibrated, dropped, note, result.stats.summary())
+                     if part)  # fmt: skip
     print(f"{result.ticks} ticks from {result.samples} samples -> {args.output}; {told}",
           file=sys.stderr)  # fmt: skip
     return 0

@@ -222,8 +222,10 @@ class WindowCalibration:
     def apply(self, profile: Profile, pose: str | None = None) -> Profile:
         """``profile`` calibrated: these mounts, the tags' scatter in the window
         (their noise, which their dofs' uncertainty carries), the pose, and the
-        headings (the tags recalibrated here lose any heading they had, until it
-        is found)."""
+        headings. The tags recalibrated here lose any heading they had, until it
+        is found (the report's ``heading.dropped``, :func:`dropped_note`): a tag's
+        heading is its reference frame's turn from where the subject faced in
+        *that* calibration's pose, which a new pose does not keep."""
         tags = self.report.get("tags", {})
         scatter = {k: float(tags[k]["scatter_deg"]) for k in self.mounts if k in tags}
         calibrated = replace(
@@ -235,6 +237,18 @@ class WindowCalibration:
             ),
         )
         return with_headings(calibrated, self.headings) if self.headings else calibrated
+
+
+def dropped_note(report: Mapping[str, Any]) -> str | None:
+    """What a calibration report says of the tags' headings it dropped (given in the
+    profile, or found after the last calibration), for the user; None if none."""
+    dropped = (report.get("heading") or {}).get("dropped")
+    if not dropped:
+        return None
+    return (f"the headings of {len(dropped)} tag(s) in the profile ({', '.join(dropped[:3])}"
+            + ("..." if len(dropped) > 3 else "") + ") were the last calibration's and are "
+            "dropped: each is found again from the motion, or pass --heading-reference "
+            "or --heading fixed")  # fmt: skip
 
 
 def calibrate_window(
@@ -302,6 +316,9 @@ def calibrate_window(
             report,
         )  # fmt: skip
     headings = _window_heading(profile, means, report)
+    dropped = sorted(k for k in profile.imu_headings if k in mounts and k not in headings)
+    if dropped:  # the old calibration's: see WindowCalibration.apply
+        report["heading"]["dropped"] = dropped
     report["ok"] = True
     report["calibrated"] = sorted(mounts)
     return WindowCalibration(mounts, headings, report)

@@ -64,6 +64,7 @@ from bodynet.gateway.heading import (
     BodyHeading,
     CalibrationRefused,
     calibrate_window,
+    dropped_note,
     pose_angles,
     yaw_reset,
 )
@@ -851,6 +852,9 @@ class Gateway:
                     "encoders": encoders, "profile": str(body.profile_path or "")}  # fmt: skip
         log.info("calibration (%s) of %d sensors; heading %s", profile.pose, len(result.mounts),
                  result.report["heading"]["state"])  # fmt: skip
+        note = dropped_note(result.report)
+        if note:
+            log.warning("calibration: %s", note)
         return {**result.report, "encoders": encoders, "profile": str(body.profile_path or "")}
 
     def _on_tpose_query(self, query: zenoh.Query) -> None:

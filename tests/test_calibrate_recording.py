@@ -201,18 +201,10 @@ def test_process_takes_its_calibration_from_a_recording_by_its_suffix(
     recording it is (not as a CSV, the trial's format): its still window
     calibrates the trial, whose knee then bends as the truth's."""
     from bodynet.clients.mcap_store import read_poses
-    from bodynet.core.messages import Quat
-    from bodynet.core.profile import mount
 
     still = tmp_path / "still.mcap"
     body = _record(still, "tpose", 0.0)
-    header = ["time"] + [f"{mount(s.site).segment}_{c}" for s in body.sensors for c in "wxyz"]
-    rows = [header]
-    for t in np.arange(2.0, 3.5, 1 / 50):
-        quats = {r.node: r.wxyz for r in body.sample(float(t))[0] if isinstance(r, Quat)}
-        rows.append([repr(float(t))] + [repr(c) for s in body.sensors for c in quats[s.node]])
-    trial = tmp_path / "trial.csv"
-    trial.write_text("\n".join(",".join(r) for r in rows) + "\n")
+    trial = _trial_csv(body, tmp_path / "trial.csv")
     out = tmp_path / "trial.mcap"
     assert main(["process", str(trial), "--calibration", str(still), "--window", "0.2:1.8",
                  "--heading", "fixed", "-o", str(out)]) == 0, capsys.readouterr().err  # fmt: skip
@@ -221,3 +213,75 @@ def test_process_takes_its_calibration_from_a_recording_by_its_suffix(
     assert max(angle for _, angle in knee) > 60.0
     for t, angle in knee:
         assert angle == pytest.approx(body.angles(t)["left_knee_flexion_deg"], abs=3.0), t
+
+
+def test_a_recalibration_drops_the_last_calibrations_headings_and_says_so(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A heading is a tag's reference frame's turn from where the subject faced in
+    the calibration's pose: a session's headings, found from the knee (the subject
+    facing -100 deg), saved in the profile; the subject calibrates again facing 40
+    deg. The new calibration drops them, and says so (the report's
+    ``heading.dropped``, a line on stderr, `bodynet process`'s too); kept, the
+    knee's bend would be shown tens of degrees off the truth. Found again from
+    the knee: the truth."""
+    from bodynet.gateway.heading import with_headings
+
+    first, again = tmp_path / "first.mcap", tmp_path / "again.mcap"
+    before = _record(first, "npose", -100.0)
+    body = _record(again, "npose", 40.0)
+    profile_path = tmp_path / "subject.toml"
+    args = ["calibrate", "tpose", "--window", "0.5:1.9", "--pose", "npose",
+            "--profile", str(profile_path)]  # fmt: skip
+    assert main([*args, "--from", str(first)]) == 0
+    found = _found(before, BodyHeading(profile_file.load(profile_path)))
+    assert found.state()["deg"] == pytest.approx(-100.0, abs=1.5)
+    old = dict(found.profile.imu_headings)
+    assert len(old) == 15
+    profile_file.save(found.profile, profile_path)
+    capsys.readouterr()
+    assert main(["process", str(_trial_csv(body, tmp_path / "trial.csv")), "--calibration",
+                 str(again), "--window", "0.5:1.9", "--pose", "npose", "--profile",
+                 str(profile_path), "-o", str(tmp_path / "trial.mcap")]) == 0  # fmt: skip
+    assert "headings of 15 tag(s) in the profile" in capsys.readouterr().err
+    assert main([*args, "--from", str(again)]) == 0
+    out, err = capsys.readouterr()
+    assert sorted(json.loads(out)["heading"]["dropped"]) == sorted(old)
+    assert "headings of 15 tag(s) in the profile" in err
+    assert "dropped" in err
+    recalibrated = profile_file.load(profile_path)
+    assert not recalibrated.imu_headings
+    readings, _ = body.sample(2.8)
+    samples = {s.site: RawSample(r, 0, 0) for s, r in zip(body.sensors, readings, strict=True)}
+    truth = body.angles(2.8)
+    kept = BodySolver(with_headings(recalibrated, old)).solve(samples)
+    assert max(abs(v - truth.get(n, 0.0)) for n, v in kept.angles_deg.items()) > 20.0
+    heading = _found(body, BodyHeading(recalibrated))
+    out_found = BodySolver(heading.profile).solve(samples)
+    assert not out_found.flags
+    for name, value in out_found.angles_deg.items():
+        assert value == pytest.approx(truth.get(name, 0.0), abs=2.0), name
+
+
+def _found(body: BodyEmulator, heading: BodyHeading) -> BodyHeading:
+    """``heading`` after the knee's bend (the recording's 2 to 3.5 s)."""
+    for t in np.arange(2.0, 3.5, 1 / 50):
+        readings, _ = body.sample(float(t))
+        samples = {s.site: RawSample(r, 0, 0) for s, r in zip(body.sensors, readings, strict=True)}
+        if heading.update(float(t), samples) is not None:
+            break
+    return heading
+
+
+def _trial_csv(body: BodyEmulator, path: Path) -> Path:
+    """The tags' orientations from 2 to 3.5 s (the knee's bend) as an orientation CSV."""
+    from bodynet.core.messages import Quat
+    from bodynet.core.profile import mount
+
+    header = ["time"] + [f"{mount(s.site).segment}_{c}" for s in body.sensors for c in "wxyz"]
+    rows = [header]
+    for t in np.arange(2.0, 3.5, 1 / 50):
+        quats = {r.node: r.wxyz for r in body.sample(float(t))[0] if isinstance(r, Quat)}
+        rows.append([repr(float(t))] + [repr(c) for s in body.sensors for c in quats[s.node]])
+    path.write_text("\n".join(",".join(r) for r in rows) + "\n")
+    return path

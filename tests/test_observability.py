@@ -277,8 +277,9 @@ def test_an_unknown_heading_leaves_the_encoders_measured() -> None:
         assert pose.UNCALIBRATED not in out.reasons.get(encoder, ()), encoder
 
 
-@pytest.mark.parametrize(("beside", "encoders_calibrated"), [(False, True), (True, True),
-                                                               (True, False)])
+@pytest.mark.parametrize(
+    ("beside", "encoders_calibrated"), [(False, True), (True, True), (True, False)]
+)
 def test_encoders_beside_tags_of_unknown_heading_stay_measured(
     beside: bool, encoders_calibrated: bool
 ) -> None:
