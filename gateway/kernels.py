@@ -291,3 +291,79 @@ def forward_poses(angles, segments, root_at, root_z, parents, axes, offsets, seg
             for c in range(4):
                 q4[c] = sign * q4[c] / norm
     return positions, quats
+
+
+#: a site's sample time before it has one (``align_quats``'s ``times``)
+NO_TIME = -(2**62)
+_I2 = "int64[:, :]"
+
+
+@_compiled(f"({_A2}, {_I1}, int64, {_I2}, {_A3}, {_F1}, int64, int64, float64)")
+def align_quats(
+    quats, t_ns, target_ns, times, held, scatter_rad, max_span_ns, max_ahead_ns, change_per_s
+):
+    """Orientation sensors' quaternions ``quats`` (n, 4, w first), sampled at
+    ``t_ns`` (n,), brought to one time ``target_ns``: each turned on at the rate
+    it turned between its previous sample and this one, for ``target_ns - t``
+    but at most ``max_ahead_ns`` and twice that span (beyond, its sample is too
+    old for a rate to say where it is). A span longer than ``max_span_ns`` (a
+    gap) or none yet gives the quaternion as it is. ``times`` (n, 2: previous,
+    latest; ``NO_TIME`` before one) and ``held`` (n, 2, 4) are each sensor's last
+    two samples, updated here where ``t_ns`` is new (a time that went back starts
+    over). A turn from two samples with ``scatter_rad`` (n,) of noise each is
+    shrunk where it is not well above that noise. Returns the quaternions (n, 4)
+    and how far each may be off for its rate's change (deg, two standard
+    deviations): the angle it was turned times ``change_per_s`` times the time
+    from the middle of its span to the target, plus its rate times the time
+    beyond the horizon it was not turned for."""
+    n = quats.shape[0]
+    out = quats.copy()
+    residual = np.zeros(n)
+    for s in range(n):
+        t = t_ns[s]
+        if t != times[s, 1]:
+            times[s, 0] = times[s, 1] if t > times[s, 1] else NO_TIME
+            held[s, 0, :] = held[s, 1, :]
+            times[s, 1] = t
+            held[s, 1, :] = quats[s, :]
+        span = t - times[s, 0]
+        step = min(target_ns - t, max_ahead_ns, 2 * span)
+        if times[s, 0] == NO_TIME or step <= 0 or span > max_span_ns:
+            continue
+        pw, px, py, pz = held[s, 0, 0], held[s, 0, 1], held[s, 0, 2], held[s, 0, 3]
+        w, x, y, z = quats[s, 0], quats[s, 1], quats[s, 2], quats[s, 3]
+        pn = math.sqrt(pw * pw + px * px + py * py + pz * pz)
+        qn = math.sqrt(w * w + x * x + y * y + z * z)
+        if not (0.0 < pn < math.inf and 0.0 < qn < math.inf):
+            continue  # the solve refuses the bad one (segment_rotations)
+        pw, px, py, pz = pw / pn, px / pn, py / pn, pz / pn
+        w, x, y, z = w / qn, x / qn, y / qn, z / qn
+        # the turn from the previous sample to this one, in the sensor's frame: p^-1 q
+        rw = pw * w + px * x + py * y + pz * z
+        rx = pw * x - px * w - py * z + pz * y
+        ry = pw * y + px * z - py * w - pz * x
+        rz = pw * z - px * y + py * x - pz * w
+        if rw < 0.0:
+            rw, rx, ry, rz = -rw, -rx, -ry, -rz
+        sin_half = math.sqrt(rx * rx + ry * ry + rz * rz)
+        if sin_half < 1e-12:
+            continue
+        half = math.atan2(sin_half, rw)
+        # a rate from two noisy samples: their turn is off by about sqrt(2) * scatter,
+        # so a turn less than twice that gives none and one not far above it is shrunk
+        # (against emulated white noise of 2 deg, a gain of 1 - 2 * that / turn**2
+        # added it to the joints; this one left them as unaligned, see docs/observability.md)
+        gain = 1.0 - 2.0 * (scatter_rad[s] / half) ** 2
+        if gain <= 0.0:
+            continue
+        rate = 2.0 * half * gain / span  # rad/ns
+        half *= gain * step / span  # half the angle turned in ``step``
+        residual[s] = _DEG * (2.0 * half * change_per_s * (0.5 * span + step) * 1e-9
+                              + rate * (target_ns - t - step))  # fmt: skip
+        c, k = math.cos(half), math.sin(half) / sin_half
+        dw, dx, dy, dz = c, rx * k, ry * k, rz * k
+        out[s, 0] = w * dw - x * dx - y * dy - z * dz
+        out[s, 1] = w * dx + x * dw + y * dz - z * dy
+        out[s, 2] = w * dy - x * dz + y * dw + z * dx
+        out[s, 3] = w * dz + x * dy - y * dx + z * dw
+    return out, residual

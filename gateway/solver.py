@@ -143,6 +143,15 @@ STALE_INTERVALS, STALE_FLOOR_S = 3.0, 0.05
 #: ``RHYTHM_SPANS`` runs of ``RHYTHM_RUN`` samples (a run's mean, not each interval:
 #: the gateway takes samples in rounds, several of a site at one arrival time).
 RHYTHM_RUN, RHYTHM_SPANS = 32, 5
+#: A tick's orientations are brought to its time (its newest sample's) on each
+#: sensor's rate between its last two samples (:func:`kernels.align_quats`): at most
+#: ``ALIGN_AHEAD_NS`` (and twice that span) ahead, from a span of at most ``ALIGN_SPAN_NS``.
+ALIGN_AHEAD_NS = round(STALE_FLOOR_S * 1e9)
+ALIGN_SPAN_NS = 100_000_000
+#: How fast a limb's rate changes, relative to itself (1/s, about 2 pi times the
+#: motion's frequency): what an orientation brought forward states it may be off
+#: by, over the time from its rate's span's middle to the tick's (kernels.align_quats).
+ALIGN_CHANGE_PER_S = 12.0
 
 
 class Rhythm:
@@ -562,6 +571,23 @@ class _Memory:
 
 
 _NO_FRAMES = np.zeros((0, 3, 3))
+_NO_QUATS = np.zeros((0, 4))
+_NO_RESIDUAL = np.zeros(0)
+
+
+def _carry_history(old: _Sorted | None, new: _Sorted) -> None:
+    """A new sorting's orientation sensors keep the last two samples the old one
+    had of them (:func:`kernels.align_quats`): a site that joins or goes stale
+    re-sorts the body, and its others' rates go on."""
+    n = len(new.used)
+    new.times = np.full((n, 2), kernels.NO_TIME, dtype=np.int64)
+    new.held = np.zeros((n, 2, 4))
+    if old is not None and len(old.used):
+        was = {site: i for i, site in enumerate(old.used)}
+        for i, site in enumerate(new.used):
+            j = was.get(site)
+            if j is not None:
+                new.times[i], new.held[i] = old.times[j], old.held[j]
 
 
 class _Tick:
@@ -569,9 +595,9 @@ class _Tick:
     :class:`BodySolver` fills (:meth:`BodySolver._gather`) and reads."""
 
     __slots__ = ("angles", "direct_rot", "direct_rows", "harm", "held_tilt", "last", "lefts",
-                 "measured", "modules", "mounts", "plan", "quats", "reasons", "rel", "rests",
-                 "segs", "solver", "sort", "sources", "stale", "stale_modules", "t_ns", "unc",
-                 "uncal", "unknown")  # fmt: skip
+                 "measured", "modules", "mounts", "plan", "quats", "reasons", "rel", "residual",
+                 "rests", "segs", "solver", "sort", "sources", "stale", "stale_modules", "t_ns",
+                 "unc", "uncal", "unknown")  # fmt: skip
 
     def __init__(self, solver: BodySolver, last: np.ndarray | None, sort: _Sorted) -> None:
         self.solver = solver
@@ -581,7 +607,8 @@ class _Tick:
         self.unknown, self.uncal = sort.unknown, sort.uncal
         self.lefts, self.mounts = sort.lefts, sort.mounts
         self.stale, self.stale_modules = sort.stale_segs, sort.stale_modules
-        self.quats: list[QuatWxyz] = []  # the quaternions of ``sort.used``
+        self.quats = _NO_QUATS  # the quaternions of ``sort.used``, at the tick's time (n, 4)
+        self.residual = _NO_RESIDUAL  # how far each may be off for that (deg, n)
         self.modules: dict[str, tuple[Site, OleAccel]] = {}  # SmartSuit modules by segment
         self.sources: dict[str, int] = {}  # raw key -> the source time of its sample
         self.t_ns = 0
@@ -606,9 +633,10 @@ class _Sorted:
     so a tick only takes the numbers (sorting fifteen samples cost more than a
     tenth of a hot solve)."""
 
-    __slots__ = ("flagged", "keys", "kinds", "lefts", "modules", "mounts", "pelvis", "plan",
-                 "quats", "reasons", "scatter", "segs", "sites", "stale", "stale_modules",
-                 "stale_segs", "tainted", "uncal", "unknown", "upright", "used")  # fmt: skip
+    __slots__ = ("flagged", "held", "keys", "kinds", "lefts", "modules", "mounts", "pelvis",
+                 "plan", "quats", "reasons", "scatter", "scatter_rad", "segs", "sites", "stale",
+                 "stale_modules", "stale_segs", "tainted", "times", "uncal", "unknown", "upright",
+                 "used")  # fmt: skip
 
     def __init__(self, sites: tuple[Site, ...], kinds: tuple[type, ...],
                  stale: frozenset[str]) -> None:  # fmt: skip
@@ -637,6 +665,11 @@ class _Sorted:
         # what the pelvis rests on -> the reasons of the joints of ``plan``
         # (BodySolver._direct_reasons)
         self.reasons: dict[frozenset[str], dict[str, frozenset[str]]] = {}
+        # each of ``used``'s last two samples: times (n, 2) and quaternions (n, 2, 4),
+        # what kernels.align_quats brings a tick's orientations to one time with
+        self.times = np.full((0, 2), kernels.NO_TIME, dtype=np.int64)
+        self.held = np.zeros((0, 2, 4))
+        self.scatter_rad = np.zeros(0)  # ``scatter`` in radians
 
 
 def solve_bodies(work: Sequence[tuple[BodySolver, Mapping[Site, RawSample]]]) -> list[BodyOutput]:
@@ -722,6 +755,7 @@ class BodySolver:
         self._stacked: dict[tuple[Site, ...], tuple[np.ndarray, np.ndarray]] = {}
         self._told: set[str] = set()  # raw keys ``expect`` has taken (parsing 15 cost 15 us)
         self._sorted: _Sorted | None = None  # how the last tick's samples sorted
+        self._resort = False  # the profile changed: sort again (the samples' history kept)
         self._stale: frozenset[str] = frozenset()  # see set_stale
         #: each SmartSuit encoder's zero by raw key (gateway/encoders.py; absent: its
         #: node's power-on), shared with the gateway, which finds a zero lost
@@ -802,7 +836,7 @@ class BodySolver:
         self.profile = profile
         self._sites.clear()
         self._stacked.clear()
-        self._sorted = None
+        self._resort = True
 
     def set_heading_unc(self, by_segment: Mapping[str, float]) -> None:
         """How well each segment's tag heading is known against its parent's (deg,
@@ -843,12 +877,16 @@ class BodySolver:
         unc = np.full((len(ticks), len(first.names.angles) + 1), math.nan)
         for b, tick in enumerate(ticks):
             tick.angles, tick.rel, tick.unc = angles[b], rel[b], unc[b]
-        quats = [q for t in ticks for q in t.quats]
         roots = np.full(len(ticks), -1)  # each body's pelvis in ``segments`` (-1: upright)
-        if quats:
+        if any(len(t.quats) for t in ticks):
+            if len(ticks) > 1:
+                quats = np.concatenate([t.quats for t in ticks])
+                residual = np.concatenate([t.residual for t in ticks])
+            else:
+                quats, residual = ticks[0].quats, ticks[0].residual
             lefts = np.concatenate([t.lefts for t in ticks])
             mounts = np.concatenate([t.mounts for t in ticks])
-            segments = kernels.segment_rotations(np.array(quats, dtype=float), lefts, mounts)
+            segments = kernels.segment_rotations(quats, lefts, mounts)
             start = 0
             for b, tick in enumerate(ticks):
                 tick.measured = dict(zip(tick.segs, segments[start : start + len(tick.segs)],
@@ -856,7 +894,7 @@ class BodySolver:
                 if tick.sort.pelvis >= 0:
                     roots[b] = start + tick.sort.pelvis
                 start += len(tick.segs)
-            first._solve_direct(ticks, segments, angles, rel, unc)
+            first._solve_direct(ticks, segments, residual, angles, rel, unc)
         else:
             segments = _NO_FRAMES
         for tick in ticks:
@@ -871,8 +909,9 @@ class BodySolver:
         sites, kinds = tuple(samples), tuple([type(s.reading) for s in values])
         sort = self._sorted
         if sort is None or sort.sites != sites or sort.kinds != kinds or \
-                sort.stale is not self._stale:  # fmt: skip
+                sort.stale is not self._stale or self._resort:  # fmt: skip
             sort = self._sorted = self._sort(sites, kinds)
+            self._resort = False
         tick = _Tick(self, self._memory.last, sort)
         times = [s.t_ns for s in values]
         tick.sources = dict(zip(sort.keys, times, strict=True))
@@ -882,7 +921,14 @@ class BodySolver:
         tick.modules = {seg: (sites[i], values[i].reading)  # type: ignore[misc]
                         for seg, i in sort.modules}  # fmt: skip
         if sort.segs:
-            tick.quats = [values[i].reading.wxyz for i in sort.quats]  # type: ignore[union-attr]
+            # each orientation turned on at its own rate to the tick's time: tags on
+            # timers of their own sample up to a period apart, and a shank turning at
+            # 350 deg/s against its thigh's sample 15 ms older is 5 deg off
+            tick.quats, tick.residual = kernels.align_quats(
+                np.array([values[i].reading.wxyz for i in sort.quats], dtype=float),  # type: ignore[union-attr]
+                np.array([times[i] for i in sort.quats], dtype=np.int64), t_ns, sort.times,
+                sort.held, sort.scatter_rad, ALIGN_SPAN_NS, ALIGN_AHEAD_NS, ALIGN_CHANGE_PER_S,
+            )  # fmt: skip
             self._memory.expected.update(sort.segs)
         return tick
 
@@ -923,6 +969,8 @@ class BodySolver:
                     upright.add(joint.child)
             sorted_.upright = frozenset(upright)
         if sorted_.segs:
+            _carry_history(self._sorted, sorted_)
+            sorted_.scatter_rad = np.radians(sorted_.scatter)
             if "pelvis" in seen:
                 sorted_.pelvis = sorted_.segs.index("pelvis")
             sorted_.lefts, sorted_.mounts = self._frames(tuple(sorted_.used))
@@ -936,7 +984,7 @@ class BodySolver:
         self._all_mounted = True
         self._sites.clear()
         self._stacked.clear()
-        self._sorted = None
+        self._resort = True
 
     def expect(self, raw_keys: Iterable[str], complete: bool = False) -> None:
         """Orientation sensors this body has (the gateway's topology: nodes whose
@@ -972,12 +1020,13 @@ class BodySolver:
         if stale != self._stale:
             self._stale = stale
 
-    def _solve_direct(self, ticks: Sequence[_Tick], segments: np.ndarray, angles: np.ndarray,
-                      rel: np.ndarray, unc: np.ndarray) -> None:  # fmt: skip
+    def _solve_direct(self, ticks: Sequence[_Tick], segments: np.ndarray, residual: np.ndarray,
+                      angles: np.ndarray, rel: np.ndarray, unc: np.ndarray) -> None:  # fmt: skip
         """The joints between two orientation sensors (or the root and one), of every
         body at once (this solver's structure, which they share), into ``angles``
         ``rel`` and ``unc`` (one row a body). Each comes from its two segments' measured
-        orientations (``segments``, every body's in turn), so a parent joint
+        orientations (``segments``, every body's in turn, brought to the tick's time
+        with ``residual`` deg left each), so a parent joint
         clamped to its range of motion does not move its child's."""
         batch = self._batch
         plans = [tick.plan for tick in ticks]
@@ -1000,6 +1049,9 @@ class BodySolver:
             if extra is not None:  # a tag whose heading a three-dof joint holds widens them
                 known = known.copy() if known is layout.unc else known
                 known[span] = np.hypot(known[span], extra[at])  # (gateway/heading.py)
+        if residual.any():  # the two segments' orientations brought to the tick's time
+            both = np.append(residual, 0.0)  # an unmeasured pelvis: nothing
+            known = np.hypot(known, np.hypot(both[layout.parents], both[layout.children])[:, None])
         split, stated = batch.split(rows, relative, last[owner[:, None], index], prep, known)
         values, clamped, matrices, total = batch.commit(rows, split, layout.cal_inv, relative,
                                                         prep)  # fmt: skip
