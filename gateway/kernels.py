@@ -351,8 +351,8 @@ def align_quats(
         half = math.atan2(sin_half, rw)
         # a rate from two noisy samples: their turn is off by about sqrt(2) * scatter,
         # so a turn less than twice that gives none and one not far above it is shrunk
-        # (against emulated white noise of 2 deg, a gain of 1 - 2 * that / turn**2
-        # added it to the joints; this one left them as unaligned, see docs/observability.md)
+        # (against emulated white noise of 2 deg a gain of 1 - (sqrt(2) scatter / turn)^2
+        # added a tenth to the walking knees' RMS error; this one left them as unaligned)
         gain = 1.0 - 2.0 * (scatter_rad[s] / half) ** 2
         if gain <= 0.0:
             continue
