@@ -28,11 +28,13 @@ dofs it would drive ``uncalibrated``.
 
 from __future__ import annotations
 
+import logging
 import math
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from concurrent.futures import BrokenExecutor, Future
 from dataclasses import dataclass, field, replace
 from types import MappingProxyType
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -44,6 +46,67 @@ from bodynet.core.subject import Profile, QuatWxyz
 from bodynet.kinematics.model import BodyModel
 
 POSE_ANGLES = CALIBRATION_POSES
+
+log = logging.getLogger(__name__)
+
+
+class Fits(Protocol):
+    """Where a heading search's fits (a knee's or elbow's pair, a foot or hand:
+    a few to a few hundred ms each) run: ``submit(fn, *args)`` gives a Future, as
+    a ``concurrent.futures`` executor's does."""
+
+    def submit(self, fn: Callable[..., Any], /, *args: Any) -> Future[Any]: ...
+
+
+class InlineFits:
+    """Each fit run at once, in the caller: the search takes it in the very tick
+    that asked for it (``bodynet process`` and the tests: the same headings at
+    the same ticks on any machine)."""
+
+    def submit(self, fn: Callable[..., Any], /, *args: Any) -> Future[Any]:
+        done: Future[Any] = Future()
+        done.set_result(fn(*args))
+        return done
+
+
+INLINE = InlineFits()
+
+
+class _Aside:
+    """A finder's fits in flight, by key (a side, a child tag), one at most each:
+    started on a copy of the samples, taken by the first update after it is done
+    (at once when run inline). A fit lost with its executor (its process died) is
+    dropped: the next samples ask for another."""
+
+    def __init__(self, fits: Fits) -> None:
+        self.fits = fits
+        self._flying: dict[str, tuple[Future[Any], int]] = {}
+
+    def busy(self, key: str) -> bool:
+        return key in self._flying
+
+    def start(self, key: str, n: int, fn: Callable[..., Any], *args: Any) -> None:
+        """Run ``fn(*args)`` for ``key``, whose ``n`` samples it has."""
+        self._flying[key] = (self.fits.submit(fn, *args), n)
+
+    def done(self, key: str) -> tuple[Any, int] | None:
+        """The result of ``key``'s fit and how many samples it had, once it is done."""
+        flying = self._flying.get(key)
+        if flying is None or not flying[0].done():
+            return None
+        del self._flying[key]
+        try:
+            return flying[0].result(), flying[1]
+        except BrokenExecutor as exc:
+            log.warning("heading: a fit of %s was lost (%s); the next samples try again", key, exc)
+            return None
+
+
+def _make_way(samples: list[Any], oldest: int, most: int) -> None:
+    """A full search's ``oldest`` samples make way (the next ones may tell: a
+    drifting tag's old ones say less of its heading now), and as many more as
+    came past ``most`` while its fit ran aside."""
+    del samples[: max(oldest, len(samples) - most)]
 
 
 def pose_angles(pose: str) -> Mapping[str, float]:
@@ -497,7 +560,8 @@ class KneePairs:
     once its uncertainty is within ``MAX_UNC_DEG`` (``FULL_UNC_DEG`` once
     ``MAX_SAMPLES`` have come; beyond, the oldest make way), as
     :class:`ChildHeadings` does. The other tags' headings stay unknown (their
-    joints have three dofs, or reach no knee), and their dofs stay flagged."""
+    joints have three dofs, or reach no knee), and their dofs stay flagged.
+    The searches run on ``fits`` (:class:`Fits`), one per side at a time."""
 
     PAIR_SAMPLES = 40
     EVERY_S = 0.02
@@ -506,9 +570,10 @@ class KneePairs:
     MAX_UNC_DEG = 2.0
     FULL_UNC_DEG = 3.0
 
-    def __init__(self, profile: Profile) -> None:
+    def __init__(self, profile: Profile, fits: Fits = INLINE) -> None:
         by_segment = _tag_by_segment(profile.imu_mounts)
         segments = pose_segments(profile)
+        self._aside = _Aside(fits)
         self.pairs: dict[str, tuple[str, str, np.ndarray, np.ndarray]] = {}
         for side in ("left", "right"):
             p, c = by_segment.get(f"{side}_thigh"), by_segment.get(f"{side}_shank")
@@ -531,6 +596,7 @@ class KneePairs:
         every tick); the headings found at this tick."""
         out: dict[str, float] = {}
         for side, (p, c, p0, c0) in self.pairs.items():
+            self._take(side, out)
             if side in self.done or p not in orientations or c not in orientations:
                 continue
             if t_s is not None and t_s - self._last.get(side, -math.inf) < self.EVERY_S - 1e-6:
@@ -548,16 +614,26 @@ class KneePairs:
             n = len(samples)
             if n < self.PAIR_SAMPLES or (n - self.PAIR_SAMPLES) % self.TRY_EVERY:
                 continue
-            fit = _knee_pair_headings(samples)
-            full = n >= self.MAX_SAMPLES
-            if fit is not None and fit[2] <= (self.FULL_UNC_DEG if full else self.MAX_UNC_DEG):
-                self.done.add(side)
-                out[p], out[c] = fit[:2]
-                self.unc_deg[p] = self.unc_deg[c] = round(fit[2], 3)
-            elif full:  # not telling yet: the next samples may (a drifting tag's old ones
-                del samples[: self.TRY_EVERY]  # say less of its heading now)
+            if not self._aside.busy(side):
+                self._aside.start(side, n, _knee_pair_headings, list(samples))
+                self._take(side, out)
         self.found.update(out)
         return out
+
+    def _take(self, side: str, out: dict[str, float]) -> None:
+        """A side's search, once done: its pair into ``out`` when it is taken."""
+        done = self._aside.done(side)
+        if done is None:
+            return
+        fit, n = done
+        p, c = self.pairs[side][:2]
+        full = n >= self.MAX_SAMPLES
+        if fit is not None and fit[2] <= (self.FULL_UNC_DEG if full else self.MAX_UNC_DEG):
+            self.done.add(side)
+            out[p], out[c] = fit[:2]
+            self.unc_deg[p] = self.unc_deg[c] = round(fit[2], 3)
+        elif full:  # not telling yet
+            _make_way(self.samples[side], self.TRY_EVERY, self.MAX_SAMPLES)
 
 
 class ChildHeadings:
@@ -580,7 +656,8 @@ class ChildHeadings:
     ``FULL_UNC_DEG`` once ``MAX_SAMPLES`` have come; beyond, the oldest make
     way): with noisy tags, or tags wobbling on the skin, 40 samples left a foot's
     heading 10-20 deg off. ``unc_deg`` keeps each found tag's uncertainty, which
-    the dofs its heading drives carry in the pose's."""
+    the dofs its heading drives carry in the pose's. The fits run on ``fits``
+    (:class:`Fits`), one per tag at a time."""
 
     SAMPLES = 40
     MOVED_DEG = 10.0
@@ -590,9 +667,10 @@ class ChildHeadings:
     MAX_UNC_DEG = KneePairs.MAX_UNC_DEG
     FULL_UNC_DEG = KneePairs.FULL_UNC_DEG
 
-    def __init__(self, profile: Profile) -> None:
+    def __init__(self, profile: Profile, fits: Fits = INLINE) -> None:
         by_segment = _tag_by_segment(profile.imu_mounts)
         segments = pose_segments(profile)
+        self._aside = _Aside(fits)
         #: child key -> (parent key, parent axis, child axis, parent's and child's
         #: segment in the pose, the child tag at calibration for a heading of 0)
         self.joints: dict[str, tuple[str, int, int, np.ndarray, np.ndarray, np.ndarray]] = {}
@@ -626,6 +704,7 @@ class ChildHeadings:
         this tick."""
         out: dict[str, float] = {}
         for c, (p, p_axis, c_axis, seg_p, seg_c, c0) in self.joints.items():
+            self._take(c, out)
             if c in self.done or profile.heading_known(c) or not profile.heading_known(p):
                 continue
             if p not in orientations or c not in orientations:
@@ -643,15 +722,25 @@ class ChildHeadings:
             n = len(samples)
             if n < self.SAMPLES or (n - self.SAMPLES) % self.TRY_EVERY:
                 continue
-            fit = _child_heading(samples, seg_p, seg_c, p_axis, c_axis)
-            full = n >= self.MAX_SAMPLES
-            if fit is not None and fit[1] <= (self.FULL_UNC_DEG if full else self.MAX_UNC_DEG):
-                self.done.add(c)
-                out[c], self.unc_deg[c] = fit[0], round(fit[1], 3)
-            elif full:  # not telling yet: the next samples may (a drifting tag's old ones
-                del samples[: self.TRY_EVERY]  # say less of its heading now)
+            if not self._aside.busy(c):
+                self._aside.start(c, n, _child_heading, list(samples), seg_p, seg_c, p_axis,
+                                  c_axis)  # fmt: skip
+                self._take(c, out)
         self.found.update(out)
         return out
+
+    def _take(self, c: str, out: dict[str, float]) -> None:
+        """A child tag's fit, once done: its heading into ``out`` when it is taken."""
+        done = self._aside.done(c)
+        if done is None:
+            return
+        fit, n = done
+        full = n >= self.MAX_SAMPLES
+        if fit is not None and fit[1] <= (self.FULL_UNC_DEG if full else self.MAX_UNC_DEG):
+            self.done.add(c)
+            out[c], self.unc_deg[c] = fit[0], round(fit[1], 3)
+        elif full:  # not telling yet
+            _make_way(self.samples[c], self.TRY_EVERY, self.MAX_SAMPLES)
 
 
 class ElbowPairs:
@@ -677,7 +766,8 @@ class ElbowPairs:
     bending, both); at ``MAX_SAMPLES`` within ``FULL_UNC_DEG`` or the misfit's
     RMS, never past ``LIMIT_UNC_DEG``. Beyond ``MAX_SAMPLES`` the older half make
     way. ``last_unc_deg`` keeps each side's latest fit's uncertainty (what the
-    search waits for)."""
+    search waits for). The tries run on ``fits`` (:class:`Fits`), one per side at
+    a time."""
 
     EVERY_S = 0.05
     MOVED_DEG = 10.0
@@ -689,9 +779,10 @@ class ElbowPairs:
     MISFIT_SHARE = 0.75
     LIMIT_UNC_DEG = KneePairs.FULL_UNC_DEG
 
-    def __init__(self, profile: Profile) -> None:
+    def __init__(self, profile: Profile, fits: Fits = INLINE) -> None:
         by_segment = _tag_by_segment(profile.imu_mounts)
         segments = pose_segments(profile)
+        self._aside = _Aside(fits)
         self.pairs: dict[str, tuple[str, str, np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = {}
         for side in ("left", "right"):
             p, c = by_segment.get(f"{side}_upperarm"), by_segment.get(f"{side}_forearm")
@@ -720,6 +811,7 @@ class ElbowPairs:
         """Take one tick's tag orientations; the headings found at this tick."""
         out: dict[str, float] = {}
         for side, (p, c, p0, c0, _, _) in self.pairs.items():
+            self._take(side, out)
             if side in self.done or p not in orientations or c not in orientations:
                 continue
             if t_s - self._last.get(side, -math.inf) < self.EVERY_S - 1e-6:
@@ -729,45 +821,39 @@ class ElbowPairs:
             if np.linalg.norm(_rotvec(a_c)) < math.radians(self.MOVED_DEG):
                 continue
             self._last[side] = t_s
-            found = self.take(side, a_p, a_c)
-            if found is not None:
-                out[p], out[c] = found
+            samples = self.samples[side]
+            samples.append((a_p, a_c))
+            n = len(samples)
+            if n < self.MIN_SAMPLES or (n - self.MIN_SAMPLES) % self.TRY_EVERY:
+                continue
+            if not self._aside.busy(side):
+                limits = (self.MAX_UNC_DEG, self.FULL_UNC_DEG, self.MISFIT_SHARE,
+                          self.LIMIT_UNC_DEG)  # fmt: skip
+                self._aside.start(side, n, _elbow_pair_try, list(samples), *self.pairs[side][4:],
+                                  self._basin.get(side), n >= self.MAX_SAMPLES, limits)  # fmt: skip
+                self._take(side, out)
         self.found.update(out)
         return out
 
-    def take(self, side: str, a_p: np.ndarray, a_c: np.ndarray) -> tuple[float, float] | None:
-        """One sample of a side (each tag's turn since calibration, in its own
-        reference frame); the pair's headings (deg) once they are known."""
-        samples = self.samples[side]
-        samples.append((a_p, a_c))
-        n = len(samples)
-        if n < self.MIN_SAMPLES or (n - self.MIN_SAMPLES) % self.TRY_EVERY:
-            return None
-        seg_p, seg_c = self.pairs[side][4:]
-        start = self._basin.get(side) or _elbow_pair_grid(samples, seg_p, seg_c)
-        fit = None if start is None else _elbow_pair_refine(samples, seg_p, seg_c, start)
-        full = n >= self.MAX_SAMPLES
-        if fit is not None:
-            self.last_unc_deg[side] = round(fit[2], 2)
-            misfit = fit[3] if full else self.MISFIT_SHARE * fit[3]
-            bound = min(max(self.FULL_UNC_DEG if full else self.MAX_UNC_DEG, misfit),
-                        self.LIMIT_UNC_DEG)  # fmt: skip
-        if fit is None or fit[2] > bound:
-            if fit is None or full:  # no basin (yet), or a new start
-                self._basin.pop(side, None)
-            else:  # refined on from here with the next samples
-                self._basin[side] = fit[:2]
-            if full:  # not telling yet: the next samples may (a reach)
-                del samples[: n // 2]
-            return None
-        psi_p, psi_c, unc, _ = fit
-        grid = _elbow_pair_grid(samples, seg_p, seg_c)  # still the best basin, with all samples
-        if grid is None or _apart_deg(grid, (psi_p, psi_c)) > 10.0:
+    def _take(self, side: str, out: dict[str, float]) -> None:
+        """A side's try (:func:`_elbow_pair_try`), once done: the pair's headings
+        into ``out`` when they are taken."""
+        done = self._aside.done(side)
+        if done is None:
+            return
+        (unc, basin, found, make_way), n = done
+        if unc is not None:
+            self.last_unc_deg[side] = unc
+        if basin is None:
             self._basin.pop(side, None)
-            return None
-        self.done.add(side)
-        self.unc_deg[side] = round(unc, 3)
-        return _wrap(math.degrees(psi_p)), _wrap(math.degrees(psi_c))
+        else:  # refined on from here with the next samples
+            self._basin[side] = basin
+        if make_way:  # not telling yet: the next samples may (a reach)
+            _make_way(self.samples[side], n // 2, self.MAX_SAMPLES)
+        if found is not None:
+            p, c = self.pairs[side][:2]
+            self.done.add(side)
+            out[p], out[c], self.unc_deg[side] = found
 
 
 class TrunkBow:
@@ -1134,6 +1220,34 @@ def _elbow_pair_refine(samples: Sequence[tuple[np.ndarray, np.ndarray]], seg_p: 
     return psi_p, psi_c, unc, misfit
 
 
+def _elbow_pair_try(samples: Sequence[tuple[np.ndarray, np.ndarray]], seg_p: np.ndarray,
+                    seg_c: np.ndarray, basin: tuple[float, float] | None, full: bool,
+                    limits: tuple[float, float, float, float]
+                    ) -> tuple[float | None, tuple[float, float] | None,
+                               tuple[float, float, float] | None, bool]:  # fmt: skip
+    """One try of :class:`ElbowPairs` at a side's pair over its ``samples`` (``full``:
+    as many as it keeps), refined from ``basin`` (the last try's, or None: the
+    grid's), within ``limits`` (its ``MAX_UNC_DEG``, ``FULL_UNC_DEG``,
+    ``MISFIT_SHARE``, ``LIMIT_UNC_DEG``). Returns the fit's uncertainty (deg, None
+    without a fit), the basin to refine on from (None: the grid's anew), the
+    pair's headings (deg) and uncertainty once taken, and whether the oldest
+    samples make way."""
+    most, full_most, share, limit = limits
+    start = basin or _elbow_pair_grid(samples, seg_p, seg_c)
+    fit = None if start is None else _elbow_pair_refine(samples, seg_p, seg_c, start)
+    if fit is None:  # no basin (yet), or a new start
+        return None, None, None, full
+    psi_p, psi_c, unc, misfit = fit
+    bound = min(max(full_most if full else most, misfit if full else share * misfit), limit)
+    if unc > bound:
+        return round(unc, 2), None if full else (psi_p, psi_c), None, full
+    grid = _elbow_pair_grid(samples, seg_p, seg_c)  # still the best basin, with all samples
+    if grid is None or _apart_deg(grid, (psi_p, psi_c)) > 10.0:
+        return round(unc, 2), None, None, False
+    found = _wrap(math.degrees(psi_p)), _wrap(math.degrees(psi_c)), round(unc, 3)
+    return round(unc, 2), None, found, False
+
+
 def _fit_unc_deg(residuals: np.ndarray, jacobian: np.ndarray) -> float:
     """A least-squares fit's uncertainty (deg, about two standard deviations of its
     worst-known direction): the misfit's spread through the fit's Jacobian
@@ -1389,7 +1503,10 @@ class BodyHeading:
     have headings of their own, and it estimates each tag's as ``independent``
     mode does, from the calibration on (the profile's ``heading`` becomes
     ``independent``; :meth:`step` says so once, ``switched``). :meth:`state`
-    says where it stands, for the pose's health and the user."""
+    says where it stands, for the pose's health and the user. The searches'
+    fits run on ``fits`` (:class:`Fits`): inline by default, where a result is
+    taken in the tick that asked for it; the live gateway's run aside
+    (gateway/aside.py), and each result is taken at a later tick."""
 
     #: what the user is told when ``auto`` finds tags with headings of their own
     SWITCHED = (
@@ -1397,17 +1514,18 @@ class BodyHeading:
         "(walk, reach after an N-pose, bow; --heading independent says so at once)"
     )
 
-    def __init__(self, profile: Profile) -> None:
+    def __init__(self, profile: Profile, fits: Fits = INLINE) -> None:
         self.profile = profile
+        self.fits = fits
         #: the joints' hold on drifting tags' headings, once they are known
         self.drift: JointDrift | None = JointDrift(profile) if profile.imu_mounts else None
         self.unknown = sorted(k for k in profile.imu_mounts if not profile.heading_known(k))
         independent = profile.heading == "independent"
         self.ended = False  # the search was ended (end_search)
         self.finder = HingeHeading(profile) if self.unknown and not independent else None
-        self.pairs = KneePairs(profile) if self.unknown and independent else None
-        self.children = ChildHeadings(profile) if self.unknown and independent else None
-        self.elbows = ElbowPairs(profile) if self.unknown and independent else None
+        self.pairs = KneePairs(profile, fits) if self.unknown and independent else None
+        self.children = ChildHeadings(profile, fits) if self.unknown and independent else None
+        self.elbows = ElbowPairs(profile, fits) if self.unknown and independent else None
         self.trunk = TrunkBow(profile) if self.unknown and independent else None
         #: auto: the check that the tags share the heading a hinge gives, the profile
         #: with that heading while it is checked, and the calibration to go back to
@@ -1498,7 +1616,7 @@ class BodyHeading:
         assert self.check.failed is not None
         joint, error = self.check.failed
         ended = self.ended
-        self.__init__(replace(self.calibrated, heading="independent"))  # type: ignore[misc]
+        self.__init__(replace(self.calibrated, heading="independent"), self.fits)  # type: ignore[misc]
         self.ended = ended
         self.switched = f"{self.SWITCHED}; {joint} was {error:.0f} deg off its axes"
         self._announce = True

@@ -54,6 +54,7 @@ from bodynet.core.keys import BRANCHES, Branch, Site
 from bodynet.core.messages import OleAccel, Quat, RawSample, source_name
 from bodynet.core.profile import OLE_DOF, mount
 from bodynet.core.subject import Profile, ProfileError, QuatWxyz
+from bodynet.gateway.aside import AsideFits
 from bodynet.gateway.encoders import (
     EncoderZero,
     states,
@@ -61,8 +62,10 @@ from bodynet.gateway.encoders import (
 )
 from bodynet.gateway.frames import branch_views, pose_frame, whole_body_message
 from bodynet.gateway.heading import (
+    INLINE,
     BodyHeading,
     CalibrationRefused,
+    Fits,
     calibrate_window,
     dropped_note,
     pose_angles,
@@ -173,15 +176,16 @@ class _Body:
 
     def __init__(self, session: zenoh.Session, prefix: str, profile: Profile,
                  profile_path: Path | None, branches: Sequence[Branch],
-                 period_s: float) -> None:  # fmt: skip
+                 period_s: float, fits: Fits = INLINE) -> None:  # fmt: skip
         self.prefix = prefix
+        self.fits = fits  # where its heading search's fits run (gateway/aside.py)
         self.profile_path = profile_path
         #: each SmartSuit encoder's zero, by raw key (gateway/encoders.py)
         self.encoders: dict[str, EncoderZero] = {}
         self.solver = BodySolver(profile)
         self.solver.encoder_zeros = self.encoders
         # the tags' heading: known, or being found; then held against drift
-        self.heading = BodyHeading(profile)
+        self.heading = BodyHeading(profile, fits)
         self.last_output: BodyOutput | None = None
         self.latest: dict[Site, _Site] = {}
         self.alive: set[str] = set()
@@ -492,7 +496,7 @@ class _Body:
         """A new calibration: a new solver, heading state and, if it has a file, saved."""
         self.solver = BodySolver(profile)
         self.solver.encoder_zeros = self.encoders
-        self.heading = heading or BodyHeading(profile)
+        self.heading = heading or BodyHeading(profile, self.fits)
         if self.profile_path is not None:
             profile_file.save(profile, self.profile_path)
 
@@ -534,6 +538,8 @@ class Gateway:
         self.refused_subjects = 0
         self.solves = 0  # batched solves: ticks / solves is the mean batch
         self.session_lost = False  # run() ended because the session was closed
+        # the heading searches' fits, off the worker (hundreds of ms each, at times)
+        self.fits = AsideFits()
         self.rounds = Rounds(self.period_s)  # when whole frames are solved (batching)
         # bodies whose frame is whole, waiting for the round (-> since when), oldest first
         self._held: dict[_Body, float] = {}
@@ -555,7 +561,7 @@ class Gateway:
         self._declared: dict[str, zenoh.KeyExpr] = {}
         if not all_subjects:
             self._bodies[None] = _Body(session, "", profile or Profile(), profile_path,
-                                       self.branches, self.period_s)  # fmt: skip
+                                       self.branches, self.period_s, self.fits)  # fmt: skip
         prefixes = ("", keys.ANY_SUBJECT + "/") if all_subjects else ("",)
         inner = [keys.all_raw()] if branches is None else [f"{b.key}/*/raw" for b in branches]
         self._subs = [session.declare_subscriber(p + sel, zenoh.handlers.FifoChannel(INTAKE_DEPTH))
@@ -748,7 +754,8 @@ class Gateway:
                 log.error("gateway: %s; subject %s runs on default calibration", exc, subject)
                 profile = Profile()
             prefix = keys.subject_prefix(subject)
-            body = _Body(self.session, prefix, profile, path, self.branches, self.period_s)
+            body = _Body(self.session, prefix, profile, path, self.branches, self.period_s,
+                         self.fits)  # fmt: skip
             body.alive |= self._foreign_alive.pop(subject, set())  # nodes seen while not ours
             self._bodies[subject] = body
             log.info("gateway: serving subject %s", subject or "(no namespace)")
@@ -1200,6 +1207,7 @@ class Gateway:
             live.undeclare()
         for body in list(self._bodies.values()):
             body.close()
+        self.fits.close()
         for key_expr in self._declared.values():
             self.session.undeclare(key_expr)
         self._declared.clear()

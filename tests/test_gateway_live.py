@@ -997,3 +997,100 @@ def test_a_tag_dropping_out_in_a_fast_movement_is_flagged_within_a_few_of_its_in
             stale_in_gap[i] += a <= t < b and forearm in frame.stale
     assert all(stale_in_gap), stale_in_gap
     assert frozen_off > 25.0  # the frozen forearm was far off: flagged, not shown
+
+
+class _Held:
+    """A heading search's knee fit held until the test releases it (``asked`` once
+    the search asks for one): the real fit, run when released."""
+
+    def __init__(self, fit: Any) -> None:
+        self.fit, self.asked, self.release = fit, threading.Event(), threading.Event()
+
+    def __call__(self, *args: Any) -> Any:
+        self.asked.set()
+        assert self.release.wait(60), "never released"
+        return self.fit(*args)
+
+
+def _feed_bodies(session: zenoh.Session, emulators: dict[str, BodyEmulator]) -> Running:
+    """Each subject's emulated tags through Zenoh at 50 Hz, from the calibration
+    pose's end (1 s) on, on the wall clock, until stopped."""
+    pubs = {(n, t.site): session.declare_publisher(f"{n}/{t.site.raw_key}")
+            for n, e in emulators.items() for t in e.sensors}  # fmt: skip
+
+    def feed(stop: threading.Event) -> None:
+        start, k = time.monotonic(), 0
+        while not stop.is_set():
+            for name, emulator in emulators.items():
+                readings, _ = emulator.sample(1.0 + k / 50)
+                for tag, reading in zip(emulator.sensors, readings, strict=True):
+                    sample = RawSample(reading, k, time.time_ns(), Source.IMU_CENTRAL)
+                    pubs[(name, tag.site)].put(raw_sample.encode(sample))
+            k += 1
+            stop.wait(max(0.0, start + k / 50 - time.monotonic()))
+
+    return Running(feed)
+
+
+def test_a_body_searching_its_heading_stalls_no_other_body(
+    router_endpoint: str, zsession: zenoh.Session, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Two subjects on one gateway, fed through Zenoh: body "a" (6-axis tags of their
+    own, calibrated in an N-pose) walks, and its knees' pair of headings is searched;
+    body "b" is calibrated. While a's fit is held, the worker goes on: b's poses
+    keep coming, and a's too, its legs' dofs flagged uncalibrated; once released,
+    the fit's result is taken at a later tick: a's thighs' and shanks' headings,
+    within 3 deg of the emulator's truth. (Inline, the worker would wait in the
+    fit, and neither body's poses come.)"""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from bodynet.bench.drift import _calibrated
+    from bodynet.core.subject import Profile
+    from bodynet.gateway import heading as heading_module
+    from bodynet.gateway.aside import AsideFits
+    from bodynet.nodes.emulator import Headings
+    from bodynet.nodes.motion import heading_protocol
+
+    held = _Held(heading_module._knee_pair_headings)
+    monkeypatch.setattr(heading_module, "_knee_pair_headings", held)
+    own = Realism(headings=Headings.INDEPENDENT)
+    emulators = {"a": BodyEmulator(heading_protocol(), imu_tags(), realism=own, seed=1),
+                 "b": BodyEmulator(heading_protocol(), imu_tags(), seed=2)}  # fmt: skip
+    session = client(router_endpoint)
+    gw = Gateway(session, all_subjects=True)
+    gw.fits = AsideFits(lambda: ThreadPoolExecutor(1))  # a thread's: the test holds its fit
+    bodies = {}
+    for name, mode in (("a", "independent"), ("b", "fixed")):
+        body = bodies[name] = gw._body(name)
+        assert body is not None
+        body.set_profile(_calibrated(emulators[name], Profile(heading=mode), 0.2, 0.95, 50.0,
+                                     "npose"))  # fmt: skip
+    search = bodies["a"].heading.pairs
+    assert search is not None
+    poses = {n: Collector(zsession, f"{n}/{keys.pose_key()}", pose.decode) for n in bodies}
+    worker, feeder = Running(gw.run), _feed_bodies(zsession, emulators)
+    try:
+        wait_until(held.asked.is_set, 30, "a's knees' fit")
+        ticks = {n: b.ticks for n, b in bodies.items()}
+        wait_until(lambda: all(b.ticks >= ticks[n] + 50 for n, b in bodies.items()), 20,
+                   "a second of both bodies' ticks, the fit held")  # fmt: skip
+        for collector in poses.values():  # and their poses go out
+            had = len(collector.seen) + collector.queue.qsize()
+            collector.wait_for(lambda s, had=had: len(s) >= had + 10, timeout=10)
+        assert not held.release.is_set()
+        assert not search.found
+        assert poses["a"].seen[-1][1].flags.get("left_knee_flexion_deg") == "uncalibrated"
+        held.release.set()
+        wait_until(lambda: bool(search.found), 30, "a's knees' headings taken")
+        truth = {t.site.raw_key: emulators["a"].headings_deg[t.node] for t in imu_tags()}
+        assert len(search.found) in (2, 4)  # a side's pair, or both
+        for key, psi in search.found.items():
+            assert abs((psi - truth[key] + 180) % 360 - 180) < 3.0, key
+    finally:
+        held.release.set()
+        feeder.stop()
+        worker.stop()
+        for collector in poses.values():
+            collector.close()
+        gw.close()
+        session.close()
