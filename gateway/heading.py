@@ -28,10 +28,9 @@ dofs it would drive ``uncalibrated``.
 
 from __future__ import annotations
 
-import logging
 import math
 from collections.abc import Callable, Iterable, Mapping, Sequence
-from concurrent.futures import BrokenExecutor, Future
+from concurrent.futures import Future
 from dataclasses import dataclass, field, replace
 from types import MappingProxyType
 from typing import Any, Protocol
@@ -46,8 +45,6 @@ from bodynet.core.subject import Profile, QuatWxyz
 from bodynet.kinematics.model import BodyModel
 
 POSE_ANGLES = CALIBRATION_POSES
-
-log = logging.getLogger(__name__)
 
 
 class Fits(Protocol):
@@ -75,19 +72,21 @@ INLINE = InlineFits()
 class _Aside:
     """A finder's fits in flight, by key (a side, a child tag), one at most each:
     started on a copy of the samples, taken by the first update after it is done
-    (at once when run inline). A fit lost with its executor (its process died) is
-    dropped: the next samples ask for another."""
+    (at once when run inline)."""
 
     def __init__(self, fits: Fits) -> None:
         self.fits = fits
         self._flying: dict[str, tuple[Future[Any], int]] = {}
 
-    def busy(self, key: str) -> bool:
-        return key in self._flying
+    def due(self, key: str, samples: Sequence[Any], first: int, every: int) -> bool:
+        """Whether ``key``'s ``samples`` are due a fit: from ``first`` on, at every
+        ``every``-th; not while one of its fits is in flight."""
+        n = len(samples)
+        return n >= first and not (n - first) % every and key not in self._flying
 
-    def start(self, key: str, n: int, fn: Callable[..., Any], *args: Any) -> None:
-        """Run ``fn(*args)`` for ``key``, whose ``n`` samples it has."""
-        self._flying[key] = (self.fits.submit(fn, *args), n)
+    def start(self, key: str, samples: Sequence[Any], fn: Callable[..., Any], *args: Any) -> None:
+        """Run ``fn`` for ``key`` on a copy of its ``samples`` (then ``args``)."""
+        self._flying[key] = (self.fits.submit(fn, list(samples), *args), len(samples))
 
     def done(self, key: str) -> tuple[Any, int] | None:
         """The result of ``key``'s fit and how many samples it had, once it is done."""
@@ -95,11 +94,7 @@ class _Aside:
         if flying is None or not flying[0].done():
             return None
         del self._flying[key]
-        try:
-            return flying[0].result(), flying[1]
-        except BrokenExecutor as exc:
-            log.warning("heading: a fit of %s was lost (%s); the next samples try again", key, exc)
-            return None
+        return flying[0].result(), flying[1]
 
 
 def _make_way(samples: list[Any], oldest: int, most: int) -> None:
@@ -611,11 +606,8 @@ class KneePairs:
                 self._last[side] = t_s
             samples = self.samples[side]
             samples.append((a_p, a_c))
-            n = len(samples)
-            if n < self.PAIR_SAMPLES or (n - self.PAIR_SAMPLES) % self.TRY_EVERY:
-                continue
-            if not self._aside.busy(side):
-                self._aside.start(side, n, _knee_pair_headings, list(samples))
+            if self._aside.due(side, samples, self.PAIR_SAMPLES, self.TRY_EVERY):
+                self._aside.start(side, samples, _knee_pair_headings)
                 self._take(side, out)
         self.found.update(out)
         return out
@@ -719,12 +711,8 @@ class ChildHeadings:
             parent = JointDrift._segment(profile, p, _quat_matrix(orientations[p]))
             samples = self.samples[c]
             samples.append((parent, a_c))
-            n = len(samples)
-            if n < self.SAMPLES or (n - self.SAMPLES) % self.TRY_EVERY:
-                continue
-            if not self._aside.busy(c):
-                self._aside.start(c, n, _child_heading, list(samples), seg_p, seg_c, p_axis,
-                                  c_axis)  # fmt: skip
+            if self._aside.due(c, samples, self.SAMPLES, self.TRY_EVERY):
+                self._aside.start(c, samples, _child_heading, seg_p, seg_c, p_axis, c_axis)
                 self._take(c, out)
         self.found.update(out)
         return out
@@ -823,14 +811,12 @@ class ElbowPairs:
             self._last[side] = t_s
             samples = self.samples[side]
             samples.append((a_p, a_c))
-            n = len(samples)
-            if n < self.MIN_SAMPLES or (n - self.MIN_SAMPLES) % self.TRY_EVERY:
-                continue
-            if not self._aside.busy(side):
+            if self._aside.due(side, samples, self.MIN_SAMPLES, self.TRY_EVERY):
                 limits = (self.MAX_UNC_DEG, self.FULL_UNC_DEG, self.MISFIT_SHARE,
                           self.LIMIT_UNC_DEG)  # fmt: skip
-                self._aside.start(side, n, _elbow_pair_try, list(samples), *self.pairs[side][4:],
-                                  self._basin.get(side), n >= self.MAX_SAMPLES, limits)  # fmt: skip
+                self._aside.start(side, samples, _elbow_pair_try, *self.pairs[side][4:],
+                                  self._basin.get(side), len(samples) >= self.MAX_SAMPLES,
+                                  limits)  # fmt: skip
                 self._take(side, out)
         self.found.update(out)
         return out

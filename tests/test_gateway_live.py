@@ -1042,12 +1042,9 @@ def test_a_body_searching_its_heading_stalls_no_other_body(
     the fit's result is taken at a later tick: a's thighs' and shanks' headings,
     within 3 deg of the emulator's truth. (Inline, the worker would wait in the
     fit, and neither body's poses come.)"""
-    from concurrent.futures import ThreadPoolExecutor
-
     from bodynet.bench.drift import _calibrated
     from bodynet.core.subject import Profile
     from bodynet.gateway import heading as heading_module
-    from bodynet.gateway.aside import AsideFits
     from bodynet.nodes.emulator import Headings
     from bodynet.nodes.motion import heading_protocol
 
@@ -1058,7 +1055,6 @@ def test_a_body_searching_its_heading_stalls_no_other_body(
                  "b": BodyEmulator(heading_protocol(), imu_tags(), seed=2)}  # fmt: skip
     session = client(router_endpoint)
     gw = Gateway(session, all_subjects=True)
-    gw.fits = AsideFits(lambda: ThreadPoolExecutor(1))  # a thread's: the test holds its fit
     bodies = {}
     for name, mode in (("a", "independent"), ("b", "fixed")):
         body = bodies[name] = gw._body(name)

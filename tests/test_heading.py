@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from typing import Any
 
 import numpy as np
 import pytest
@@ -20,7 +19,6 @@ from bodynet.core.messages import RawSample
 from bodynet.core.skeleton import CALIBRATION_POSES
 from bodynet.core.subject import Profile, QuatWxyz
 from bodynet.gateway.heading import (
-    INLINE,
     BodyHeading,
     CalibrationRefused,
     calibrate_window,
@@ -1105,44 +1103,3 @@ def test_the_arms_headings_are_found_with_noisy_tags() -> None:
     elbows = {n: v for n, v in worst.items() if "elbow" in n}
     assert elbows
     assert all(unc > 2.0 for _, unc in elbows.values()), elbows
-
-
-class _Recorded:
-    """Fits run inline, each call kept: its function, arguments and result."""
-
-    def __init__(self) -> None:
-        self.calls: list[tuple[Any, tuple[Any, ...], Any]] = []
-
-    def submit(self, fn: Any, /, *args: Any) -> Any:
-        future = INLINE.submit(fn, *args)
-        self.calls.append((fn, args, future.result()))
-        return future
-
-
-def test_the_searches_fits_run_in_the_gateways_process_as_inline() -> None:
-    """Every fit a search asked for, inline, through an N-pose, a walk with both
-    arms reaching and a bow (noisy 6-axis tags): sent to the process the live
-    gateway runs them in (``AsideFits``: function and samples pickled there, the
-    result back), each gives what it gave inline."""
-    from bodynet.gateway.aside import AsideFits
-
-    noisy = Realism(headings=Headings.INDEPENDENT, quat_noise_deg=1.0)
-    body = BodyEmulator(_bow_protocol("npose", 40.0, bow_first=False), imu_tags(),
-                        realism=noisy, seed=1)  # fmt: skip
-    independent = Profile(heading="independent", pose="npose")
-    recorded = _Recorded()
-    heading = BodyHeading(calibrate_window(_window(body, 0.2, 0.95), independent, "npose")
-                          .apply(independent, "npose"), recorded)  # fmt: skip
-    solver = BodySolver(heading.profile)
-    for t in np.arange(1.0, 8.0, 1 / RATE_HZ):
-        solver = heading_tick(heading, solver, float(t), _samples(body, float(t))[0])
-    kinds = {fn.__name__ for fn, _, _ in recorded.calls}
-    assert kinds == {"_knee_pair_headings", "_elbow_pair_try", "_child_heading"}
-    assert heading.children is not None
-    assert heading.children.found  # fits that found, not only ones that waited
-    aside = AsideFits()
-    try:
-        futures = [aside.submit(fn, *args) for fn, args, _ in recorded.calls]
-        assert [f.result(timeout=120) for f in futures] == [r for _, _, r in recorded.calls]
-    finally:
-        aside.close()
