@@ -120,6 +120,15 @@ UNC_OLE_DEG = 0.5  # an encoder's dof: 0.1 mm of travel is at most 0.23 deg, plu
 #: accelerometer cannot tell from tilt (see docs/observability.md)
 UP_UNC_RAD = 0.1
 DYN_FREE, DYN_GAIN = 0.05, 2.0  # beyond 5 % off 1 g, the body's own acceleration adds this much
+#: A swinging limb (:class:`_Swing`): the time constants (s) of the tilt's smoothing
+#: (each of three stages: angle, rate, acceleration) and of its running mean and sizes
+SWING_TAU_S, SWING_SPAN_S = 0.06, 0.5
+#: the body's own acceleration at a shoulder or hip module (its swing's and what |a|
+#: shows) beyond this (rad of "up", beyond ``UP_UNC_RAD``) leaves its tilt undetermined
+#: now: ``held``
+SWING_MAX_RAD = 0.15
+SWING_GAIN_MIN = 0.35  # the accelerometer sees at least this share of a swing (see _Swing)
+G = 9.81
 UNC_MAX_DEG = 20.0  # a tilt dof gravity determines less well than this is not measured
 SLEW_DEG = 5.0  # a held dof goes back to its measurement at most this far a tick
 #: A body with no trunk sensor known is measured against the upright model only
@@ -566,6 +575,7 @@ class _Memory:
     up: dict[str, np.ndarray] = field(default_factory=dict)  # filtered "up" of each accelerometer
     held: set[str] = field(default_factory=set)  # tilt dofs held (or unobserved) last tick
     seen: set[str] = field(default_factory=set)  # tilt dofs gravity has determined at least once
+    swing: dict[str, _Swing] = field(default_factory=dict)  # each shoulder or hip module's
     expected: set[str] = field(default_factory=set)  # segments an orientation sensor is on
     first_t_ns: int = -1  # the body's first tick (source time)
 
@@ -588,6 +598,73 @@ def _carry_history(old: _Sorted | None, new: _Sorted) -> None:
             j = was.get(site)
             if j is not None:
                 new.times[i], new.held[i] = old.times[j], old.held[j]
+
+
+class _Swing:
+    """How fast a module's measured "up" swings (in its sensor frame, so across
+    the limb: the tilt gravity sees), and how far the swing's own acceleration
+    may tilt that "up" (:meth:`error_rad`).
+
+    An accelerometer ``r`` from the joint of a limb swinging at angular
+    acceleration ``alpha`` feels ``r alpha`` across the limb besides gravity: the
+    seed's tilt (eq. 4-7) holds for a static sensor only. At the ends of a swing
+    that acceleration opposes gravity's own across the limb, so the measured tilt
+    is the true one shrunk by ``1 - r W^2 / g`` (a swing of angular frequency
+    ``W``; 0.15 m down the upper arm in a 1 Hz walk: 0.41, 0.21 m down the
+    thigh: 0.16). Subtracting the acceleration is no cure: the true tilt from
+    the measured one solves ``x = m + r x'' / g``, unstable (a root at
+    ``sqrt(g/r)``). So the swing's size is estimated instead: ``W^2`` from the
+    measured tilt's acceleration against its swing about the recent mean (their
+    ratio does not shrink), the acceleration corrected by that gain. Three
+    exponential stages smooth direction, rate and acceleration
+    (``SWING_TAU_S``); the sizes are running mean squares (``SWING_SPAN_S``)."""
+
+    __slots__ = ("acc", "acc2", "dev2", "mean", "rate", "rate2", "smooth", "t")
+
+    def __init__(self, t: float, up: list[float]) -> None:
+        self.t = t
+        self.smooth, self.mean = list(up), list(up)
+        self.rate, self.acc = [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]
+        self.dev2 = self.acc2 = self.rate2 = 0.0
+
+    def update(self, t: float, up: list[float]) -> None:
+        """Take this tick's "up" (a unit vector) at source time ``t`` (s)."""
+        dt = t - self.t
+        if dt <= 0.0:
+            return
+        if dt > SWING_SPAN_S:  # a gap: start over
+            self.__init__(t, up)  # type: ignore[misc]
+            return
+        self.t = t
+        b = 1.0 - math.exp(-dt / SWING_TAU_S)
+        dev2 = acc2 = rate2 = 0.0
+        for i in (0, 1, 2):
+            smooth = self.smooth[i] + b * (up[i] - self.smooth[i])
+            rate = self.rate[i] + b * ((smooth - self.smooth[i]) / dt - self.rate[i])
+            acc = self.acc[i] + b * ((rate - self.rate[i]) / dt - self.acc[i])
+            self.smooth[i], self.rate[i], self.acc[i] = smooth, rate, acc
+            self.mean[i] += (smooth - self.mean[i]) * dt / SWING_SPAN_S
+            dev2 += (smooth - self.mean[i]) ** 2
+            acc2 += acc * acc
+            rate2 += rate * rate
+        m = 1.0 - math.exp(-dt / SWING_SPAN_S)
+        self.dev2 += m * (dev2 - self.dev2)
+        self.acc2 += m * (acc2 - self.acc2)
+        self.rate2 += m * (rate2 - self.rate2)
+
+    def error_rad(self, r: float) -> float:
+        """How far (rad, a swing's peak) the acceleration of a module ``r`` (m) from
+        the joint may tilt its "up"; ``inf`` where the accelerometer sees less than
+        ``SWING_GAIN_MIN`` of the swing."""
+        acc2, rate2 = self.acc2, self.rate2
+        if acc2 <= 0.0:
+            return 0.0
+        w2 = acc2 / rate2 if rate2 > 0.0 else math.inf
+        gain = abs(1.0 - r * w2 / G)
+        if gain < SWING_GAIN_MIN:
+            return math.inf
+        # peaks of a sine: sqrt(2) its root mean square
+        return r * (math.sqrt(2 * acc2) / gain + 2 * rate2 / gain**2) / G
 
 
 class _Tick:
@@ -1359,12 +1436,16 @@ class BodySolver:
                 fit = values.copy()
                 fit[:2] = self._tilt(ax, parent, up[0], values, joint)
                 rot = values[2]
+                swing = self._swing(site, joint.child, up[0], tick)
 
                 def predict(x: np.ndarray) -> np.ndarray:
                     return (parent @ ax.matrix(np.array([x[0], x[1], rot]))).T @ _UP  # type: ignore[no-any-return]
 
                 strength = _strengths(predict, fit[:2])
-                noise = up[1] + tick.harm[joint.parent]
+                # the body's own acceleration (the swing's, and what |a| shows) too large
+                # to say anything: not determined now (held)
+                noise = up[1] + tick.harm[joint.parent] + swing
+                noise = noise if up[1] + swing - UP_UNC_RAD <= SWING_MAX_RAD else math.inf
                 values[:2], unc[:2], why[:2] = self._settle(names[:2], fit[:2], strength, prev,
                                                             noise, tick)  # fmt: skip
                 seg_axes = self._accel_axes[joint.child]
@@ -1379,6 +1460,19 @@ class BodySolver:
             for w in why:
                 w.update(_STALE)
         return values, unc, why
+
+    def _swing(self, site: Site, segment: str, up: np.ndarray, tick: _Tick) -> float:
+        """Take a shoulder or hip module's "up" into its swing's history; how far
+        (rad) the swing may tilt it (:class:`_Swing`)."""
+        t = tick.t_ns * 1e-9
+        values = up.tolist()
+        swings = self._memory.swing
+        swing = swings.get(site.raw_key)
+        if swing is None:
+            swings[site.raw_key] = _Swing(t, values)
+            return 0.0
+        swing.update(t, values)
+        return swing.error_rad(self.skeleton.segment_length(segment) * mount(site).fraction)
 
     def _up(self, site: Site, reading: OleAccel) -> tuple[np.ndarray, float] | None:
         """A module's filtered "up" in its sensor frame and that direction's
