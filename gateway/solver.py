@@ -123,10 +123,9 @@ DYN_FREE, DYN_GAIN = 0.05, 2.0  # beyond 5 % off 1 g, the body's own acceleratio
 #: A swinging limb (:class:`_Swing`): the time constants (s) of the tilt's smoothing
 #: (each of three stages: angle, rate, acceleration) and of its running mean and sizes
 SWING_TAU_S, SWING_SPAN_S = 0.06, 0.5
-#: the body's own acceleration at a shoulder or hip module (its swing's and what |a|
-#: shows) beyond this (rad of "up", beyond ``UP_UNC_RAD``) leaves its tilt undetermined
-#: now: ``held``
-SWING_MAX_RAD = 0.15
+#: a shoulder's or hip's "up" turning slower than this (rad/s; a realistic sensor's noise
+#: at 100 Hz is below 0.1) for this long (s) is at rest: its swing is over
+SWING_STILL_RAD_S, SWING_STILL_S = 0.15, 0.1
 SWING_GAIN_MIN = 0.35  # the accelerometer sees at least this share of a swing (see _Swing)
 G = 9.81
 UNC_MAX_DEG = 20.0  # a tilt dof gravity determines less well than this is not measured
@@ -614,49 +613,57 @@ class _Swing:
     thigh: 0.16). Subtracting the acceleration is no cure: the true tilt from
     the measured one solves ``x = m + r x'' / g``, unstable (a root at
     ``sqrt(g/r)``). So the swing's size is estimated instead: ``W^2`` from the
-    measured tilt's acceleration against its swing about the recent mean (their
-    ratio does not shrink), the acceleration corrected by that gain. Three
-    exponential stages smooth direction, rate and acceleration
-    (``SWING_TAU_S``); the sizes are running mean squares (``SWING_SPAN_S``)."""
+    measured tilt's acceleration against its rate (their ratio does not shrink),
+    the acceleration corrected by that gain. Three exponential stages smooth
+    direction, rate and acceleration (``SWING_TAU_S``); the sizes are running
+    mean squares (``SWING_SPAN_S``), forgotten once the "up" has been still
+    (its rate below ``SWING_STILL_RAD_S``, the sensor's noise, for
+    ``SWING_STILL_S``): a limb at rest has no swing, however fast its last was."""
 
-    __slots__ = ("acc", "acc2", "dev2", "mean", "rate", "rate2", "smooth", "t")
+    __slots__ = ("acc", "acc2", "r", "rate", "rate2", "smooth", "still", "t")
 
-    def __init__(self, t: float, up: list[float]) -> None:
-        self.t = t
-        self.smooth, self.mean = list(up), list(up)
+    def __init__(self, t: float, up: list[float], r: float) -> None:
+        self.t, self.r = t, r  # r: the module's distance (m) from the joint
+        self.smooth = list(up)
         self.rate, self.acc = [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]
-        self.dev2 = self.acc2 = self.rate2 = 0.0
+        self.acc2 = self.rate2 = self.still = 0.0
 
-    def update(self, t: float, up: list[float]) -> None:
-        """Take this tick's "up" (a unit vector) at source time ``t`` (s)."""
+    def update(self, t: float, up: list[float], steady: bool) -> None:
+        """Take this tick's "up" (a unit vector) at source time ``t`` (s);
+        ``steady``: the acceleration's size showed no motion of the body's own."""
         dt = t - self.t
         if dt <= 0.0:
             return
         if dt > SWING_SPAN_S:  # a gap: start over
-            self.__init__(t, up)  # type: ignore[misc]
+            self.__init__(t, up, self.r)  # type: ignore[misc]
             return
         self.t = t
         b = 1.0 - math.exp(-dt / SWING_TAU_S)
-        dev2 = acc2 = rate2 = 0.0
+        acc2 = rate2 = 0.0
         for i in (0, 1, 2):
             smooth = self.smooth[i] + b * (up[i] - self.smooth[i])
             rate = self.rate[i] + b * ((smooth - self.smooth[i]) / dt - self.rate[i])
             acc = self.acc[i] + b * ((rate - self.rate[i]) / dt - self.acc[i])
             self.smooth[i], self.rate[i], self.acc[i] = smooth, rate, acc
-            self.mean[i] += (smooth - self.mean[i]) * dt / SWING_SPAN_S
-            dev2 += (smooth - self.mean[i]) ** 2
             acc2 += acc * acc
             rate2 += rate * rate
+        # a swing the accelerometer hardly sees (its gain near 0) can leave the "up"
+        # still while the limb moves: no rest then
+        still = steady and rate2 < SWING_STILL_RAD_S**2 and self.error_rad() < math.inf
+        self.still = self.still + dt if still else 0.0
+        if self.still >= SWING_STILL_S:  # at rest: no swing (and the smoothing's ringing gone)
+            self.acc = [0.0, 0.0, 0.0]
+            self.acc2 = self.rate2 = 0.0
+            return
         m = 1.0 - math.exp(-dt / SWING_SPAN_S)
-        self.dev2 += m * (dev2 - self.dev2)
         self.acc2 += m * (acc2 - self.acc2)
         self.rate2 += m * (rate2 - self.rate2)
 
-    def error_rad(self, r: float) -> float:
-        """How far (rad, a swing's peak) the acceleration of a module ``r`` (m) from
-        the joint may tilt its "up"; ``inf`` where the accelerometer sees less than
+    def error_rad(self) -> float:
+        """How far (rad, a swing's peak) the swing's acceleration may tilt the
+        module's "up"; ``inf`` where the accelerometer sees less than
         ``SWING_GAIN_MIN`` of the swing."""
-        acc2, rate2 = self.acc2, self.rate2
+        acc2, rate2, r = self.acc2, self.rate2, self.r
         if acc2 <= 0.0:
             return 0.0
         w2 = acc2 / rate2 if rate2 > 0.0 else math.inf
@@ -1436,16 +1443,13 @@ class BodySolver:
                 fit = values.copy()
                 fit[:2] = self._tilt(ax, parent, up[0], values, joint)
                 rot = values[2]
-                swing = self._swing(site, joint.child, up[0], tick)
+                swing = self._swing(site, joint.child, up, tick)
 
                 def predict(x: np.ndarray) -> np.ndarray:
                     return (parent @ ax.matrix(np.array([x[0], x[1], rot]))).T @ _UP  # type: ignore[no-any-return]
 
                 strength = _strengths(predict, fit[:2])
-                # the body's own acceleration (the swing's, and what |a| shows) too large
-                # to say anything: not determined now (held)
                 noise = up[1] + tick.harm[joint.parent] + swing
-                noise = noise if up[1] + swing - UP_UNC_RAD <= SWING_MAX_RAD else math.inf
                 values[:2], unc[:2], why[:2] = self._settle(names[:2], fit[:2], strength, prev,
                                                             noise, tick)  # fmt: skip
                 seg_axes = self._accel_axes[joint.child]
@@ -1461,18 +1465,19 @@ class BodySolver:
                 w.update(_STALE)
         return values, unc, why
 
-    def _swing(self, site: Site, segment: str, up: np.ndarray, tick: _Tick) -> float:
+    def _swing(self, site: Site, segment: str, up: tuple[np.ndarray, float], tick: _Tick) -> float:
         """Take a shoulder or hip module's "up" into its swing's history; how far
         (rad) the swing may tilt it (:class:`_Swing`)."""
         t = tick.t_ns * 1e-9
-        values = up.tolist()
+        values = up[0].tolist()
         swings = self._memory.swing
         swing = swings.get(site.raw_key)
         if swing is None:
-            swings[site.raw_key] = _Swing(t, values)
+            r = self.skeleton.segment_length(segment) * mount(site).fraction
+            swings[site.raw_key] = _Swing(t, values, r)
             return 0.0
-        swing.update(t, values)
-        return swing.error_rad(self.skeleton.segment_length(segment) * mount(site).fraction)
+        swing.update(t, values, up[1] <= UP_UNC_RAD)
+        return swing.error_rad()
 
     def _up(self, site: Site, reading: OleAccel) -> tuple[np.ndarray, float] | None:
         """A module's filtered "up" in its sensor frame and that direction's
