@@ -1,6 +1,6 @@
 """How long a calibrated body's poses stall while another body's heading is searched.
 
-``python bench/heading_stall.py [MODE [SECONDS]]``, MODE ``aside`` (the gateway's
+``.venv/bin/python -m bodynet.bench.heading_stall [MODE [SECONDS]]``, MODE ``aside`` (the gateway's
 own: the searches' fits in a thread), ``process`` (in a process of their own),
 ``inline`` (in the worker, as before) or ``none`` (no search: the floor). Live on
 loopback Zenoh: a router and the real gateway (this process, all subjects), a

@@ -281,3 +281,17 @@ def test_demo_whose_recorder_cannot_start_stops_what_started(
         f"bodynet demo: cannot write {tmp_path / 'demo.mcap'}: No space left on device\n"
     )
     assert list(tmp_path.iterdir()) == []  # the .rrd begun is not kept
+
+
+def test_heading_stall_benchmark_reports_the_other_bodys_gaps() -> None:
+    """`python -m bodynet.bench.heading_stall aside 3` runs (a live router, the real
+    gateway, a feeder and a probe): a line with the calibrated body's pose gaps over
+    the searching body's search, and the searching body's longest step."""
+    result = subprocess.run([sys.executable, "-m", "bodynet.bench.heading_stall", "aside", "3"],
+                            capture_output=True, text=True, timeout=180, check=False)  # fmt: skip
+    assert result.returncode == 0, result.stderr
+    line = result.stdout.strip().splitlines()[-1]
+    assert line.startswith("aside, 1 other bodies: over "), line
+    gaps = int(line.split("their gaps ")[1].split(",")[0])
+    assert gaps > 20, line  # the calibrated body's poses kept coming
+    assert "a's step max " in line
