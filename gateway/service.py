@@ -107,7 +107,9 @@ MAX_FOREIGN_KEYS = 1 << 14
 IDLE_S, IDLE_QUIET_S = 0.0003, 0.005
 #: A source's clock offset (its host's clock minus the gateway's) is the most its
 #: samples' times led their arrival over the last one to two windows of this many
-#: seconds: network delay only delays, so the least delayed sample tells.
+#: seconds: network delay only delays, so the least delayed sample tells. Only
+#: rounds that emptied the gateway's queues count (``_Round``): a round cut short
+#: took samples that waited in them, which says the gateway is behind, not a clock.
 CLOCK_WINDOW_S = 2.0
 #: An offset past this (ms, beyond a LAN's delay) is logged as a warning, once, and
 #: again when it has moved by ``CLOCK_REWARN_MS``.
@@ -115,6 +117,17 @@ CLOCK_WARN_MS, CLOCK_REWARN_MS = 20.0, 100.0
 #: The offset shown (topology, health) moves only by this much (ms) at least: the
 #: topology, which goes out when it changes, does not follow the network's jitter.
 CLOCK_STEP_MS = 5.0
+
+
+class _Round:
+    """One round of taking samples (``Gateway._take_pending``): the gateway's wall
+    clock (s) when it began, and whether it emptied the queues. Only then are its
+    sites' last samples fresh, their times against ``wall`` a clock offset."""
+
+    __slots__ = ("drained", "wall")
+
+    def __init__(self, wall: float, drained: bool = False) -> None:
+        self.wall, self.drained = wall, drained
 
 
 class _Site:
@@ -126,8 +139,8 @@ class _Site:
     superseded before a solve reads them when the gateway is busy."""
 
     __slots__ = ("_sample", "arrived", "counts", "fields", "fresh", "history", "kept_at",
-                 "lead", "lead_before", "offset_ms", "owed", "rhythm", "warned_ms",
-                 "zero")  # fmt: skip
+                 "lead", "lead_before", "offset_ms", "owed", "rhythm", "round",
+                 "warned_ms", "zero")  # fmt: skip
 
     def __init__(self, sample: RawSample, arrived: float) -> None:
         self._sample: RawSample | None = sample
@@ -148,12 +161,25 @@ class _Site:
         # the most a sample's time has led its arrival (s, the gateway's wall clock) in
         # this window of CLOCK_WINDOW_S and in the one before: the clock offset
         self.lead = self.lead_before = -math.inf
+        # the round its latest sample came in, not yet in ``lead`` (see fold_lead)
+        self.round: _Round | None = None
         self.offset_ms: float | None = None  # the offset shown (see _Body.clock_check)
         self.warned_ms: float | None = None  # the offset last warned of
         # a SmartSuit module's: its encoder's zero (shared with the solver) and its
         # recent (sample time, count) at HISTORY_STEP_S, for a calibration pose's zero
         self.zero: EncoderZero | None = None
         self.counts: deque[tuple[float, int]] | None = None
+
+    def fold_lead(self) -> None:
+        """Count the lead of the latest sample (the last its round took: the least
+        delayed) into ``lead`` if its round emptied the queues; called before the
+        next round's first sample replaces it, and by ``_Body.clock_check``."""
+        rnd, self.round = self.round, None
+        if rnd is not None and rnd.drained:
+            fields = self.fields
+            t_ns = fields[2] if fields is not None else self._sample.t_ns  # type: ignore[union-attr]
+            if (lead := t_ns / 1e9 - rnd.wall) > self.lead:
+                self.lead = lead
 
     @property
     def sample(self) -> RawSample:
@@ -223,34 +249,39 @@ class _Body:
             # meanwhile (a subscriber arriving): that one stands
             self.matching.setdefault(view, pub.matching_status.matching)
 
-    def take(self, site: Site, sample: RawSample, now: float, wall: float | None = None) -> _Site:
+    def take(self, site: Site, sample: RawSample, now: float, wall: float | None = None,
+             rnd: _Round | None = None) -> _Site:  # fmt: skip
         """Keep a sample as its site's latest (and, for T-pose, in its recent
         history of ``HISTORY_S``, trimmed as it grows: a second's trim of every
         site at once took milliseconds at twenty bodies, a stall every pose
         behind it felt). Returns the site's record, for :meth:`take_into`.
-        ``now`` is the monotonic clock, ``wall`` the wall clock (s; now if None)
-        when the samples were taken."""
+        ``now`` is the monotonic clock; ``rnd`` the round that took it, else
+        ``wall`` the wall clock (s; now if None) when it was taken, a round of its
+        own."""
         kept = self.latest.get(site)
         if kept is None:
             kept = self.latest[site] = _Site(sample, now)
             if type(sample.reading) is OleAccel and site.name in OLE_DOF:
                 kept.zero = self.encoders[site.raw_key] = EncoderZero()
                 kept.counts = deque()
-        self.take_into(kept, sample, now, time.time() if wall is None else wall)
+        if rnd is None:
+            rnd = _Round(time.time() if wall is None else wall, drained=True)
+        self.take_into(kept, sample, now, rnd)
         return kept
 
-    def take_into(self, kept: _Site, sample: RawSample, now: float, wall: float) -> None:
+    def take_into(self, kept: _Site, sample: RawSample, now: float, rnd: _Round) -> None:
         """:meth:`take` for a site whose record the caller holds (a key's first
         sample, and samples that are not plain quaternion messages)."""
         reading = sample.reading
         if type(reading) is Quat:
             w, x, y, z = reading.wxyz
             fields = (reading.node, sample.seq, sample.t_ns, int(sample.source), w, x, y, z)
-            self.take_fields(kept, fields, now, wall)
+            self.take_fields(kept, fields, now, rnd)
         else:
             self._count(kept, now)
-            if (lead := sample.t_ns / 1e9 - wall) > kept.lead:
-                kept.lead = lead
+            if kept.round is not rnd:
+                kept.fold_lead()
+                kept.round = rnd
             if kept.zero is not None and type(reading) is OleAccel:
                 self._encoder(kept, kept.zero, sample)
         kept.sample = sample  # as it came (with a quaternion's extra bytes)
@@ -274,20 +305,21 @@ class _Body:
                 counts.popleft()
 
     def take_fields(self, kept: _Site, fields: raw_sample.QuatFields, now: float,
-                    wall: float) -> None:  # fmt: skip
+                    rnd: _Round) -> None:  # fmt: skip
         """:meth:`take_into` for a quaternion message's numbers
         (:func:`raw_sample.quat_fields`), on every IMU sample's path: the sample is
-        made only when read (``_Site.sample``). ``wall``: the gateway's wall clock
-        (s) when the round took it, for the clock offset."""
+        made only when read (``_Site.sample``). ``rnd``: the round that took it,
+        for the clock offset."""
         self._count(kept, now)
+        # the clock offset: the previous round's last sample, once a round (a compare
+        # a sample, not a max: this runs for every sample)
+        if kept.round is not rnd:
+            kept.fold_lead()
+            kept.round = rnd
         kept.fields = fields
         # kept by the sample's own time: the worker takes samples in rounds, and
         # by arrival a round's samples would all have one time (one kept a round)
         t = fields[2] / 1e9
-        # the clock offset: the most a sample's time led its arrival (no max() call,
-        # and a store only when it grows: this runs for every sample)
-        if t - wall > kept.lead:  # noqa: PLR1730
-            kept.lead = t - wall
         if t - kept.kept_at >= HISTORY_STEP_S:
             hist = kept.history
             if hist is None:
@@ -419,6 +451,7 @@ class _Body:
             self.clock_window_end = now + CLOCK_WINDOW_S
         out = []
         for site, kept in self.latest.items():
+            kept.fold_lead()
             lead = max(kept.lead, kept.lead_before)
             if roll:
                 kept.lead_before, kept.lead = kept.lead, -math.inf
@@ -537,6 +570,11 @@ class Gateway:
         self.solver_errors = 0
         self.refused_subjects = 0
         self.solves = 0  # batched solves: ticks / solves is the mean batch
+        # rounds whose period ran out with samples still waiting (the gateway behind
+        # its feed), and since when every round has (monotonic; None: it is not)
+        self.rounds_cut_short = 0
+        self._behind_since: float | None = None
+        self._said_behind = False
         self.session_lost = False  # run() ended because the session was closed
         # the heading searches' fits, off the worker (hundreds of ms each, at times)
         self.fits = AsideFits()
@@ -615,7 +653,7 @@ class Gateway:
         until = now + self.period_s  # a flood (of garbage, say) still leaves time to solve
         routes, foreign, share = self._routes, self._foreign, self.share
         quat_fields = raw_sample.quat_fields
-        wall = time.time()  # the arrival time of the round's samples, for the clock offset
+        rnd = _Round(time.time())  # the arrival time of its samples, for the clock offset
         with self._lock:
             for sub in self._subs:
                 while (taken % 256 or time.monotonic() < until) and (
@@ -628,7 +666,7 @@ class Gateway:
                         payload = sample.payload.to_bytes()
                         fields = quat_fields(payload)
                         if fields is not None:  # the common case: no RawSample made
-                            route[0].take_fields(route[1], fields, now, wall)
+                            route[0].take_fields(route[1], fields, now, rnd)
                             touched.add(route[0])
                             continue
                     else:
@@ -657,13 +695,15 @@ class Gateway:
                     if route is None:  # a key's first good sample: its body is made now
                         if (body := self._body(subject)) is None:
                             continue
-                        self._route(key, body, body.take(site, raw, now, wall))
+                        self._route(key, body, body.take(site, raw, now, rnd=rnd))
                     else:
                         body = route[0]
-                        body.take_into(route[1], raw, now, wall)
+                        body.take_into(route[1], raw, now, rnd)
                     touched.add(body)
         # the loops stop at an empty queue, or on a 256th sample past the period
-        return taken, touched, not taken % 256 and time.monotonic() >= until
+        more = not taken % 256 and time.monotonic() >= until
+        rnd.drained = not more
+        return taken, touched, more
 
     def _route(self, key: str, body: _Body, kept: _Site) -> None:
         """Where a raw key's samples go from now on (at most MAX_SUBJECTS times the
@@ -954,6 +994,7 @@ class Gateway:
             while not stop.is_set():
                 now = time.monotonic()
                 taken, touched, more = self._take_pending(now)
+                self._behind(now, more)
                 acted, wake = self._round(now, touched)
                 if taken:
                     last_sample = now
@@ -969,6 +1010,24 @@ class Gateway:
                 raise
             self.session_lost = True
             log.error("gateway: its Zenoh session was closed (%s); the gateway stops", exc)
+
+    def _behind(self, now: float, more: bool) -> None:
+        """Count a round cut short (``more``: samples left waiting), and say once
+        when every round has been for ``CLOCK_WINDOW_S``: the samples' lag is then
+        the gateway's own backlog, which no source's offset is judged from."""
+        if not more:
+            self._behind_since = None
+            return
+        self.rounds_cut_short += 1
+        if self._behind_since is None:
+            self._behind_since = now
+        elif not self._said_behind and now - self._behind_since >= CLOCK_WINDOW_S:
+            self._said_behind = True
+            log.warning("gateway: behind its feed for %.0f s: every round ran out of its "
+                        "period with samples still waiting in its queues, so poses lag "
+                        "them; the sources' time offsets are judged only from rounds that "
+                        "catch up; give it more CPU, or share the subjects (--share)",
+                        now - self._behind_since)  # fmt: skip
 
     def _idle_until(self, now: float, wake: float, flowing: bool) -> float:
         """Until when the idle worker sleeps: ``wake`` (a body due) at the latest;
@@ -1160,6 +1219,7 @@ class Gateway:
                                   "samples": self.samples, "ticks": self.ticks,
                                   "solves": self.solves,
                                   "solver_errors": self.solver_errors,
+                                  "rounds_cut_short": self.rounds_cut_short,
                                   "rejected": dict(self.rejected),
                                   "subjects": len(self._bodies),
                                   "refused_subjects": self.refused_subjects}  # fmt: skip

@@ -826,6 +826,64 @@ def test_node_hosts_on_time_show_no_clock_offset_and_no_warning(
     assert _clock_warnings(caplog) == []
 
 
+def test_a_gateway_behind_its_feed_says_so_and_blames_no_clock(
+    router_endpoint: str, caplog: pytest.LogCaptureFixture, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A gateway whose worker cannot keep up (each sample taken made 2 ms slower:
+    it takes 500 a second of the 750 fed, samples wait in its queues) says once
+    that it is behind, and warns of no node host's clock though every sample it
+    takes is late: the hosts on its clock are never warned of; once it keeps up
+    again, the left arm's host, really 200 ms ahead, is warned of at about +200."""
+    from bodynet.gateway import service
+
+    caplog.set_level(logging.INFO, logger="bodynet.gateway.service")
+    slow = threading.Event()
+    slow.set()
+    count = service._Body._count
+
+    def slow_count(self: Any, kept: Any, now: float) -> None:
+        if slow.is_set():
+            time.sleep(0.002)
+        count(self, kept, now)
+
+    monkeypatch.setattr(service._Body, "_count", slow_count)
+    session = client(router_endpoint)
+    gw = Gateway(session)
+    running = Running(gw.run)
+    stop = threading.Event()
+    feeding = _feed_skewed(router_endpoint, {"left-arm": 0.2}, stop)
+
+    def said(text: str) -> list[str]:
+        return [r.getMessage() for r in caplog.records
+                if r.levelno >= logging.WARNING and text in r.getMessage()]  # fmt: skip
+
+    try:
+        wait_until(lambda: said("behind its feed"), 30, "the gateway saying it is behind")
+        cut_short = gw.rounds_cut_short
+        wait_until(lambda: gw.rounds_cut_short >= cut_short + 8, 30, "more rounds cut short")
+        lagging = [w for w in said("is off by") if "left-arm (" not in w]
+        assert lagging == []  # its own backlog, no host's clock
+        slow.clear()
+        body = gw._bodies[None]
+        wait_until(lambda: _offsets_settled(gw.topology(), gw.health(body),
+                                            {"left-arm": 200.0}, 50.0),
+                   30, "the offsets once it keeps up")  # fmt: skip
+        wait_until(lambda: any("left-arm (" in w for w in said("is off by")), 10, "a warning")
+    finally:
+        stop.set()
+        feeding.join(timeout=10)
+        running.stop()
+        gw.close()
+        session.close()
+    assert len(said("behind its feed")) == 1
+    warnings = said("is off by")
+    assert all("left-arm (" in w for w in warnings), warnings
+    number = re.search(r"off by ([+-]\d+)", warnings[-1])
+    assert number is not None, warnings
+    assert abs(int(number[1]) - 200) <= 50, warnings
+    assert gw.health()["rounds_cut_short"] == gw.rounds_cut_short > 0
+
+
 def test_a_clock_offset_is_warned_of_once_and_again_when_it_moves_a_lot(
     router_endpoint: str,
 ) -> None:
