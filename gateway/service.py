@@ -1157,11 +1157,15 @@ class Gateway:
             off = f"{lo:+.0f} ms" if hi - lo < 1 else f"{lo:+.0f} to {hi:+.0f} ms"
             where = f"{body.prefix}{branch} ({', '.join(sorted(k for k, _ in found))})"
             if warn:
+                # a late sample may be a slow clock or a delay on the way, which one
+                # timestamp cannot tell apart; one from the future is only a clock
+                late = ("" if lo > 0 else "; or its samples are held up on the way (a loaded "
+                        "host, network or router: the bare relay's latency says)")  # fmt: skip
                 log.warning("gateway: the clock of the host sending %s is off by %s against "
                             "the gateway's (+: ahead): its samples' times, and the poses, "
                             "recordings and LSL times taken from them, are off by as much; "
-                            "synchronise that node's host clock (NTP, chrony or PTP)",
-                            where, off)  # fmt: skip
+                            "synchronise that node's host clock (NTP, chrony or PTP)%s",
+                            where, off, late)  # fmt: skip
             else:
                 log.info("gateway: the clock of the host sending %s is back within %g ms "
                          "(%s)", where, CLOCK_WARN_MS, off)  # fmt: skip
