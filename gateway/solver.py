@@ -126,6 +126,9 @@ SWING_TAU_S, SWING_SPAN_S = 0.06, 0.5
 #: a shoulder's or hip's "up" turning slower than this (rad/s; a realistic sensor's noise
 #: at 100 Hz is below 0.1) for this long (s) is at rest: its swing is over
 SWING_STILL_RAD_S, SWING_STILL_S = 0.15, 0.1
+#: a swing the accelerometer hardly saw is forgotten too once the "up" has been still
+#: this long (s): longer than a walking thigh's still moments mid-swing (about 0.2 s)
+SWING_BLIND_STILL_S = 1.0
 SWING_GAIN_MIN = 0.35  # the accelerometer sees at least this share of a swing (see _Swing)
 G = 9.81
 UNC_MAX_DEG = 20.0  # a tilt dof gravity determines less well than this is not measured
@@ -620,13 +623,13 @@ class _Swing:
     (its rate below ``SWING_STILL_RAD_S``, the sensor's noise, for
     ``SWING_STILL_S``): a limb at rest has no swing, however fast its last was."""
 
-    __slots__ = ("acc", "acc2", "r", "rate", "rate2", "smooth", "still", "t")
+    __slots__ = ("acc", "acc2", "quiet", "r", "rate", "rate2", "smooth", "still", "t")
 
     def __init__(self, t: float, up: list[float], r: float) -> None:
         self.t, self.r = t, r  # r: the module's distance (m) from the joint
         self.smooth = list(up)
         self.rate, self.acc = [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]
-        self.acc2 = self.rate2 = self.still = 0.0
+        self.acc2 = self.rate2 = self.still = self.quiet = 0.0
 
     def update(self, t: float, up: list[float], steady: bool) -> None:
         """Take this tick's "up" (a unit vector) at source time ``t`` (s);
@@ -651,7 +654,12 @@ class _Swing:
         # still while the limb moves: no rest then
         still = steady and rate2 < SWING_STILL_RAD_S**2 and self.error_rad() < math.inf
         self.still = self.still + dt if still else 0.0
-        if self.still >= SWING_STILL_S:  # at rest: no swing (and the smoothing's ringing gone)
+        # blind or not, an "up" still for long is a limb at rest (else a swing too fast
+        # to see would hold its dofs for ever after: a sudden move, then rest)
+        quiet = steady and rate2 < SWING_STILL_RAD_S**2
+        self.quiet = self.quiet + dt if quiet else 0.0
+        if self.still >= SWING_STILL_S or self.quiet >= SWING_BLIND_STILL_S:  # at rest: no
+            # swing (and the smoothing's ringing gone)
             self.acc = [0.0, 0.0, 0.0]
             self.acc2 = self.rate2 = 0.0
             return
