@@ -21,6 +21,7 @@ SECTIONS = (
     ("faults", "Faults: time to see them or recover"),
     ("soak", "Soak: one body through gateway and recorder"),
     ("drift", "Calibration on real frames: the subject facing anywhere, 6-axis drift"),
+    ("truth", "Poses against the truth: emulated sessions through `bodynet process`"),
 )
 
 

@@ -120,7 +120,10 @@ def cmd_router(args: argparse.Namespace) -> int:
     return 0
 
 
-BENCHMARKS = ("decode", "solver", "gateway", "peer", "rate", "recorder", "faults", "soak", "drift")
+BENCHMARKS = ("decode", "solver", "gateway", "peer", "rate", "recorder", "faults", "soak", "drift",
+              "truth")  # fmt: skip
+#: run only when asked for (--only): long, or measuring no speed
+ON_DEMAND = ("soak", "drift", "truth")
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
@@ -131,8 +134,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
               "(pip install -e '.[bench]', as make bench does)", file=sys.stderr)  # fmt: skip
         return 2
 
-    # the soak and the drift (10 emulated minutes, five times) on demand
-    only = args.only or [b for b in BENCHMARKS if b not in ("soak", "drift")]
+    only = args.only or [b for b in BENCHMARKS if b not in ON_DEMAND]
     if "decode" in only:
         decode.run(seconds=args.seconds, out_dir=args.out)
     if "solver" in only:
@@ -154,6 +156,10 @@ def cmd_bench(args: argparse.Namespace) -> int:
         from bodynet.bench import drift
 
         drift.run(out_dir=args.out, minutes=args.drift_minutes)
+    if "truth" in only:
+        from bodynet.bench import truth
+
+        truth.run(out_dir=args.out, seeds=args.truth_seeds)
     if "soak" in only:
         result = soak.run(minutes=args.minutes, out_dir=args.out)
         if not result["pass"]:
@@ -224,14 +230,17 @@ def add_bench_args(p: argparse.ArgumentParser) -> None:
                         "subscriber (the floor) one after the other, each on the machine "
                         "alone")  # fmt: skip
     p.add_argument("--only", action="append", choices=BENCHMARKS,
-                   help="run only this benchmark (repeatable; default all but soak and "
-                        "drift)")  # fmt: skip
+                   help="run only this benchmark (repeatable; default all but "
+                        f"{', '.join(ON_DEMAND)})")  # fmt: skip
     p.add_argument(
         "--drift-minutes",
         type=argtypes.bounded_float(0.5, 120.0, "minutes"),
         default=10.0,
         help="emulated minutes of the drift benchmark (default 10)",
     )
+    p.add_argument("--truth-seeds", type=argtypes.positive_int(1000, "seed"), nargs="+",
+                   default=[1, 2], help="seeds of the truth benchmark's scenarios "
+                                        "(default 1 2)")  # fmt: skip
     p.add_argument("--rate-hz", type=argtypes.RATE_HZ, default=1000.0,
                    help="per-node rate of the `rate` benchmark (default 1000)")  # fmt: skip
     p.add_argument("--repeat", type=argtypes.positive_int(100, "runs"), default=3,

@@ -295,3 +295,28 @@ def test_heading_stall_benchmark_reports_the_other_bodys_gaps() -> None:
     gaps = int(line.split("their gaps ")[1].split(",")[0])
     assert gaps > 20, line  # the calibrated body's poses kept coming
     assert "a's step max " in line
+
+
+def test_tiny_truth_benchmark_compares_recorded_sessions_with_the_truth(tmp_path: Path) -> None:
+    """Two short sessions written as recordings and solved by ``bodynet process``:
+    the table has a row each and its measured dofs agree with the truth within
+    twice their uncertainty, but for a few (the locked walk has none off now)."""
+    from bodynet.bench import truth
+
+    names = ["locked-walk-s1", "hybrid-instead-reach-s1"]
+    result = truth.run(tmp_path, only=names, seconds=7.0)
+    rows = {r["name"]: r for r in result["scenarios"]}
+    assert list(rows) == names
+    walk, arm = rows["locked-walk-s1"], rows["hybrid-instead-reach-s1"]
+    assert walk["heading"] == "found"
+    assert walk["other"]["n"] > 1000
+    assert walk["other"]["share_gt_2unc"] < 0.05
+    # the SmartSuit modules' elbow is measured where the tags' heading is not found
+    assert any(w["dof"] == "left_elbow_flexion_deg" for w in arm["other"]["worst"])
+    assert arm["other"]["rms_deg"] < 5
+    table = (tmp_path / "truth.md").read_text()
+    assert "| scenario | measured / flagged | beyond 2x unc |" in table
+    assert "| locked-walk-s1 |" in table and "| hybrid-instead-reach-s1 |" in table
+    assert json.loads((tmp_path / "truth.json").read_text()) == result
+    with pytest.raises(ValueError, match="no truth scenario named nothing"):
+        truth.run(tmp_path, only=["nothing"])
