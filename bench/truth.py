@@ -60,6 +60,8 @@ BLEND_S = 1.0
 GRID_S = 0.005
 #: a shoulder's dofs are counted apart while its abduction is past this (gimbal lock)
 GIMBAL_ABDUCTION_DEG = 60.0
+#: the tag that dies in the ``die-`` scenarios
+LEFT_THIGH = "body/leg/left/thigh/raw"
 #: worst dofs listed per scenario (each dof once)
 WORST = 6
 
@@ -81,7 +83,7 @@ class Scenario:
     timers: str = "independent"  # or "locked": every sensor sampled at once
     jitter_s: float = 0.002
     drop: float = 0.0  # share of samples lost after the pose
-    die: tuple[int, float] | None = None  # (sensor index, time s): it sends nothing from then
+    die: tuple[str, float] | None = None  # (raw key, time s): that sensor sends nothing from then
     hybrid: str = ""  # "beside": SmartSuit left-arm modules and the tags; "instead": no arm tags
     seconds: float = 20.0
     seed: int = 1
@@ -97,31 +99,33 @@ def scenarios(seeds: Iterable[int] = (1, 2)) -> list[Scenario]:
                   "elbow-slow", "bow"):  # fmt: skip
             out.append(S(f"shared-auto-{m}-s{seed}", motion=m, seed=seed, facing=37.0 * seed))
     for seed in seeds:
-        walk = S(f"-walk-s{seed}", seed=seed)
+        walk = S("walk", seed=seed)  # each named below
         protocol = replace(walk, motion="protocol", headings=Headings.INDEPENDENT,
                            heading_mode="independent", drift=3.0, seconds=30.0)  # fmt: skip
+        # fmt: off
         out += [
             *(replace(walk, name=f"noise{n}-walk-s{seed}", noise=n, facing=200.0)
-              for n in (0.3, 1.0, 2.0)),  # fmt: skip
+              for n in (0.3, 1.0, 2.0)),
             replace(walk, name=f"wobble3-walk-s{seed}", wobble=3.0, facing=110.0),
             replace(walk, name=f"wobble3-full-s{seed}", motion="full-body", wobble=3.0),
             replace(walk, name=f"fixed-walk-s{seed}", heading_mode="fixed"),
             replace(walk, name=f"drifting5-fixed-walk-s{seed}", headings=Headings.DRIFTING,
-                    drift=5.0, heading_mode="fixed", seconds=30.0),  # fmt: skip
+                    drift=5.0, heading_mode="fixed", seconds=30.0),
             replace(walk, name=f"shared-drift5-auto-walk-s{seed}", drift=5.0, facing=300.0),
             replace(protocol, name=f"indep-protocol-npose-s{seed}", pose="npose"),
             replace(protocol, name=f"indep-protocol-tpose-s{seed}"),
             replace(walk, name=f"given-indep-walk-s{seed}", headings=Headings.INDEPENDENT,
-                    heading_mode="given"),  # fmt: skip
+                    heading_mode="given"),
             replace(walk, name=f"locked-walk-s{seed}", timers="locked", jitter_s=0.0),
             replace(walk, name=f"jitter20-drop10-walk-s{seed}", jitter_s=0.02, drop=0.1),
-            replace(walk, name=f"die-rshank-walk-s{seed}", die=(9, 10.0)),  # the 10th tag
+            replace(walk, name=f"die-lthigh-walk-s{seed}", die=(LEFT_THIGH, 10.0)),
             replace(walk, name=f"hybrid-beside-reach-s{seed}", hybrid="beside", motion="reach"),
             replace(walk, name=f"hybrid-instead-reach-s{seed}", hybrid="instead",
-                    motion="reach"),  # fmt: skip
+                    motion="reach"),
             replace(walk, name=f"hybrid-instead-walk-s{seed}", hybrid="instead"),
             replace(walk, name=f"auto-indep-walk-s{seed}", headings=Headings.INDEPENDENT),
         ]
+        # fmt: on
     return out
 
 
@@ -162,16 +166,17 @@ def sensors_of(sc: Scenario) -> list[EmulatedSensor]:
     return tags
 
 
-def schedule(sc: Scenario, sensors: int, rng: np.random.Generator) -> list[tuple[float, int]]:
+def schedule(sc: Scenario, sensors: Sequence[EmulatedSensor],
+             rng: np.random.Generator) -> list[tuple[float, int]]:  # fmt: skip
     """(time s, sensor index) of every sample, in time order, on ``GRID_S``: each
     sensor on its own timer (or all locked), jittered, some dropped, one dying."""
     period = 1.0 / sc.rate_hz
     events = []
-    for i in range(sensors):
+    for i, sensor in enumerate(sensors):
         offset, own = 0.0, period
         if sc.timers != "locked":
             offset, own = rng.uniform(0, period), period * (1 + rng.uniform(-100, 100) * 1e-6)
-        end = sc.die[1] if sc.die and sc.die[0] == i else sc.seconds
+        end = sc.die[1] if sc.die and sc.die[0] == sensor.site.raw_key else sc.seconds
         for k in itertools.count():
             t = offset + k * own + (rng.uniform(0, sc.jitter_s) if sc.jitter_s else 0.0)
             if t >= min(end, sc.seconds):
@@ -185,7 +190,7 @@ def schedule(sc: Scenario, sensors: int, rng: np.random.Generator) -> list[tuple
 def record(sc: Scenario, body: BodyEmulator, path: Path) -> None:
     """The scenario's samples as a bodynet recording: each sensor's raw samples on
     its key, at its own times, numbered per sensor (as the recorder writes them)."""
-    events = schedule(sc, len(body.sensors), np.random.default_rng(sc.seed + 100))
+    events = schedule(sc, body.sensors, np.random.default_rng(sc.seed + 100))
     seq = [0] * len(body.sensors)
     sink = McapSink(path)
     try:
