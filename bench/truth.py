@@ -46,7 +46,7 @@ from bodynet.nodes.emulator import (
     imu_tags,
     smartsuit_sensors,
 )
-from bodynet.nodes.motion import ROUTINES, Routine, bow, heading_protocol
+from bodynet.nodes.motion import ROUTINES, Routine, bow, eased, heading_protocol
 from bodynet.offline.process import process
 
 Angles = Callable[[float], dict[str, float]]
@@ -142,10 +142,7 @@ def motion(name: str, pose: str) -> Angles:
         if t < HOLD_S:
             return dict(still)
         m = moving(t - HOLD_S)
-        if t >= HOLD_S + BLEND_S:
-            return m
-        w = 0.5 - 0.5 * math.cos(math.pi * (t - HOLD_S) / BLEND_S)
-        return {n: (1 - w) * still.get(n, 0.0) + w * m.get(n, 0.0) for n in set(m) | set(still)}
+        return m if t >= HOLD_S + BLEND_S else eased(still, m, (t - HOLD_S) / BLEND_S)
 
     return angles
 

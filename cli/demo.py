@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import contextlib
 import json
-import math
 import os
 import sys
 import threading
@@ -30,7 +29,7 @@ from bodynet.core.codecs import pose
 from bodynet.core.errors import DecodeError
 from bodynet.core.skeleton import TPOSE
 from bodynet.gateway.service import Gateway
-from bodynet.nodes.motion import ROUTINES, Routine, keyframes
+from bodynet.nodes.motion import ROUTINES, Routine, eased, keyframes
 from bodynet.nodes.services import EmulationOptions, body_plan, run_node
 from bodynet.session import SessionError, open_session, session_config
 from bodynet.session.outputs import PendingOutput, check_output
@@ -122,8 +121,7 @@ def demo_motion(moves: Callable[[float], dict[str, float]]) -> Callable[[float],
         now = moves(t)
         if t >= EASE_S:
             return now
-        w = 0.5 - 0.5 * math.cos(math.pi * t / EASE_S)
-        return {n: (1 - w) * TPOSE.get(n, 0.0) + w * now.get(n, 0.0) for n in {*TPOSE, *now}}
+        return eased(TPOSE, now, t / EASE_S)
 
     return angles
 

@@ -62,12 +62,12 @@ def keyframes(
         if i == len(times) - 1:
             return {n: frames[i][1].get(n, 0.0) for n in names}
         (t0, a), (t1, b) = frames[i], frames[i + 1]
-        return _eased(a, b, (t - t0) / (t1 - t0), names)
+        return eased(a, b, (t - t0) / (t1 - t0), names)
 
     return angles
 
 
-def _eased(a: Pose, b: Pose, x: float, names: Iterable[str] | None = None) -> dict[str, float]:
+def eased(a: Pose, b: Pose, x: float, names: Iterable[str] | None = None) -> dict[str, float]:
     """From pose ``a`` (``x`` = 0) to ``b`` (``x`` = 1), cosine-eased (no jump in
     angle or speed at either end); a name missing from a pose is 0 there."""
     w = 0.5 - 0.5 * math.cos(math.pi * min(max(x, 0.0), 1.0))
@@ -240,7 +240,7 @@ def heading_protocol(bow_at_s: float = 31.0, reach_until_s: float = math.inf,
         reaching = {**walk, **left((t - 1.0) % 16.5), **right((t - 1.0) % 16.5)}
         if t < reach_until_s:
             return reaching
-        return _eased(reaching, walk, (t - reach_until_s) / ease)
+        return eased(reaching, walk, (t - reach_until_s) / ease)
 
     def angles(t: float) -> dict[str, float]:
         if t < 1.0:
@@ -248,11 +248,11 @@ def heading_protocol(bow_at_s: float = 31.0, reach_until_s: float = math.inf,
         if bow_at_s <= t < bow_end:
             return {**still, **down(t - bow_at_s)}
         if t < 1.0 + ease:
-            return _eased(still, moving(t), (t - 1.0) / ease)
+            return eased(still, moving(t), (t - 1.0) / ease)
         if bow_at_s - ease <= t < bow_at_s:
-            return _eased(moving(t), still, (t - bow_at_s + ease) / ease)
+            return eased(moving(t), still, (t - bow_at_s + ease) / ease)
         if bow_end <= t < bow_end + ease:
-            return _eased(still, moving(t), (t - bow_end) / ease)
+            return eased(still, moving(t), (t - bow_end) / ease)
         return moving(t)
 
     return Routine("heading-protocol", "calibration pose, walking and reaching, a bow", angles)
