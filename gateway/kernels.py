@@ -298,6 +298,32 @@ NO_TIME = -(2**62)
 _I2 = "int64[:, :]"
 
 
+@_compiled("UniTuple(float64, 2)(int64, int64, int64, float64, float64, int64, int64, float64)")
+def ahead(t_ns, previous_ns, target_ns, turned_rad, noise_rad, max_span_ns, max_ahead_ns,
+          change_per_s):  # fmt: skip
+    """How far (rad) a sensor that turned ``turned_rad`` (>= 0) from its sample at
+    ``previous_ns`` to its sample at ``t_ns`` goes on turning, at that rate, to
+    ``target_ns``, and how far (deg, two standard deviations) that may be off:
+    :func:`align_quats`'s rule for one sensor (a tag's turn or an encoder's),
+    ``noise_rad`` each sample's noise. Nothing (0, 0) without a previous sample
+    (``NO_TIME``), for a target not after ``t_ns`` or a span over ``max_span_ns``."""
+    span = t_ns - previous_ns
+    step = min(target_ns - t_ns, max_ahead_ns, 2 * span)
+    if previous_ns == NO_TIME or step <= 0 or span > max_span_ns or turned_rad <= 0.0:
+        return 0.0, 0.0
+    # a rate from two noisy samples: their turn is off by about sqrt(2) * noise,
+    # so a turn less than twice that gives none and one not far above it is shrunk
+    # (against emulated white noise of 2 deg a gain of 1 - (sqrt(2) scatter / turn)^2
+    # added a tenth to the walking knees' RMS error; this one left them as unaligned)
+    gain = 1.0 - 8.0 * (noise_rad / turned_rad) ** 2
+    if gain <= 0.0:
+        return 0.0, 0.0
+    rate = turned_rad * gain / span  # rad/ns
+    more = rate * step
+    return more, _DEG * (more * change_per_s * (0.5 * span + step) * 1e-9
+                         + rate * (target_ns - t_ns - step))  # fmt: skip
+
+
 @_compiled(f"({_A2}, {_I1}, int64, {_I2}, {_A3}, {_F1}, int64, int64, float64)")
 def align_quats(
     quats, t_ns, target_ns, times, held, scatter_rad, max_span_ns, max_ahead_ns, change_per_s
@@ -326,9 +352,7 @@ def align_quats(
             held[s, 0, :] = held[s, 1, :]
             times[s, 1] = t
             held[s, 1, :] = quats[s, :]
-        span = t - times[s, 0]
-        step = min(target_ns - t, max_ahead_ns, 2 * span)
-        if times[s, 0] == NO_TIME or step <= 0 or span > max_span_ns:
+        if times[s, 0] == NO_TIME or t >= target_ns:
             continue
         pw, px, py, pz = held[s, 0, 0], held[s, 0, 1], held[s, 0, 2], held[s, 0, 3]
         w, x, y, z = quats[s, 0], quats[s, 1], quats[s, 2], quats[s, 3]
@@ -348,18 +372,12 @@ def align_quats(
         sin_half = math.sqrt(rx * rx + ry * ry + rz * rz)
         if sin_half < 1e-12:
             continue
-        half = math.atan2(sin_half, rw)
-        # a rate from two noisy samples: their turn is off by about sqrt(2) * scatter,
-        # so a turn less than twice that gives none and one not far above it is shrunk
-        # (against emulated white noise of 2 deg a gain of 1 - (sqrt(2) scatter / turn)^2
-        # added a tenth to the walking knees' RMS error; this one left them as unaligned)
-        gain = 1.0 - 2.0 * (scatter_rad[s] / half) ** 2
-        if gain <= 0.0:
+        more, residual[s] = ahead(t, times[s, 0], target_ns, 2.0 * math.atan2(sin_half, rw),
+                                  scatter_rad[s], max_span_ns, max_ahead_ns,
+                                  change_per_s)  # fmt: skip
+        if more <= 0.0:
             continue
-        rate = 2.0 * half * gain / span  # rad/ns
-        half *= gain * step / span  # half the angle turned in ``step``
-        residual[s] = _DEG * (2.0 * half * change_per_s * (0.5 * span + step) * 1e-9
-                              + rate * (target_ns - t - step))  # fmt: skip
+        half = 0.5 * more
         c, k = math.cos(half), math.sin(half) / sin_half
         dw, dx, dy, dz = c, rx * k, ry * k, rz * k
         out[s, 0] = w * dw - x * dx - y * dy - z * dz

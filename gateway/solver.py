@@ -59,6 +59,7 @@ import pinocchio as pin
 from scipy.spatial.transform import Rotation
 
 from bodynet.core import keys
+from bodynet.core.calibration import OleCalibration
 from bodynet.core.codecs.pose import (
     CLAMPED,
     HELD,
@@ -114,6 +115,10 @@ UNC_TAG_DEG = 2.0
 #: ``|cos|`` of the middle dof (the split's Jacobian), at most this: any angle at all.
 UNC_SPLIT_MAX_DEG = 180.0
 UNC_OLE_DEG = 0.5  # an encoder's dof: 0.1 mm of travel is at most 0.23 deg, plus slack
+#: an encoder's noise (rad, each sample's): a turn from its sample before not well above
+#: it gives no rate (``kernels.ahead``): under 0.28 deg none, so a count (0.23 deg at
+#: most) flickering at rest turns nothing
+OLE_NOISE_RAD = math.radians(0.1)
 #: a module's filtered "up": the accelerometer's bias and noise (about 0.03), and the
 #: body's own acceleration up to about 0.07 g (a 90 degree lift of the arm in 3 s, at the
 #: hand); faster movement errs by more where its acceleration is across gravity, which an
@@ -154,8 +159,9 @@ STALE_INTERVALS, STALE_FLOOR_S = 3.0, 0.05
 #: ``RHYTHM_SPANS`` runs of ``RHYTHM_RUN`` samples (a run's mean, not each interval:
 #: the gateway takes samples in rounds, several of a site at one arrival time).
 RHYTHM_RUN, RHYTHM_SPANS = 32, 5
-#: A tick's orientations are brought to its time (its newest sample's) on each
-#: sensor's rate between its last two samples (:func:`kernels.align_quats`): at most
+#: A tick's orientations (and encoders' angles) are brought to its time (its newest
+#: sample's) on each sensor's rate between its last two samples
+#: (:func:`kernels.align_quats`, :meth:`BodySolver._encoder_now`): at most
 #: ``ALIGN_AHEAD_NS`` (and twice that span) ahead, from a span of at most ``ALIGN_SPAN_NS``.
 ALIGN_AHEAD_NS = round(STALE_FLOOR_S * 1e9)
 ALIGN_SPAN_NS = 100_000_000
@@ -580,6 +586,10 @@ class _Memory:
     swing: dict[str, _Swing] = field(default_factory=dict)  # each shoulder or hip module's
     expected: set[str] = field(default_factory=set)  # segments an orientation sensor is on
     first_t_ns: int = -1  # the body's first tick (source time)
+    # each encoder's last two samples (raw key -> previous time and angle, latest time
+    # and angle, and the calibration and zero they were read with): BodySolver._encoder_now
+    encoders: dict[str, tuple[int, float, int, float, OleCalibration, int]] = \
+        field(default_factory=dict)  # fmt: skip
 
 
 _NO_FRAMES = np.zeros((0, 3, 3))
@@ -1437,8 +1447,9 @@ class BodySolver:
         zero = self.encoder_zeros.get(site.raw_key)
         counts = reading.encoder if zero is None else zero.angle_counts(reading.encoder)
         if cal is not None and counts is not None:
-            values[ole_index] = float(cal.angle_deg(counts))
-            unc[ole_index] = UNC_OLE_DEG
+            values[ole_index], late = self._encoder_now(site.raw_key, float(cal.angle_deg(counts)),
+                                                        cal, zero, tick)  # fmt: skip
+            unc[ole_index] = math.hypot(UNC_OLE_DEG, late)  # as a tag's residual widens its joints'
         else:
             why[ole_index].add(UNCALIBRATED)
         if len(names) == 3 and ole_index == 2:  # shoulder, hip: flexion and abduction from tilt
@@ -1472,6 +1483,31 @@ class BodySolver:
             for w in why:
                 w.update(_STALE)
         return values, unc, why
+
+    def _encoder_now(self, key: str, angle_deg: float, cal: OleCalibration,
+                     zero: EncoderZero | None,
+                     tick: _Tick) -> tuple[float, float]:  # fmt: skip
+        """An encoder's angle (deg) from its sample, brought to the tick's time on its
+        rate between its last two samples as the tags' orientations are
+        (:func:`kernels.ahead`), and how far (deg) that may be off: a module on a
+        timer of its own samples up to a period before the tick, an elbow at 100
+        deg/s turning 2 deg meanwhile. A calibration or zero that changed starts
+        its history over (its angles jumped)."""
+        t_ns = tick.sources[key]
+        history = self._memory.encoders
+        counts = zero.counts if zero is not None else 0
+        had = history.get(key)
+        if had is None or had[4] is not cal or had[5] != counts or t_ns < had[2]:
+            before_ns, before = kernels.NO_TIME, angle_deg
+        elif t_ns == had[2]:  # the same sample again: the same two
+            before_ns, before = had[0], had[1]
+        else:
+            before_ns, before = had[2], had[3]
+        history[key] = (before_ns, before, t_ns, angle_deg, cal, counts)
+        turned = math.radians(angle_deg - before)
+        more, late = kernels.ahead(t_ns, before_ns, tick.t_ns, abs(turned), OLE_NOISE_RAD,
+                                   ALIGN_SPAN_NS, ALIGN_AHEAD_NS, ALIGN_CHANGE_PER_S)  # fmt: skip
+        return angle_deg + math.copysign(math.degrees(more), turned), late
 
     def _swing(self, site: Site, segment: str, up: tuple[np.ndarray, float], tick: _Tick) -> float:
         """Take a shoulder or hip module's "up" into its swing's history; how far

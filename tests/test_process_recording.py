@@ -18,8 +18,10 @@ from bodynet.core.codecs import imu_matrix
 from bodynet.core.keys import LEFT_ARM
 from bodynet.core.messages import RESUMED, Quat, RawSample, Source
 from bodynet.core.skeleton import CALIBRATION_POSES, TPOSE
+from bodynet.gateway.solver import UNC_OLE_DEG
 from bodynet.nodes.emulator import BodyEmulator, Realism, imu_tags, smartsuit_sensors
 from bodynet.nodes.motion import ROUTINES, Routine, keyframes
+from bodynet.offline.process import process
 from tests.test_calibrate_recording import T0_NS, record_tags
 from tests.test_encoder_reboot import candump_line
 
@@ -164,3 +166,40 @@ def test_a_recording_of_several_subjects_and_one_that_is_not_mcap(
     assert "Traceback" not in err
     assert len(err.strip().splitlines()) == 1, err
     assert not (tmp_path / "b-out.mcap").exists()
+
+
+def test_a_smartsuit_elbow_on_its_own_timer_states_its_samples_age(tmp_path: Path) -> None:
+    """The SmartSuit left arm's modules instead of the arm's tags, every sensor on
+    its own timer at 50 Hz (the truth benchmark's session, recorded and processed):
+    the encoder's sample is up to a period older than the pose, and the elbow
+    reaching at up to 95 deg/s turns 2 deg meanwhile. Brought to the pose's time
+    with what that leaves stated, its flexion is within twice its ``unc_deg`` of
+    the truth in nearly every tick of the reach (taken as sampled, with 0.5 deg:
+    a quarter beyond it); still, after the reach, its uncertainty is the encoder's
+    own (nothing moved, nothing added)."""
+    from bodynet.bench import truth
+
+    sc = truth.Scenario("instead-reach", motion="reach", hybrid="instead", seconds=9.0)
+    angles = truth.motion(sc.motion, sc.pose)
+    body = BodyEmulator(Routine(sc.name, "", angles), truth.sensors_of(sc),
+                        realism=Realism(quat_noise_deg=sc.noise), seed=sc.seed)  # fmt: skip
+    recording, poses = tmp_path / "reach.mcap", tmp_path / "poses.mcap"
+    truth.record(sc, body, recording)
+    process(recording, "mcap", poses, truth.profile_of(sc, body), tpose_s=truth.HOLD_S,
+            pose=sc.pose)  # fmt: skip
+    dof = "left_elbow_flexion_deg"
+    moving, beyond, still = 0, 0, []
+    for t_ns, frame in read_poses(poses):
+        t = t_ns / 1e9
+        if t < truth.HOLD_S or dof in frame.flags:
+            continue
+        error = abs(frame.angles_deg[dof] - angles(t).get(dof, 0.0))
+        if 4.5 < t < 7.5:  # the reach: the elbow bends to 90 deg and back
+            moving += 1
+            beyond += error > 2 * frame.unc_deg[dof]
+        elif t > 7.6:  # the elbow still (the shoulder and wrist go on)
+            still.append(frame.unc_deg[dof])
+    assert moving > 250  # ~3 s of ticks, and 1.4 s still: nothing flagged away
+    assert len(still) > 100
+    assert beyond / moving < 0.005, (beyond, moving)
+    assert set(still) == {UNC_OLE_DEG}
