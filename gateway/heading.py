@@ -22,8 +22,9 @@ parent tag's frame, turns about the joint axis, which is the parent segment's
 lateral axis (Seel et al. 2014). That axis, in the tag's reference frame at
 calibration, against where the pose puts it in the body's frame, is the
 heading. A hinge whose axis was vertical in the pose (the elbow in a T-pose)
-tells nothing and is skipped. Until the heading is known the solver flags the
-dofs it would drive ``uncalibrated``.
+tells nothing and is skipped; the elbow and wrist as two-dof joints then may
+(:class:`SharedTwoDof`: their two axes stay perpendicular). Until the heading
+is known the solver flags the dofs it would drive ``uncalibrated``.
 """
 
 from __future__ import annotations
@@ -842,6 +843,110 @@ class ElbowPairs:
             out[p], out[c], self.unc_deg[side] = found
 
 
+class SharedTwoDof:
+    """Finds the tags' shared heading (``auto``) from an elbow's or wrist's motion as a
+    two-dof joint, where no hinge tells (after a T-pose the elbow's flexion axis
+    is vertical, and an arm-only session bends no knee).
+
+    The joint's first axis is fixed in the parent (the elbow's flexion axis, the
+    wrist's flexion axis), its second in the child (the forearm's long axis, the
+    hand's deviation axis), and they stay perpendicular: with one heading for both
+    tags, the misfit of :class:`ElbowPairs` searched over one heading instead of
+    two. After a T-pose it tells once the joint turns about its second axis, or
+    the wrist flexes (an elbow bending alone turns about its vertical axis, which
+    every heading keeps: it tells nothing, and nothing is taken). Samples are taken
+    every ``EVERY_S`` once the child has turned past ``MOVED_DEG`` since
+    calibration; from ``MIN_SAMPLES`` on, every ``TRY_EVERY``, the heading is
+    searched (every 2 deg, none while a heading far from the best and from its
+    twin fits about as well; then least squares) and taken once its uncertainty
+    (:func:`_fit_unc_deg`) is within ``MAX_UNC_DEG`` (``FULL_UNC_DEG`` at
+    ``MAX_SAMPLES``; beyond, the oldest make way). Where one of the joint's axes
+    was vertical in the pose the heading turned by 180 deg keeps the axes as
+    perpendicular (the pronation and the wrist's flexion then come out negated,
+    an arm lowered from a T-pose raised): of the two, the one that keeps the
+    shoulder inside its range of motion wins, by ``TWIN_MARGIN_DEG`` a sample,
+    so the chest's and the upper arm's tags are needed too. The heading found is
+    a candidate, checked by :class:`SharedCheck` before it is taken. The tries run
+    on ``fits`` (:class:`Fits`), one per joint at a time."""
+
+    JOINTS = ("elbow", "wrist")
+    EVERY_S = ElbowPairs.EVERY_S
+    MOVED_DEG = ElbowPairs.MOVED_DEG
+    MIN_SAMPLES = ElbowPairs.MIN_SAMPLES
+    TRY_EVERY = ElbowPairs.TRY_EVERY
+    MAX_SAMPLES = ElbowPairs.MAX_SAMPLES
+    MAX_UNC_DEG = 0.5
+    FULL_UNC_DEG = ElbowPairs.FULL_UNC_DEG
+    TWIN_MARGIN_DEG = 2.0
+
+    def __init__(self, profile: Profile, fits: Fits = INLINE) -> None:
+        by_segment = _tag_by_segment(profile.imu_mounts)
+        segments = pose_segments(profile)
+        self._aside = _Aside(fits)
+        #: joint -> its tags (parent, child, chest, upper arm), each at calibration
+        #: for a heading of 0, and the segments in the pose and axes its try wants
+        self.joints: dict[str, tuple[tuple[str, ...], tuple[np.ndarray, ...], tuple[Any, ...]]] = {}
+        for joint, parent, child, p_axis, c_axis, _ in DRIFT_JOINTS:
+            if joint not in self.JOINTS:
+                continue
+            for side in ("left", "right"):
+                names = (f"{side}_{parent}", f"{side}_{child}", "thorax", f"{side}_upperarm")
+                keys = tuple(by_segment.get(n) for n in names)
+                if None in keys:
+                    continue
+                tags0 = tuple(segments[n] @ _quat_matrix(profile.imu_mounts[k])
+                              for n, k in zip(names, keys, strict=True))  # fmt: skip
+                args = (segments[names[0]], segments[names[1]], (p_axis, c_axis),
+                        segments["thorax"], segments[names[3]])  # fmt: skip
+                self.joints[f"{side}_{joint}"] = (keys, tags0, args)  # type: ignore[assignment]
+        self.samples: dict[str, list[tuple[np.ndarray, ...]]] = {j: [] for j in self.joints}
+        self.heading: float | None = None
+        self.joint: str | None = None  # the joint that gave it
+        self.unc_deg: float | None = None
+        #: per joint, its latest fit's uncertainty (deg: what the search waits for)
+        self.last_unc_deg: dict[str, float] = {}
+        self._last: dict[str, float] = {}
+
+    def update(self, t_s: float, orientations: Mapping[str, QuatWxyz]) -> float | None:
+        """Take one tick's tag orientations; the heading (deg) once found (a candidate
+        for :class:`SharedCheck`), then the same."""
+        for joint, (keys, tags0, args) in self.joints.items():
+            if self.heading is not None:
+                break
+            self._take(joint)
+            if any(k not in orientations for k in keys):
+                continue
+            if t_s - self._last.get(joint, -math.inf) < self.EVERY_S - 1e-6:
+                continue
+            turns = tuple(_quat_matrix(orientations[k]) @ r0.T
+                          for k, r0 in zip(keys, tags0, strict=True))  # fmt: skip
+            if np.linalg.norm(_rotvec(turns[1])) < math.radians(self.MOVED_DEG):
+                continue
+            self._last[joint] = t_s
+            samples = self.samples[joint]
+            samples.append(turns)
+            if self._aside.due(joint, samples, self.MIN_SAMPLES, self.TRY_EVERY):
+                full = len(samples) >= self.MAX_SAMPLES
+                most = self.FULL_UNC_DEG if full else self.MAX_UNC_DEG
+                self._aside.start(joint, samples, _shared_two_dof_try, *args, most)
+                self._take(joint)
+        return self.heading
+
+    def _take(self, joint: str) -> None:
+        """A joint's try, once done: the heading when it is taken."""
+        done = self._aside.done(joint)
+        if done is None or self.heading is not None:
+            return
+        (unc, found), n = done
+        if unc is not None:
+            self.last_unc_deg[joint] = unc
+        if found is not None:
+            self.heading, self.unc_deg = found
+            self.joint = joint
+        elif n >= self.MAX_SAMPLES:  # not telling yet
+            _make_way(self.samples[joint], self.TRY_EVERY, self.MAX_SAMPLES)
+
+
 class TrunkBow:
     """Finds the heading of the pelvis', chest's and head's tags with references of
     their own (``independent``) from a bow.
@@ -1134,6 +1239,21 @@ def _elbow_pair_segments(samples: Sequence[tuple[np.ndarray, np.ndarray]], seg_p
     return b_p, b_c
 
 
+#: the elbow's axes: its flexion axis in the upper arm (y), its pronation axis in the forearm (z)
+ELBOW_AXES = (1, 2)
+
+
+def _axes_dot(b_p: np.ndarray, b_c: np.ndarray, axes: tuple[int, int],
+              outer: bool = False) -> np.ndarray:  # fmt: skip
+    """A two-dof joint's misfit: the dot product of its axes (``axes``: the parent's,
+    fixed in the parent segment, and the child's; 0 when perpendicular) per sample,
+    for each parent and child segment of ``b_p`` and ``b_c`` ((k, n, 3, 3), as
+    :func:`_elbow_pair_segments` gives): (k, n), each parent with its child
+    (``outer``: (kp, kc, n), each parent with each child)."""
+    p, c = b_p[..., :, axes[0]], b_c[..., :, axes[1]]
+    return np.einsum("pni,cni->pcn" if outer else "kni,kni->kn", p, c)  # type: ignore[no-any-return]
+
+
 def _elbow_pair_cost(samples: Sequence[tuple[np.ndarray, np.ndarray]], seg_p: np.ndarray,
                      seg_c: np.ndarray, psi_p: np.ndarray, psi_c: np.ndarray
                      ) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
@@ -1142,7 +1262,7 @@ def _elbow_pair_cost(samples: Sequence[tuple[np.ndarray, np.ndarray]], seg_p: np
     summed over the samples) its flexion falls outside its range."""
     lo, hi = rom("left_elbow_flexion_deg")
     b_p, b_c = _elbow_pair_segments(samples, seg_p, seg_c, psi_p, psi_c)
-    perp = np.sqrt((np.einsum("pni,cni->pcn", b_p[..., :, 1], b_c[..., :, 2]) ** 2).mean(-1))
+    perp = np.sqrt((_axes_dot(b_p, b_c, ELBOW_AXES, outer=True) ** 2).mean(-1))
     # the forearm in the upper arm: its flexion about -y
     rel_20 = np.einsum("pni,cni->pcn", b_p[..., :, 2], b_c[..., :, 0])
     rel_00 = np.einsum("pni,cni->pcn", b_p[..., :, 0], b_c[..., :, 0])
@@ -1187,7 +1307,7 @@ def _elbow_pair_refine(samples: Sequence[tuple[np.ndarray, np.ndarray]], seg_p: 
 
     def residuals(x: np.ndarray) -> np.ndarray:
         b_p, b_c = _elbow_pair_segments(samples, seg_p, seg_c, x[:1], x[1:])
-        return np.einsum("ni,ni->n", b_p[0, :, :, 1], b_c[0, :, :, 2])  # type: ignore[no-any-return]
+        return _axes_dot(b_p, b_c, ELBOW_AXES)[0]
 
     fit = least_squares(residuals, np.array(start), method="lm")
     psi_p, psi_c = (float(v) for v in fit.x)
@@ -1232,6 +1352,72 @@ def _elbow_pair_try(samples: Sequence[tuple[np.ndarray, np.ndarray]], seg_p: np.
         return round(unc, 2), None, None, False
     found = _wrap(math.degrees(psi_p)), _wrap(math.degrees(psi_c)), round(unc, 3)
     return round(unc, 2), None, found, False
+
+
+def _shoulders_outside(samples: Sequence[tuple[np.ndarray, ...]], seg_t: np.ndarray,
+                       seg_u: np.ndarray, psi: float) -> float:  # fmt: skip
+    """How far (deg, summed over the ``samples``: each holds the chest's and the upper
+    arm's tag turns since calibration last) the shoulder falls outside its range of
+    motion under the shared heading ``psi`` (rad)."""
+    from bodynet.gateway.solver import JointAxes
+
+    shoulder = JointAxes.of(build_skeleton().joint("left_shoulder"))
+    b_t, b_u = _elbow_pair_segments([s[-2:] for s in samples], seg_t, seg_u,
+                                    np.array([psi]), np.array([psi]))  # fmt: skip
+    total = 0.0
+    for t, u in zip(b_t[0], b_u[0], strict=True):
+        angles = shoulder.split(t.T @ u, None)
+        total += sum(max(0.0, lo - v, v - hi) for v, (lo, hi)
+                     in zip(angles, shoulder.limits, strict=True))  # fmt: skip
+    return total
+
+
+def _shared_two_dof_try(samples: Sequence[tuple[np.ndarray, ...]], seg_p: np.ndarray,
+                        seg_c: np.ndarray, axes: tuple[int, int], seg_t: np.ndarray,
+                        seg_u: np.ndarray, most: float
+                        ) -> tuple[float | None, tuple[float, float] | None]:  # fmt: skip
+    """One try of :class:`SharedTwoDof` at a joint: the shared heading (rad) that keeps
+    the joint's axes perpendicular over the ``samples`` (each the parent's and
+    child's tag turns since calibration, then the chest's and upper arm's), the
+    same misfit as :class:`ElbowPairs`' with one heading for both tags. Returns
+    the fit's uncertainty (deg; None without a fit) and, once it is within
+    ``most``, the heading (deg) and its uncertainty, its 180 deg twin (which keeps
+    the axes as perpendicular when one of them was vertical in the pose: the
+    T-pose's elbow and wrist) told apart by the shoulder's range of motion."""
+    from scipy.optimize import least_squares
+
+    pairs = [s[:2] for s in samples]
+
+    def dots(psi: np.ndarray) -> np.ndarray:
+        b_p, b_c = _elbow_pair_segments(pairs, seg_p, seg_c, psi, psi)
+        return _axes_dot(b_p, b_c, axes)
+
+    grid = np.radians(np.arange(0.0, 360.0, 2.0))
+    rms = np.sqrt((dots(grid) ** 2).mean(axis=1))
+    best = int(np.argmin(rms))
+    # a heading far from the best and from its twin that fits about as well: the
+    # joint has not moved the way that tells (an elbow bending alone after a T-pose)
+    far = np.minimum(np.abs(_wrap_rad(grid - grid[best])),
+                     np.abs(_wrap_rad(grid - grid[best] - math.pi)))  # fmt: skip
+    rivals = far > math.radians(20.0)
+    if rivals.any() and rms[rivals].min() < 2.0 * rms[best]:
+        return None, None
+    fit = least_squares(lambda x: dots(x)[0], grid[best : best + 1], method="lm")
+    psi = float(fit.x[0])
+    if abs(_wrap(math.degrees(psi - grid[best]))) > 10.0:
+        return None, None  # left the basin
+    misfit = math.degrees(math.asin(min(1.0, math.sqrt(float(np.mean(fit.fun**2))))))
+    if misfit > CHILD_MISFIT_DEG:
+        return None, None  # not this joint's motion (tags with headings of their own)
+    unc = _fit_unc_deg(fit.fun, fit.jac)
+    if unc > most:
+        return round(unc, 2), None
+    here, twin = (_shoulders_outside(samples, seg_t, seg_u, x) for x in (psi, psi + math.pi))
+    if twin - here < SharedTwoDof.TWIN_MARGIN_DEG * len(samples):
+        if here - twin < SharedTwoDof.TWIN_MARGIN_DEG * len(samples):
+            return round(unc, 2), None  # the shoulder's range does not tell the twins apart
+        psi += math.pi
+    return round(unc, 2), (_wrap(math.degrees(psi)), round(unc, 3))
 
 
 def _fit_unc_deg(residuals: np.ndarray, jacobian: np.ndarray) -> float:
@@ -1483,14 +1669,14 @@ class BodyHeading:
     """A body's heading between calibration and the solver.
 
     With tags of unknown heading (``auto`` mode, nothing declared) it feeds each
-    tick to a :class:`HingeHeading`, and once that finds the heading and the
-    joints it drives confirm that the tags share it (:class:`SharedCheck`),
-    returns the profile with it (:meth:`update`); when they do not, the tags
-    have headings of their own, and it estimates each tag's as ``independent``
-    mode does, from the calibration on (the profile's ``heading`` becomes
-    ``independent``; :meth:`step` says so once, ``switched``). :meth:`state`
-    says where it stands, for the pose's health and the user. The searches'
-    fits run on ``fits`` (:class:`Fits`): inline by default, where a result is
+    tick to a :class:`HingeHeading` and a :class:`SharedTwoDof` (the elbows and
+    wrists), and once one finds the heading and the joints it drives confirm
+    that the tags share it (:class:`SharedCheck`), returns the profile with it
+    (:meth:`update`); when they do not, the tags have headings of their own,
+    and it estimates each tag's as ``independent`` mode does, from the
+    calibration on (the profile's ``heading`` becomes ``independent``;
+    :meth:`step` says so once, ``switched``). :meth:`state` says where it
+    stands, for the pose's health and the user. The searches' fits run on ``fits`` (:class:`Fits`): inline by default, where a result is
     taken in the tick that asked for it; the live gateway's run aside
     (gateway/aside.py), and each result is taken at a later tick."""
 
@@ -1498,6 +1684,12 @@ class BodyHeading:
     SWITCHED = (
         "tags have headings of their own (6-axis tags): estimating each tag's heading "
         "(walk, reach after an N-pose, bow; --heading independent says so at once)"
+    )
+
+    #: what the elbows and wrists want to tell the shared heading (:class:`SharedTwoDof`)
+    TWO_DOF_WANTED = (
+        "the elbows and wrists: turn the forearm (pronation) with the elbow bent, or "
+        "flex a wrist (after a T-pose an elbow bending alone does not tell the heading)"
     )
 
     def __init__(self, profile: Profile, fits: Fits = INLINE) -> None:
@@ -1516,6 +1708,8 @@ class BodyHeading:
         #: auto: the check that the tags share the heading a hinge gives, the profile
         #: with that heading while it is checked, and the calibration to go back to
         self.check = SharedCheck(profile) if self.finder is not None else None
+        #: auto: the elbows and wrists as two-dof joints, where no hinge tells
+        self.two_dof = SharedTwoDof(profile, fits) if self.finder is not None else None
         self.candidate: Profile | None = None
         self.calibrated = profile
         self.switched: str | None = None  # why auto went on as independent
@@ -1579,6 +1773,8 @@ class BodyHeading:
             return self.profile
         if self.candidate is None:
             psi = self.finder.update(t_s, orientations)
+            if psi is None and self.two_dof is not None:
+                psi = self.two_dof.update(t_s, orientations)
             if psi is None:
                 return None
             self.candidate = with_headings(self.profile, dict.fromkeys(self.unknown, psi))
@@ -1695,12 +1891,15 @@ class BodyHeading:
             out["deg"] = round(values[0], 2)
         finder = self.finder
         if finder is not None:
-            out["hinge"] = finder.hinge
+            out["hinge"] = finder.hinge or (self.two_dof.joint if self.two_dof else None)
             out["first_move_t"] = finder.first_move_t
             out["found_t"] = finder.found_t
             if self.unknown:
+                wanted = list(finder.informative)
+                if self.two_dof is not None and self.two_dof.joints:
+                    wanted.append(self.TWO_DOF_WANTED)
                 out["waiting_for"] = (
-                    finder.informative or "no hinge with both tags: declare a heading reference"
+                    wanted or "no hinge with both tags: declare a heading reference"
                 )
             if self.candidate is not None:
                 out["waiting_for"] = [

@@ -1103,3 +1103,113 @@ def test_the_arms_headings_are_found_with_noisy_tags() -> None:
     elbows = {n: v for n, v in worst.items() if "elbow" in n}
     assert elbows
     assert all(unc > 2.0 for _, unc in elbows.values()), elbows
+
+
+def _after_t_pose(moving: Routine | None = None, seconds: float = 0.0) -> Routine:
+    """The T-pose held 1 s, then eased over 1 s into ``moving`` (its time from 1 s on;
+    the left arm's reach by default)."""
+    from bodynet.nodes.motion import eased, reach
+
+    still = dict(CALIBRATION_POSES["tpose"])
+    angles = moving.angles if moving is not None else reach("left")
+
+    def at(t: float) -> dict[str, float]:
+        return still if t < 1.0 else eased(still, angles(t - 1.0), t - 1.0)
+
+    return Routine("tpose-then-move", "", at)
+
+
+Ticks = list[tuple[float, dict[str, tuple[float, float]]]]
+
+
+def _shared_run(body: BodyEmulator, end_s: float) -> tuple[BodyHeading, Ticks, bool]:
+    """The default profile (``auto``) calibrated in the T-pose, then the gateway's path
+    to ``end_s``: per tick, each measured dof's error against the truth and its
+    ``unc_deg``; and whether the elbows and wrists proposed a shared heading."""
+    auto = Profile(pose="tpose")
+    heading = BodyHeading(calibrate_window(_window(body, 0.2, 0.95), auto,
+                                           "tpose").apply(auto, "tpose"))  # fmt: skip
+    solver = BodySolver(heading.profile)
+    ticks, proposed = [], False
+    for t in np.arange(1.0, end_s, 1 / RATE_HZ):
+        samples, truth = _samples(body, float(t))
+        solver = heading_tick(heading, solver, float(t), samples)
+        two_dof = getattr(heading, "two_dof", None)  # (the tests' check without it)
+        proposed |= two_dof is not None and two_dof.heading is not None
+        out = solver.solve(samples)
+        unc = dict(zip(out.names.angles, out.unc.tolist(), strict=True))
+        errors = measured_errors(out.angles_deg, out.flags, truth)
+        ticks.append((float(t), {n: (e, unc[n]) for n, e in errors.items()}))
+    return heading, ticks, proposed
+
+
+@pytest.mark.parametrize(("facing", "seed"), [(37.0, 1), (250.0, 2)])
+def test_shared_tags_after_a_t_pose_get_their_heading_from_the_reaching_arm(
+    facing: float, seed: int
+) -> None:
+    """Tags sharing one reference, arbitrary mountings, the subject facing anywhere,
+    the default heading ``auto``; the T-pose, then the left arm's reach (lowered,
+    lifted forward, the elbow bending, then the wrist flexing), nothing else moving:
+    no knee bends and the elbow's flexion axis was vertical in the pose, so no
+    hinge tells. The wrist, a two-dof joint, does: the heading is found within
+    1.5 s (emulated) of its first flexion and within 1 deg of the truth, checked
+    by the joints before it is taken; until then every dof is flagged, from then
+    the arm's dofs are measured, each within twice its uncertainty."""
+    body = BodyEmulator(_after_t_pose(), imu_tags(),
+                        realism=Realism(headings=Headings.SHARED, facing_deg=facing),
+                        seed=seed)  # fmt: skip
+    heading, ticks, _ = _shared_run(body, 10.5)
+    state = heading.state()
+    assert state["state"] == "found", state
+    assert state["hinge"] in ("left_wrist", "left_elbow"), state
+    assert abs((state["deg"] - facing + 180) % 360 - 180) <= 1.0, state
+    flexed = next(t for t in np.arange(1.0, 10.5, 1 / RATE_HZ)
+                  if body.angles(float(t)).get("left_wrist_flexion_deg", 0.0) > 1.0)  # fmt: skip
+    assert 0.0 < state["found_t"] - flexed <= 1.5, (flexed, state)
+    before = [errors for t, errors in ticks if t < state["found_t"]]
+    after = [errors for t, errors in ticks if t > state["found_t"]]
+    assert before
+    assert after
+    assert not any(before)  # nothing measured before the heading is known
+    arm = [(e, u, n, t) for t, errors in ticks if t > state["found_t"]
+           for n, (e, u) in errors.items() if n.startswith("left_")]  # fmt: skip
+    assert {"left_elbow_flexion_deg", "left_wrist_flexion_deg",
+            "left_shoulder_flexion_deg"} <= {n for _, _, n, _ in arm}  # fmt: skip
+    worst = max(arm, key=lambda r: r[0] - 2 * r[1])
+    assert worst[0] <= 2 * worst[1], worst
+
+
+def test_tags_of_their_own_reaching_after_a_t_pose_are_not_given_the_arms_heading() -> None:
+    """6-axis tags, each with a heading of its own, under the default ``auto``: the
+    T-pose, then the same reach. A two-dof joint proposes a shared heading, and
+    the joints it drives break their axes under it (:class:`SharedCheck`): it is
+    not taken, no dof is shown measured under it, and the gateway goes on
+    estimating each tag's heading (``switched``)."""
+    body = BodyEmulator(_after_t_pose(), imu_tags(),
+                        realism=Realism(headings=Headings.INDEPENDENT, facing_deg=37.0),
+                        seed=1)  # fmt: skip
+    heading, ticks, proposed = _shared_run(body, 12.0)
+    assert proposed
+    assert "headings of their own" in heading.state()["switched"]
+    assert heading.profile.heading == "independent"
+    assert not any(errors for _, errors in ticks)  # nothing shown measured, nothing wrong
+
+
+def test_an_elbow_bending_alone_after_a_t_pose_tells_no_shared_heading() -> None:
+    """The elbow flexing alone after a T-pose turns about its axis that was vertical
+    in the pose: every shared heading keeps its axes as perpendicular, so none is
+    taken (nothing is guessed), every dof stays flagged, and the state says which
+    motion would tell."""
+    from bodynet.nodes.motion import ROUTINES
+
+    body = BodyEmulator(_after_t_pose(ROUTINES["elbow-slow"]), imu_tags(),
+                        realism=Realism(headings=Headings.SHARED, facing_deg=37.0),
+                        seed=3)  # fmt: skip
+    heading, ticks, proposed = _shared_run(body, 8.0)
+    assert max(abs(body.angles(float(t)).get("left_elbow_flexion_deg", 0.0))
+               for t in np.arange(1.0, 8.0, 0.1)) > 60.0  # fmt: skip
+    assert not proposed
+    state = heading.state()
+    assert state["state"] == "unknown", state
+    assert not any(errors for _, errors in ticks)
+    assert any("pronation" in w and "alone" in w for w in state["waiting_for"]), state
