@@ -426,8 +426,9 @@ def _window_heading(profile: Profile, means: Mapping[str, np.ndarray],
         return dict.fromkeys(means, 0.0)
     if profile.heading_reference is None:
         report["heading"] = {"state": "unknown", "deg": None,
-                             "next": "move a knee (or, after an N-pose, an elbow): the "
-                                     "heading is found from the hinge's axis"}  # fmt: skip
+                             "next": "move a knee (or, after an N-pose, an elbow; after a "
+                                     "T-pose, flex a wrist or turn a forearm): the heading "
+                                     "is found from the joint's axes"}  # fmt: skip
         if profile.heading == "independent":
             report["heading"]["next"] = (
                 "walk (the legs' tags), reach after an N-pose (the arms'), and bow forward "
@@ -1676,8 +1677,9 @@ class BodyHeading:
     and it estimates each tag's as ``independent`` mode does, from the
     calibration on (the profile's ``heading`` becomes ``independent``;
     :meth:`step` says so once, ``switched``). :meth:`state` says where it
-    stands, for the pose's health and the user. The searches' fits run on ``fits`` (:class:`Fits`): inline by default, where a result is
-    taken in the tick that asked for it; the live gateway's run aside
+    stands, for the pose's health and the user. The searches' fits run on
+    ``fits`` (:class:`Fits`): inline by default, where a result is taken in
+    the tick that asked for it; the live gateway's run aside
     (gateway/aside.py), and each result is taken at a later tick."""
 
     #: what the user is told when ``auto`` finds tags with headings of their own
