@@ -898,7 +898,7 @@ class SharedTwoDof:
                 tags0 = tuple(segments[n] @ _quat_matrix(profile.imu_mounts[k])
                               for n, k in zip(names, keys, strict=True))  # fmt: skip
                 args = (segments[names[0]], segments[names[1]], (p_axis, c_axis),
-                        segments["thorax"], segments[names[3]])  # fmt: skip
+                        segments["thorax"], segments[names[3]], side)  # fmt: skip
                 self.joints[f"{side}_{joint}"] = (keys, tags0, args)  # type: ignore[assignment]
         self.samples: dict[str, list[tuple[np.ndarray, ...]]] = {j: [] for j in self.joints}
         self.heading: float | None = None
@@ -1356,13 +1356,13 @@ def _elbow_pair_try(samples: Sequence[tuple[np.ndarray, np.ndarray]], seg_p: np.
 
 
 def _shoulders_outside(samples: Sequence[tuple[np.ndarray, ...]], seg_t: np.ndarray,
-                       seg_u: np.ndarray, psi: float) -> float:  # fmt: skip
+                       seg_u: np.ndarray, side: str, psi: float) -> float:  # fmt: skip
     """How far (deg, summed over the ``samples``: each holds the chest's and the upper
-    arm's tag turns since calibration last) the shoulder falls outside its range of
-    motion under the shared heading ``psi`` (rad)."""
+    arm's tag turns since calibration last) the ``side`` shoulder falls outside its
+    range of motion under the shared heading ``psi`` (rad)."""
     from bodynet.gateway.solver import JointAxes
 
-    shoulder = JointAxes.of(build_skeleton().joint("left_shoulder"))
+    shoulder = JointAxes.of(build_skeleton().joint(f"{side}_shoulder"))
     b_t, b_u = _elbow_pair_segments([s[-2:] for s in samples], seg_t, seg_u,
                                     np.array([psi]), np.array([psi]))  # fmt: skip
     total = 0.0
@@ -1375,7 +1375,7 @@ def _shoulders_outside(samples: Sequence[tuple[np.ndarray, ...]], seg_t: np.ndar
 
 def _shared_two_dof_try(samples: Sequence[tuple[np.ndarray, ...]], seg_p: np.ndarray,
                         seg_c: np.ndarray, axes: tuple[int, int], seg_t: np.ndarray,
-                        seg_u: np.ndarray, most: float
+                        seg_u: np.ndarray, side: str, most: float
                         ) -> tuple[float | None, tuple[float, float] | None]:  # fmt: skip
     """One try of :class:`SharedTwoDof` at a joint: the shared heading (rad) that keeps
     the joint's axes perpendicular over the ``samples`` (each the parent's and
@@ -1413,7 +1413,8 @@ def _shared_two_dof_try(samples: Sequence[tuple[np.ndarray, ...]], seg_p: np.nda
     unc = _fit_unc_deg(fit.fun, fit.jac)
     if unc > most:
         return round(unc, 2), None
-    here, twin = (_shoulders_outside(samples, seg_t, seg_u, x) for x in (psi, psi + math.pi))
+    here, twin = (_shoulders_outside(samples, seg_t, seg_u, side, x)
+                  for x in (psi, psi + math.pi))  # fmt: skip
     if twin - here < SharedTwoDof.TWIN_MARGIN_DEG * len(samples):
         if here - twin < SharedTwoDof.TWIN_MARGIN_DEG * len(samples):
             return round(unc, 2), None  # the shoulder's range does not tell the twins apart

@@ -1105,13 +1105,13 @@ def test_the_arms_headings_are_found_with_noisy_tags() -> None:
     assert all(unc > 2.0 for _, unc in elbows.values()), elbows
 
 
-def _after_t_pose(moving: Routine | None = None, seconds: float = 0.0) -> Routine:
+def _after_t_pose(moving: Routine | None = None, side: str = "left") -> Routine:
     """The T-pose held 1 s, then eased over 1 s into ``moving`` (its time from 1 s on;
-    the left arm's reach by default)."""
+    by default the reach of the ``side`` arm)."""
     from bodynet.nodes.motion import eased, reach
 
     still = dict(CALIBRATION_POSES["tpose"])
-    angles = moving.angles if moving is not None else reach("left")
+    angles = moving.angles if moving is not None else reach(side)
 
     def at(t: float) -> dict[str, float]:
         return still if t < 1.0 else eased(still, angles(t - 1.0), t - 1.0)
@@ -1134,8 +1134,7 @@ def _shared_run(body: BodyEmulator, end_s: float) -> tuple[BodyHeading, Ticks, b
     for t in np.arange(1.0, end_s, 1 / RATE_HZ):
         samples, truth = _samples(body, float(t))
         solver = heading_tick(heading, solver, float(t), samples)
-        two_dof = getattr(heading, "two_dof", None)  # (the tests' check without it)
-        proposed |= two_dof is not None and two_dof.heading is not None
+        proposed |= heading.two_dof is not None and heading.two_dof.heading is not None
         out = solver.solve(samples)
         unc = dict(zip(out.names.angles, out.unc.tolist(), strict=True))
         errors = measured_errors(out.angles_deg, out.flags, truth)
@@ -1143,28 +1142,29 @@ def _shared_run(body: BodyEmulator, end_s: float) -> tuple[BodyHeading, Ticks, b
     return heading, ticks, proposed
 
 
-@pytest.mark.parametrize(("facing", "seed"), [(37.0, 1), (250.0, 2)])
+@pytest.mark.parametrize(("facing", "seed", "side"), [(37.0, 1, "left"), (250.0, 2, "left"),
+                                                     (130.0, 3, "right")])  # fmt: skip
 def test_shared_tags_after_a_t_pose_get_their_heading_from_the_reaching_arm(
-    facing: float, seed: int
+    facing: float, seed: int, side: str
 ) -> None:
     """Tags sharing one reference, arbitrary mountings, the subject facing anywhere,
-    the default heading ``auto``; the T-pose, then the left arm's reach (lowered,
+    the default heading ``auto``; the T-pose, then one arm's reach (lowered,
     lifted forward, the elbow bending, then the wrist flexing), nothing else moving:
     no knee bends and the elbow's flexion axis was vertical in the pose, so no
     hinge tells. The wrist, a two-dof joint, does: the heading is found within
     1.5 s (emulated) of its first flexion and within 1 deg of the truth, checked
     by the joints before it is taken; until then every dof is flagged, from then
     the arm's dofs are measured, each within twice its uncertainty."""
-    body = BodyEmulator(_after_t_pose(), imu_tags(),
+    body = BodyEmulator(_after_t_pose(side=side), imu_tags(),
                         realism=Realism(headings=Headings.SHARED, facing_deg=facing),
                         seed=seed)  # fmt: skip
     heading, ticks, _ = _shared_run(body, 10.5)
     state = heading.state()
     assert state["state"] == "found", state
-    assert state["hinge"] in ("left_wrist", "left_elbow"), state
+    assert state["hinge"] in (f"{side}_wrist", f"{side}_elbow"), state
     assert abs((state["deg"] - facing + 180) % 360 - 180) <= 1.0, state
     flexed = next(t for t in np.arange(1.0, 10.5, 1 / RATE_HZ)
-                  if body.angles(float(t)).get("left_wrist_flexion_deg", 0.0) > 1.0)  # fmt: skip
+                  if body.angles(float(t)).get(f"{side}_wrist_flexion_deg", 0.0) > 1.0)  # fmt: skip
     assert 0.0 < state["found_t"] - flexed <= 1.5, (flexed, state)
     before = [errors for t, errors in ticks if t < state["found_t"]]
     after = [errors for t, errors in ticks if t > state["found_t"]]
@@ -1172,9 +1172,9 @@ def test_shared_tags_after_a_t_pose_get_their_heading_from_the_reaching_arm(
     assert after
     assert not any(before)  # nothing measured before the heading is known
     arm = [(e, u, n, t) for t, errors in ticks if t > state["found_t"]
-           for n, (e, u) in errors.items() if n.startswith("left_")]  # fmt: skip
-    assert {"left_elbow_flexion_deg", "left_wrist_flexion_deg",
-            "left_shoulder_flexion_deg"} <= {n for _, _, n, _ in arm}  # fmt: skip
+           for n, (e, u) in errors.items() if n.startswith(side)]  # fmt: skip
+    assert {f"{side}_{dof}_deg" for dof in ("elbow_flexion", "wrist_flexion", "shoulder_flexion")
+            } <= {n for _, _, n, _ in arm}  # fmt: skip
     worst = max(arm, key=lambda r: r[0] - 2 * r[1])
     assert worst[0] <= 2 * worst[1], worst
 
