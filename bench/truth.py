@@ -47,7 +47,7 @@ from bodynet.nodes.emulator import (
     smartsuit_sensors,
 )
 from bodynet.nodes.motion import ROUTINES, Routine, bow, eased, heading_protocol
-from bodynet.offline.process import process
+from bodynet.offline.process import ProcessResult, process
 
 Angles = Callable[[float], dict[str, float]]
 
@@ -268,9 +268,11 @@ def summarize(rows: Sequence[tuple[Any, ...]]) -> dict[str, Any] | None:
     }
 
 
-def measure(sc: Scenario, work: Path) -> dict[str, Any]:
-    """Emulate, record, process and compare one scenario (files in ``work``)."""
-    cpu = time.process_time()
+def session(
+    sc: Scenario, work: Path
+) -> tuple[list[tuple[Any, ...]], dict[str, int], ProcessResult]:
+    """Emulate, record, process and compare one scenario (files in ``work``, removed
+    after): :func:`compare`'s rows and counts, and ``process``'s result."""
     truth = motion(sc.motion, sc.pose)
     realism = Realism(quat_noise_deg=sc.noise, tissue_wobble_deg=sc.wobble,
                       yaw_drift_deg_per_min=sc.drift, facing_deg=sc.facing,
@@ -282,6 +284,13 @@ def measure(sc: Scenario, work: Path) -> dict[str, Any]:
     rows, counts = compare(poses, truth)
     recording.unlink()
     poses.unlink()
+    return rows, counts, result
+
+
+def measure(sc: Scenario, work: Path) -> dict[str, Any]:
+    """Emulate, record, process and compare one scenario (files in ``work``)."""
+    cpu = time.process_time()
+    rows, counts, result = session(sc, work)
     state = result.heading or {}
     return {
         "name": sc.name,

@@ -298,15 +298,23 @@ NO_TIME = -(2**62)
 _I2 = "int64[:, :]"
 
 
-@_compiled("UniTuple(float64, 2)(int64, int64, int64, float64, float64, int64, int64, float64)")
+@_compiled("UniTuple(float64, 2)(int64, int64, int64, float64, float64, int64, int64, float64, "
+           "float64)")
 def ahead(t_ns, previous_ns, target_ns, turned_rad, noise_rad, max_span_ns, max_ahead_ns,
-          change_per_s):  # fmt: skip
+          change_per_s, max_rate_deg_s):  # fmt: skip
     """How far (rad) a sensor that turned ``turned_rad`` (>= 0) from its sample at
     ``previous_ns`` to its sample at ``t_ns`` goes on turning, at that rate, to
     ``target_ns``, and how far (deg, two standard deviations) that may be off:
     :func:`align_quats`'s rule for one sensor (a tag's turn or an encoder's),
-    ``noise_rad`` each sample's noise. Nothing (0, 0) without a previous sample
-    (``NO_TIME``), for a target not after ``t_ns`` or a span over ``max_span_ns``."""
+    ``noise_rad`` each sample's noise (over three axes). What may be off: the
+    angle turned times ``change_per_s`` times the time from the middle of the
+    span to the target; the turn the two samples showed over the time ahead that
+    it was not turned for (shrunk away as noise, or beyond the horizon: it may be
+    motion; as a rate at most ``max_rate_deg_s``: samples stamped a hair apart
+    give none); and beside those, the two samples' noise as the turn carried it
+    forward (beyond the sample's own, which the sensor's uncertainty states).
+    Nothing (0, 0) without a previous sample (``NO_TIME``), for a target not
+    after ``t_ns`` or a span over ``max_span_ns``."""
     span = t_ns - previous_ns
     step = min(target_ns - t_ns, max_ahead_ns, 2 * span)
     if previous_ns == NO_TIME or step <= 0 or span > max_span_ns or turned_rad <= 0.0:
@@ -316,18 +324,24 @@ def ahead(t_ns, previous_ns, target_ns, turned_rad, noise_rad, max_span_ns, max_
     # (against emulated white noise of 2 deg a gain of 1 - (sqrt(2) scatter / turn)^2
     # added a tenth to the walking knees' RMS error; this one left them as unaligned)
     gain = 1.0 - 8.0 * (noise_rad / turned_rad) ** 2
+    # a turn left out (to the gain, or beyond the horizon) may be motion: a foot at
+    # 350 deg/s whose turn 2 deg of tag noise hid is 5 deg on 15 ms later
+    shown = min(turned_rad, max_rate_deg_s * _RAD * span * 1e-9)  # over the span
+    later = (target_ns - t_ns) / span
     if gain <= 0.0:
-        return 0.0, 0.0
-    rate = turned_rad * gain / span  # rad/ns
-    more = rate * step
-    return more, _DEG * (more * change_per_s * (0.5 * span + step) * 1e-9
-                         + rate * (target_ns - t_ns - step))  # fmt: skip
+        return 0.0, _DEG * shown * later
+    reach = gain * step / span  # the sample's noise goes 1 + reach forward, the other's reach
+    # one axis of each sample's noise (the noise is over three), two standard deviations
+    carried = 2.0 * noise_rad / math.sqrt(3.0) * math.sqrt(2.0 * reach * (1.0 + reach))
+    more = turned_rad * reach
+    left = max(0.0, shown * later - more)  # the turn shown but not made
+    change = more * change_per_s * (0.5 * span + step) * 1e-9
+    return more, _DEG * math.hypot(change + left, carried)
 
 
-@_compiled(f"({_A2}, {_I1}, int64, {_I2}, {_A3}, {_F1}, int64, int64, float64)")
-def align_quats(
-    quats, t_ns, target_ns, times, held, scatter_rad, max_span_ns, max_ahead_ns, change_per_s
-):
+@_compiled(f"({_A2}, {_I1}, int64, {_I2}, {_A3}, {_F1}, int64, int64, float64, float64)")
+def align_quats(quats, t_ns, target_ns, times, held, scatter_rad, max_span_ns, max_ahead_ns,
+                change_per_s, max_rate_deg_s):  # fmt: skip
     """Orientation sensors' quaternions ``quats`` (n, 4, w first), sampled at
     ``t_ns`` (n,), brought to one time ``target_ns``: each turned on at the rate
     it turned between its previous sample and this one, for ``target_ns - t``
@@ -338,10 +352,8 @@ def align_quats(
     two samples, updated here where ``t_ns`` is new (a time that went back starts
     over). A turn from two samples with ``scatter_rad`` (n,) of noise each is
     shrunk where it is not well above that noise. Returns the quaternions (n, 4)
-    and how far each may be off for its rate's change (deg, two standard
-    deviations): the angle it was turned times ``change_per_s`` times the time
-    from the middle of its span to the target, plus its rate times the time
-    beyond the horizon it was not turned for."""
+    and how far each may be off for being brought forward (deg, two standard
+    deviations; :func:`ahead`, with ``change_per_s`` and ``max_rate_deg_s``)."""
     n = quats.shape[0]
     out = quats.copy()
     residual = np.zeros(n)
@@ -374,7 +386,7 @@ def align_quats(
             continue
         more, residual[s] = ahead(t, times[s, 0], target_ns, 2.0 * math.atan2(sin_half, rw),
                                   scatter_rad[s], max_span_ns, max_ahead_ns,
-                                  change_per_s)  # fmt: skip
+                                  change_per_s, max_rate_deg_s)  # fmt: skip
         if more <= 0.0:
             continue
         half = 0.5 * more

@@ -169,6 +169,9 @@ ALIGN_SPAN_NS = 100_000_000
 #: motion's frequency): what an orientation brought forward states it may be off
 #: by, over the time from its rate's span's middle to the tick's (kernels.align_quats).
 ALIGN_CHANGE_PER_S = 12.0
+#: What a turn left out states, as a rate, at most (deg/s): a foot's or hand's
+#: fastest; two samples stamped a hair apart (a burst) give no rate.
+ALIGN_RATE_MAX_DEG_S = 1000.0
 
 
 class Rhythm:
@@ -1030,6 +1033,7 @@ class BodySolver:
                 np.array([values[i].reading.wxyz for i in sort.quats], dtype=float),  # type: ignore[union-attr]
                 np.array([times[i] for i in sort.quats], dtype=np.int64), t_ns, sort.times,
                 sort.held, sort.scatter_rad, ALIGN_SPAN_NS, ALIGN_AHEAD_NS, ALIGN_CHANGE_PER_S,
+                ALIGN_RATE_MAX_DEG_S,
             )  # fmt: skip
             self._memory.expected.update(sort.segs)
         return tick
@@ -1506,7 +1510,8 @@ class BodySolver:
         history[key] = (before_ns, before, t_ns, angle_deg, cal, counts)
         turned = math.radians(angle_deg - before)
         more, late = kernels.ahead(t_ns, before_ns, tick.t_ns, abs(turned), OLE_NOISE_RAD,
-                                   ALIGN_SPAN_NS, ALIGN_AHEAD_NS, ALIGN_CHANGE_PER_S)  # fmt: skip
+                                   ALIGN_SPAN_NS, ALIGN_AHEAD_NS, ALIGN_CHANGE_PER_S,
+                                   ALIGN_RATE_MAX_DEG_S)  # fmt: skip
         return angle_deg + math.copysign(math.degrees(more), turned), late
 
     def _swing(self, site: Site, segment: str, up: tuple[np.ndarray, float], tick: _Tick) -> float:

@@ -408,7 +408,7 @@ def test_a_shared_heading_that_later_breaks_is_not_kept_by_process(tmp_path: Pat
     assert worst[0] < 5.0, worst
 
 
-@pytest.mark.parametrize(("jitter_s", "drop", "bound"), [(0.002, 0.0, 0.01), (0.02, 0.1, 0.05)])
+@pytest.mark.parametrize(("jitter_s", "drop", "bound"), [(0.002, 0.0, 0.01), (0.02, 0.1, 0.01)])
 def test_tags_on_timers_of_their_own_give_joints_of_one_time(
     tmp_path: Path, jitter_s: float, drop: float, bound: float
 ) -> None:
@@ -419,7 +419,9 @@ def test_tags_on_timers_of_their_own_give_joints_of_one_time(
     within twice their stated uncertainty but for a small share (``bound``).
     Each joint's two tags' samples are up to a period apart: taken as they are
     (the newest sample's time for all), 6-8 % of these values were off by more
-    (12 % with 20 ms of jitter and losses); brought to one time, 0-0.04 % (1.4-2 %)."""
+    (12 % with 20 ms of jitter and losses); brought to one time, 0-0.04 % (1.4-2 %,
+    0.14 % once a tag's turn too small for its noise to tell states what it may
+    have moved since: a sample 35 ms old, 5 ms after the one before it)."""
     walk = ROUTINES["walk"].angles
     motion = Routine("walk", "", lambda t: dict(TPOSE) if t < 3.0 else walk(t - 3.0))
     tags = imu_tags()
