@@ -298,8 +298,9 @@ NO_TIME = -(2**62)
 _I2 = "int64[:, :]"
 
 
-@_compiled("UniTuple(float64, 2)(int64, int64, int64, float64, float64, int64, int64, float64, "
-           "float64)")
+@_compiled(
+    "UniTuple(float64, 2)(int64, int64, int64, float64, float64, int64, int64, float64, float64)"
+)
 def ahead(t_ns, previous_ns, target_ns, turned_rad, noise_rad, max_span_ns, max_ahead_ns,
           change_per_s, max_rate_deg_s):  # fmt: skip
     """How far (rad) a sensor that turned ``turned_rad`` (>= 0) from its sample at
