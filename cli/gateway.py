@@ -154,7 +154,7 @@ def add_heading_args(p: argparse.ArgumentParser) -> None:
                         "subject faces anywhere: found from a knee's or elbow's motion after "
                         "the pose; fixed: the subject faced +X of the tags' frame; "
                         "independent: 6-axis tags each with its own (the legs' found from a "
-                        "walk, the arms' from a reach after an N-pose, the trunk's from a bow) "
+                        "walk, the arms' from a reach, the trunk's from a bow) "
                         "(default: the profile's, auto)")  # fmt: skip
     p.add_argument(
         "--heading-reference",
@@ -446,7 +446,7 @@ def cmd_process(args: argparse.Namespace) -> int:
         "declared": f"heading declared ({heading.get('deg')} deg)",
         "fixed": "heading fixed (the subject faced +X)",
         "partly found": "headings found for some tags only (independent tags: the legs' from "
-        "a walk, the arms' from a reach after an N-pose, the trunk's from a bow): the other "
+        "a walk, the arms' from a reach, the trunk's from a bow): the other "
         "tags' dofs are flagged uncalibrated",
         "unknown": "heading NOT found (no knee or elbow moved): the tags' dofs are "
         "flagged uncalibrated; bend a knee after the pose, or pass "

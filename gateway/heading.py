@@ -144,6 +144,8 @@ HORIZONTAL_MIN = 0.5
 #: A foot's or hand's best heading leaving its joint's axes off perpendicular by more
 #: than this (RMS, deg) is not that joint's motion (noise of 2 deg a tag gives about 3)
 CHILD_MISFIT_DEG = 6.0
+#: the chest tag's headings (deg apart) an arm's twin must be told apart under (:func:`_arm_twin`)
+TWIN_CHEST_STEP_DEG = 30.0
 
 
 class CalibrationRefused(ValueError):
@@ -431,8 +433,9 @@ def _window_heading(profile: Profile, means: Mapping[str, np.ndarray],
                                      "is found from the joint's axes"}  # fmt: skip
         if profile.heading == "independent":
             report["heading"]["next"] = (
-                "walk (the legs' tags), reach after an N-pose (the arms'), and bow forward "
-                "from the hips, the head following (the pelvis', chest's and head's)"
+                "walk (the legs' tags), reach (the arms'; after a T-pose, turning the "
+                "forearms with the arms out), and bow forward from the hips, the head "
+                "following (the pelvis', chest's and head's)"
             )
         return {}
     ref_key, axis = profile.heading_reference
@@ -739,9 +742,13 @@ class ElbowPairs:
     knees': for the right pair of headings the elbow's axes stay perpendicular
     (its flexion axis, fixed in the upper arm, and its pronation axis, fixed in the
     forearm) and its flexion stays within its range of motion (which settles the
-    pair turned by 180 deg). The elbow's flexion axis must be horizontal in the
-    calibration pose (an N-pose; in a T-pose it is vertical and the pair's common
-    heading does not show). The samples are taken every ``EVERY_S`` once the
+    pair turned by 180 deg). Where the elbow's flexion axis was vertical in the
+    calibration pose (a T-pose) the elbow bending tells only the two headings'
+    difference, and their common heading shows only as the forearm turns about
+    its own axis (pronation); the pair turned by 180 deg then fits as well (its
+    flexion the same, the pronation negated) and the shoulder's range of motion
+    tells them apart (:func:`_arm_twin`: the chest's tag is needed, ``twins``).
+    The samples are taken every ``EVERY_S`` once the
     forearm has turned past ``MOVED_DEG`` since calibration (how far the elbow
     bends cannot be told before the headings are known). From ``MIN_SAMPLES`` on,
     every ``TRY_EVERY`` samples, the pair is searched (every 5 deg; while another
@@ -774,15 +781,27 @@ class ElbowPairs:
         segments = pose_segments(profile)
         self._aside = _Aside(fits)
         self.pairs: dict[str, tuple[str, str, np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = {}
+        #: per side whose flexion axis was vertical in the pose (a T-pose): the chest's
+        #: tag, at calibration for a heading of 0, and what tells the pair's twin apart
+        self.twins: dict[str, tuple[str, np.ndarray, tuple[np.ndarray, str]]] = {}
+        chest = by_segment.get("thorax")
         for side in ("left", "right"):
             p, c = by_segment.get(f"{side}_upperarm"), by_segment.get(f"{side}_forearm")
             seg_p, seg_c = segments[f"{side}_upperarm"], segments[f"{side}_forearm"]
-            if p is None or c is None or math.hypot(seg_p[0, 1], seg_p[1, 1]) < HORIZONTAL_MIN:
+            if p is None or c is None:
                 continue
+            if math.hypot(seg_p[0, 1], seg_p[1, 1]) < HORIZONTAL_MIN:
+                if chest is None:  # the twin needs the shoulder
+                    continue
+                seg_t = segments["thorax"]
+                self.twins[side] = (chest, seg_t @ _quat_matrix(profile.imu_mounts[chest]),
+                                    (seg_t, side))  # fmt: skip
             p0 = seg_p @ _quat_matrix(profile.imu_mounts[p])
             c0 = seg_c @ _quat_matrix(profile.imu_mounts[c])
             self.pairs[side] = (p, c, p0, c0, seg_p, seg_c)
-        self.samples: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {s: [] for s in self.pairs}
+        #: per side, each sample's tag turns since calibration: the upper arm's, the
+        #: forearm's (and the chest's, where the twin is to be told apart)
+        self.samples: dict[str, list[tuple[np.ndarray, ...]]] = {s: [] for s in self.pairs}
         self.found: dict[str, float] = {}
         #: per side, the uncertainty (deg) of the pair when taken, and of its latest fit
         self.unc_deg: dict[str, float] = {}
@@ -804,6 +823,9 @@ class ElbowPairs:
             self._take(side, out)
             if side in self.done or p not in orientations or c not in orientations:
                 continue
+            twin = self.twins.get(side)
+            if twin is not None and twin[0] not in orientations:
+                continue
             if t_s - self._last.get(side, -math.inf) < self.EVERY_S - 1e-6:
                 continue
             a_p = _quat_matrix(orientations[p]) @ p0.T  # each tag's turn since calibration
@@ -812,13 +834,16 @@ class ElbowPairs:
                 continue
             self._last[side] = t_s
             samples = self.samples[side]
-            samples.append((a_p, a_c))
+            if twin is None:
+                samples.append((a_p, a_c))
+            else:
+                samples.append((a_p, a_c, _quat_matrix(orientations[twin[0]]) @ twin[1].T))
             if self._aside.due(side, samples, self.MIN_SAMPLES, self.TRY_EVERY):
                 limits = (self.MAX_UNC_DEG, self.FULL_UNC_DEG, self.MISFIT_SHARE,
                           self.LIMIT_UNC_DEG)  # fmt: skip
                 self._aside.start(side, samples, _elbow_pair_try, *self.pairs[side][4:],
                                   self._basin.get(side), len(samples) >= self.MAX_SAMPLES,
-                                  limits)  # fmt: skip
+                                  limits, None if twin is None else twin[2])  # fmt: skip
                 self._take(side, out)
         self.found.update(out)
         return out
@@ -1232,8 +1257,8 @@ def _elbow_pair_segments(samples: Sequence[tuple[np.ndarray, np.ndarray]], seg_p
     """The upper arms (body frame; (kp, n, 3, 3)) for each of the ``kp`` headings
     ``psi_p`` (rad) and ``n`` samples (each tag's turn since calibration), and the
     forearms for each of ``psi_c``."""
-    a_p = np.array([a for a, _ in samples])[None]
-    a_c = np.array([b for _, b in samples])[None]
+    a_p = np.array([s[0] for s in samples])[None]
+    a_c = np.array([s[1] for s in samples])[None]
     rp, rc = _rz_batch(psi_p)[:, None], _rz_batch(psi_c)[:, None]
     b_p = rp.transpose(0, 1, 3, 2) @ a_p @ rp @ seg_p
     b_c = rc.transpose(0, 1, 3, 2) @ a_c @ rc @ seg_c
@@ -1277,11 +1302,14 @@ def _apart_deg(a: tuple[float, float], b: tuple[float, float]) -> float:
     return max(abs(_wrap(math.degrees(x - y))) for x, y in zip(a, b, strict=True))
 
 
-def _elbow_pair_grid(samples: Sequence[tuple[np.ndarray, np.ndarray]], seg_p: np.ndarray,
-                     seg_c: np.ndarray) -> tuple[float, float] | None:  # fmt: skip
+def _elbow_pair_grid(samples: Sequence[tuple[np.ndarray, ...]], seg_p: np.ndarray,
+                     seg_c: np.ndarray, twin: bool = False
+                     ) -> tuple[float, float] | None:  # fmt: skip
     """The upper arm's and forearm's tag headings (rad, every 5 deg) that keep the
     elbow's axes most nearly perpendicular with its flexion in range; None when
-    a pair far from it fits about as well (the motion does not tell)."""
+    a pair far from it (and from its 180 deg twin, with ``twin``: the flexion axis
+    vertical in the pose, where the twin fits as well) fits about as well (the
+    motion does not tell)."""
     grid = np.radians(np.arange(0.0, 360.0, 5.0))
     gp, gc = (g.ravel() for g in np.meshgrid(grid, grid, indexing="ij"))
     perp, outside = (v.ravel() for v in _elbow_pair_cost(samples, seg_p, seg_c, grid, grid))
@@ -1289,6 +1317,9 @@ def _elbow_pair_grid(samples: Sequence[tuple[np.ndarray, np.ndarray]], seg_p: np
     # a motion that fits a pair far from the best as well (within 20 deg of it in
     # neither heading, as much inside the range) tells nothing: the elbow barely bent
     far = np.maximum(np.abs(_wrap_rad(gp - gp[best])), np.abs(_wrap_rad(gc - gc[best])))
+    if twin:
+        far = np.minimum(far, np.maximum(np.abs(_wrap_rad(gp - gp[best] - math.pi)),
+                                         np.abs(_wrap_rad(gc - gc[best] - math.pi))))  # fmt: skip
     rivals = (far > math.radians(20.0)) & (np.round(outside, 0) <= round(float(outside[best])))
     if rivals.any() and perp[rivals].min() < 2.0 * perp[best]:
         return None
@@ -1327,20 +1358,24 @@ def _elbow_pair_refine(samples: Sequence[tuple[np.ndarray, np.ndarray]], seg_p: 
     return psi_p, psi_c, unc, misfit
 
 
-def _elbow_pair_try(samples: Sequence[tuple[np.ndarray, np.ndarray]], seg_p: np.ndarray,
+def _elbow_pair_try(samples: Sequence[tuple[np.ndarray, ...]], seg_p: np.ndarray,
                     seg_c: np.ndarray, basin: tuple[float, float] | None, full: bool,
-                    limits: tuple[float, float, float, float]
+                    limits: tuple[float, float, float, float],
+                    twin: tuple[np.ndarray, str] | None = None
                     ) -> tuple[float | None, tuple[float, float] | None,
                                tuple[float, float, float] | None, bool]:  # fmt: skip
     """One try of :class:`ElbowPairs` at a side's pair over its ``samples`` (``full``:
     as many as it keeps), refined from ``basin`` (the last try's, or None: the
     grid's), within ``limits`` (its ``MAX_UNC_DEG``, ``FULL_UNC_DEG``,
-    ``MISFIT_SHARE``, ``LIMIT_UNC_DEG``). Returns the fit's uncertainty (deg, None
-    without a fit), the basin to refine on from (None: the grid's anew), the
-    pair's headings (deg) and uncertainty once taken, and whether the oldest
-    samples make way."""
+    ``MISFIT_SHARE``, ``LIMIT_UNC_DEG``); ``twin``: the chest's segment in the pose
+    and the side, where the flexion axis was vertical in it (a T-pose: the pair
+    turned by 180 deg fits as well, the pronation negated; the shoulder's range
+    tells them apart, :func:`_arm_twin`, each sample holding the chest's tag turn
+    last). Returns the fit's uncertainty (deg, None without a fit), the basin to
+    refine on from (None: the grid's anew), the pair's headings (deg) and
+    uncertainty once taken, and whether the oldest samples make way."""
     most, full_most, share, limit = limits
-    start = basin or _elbow_pair_grid(samples, seg_p, seg_c)
+    start = basin or _elbow_pair_grid(samples, seg_p, seg_c, twin is not None)
     fit = None if start is None else _elbow_pair_refine(samples, seg_p, seg_c, start)
     if fit is None:  # no basin (yet), or a new start
         return None, None, None, full
@@ -1348,29 +1383,57 @@ def _elbow_pair_try(samples: Sequence[tuple[np.ndarray, np.ndarray]], seg_p: np.
     bound = min(max(full_most if full else most, misfit if full else share * misfit), limit)
     if unc > bound:
         return round(unc, 2), None if full else (psi_p, psi_c), None, full
-    grid = _elbow_pair_grid(samples, seg_p, seg_c)  # still the best basin, with all samples
-    if grid is None or _apart_deg(grid, (psi_p, psi_c)) > 10.0:
+    grid = _elbow_pair_grid(samples, seg_p, seg_c, twin is not None)  # still the best basin
+    if grid is None or min(_apart_deg(grid, (psi_p + k, psi_c + k))
+                           for k in ((0.0, math.pi) if twin else (0.0,))) > 10.0:  # fmt: skip
         return round(unc, 2), None, None, False
+    if twin is not None:
+        turn = _arm_twin(samples, seg_p, *twin, psi_p)
+        if turn is None:  # the shoulder has not told the twins apart yet
+            return round(unc, 2), (psi_p, psi_c), None, full
+        psi_p, psi_c = psi_p + turn, psi_c + turn
     found = _wrap(math.degrees(psi_p)), _wrap(math.degrees(psi_c)), round(unc, 3)
     return round(unc, 2), None, found, False
 
 
 def _shoulders_outside(samples: Sequence[tuple[np.ndarray, ...]], seg_t: np.ndarray,
-                       seg_u: np.ndarray, side: str, psi: float) -> float:  # fmt: skip
+                       seg_u: np.ndarray, side: str, psi: float,
+                       psi_t: float | None = None) -> float:  # fmt: skip
     """How far (deg, summed over the ``samples``: each holds the chest's and the upper
     arm's tag turns since calibration last) the ``side`` shoulder falls outside its
-    range of motion under the shared heading ``psi`` (rad)."""
+    range of motion under the shared heading ``psi`` (rad; ``psi_t``: the chest
+    tag's, when it is not ``psi``)."""
     from bodynet.gateway.solver import JointAxes
 
     shoulder = JointAxes.of(build_skeleton().joint(f"{side}_shoulder"))
     b_t, b_u = _elbow_pair_segments([s[-2:] for s in samples], seg_t, seg_u,
-                                    np.array([psi]), np.array([psi]))  # fmt: skip
+                                    np.array([psi if psi_t is None else psi_t]),
+                                    np.array([psi]))  # fmt: skip
     total = 0.0
     for t, u in zip(b_t[0], b_u[0], strict=True):
         angles = shoulder.split(t.T @ u, None)
         total += sum(max(0.0, lo - v, v - hi) for v, (lo, hi)
                      in zip(angles, shoulder.limits, strict=True))  # fmt: skip
     return total
+
+
+def _arm_twin(samples: Sequence[tuple[np.ndarray, ...]], seg_u: np.ndarray, seg_t: np.ndarray,
+              side: str, psi_u: float) -> float | None:  # fmt: skip
+    """Which of an upper arm's tag heading ``psi_u`` (rad) and its 180 deg twin keeps
+    the ``side`` shoulder inside its range of motion, by ``SharedTwoDof.TWIN_MARGIN_DEG``
+    a sample (``samples``: the upper arm's tag turn first, the chest's last): the
+    turn to add (0 or pi, rad), or None when they are not told apart. The chest's
+    tag heading is not known yet (a bow gives it): the verdict must hold for each
+    of its headings every ``TWIN_CHEST_STEP_DEG`` (where the chest keeps upright,
+    its heading hardly moves the shoulder)."""
+    pairs = [(s[-1], s[0]) for s in samples]
+    margin = SharedTwoDof.TWIN_MARGIN_DEG * len(samples)
+    verdicts = set()
+    for psi_t in np.radians(np.arange(0.0, 360.0, TWIN_CHEST_STEP_DEG)):
+        here, twin = (_shoulders_outside(pairs, seg_t, seg_u, side, x, float(psi_t))
+                      for x in (psi_u, psi_u + math.pi))  # fmt: skip
+        verdicts.add(0.0 if twin - here >= margin else math.pi if here - twin >= margin else None)
+    return verdicts.pop() if len(verdicts) == 1 else None
 
 
 def _shared_two_dof_try(samples: Sequence[tuple[np.ndarray, ...]], seg_p: np.ndarray,
@@ -1686,7 +1749,7 @@ class BodyHeading:
     #: what the user is told when ``auto`` finds tags with headings of their own
     SWITCHED = (
         "tags have headings of their own (6-axis tags): estimating each tag's heading "
-        "(walk, reach after an N-pose, bow; --heading independent says so at once)"
+        "(walk, reach, bow; --heading independent says so at once)"
     )
 
     #: what the elbows and wrists want to tell the shared heading (:class:`SharedTwoDof`)
@@ -1932,9 +1995,13 @@ class BodyHeading:
                 uncs = ", ".join(f"{s} {u:.1f} deg" for s, u in sorted(pending.items()))
                 want.append(f"the arms' tags: the elbows' fit is still {uncs} uncertain "
                             "(sensor noise): keep reaching, the elbows bending")  # fmt: skip
+            elif elbows is not None and set(elbows.twins) - elbows.done:
+                want.append("reach, the elbows bending, and with the arm out to the side turn "
+                            "the forearm (pronation): the arms' tags (after a T-pose an elbow "
+                            "bending alone does not tell)")  # fmt: skip
             else:
                 want.append("reach, the elbows bending: the arms' tags"
-                            if self.elbows is not None and self.elbows.pairs
+                            if elbows is not None and elbows.pairs
                             else "the arms' tags: calibrate in an N-pose, then reach")  # fmt: skip
         if segments & {"foot", "hand"}:
             want.append("move the feet and hands: their tags, once the legs' and arms' are known")

@@ -772,8 +772,10 @@ def test_independent_trunk_tags_are_found_from_a_bow(seed: int, turn: float) -> 
 def test_a_walk_then_a_bow_after_a_t_pose_measures_the_hips_lumbar_and_neck() -> None:
     """The bow may come after the walk: the T-pose, walking (the legs' tags found),
     then a bow (the trunk's): the hips, lumbar and neck are then measured within
-    2 deg; the arms' tags stay unknown after a T-pose (the elbows' axes were
-    vertical), so the shoulders stay flagged."""
+    2 deg; the arms' tags stay unknown after a T-pose (the elbows' flexion axes
+    were vertical: bending tells only the difference of their tags' headings, and
+    the walk's reach had not turned a forearm yet), so the shoulders stay flagged,
+    and ``waiting_for`` says what would tell."""
     body = BodyEmulator(_bow_protocol("tpose", 40.0, bow_first=False), imu_tags(),
                         realism=Realism(headings=Headings.INDEPENDENT), seed=2)  # fmt: skip
     independent = Profile(heading="independent")
@@ -798,8 +800,8 @@ def test_a_walk_then_a_bow_after_a_t_pose_measures_the_hips_lumbar_and_neck() ->
     assert sorted(heading.unknown) == sorted(f"body/arm/{side}/{seg}/raw" for side in (
         "left", "right") for seg in ("upperarm", "forearm", "hand"))  # fmt: skip
     wanted = " ".join(heading.state()["waiting_for"])
-    assert "N-pose" in wanted
-    assert "bow" not in wanted
+    assert "pronation" in wanted, wanted
+    assert "bow forward" not in wanted
 
 
 def test_a_head_looking_up_in_a_shallow_bow_is_not_taken() -> None:
@@ -1213,3 +1215,102 @@ def test_an_elbow_bending_alone_after_a_t_pose_tells_no_shared_heading() -> None
     assert state["state"] == "unknown", state
     assert not any(errors for _, errors in ticks)
     assert any("pronation" in w and "alone" in w for w in state["waiting_for"]), state
+
+
+def _reach_bow_reach_after_t_pose() -> Routine:
+    """The T-pose held 1 s, then both arms' reach (16.5 s: lifted forward, the elbow
+    bending, the wrist flexing, then out to the side and the forearm turning), a
+    bow (the trunk's tags: the shoulders then measured), and the reach's first
+    4 s again."""
+    from bodynet.nodes.motion import bow, eased, reach
+
+    still = dict(CALIBRATION_POSES["tpose"])
+    left, right, down = reach("left"), reach("right"), bow()
+
+    def at(t: float) -> dict[str, float]:
+        if t < 1.0:
+            return still
+        if t < 17.5:
+            return eased(still, {**left(t - 1.0), **right(t - 1.0)}, t - 1.0)
+        if t < 20.4:
+            return down(t - 17.5)
+        return {**left(t - 20.4), **right(t - 20.4)}
+
+    return Routine("tpose-reach-bow-reach", "", at)
+
+
+@pytest.mark.parametrize(("seed", "facing"), [(1, 37.0), (2, 250.0)])
+def test_independent_arm_tags_are_found_from_a_reach_after_a_t_pose(
+    seed: int, facing: float
+) -> None:
+    """Independent 6-axis tags, arbitrary mountings, the T-pose (the elbows' flexion
+    axes vertical: an elbow bending tells only the two tags' headings' difference),
+    then both arms reaching: turning the forearm out to the side tells the pair's
+    common heading, up to its 180 deg twin, which the shoulder's range tells
+    apart. Each arm's tags come within 1 deg of the emulator's truth (the hands'
+    then below the forearms'), not before the forearm turned; nothing of an arm
+    is measured before; from then each elbow and wrist dof is within twice its
+    ``unc_deg``, and, once a bow gave the chest's tag, each shoulder dof too."""
+    body = BodyEmulator(_reach_bow_reach_after_t_pose(), imu_tags(),
+                        realism=Realism(headings=Headings.INDEPENDENT, facing_deg=facing),
+                        seed=seed)  # fmt: skip
+    independent = Profile(heading="independent", pose="tpose")
+    heading = BodyHeading(calibrate_window(_window(body, 0.2, 0.95), independent,
+                                           "tpose").apply(independent, "tpose"))  # fmt: skip
+    solver = BodySolver(heading.profile)
+    rows, known = [], {}
+    for t in np.arange(1.0, 24.4, 1 / RATE_HZ):
+        samples, truth = _samples(body, float(t))
+        solver = heading_tick(heading, solver, float(t), samples)
+        for side in ("left", "right"):
+            if side not in known and heading.profile.heading_known(f"body/arm/{side}/forearm/raw"):
+                known[side] = float(t)
+        out = solver.solve(samples)
+        unc = dict(zip(out.names.angles, out.unc.tolist(), strict=True))
+        errors = measured_errors(out.angles_deg, out.flags, truth)
+        rows += [(float(t), n, e, unc[n]) for n, e in errors.items()]
+    truth_headings = {s.site.raw_key: body.headings_deg[s.node] for s in body.sensors}
+    assert heading.elbows is not None
+    assert set(heading.elbows.done) == set(known) == {"left", "right"}
+    rolled = next(t for t in np.arange(1.0, 24.4, 1 / RATE_HZ)
+                  if abs(body.angles(float(t))["left_elbow_pronation_deg"]) > 1.0)  # fmt: skip
+    assert all(rolled < t < rolled + 3.0 for t in known.values()), (rolled, known)
+    for side in ("left", "right"):
+        for seg in ("upperarm", "forearm", "hand"):
+            key = f"body/arm/{side}/{seg}/raw"
+            error = (heading.profile.imu_headings[key] - truth_headings[key] + 180) % 360 - 180
+            assert abs(error) <= 1.0, (key, error)
+    arm = [r for r in rows if r[1].startswith(("left", "right"))]
+    assert not [r for r in arm if r[0] < min(known.values())]
+    measured = {n for _, n, _, _ in arm}
+    assert {f"{side}_{dof}_deg" for side in ("left", "right") for dof in (
+        "elbow_flexion", "elbow_pronation", "wrist_flexion", "shoulder_flexion",
+        "shoulder_rotation")} <= measured  # fmt: skip
+    worst = max(arm, key=lambda r: r[2] - 2 * r[3])
+    assert worst[2] <= 2 * worst[3], worst
+
+
+def test_an_elbow_bending_alone_after_a_t_pose_finds_no_independent_arm_tag() -> None:
+    """Independent 6-axis tags, the T-pose, then an elbow flexing alone (the arm out
+    to the side): it turns about its axis that was vertical in the pose, which
+    every pair of headings with the same difference keeps perpendicular to the
+    forearm's, so no pair is taken (nothing guessed), every arm dof stays flagged,
+    and ``waiting_for`` says which motion would tell (the forearm turning)."""
+    from bodynet.nodes.motion import ROUTINES
+
+    body = BodyEmulator(_after_t_pose(ROUTINES["elbow-slow"]), imu_tags(),
+                        realism=Realism(headings=Headings.INDEPENDENT, facing_deg=37.0),
+                        seed=3)  # fmt: skip
+    independent = Profile(heading="independent", pose="tpose")
+    heading = BodyHeading(calibrate_window(_window(body, 0.2, 0.95), independent,
+                                           "tpose").apply(independent, "tpose"))  # fmt: skip
+    assert heading.elbows is not None
+    assert set(heading.elbows.twins) == {"left", "right"}  # searched after a T-pose
+    ticks = _follow(body, heading, 8.0)
+    assert max(abs(body.angles(float(t)).get("left_elbow_flexion_deg", 0.0))
+               for t in np.arange(1.0, 8.0, 0.1)) > 60.0  # fmt: skip
+    assert len(heading.elbows.samples["left"]) >= heading.elbows.MIN_SAMPLES
+    assert not heading.elbows.found
+    assert not any(n.startswith(("left", "right")) for _, errors, _ in ticks for n in errors)
+    wanted = " ".join(heading.state()["waiting_for"])
+    assert "pronation" in wanted, wanted
