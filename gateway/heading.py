@@ -1428,12 +1428,15 @@ def _arm_twin(samples: Sequence[tuple[np.ndarray, ...]], seg_u: np.ndarray, seg_
     its heading hardly moves the shoulder)."""
     pairs = [(s[-1], s[0]) for s in samples]
     margin = SharedTwoDof.TWIN_MARGIN_DEG * len(samples)
-    verdicts = set()
+    verdict = None
     for psi_t in np.radians(np.arange(0.0, 360.0, TWIN_CHEST_STEP_DEG)):
         here, twin = (_shoulders_outside(pairs, seg_t, seg_u, side, x, float(psi_t))
                       for x in (psi_u, psi_u + math.pi))  # fmt: skip
-        verdicts.add(0.0 if twin - here >= margin else math.pi if here - twin >= margin else None)
-    return verdicts.pop() if len(verdicts) == 1 else None
+        this = 0.0 if twin - here >= margin else math.pi if here - twin >= margin else None
+        if this is None or (verdict is not None and this != verdict):
+            return None  # not told apart under this chest heading (the rest not computed)
+        verdict = this
+    return verdict
 
 
 def _shared_two_dof_try(samples: Sequence[tuple[np.ndarray, ...]], seg_p: np.ndarray,
@@ -1816,7 +1819,7 @@ class BodyHeading:
                         if hasattr(s.reading, "wxyz")}  # fmt: skip
         if self.pairs is not None:  # each tag its own: the knees' tags, pair by pair,
             found = self.pairs.update(orientations, t_s)
-            if self.elbows is not None:  # and the arms' from the elbows' (after an N-pose)
+            if self.elbows is not None:  # and the arms' from the elbows'
                 found.update(self.elbows.update(t_s, orientations))
             if self.children is not None:  # then the feet's and hands' below them
                 found.update(self.children.update(orientations, self.profile, t_s))
