@@ -215,7 +215,10 @@ class _Body:
         self.last_output: BodyOutput | None = None
         self.latest: dict[Site, _Site] = {}
         self.alive: set[str] = set()
-        self.gone: set[str] = set()  # keys whose token went away
+        # keys whose token went away -> when (monotonic): stale until a sample comes
+        # after that with the token back (a node declares it just before its first
+        # sample, and the sample from before it went is no measurement of now)
+        self.gone: dict[str, float] = {}
         self.unassigned: set[str] = set()  # trackers streaming with no site yet
         self.published_stale: set[str] = set()
         self.topology_text = ""
@@ -379,8 +382,11 @@ class _Body:
                 stale.append(site.raw_key)
             else:
                 behind = behind and s.owed > 1
-                if gone and site.raw_key in gone:
-                    stale.append(site.raw_key)
+                if gone and (went := gone.get(site.raw_key)) is not None:
+                    if s.arrived > went and site.raw_key in self.alive:
+                        del gone[site.raw_key]  # back, and heard from since
+                    else:
+                        stale.append(site.raw_key)
         ready = 0
         for s in self.latest.values():
             s.fresh = False
@@ -1111,7 +1117,8 @@ class Gateway:
             return None
         with self._lock:
             (body.alive.add if token.alive else body.alive.discard)(token.key)
-            (body.gone.discard if token.alive else body.gone.add)(token.key)
+            if not token.alive:
+                body.gone[token.key] = time.monotonic()
         self._publish_topology(body)
         return body
 
