@@ -134,9 +134,10 @@ class _Sampler:
         """The next :meth:`readings` samples the body afresh (a sensor changed)."""
         self._at = -math.inf
 
-    def sent(self, reading: Reading) -> None:
-        """``reading`` (of the last :meth:`readings`) went out."""
-        self.give(Held(reading, self._truths[reading.node], self._t_ns))
+    def sent(self, reading: Reading, t_ns: int | None = None) -> None:
+        """``reading`` (of the last :meth:`readings`) went out; its truth is given as
+        of ``t_ns`` (the time its frame carries), else as of when it was taken."""
+        self.give(Held(reading, self._truths[reading.node], self._t_ns if t_ns is None else t_ns))
 
     def held(self, node: int) -> Held:
         """``node``'s reading now (as :meth:`readings`), with its truth, to send later."""
@@ -205,22 +206,25 @@ class _Reboots:
             self.reboots[sensor.node] += 1
 
     def _powered(self, nodes: Sequence[int]) -> list[int]:
-        """Of ``nodes``, those up now; a node whose start-up just ended is powered
-        on (its encoder's zero where its joint is now)."""
+        """Of ``nodes``, those up now (:meth:`_up`)."""
         if not self._off:
             return list(nodes)
-        now, up = time.monotonic(), []
-        for node in nodes:
-            until = self._off.get(node)
-            if until is not None:
-                if now < until:
-                    continue
-                del self._off[node]
-                if node in self.body.module_nodes:  # an IMU's orientation is absolute
-                    self.body.power_on(node, self.clock.now())
-                self._sampler.invalidate()
-            up.append(node)
-        return up
+        now = time.monotonic()
+        return [node for node in nodes if self._up(node, now)]
+
+    def _up(self, node: int, at: float) -> bool:
+        """Whether ``node`` is up at ``at`` (monotonic); a node whose start-up has
+        ended by then is powered on (its encoder's zero where its joint is now)."""
+        until = self._off.get(node)
+        if until is None:
+            return True
+        if at < until:
+            return False
+        del self._off[node]
+        if node in self.body.module_nodes:  # an IMU's orientation is absolute
+            self.body.power_on(node, self.clock.now())
+        self._sampler.invalidate()
+        return True
 
 
 class CanNodes(_Reboots, _OnTimers, Loop):
@@ -229,7 +233,15 @@ class CanNodes(_Reboots, _OnTimers, Loop):
     When each node sends, and which frames are lost, ``timing`` says (default:
     all at once, none lost); a lost frame is not sent and is counted in
     :attr:`dropped`. :attr:`drop` is the probability of a loss in force (it may
-    be changed while the nodes run)."""
+    be changed while the nodes run).
+
+    Each frame carries when it was due (``msg.timestamp``, the wall clock), and
+    its truth is given as of then: real nodes send on their own timers whatever
+    the host does, and an adapter stamps their frames as they come (socketcan's
+    kernel time), where these nodes share a host that a loaded machine starves,
+    and then send what they owe at once. A virtual bus opened with
+    ``preserve_timestamps`` keeps those times; a node rebooting is silent for
+    the frames due while it is off, even those sent after it."""
 
     def __init__(
         self,
@@ -252,23 +264,27 @@ class CanNodes(_Reboots, _OnTimers, Loop):
     def run(self) -> None:
         timers = self.timers
         timers.start(time.monotonic())
+        wall = time.time() - time.monotonic()  # a due time (monotonic) on the wall clock
         while not self.stop_event.is_set():
             wait = timers.next_due - time.monotonic()
             if wait > 0:
                 self.stop_event.wait(wait)
                 continue
-            nodes = self._powered(timers.due(time.monotonic()))
-            readings = self._sampler.readings() if nodes else {}
-            for node in nodes:
+            sends = [(n, due) for n, due in timers.due_at(time.monotonic()) if self._up(n, due)]
+            readings = self._sampler.readings() if sends else {}
+            for node, due in sends:
                 reading = readings[node]
                 frame = smartsuit_can.encode_reading(reading)
                 self.bus.send(
                     can.Message(
-                        arbitration_id=frame.arbitration_id, data=frame.data, is_extended_id=True
+                        timestamp=wall + due,
+                        arbitration_id=frame.arbitration_id,
+                        data=frame.data,
+                        is_extended_id=True,
                     )
                 )
                 self.sent[node] += 1
-                self._sampler.sent(reading)
+                self._sampler.sent(reading, round((wall + due) * 1e9))
 
 
 class PtyPort:

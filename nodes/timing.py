@@ -239,6 +239,10 @@ class NodeTimers:
         """The nodes whose send is due by ``now``, in the order they came due (a
         node more than once if its sends fell behind); with ``lossy``, the frames
         lost are left out and counted, without it (nothing listens) none is."""
+        return [node for node, _ in self.due_at(now, lossy)]
+
+    def due_at(self, now: float, lossy: bool = True) -> list[tuple[int, float]]:
+        """:meth:`due`, each node with when its send was due (monotonic)."""
         out = []
         while self._sends.next_due <= now:
             due, i, _ = self._sends.pop()
@@ -246,5 +250,5 @@ class NodeTimers:
             if lossy and self._lost(node, due):
                 self.dropped[node] += 1
             else:
-                out.append(node)
+                out.append((node, due))
         return out

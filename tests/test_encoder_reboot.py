@@ -431,8 +431,11 @@ def _can_arm(session: zenoh.Session, watcher: zenoh.Session, run_thread: Callabl
 
 @contextlib.contextmanager
 def _nodes_on(channel: str, body: BodyEmulator, truths: _Truths) -> Iterator[CanNodes]:
-    """``body``'s nodes emulated on the virtual bus ``channel``, running until the end."""
-    with can.Bus(interface="virtual", channel=channel) as bus:
+    """``body``'s nodes emulated on the virtual bus ``channel``, running until the end;
+    their frames carry when they were due (``CanNodes``), as real nodes' frames
+    stamped by their adapter: a loaded machine that starves the emulator holds
+    the frames back, and does not make the whole bus seem quiet."""
+    with can.Bus(interface="virtual", channel=channel, preserve_timestamps=True) as bus:
         nodes = CanNodes(bus, body, truth=truths)
         nodes.start()
         try:
