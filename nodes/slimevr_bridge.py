@@ -17,6 +17,8 @@ from __future__ import annotations
 import json
 import logging
 import socket
+import struct
+import sys
 import threading
 import time
 from collections.abc import Mapping
@@ -34,6 +36,39 @@ log = logging.getLogger(__name__)
 
 RECV_TIMEOUT_S = 0.05
 DATAGRAM_MAX = 2048
+#: Linux's ``SO_TIMESTAMPNS`` (``SCM_TIMESTAMPNS`` in the control message), which
+#: Python's socket module does not name: each datagram's arrival, on the wall clock,
+#: as the kernel took it
+SO_TIMESTAMPNS = 35
+_TIMESPEC = struct.Struct("@qq")
+
+
+def arrival_stamps(sock: socket.socket) -> bool:
+    """Ask the kernel to stamp each datagram ``sock`` receives with its arrival
+    (Linux); False where it cannot."""
+    if not sys.platform.startswith("linux"):
+        return False
+    try:
+        sock.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
+    except OSError:
+        return False
+    return True
+
+
+def receive(sock: socket.socket, stamped: bool) -> tuple[bytes, object, float]:
+    """A datagram, its sender and its arrival (s, wall clock): the kernel's stamp
+    when ``stamped``, else now. A bridge that gets to its socket late (a loaded
+    host) stamps with when the datagram came, not when it was read: a tracker's
+    samples read in a burst after 50 ms keep their own times."""
+    if not stamped:
+        data, addr = sock.recvfrom(DATAGRAM_MAX)
+        return data, addr, time.time()
+    data, ancillary, _, addr = sock.recvmsg(DATAGRAM_MAX, socket.CMSG_SPACE(_TIMESPEC.size))
+    for level, kind, value in ancillary:
+        if level == socket.SOL_SOCKET and kind == SO_TIMESTAMPNS and len(value) >= _TIMESPEC.size:
+            sec, ns = _TIMESPEC.unpack_from(value)
+            return data, addr, sec + ns * 1e-9
+    return data, addr, time.time()
 
 
 class SlimeVRBridge(Bridge):
@@ -127,13 +162,14 @@ class SlimeVRBridge(Bridge):
             raise OSError(exc.errno, f"cannot take udp/{listen[0]}:{listen[1]}: {exc.strerror}"
                           " (is a SlimeVR server running?)") from None  # fmt: skip
         sock.settimeout(RECV_TIMEOUT_S)
+        stamped = arrival_stamps(sock)
         self.publisher.set_device("listening")
         log.info("%s: SlimeVR trackers on udp/%s:%d", self.publisher.name, *sock.getsockname())
         next_beat = time.monotonic()
         try:
             while not stop.is_set():
                 try:
-                    data, addr = sock.recvfrom(DATAGRAM_MAX)
+                    data, addr, t_s = receive(sock, stamped)
                 except TimeoutError:
                     data = b""
                 except OSError as exc:  # e.g. ICMP port unreachable reported on Linux
@@ -141,7 +177,7 @@ class SlimeVRBridge(Bridge):
                     data = b""
                 now = time.monotonic()
                 if data:
-                    self.feed(self.server.receive(data, addr))
+                    self.feed(self.server.receive(data, addr), t_s)
                     if addr in self.server.connections:  # a tracker that shook hands
                         self._heard[addr] = now
                     for to, reply in self.server.take_replies():
