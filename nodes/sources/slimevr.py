@@ -20,6 +20,7 @@ import logging
 import socket
 import threading
 import time
+from collections import deque
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any, ClassVar
@@ -191,7 +192,8 @@ class EmulatedTracker(Loop):
     def __init__(self, server: tuple[str, int], mac: bytes, sensors: Sequence[int],
                  orientation: Callable[[int, float], tuple[float, float, float, float]],
                  rate_hz: float = 100.0, compact: bool = False, clock: Any = None,
-                 name: str = "tracker", timing: LinkTiming | None = None) -> None:  # fmt: skip
+                 name: str = "tracker", timing: LinkTiming | None = None,
+                 sent: Callable[[int], None] | None = None) -> None:  # fmt: skip
         super().__init__(name)
         self.server = resolve(server)  # once: a name looked up for each datagram could block
         self.mac = mac
@@ -214,7 +216,9 @@ class EmulatedTracker(Loop):
         self.timers = NodeTimers([0], self.period_s, self.timing)  # 0: the tracker
         #: rotation datagrams sent after the one numbered after them
         self.reordered = 0
-        self._held: bytes | None = None  # a datagram to go out after the next one
+        #: told each sensor whose rotation went out, as it goes (a truth sink's hook)
+        self.sent_hook = sent
+        self._held: tuple[bytes, int] | None = None  # a datagram to go out after the next one
         self._reboot = threading.Event()
         self._heard = 0.0
         self._t0 = time.monotonic()
@@ -351,13 +355,18 @@ class EmulatedTracker(Loop):
                 data = codec.encode_rotation(self._next(), sensor, (x, y, z, w), 3)
             held, self._held = self._held, None
             if held is None and self.timing.reorder and rng.random() < self.timing.reorder:
-                self._held = data  # goes out after the next one
+                self._held = (data, sensor)  # goes out after the next one
                 self.reordered += 1
             else:
-                self.send(data)
+                self._send_rotation(data, sensor)
             if held is not None:
-                self.send(held)
+                self._send_rotation(*held)
             self.sent += 1
+
+    def _send_rotation(self, data: bytes, sensor: int) -> None:
+        self.send(data)
+        if self.sent_hook is not None:
+            self.sent_hook(sensor)
 
     def _status(self) -> None:
         for sensor in self.sensors:
@@ -370,7 +379,8 @@ class EmulatedTracker(Loop):
 
 class EmulatedTrackers:
     """An emulated body's IMU tags as SlimeVR trackers, one per tag (sensor 0),
-    the ground truth published through ``truth`` as the other emulators do."""
+    the ground truth handed to ``truth`` as the other emulators do: each
+    rotation's as it goes out, with the time its reading was taken."""
 
     def __init__(self, body: Any, server: tuple[str, int], rate_hz: float = 100.0,
                  clock: Any = None, truth: Any = None, compact: bool = False,
@@ -380,13 +390,16 @@ class EmulatedTrackers:
         self.link = f"{server[0]}:{server[1]}"
         self.tolerance_s = 0.5 / rate_hz  # trackers a period's half apart share a sample
         self._lock = threading.Lock()
-        self._cache: tuple[float, dict[int, tuple[float, float, float, float]]] = (-1.0, {})
+        self._cache: tuple[float, dict[int, tuple[float, float, float, float]],
+                           dict[int, Any], int] = (-1.0, {}, {}, 0)  # t, quats, truths, t_ns
+        self._taken: dict[int, deque[tuple[Any, int]]] = {}  # node -> truths not yet sent
         nodes = [s.node for s in body.sensors]
         timing = timing or LinkTiming()
         self.trackers = [
             EmulatedTracker(server, emulated_mac(node), [0],
                             lambda _sensor, t, node=node: self._quat(node, t),
-                            rate_hz, compact, clock, f"slimevr-tracker-{node}", timing.of(node))
+                            rate_hz, compact, clock, f"slimevr-tracker-{node}", timing.of(node),
+                            lambda _sensor, node=node: self._sent(node))
             for node in nodes
         ]  # fmt: skip
         self._by_node = dict(zip(nodes, self.trackers, strict=True))
@@ -404,16 +417,24 @@ class EmulatedTrackers:
 
     def _quat(self, node: int, t: float) -> tuple[float, float, float, float]:
         with self._lock:  # one body sample a period for every tracker
-            at, quats = self._cache
+            at, quats, truths, t_ns = self._cache
             if abs(t - at) > self.tolerance_s:
-                readings, truths = self.body.sample(t)
+                readings, truth_list = self.body.sample(t)
                 quats = {r.node: r.wxyz for r in readings}
-                self._cache = (t, quats)
-                if self.truth is not None:
-                    t_ns = time.time_ns()
-                    for reading, tr in zip(readings, truths, strict=True):
-                        self.truth(reading.node, tr, t_ns)
+                truths = {r.node: tr for r, tr in zip(readings, truth_list, strict=True)}
+                t_ns = time.time_ns()
+                self._cache = (t, quats, truths, t_ns)
+            if self.truth is not None:
+                self._taken.setdefault(node, deque(maxlen=4)).append((truths[node], t_ns))
             return quats[node]
+
+    def _sent(self, node: int) -> None:
+        """``node``'s tracker sent its oldest rotation not yet sent: its truth to the sink."""
+        with self._lock:
+            taken = self._taken.get(node)
+            truth = taken.popleft() if taken else None
+        if truth is not None and self.truth is not None:
+            self.truth(node, *truth)
 
     def start(self) -> None:
         for tracker in self.trackers:
