@@ -32,7 +32,7 @@ from typing import Any
 import numpy as np
 
 from bodynet.clients.mcap_store import McapSink, read_poses
-from bodynet.core.codecs.pose import is_measured
+from bodynet.core.codecs.pose import PoseFrame, is_measured
 from bodynet.core.keys import LEFT_ARM
 from bodynet.core.messages import RawSample, Source
 from bodynet.core.skeleton import CALIBRATION_POSES
@@ -196,7 +196,9 @@ def record(sc: Scenario, body: BodyEmulator, path: Path) -> None:
             if t != at:
                 at, readings = t, body.sample(t)[0]
             sensor = body.sensors[i]
-            source = Source.IMU_CENTRAL if sensor.kind is Kind.TAG else Source.CAN
+            # tags stamped when taken, each on its own timer, as SlimeVR trackers are
+            # (an IMU central's stamp is its line's arrival: STAMP_SPREAD_S)
+            source = Source.SLIMEVR if sensor.kind is Kind.TAG else Source.CAN
             t_ns = round(t * 1e9)
             sink.write_raw(sensor.site.raw_key, RawSample(readings[i], seq[i], t_ns, source), t_ns)
             seq[i] += 1
@@ -216,14 +218,21 @@ def compare(poses: Path, truth: Angles) -> tuple[list[tuple[Any, ...]], dict[str
     """Every measured dof of the poses after the held pose against the truth:
     rows (t, dof, error, error allowing the pose's lag, unc, near gimbal lock),
     and the counts of dofs measured and flagged."""
+    return compare_frames(read_poses(poses), truth)
+
+
+def compare_frames(frames: Iterable[tuple[int, PoseFrame]], truth: Angles, from_s: float = HOLD_S,
+                   t0_ns: int = 0) -> tuple[list[tuple[Any, ...]], dict[str, int]]:  # fmt: skip
+    """:func:`compare` of ``frames`` (time ns, pose), the truth's time 0 at ``t0_ns``
+    (poses live: the wall-clock time the emulator's clock started), from ``from_s``."""
     rows = []
     counts = {"measured": 0, "flagged": 0}
-    for t_ns, frame in read_poses(poses):
-        t = t_ns / 1e9
-        if t < HOLD_S:
+    for t_ns, frame in frames:
+        t = (t_ns - t0_ns) / 1e9
+        if t < from_s:
             continue
         now = truth(t)
-        oldest = min(frame.sources.values()) / 1e9 if frame.sources else t
+        oldest = (min(frame.sources.values()) - t0_ns) / 1e9 if frame.sources else t
         lagged = [truth(float(x)) for x in np.linspace(min(oldest, t), t, 6)]
         for dof, value in frame.angles_deg.items():
             if not is_measured(frame, dof):

@@ -340,9 +340,9 @@ def ahead(t_ns, previous_ns, target_ns, turned_rad, noise_rad, max_span_ns, max_
     return more, _DEG * math.hypot(change + left, carried)
 
 
-@_compiled(f"({_A2}, {_I1}, int64, {_I2}, {_A3}, {_F1}, int64, int64, float64, float64)")
+@_compiled(f"({_A2}, {_I1}, int64, {_I2}, {_A3}, {_F1}, int64, int64, float64, float64, {_F1})")
 def align_quats(quats, t_ns, target_ns, times, held, scatter_rad, max_span_ns, max_ahead_ns,
-                change_per_s, max_rate_deg_s):  # fmt: skip
+                change_per_s, max_rate_deg_s, spread_ns):  # fmt: skip
     """Orientation sensors' quaternions ``quats`` (n, 4, w first), sampled at
     ``t_ns`` (n,), brought to one time ``target_ns``: each turned on at the rate
     it turned between its previous sample and this one, for ``target_ns - t``
@@ -354,7 +354,10 @@ def align_quats(quats, t_ns, target_ns, times, held, scatter_rad, max_span_ns, m
     over). A turn from two samples with ``scatter_rad`` (n,) of noise each is
     shrunk where it is not well above that noise. Returns the quaternions (n, 4)
     and how far each may be off for being brought forward (deg, two standard
-    deviations; :func:`ahead`, with ``change_per_s`` and ``max_rate_deg_s``)."""
+    deviations; :func:`ahead`, with ``change_per_s`` and ``max_rate_deg_s``) and,
+    beside that, for having been taken up to ``spread_ns`` (n,) before its stamp
+    (a source that stamps on arrival what was read earlier: its turn over that
+    long at its last rate, at most ``max_rate_deg_s``)."""
     n = quats.shape[0]
     out = quats.copy()
     residual = np.zeros(n)
@@ -365,7 +368,7 @@ def align_quats(quats, t_ns, target_ns, times, held, scatter_rad, max_span_ns, m
             held[s, 0, :] = held[s, 1, :]
             times[s, 1] = t
             held[s, 1, :] = quats[s, :]
-        if times[s, 0] == NO_TIME or t >= target_ns:
+        if times[s, 0] == NO_TIME or (t >= target_ns and spread_ns[s] <= 0.0):
             continue
         pw, px, py, pz = held[s, 0, 0], held[s, 0, 1], held[s, 0, 2], held[s, 0, 3]
         w, x, y, z = quats[s, 0], quats[s, 1], quats[s, 2], quats[s, 3]
@@ -385,9 +388,18 @@ def align_quats(quats, t_ns, target_ns, times, held, scatter_rad, max_span_ns, m
         sin_half = math.sqrt(rx * rx + ry * ry + rz * rz)
         if sin_half < 1e-12:
             continue
+        span = t - times[s, 0]
+        taken = 0.0  # what its turn over the time it may have been taken before its stamp is
+        if spread_ns[s] > 0.0 and span <= max_span_ns:
+            rate = min(2.0 * math.atan2(sin_half, rw) / span, max_rate_deg_s * _RAD * 1e-9)
+            taken = _DEG * rate * spread_ns[s]
+        if t >= target_ns:
+            residual[s] = taken
+            continue
         more, residual[s] = ahead(t, times[s, 0], target_ns, 2.0 * math.atan2(sin_half, rw),
                                   scatter_rad[s], max_span_ns, max_ahead_ns,
                                   change_per_s, max_rate_deg_s)  # fmt: skip
+        residual[s] = math.hypot(residual[s], taken)
         if more <= 0.0:
             continue
         half = 0.5 * more

@@ -72,7 +72,7 @@ from bodynet.core.codecs.pose import (
     primary,
 )
 from bodynet.core.keys import Site
-from bodynet.core.messages import OleAccel, Quat, RawSample
+from bodynet.core.messages import STAMP_SPREAD_S, OleAccel, Quat, RawSample
 from bodynet.core.profile import OLE_DOF, mount
 from bodynet.core.skeleton import CALIBRATION_POSES, TPOSE, Joint, build_skeleton, part, rom
 from bodynet.core.subject import Profile, QuatWxyz
@@ -172,6 +172,9 @@ ALIGN_CHANGE_PER_S = 12.0
 #: What a turn left out states, as a rate, at most (deg/s): a foot's or hand's
 #: fastest; two samples stamped a hair apart (a burst) give no rate.
 ALIGN_RATE_MAX_DEG_S = 1000.0
+#: ``STAMP_SPREAD_S`` by source id, in ns: what a sample stamped on its arrival
+#: states for the time it may have been taken before (kernels.align_quats)
+_SPREAD_NS = {int(source): spread * 1e9 for source, spread in STAMP_SPREAD_S.items()}
 
 
 class Rhythm:
@@ -1034,6 +1037,7 @@ class BodySolver:
                 np.array([times[i] for i in sort.quats], dtype=np.int64), t_ns, sort.times,
                 sort.held, sort.scatter_rad, ALIGN_SPAN_NS, ALIGN_AHEAD_NS, ALIGN_CHANGE_PER_S,
                 ALIGN_RATE_MAX_DEG_S,
+                np.array([_SPREAD_NS.get(values[i].source, 0.0) for i in sort.quats]),
             )  # fmt: skip
             self._memory.expected.update(sort.segs)
         return tick

@@ -164,11 +164,12 @@ def test_process_holds_drifting_tags_as_the_gateway_does(tmp_path: Path) -> None
                 unc[mode] = dict(frame.unc_deg)
     assert worst["joints"] <= 4.0, worst
     assert worst["off"] > 2 * worst["joints"], worst
-    # the tags' own (the capture's noise is below the floor), the split's Jacobian at
-    # a lateral bend of about 0 widening it by about 1/cos(2 deg)
-    assert unc["off"]["lumbar_rotation_deg"] == pytest.approx(UNC_TAG_DEG, rel=1e-2)
-    assert unc["joints"]["lumbar_rotation_deg"] > UNC_TAG_DEG
-    assert unc["joints"]["left_knee_flexion_deg"] == UNC_TAG_DEG  # a hinge: geometric
+    # the tags' own (the capture's noise is below the floor) and what their lines'
+    # times leave (STAMP_SPREAD_S), widened where the joint is held by its mean twist
+    assert unc["off"]["lumbar_rotation_deg"] >= UNC_TAG_DEG
+    assert unc["joints"]["lumbar_rotation_deg"] > unc["off"]["lumbar_rotation_deg"]
+    # a hinge: geometric, the same either way
+    assert unc["joints"]["left_knee_flexion_deg"] == unc["off"]["left_knee_flexion_deg"]
 
 
 @pytest.mark.parametrize(

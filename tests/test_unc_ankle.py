@@ -69,7 +69,7 @@ def test_a_tag_not_turned_forward_states_the_turn_it_showed() -> None:
             stamped = np.array([t], dtype=np.int64)
             out, residual = kernels.align_quats(q, stamped, 35 * ms, times, held, scatter,
                                                 ALIGN_SPAN_NS, ALIGN_AHEAD_NS, ALIGN_CHANGE_PER_S,
-                                                ALIGN_RATE_MAX_DEG_S)  # fmt: skip
+                                                ALIGN_RATE_MAX_DEG_S, np.zeros(1))  # fmt: skip
         if np.array_equal(out, q):
             return 0.0, float(residual[0])
         return math.degrees(2 * math.acos(min(1.0, abs(float(out[0] @ q[0]))))), float(residual[0])
@@ -85,3 +85,31 @@ def test_a_tag_not_turned_forward_states_the_turn_it_showed() -> None:
     noise_axis = 2.0  # deg, one axis of the scatter
     reach = moved / 20.0  # the share of the span's turn it was turned forward
     assert residual >= 2 * noise_axis * math.sqrt(2 * reach * (1 + reach))
+
+
+def test_a_tag_stamped_on_arrival_states_its_turn_over_how_old_it_may_be() -> None:
+    """Two samples 20 ms apart that turned 6 deg (300 deg/s), the tick at the
+    newest one's stamp: nothing to bring forward, but a source whose stamp is
+    the arrival of a reading up to 30 ms old (the IMU central's) states the 9
+    deg it may have turned since (before: nothing); a turn faster than the
+    fastest limb states that limb's; a source stamping when read states nothing."""
+    ms = 1_000_000
+    scatter = np.radians([0.3])
+
+    def stated(turn_deg: float, spread_ms: float) -> float:
+        times = np.full((1, 2), kernels.NO_TIME, dtype=np.int64)
+        held = np.zeros((1, 2, 4))
+        for t, angle in ((0, 0.0), (20 * ms, turn_deg)):
+            half = math.radians(angle) / 2
+            q = np.array([[math.cos(half), math.sin(half), 0.0, 0.0]])
+            out, residual = kernels.align_quats(
+                q, np.array([t], dtype=np.int64), 20 * ms, times, held, scatter, ALIGN_SPAN_NS,
+                ALIGN_AHEAD_NS, ALIGN_CHANGE_PER_S, ALIGN_RATE_MAX_DEG_S,
+                np.array([spread_ms * ms], dtype=float),
+            )  # fmt: skip
+            assert np.array_equal(out, q)  # at the tick's time: as it is
+        return float(residual[0])
+
+    assert stated(6.0, 30.0) == pytest.approx(9.0)
+    assert stated(6.0, 0.0) == 0.0
+    assert stated(40.0, 30.0) == pytest.approx(ALIGN_RATE_MAX_DEG_S * 0.03)
