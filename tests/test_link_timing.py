@@ -16,7 +16,6 @@ import cmath
 import itertools
 import json
 import math
-import queue
 import time
 from collections import Counter, defaultdict
 from collections.abc import Callable
@@ -84,15 +83,6 @@ class Truths:
     def __call__(self, node: int, truth: Truth, t_ns: int) -> None:
         self.count[node] += 1
         self.last[node] = truth
-
-
-def drained(collector: Collector) -> list[tuple[str, Any]]:
-    """Everything ``collector`` has received so far."""
-    while True:
-        try:
-            collector.seen.append(collector.queue.get_nowait())
-        except queue.Empty:
-            return collector.seen
 
 
 def phase_s(times_ns: list[int], period_s: float) -> float:
@@ -239,7 +229,7 @@ def test_gateway_follows_the_truth_over_a_jittery_lossy_can_link(
     def agrees(seen: list[tuple[str, pose.PoseFrame]], target: dict[str, float]) -> bool:
         """The last pose against the last truth of each node (once every node's
         truth and a pose of all of them came)."""
-        last = dict(drained(truth))
+        last = dict(truth.drained())
         frame = seen[-1][1] if seen else None
         if frame is None or len(last) < len(NODES) or len(frame.sources) < len(NODES):
             return False

@@ -87,6 +87,14 @@ class Collector:
                 self.seen.append(self.queue.get(timeout=left))
         return self.seen
 
+    def drained(self) -> list[tuple[str, Any]]:
+        """Everything received so far, without waiting."""
+        while True:
+            try:
+                self.seen.append(self.queue.get_nowait())
+            except queue.Empty:
+                return self.seen
+
     def close(self) -> None:
         self._sub.undeclare()
 

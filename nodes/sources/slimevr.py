@@ -143,11 +143,12 @@ class SlimeVR(Source):
 
     def node(self, device: str, body: Any, where: Path, clock: Any, truth: Any,
              sensors: list[Any], label: str, timing: Any = None) -> NodeParts:  # fmt: skip
-        """Emulated trackers, each on its own timer as ``timing`` says, and their bridge."""
+        """Emulated trackers, each on its own timer as ``timing`` says (a rotation
+        every ``period_s``), and their bridge."""
         from bodynet.nodes.slimevr_bridge import run_bridge
 
         listen = ("127.0.0.1", free_udp_port())
-        trackers = EmulatedTrackers(body, listen, 100.0, clock, truth, timing=timing)
+        trackers = EmulatedTrackers(body, listen, 1.0 / self.period_s, clock, truth, timing=timing)
         assignments = {trackers.tracker_of(s.node): s.site for s in sensors}
         return trackers, run_bridge, {"listen": listen, "assignments": assignments}
 
@@ -390,8 +391,9 @@ class EmulatedTrackers:
         self.link = f"{server[0]}:{server[1]}"
         self.tolerance_s = 0.5 / rate_hz  # trackers a period's half apart share a sample
         self._lock = threading.Lock()
-        self._cache: tuple[float, dict[int, tuple[float, float, float, float]],
-                           dict[int, Any], int] = (-1.0, {}, {}, 0)  # t, quats, truths, t_ns
+        self._cache: tuple[
+            float, dict[int, tuple[float, float, float, float]], dict[int, Any], int
+        ] = (-1.0, {}, {}, 0)  # t, quats, truths, t_ns
         self._taken: dict[int, deque[tuple[Any, int]]] = {}  # node -> truths not yet sent
         nodes = [s.node for s in body.sensors]
         timing = timing or LinkTiming()
