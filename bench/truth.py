@@ -84,7 +84,10 @@ class Scenario:
     jitter_s: float = 0.002
     drop: float = 0.0  # share of samples lost after the pose
     die: tuple[str, float] | None = None  # (raw key, time s): that sensor sends nothing from then
-    hybrid: str = ""  # "beside": SmartSuit left-arm modules and the tags; "instead": no arm tags
+    # "beside": SmartSuit left-arm modules and the tags; "instead": no arm tags; "hand":
+    # shoulder and elbow modules instead of the upper arm's and forearm's tags, the hand's
+    # tag kept (a tag below a module: its wrist from that tag alone)
+    hybrid: str = ""
     seconds: float = 20.0
     seed: int = 1
 
@@ -123,6 +126,7 @@ def scenarios(seeds: Iterable[int] = (1, 2)) -> list[Scenario]:
             replace(walk, name=f"hybrid-instead-reach-s{seed}", hybrid="instead",
                     motion="reach"),
             replace(walk, name=f"hybrid-instead-walk-s{seed}", hybrid="instead"),
+            replace(walk, name=f"hybrid-hand-walk-s{seed}", hybrid="hand"),
             replace(walk, name=f"auto-indep-walk-s{seed}", headings=Headings.INDEPENDENT),
         ]
         # fmt: on
@@ -160,6 +164,9 @@ def sensors_of(sc: Scenario) -> list[EmulatedSensor]:
         return [*tags, *smartsuit_sensors([LEFT_ARM])]
     if sc.hybrid == "instead":
         return [s for s in tags if s.site.branch != LEFT_ARM] + smartsuit_sensors([LEFT_ARM])
+    if sc.hybrid == "hand":
+        kept = [s for s in tags if s.site.branch != LEFT_ARM or s.site.name == "hand"]
+        return kept + [s for s in smartsuit_sensors([LEFT_ARM]) if s.site.name != "wrist"]
     return tags
 
 

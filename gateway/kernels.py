@@ -299,10 +299,11 @@ _I2 = "int64[:, :]"
 
 
 @_compiled(
-    "UniTuple(float64, 2)(int64, int64, int64, float64, float64, int64, int64, float64, float64)"
+    "UniTuple(float64, 2)(int64, int64, int64, float64, float64, int64, int64, float64, float64, "
+    "float64)"
 )
 def ahead(t_ns, previous_ns, target_ns, turned_rad, noise_rad, max_span_ns, max_ahead_ns,
-          change_per_s, max_rate_deg_s):  # fmt: skip
+          change_per_s, max_rate_deg_s, recent_rad_s):  # fmt: skip
     """How far (rad) a sensor that turned ``turned_rad`` (>= 0) from its sample at
     ``previous_ns`` to its sample at ``t_ns`` goes on turning, at that rate, to
     ``target_ns``, and how far (deg, two standard deviations) that may be off:
@@ -314,11 +315,18 @@ def ahead(t_ns, previous_ns, target_ns, turned_rad, noise_rad, max_span_ns, max_
     motion; as a rate at most ``max_rate_deg_s``: samples stamped a hair apart
     give none); and beside those, the two samples' noise as the turn carried it
     forward (beyond the sample's own, which the sensor's uncertainty states).
-    Nothing (0, 0) without a previous sample (``NO_TIME``), for a target not
-    after ``t_ns`` or a span over ``max_span_ns``."""
+    Nothing for a target not after ``t_ns``. Without a rate (no previous sample,
+    ``NO_TIME``, or a span over ``max_span_ns``: a gap) it is not turned, and
+    states what its age may hold at ``recent_rad_s`` (:func:`recent_rate`; ``inf``:
+    none known), at most ``max_rate_deg_s``."""
+    age = target_ns - t_ns
     span = t_ns - previous_ns
-    step = min(target_ns - t_ns, max_ahead_ns, 2 * span)
-    if previous_ns == NO_TIME or step <= 0 or span > max_span_ns or turned_rad <= 0.0:
+    if age <= 0:
+        return 0.0, 0.0
+    if previous_ns == NO_TIME or span > max_span_ns:
+        return 0.0, min(_DEG * recent_rad_s, max_rate_deg_s) * age * 1e-9
+    step = min(age, max_ahead_ns, 2 * span)
+    if step <= 0 or turned_rad <= 0.0:
         return 0.0, 0.0
     # a rate from two noisy samples: their turn is off by about sqrt(2) * noise,
     # so a turn less than twice that gives none and one not far above it is shrunk
@@ -340,9 +348,29 @@ def ahead(t_ns, previous_ns, target_ns, turned_rad, noise_rad, max_span_ns, max_
     return more, _DEG * math.hypot(change + left, carried)
 
 
-@_compiled(f"({_A2}, {_I1}, int64, {_I2}, {_A3}, {_F1}, int64, int64, float64, float64, {_F1})")
-def align_quats(quats, t_ns, target_ns, times, held, scatter_rad, max_span_ns, max_ahead_ns,
-                change_per_s, max_rate_deg_s, spread_ns):  # fmt: skip
+@_compiled("float64(float64, int64, int64, float64, float64, float64)")
+def recent_rate(recent_rad_s, previous_ns, t_ns, turned_rad, max_rate_deg_s, memory_s):
+    """A sensor's recent rate (rad/s) once a sample at ``t_ns`` turned ``turned_rad``
+    from its previous one at ``previous_ns`` (``NO_TIME``: none): the fastest of
+    its recent turns' rates (a gap's too: its mean), each forgotten over
+    ``memory_s`` (a gait cycle: a foot still now may be at heel strike a period
+    later), at most ``max_rate_deg_s``; a turn within the samples' noise counts,
+    as :func:`ahead` states it may be motion. What :func:`ahead` states for a
+    sample with no rate of its own (after a gap); ``inf`` (none known) until
+    a span gives one."""
+    span = t_ns - previous_ns
+    if previous_ns == NO_TIME or span <= 0:
+        return recent_rad_s
+    rate = min(turned_rad / (span * 1e-9), max_rate_deg_s * _RAD)
+    if recent_rad_s == math.inf:
+        return rate
+    return max(rate, recent_rad_s * math.exp(-span * 1e-9 / memory_s))
+
+
+@_compiled(f"({_A2}, {_I1}, int64, {_I2}, {_A3}, {_F1}, {_F1}, int64, int64, float64, float64, "
+           f"float64, {_F1})")  # fmt: skip
+def align_quats(quats, t_ns, target_ns, times, held, recent, scatter_rad, max_span_ns,
+                max_ahead_ns, change_per_s, max_rate_deg_s, memory_s, spread_ns):  # fmt: skip
     """Orientation sensors' quaternions ``quats`` (n, 4, w first), sampled at
     ``t_ns`` (n,), brought to one time ``target_ns``: each turned on at the rate
     it turned between its previous sample and this one, for ``target_ns - t``
@@ -351,24 +379,33 @@ def align_quats(quats, t_ns, target_ns, times, held, scatter_rad, max_span_ns, m
     gap) or none yet gives the quaternion as it is. ``times`` (n, 2: previous,
     latest; ``NO_TIME`` before one) and ``held`` (n, 2, 4) are each sensor's last
     two samples, updated here where ``t_ns`` is new (a time that went back starts
-    over). A turn from two samples with ``scatter_rad`` (n,) of noise each is
-    shrunk where it is not well above that noise. Returns the quaternions (n, 4)
-    and how far each may be off for being brought forward (deg, two standard
+    over), and ``recent`` (n,) each one's recent rate (:func:`recent_rate`, over
+    ``memory_s``; ``inf`` before one). A turn from two samples with
+    ``scatter_rad`` (n,) of noise each is shrunk where it is not well above that
+    noise. Returns the quaternions (n, 4) and how far each may be off for being
+    brought forward, or for its age where it has no rate (deg, two standard
     deviations; :func:`ahead`, with ``change_per_s`` and ``max_rate_deg_s``) and,
     beside that, for having been taken up to ``spread_ns`` (n,) before its stamp
     (a source that stamps on arrival what was read earlier: its turn over that
-    long at its last rate, at most ``max_rate_deg_s``)."""
+    long at its last rate, or its recent one, at most ``max_rate_deg_s``)."""
     n = quats.shape[0]
     out = quats.copy()
     residual = np.zeros(n)
     for s in range(n):
         t = t_ns[s]
-        if t != times[s, 1]:
+        new = t != times[s, 1]
+        if new:
             times[s, 0] = times[s, 1] if t > times[s, 1] else NO_TIME
             held[s, 0, :] = held[s, 1, :]
             times[s, 1] = t
             held[s, 1, :] = quats[s, :]
-        if times[s, 0] == NO_TIME or (t >= target_ns and spread_ns[s] <= 0.0):
+        if times[s, 0] == NO_TIME:
+            aged = ahead(t, NO_TIME, target_ns, 0.0, scatter_rad[s], max_span_ns, max_ahead_ns,
+                         change_per_s, max_rate_deg_s, recent[s])[1]  # fmt: skip
+            taken = min(_DEG * recent[s], max_rate_deg_s) * spread_ns[s] * 1e-9
+            residual[s] = math.hypot(aged, taken)
+            continue
+        if t >= target_ns and not new and spread_ns[s] <= 0.0:
             continue
         pw, px, py, pz = held[s, 0, 0], held[s, 0, 1], held[s, 0, 2], held[s, 0, 3]
         w, x, y, z = quats[s, 0], quats[s, 1], quats[s, 2], quats[s, 3]
@@ -386,21 +423,19 @@ def align_quats(quats, t_ns, target_ns, times, held, scatter_rad, max_span_ns, m
         if rw < 0.0:
             rw, rx, ry, rz = -rw, -rx, -ry, -rz
         sin_half = math.sqrt(rx * rx + ry * ry + rz * rz)
-        if sin_half < 1e-12:
-            continue
+        turned = 2.0 * math.atan2(sin_half, rw)
         span = t - times[s, 0]
-        taken = 0.0  # what its turn over the time it may have been taken before its stamp is
-        if spread_ns[s] > 0.0 and span <= max_span_ns:
-            rate = min(2.0 * math.atan2(sin_half, rw) / span, max_rate_deg_s * _RAD * 1e-9)
-            taken = _DEG * rate * spread_ns[s]
-        if t >= target_ns:
-            residual[s] = taken
-            continue
-        more, residual[s] = ahead(t, times[s, 0], target_ns, 2.0 * math.atan2(sin_half, rw),
-                                  scatter_rad[s], max_span_ns, max_ahead_ns,
-                                  change_per_s, max_rate_deg_s)  # fmt: skip
+        if new:
+            recent[s] = recent_rate(recent[s], times[s, 0], t, turned, max_rate_deg_s, memory_s)
+        taken = 0.0  # its turn over the time it may have been taken before its stamp
+        if spread_ns[s] > 0.0:
+            rate = turned / (span * 1e-9) if span <= max_span_ns else recent[s]  # rad/s
+            taken = min(_DEG * rate, max_rate_deg_s) * spread_ns[s] * 1e-9
+        more, residual[s] = ahead(t, times[s, 0], target_ns, turned, scatter_rad[s], max_span_ns,
+                                  max_ahead_ns, change_per_s, max_rate_deg_s,
+                                  recent[s])  # fmt: skip
         residual[s] = math.hypot(residual[s], taken)
-        if more <= 0.0:
+        if more <= 0.0 or sin_half < 1e-12:
             continue
         half = 0.5 * more
         c, k = math.cos(half), math.sin(half) / sin_half

@@ -175,6 +175,11 @@ ALIGN_RATE_MAX_DEG_S = 1000.0
 #: ``STAMP_SPREAD_S`` by source id, in ns: what a sample stamped on its arrival
 #: states for the time it may have been taken before (kernels.align_quats)
 _SPREAD_NS = {int(source): spread * 1e9 for source, spread in STAMP_SPREAD_S.items()}
+#: A sample with no rate of its own (a sensor's first, or the first after a gap
+#: over ``ALIGN_SPAN_NS``) states its age at the sensor's recent rate: the fastest
+#: of its turns, each forgotten over this long (s; a gait cycle), else
+#: ``ALIGN_RATE_MAX_DEG_S`` (:func:`kernels.recent_rate`).
+ALIGN_RATE_MEMORY_S = 1.0
 
 
 class Rhythm:
@@ -593,8 +598,9 @@ class _Memory:
     expected: set[str] = field(default_factory=set)  # segments an orientation sensor is on
     first_t_ns: int = -1  # the body's first tick (source time)
     # each encoder's last two samples (raw key -> previous time and angle, latest time
-    # and angle, and the calibration and zero they were read with): BodySolver._encoder_now
-    encoders: dict[str, tuple[int, float, int, float, OleCalibration, int]] = \
+    # and angle, the calibration and zero they were read with, and its recent rate):
+    # BodySolver._encoder_now
+    encoders: dict[str, tuple[int, float, int, float, OleCalibration, int, float]] = \
         field(default_factory=dict)  # fmt: skip
 
 
@@ -610,12 +616,13 @@ def _carry_history(old: _Sorted | None, new: _Sorted) -> None:
     n = len(new.used)
     new.times = np.full((n, 2), kernels.NO_TIME, dtype=np.int64)
     new.held = np.zeros((n, 2, 4))
+    new.recent = np.full(n, math.inf)
     if old is not None and len(old.used):
         was = {site: i for i, site in enumerate(old.used)}
         for i, site in enumerate(new.used):
             j = was.get(site)
             if j is not None:
-                new.times[i], new.held[i] = old.times[j], old.held[j]
+                new.times[i], new.held[i], new.recent[i] = old.times[j], old.held[j], old.recent[j]
 
 
 class _Swing:
@@ -742,9 +749,9 @@ class _Sorted:
     tenth of a hot solve)."""
 
     __slots__ = ("flagged", "held", "keys", "kinds", "lefts", "modules", "mounts", "pelvis",
-                 "plan", "quats", "reasons", "scatter", "scatter_rad", "segs", "sites", "stale",
-                 "stale_modules", "stale_segs", "tainted", "times", "uncal", "unknown", "upright",
-                 "used")  # fmt: skip
+                 "plan", "quats", "reasons", "recent", "scatter", "scatter_rad", "segs", "sites",
+                 "stale", "stale_modules", "stale_segs", "tainted", "times", "uncal", "unknown",
+                 "upright", "used")  # fmt: skip
 
     def __init__(self, sites: tuple[Site, ...], kinds: tuple[type, ...],
                  stale: frozenset[str]) -> None:  # fmt: skip
@@ -777,6 +784,7 @@ class _Sorted:
         # what kernels.align_quats brings a tick's orientations to one time with
         self.times = np.full((0, 2), kernels.NO_TIME, dtype=np.int64)
         self.held = np.zeros((0, 2, 4))
+        self.recent = np.zeros(0)  # and each one's recent rate (rad/s, kernels.recent_rate)
         self.scatter_rad = np.zeros(0)  # ``scatter`` in radians
 
 
@@ -1035,8 +1043,8 @@ class BodySolver:
             tick.quats, tick.residual = kernels.align_quats(
                 np.array([values[i].reading.wxyz for i in sort.quats], dtype=float),  # type: ignore[union-attr]
                 np.array([times[i] for i in sort.quats], dtype=np.int64), t_ns, sort.times,
-                sort.held, sort.scatter_rad, ALIGN_SPAN_NS, ALIGN_AHEAD_NS, ALIGN_CHANGE_PER_S,
-                ALIGN_RATE_MAX_DEG_S,
+                sort.held, sort.recent, sort.scatter_rad, ALIGN_SPAN_NS, ALIGN_AHEAD_NS,
+                ALIGN_CHANGE_PER_S, ALIGN_RATE_MAX_DEG_S, ALIGN_RATE_MEMORY_S,
                 np.array([_SPREAD_NS.get(values[i].source, 0.0) for i in sort.quats]),
             )  # fmt: skip
             self._memory.expected.update(sort.segs)
@@ -1320,10 +1328,10 @@ class BodySolver:
             if child in measured:
                 relative = parent.T @ measured[child]
                 values = ax.split(relative, previous)
-                sort = tick.sort
-                unc = ax.unc(relative, tag_unc((sort.scatter[sort.segs.index(child)],)))
+                known, chain = self._one_sensor(joint, tick)
+                unc = ax.unc(relative, known)
                 own = self._rests(child, tick)
-                why = [set(inherited | own) for _ in names]
+                why = [set(inherited | own | chain) for _ in names]
                 rests[child] = own
                 self._commit(tick, world, joint, values, unc, why, relative)
                 if child in modules:
@@ -1353,6 +1361,27 @@ class BodySolver:
                 why = [set(_UPRIGHT if upright and not inherited else _UNOBS) for _ in names]
                 rests[child] = inherited if upright else inherited | _UNOBS
             self._commit(tick, world, joint, values, unc, why)
+
+    def _one_sensor(self, joint: Joint, tick: _Tick) -> tuple[float, frozenset[str]]:
+        """How well (deg) a joint whose child alone an orientation sensor measures
+        knows its relative rotation: the sensor's noise, what its sample's age
+        may hold (``tick.residual``) and how far its parent's orientation, solved
+        this tick, may be off (its joints' stated uncertainties up to an
+        orientation sensor's segment or the pelvis); and what those joints' dofs
+        rest on besides measurement (``held``: a forearm's roll an elbow module
+        does not give), which the joint's dofs rest on too."""
+        at = tick.segs.index(joint.child)
+        var = tag_unc((tick.sort.scatter[at],)) ** 2 + float(tick.residual[at]) ** 2
+        why, by_child, reasons = _NOTHING, self._by_child, tick.reasons
+        segment = joint.parent
+        while segment not in tick.measured and segment in by_child:
+            above = by_child[segment]
+            stated = tick.unc[self._slices[above.name]]
+            var += float(np.sum(stated[np.isfinite(stated)] ** 2))
+            for name in self.axes[above.name].names:
+                why = why | (reasons.get(name, _NOTHING) - _CLAMPED)
+            segment = above.parent
+        return math.sqrt(var), why
 
     def _rests(self, segment: str, tick: _Tick) -> frozenset[str]:
         """What a segment's own orientation rests on besides measurement: its
@@ -1505,17 +1534,22 @@ class BodySolver:
         history = self._memory.encoders
         counts = zero.counts if zero is not None else 0
         had = history.get(key)
+        recent = had[6] if had is not None else math.inf
         if had is None or had[4] is not cal or had[5] != counts or t_ns < had[2]:
             before_ns, before = kernels.NO_TIME, angle_deg
         elif t_ns == had[2]:  # the same sample again: the same two
             before_ns, before = had[0], had[1]
         else:
             before_ns, before = had[2], had[3]
-        history[key] = (before_ns, before, t_ns, angle_deg, cal, counts)
         turned = math.radians(angle_deg - before)
+        if had is None or t_ns != had[2]:
+            recent = kernels.recent_rate(
+                recent, before_ns, t_ns, abs(turned), ALIGN_RATE_MAX_DEG_S, ALIGN_RATE_MEMORY_S
+            )
+        history[key] = (before_ns, before, t_ns, angle_deg, cal, counts, recent)
         more, late = kernels.ahead(t_ns, before_ns, tick.t_ns, abs(turned), OLE_NOISE_RAD,
                                    ALIGN_SPAN_NS, ALIGN_AHEAD_NS, ALIGN_CHANGE_PER_S,
-                                   ALIGN_RATE_MAX_DEG_S)  # fmt: skip
+                                   ALIGN_RATE_MAX_DEG_S, recent)  # fmt: skip
         return angle_deg + math.copysign(math.degrees(more), turned), late
 
     def _swing(self, site: Site, segment: str, up: tuple[np.ndarray, float], tick: _Tick) -> float:

@@ -20,6 +20,7 @@ from bodynet.gateway.solver import (
     ALIGN_AHEAD_NS,
     ALIGN_CHANGE_PER_S,
     ALIGN_RATE_MAX_DEG_S,
+    ALIGN_RATE_MEMORY_S,
     ALIGN_SPAN_NS,
     tag_unc,
 )
@@ -63,13 +64,15 @@ def test_a_tag_not_turned_forward_states_the_turn_it_showed() -> None:
     def brought(turn_deg: float, span_ns: int = 20 * ms) -> tuple[float, float]:
         times = np.full((1, 2), kernels.NO_TIME, dtype=np.int64)
         held = np.zeros((1, 2, 4))
+        recent = np.full(1, math.inf)
         for t, angle in ((20 * ms - span_ns, 0.0), (20 * ms, turn_deg)):
             half = math.radians(angle) / 2
             q = np.array([[math.cos(half), math.sin(half), 0.0, 0.0]])
             stamped = np.array([t], dtype=np.int64)
-            out, residual = kernels.align_quats(q, stamped, 35 * ms, times, held, scatter,
-                                                ALIGN_SPAN_NS, ALIGN_AHEAD_NS, ALIGN_CHANGE_PER_S,
-                                                ALIGN_RATE_MAX_DEG_S, np.zeros(1))  # fmt: skip
+            out, residual = kernels.align_quats(
+                q, stamped, 35 * ms, times, held, recent, scatter, ALIGN_SPAN_NS, ALIGN_AHEAD_NS,
+                ALIGN_CHANGE_PER_S, ALIGN_RATE_MAX_DEG_S, ALIGN_RATE_MEMORY_S, np.zeros(1),
+            )  # fmt: skip
         if np.array_equal(out, q):
             return 0.0, float(residual[0])
         return math.degrees(2 * math.acos(min(1.0, abs(float(out[0] @ q[0]))))), float(residual[0])
@@ -103,9 +106,9 @@ def test_a_tag_stamped_on_arrival_states_its_turn_over_how_old_it_may_be() -> No
             half = math.radians(angle) / 2
             q = np.array([[math.cos(half), math.sin(half), 0.0, 0.0]])
             out, residual = kernels.align_quats(
-                q, np.array([t], dtype=np.int64), 20 * ms, times, held, scatter, ALIGN_SPAN_NS,
-                ALIGN_AHEAD_NS, ALIGN_CHANGE_PER_S, ALIGN_RATE_MAX_DEG_S,
-                np.array([spread_ms * ms], dtype=float),
+                q, np.array([t], dtype=np.int64), 20 * ms, times, held, np.full(1, math.inf),
+                scatter, ALIGN_SPAN_NS, ALIGN_AHEAD_NS, ALIGN_CHANGE_PER_S, ALIGN_RATE_MAX_DEG_S,
+                ALIGN_RATE_MEMORY_S, np.array([spread_ms * ms], dtype=float),
             )  # fmt: skip
             assert np.array_equal(out, q)  # at the tick's time: as it is
         return float(residual[0])
