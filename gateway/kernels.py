@@ -367,6 +367,14 @@ def recent_rate(recent_rad_s, previous_ns, t_ns, turned_rad, max_rate_deg_s, mem
     return max(rate, recent_rad_s * math.exp(-span * 1e-9 / memory_s))
 
 
+@_compiled("float64(float64, float64, float64)")
+def _taken(rate_rad_s, spread_ns, max_rate_deg_s):
+    """What a sensor turning at ``rate_rad_s`` (at most ``max_rate_deg_s``) may have
+    turned (deg) over ``spread_ns``: how long before its stamp it may have been
+    read (a source that stamps on arrival what was read earlier)."""
+    return min(_DEG * rate_rad_s, max_rate_deg_s) * spread_ns * 1e-9
+
+
 @_compiled(f"({_A2}, {_I1}, int64, {_I2}, {_A3}, {_F1}, {_F1}, int64, int64, float64, float64, "
            f"float64, {_F1})")  # fmt: skip
 def align_quats(quats, t_ns, target_ns, times, held, recent, scatter_rad, max_span_ns,
@@ -402,8 +410,7 @@ def align_quats(quats, t_ns, target_ns, times, held, recent, scatter_rad, max_sp
         if times[s, 0] == NO_TIME:
             aged = ahead(t, NO_TIME, target_ns, 0.0, scatter_rad[s], max_span_ns, max_ahead_ns,
                          change_per_s, max_rate_deg_s, recent[s])[1]  # fmt: skip
-            taken = min(_DEG * recent[s], max_rate_deg_s) * spread_ns[s] * 1e-9
-            residual[s] = math.hypot(aged, taken)
+            residual[s] = math.hypot(aged, _taken(recent[s], spread_ns[s], max_rate_deg_s))
             continue
         if t >= target_ns and not new and spread_ns[s] <= 0.0:
             continue
@@ -427,14 +434,11 @@ def align_quats(quats, t_ns, target_ns, times, held, recent, scatter_rad, max_sp
         span = t - times[s, 0]
         if new:
             recent[s] = recent_rate(recent[s], times[s, 0], t, turned, max_rate_deg_s, memory_s)
-        taken = 0.0  # its turn over the time it may have been taken before its stamp
-        if spread_ns[s] > 0.0:
-            rate = turned / (span * 1e-9) if span <= max_span_ns else recent[s]  # rad/s
-            taken = min(_DEG * rate, max_rate_deg_s) * spread_ns[s] * 1e-9
+        rate = turned / (span * 1e-9) if span <= max_span_ns else recent[s]  # rad/s
         more, residual[s] = ahead(t, times[s, 0], target_ns, turned, scatter_rad[s], max_span_ns,
                                   max_ahead_ns, change_per_s, max_rate_deg_s,
                                   recent[s])  # fmt: skip
-        residual[s] = math.hypot(residual[s], taken)
+        residual[s] = math.hypot(residual[s], _taken(rate, spread_ns[s], max_rate_deg_s))
         if more <= 0.0 or sin_half < 1e-12:
             continue
         half = 0.5 * more

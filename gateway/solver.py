@@ -1528,8 +1528,9 @@ class BodySolver:
         rate between its last two samples as the tags' orientations are
         (:func:`kernels.ahead`), and how far (deg) that may be off: a module on a
         timer of its own samples up to a period before the tick, an elbow at 100
-        deg/s turning 2 deg meanwhile. A calibration or zero that changed starts
-        its history over (its angles jumped)."""
+        deg/s turning 2 deg meanwhile; with no rate (its first sample, after a gap)
+        its age at its recent rate (:func:`kernels.recent_rate`). A calibration or
+        zero that changed starts its history over (its angles jumped), not its rate."""
         t_ns = tick.sources[key]
         history = self._memory.encoders
         counts = zero.counts if zero is not None else 0
