@@ -1367,14 +1367,16 @@ class BodySolver:
         knows its relative rotation: the sensor's noise, what its sample's age
         may hold (``tick.residual``) and how far its parent's orientation, solved
         this tick, may be off (its joints' stated uncertainties up to an
-        orientation sensor's segment or the pelvis); and what those joints' dofs
+        orientation sensor's segment, the pelvis or the trunk's upright model, the
+        reference of a body with no trunk sensor); and what those joints' dofs
         rest on besides measurement (``held``: a forearm's roll an elbow module
         does not give), which the joint's dofs rest on too."""
         at = tick.segs.index(joint.child)
         var = tag_unc((tick.sort.scatter[at],)) ** 2 + float(tick.residual[at]) ** 2
         why, by_child, reasons = _NOTHING, self._by_child, tick.reasons
         segment = joint.parent
-        while segment not in tick.measured and segment in by_child:
+        upright = tick.sort.upright
+        while segment not in tick.measured and segment not in upright and segment in by_child:
             above = by_child[segment]
             stated = tick.unc[self._slices[above.name]]
             var += float(np.sum(stated[np.isfinite(stated)] ** 2))
