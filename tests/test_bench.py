@@ -77,13 +77,22 @@ def test_demo_runs_the_live_body_network(tmp_path: Path) -> None:
     assert "T-pose calibration: 9 sensors" in result.stdout
     last = result.stdout.split("-- t")[-1]
     assert "sources 15" in last
-    assert "stale 0" in last
     # the knee bend after the T-pose told the gateway where the subject faces: the
     # table shows numbers, no longer 'uncal'
     assert "uncal" not in last, last
-    poses = list(read_poses(record))  # the recorder's file is complete and readable
+    poses = [f for _, f in read_poses(record)]  # the recorder's file is complete and readable
     assert len(poses) > 10
-    assert len(poses[-1][1].sources) == 15
+    assert len(poses[-1].sources) == 15
+    # every source delivered to the end, by the samples' times, and the gateway saw
+    # each fresh in its last two seconds: one source stale in the very last pose is a
+    # host too busy to hand its samples on for a few periods (the demo runs in one
+    # process: on a loaded machine, often), which the pose rightly says
+    end = poses[-1].t_ns
+    assert all(end - t <= 2e9 for t in poses[-1].sources.values()), poses[-1].sources
+    recent = [f for f in poses if end - f.t_ns <= 2e9]
+    assert all(any(k not in f.stale for f in recent) for k in poses[-1].sources), [
+        f.stale for f in recent
+    ]
     # the live view, read back by Rerun's own tool: figure, angles, gauges and status
     rerun = Path(sys.executable).with_name("rerun")
     printed = subprocess.run(
