@@ -37,6 +37,7 @@ from bodynet.core.keys import LEFT_ARM
 from bodynet.core.messages import RawSample, Source
 from bodynet.core.skeleton import CALIBRATION_POSES
 from bodynet.core.subject import Profile
+from bodynet.gateway.heading import with_headings
 from bodynet.nodes.emulator import (
     BodyEmulator,
     EmulatedSensor,
@@ -47,7 +48,8 @@ from bodynet.nodes.emulator import (
     smartsuit_sensors,
 )
 from bodynet.nodes.motion import ROUTINES, Routine, bow, eased, heading_protocol
-from bodynet.offline.process import ProcessResult, process
+from bodynet.nodes.sources.base import CaptureStats
+from bodynet.offline.process import ProcessResult, calibrate_recording, process, recorded_samples
 
 Angles = Callable[[float], dict[str, float]]
 
@@ -74,7 +76,7 @@ class Scenario:
     motion: str = "walk"  # a routine of nodes.motion, "bow", or "protocol" (the heading protocol)
     pose: str = "tpose"
     headings: Headings = Headings.SHARED
-    heading_mode: str = "auto"  # the profile's heading, or "given": each tag's own, told
+    heading_mode: str = "auto"  # the profile's mode, or "given": each tag's own, told calibrated
     noise: float = 0.3  # deg, each tag's orientation noise
     wobble: float = 0.0  # deg, tissue wobble
     drift: float = 0.0  # deg/min
@@ -213,12 +215,22 @@ def record(sc: Scenario, body: BodyEmulator, path: Path) -> None:
         sink.close()
 
 
-def profile_of(sc: Scenario, body: BodyEmulator) -> Profile:
-    """The subject's profile: the heading mode, or (``given``) each tag's heading."""
+def profile_of(sc: Scenario, body: BodyEmulator, recording: Path) -> Profile:
+    """The subject's profile: the heading mode, or (``given``) as a user tells each
+    tag's heading: calibrated from the held pose of ``recording`` first (a calibration
+    drops the headings it had, ``heading.dropped_note``), then each tag's heading told
+    against where the subject faced in that pose (``R_s = Rz(psi) R_seg M``)."""
     if sc.heading_mode != "given":
         return Profile(pose=sc.pose, heading=sc.heading_mode)
-    told = {s.site.raw_key: body.headings_deg[s.node] for s in body.sensors if s.kind is Kind.TAG}
-    return Profile(pose=sc.pose, heading="auto", imu_headings=told)
+    profile = Profile(pose=sc.pose, heading="auto")
+    samples = recorded_samples(recording, "mcap", CaptureStats())
+    calibrated = calibrate_recording(samples, profile, (0.0, HOLD_S), sc.pose, strict=False)
+    # the emulator's tag frames: turned by their heading; with shared ones, the
+    # subject faced ``facing`` among them (independent ones ignore it)
+    facing = 0.0 if sc.headings is Headings.INDEPENDENT else sc.facing
+    told = {s.site.raw_key: body.headings_deg[s.node] - facing
+            for s in body.sensors if s.kind is Kind.TAG}  # fmt: skip
+    return with_headings(calibrated.apply(profile, sc.pose), told)
 
 
 def compare(poses: Path, truth: Angles) -> tuple[list[tuple[Any, ...]], dict[str, int]]:
@@ -296,7 +308,9 @@ def session(
     body = BodyEmulator(Routine(sc.name, "", truth), sensors_of(sc), realism=realism, seed=sc.seed)
     recording, poses = work / f"{sc.name}.mcap", work / f"{sc.name}.poses.mcap"
     record(sc, body, recording)
-    result = process(recording, "mcap", poses, profile_of(sc, body), tpose_s=HOLD_S, pose=sc.pose)
+    # a profile holding every tag's mount (``given``) is not calibrated again
+    profile = profile_of(sc, body, recording)
+    result = process(recording, "mcap", poses, profile, tpose_s=HOLD_S, pose=sc.pose)
     rows, counts = compare(poses, truth)
     recording.unlink()
     poses.unlink()

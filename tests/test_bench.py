@@ -307,19 +307,25 @@ def test_heading_stall_benchmark_reports_the_other_bodys_gaps() -> None:
 
 
 def test_tiny_truth_benchmark_compares_recorded_sessions_with_the_truth(tmp_path: Path) -> None:
-    """Two short sessions written as recordings and solved by ``bodynet process``:
+    """Three short sessions written as recordings and solved by ``bodynet process``:
     the table has a row each and its measured dofs agree with the truth within
-    twice their uncertainty, but for a few (the locked walk has none off now)."""
+    twice their uncertainty, but for a few (the locked walk has none off now);
+    6-axis tags whose headings are told (after the calibration) are measured
+    from the start, every dof."""
     from bodynet.bench import truth
 
-    names = ["locked-walk-s1", "hybrid-instead-reach-s1"]
+    names = ["locked-walk-s1", "hybrid-instead-reach-s1", "given-indep-walk-s1"]
     result = truth.run(tmp_path, only=names, seconds=7.0)
     rows = {r["name"]: r for r in result["scenarios"]}
-    assert list(rows) == names
+    assert sorted(rows) == sorted(names)
     walk, arm = rows["locked-walk-s1"], rows["hybrid-instead-reach-s1"]
     assert walk["heading"] == "found"
     assert walk["other"]["n"] > 1000
     assert walk["other"]["share_gt_2unc"] < 0.05
+    given = rows["given-indep-walk-s1"]
+    assert given["counts"]["flagged"] == 0
+    assert given["counts"]["measured"] > 1000
+    assert given["other"]["share_gt_2unc"] < 0.05
     # the SmartSuit modules' elbow is measured where the tags' heading is not found
     assert any(w["dof"] == "left_elbow_flexion_deg" for w in arm["other"]["worst"])
     assert arm["other"]["rms_deg"] < 5
