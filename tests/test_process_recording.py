@@ -185,7 +185,7 @@ def test_a_smartsuit_elbow_on_its_own_timer_states_its_samples_age(tmp_path: Pat
                         realism=Realism(quat_noise_deg=sc.noise), seed=sc.seed)  # fmt: skip
     recording, poses = tmp_path / "reach.mcap", tmp_path / "poses.mcap"
     truth.record(sc, body, recording)
-    process(recording, "mcap", poses, truth.profile_of(sc, body), tpose_s=truth.HOLD_S,
+    process(recording, "mcap", poses, truth.profile_of(sc, body, recording), tpose_s=truth.HOLD_S,
             pose=sc.pose)  # fmt: skip
     dof = "left_elbow_flexion_deg"
     moving, beyond, still = 0, 0, []

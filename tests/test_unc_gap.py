@@ -80,7 +80,7 @@ def _ages(sc: truth.Scenario, tmp_path: Path) -> list[tuple[str, float, float, b
         stamps.setdefault(body.sensors[i].site.raw_key, []).append(round(t * 1e9))
     tag = {mount(s.site).segment: s.site.raw_key for s in body.sensors if s.kind is Kind.TAG}
     joint_of = {n: j for j in build_skeleton().joints for n in j.angle_names()}
-    process(recording, "mcap", poses, truth.profile_of(sc, body), tpose_s=truth.HOLD_S)
+    process(recording, "mcap", poses, truth.profile_of(sc, body, recording), tpose_s=truth.HOLD_S)
     rows = []
     for t_ns, frame in read_poses(poses):
         if t_ns < truth.HOLD_S * 1e9:
