@@ -18,13 +18,15 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 from typing import Any
 
 import can
 import pytest
+import serial
 import zenoh
 from zenoh_helpers import (
     Collector,
@@ -44,7 +46,7 @@ from bodynet.core.codecs.pose import UNCALIBRATED, is_measured
 from bodynet.core.codecs.smartsuit_can import PERIOD_S
 from bodynet.core.errors import Rejected
 from bodynet.core.keys import LEFT_ARM
-from bodynet.core.messages import RESUMED, OleAccel, RawSample, Reading, Source
+from bodynet.core.messages import RESUMED, OleAccel, RawSample, Reading, Source, StreamEvent
 from bodynet.core.profile import SMARTSUIT_SITES, mount
 from bodynet.core.skeleton import TPOSE
 from bodynet.gateway.service import Gateway
@@ -231,6 +233,86 @@ def test_a_concentrator_node_that_left_a_request_unanswered_is_resumed() -> None
     live = codec.ConcentratorDecoder(replies_only=True)
     ask(1, on_time)
     assert sink.samples[-1] == (1, 0)
+
+
+class _HeldLink:
+    """The bridge's serial port, through which a test loses one request's reply at
+    the emulated concentrator (``drop``: it never answers it, as a node silent
+    then) and may hold the bridge's thread (``held_s``: the host too busy to run
+    it) at its first read after that request."""
+
+    def __init__(self, port: serial.Serial, dc: ConcentratorEmulator) -> None:
+        self.port, self.dc = port, dc
+        self.lose: tuple[int, float] | None = None  # (node, held_s) for its next request
+        self._held_s = 0.0
+        self._dropping: tuple[int, int] | None = None  # (node, its requests so far)
+        self.lost = threading.Event()
+
+    def write(self, data: bytes) -> int:
+        node = codec.node_of_request(data[0])
+        if self._dropping is not None:  # the request that was lost is over
+            lost_node, asked = self._dropping
+            wait_until(lambda: self.dc.asked[lost_node] > asked, what="the request taken")
+            self.dc.drop, self._dropping = 0.0, None
+            self.lost.set()
+        if self.lose is not None and node == self.lose[0]:
+            self._dropping, self._held_s = (node, self.dc.asked[node]), self.lose[1]
+            self.dc.drop, self.lose = 1.0, None
+        return int(self.port.write(data))
+
+    def read(self, size: int = 1) -> bytes:
+        if self._held_s:
+            time.sleep(self._held_s)  # held: the bridge's thread does not run
+            self._held_s = 0.0
+        return bytes(self.port.read(size))
+
+    @property
+    def in_waiting(self) -> int:
+        return int(self.port.in_waiting)
+
+
+class _Feed:
+    """What the concentrator's ``serve`` feeds: its adapter, onto :class:`_Flags`."""
+
+    def __init__(self, sink: _Flags) -> None:
+        self.adapter = Concentrator().adapter()
+        self.sink = sink
+
+    def feed(self, events: Iterable[StreamEvent], t_s: float | None = None) -> None:
+        self.adapter.events(events, time.time() if t_s is None else t_s, self.sink)
+
+
+@pytest.mark.parametrize("held_s", [0.0, 0.3])
+def test_a_concentrator_request_unanswered_while_its_bridge_was_held_claims_no_reboot(
+    tmp_path: Path, run_thread: Callable[..., Running], held_s: float
+) -> None:
+    """The concentrator bridge's polling over a pseudo-terminal to an emulated Data
+    Concentrator: the elbow's request left unanswered (its reply lost) flags the
+    elbow's next reply ``RESUMED`` when the bridge watched the whole exchange on
+    time (0 s held), and none when its thread was held 0.3 s in it (the host too
+    busy: a bridge that woke late cannot tell a silent node from its own stall;
+    the demo's right arm lost its encoder zeros so under load)."""
+    body = BodyEmulator(Routine("held", "", lambda t: {ELBOW_DOF: 20.0}),
+                        smartsuit_sensors([LEFT_ARM]), realism=Realism.ideal())  # fmt: skip
+    dc = ConcentratorEmulator(tmp_path / "dc", body)
+    dc.start()
+    sink = _Flags()
+    try:
+        port = serial.Serial(str(dc.link), codec.BAUD, timeout=Concentrator.SERIAL_TIMEOUT_S)
+        link = _HeldLink(port, dc)
+        running = run_thread(lambda stop: Concentrator(nodes=NODES).serve(link, stop, _Feed(sink)))
+        wait_until(lambda: sink.samples.count((ELBOW, 0)) >= 5, what="the elbow's replies")
+        link.lose = (ELBOW, held_s)
+        wait_until(link.lost.is_set, what="the elbow's request lost")
+        before = len(sink.samples)
+        wait_until(lambda: sum(n == ELBOW for n, _ in sink.samples[before:]) >= 5,
+                   what="the elbow's replies after it")  # fmt: skip
+        running.stop()
+        port.close()
+    finally:
+        dc.stop()
+    assert sum(dc.dropped.values()) == 1
+    assert sink.resumed() == ([] if held_s else [ELBOW])
 
 
 def test_a_concentrator_whose_whole_suit_was_switched_off_and_on_flags_every_node_once(

@@ -192,7 +192,8 @@ class Adapter:
 
     A SmartSuit sample is flagged ``RESUMED`` when its node may have rebooted
     since its last one (:meth:`resumed`): by default when the node was asked and
-    did not answer (a ``no_reply``: a polled source); :class:`PeriodicAdapter`
+    did not answer (a ``no_reply``: a polled source) while its bridge watched
+    (:meth:`unwatched`); :class:`PeriodicAdapter`
     judges its nodes' silences too. A device opened again (:meth:`restart`)
     claims nothing: its nodes' first samples are not flagged.
     """
@@ -204,6 +205,7 @@ class Adapter:
         self.node_ticks: dict[int, int] = {}
         self.base = 0  # ticks of earlier connections, so sequence numbers keep rising
         self.unanswered: set[int] = set()  # nodes asked and silent since their last sample
+        self._unwatched: set[int] = set()  # nodes whose last request claims nothing
         #: whether the units' times may be when they were read, not when they came (a
         #: live bridge's): then a stretch in which nothing was read is no silence
         self.watched = False
@@ -221,8 +223,12 @@ class Adapter:
             elif isinstance(event, Tick):
                 self.take_tick(event)
             elif isinstance(event, Rejected):
-                if event.reason is Reason.NO_REPLY and event.node is not None:
-                    self.unanswered.add(event.node)
+                if event.node is not None and event.reason in (Reason.NO_REPLY,
+                                                               Reason.LATE_REPLY):  # fmt: skip
+                    unwatched = event.node in self._unwatched
+                    self._unwatched.discard(event.node)
+                    if event.reason is Reason.NO_REPLY and not unwatched:
+                        self.unanswered.add(event.node)
                 sink.reject(event)
             else:
                 sink.status(event)
@@ -235,6 +241,12 @@ class Adapter:
             self.unanswered.discard(node)
             return True
         return False
+
+    def unwatched(self, node: int) -> None:
+        """A live bridge left its last request to ``node`` unanswered while it was
+        held up itself (it did not look at the link all along): that request's
+        ``no_reply`` claims no silence of the node."""
+        self._unwatched.add(node)
 
     def seen(self, t_s: float) -> None:
         """The link was seen alive at ``t_s``: a unit of no node (another device's
@@ -261,6 +273,7 @@ class Adapter:
         self.base += self.tick + 1
         self.tick = 0
         self.unanswered.clear()
+        self._unwatched.clear()
 
 
 class PeriodicAdapter(Adapter):

@@ -28,7 +28,7 @@ from bodynet.core.keys import Site
 from bodynet.core.messages import Reading, Tick
 from bodynet.core.messages import Source as SourceId
 from bodynet.core.profile import SMARTSUIT_SITES
-from bodynet.nodes.sources.base import Adapter, Feed, NodeParts, Transport
+from bodynet.nodes.sources.base import BLIND_S, Adapter, Feed, NodeParts, Transport
 from bodynet.nodes.sources.serial_port import SerialSource
 from bodynet.session import argtypes
 
@@ -134,25 +134,51 @@ def _ask(link: Any, decoder: codec.ConcentratorDecoder, node: int, stop: threadi
          bridge: Feed) -> bool:  # fmt: skip
     """One exchange on the open port (pyserial's ``Serial``): request ``node``'s
     reading and wait for it, then, if it is overdue, for its late reply. Whether
-    it answered (on time or late)."""
+    it answered (on time or late). Left unanswered while this thread was held up
+    (:class:`_Watch`), the request claims nothing of the node (:meth:`Adapter.unwatched`)."""
     if link.in_waiting:  # left from before: later than its late window, or a banner
         bridge.feed(decoder.feed(link.read(link.in_waiting)))
     bridge.feed(decoder.poll(node))
     link.write(codec.request(node))
-    if _listen(link, decoder, REPLY_TIMEOUT_S, stop, bridge):
+    watch = _Watch()
+    if _listen(link, decoder, REPLY_TIMEOUT_S, stop, bridge, watch):
         return True
     decoder.overdue()
-    return _listen(link, decoder, LATE_WINDOW_S, stop, bridge)
+    if _listen(link, decoder, LATE_WINDOW_S, stop, bridge, watch):
+        return True
+    if not watch.on_time:
+        bridge.adapter.unwatched(node)
+    return False
+
+
+class _Watch:
+    """Whether the bridge looked at the link all along an exchange: no read came
+    back later than its own timeout and ``BLIND_S`` after the last look. A host too
+    busy to run the bridge stalls the emulated nodes beside it too, which then
+    answer at once: a bridge that woke late cannot tell a silent node from its own
+    stall (as a CAN bridge's late read: ``CanBusBridge._receive``)."""
+
+    def __init__(self) -> None:
+        self.last = time.monotonic()  # the request was just written
+        self.on_time = True
+
+    def looked(self) -> None:
+        now = time.monotonic()
+        if now - self.last > Concentrator.SERIAL_TIMEOUT_S + BLIND_S:
+            self.on_time = False
+        self.last = now
 
 
 def _listen(link: Any, decoder: codec.ConcentratorDecoder, timeout_s: float,
-            stop: threading.Event, bridge: Feed) -> bool:  # fmt: skip
+            stop: threading.Event, bridge: Feed, watch: _Watch) -> bool:  # fmt: skip
     """Decode what comes until the request is answered (True) or ``timeout_s``
     passes; it reads at least once, so a reply already there when the bridge
     was held up past the deadline still counts."""
     deadline = time.monotonic() + timeout_s
     while True:
-        bridge.feed(decoder.feed(link.read(max(1, link.in_waiting))))
+        data = link.read(max(1, link.in_waiting))
+        watch.looked()
+        bridge.feed(decoder.feed(data))
         if not decoder.waiting:
             return True
         if stop.is_set() or time.monotonic() >= deadline:
