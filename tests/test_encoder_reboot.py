@@ -630,16 +630,20 @@ def test_a_whole_suit_switched_off_and_on_is_flagged_until_a_calibration_pose(
               + ", ".join(f"{d} {errors[d][0]:.3f}" for d in ENCODER_DOFS))  # fmt: skip
 
 
-def test_a_bridge_held_with_the_nodes_beside_it_flags_no_reboot(router_endpoint: str) -> None:
-    """``bodynet node`` with the arm's nodes emulated on a CAN bus and their bridge
-    in one process, stopped (SIGSTOP: the host too busy to run it, as in CI at
-    load 10 and more) for twice ``SUIT_QUIET_S``, then let go: every node was
-    silent that long, the whole bus too, but no read of the bridge watched it, so
-    no sample is flagged ``RESUMED`` (nothing rebooted)."""
+@pytest.mark.parametrize("via", ["can", "concentrator"])
+def test_a_bridge_held_with_the_nodes_beside_it_flags_no_reboot(router_endpoint: str,
+                                                                via: str) -> None:  # fmt: skip
+    """``bodynet node`` with the arm's nodes emulated on a CAN bus (or behind a Data
+    Concentrator) and their bridge in one process, stopped (SIGSTOP: the host too
+    busy to run it, as in CI at load 10 and more) for twice ``SUIT_QUIET_S``, then
+    let go: every node was silent that long, the whole bus too, but no read of the
+    bridge watched it (nor the request it was waiting on), so no sample is flagged
+    ``RESUMED`` (nothing rebooted). The concentrator polls its three nodes at 15 Hz."""
+    before, after = (100, 400) if via == "can" else (15, 45)
     watcher = client(router_endpoint)
     raw = raw_collector(watcher, "body/arm/left/*/raw")
     proc = subprocess.Popen([str(BODYNET), "node", "smartsuit", "--branch", "left-arm", "--via",
-                             "can", "--ideal", "-e", router_endpoint],
+                             via, "--ideal", "-e", router_endpoint],
                             stderr=subprocess.PIPE, text=True)  # fmt: skip
     keys = [SMARTSUIT_SITES[n].raw_key for n in NODES]
 
@@ -647,11 +651,11 @@ def test_a_bridge_held_with_the_nodes_beside_it_flags_no_reboot(router_endpoint:
         return lambda s: all(sum(k == key for k, _ in s) >= count for key in keys)
 
     try:
-        raw.wait_for(each(100), timeout=60)
+        raw.wait_for(each(before), timeout=60)
         os.kill(proc.pid, signal.SIGSTOP)
         time.sleep(2 * SUIT_QUIET_S)  # held: neither the bridge nor its nodes run
         os.kill(proc.pid, signal.SIGCONT)
-        seen = raw.wait_for(each(400), timeout=30)
+        seen = raw.wait_for(each(after), timeout=30)
     finally:
         proc.terminate()
         _, err = proc.communicate(timeout=20)
