@@ -127,12 +127,14 @@ class _Sampler:
         self._truths: dict[int, Truth] = {}
         self._t_ns = 0
 
-    def readings(self) -> dict[int, Reading]:
-        """Every emulated sensor's reading, by node."""
+    def readings(self, at: float | None = None) -> dict[int, Reading]:
+        """Every emulated sensor's reading, by node: the body as of ``at``
+        (monotonic, a send's due time; default now)."""
         now = time.monotonic()
-        if now - self._at >= self.reuse_s:
-            readings, truths = self.body.sample(self.clock.now())
-            self._at, self._t_ns = now, time.time_ns()
+        at = now if at is None else at
+        if abs(at - self._at) >= self.reuse_s:
+            readings, truths = self.body.sample(at - self.clock.t0)
+            self._at, self._t_ns = at, time.time_ns() - round((now - at) * 1e9)
             self._readings = {r.node: r for r in readings}
             self._truths = {r.node: t for r, t in zip(readings, truths, strict=True)}
         return self._readings
@@ -146,9 +148,10 @@ class _Sampler:
         of ``t_ns`` (the time its frame carries), else as of when it was taken."""
         self.give(Held(reading, self._truths[reading.node], self._t_ns if t_ns is None else t_ns))
 
-    def held(self, node: int) -> Held:
-        """``node``'s reading now (as :meth:`readings`), with its truth, to send later."""
-        reading = self.readings()[node]
+    def held(self, node: int, at: float | None = None) -> Held:
+        """``node``'s reading as of ``at`` (as :meth:`readings`), with its truth, to
+        send later."""
+        reading = self.readings(at)[node]
         return Held(reading, self._truths[node], self._t_ns)
 
     def give(self, held: Held) -> None:
@@ -529,7 +532,8 @@ class ImuCentralEmulator(_OnTimers, _PtyEmulator):
     independent, late by up to the jitter), and a share ``timing.drop`` of its
     notifications is lost on the air (:attr:`dropped`, :attr:`drop` in force;
     :meth:`silence` loses all of a tag's for a span). The central keeps each
-    tag's latest reading, with the truth at the time it was taken, and prints
+    tag's latest reading, with the truth at the time it was taken (when it was
+    due on the tag's timer, also when a loaded host held the emulator up), and prints
     its lines on a clock of its own every ``tick_s`` (its own clock error and
     jitter): flag 01 with the quaternion when a reading came since its last
     line, 00 (no new data) when none did, ff for a slot no tag has sent on yet.
@@ -572,9 +576,10 @@ class ImuCentralEmulator(_OnTimers, _PtyEmulator):
             due = min(tags.next_due, ticks.next_due)
             self.port.read(max(0.0, due - time.monotonic()))  # drain, and pace
             now = time.monotonic()
-            # in time order, also when behind: the notifications before the next line
-            for node in tags.due(min(now, ticks.next_due)):
-                latest[node] = self._sampler.held(node)
+            # in time order, also when behind: the notifications before the next line,
+            # each the body as of when it was due (a tag reads on its own timer)
+            for node, due_at in tags.due_at(min(now, ticks.next_due)):
+                latest[node] = self._sampler.held(node, due_at)
                 heard.add(node)
             if ticks.next_due <= now:
                 ticks.pop()
