@@ -37,15 +37,11 @@ class Source(IntEnum):
     ORIENTATION_FILE = 5
 
 
-#: How often an IMU tag notifies its central of its reading (s): its BLE connection
-#: interval, the longest the tags allow (003 seed, Table 7.6: 10 to 30 ms).
-IMU_TAG_INTERVAL_S = 0.03
-
 #: How long before its stamp a source's sample may have been taken (s), where the
 #: stamp says only when it arrived: the IMU central prints each tag's latest
-#: notification on its own tick, and a tag notifies once a connection interval
-#: (``IMU_TAG_INTERVAL_S``), so its reading is up to that old.
-STAMP_SPREAD_S = {Source.IMU_CENTRAL: IMU_TAG_INTERVAL_S}
+#: notification on its own tick, and a tag notifies once a BLE connection interval
+#: (003 seed, Table 7.6: 10 to 30 ms), so its reading is up to that old.
+STAMP_SPREAD_S = {Source.IMU_CENTRAL: 0.03}
 
 
 _SOURCE_PREFIX = "source-"

@@ -52,14 +52,7 @@ import can
 
 from bodynet.core.codecs import concentrator, imu_matrix, smartsuit_can
 from bodynet.core.codecs.smartsuit_can import SlcanDecoder, SlcanReply
-from bodynet.core.messages import (
-    IMU_TAG_INTERVAL_S,
-    NoNewData,
-    OleAccel,
-    Quat,
-    Reading,
-    SensorAbsent,
-)
+from bodynet.core.messages import NoNewData, OleAccel, Quat, Reading, SensorAbsent
 from bodynet.nodes.emulator import BodyEmulator, Truth
 from bodynet.nodes.loop import Loop
 from bodynet.nodes.sources.base import EmulatorError
@@ -74,10 +67,10 @@ TruthSink = Callable[[int, Truth, int], None]  # node, truth, t_ns
 CAN_PERIOD_S = smartsuit_can.PERIOD_S
 CONCENTRATOR_CYCLE_S = concentrator.CYCLE_S
 IMU_TICK_S = imu_matrix.TICK_S
-#: how often an IMU tag sends its reading (the core's, which the gateway's spread of
-#: the central's stamps comes from); shorter than the central's tick, so a tag whose
-#: notifications get through has a new reading at every tick
-TAG_INTERVAL_S = IMU_TAG_INTERVAL_S
+#: how often an IMU tag sends its reading: its BLE connection interval, the longest
+#: the tags allow (003 seed, Table 7.6: 10 to 30 ms); shorter than the central's tick,
+#: so a tag whose notifications get through has a new reading at every tick
+TAG_INTERVAL_S = 0.03
 _BAUD = {115200: termios.B115200, 230400: termios.B230400}
 #: A node's reading is the body at most this long before its send: sends due this
 #: close together share one sample of the body (which costs as much for one sensor

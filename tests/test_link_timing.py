@@ -214,37 +214,6 @@ def test_can_nodes_on_their_own_timers_the_bridge_counts_every_loss(
         assert min(apart) > 1e-3
 
 
-def test_node_can_frames_on_a_virtual_bus_carry_their_due_times(tmp_path: Path) -> None:
-    """``bodynet node``'s CAN nodes (as its source makes them, on python-can's
-    virtual bus) hand the bridge each frame stamped with when it was due, the
-    time its truth is given as of, even sent late: here a truth sink slow to take
-    the first node's truth holds back the other nodes' sends of each period."""
-    from bodynet.nodes import sources
-    from bodynet.nodes.hardware import Clock
-
-    given: list[int] = []
-
-    def slow_truth(node: int, truth: Truth, t_ns: int) -> None:
-        given.append(t_ns)
-        if node == NODES[0]:
-            time.sleep(0.02)  # a loaded host: the later sends of this period wait
-
-    body = BodyEmulator(held(HELD), smartsuit_sensors([LEFT_ARM]), realism=Realism.ideal())
-    emulator, _, bus_args = sources.by_device("can")().node(
-        "can", body, tmp_path, Clock(), slow_truth, [], "due"
-    )
-    with can.Bus(**bus_args) as bus:
-        emulator.start()
-        try:
-            frames = [bus.recv(timeout=5.0) for _ in range(30)]
-        finally:
-            emulator.stop()
-    assert all(f is not None for f in frames)
-    stamps = [round(f.timestamp * 1e9) for f in frames if f is not None]
-    off = [t for t in stamps if t not in set(given)]
-    assert not off, f"{len(off)} of {len(stamps)} frames stamped off their due times"
-
-
 def test_gateway_follows_the_truth_over_a_jittery_lossy_can_link(
     gateway: Gateway, router_endpoint: str, zsession: zenoh.Session
 ) -> None:

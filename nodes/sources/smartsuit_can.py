@@ -170,13 +170,8 @@ class _BusNodes:
     def start(self) -> None:
         from bodynet.nodes.hardware import CanNodes
 
-        bus_args = dict(self.bus_args)
-        if bus_args.get("interface") == "virtual":
-            # the frames keep the due times CanNodes stamps them with, as a real
-            # adapter stamps on arrival; else the send time of a starved emulator
-            bus_args.setdefault("preserve_timestamps", True)
         try:
-            self._bus = open_bus(**bus_args)
+            self._bus = open_bus(**self.bus_args)
         except (can.CanError, OSError) as exc:  # no such interface, channel or port
             where = ", ".join(f"{k} {v}" for k, v in self.bus_args.items() if v is not None)
             raise EmulatorError(f"cannot open the CAN bus ({where}): {exc}") from None
