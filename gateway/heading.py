@@ -1417,6 +1417,14 @@ def _shoulders_outside(samples: Sequence[tuple[np.ndarray, ...]], seg_t: np.ndar
     return total
 
 
+def _twin_turn(here: float, twin: float, n: int) -> float | None:
+    """Of a heading and its 180 deg twin, whose shoulders fall ``here`` and ``twin``
+    deg outside their range over ``n`` samples: the turn to add (0 or pi, rad) to
+    the one that wins by ``SharedTwoDof.TWIN_MARGIN_DEG`` a sample, None if neither."""
+    margin = SharedTwoDof.TWIN_MARGIN_DEG * n
+    return 0.0 if twin - here >= margin else math.pi if here - twin >= margin else None
+
+
 def _arm_twin(samples: Sequence[tuple[np.ndarray, ...]], seg_u: np.ndarray, seg_t: np.ndarray,
               side: str, psi_u: float) -> float | None:  # fmt: skip
     """Which of an upper arm's tag heading ``psi_u`` (rad) and its 180 deg twin keeps
@@ -1427,12 +1435,11 @@ def _arm_twin(samples: Sequence[tuple[np.ndarray, ...]], seg_u: np.ndarray, seg_
     of its headings every ``TWIN_CHEST_STEP_DEG`` (where the chest keeps upright,
     its heading hardly moves the shoulder)."""
     pairs = [(s[-1], s[0]) for s in samples]
-    margin = SharedTwoDof.TWIN_MARGIN_DEG * len(samples)
     verdict = None
     for psi_t in np.radians(np.arange(0.0, 360.0, TWIN_CHEST_STEP_DEG)):
         here, twin = (_shoulders_outside(pairs, seg_t, seg_u, side, x, float(psi_t))
                       for x in (psi_u, psi_u + math.pi))  # fmt: skip
-        this = 0.0 if twin - here >= margin else math.pi if here - twin >= margin else None
+        this = _twin_turn(here, twin, len(samples))
         if this is None or (verdict is not None and this != verdict):
             return None  # not told apart under this chest heading (the rest not computed)
         verdict = this
@@ -1481,11 +1488,10 @@ def _shared_two_dof_try(samples: Sequence[tuple[np.ndarray, ...]], seg_p: np.nda
         return round(unc, 2), None
     here, twin = (_shoulders_outside(samples, seg_t, seg_u, side, x)
                   for x in (psi, psi + math.pi))  # fmt: skip
-    if twin - here < SharedTwoDof.TWIN_MARGIN_DEG * len(samples):
-        if here - twin < SharedTwoDof.TWIN_MARGIN_DEG * len(samples):
-            return round(unc, 2), None  # the shoulder's range does not tell the twins apart
-        psi += math.pi
-    return round(unc, 2), (_wrap(math.degrees(psi)), round(unc, 3))
+    turn = _twin_turn(here, twin, len(samples))
+    if turn is None:
+        return round(unc, 2), None  # the shoulder's range does not tell the twins apart
+    return round(unc, 2), (_wrap(math.degrees(psi + turn)), round(unc, 3))
 
 
 def _fit_unc_deg(residuals: np.ndarray, jacobian: np.ndarray) -> float:
