@@ -88,13 +88,22 @@ SWAP_S = 1.5
 
 
 class Clock:
-    """Seconds since ``t0`` on the monotonic clock; shared so emulators agree."""
+    """Seconds since ``t0`` on the monotonic clock; shared so emulators agree.
+
+    :meth:`wall_ns` gives one of its times on the wall clock, by an offset read
+    once: a thread stalled between reading the two clocks (a loaded host) would
+    otherwise put a reading's truth later than the body it sampled."""
 
     def __init__(self, t0: float | None = None) -> None:
         self.t0 = time.monotonic() if t0 is None else t0
+        self._wall_s = time.time() - time.monotonic() + self.t0  # ``t0`` on the wall clock
 
     def now(self) -> float:
         return time.monotonic() - self.t0
+
+    def wall_ns(self, t: float) -> int:
+        """This clock's time ``t`` (s) on the wall clock (ns since the epoch)."""
+        return round((self._wall_s + t) * 1e9)
 
 
 class Held(NamedTuple):
@@ -123,11 +132,10 @@ class _Sampler:
     def readings(self, at: float | None = None) -> dict[int, Reading]:
         """Every emulated sensor's reading, by node: the body as of ``at``
         (monotonic, a send's due time; default now)."""
-        now = time.monotonic()
-        at = now if at is None else at
+        at = time.monotonic() if at is None else at
         if abs(at - self._at) >= self.reuse_s:
             readings, truths = self.body.sample(at - self.clock.t0)
-            self._at, self._t_ns = at, time.time_ns() - round((now - at) * 1e9)
+            self._at, self._t_ns = at, self.clock.wall_ns(at - self.clock.t0)
             self._readings = {r.node: r for r in readings}
             self._truths = {r.node: t for r, t in zip(readings, truths, strict=True)}
         return self._readings
@@ -267,7 +275,6 @@ class CanNodes(_Reboots, _OnTimers, Loop):
     def run(self) -> None:
         timers = self.timers
         timers.start(time.monotonic())
-        wall = time.time() - time.monotonic()  # a due time (monotonic) on the wall clock
         while not self.stop_event.is_set():
             wait = timers.next_due - time.monotonic()
             if wait > 0:
@@ -280,14 +287,14 @@ class CanNodes(_Reboots, _OnTimers, Loop):
                 frame = smartsuit_can.encode_reading(reading)
                 self.bus.send(
                     can.Message(
-                        timestamp=wall + due,
+                        timestamp=self.clock.wall_ns(due - self.clock.t0) / 1e9,
                         arbitration_id=frame.arbitration_id,
                         data=frame.data,
                         is_extended_id=True,
                     )
                 )
                 self.sent[node] += 1
-                self._sampler.sent(reading, round((wall + due) * 1e9))
+                self._sampler.sent(reading, self.clock.wall_ns(due - self.clock.t0))
 
 
 class PtyPort:

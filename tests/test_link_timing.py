@@ -589,3 +589,43 @@ def test_emulated_devices_take_the_timing_they_are_given(tmp_path: Path) -> None
         assert HARD.of(1) != HARD.of(2)
         assert HARD.of(1).drop == HARD.drop
         trackers.stop()
+
+
+class _Stalling(BodyEmulator):
+    """A body whose sampling thread stalls after sampling (a loaded host: the GIL, a
+    busy core), as the emulators' threads do under load."""
+
+    def sample(self, t_s: float) -> Any:
+        out = super().sample(t_s)
+        time.sleep(0.1)
+        return out
+
+
+def test_a_readings_truth_is_as_of_when_the_body_was_sampled_whatever_its_thread_does(
+    tmp_path: Path,
+) -> None:  # fmt: skip
+    """The live truth test judges a pose only when its samples left their devices
+    fresh, by the time each reading's truth carries: one stamped after its thread
+    stalled made an old reading look fresh (a SlimeVR tracker's, stamped when the
+    sampling ended: a swinging knee 29 deg off its fresh-looking samples). Both
+    samplers give the time the body was sampled at, on the wall clock, whatever
+    the thread did after."""
+    from bodynet.nodes.hardware import Clock, _Sampler
+    from bodynet.nodes.sources.slimevr import EmulatedTrackers
+
+    clock = Clock()
+    assert abs(clock.wall_ns(clock.now()) - time.time_ns()) < 0.5e9  # the same clock
+    got: list[int] = []
+    tags = _Stalling(held(HELD), imu_tags([1, 2]), realism=Realism.ideal())
+    trackers = EmulatedTrackers(tags, ("127.0.0.1", 9), 50.0, clock,
+                                lambda node, truth, t_ns: got.append(t_ns))  # fmt: skip
+    try:
+        t = clock.now()
+        trackers._quat(1, t)
+        trackers._sent(1)
+    finally:
+        trackers.stop()
+    sampler = _Sampler(tags, clock, lambda node, truth, t_ns: got.append(t_ns))
+    at = time.monotonic()
+    sampler.sent(sampler.readings(at)[2])
+    assert got == [clock.wall_ns(t), clock.wall_ns(at - clock.t0)]  # not 100 ms later

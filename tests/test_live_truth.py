@@ -121,7 +121,7 @@ def walk_live(router_endpoint: str, zsession: zenoh.Session, tmp_path: Path, via
     outgoing = Outgoing(via)
     body = BodyEmulator(routine, sensors, realism=REALISM, seed=SEED)
     clock = Clock()
-    t0_ns = time.time_ns()  # the emulator's time 0 on the wall clock the bridges stamp with
+    t0_ns = clock.wall_ns(0.0)  # the emulator's time 0 on the wall clock the bridges stamp with
     emulator, bridge, kwargs = source.node(via, body, tmp_path, clock, outgoing, sensors,
                                            "live-truth", timing=timing)  # fmt: skip
     outgoing.emulator = emulator

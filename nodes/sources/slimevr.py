@@ -29,6 +29,7 @@ from bodynet.core.codecs import slimevr as codec
 from bodynet.core.errors import DecodeError
 from bodynet.core.keys import KeySpaceError, Site, site_named
 from bodynet.core.messages import Source as SourceId
+from bodynet.nodes.hardware import Clock
 from bodynet.nodes.loop import Loop
 from bodynet.nodes.sources.base import EmulatorError, NodeParts, Source, Transport
 from bodynet.nodes.timing import LinkTiming, NodeTimers
@@ -388,6 +389,7 @@ class EmulatedTrackers:
                  timing: LinkTiming | None = None) -> None:  # fmt: skip
         self.body = body
         self.truth = truth
+        self.clock = clock or Clock()  # one for every tracker, its times on the wall clock
         self.link = f"{server[0]}:{server[1]}"
         self.tolerance_s = 0.5 / rate_hz  # trackers a period's half apart share a sample
         self._lock = threading.Lock()
@@ -400,7 +402,8 @@ class EmulatedTrackers:
         self.trackers = [
             EmulatedTracker(server, emulated_mac(node), [0],
                             lambda _sensor, t, node=node: self._quat(node, t),
-                            rate_hz, compact, clock, f"slimevr-tracker-{node}", timing.of(node),
+                            rate_hz, compact, self.clock, f"slimevr-tracker-{node}",
+                            timing.of(node),
                             lambda _sensor, node=node: self._sent(node))
             for node in nodes
         ]  # fmt: skip
@@ -424,7 +427,7 @@ class EmulatedTrackers:
                 readings, truth_list = self.body.sample(t)
                 quats = {r.node: r.wxyz for r in readings}
                 truths = {r.node: tr for r, tr in zip(readings, truth_list, strict=True)}
-                t_ns = time.time_ns()
+                t_ns = self.clock.wall_ns(t)  # when it was taken: ``t``, not when this ran
                 self._cache = (t, quats, truths, t_ns)
             if self.truth is not None:
                 self._taken.setdefault(node, deque(maxlen=4)).append((truths[node], t_ns))
