@@ -57,7 +57,7 @@ from bodynet.nodes.emulator import BodyEmulator, Truth
 from bodynet.nodes.loop import Loop
 from bodynet.nodes.sources.base import EmulatorError
 from bodynet.nodes.sources.concentrator import LATE_WINDOW_S, REPLY_TIMEOUT_S
-from bodynet.nodes.timing import LinkTiming, NodeTimers, Sends, link_schedule
+from bodynet.nodes.timing import Clock, LinkTiming, NodeTimers, Sends, link_schedule
 from bodynet.session.argtypes import is_pty_link
 
 log = logging.getLogger(__name__)
@@ -85,25 +85,6 @@ LATE_REPLY_S = REPLY_TIMEOUT_S + LATE_WINDOW_S / 4
 BOOT_S = 0.2
 #: How long a suit switched off and on is off: a battery swapped by hand
 SWAP_S = 1.5
-
-
-class Clock:
-    """Seconds since ``t0`` on the monotonic clock; shared so emulators agree.
-
-    :meth:`wall_ns` gives one of its times on the wall clock, by an offset read
-    once: a thread stalled between reading the two clocks (a loaded host) would
-    otherwise put a reading's truth later than the body it sampled."""
-
-    def __init__(self, t0: float | None = None) -> None:
-        self.t0 = time.monotonic() if t0 is None else t0
-        self._wall_s = time.time() - time.monotonic() + self.t0  # ``t0`` on the wall clock
-
-    def now(self) -> float:
-        return time.monotonic() - self.t0
-
-    def wall_ns(self, t: float) -> int:
-        """This clock's time ``t`` (s) on the wall clock (ns since the epoch)."""
-        return round((self._wall_s + t) * 1e9)
 
 
 class Held(NamedTuple):

@@ -14,12 +14,14 @@ on Zenoh at them.
 - :func:`feed_schedule`: the benchmark's feeds, many bodies at once.
 - :class:`Sends`: a heap of each sender's next send, late by its jitter.
 - :class:`NodeTimers`: the sends of one device's nodes, and which are lost.
+- :class:`Clock`: the emulators' shared time, and its times on the wall clock.
 """
 
 from __future__ import annotations
 
 import heapq
 import math
+import time
 from collections import Counter
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
@@ -252,3 +254,22 @@ class NodeTimers:
             else:
                 out.append((node, due))
         return out
+
+
+class Clock:
+    """Seconds since ``t0`` on the monotonic clock; shared so emulators agree.
+
+    :meth:`wall_ns` gives one of its times on the wall clock, by an offset read
+    once: a thread stalled between reading the two clocks (a loaded host) would
+    otherwise put a reading's truth later than the body it sampled."""
+
+    def __init__(self, t0: float | None = None) -> None:
+        self.t0 = time.monotonic() if t0 is None else t0
+        self._wall_s = time.time() - time.monotonic() + self.t0  # ``t0`` on the wall clock
+
+    def now(self) -> float:
+        return time.monotonic() - self.t0
+
+    def wall_ns(self, t: float) -> int:
+        """This clock's time ``t`` (s) on the wall clock (ns since the epoch)."""
+        return round((self._wall_s + t) * 1e9)

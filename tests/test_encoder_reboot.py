@@ -66,6 +66,7 @@ ELBOW = 2
 ELBOW_KEY = SMARTSUIT_SITES[ELBOW].raw_key
 ELBOW_DOF = "left_elbow_flexion_deg"
 SLACK_DEG = 0.3  # a measured dof within its uncertainty and this
+STEP_DEG = 1.0  # a held angle set anew by more than this between two readings: a step
 BODYNET = Path(sys.executable).with_name("bodynet")
 
 
@@ -429,16 +430,30 @@ class _Truths:
         before = [t for when, t in self.by_node[node] if when <= t_ns]
         return dict(before[-1].angles_deg) if before else None
 
+    def stepped(self, node: int, t_ns: int) -> set[str]:
+        """The dofs of ``node`` that stepped (a held angle set anew) between its
+        reading sent at or before ``t_ns`` and the one before it."""
+        before = [t.angles_deg for when, t in self.by_node[node] if when <= t_ns][-2:]
+        if len(before) < 2:
+            return set()
+        return {d for d, v in before[1].items() if abs(v - before[0].get(d, v)) > STEP_DEG}
+
 
 def _errors(frame: pose.PoseFrame, truths: _Truths) -> dict[str, tuple[float, float]]:
     """Each measured dof of the arm's nodes: (its error against the truth of the
-    sample the pose used, its stated uncertainty)."""
+    sample the pose used, its stated uncertainty). A dof whose sample came just
+    after a step of the held arm is left out: a limb turns 20 deg in 10 ms no
+    more than it jumps, and the gateway brings that sample to the pose's time
+    (a later node's) at the fastest a limb turns."""
     out = {}
     for node in NODES:
         key = SMARTSUIT_SITES[node].raw_key
-        truth = truths.at(node, frame.sources[key]) if key in frame.sources else None
+        if key not in frame.sources:
+            continue
+        truth = truths.at(node, frame.sources[key])
+        stepped = truths.stepped(node, frame.sources[key])
         for dof, value in (truth or {}).items():
-            if dof in frame.angles_deg and is_measured(frame, dof):
+            if dof in frame.angles_deg and is_measured(frame, dof) and dof not in stepped:
                 out[dof] = (abs(frame.angles_deg[dof] - value), frame.unc_deg[dof])
     return out
 

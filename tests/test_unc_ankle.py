@@ -116,3 +116,22 @@ def test_a_tag_stamped_on_arrival_states_its_turn_over_how_old_it_may_be() -> No
     assert stated(6.0, 30.0) == pytest.approx(9.0)
     assert stated(6.0, 0.0) == 0.0
     assert stated(40.0, 30.0) == pytest.approx(ALIGN_RATE_MAX_DEG_S * 0.03)
+
+
+def test_two_samples_stamped_a_hair_apart_turn_no_faster_than_a_limb() -> None:
+    """Two samples of a burst, stamped as they arrived 0.1 ms apart (a loaded
+    host, an adapter delivering what it held) and 20 deg apart, are no rate of
+    20 deg per 0.1 ms: brought forward at most at the fastest a limb turns
+    (``ALIGN_RATE_MAX_DEG_S``), they are turned forward no more than 0.2 deg
+    (the turn was taken for that: 40 deg, and an encoder after a step of a
+    held elbow 16 deg off stating 3)."""
+    turned = math.radians(20.0)
+    more, _ = kernels.ahead(100_000, 0, 5_000_000, turned, math.radians(0.3), ALIGN_SPAN_NS,
+                            ALIGN_AHEAD_NS, ALIGN_CHANGE_PER_S, ALIGN_RATE_MAX_DEG_S,
+                            math.inf)  # fmt: skip
+    assert 0.0 < math.degrees(more) <= ALIGN_RATE_MAX_DEG_S * 0.2e-3 + 1e-9
+    # 20 deg over 20 ms (1000 deg/s) is a rate: forward 5 ms, 5 deg
+    more, _ = kernels.ahead(20_000_000, 0, 25_000_000, turned, math.radians(0.3), ALIGN_SPAN_NS,
+                            ALIGN_AHEAD_NS, ALIGN_CHANGE_PER_S, ALIGN_RATE_MAX_DEG_S,
+                            math.inf)  # fmt: skip
+    assert math.degrees(more) == pytest.approx(5.0, abs=0.05)

@@ -29,10 +29,9 @@ from bodynet.core.codecs import slimevr as codec
 from bodynet.core.errors import DecodeError
 from bodynet.core.keys import KeySpaceError, Site, site_named
 from bodynet.core.messages import Source as SourceId
-from bodynet.nodes.hardware import Clock
 from bodynet.nodes.loop import Loop
 from bodynet.nodes.sources.base import EmulatorError, NodeParts, Source, Transport
-from bodynet.nodes.timing import LinkTiming, NodeTimers
+from bodynet.nodes.timing import Clock, LinkTiming, NodeTimers
 from bodynet.session import argtypes
 
 log = logging.getLogger(__name__)
