@@ -1136,7 +1136,24 @@ class BodySolver:
         measured. The set changes rarely: what it flags is worked out once per set."""
         stale = frozenset(raw_keys)
         if stale != self._stale:
+            self._forget_rates(self._stale - stale)
             self._stale = stale
+
+    def _forget_rates(self, back: frozenset[str]) -> None:
+        """Sites back from stale start their samples' history over (their recent
+        rate kept): what they did while stale is unknown, and a rate across it is
+        none (a node stopped and another started: an elbow held at 40 deg and then
+        at 100 was brought forward 7 deg past 100, stating 2)."""
+        encoders = self._memory.encoders
+        for key in back:
+            had = encoders.get(key)
+            if had is not None:
+                encoders[key] = (kernels.NO_TIME, had[1], kernels.NO_TIME, *had[3:])
+        sort = self._sorted
+        if sort is not None:
+            for i, site in enumerate(sort.used):
+                if site.raw_key in back:
+                    sort.times[i] = kernels.NO_TIME
 
     def _solve_direct(self, ticks: Sequence[_Tick], segments: np.ndarray, residual: np.ndarray,
                       angles: np.ndarray, rel: np.ndarray, unc: np.ndarray) -> None:  # fmt: skip

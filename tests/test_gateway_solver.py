@@ -921,3 +921,54 @@ def test_smartsuit_tilts_in_a_reach_stay_measured() -> None:
     measured = len(err) / (len(err) + held)
     assert measured >= 0.95, measured
     assert not np.any(err > 2 * unc), sorted(err / unc)[-5:]
+
+
+@pytest.mark.parametrize("suit", ["smartsuit", "tags"])
+def test_a_site_back_from_stale_is_not_brought_forward_on_a_rate_across_it(suit: str) -> None:
+    """An arm whose elbow's sensor stopped (stale) at 40 deg and came back
+    (another node, or back in reach) at 100 within the alignment's span: the
+    sample is not brought to the pose's time on 60 deg over the time it was
+    stale (a SmartSuit elbow was brought 7 deg past 100 stating 2), it states
+    its age at its recent rate; its next samples have a rate again."""
+    angles = {"left_elbow_flexion_deg": 40.0}
+    routine = Routine("held", "", lambda t: dict(angles))
+    if suit == "smartsuit":
+        sensors = smartsuit_sensors([LEFT_ARM])
+        solver = BodySolver(Profile())
+        moving = "elbow"
+    else:
+        sensors = [
+            t
+            for t in imu_tags()
+            if t.site.name == "chest"
+            or (t.site.branch == LEFT_ARM and t.site.name in ("upperarm", "forearm"))
+        ]
+        solver = BodySolver(calibrated_profile(sensors))
+        moving = "forearm"
+    body = BodyEmulator(routine, sensors, realism=IDEAL_RANDOM_MOUNTS, seed=SEED)
+    site = next(s.site for s in sensors if s.site.name == moving)
+    latest: dict[Site, RawSample] = {}
+
+    def tick(ms: int, its_ms: int | None = None) -> BodyOutput:
+        readings, _ = body.sample(ms / 1000)
+        for sensor, reading in zip(sensors, readings, strict=True):
+            if sensor.site != site or its_ms is not None:
+                at = ms if sensor.site != site or its_ms is None else its_ms
+                latest[sensor.site] = RawSample(reading, ms, at * 1_000_000)
+        return solver.solve(dict(latest))
+
+    for ms in range(0, 100, 10):
+        tick(ms, ms)
+    for ms in range(100, 140, 10):  # its node silent: stale
+        solver.set_stale([site.raw_key])
+        tick(ms)
+    angles["left_elbow_flexion_deg"] = 100.0
+    solver.set_stale([])
+    out = tick(150, 141)  # back 41 ms after its last sample, 9 ms before the pose
+    back = out.angles_deg["left_elbow_flexion_deg"]  # the sample's (the encoder's counts)
+    assert back == pytest.approx(100.0, abs=0.3)
+    unc = dict(zip(out.names.angles, out.unc.tolist(), strict=True))
+    assert unc["left_elbow_flexion_deg"] <= 2.0  # at rest before: little to state
+    angles["left_elbow_flexion_deg"] = 101.0
+    out = tick(160, 151)  # a rate again: 1 deg over 10 ms, brought about 1 deg forward
+    assert out.angles_deg["left_elbow_flexion_deg"] - back > 1.5
