@@ -52,7 +52,7 @@ import math
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from functools import cached_property, lru_cache
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import pinocchio as pin
@@ -588,6 +588,20 @@ class BodyOutput:
         return {j: tuple(p) for j, p in zip(self.names.joints, centres, strict=True)}  # type: ignore[misc]
 
 
+class _EncoderHistory(NamedTuple):
+    """An encoder's last two samples (:meth:`BodySolver._encoder_now`): their times
+    (``kernels.NO_TIME``: none) and angles (deg), the calibration and zero they
+    were read with, and its recent rate (rad/s, :func:`kernels.recent_rate`)."""
+
+    previous_ns: int
+    previous: float
+    latest_ns: int
+    latest: float
+    cal: OleCalibration
+    counts: int
+    recent: float
+
+
 @dataclass
 class _Memory:
     last: np.ndarray | None = None  # the angle vector of the last tick (None before one)
@@ -597,11 +611,7 @@ class _Memory:
     swing: dict[str, _Swing] = field(default_factory=dict)  # each shoulder or hip module's
     expected: set[str] = field(default_factory=set)  # segments an orientation sensor is on
     first_t_ns: int = -1  # the body's first tick (source time)
-    # each encoder's last two samples (raw key -> previous time and angle, latest time
-    # and angle, the calibration and zero they were read with, and its recent rate):
-    # BodySolver._encoder_now
-    encoders: dict[str, tuple[int, float, int, float, OleCalibration, int, float]] = \
-        field(default_factory=dict)  # fmt: skip
+    encoders: dict[str, _EncoderHistory] = field(default_factory=dict)  # by raw key
 
 
 _NO_FRAMES = np.zeros((0, 3, 3))
@@ -1148,7 +1158,7 @@ class BodySolver:
         for key in back:
             had = encoders.get(key)
             if had is not None:
-                encoders[key] = (kernels.NO_TIME, had[1], kernels.NO_TIME, *had[3:])
+                encoders[key] = had._replace(previous_ns=kernels.NO_TIME, latest_ns=kernels.NO_TIME)
         sort = self._sorted
         if sort is not None:
             for i, site in enumerate(sort.used):
@@ -1554,19 +1564,19 @@ class BodySolver:
         history = self._memory.encoders
         counts = zero.counts if zero is not None else 0
         had = history.get(key)
-        recent = had[6] if had is not None else math.inf
-        if had is None or had[4] is not cal or had[5] != counts or t_ns < had[2]:
+        recent = had.recent if had is not None else math.inf
+        if had is None or had.cal is not cal or had.counts != counts or t_ns < had.latest_ns:
             before_ns, before = kernels.NO_TIME, angle_deg
-        elif t_ns == had[2]:  # the same sample again: the same two
-            before_ns, before = had[0], had[1]
+        elif t_ns == had.latest_ns:  # the same sample again: the same two
+            before_ns, before = had.previous_ns, had.previous
         else:
-            before_ns, before = had[2], had[3]
+            before_ns, before = had.latest_ns, had.latest
         turned = math.radians(angle_deg - before)
-        if had is None or t_ns != had[2]:
+        if had is None or t_ns != had.latest_ns:
             recent = kernels.recent_rate(
                 recent, before_ns, t_ns, abs(turned), ALIGN_RATE_MAX_DEG_S, ALIGN_RATE_MEMORY_S
             )
-        history[key] = (before_ns, before, t_ns, angle_deg, cal, counts, recent)
+        history[key] = _EncoderHistory(before_ns, before, t_ns, angle_deg, cal, counts, recent)
         more, late = kernels.ahead(t_ns, before_ns, tick.t_ns, abs(turned), OLE_NOISE_RAD,
                                    ALIGN_SPAN_NS, ALIGN_AHEAD_NS, ALIGN_CHANGE_PER_S,
                                    ALIGN_RATE_MAX_DEG_S, recent)  # fmt: skip
