@@ -52,7 +52,15 @@ import can
 
 from bodynet.core.codecs import concentrator, imu_matrix, smartsuit_can
 from bodynet.core.codecs.smartsuit_can import SlcanDecoder, SlcanReply
-from bodynet.core.messages import NoNewData, OleAccel, Quat, Reading, SensorAbsent
+from bodynet.core.messages import (
+    STAMP_SPREAD_S,
+    NoNewData,
+    OleAccel,
+    Quat,
+    Reading,
+    SensorAbsent,
+    Source,
+)
 from bodynet.nodes.emulator import BodyEmulator, Truth
 from bodynet.nodes.loop import Loop
 from bodynet.nodes.sources.base import EmulatorError
@@ -68,9 +76,10 @@ CAN_PERIOD_S = smartsuit_can.PERIOD_S
 CONCENTRATOR_CYCLE_S = concentrator.CYCLE_S
 IMU_TICK_S = imu_matrix.TICK_S
 #: how often an IMU tag sends its reading: its BLE connection interval, the longest
-#: the tags allow (003 seed, Table 7.6: 10 to 30 ms); shorter than the central's tick,
+#: the tags allow (003 seed, Table 7.6: 10 to 30 ms), which the gateway states a
+#: central's sample may be older than its stamp; shorter than the central's tick,
 #: so a tag whose notifications get through has a new reading at every tick
-TAG_INTERVAL_S = 0.03
+TAG_INTERVAL_S = STAMP_SPREAD_S[Source.IMU_CENTRAL]
 _BAUD = {115200: termios.B115200, 230400: termios.B230400}
 #: A node's reading is the body at most this long before its send: sends due this
 #: close together share one sample of the body (which costs as much for one sensor
