@@ -50,6 +50,7 @@ SESSION_FLAGS = {"-e", "--connect", "-l", "--listen", "--mode", "-c", "--config"
 OFFLINE = {"decode", "demo", "process", "report", "certs", "bench"}
 PORT = 7447
 WINDOW_S = 5.0  # each measuring window of the clinic's link
+RAW_FLOWING_B = 16_384  # a recording grown this much holds raw samples, not only its start
 
 # one at a time under `make test`'s two processes: links from this namespace take 10.77.n.0/24
 pytestmark = pytest.mark.xdist_group("netns")
@@ -160,13 +161,14 @@ def wait_for_file(path: Path, timeout: float = 60) -> None:
         threading.Event().wait(0.05)
 
 
-def wait_for_data(path: Path, timeout: float = 60) -> None:
-    """Until the recording at ``path`` grows (its recorder flushes a chunk of
-    messages every half second): the recorder is receiving."""
+def wait_for_data(path: Path, timeout: float = 60, grown: int = 0) -> None:
+    """Until the recording at ``path`` grows by more than ``grown`` bytes (its
+    recorder flushes a chunk of messages every half second): the recorder is
+    receiving (with ``grown``, more than the topology it asks for at its start)."""
     wait_for_file(path, timeout)
     first = path.stat().st_size
     deadline = time.monotonic() + timeout
-    while path.stat().st_size <= first:
+    while path.stat().st_size <= first + grown:
         assert time.monotonic() < deadline, f"nothing recorded in {path}"
         threading.Event().wait(0.05)
 
@@ -266,7 +268,9 @@ def test_selective_subscription_across_hosts(
 
     body_rec = services.start("clinic-body", in_ns(clinic, "record", "-o", str(body_out),
                                                     "body/**", "-e", remote))  # fmt: skip
-    wait_for_data(body_out)
+    # the whole body's samples flowing in (a window begun on the recorder's first
+    # chunk, its topology, once carried 0.17 of the body's flow)
+    wait_for_data(body_out, grown=RAW_FLOWING_B)
     body = measure(clinic, clinic_dev, flow)
     assert body_rec.stop() == 0, body_rec.tail()
     watcher.close()
