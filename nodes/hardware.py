@@ -124,8 +124,9 @@ class _Sampler:
         (monotonic, a send's due time; default now)."""
         at = time.monotonic() if at is None else at
         if abs(at - self._at) >= self.reuse_s:
-            readings, truths = self.body.sample(at - self.clock.t0)
-            self._at, self._t_ns = at, self.clock.wall_ns(at - self.clock.t0)
+            t = at - self.clock.t0
+            readings, truths = self.body.sample(t)
+            self._at, self._t_ns = at, self.clock.wall_ns(t)
             self._readings = {r.node: r for r in readings}
             self._truths = {r.node: t for r, t in zip(readings, truths, strict=True)}
         return self._readings
@@ -275,16 +276,17 @@ class CanNodes(_Reboots, _OnTimers, Loop):
             for node, due in sends:
                 reading = readings[node]
                 frame = smartsuit_can.encode_reading(reading)
+                due_ns = self.clock.wall_ns(due - self.clock.t0)
                 self.bus.send(
                     can.Message(
-                        timestamp=self.clock.wall_ns(due - self.clock.t0) / 1e9,
+                        timestamp=due_ns / 1e9,
                         arbitration_id=frame.arbitration_id,
                         data=frame.data,
                         is_extended_id=True,
                     )
                 )
                 self.sent[node] += 1
-                self._sampler.sent(reading, self.clock.wall_ns(due - self.clock.t0))
+                self._sampler.sent(reading, due_ns)
 
 
 class PtyPort:

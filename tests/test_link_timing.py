@@ -560,7 +560,7 @@ def test_a_timing_flag_no_emulated_device_uses_is_refused(
 def test_emulated_devices_take_the_timing_they_are_given(tmp_path: Path) -> None:
     """What ``bodynet emulate`` and ``node`` hand a source reaches its emulator."""
     from bodynet.nodes import sources
-    from bodynet.nodes.hardware import Clock
+    from bodynet.nodes.timing import Clock
 
     body = BodyEmulator(held(HELD), smartsuit_sensors([LEFT_ARM]), realism=Realism.ideal())
     slcan = sources.by_device("slcan")()
@@ -610,8 +610,9 @@ def test_a_readings_truth_is_as_of_when_the_body_was_sampled_whatever_its_thread
     sampling ended: a swinging knee 29 deg off its fresh-looking samples). Both
     samplers give the time the body was sampled at, on the wall clock, whatever
     the thread did after."""
-    from bodynet.nodes.hardware import Clock, _Sampler
+    from bodynet.nodes.hardware import _Sampler
     from bodynet.nodes.sources.slimevr import EmulatedTrackers
+    from bodynet.nodes.timing import Clock
 
     clock = Clock()
     assert abs(clock.wall_ns(clock.now()) - time.time_ns()) < 0.5e9  # the same clock

@@ -40,9 +40,8 @@ from bodynet.core.subject import Profile
 from bodynet.gateway.service import Gateway
 from bodynet.nodes import sources
 from bodynet.nodes.emulator import BodyEmulator, Realism, Truth
-from bodynet.nodes.hardware import Clock
 from bodynet.nodes.motion import ROUTINES
-from bodynet.nodes.timing import LinkTiming, Timers
+from bodynet.nodes.timing import Clock, LinkTiming, Timers
 
 SEED = 3
 #: tags of 0.3 deg noise mounted at random, one shared frame, the subject facing 37 deg
