@@ -16,7 +16,9 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
 import logging
+import math
 import socket
 import threading
 import time
@@ -33,6 +35,8 @@ from bodynet.nodes.loop import Loop
 from bodynet.nodes.sources.base import EmulatorError, NodeParts, Source, Transport
 from bodynet.nodes.timing import Clock, LinkTiming, NodeTimers
 from bodynet.session import argtypes
+
+Quaternion = tuple[float, float, float, float]  # w, x, y, z
 
 log = logging.getLogger(__name__)
 
@@ -191,7 +195,7 @@ class EmulatedTracker(Loop):
     any bytes."""
 
     def __init__(self, server: tuple[str, int], mac: bytes, sensors: Sequence[int],
-                 orientation: Callable[[int, float], tuple[float, float, float, float]],
+                 orientation: Callable[[int, float], Quaternion],
                  rate_hz: float = 100.0, compact: bool = False, clock: Any = None,
                  name: str = "tracker", timing: LinkTiming | None = None,
                  sent: Callable[[int], None] | None = None) -> None:  # fmt: skip
@@ -217,7 +221,8 @@ class EmulatedTracker(Loop):
         self.timers = NodeTimers([0], self.period_s, self.timing)  # 0: the tracker
         #: rotation datagrams sent after the one numbered after them
         self.reordered = 0
-        #: told each sensor whose rotation went out, as it goes (a truth sink's hook)
+        #: told each sensor whose rotation goes out, just before it goes (a truth
+        #: sink's hook: what it notes then is before the datagram's arrival stamp)
         self.sent_hook = sent
         self._held: tuple[bytes, int] | None = None  # a datagram to go out after the next one
         self._reboot = threading.Event()
@@ -365,9 +370,9 @@ class EmulatedTracker(Loop):
             self.sent += 1
 
     def _send_rotation(self, data: bytes, sensor: int) -> None:
-        self.send(data)
         if self.sent_hook is not None:
             self.sent_hook(sensor)
+        self.send(data)
 
     def _status(self) -> None:
         for sensor in self.sensors:
@@ -376,6 +381,20 @@ class EmulatedTracker(Loop):
         self.send(codec.encode_battery(self._next(), 3.9, 0.8))
         self.send(codec.encode_signal_strength(self._next(), codec.DEVICE_SENSOR, -52))
         self.send(codec.encode_heartbeat(self._next()))
+
+
+#: body samples an emulated body's trackers keep (a tracker late by a few steps finds its own)
+GRID_KEPT = 8
+
+
+def _nlerp(a: Quaternion, b: Quaternion, f: float) -> Quaternion:
+    """From unit quaternion ``a`` (``f`` = 0) to ``b`` (1), normalised: as slerp
+    for the few degrees a body turns between two of its samples."""
+    if a[0] * b[0] + a[1] * b[1] + a[2] * b[2] + a[3] * b[3] < 0:
+        b = (-b[0], -b[1], -b[2], -b[3])
+    w, x, y, z = (p + f * (q - p) for p, q in zip(a, b, strict=True))
+    n = math.sqrt(w * w + x * x + y * y + z * z)
+    return (w / n, x / n, y / n, z / n)
 
 
 class EmulatedTrackers:
@@ -390,13 +409,12 @@ class EmulatedTrackers:
         self.truth = truth
         self.clock = clock or Clock()  # one for every tracker, its times on the wall clock
         self.link = f"{server[0]}:{server[1]}"
-        self.tolerance_s = 0.5 / rate_hz  # trackers a period's half apart share a sample
+        self.step_s = 0.5 / rate_hz  # the body sampled every half period, for every tracker
         self._lock = threading.Lock()
-        self._cache: tuple[
-            float, dict[int, tuple[float, float, float, float]], dict[int, Any], int
-        ] = (-1.0, {}, {}, 0)  # t, quats, truths, t_ns
-        self._taken: dict[int, deque[tuple[Any, int]]] = {}  # node -> truths not yet sent
+        self._grid: dict[int, tuple[dict[int, Quaternion], dict[int, Any]]] = {}  # step -> sample
         nodes = [s.node for s in body.sensors]
+        # node -> truths not yet sent; each touched by its tracker's thread alone
+        self._taken: dict[int, deque[tuple[Any, int]]] = {n: deque(maxlen=4) for n in nodes}
         timing = timing or LinkTiming()
         self.trackers = [
             EmulatedTracker(server, emulated_mac(node), [0],
@@ -419,24 +437,41 @@ class EmulatedTrackers:
         """Lose every rotation of ``node``'s tracker from now for ``seconds``."""
         self._by_node[node].silence(seconds)
 
-    def _quat(self, node: int, t: float) -> tuple[float, float, float, float]:
-        with self._lock:  # one body sample a period for every tracker
-            at, quats, truths, t_ns = self._cache
-            if abs(t - at) > self.tolerance_s:
-                readings, truth_list = self.body.sample(t)
-                quats = {r.node: r.wxyz for r in readings}
-                truths = {r.node: tr for r, tr in zip(readings, truth_list, strict=True)}
-                t_ns = self.clock.wall_ns(t)  # when it was taken: ``t``, not when this ran
-                self._cache = (t, quats, truths, t_ns)
-            if self.truth is not None:
-                self._taken.setdefault(node, deque(maxlen=4)).append((truths[node], t_ns))
-            return quats[node]
+    def _quat(self, node: int, t: float) -> Quaternion:
+        """``node``'s reading at ``t``, and its truth to go with it, each between the
+        body's samples of the steps around ``t``: as of ``t`` itself, as a tracker
+        reads its IMU as it sends, at one body sample a step for all trackers."""
+        k = math.floor(t / self.step_s)
+        f = t / self.step_s - k
+        with self._lock:
+            (quats, truths), (quats_after, truths_after) = self._sampled(k), self._sampled(k + 1)
+        if self.truth is not None:
+            was, then = truths[node], truths_after[node]
+            truth = dataclasses.replace(
+                was,
+                angles_deg={n: a + f * (then.angles_deg[n] - a) for n, a in was.angles_deg.items()},
+                segment_quat_wxyz=_nlerp(was.segment_quat_wxyz, then.segment_quat_wxyz, f),
+            )
+            t_ns = self.clock.wall_ns(t)  # when it was taken: ``t``, not when this ran
+            self._taken[node].append((truth, t_ns))
+        return _nlerp(quats[node], quats_after[node], f)
+
+    def _sampled(self, step: int) -> tuple[dict[int, Quaternion], dict[int, Any]]:
+        """The body's readings and truths at ``step`` (under the lock), kept a few steps."""
+        got = self._grid.get(step)
+        if got is None:
+            readings, truth_list = self.body.sample(step * self.step_s)
+            quats = {r.node: r.wxyz for r in readings}
+            truths = {r.node: tr for r, tr in zip(readings, truth_list, strict=True)}
+            got = self._grid[step] = (quats, truths)
+            if len(self._grid) > GRID_KEPT:
+                del self._grid[next(iter(self._grid))]  # the step sampled longest ago
+        return got
 
     def _sent(self, node: int) -> None:
-        """``node``'s tracker sent its oldest rotation not yet sent: its truth to the sink."""
-        with self._lock:
-            taken = self._taken.get(node)
-            truth = taken.popleft() if taken else None
+        """``node``'s tracker sends its oldest rotation not yet sent: its truth to the sink."""
+        taken = self._taken[node]
+        truth = taken.popleft() if taken else None
         if truth is not None and self.truth is not None:
             self.truth(node, *truth)
 
