@@ -343,12 +343,14 @@ def test_recorder_refuses_what_mcap_cannot_store_and_closes_complete(
     out = tmp_path / "odd.mcap"
     recorder = Recorder(zsession, out, [*DEFAULT_KEYS, keys.all_truth()])
     source = client(router_endpoint)
-    elbow, wrist = keys.raw_key("arm", "left", "elbow"), keys.raw_key("arm", "left", "wrist")
+    elbow = keys.raw_key("arm", "left", "elbow")
     truth = LEFT_ARM.key + "/elbow/" + keys.Stream.TRUTH
+    probe_key = LEFT_ARM.key + "/wrist/" + keys.Stream.TRUTH
     t0 = 1_700_000_000_000_000_000
     try:
+        # on the subscription declared last (the truth): the router has the others by then
         probes = _subscribed(
-            recorder, lambda n: source.put(wrist, raw_sample.encode(_raw(n, t0 + n)))
+            recorder, lambda n: source.put(probe_key, f'{{"t_ns": {t0 + n}, "angles_deg": {{}}}}')
         )
         raw_times = [t0, -1, t0 + 2, -(2**63), t0 + 4, 2**63 - 1]
         for seq, t in enumerate(raw_times):
@@ -369,13 +371,13 @@ def test_recorder_refuses_what_mcap_cannot_store_and_closes_complete(
         source.close()
         recorder.close()  # the writer was never handed what it cannot store: this completes
     assert recorder.rejected == {Reason.OUT_OF_RANGE: 5, Reason.GARBAGE: 1}
-    probes = sum(1 for k, _, _ in read_raw(out) if k == wrist)
+    probes = sum(1 for k, _, _ in read_truth(out) if k == probe_key)
     assert count_messages(out) == probes + 11
     # in log-time order
     assert [t for k, t, _ in read_raw(out) if k == elbow] == [t0, t0 + 2, t0 + 4, t0 + 6,
                                                               2**63 - 1]  # fmt: skip
     assert [t for t, _ in read_poses(out, keys.pose_key(LEFT_ARM))] == [t0, MAX_TIME_NS]
-    assert [t for _, t, _ in read_truth(out)] == [1]
+    assert [t for k, t, _ in read_truth(out) if k == truth] == [1]
     # what was refused shows as missing sequence numbers, at times the file holds
     gaps = [(g.after_seq, g.missing) for g in read_gaps(out) if g.topic == elbow]
     assert gaps == [(0, 1), (2, 1)]
