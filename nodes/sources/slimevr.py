@@ -440,7 +440,8 @@ class EmulatedTrackers:
     def _quat(self, node: int, t: float) -> Quaternion:
         """``node``'s reading at ``t``, and its truth to go with it, each between the
         body's samples of the steps around ``t``: as of ``t`` itself, as a tracker
-        reads its IMU as it sends, at one body sample a step for all trackers."""
+        reads its IMU as it sends, at one body sample a step for all trackers (a
+        reading's noise is the two samples' blended: midway, 1/sqrt(2) of theirs)."""
         k = math.floor(t / self.step_s)
         f = t / self.step_s - k
         with self._lock:
@@ -457,7 +458,8 @@ class EmulatedTrackers:
         return _nlerp(quats[node], quats_after[node], f)
 
     def _sampled(self, step: int) -> tuple[dict[int, Quaternion], dict[int, Any]]:
-        """The body's readings and truths at ``step`` (under the lock), kept a few steps."""
+        """The body's readings and truths at ``step`` (under the lock), the latest
+        ``GRID_KEPT`` steps kept."""
         got = self._grid.get(step)
         if got is None:
             readings, truth_list = self.body.sample(step * self.step_s)
@@ -465,7 +467,7 @@ class EmulatedTrackers:
             truths = {r.node: tr for r, tr in zip(readings, truth_list, strict=True)}
             got = self._grid[step] = (quats, truths)
             if len(self._grid) > GRID_KEPT:
-                del self._grid[next(iter(self._grid))]  # the step sampled longest ago
+                del self._grid[min(self._grid)]
         return got
 
     def _sent(self, node: int) -> None:
