@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
+import os
 import stat
 import subprocess
 import sys
@@ -440,8 +442,10 @@ def test_sigterm_ends_a_live_view_promptly_flushing_what_it_has(
                                       stderr=subprocess.PIPE, text=True))  # fmt: skip
         return procs[-1]
 
-    procs.append(subprocess.Popen([str(RERUN), "--port", str(port), "--save", str(got)],
-                                  stderr=subprocess.DEVNULL, text=True))  # fmt: skip
+    # in a session of its own: ``rerun`` is a wrapper whose child is the viewer, which
+    # a kill of the wrapper alone left running after the tests
+    viewer = subprocess.Popen([str(RERUN), "--port", str(port), "--save", str(got)],
+                              stderr=subprocess.DEVNULL, start_new_session=True)  # fmt: skip
     publisher = client(router_endpoint)
     try:
         wait(lambda: socket.socket().connect_ex(("127.0.0.1", port)) == 0, timeout=60)
@@ -473,6 +477,9 @@ def test_sigterm_ends_a_live_view_promptly_flushing_what_it_has(
             if proc.poll() is None:
                 proc.kill()
             proc.wait(timeout=10)
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(viewer.pid, signal.SIGKILL)
+        viewer.wait(timeout=10)
     err = gone.communicate()[1]
     assert err.startswith(f"bodynet view: the viewer at {url} did not take the poses"), err
     assert err.count("\n") == 1, err
