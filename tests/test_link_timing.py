@@ -234,12 +234,15 @@ def test_gateway_follows_the_truth_over_a_jittery_lossy_can_link(
 
     def agrees(seen: list[tuple[str, pose.PoseFrame]], target: dict[str, float]) -> bool:
         """The last pose against the last truth of each node (once every node's
-        truth and a pose of all of them came)."""
+        truth and a pose of all of them came, the truth held at ``target``: a
+        loaded host may yet send the angles held before)."""
         last = dict(truth.drained())
         frame = seen[-1][1] if seen else None
         if frame is None or len(last) < len(NODES) or len(frame.sources) < len(NODES):
             return False
         truths = {n: v for t in last.values() for n, v in t["angles_deg"].items()}
+        if any(abs(truths[n] - v) > 1e-9 for n, v in target.items()):
+            return False
         error = {n: abs(frame.angles_deg[n] - v) for n, v in truths.items()}
         return all(error[n] <= TOL_DEG and pose.is_measured(frame, n) for n in target) and all(
             error[n] <= frame.unc_deg[n] + SLACK_DEG for n in truths if pose.is_measured(frame, n)
