@@ -50,6 +50,8 @@ OUTPUTS: dict[str, str] = {
 #: The name a subject without namespace goes by in the outputs (stream names,
 #: source ids): the same as its profile's in an all-subjects gateway.
 DEFAULT_SUBJECT = "default"
+#: how long a stopped output waits for what its subscriptions had taken in
+STOP_FLUSH_S = 2.0
 
 
 def output_class(name: str) -> type[LiveOutput]:
@@ -143,8 +145,11 @@ def run(
     def put(sample: zenoh.Sample) -> None:
         inbox.put((str(sample.key_expr), sample.payload.to_bytes()))
 
+    # Zenoh runs each subscription's callback on a thread of its own, behind a queue:
+    # a subscription undeclared is done when its drop runs, after the samples queued
+    done = threading.Semaphore(0)
     counts = Counts()
-    subs = [session.declare_subscriber(k, put)
+    subs = [session.declare_subscriber(k, zenoh.handlers.Callback(put, done.release))
             for k in subscriptions(all_subjects, output.wants_raw)]  # fmt: skip
     own = subject or DEFAULT_SUBJECT
     next_tick = time.monotonic()
@@ -161,6 +166,9 @@ def run(
             _handle(output, counts, key, data, own, all_subjects)
         for sub in subs:  # stopped: nothing more comes in, and what came is sent
             sub.undeclare()
+        deadline = time.monotonic() + STOP_FLUSH_S
+        for _ in subs:
+            done.acquire(timeout=max(0.0, deadline - time.monotonic()))
         subs = []
         while True:
             try:

@@ -311,8 +311,9 @@ def test_a_stopped_output_is_handed_what_came_in_before_the_stop(
         while not pub.matching_status.matching:  # the output's subscription, alone yet
             assert time.monotonic() < deadline, "the output never subscribed"
             time.sleep(0.01)
-        # beside it on its session: once this one has a pose, the output's inbox has
-        # every pose before it (one link, its samples handed out in order)
+        # beside it on its session: once this one has a pose, Zenoh has handed the
+        # output's subscription every pose before it (one link, its samples handed out
+        # in order), though its callback's thread may not have taken them yet
         arrived = Collector(out_session, keys.pose_key(), pose.decode)
         t0 = 1_700_000_000_000_000_000
         for seq in range(6):
