@@ -1816,8 +1816,10 @@ class BodySolver:
         ``accel_filter`` of the new sample each time), against vibration."""
         last = self._memory.up.get(key)
         if last is not None:
-            up = last + self.profile.accel_filter * (up - last)
-            up /= np.linalg.norm(up)
+            blend = last + self.profile.accel_filter * (up - last)
+            norm = np.linalg.norm(blend)
+            if norm > 1e-6:  # a sample opposite the last blends to nothing: start over
+                up = blend / norm
         self._memory.up[key] = up
         return up
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterator, Mapping, Sequence
 from typing import Any
 
@@ -181,6 +182,19 @@ def test_out_of_range_angles_are_clamped_and_flagged() -> None:
     out = solver.solve({elbow: RawSample(OleAccel(2, 900, (-1024, 0, 0)), 0, 0)})  # 90 mm
     assert out.angles_deg["left_elbow_flexion_deg"] == 150.0
     assert out.flags["left_elbow_flexion_deg"] == "clamped"
+
+
+def test_an_accelerometer_turned_over_between_two_samples_leaves_its_filter_sound() -> None:
+    """Two samples of a module's accelerometer exactly opposite blend to nothing: the
+    filter starts over from the new one (it divided by zero, and the module's "up"
+    was NaN for good)."""
+    solver = BodySolver(Profile())
+    elbow = SMARTSUIT_SITES[2]
+    for k, accel in enumerate([(-1024, 0, 0), (1024, 0, 0), (0, -1024, 0)]):
+        solver.solve({elbow: RawSample(OleAccel(2, 400, accel), k, k * 10_000_000)})
+        up = solver._memory.up[elbow.raw_key]
+        assert all(math.isfinite(c) for c in up), (k, up)
+    assert up[1] < -0.5  # on its way to the last sample's direction
 
 
 def test_outputs_pose_and_relative_rotation() -> None:
