@@ -128,7 +128,7 @@ class _Sampler:
             readings, truths = self.body.sample(t)
             self._at, self._t_ns = at, self.clock.wall_ns(t)
             self._readings = {r.node: r for r in readings}
-            self._truths = {r.node: t for r, t in zip(readings, truths, strict=True)}
+            self._truths = {r.node: truth for r, truth in zip(readings, truths, strict=True)}
         return self._readings
 
     def invalidate(self) -> None:

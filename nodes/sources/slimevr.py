@@ -442,8 +442,9 @@ class EmulatedTrackers:
         body's samples of the steps around ``t``: as of ``t`` itself, as a tracker
         reads its IMU as it sends, at one body sample a step for all trackers (a
         reading's noise is the two samples' blended: midway, 1/sqrt(2) of theirs)."""
-        k = math.floor(t / self.step_s)
-        f = t / self.step_s - k
+        steps = t / self.step_s
+        k = math.floor(steps)
+        f = steps - k
         with self._lock:
             (quats, truths), (quats_after, truths_after) = self._sampled(k), self._sampled(k + 1)
         if self.truth is not None:
