@@ -1020,6 +1020,9 @@ def test_a_node_whose_token_comes_back_is_stale_until_its_first_sample(
 
     try:
         wait_matching(node, key)
+        # the only sample's pose must reach the collector: were it missed, the next
+        # (the site stale) would be the last, and the wait below in vain
+        wait_matching(node, keys.pose_key())
         token = node.liveliness().declare_token(key)
         put(0)
         poses.wait_for(lambda s: bool(s) and key in s[-1][1].sources and not s[-1][1].stale)
