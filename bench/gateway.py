@@ -12,6 +12,12 @@ feeds them one after the other instead (the same feed each), rows marked
 "apart", with a third phase: a subscriber whose samples never reach Python,
 Zenoh's own CPU for receiving the feed (the floor under any gateway's). Loss:
 what the relay and the gateway received against what was sent.
+
+The ``batched`` feed is the realistic one put out as bridges run with
+``--batch-ms 5`` do (``nodes.publisher``): each body's samples together on its
+batch key, once all fifteen are in or 5 ms after the first; the relay
+republishes the batches, and a relayed sample's latency counts from its own
+source time, its wait in the batch included.
 """
 
 from __future__ import annotations
@@ -28,6 +34,8 @@ import numpy as np
 from bodynet.nodes.timing import JITTER_S, Sends, feed_schedule
 
 RATE_HZ = 100.0
+#: the batched feed's window: a bridge run with ``--batch-ms 5``
+BATCH_S = 0.005
 
 
 def _session(endpoint: str) -> Any:
@@ -51,8 +59,7 @@ def _feed(endpoint: str, seconds: float, sent: Any, ready: Any, bodies: range, t
     BLOCK). With ``hold``: once done, add one to ``finished`` and keep the
     session open until ``hold`` is set (closing it drops what its queues still
     hold, which a subscriber that is behind has not yet had)."""
-    import zenoh
-
+    from bodynet.core import keys
     from bodynet.core.codecs import raw_sample
     from bodynet.core.messages import RawSample, Source
     from bodynet.nodes.emulator import BodyEmulator, imu_tags
@@ -64,35 +71,43 @@ def _feed(endpoint: str, seconds: float, sent: Any, ready: Any, bodies: range, t
     frames = [
         body.sample(k / rate_hz)[0] for k in range(int(rate_hz))
     ]  # a second of motion, looped
-    from bodynet.nodes.publisher import _raw_publisher
-
-    block = zenoh.CongestionControl.BLOCK
-    pubs = [
-        _raw_publisher(session, subject(b, total) + t.site.raw_key) if bridges
-        else session.declare_publisher(subject(b, total) + t.site.raw_key,
-                                       congestion_control=block)
-        for b in bodies
-        for t in tags
-    ]  # fmt: skip
-    schedule = feed_schedule(bodies, len(tags), rate_hz, feed)
+    batched = feed == "batched"
+    # a publisher per body (its bridge's batch key) if batched, else one per node
+    pubs = _publishers(session, [subject(b, total) + (keys.batch_key("bench") if batched else k)
+                                 for b in bodies
+                                 for k in ([""] if batched else [t.site.raw_key for t in tags])],
+                       bridges)  # fmt: skip
+    schedule = feed_schedule(bodies, len(tags), rate_hz, "realistic" if batched else feed)
     rng = np.random.default_rng(bodies.start + 1)
-    jitter = JITTER_S if feed == "realistic" else 0.0
+    jitter = 0.0 if feed == "locked" else JITTER_S
     ready.wait()
     start = time.monotonic()
     # each node's next send (nodes.timing.Sends); locked nodes all come due together
     sends = Sends(schedule, start, jitter, rng, end=start + seconds)
     count = 0
-    while sends:
+    batches = _Batches(pubs, len(tags))
+    while sends or batches:
         now = time.monotonic()
-        if sends.next_due > now:
+        count += batches.flush_due(now)
+        nxt = min(sends.next_due, batches.next_due)
+        if nxt == float("inf"):
+            break
+        if nxt > now:
             with sent.get_lock():
                 sent.value += count
             count = 0
-            time.sleep(sends.next_due - now)
+            time.sleep(nxt - now)
+            continue
+        if sends.next_due > now:
+            continue
         _, i, tick = sends.pop()
         reading = frames[tick % len(frames)][i % len(tags)]
-        pubs[i].put(raw_sample.encode(RawSample(reading, tick, time.time_ns(), Source.IMU_CENTRAL)))
-        count += 1
+        payload = raw_sample.encode(RawSample(reading, tick, time.time_ns(), Source.IMU_CENTRAL))
+        if batched:
+            count += batches.add(i // len(tags), tags[i % len(tags)].site.raw_key, payload, now)
+        else:
+            pubs[i].put(payload)
+            count += 1
     with sent.get_lock():
         sent.value += count
     if hold is not None:
@@ -102,8 +117,58 @@ def _feed(endpoint: str, seconds: float, sent: Any, ready: Any, bodies: range, t
     session.close()
 
 
-#: Every raw key, of the namespace-less subject and of named ones.
-RAW_SELECTORS = ("body/*/*/*/raw", "*/body/*/*/*/raw")
+def _publishers(session: Any, keys: list[str], bridges: bool) -> list[Any]:
+    """A publisher on each key: the bridges' own (advanced) if ``bridges``, else
+    plain ones; both congestion control BLOCK."""
+    import zenoh
+
+    from bodynet.nodes.publisher import _raw_publisher
+
+    if bridges:
+        return [_raw_publisher(session, k) for k in keys]
+    return [session.declare_publisher(k, congestion_control=zenoh.CongestionControl.BLOCK)
+            for k in keys]  # fmt: skip
+
+
+class _Batches:
+    """Each body's samples put together as a bridge run with ``--batch-ms`` does
+    (``nodes.publisher``): out on the body's publisher once every node has one
+    in, or :data:`BATCH_S` after the first. Counts are of samples published."""
+
+    def __init__(self, pubs: list[Any], nodes: int) -> None:
+        self.pubs, self.nodes = pubs, nodes
+        self.pending: dict[int, list[tuple[str, bytes]]] = {}  # body -> its batch so far
+        self.due: dict[int, float] = {}  # body -> when its batch goes at the latest
+
+    def __bool__(self) -> bool:
+        return bool(self.pending)
+
+    @property
+    def next_due(self) -> float:
+        return min(self.due.values(), default=float("inf"))
+
+    def add(self, body: int, key: str, payload: bytes, now: float) -> int:
+        entries = self.pending.setdefault(body, [])
+        if not entries:
+            self.due[body] = now + BATCH_S
+        entries.append((key, payload))
+        return self._flush(body) if len(entries) == self.nodes else 0
+
+    def flush_due(self, now: float) -> int:
+        return sum(self._flush(b) for b, t in list(self.due.items()) if t <= now)
+
+    def _flush(self, body: int) -> int:
+        from bodynet.core.codecs import raw_batch
+
+        entries = self.pending.pop(body)
+        del self.due[body]
+        self.pubs[body].put(raw_batch.encode(entries))
+        return len(entries)
+
+
+#: Every raw key and every bridge's batches, of the namespace-less subject and
+#: of named ones.
+RAW_SELECTORS = ("body/*/*/*/raw", "*/body/*/*/*/raw", "body/@batch/*", "*/body/@batch/*")
 
 
 def _subscribed(session: Any, handler: Any, stop: Any, cpu: Any, serving: Any = None) -> None:
@@ -169,6 +234,14 @@ def _gateway(endpoint: str, stop: Any, samples: Any, cpu: Any, all_subjects: boo
     session.close()
 
 
+def _relayed(now_ns: int, key: str, payload: bytes) -> list[int]:
+    """The latencies (ns) of the samples of one relayed message: itself, or a batch's."""
+    from bodynet.core.codecs import raw_batch, raw_sample
+
+    return [now_ns - raw_sample.source_time(m)
+            for _, m in raw_batch.split(key[len("bench/relay/"):], payload)]  # fmt: skip
+
+
 def _stats(lat: list[int]) -> dict[str, float]:
     if not lat:
         return {"n": 0, "p50_ms": float("nan"), "p99_ms": float("nan")}
@@ -186,7 +259,7 @@ def _phase(bodies: int, seconds: float, rate_hz: float, feed: str, relay: bool,
     the latencies, each path's CPU (s), the gateways' samples taken and solves."""
     import socket
 
-    from bodynet.core.codecs import pose, raw_sample
+    from bodynet.core.codecs import pose
     from bodynet.session import open_session, session_config
 
     with socket.socket() as s:
@@ -221,8 +294,10 @@ def _phase(bodies: int, seconds: float, rate_hz: float, feed: str, relay: bool,
     relay_lat: list[int] = []
     pose_lat: list[int] = []
     subs = [
-        probe.declare_subscriber("bench/relay/**", lambda s: relay_lat.append(
-            time.time_ns() - raw_sample.source_time(s.payload.to_bytes()))),
+        probe.declare_subscriber(sel, lambda s: relay_lat.extend(
+            _relayed(time.time_ns(), str(s.key_expr), s.payload.to_bytes())))
+        for sel in ("bench/relay/**", "bench/relay/body/@batch/*", "bench/relay/*/body/@batch/*")
+    ] + [
         probe.declare_subscriber(keys_pose(bodies), lambda s: pose_lat.append(
             time.time_ns() - pose.source_time(s.payload.to_bytes()))),
     ]  # fmt: skip
@@ -298,7 +373,7 @@ def sustained(row: dict[str, Any], path: str) -> bool:
     return bool(ok and (path == "relay" or row[path]["pose_rate"] >= TICKS_GOAL))
 
 
-FEEDS = ("realistic", "locked")
+FEEDS = ("realistic", "batched", "locked")
 
 
 def run(
@@ -318,13 +393,15 @@ def run(
     bodies sustained are counted on the first feed. Each count in ``gateways``
     other than 1 adds a row per number of bodies: that many gateway processes
     sharing the bodies (``gateway --share``), on the first feed; ``apart`` adds
-    one per number of bodies with relay and gateway fed one after the other."""
+    one per number of bodies and feed (but the locked one) with relay and
+    gateway fed one after the other."""
     from bodynet.bench import machine
 
     rows = [run_once(n, seconds, rate_hz, feed) for n in bodies for feed in feeds]
     rows += [run_once(n, seconds, rate_hz, feeds[0], g)
              for g in gateways if g != 1 for n in bodies]  # fmt: skip
-    rows += [run_once(n, seconds, rate_hz, feeds[0], apart=True) for n in bodies if apart]
+    rows += [run_once(n, seconds, rate_hz, feed, apart=True)
+             for feed in feeds if apart and feed != "locked" for n in bodies]  # fmt: skip
     first = [r for r in rows if r["feed"] == feeds[0] and r["gateways"] == 1 and not r["apart"]]
     best = {
         path: max((r["bodies"] for r in first if sustained(r, path)), default=0)
@@ -337,6 +414,11 @@ def run(
                default=0)
         for g in sorted({1, *gateways})
     }  # fmt: skip
+    by_feed = {
+        feed: max((r["bodies"] for r in rows if r["feed"] == feed and r["gateways"] == 1
+                   and not r["apart"] and sustained(r, "gateway")), default=0)
+        for feed in feeds
+    }  # fmt: skip
     result = {
         "machine": f"{machine.cpu_model()}, {mp.cpu_count()} cores, "
         f"Python {platform.python_version()}",
@@ -344,6 +426,7 @@ def run(
         "feeds": list(feeds),
         **{k: rows[0][k] for k in ("sent", "relay", "gateway", "p50_ratio", "p99_ratio")},
         "runs": rows, "sustained_bodies": best, "sustained_by_gateways": by_gateways,
+        "sustained_by_feed": by_feed,
         "sustained_ratio": best["gateway"] / best["relay"] if best["relay"] else None,
     }  # fmt: skip
     lines = [
@@ -373,6 +456,8 @@ def run(
         f"\n\nSustained with zero loss ({feeds[0]} feed): relay {best['relay']} bodies, "
         f"gateway {best['gateway']} bodies (at least {TICKS_GOAL:.0%} of ticks delivered)"
         + "".join(f"; {g} gateways sharing: {n}" for g, n in by_gateways.items() if g != 1)
+        + ". One gateway by feed: "
+        + ", ".join(f"{feed} {n}" for feed, n in by_feed.items())
         + ".\n"
     )
     print(f"Gateway vs bare relay (15 nodes x {rate_hz:g} Hz per body), {seconds:g} s each, "

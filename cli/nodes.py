@@ -183,7 +183,8 @@ def cmd_node(args: argparse.Namespace) -> int:
     if unused := _unused_timing(args, [p.via for p in plans]):
         print(f"bodynet node {args.system}: {unused}", file=sys.stderr)
         return 2
-    return _with_session(args, run_node, plans, _options(args), args.name or f"node-{args.system}")
+    return _with_session(args, run_node, plans, _options(args), args.name or f"node-{args.system}",
+                         args.batch_ms / 1e3)  # fmt: skip
 
 
 def _no_sensor(plans: Sequence[NodePlan]) -> NodePlan | None:
@@ -276,6 +277,15 @@ def _timing_args(p: argparse.ArgumentParser) -> None:
                         "(default 0)")  # fmt: skip
 
 
+def _batch_arg(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--batch-ms", type=argtypes.bounded_float(0.0, 10.0, "ms"), default=0.0,
+                   metavar="MS",
+                   help="publish the samples together on body/@batch/<name>, once every "
+                        "node has one or MS after the first (default 0: each on its "
+                        "site's key); far less CPU for the gateway, up to MS more "
+                        "latency (docs/devices.md#batching)")  # fmt: skip
+
+
 def add_bridge_args(bridge: argparse.ArgumentParser) -> None:
     from bodynet.nodes import sources
 
@@ -287,6 +297,7 @@ def add_bridge_args(bridge: argparse.ArgumentParser) -> None:
         cls.add_bridge_args(p)
         p.add_argument("--name", type=argtypes.free_text(100),
                        help="name on the health key (default from the device)")  # fmt: skip
+        _batch_arg(p)
         add_session_args(p)
         p.set_defaults(func=cmd_bridge)
 
@@ -329,5 +340,6 @@ def add_node_args(node: argparse.ArgumentParser) -> None:
             )
         p.add_argument("--name", type=argtypes.free_text(100),
                        help="name prefix on the health keys")  # fmt: skip
+        _batch_arg(p)
         add_session_args(p)
         p.set_defaults(func=cmd_node)

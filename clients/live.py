@@ -34,8 +34,8 @@ from typing import Any
 import zenoh
 
 from bodynet.core import keys
-from bodynet.core.codecs import pose, raw_sample
-from bodynet.core.errors import DecodeError
+from bodynet.core.codecs import pose, raw_batch, raw_sample
+from bodynet.core.errors import DecodeError, Rejected
 from bodynet.core.messages import RawSample
 
 log = logging.getLogger(__name__)
@@ -121,7 +121,7 @@ MAX_SUBJECTS = 64
 
 def subscriptions(all_subjects: bool, wants_raw: bool) -> list[str]:
     """The key expressions a live output subscribes to."""
-    data = [keys.pose_key(), *([keys.all_raw()] if wants_raw else [])]
+    data = [keys.pose_key(), *([keys.all_raw(), keys.all_batches()] if wants_raw else [])]
     prefixes = ("", keys.ANY_SUBJECT + "/") if all_subjects else ("",)
     return [p + k for p in prefixes for k in data]
 
@@ -197,13 +197,18 @@ def _handle(output: LiveOutput, counts: Counts, key: str, data: bytes, own: str,
             frame = pose.decode(data)
             counts.poses[name] += 1
             output.on_pose(name, frame)
-        else:  # a payload may hold several samples back to back
-            for event in raw_sample.decode_batch(data):
-                if isinstance(event, RawSample):
-                    counts.raw[name] += 1
-                    output.on_raw(name, body_key, event)
-                else:
+        else:  # a bridge's batch, or a payload of samples back to back
+            for entry in raw_batch.split(body_key, data):
+                if isinstance(entry, Rejected):
                     counts.bad += 1
+                    continue
+                site_key, message = entry
+                for event in raw_sample.decode_batch(message):
+                    if isinstance(event, RawSample):
+                        counts.raw[name] += 1
+                        output.on_raw(name, site_key, event)
+                    else:
+                        counts.bad += 1
     except (DecodeError, keys.KeySpaceError):
         counts.bad += 1
     except Exception:  # one message the output could not send: counted, it goes on

@@ -13,6 +13,11 @@ stored as it came, with only its header and segments read, see
 ``McapSink.write_pose_message``), or whose time MCAP cannot hold (a negative
 ``t_ns``, or past ``2**64 - 1``: ``out_of_range``).
 
+Samples that a bridge run with ``--batch-ms`` put together on its batch key
+(``codecs.raw_batch``) are written as the others: each on its site's raw key,
+when that key is one the recording asked for. Whenever raw samples are asked
+for, the batches are subscribed to as well.
+
 Nothing is lost to a router restart where it can be fetched again: the
 subscriptions that can carry raw samples are Zenoh advanced subscribers with
 recovery (those of poses, topology and health are plain), so raw samples
@@ -53,8 +58,8 @@ import zenoh.ext
 
 from bodynet.clients.mcap_store import Gap, McapSink, check_time, keep_large_buffers_off_heap
 from bodynet.core import keys
-from bodynet.core.codecs import raw_sample
-from bodynet.core.errors import DecodeError, Reason, RejectCounts
+from bodynet.core.codecs import raw_batch, raw_sample
+from bodynet.core.errors import DecodeError, Reason, RejectCounts, Rejected
 
 log = logging.getLogger(__name__)
 
@@ -115,6 +120,14 @@ class Recorder:
         # fetches what a router restart made it miss. Poses, topology and health come from
         # plain publishers, with nothing to recover: a plain subscriber.
         recovery = zenoh.ext.RecoveryConfig(heartbeat=True)
+        # raw samples asked for: the bridges' batches too, their samples kept where
+        # their keys are among those asked for (all of them if batches were asked for)
+        self._raw_exprs = [zenoh.KeyExpr(k) for k in key_exprs if _kind(k) == _RAW]
+        self._all_batched = any(_kind(k) == _BATCH for k in key_exprs)
+        self._wanted: dict[str, bool] = {}
+        if self._raw_exprs and not self._all_batched:
+            key_exprs = [*key_exprs, keys.all_batches(),
+                         f"{keys.ANY_SUBJECT}/{keys.all_batches()}"]  # fmt: skip
         self._subs: list[Any] = [
             session.declare_subscriber(k, zenoh.handlers.FifoChannel(FIFO_DEPTH))
             if _kind(k) in _PLAIN
@@ -195,10 +208,14 @@ class Recorder:
                     self._sink.write_health(key, data, _admin_time(data))
                 elif kind == _METRICS:
                     self._sink.write_metrics(key, data, _admin_time(data))
+                elif kind == _BATCH:
+                    for entry in raw_batch.split(key, data):
+                        if isinstance(entry, Rejected):
+                            self.rejected[entry.reason] += 1
+                        elif self._wants(entry[0]):
+                            self._write_raw(*entry)
                 else:
-                    raw = raw_sample.decode(data)
-                    self._note_seq(key, raw.seq, check_time(raw.t_ns))
-                    self._sink.write_raw(key, raw, raw.t_ns)
+                    self._write_raw(key, data)
         except DecodeError as exc:
             self.rejected[exc.reason] += 1
             log.debug("recorder: refused a message on %s: %s", key, exc)
@@ -207,6 +224,27 @@ class Recorder:
                 if self.error is None:
                     self.error = exc
                 self._closed = True
+
+    def _write_raw(self, key: str, data: bytes) -> None:
+        """One raw sample, on its site's key; ``DecodeError`` if it does not decode
+        (a batch's others are still written)."""
+        try:
+            raw = raw_sample.decode(data)
+            self._note_seq(key, raw.seq, check_time(raw.t_ns))
+        except DecodeError as exc:
+            self.rejected[exc.reason] += 1
+            log.debug("recorder: refused a message on %s: %s", key, exc)
+            return
+        self._sink.write_raw(key, raw, raw.t_ns)
+
+    def _wants(self, key: str) -> bool:
+        """Whether a batched sample's raw key is one the recording asked for."""
+        wanted = self._wanted.get(key)
+        if wanted is None:
+            wanted = self._all_batched or any(e.intersects(key) for e in self._raw_exprs)
+            if len(self._wanted) < 4096:
+                self._wanted[key] = wanted
+        return wanted
 
     def _note_seq(self, topic: str, seq: int, t_ns: int) -> None:
         """Write a gap record if ``seq`` skips numbers after the topic's last one.
@@ -237,7 +275,7 @@ class Recorder:
 
 
 _POSE, _TRUTH, _TOPOLOGY, _HEALTH, _RAW = "pose", "truth", "topology", "health", "raw"
-_METRICS = "metrics"
+_METRICS, _BATCH = "metrics", "batch"
 _PLAIN = (_POSE, _TOPOLOGY, _HEALTH, _METRICS)  # what only plain publishers send
 
 
@@ -256,6 +294,8 @@ def _kind(key: str) -> str:
         return _HEALTH
     if rest == keys.METRICS:
         return _METRICS
+    if rest.startswith(f"{keys.BATCH}/"):
+        return _BATCH
     if key.endswith(f"/{keys.POSE}"):
         return _POSE
     if key.endswith(f"/{keys.Stream.TRUTH}"):

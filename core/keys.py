@@ -196,6 +196,21 @@ UNASSIGNED = f"{ROOT}/@unassigned"
 ASSIGN = f"{ROOT}/@assign"
 
 
+#: ``body/@batch/<bridge>``: a bridge's samples of a few ms in one message
+#: (``codecs.raw_batch``; a bridge run with ``--batch-ms``).
+BATCH = f"{ROOT}/@batch"
+
+
+def batch_key(source: str) -> str:
+    """Key of one bridge's batches of raw samples, e.g. ``body/@batch/imu-ttyUSB0``."""
+    return f"{BATCH}/{chunk(source)}"
+
+
+def all_batches() -> str:
+    """Key expression matching every bridge's batches of a body."""
+    return f"{BATCH}/*"
+
+
 def unassigned_key(tracker: str) -> str:
     return f"{UNASSIGNED}/{chunk(tracker)}"
 

@@ -1,8 +1,9 @@
 """The live gateway: raw samples in, poses and joint angles out, on Zenoh.
 
 One process, by default with an embedded Zenoh router. A subscription to
-every raw key (or a chosen subset of branches) keeps each site's latest
-sample; one worker thread takes the samples from Zenoh's queues and, when
+every raw key (or a chosen subset of branches), and to the bridges' batches
+(``body/@batch/*``, split into their samples: ``codecs.raw_batch``), keeps
+each site's latest sample; one worker thread takes the samples from Zenoh's queues and, when
 a body has a whole frame or has waited a period, solves it at most once per
 tick (``rate_hz``), the bodies that are due together, publishing the whole
 body on ``body/pose`` and each branch's view on ``body/<limb>/<side>/pose``.
@@ -48,8 +49,9 @@ from pathlib import Path
 import zenoh
 
 from bodynet.core import keys
-from bodynet.core.codecs import pose, raw_sample
-from bodynet.core.errors import DecodeError, Reason, RejectCounts
+from bodynet.core.codecs import pose, raw_batch, raw_sample
+from bodynet.core.codecs.raw_batch import subject_of_batch
+from bodynet.core.errors import DecodeError, Reason, RejectCounts, Rejected
 from bodynet.core.keys import BRANCHES, Branch, Site
 from bodynet.core.messages import OleAccel, Quat, RawSample, source_name
 from bodynet.core.profile import OLE_DOF, mount
@@ -608,6 +610,8 @@ class Gateway:
                                        self.branches, self.period_s, self.fits)  # fmt: skip
         prefixes = ("", keys.ANY_SUBJECT + "/") if all_subjects else ("",)
         inner = [keys.all_raw()] if branches is None else [f"{b.key}/*/raw" for b in branches]
+        inner.append(keys.all_batches())  # bridges run with --batch-ms
+        self._unserved: set[str] = set()  # raw keys in batches of branches not served here
         self._subs = [session.declare_subscriber(p + sel, zenoh.handlers.FifoChannel(INTAKE_DEPTH))
                       for p in prefixes for sel in inner]  # fmt: skip
         self._live = [
@@ -657,7 +661,7 @@ class Gateway:
         period ran out first (samples may still be waiting)."""
         taken, touched = 0, set()
         until = now + self.period_s  # a flood (of garbage, say) still leaves time to solve
-        routes, foreign, share = self._routes, self._foreign, self.share
+        routes = self._routes
         quat_fields = raw_sample.quat_fields
         rnd = _Round(time.time())  # the arrival time of its samples, for the clock offset
         with self._lock:
@@ -668,48 +672,71 @@ class Gateway:
                     taken += 1
                     key = str(sample.key_expr)
                     route = routes.get(key)
+                    payload = sample.payload.to_bytes()
                     if route is not None:
-                        payload = sample.payload.to_bytes()
                         fields = quat_fields(payload)
                         if fields is not None:  # the common case: no RawSample made
                             route[0].take_fields(route[1], fields, now, rnd)
                             touched.add(route[0])
                             continue
-                    else:
-                        payload = None
-                    try:
-                        if route is None:
-                            if key in foreign:
-                                self.foreign_samples += 1
+                    elif subject_of_batch(key) is not None:
+                        for entry in raw_batch.split(key, payload):
+                            if isinstance(entry, Rejected):
+                                self.rejected[entry.reason] += 1
                                 continue
-                            subject, body_key = keys.split_subject(key)
-                            site, _ = keys.parse(body_key)
-                            if share is not None and not share.owns(subject):
-                                if len(foreign) < MAX_FOREIGN_KEYS:
-                                    foreign.add(key)
-                                self.foreign_samples += 1
-                                continue
-                        raw = raw_sample.decode(
-                            sample.payload.to_bytes() if payload is None else payload
-                        )
-                    except DecodeError as exc:
-                        self.rejected[exc.reason] += 1
+                            k, message = entry
+                            route = routes.get(k)
+                            if route is not None and (fields := quat_fields(message)) is not None:
+                                route[0].take_fields(route[1], fields, now, rnd)
+                                touched.add(route[0])
+                            else:
+                                self._take_one(k, message, route, now, rnd, touched)
                         continue
-                    except keys.KeySpaceError:
-                        self.rejected[Reason.UNKNOWN_NODE] += 1
-                        continue
-                    if route is None:  # a key's first good sample: its body is made now
-                        if (body := self._body(subject)) is None:
-                            continue
-                        self._route(key, body, body.take(site, raw, now, rnd=rnd))
-                    else:
-                        body = route[0]
-                        body.take_into(route[1], raw, now, rnd)
-                    touched.add(body)
+                    self._take_one(key, payload, route, now, rnd, touched)
         # the loops stop at an empty queue, or on a 256th sample past the period
         more = not taken % 256 and time.monotonic() >= until
         rnd.drained = not more
         return taken, touched, more
+
+    def _take_one(self, key: str, payload: bytes, route: tuple[_Body, _Site] | None,
+                  now: float, rnd: _Round, touched: set[_Body]) -> None:  # fmt: skip
+        """Take one raw sample that came on ``key`` (``route``: where its key's
+        samples go, if known): decoded and kept, or counted as a rejection, or
+        passed over (a subject another gateway serves; a branch this one does not,
+        from a bridge's batch)."""
+        try:
+            if route is None:
+                if key in self._foreign:
+                    self.foreign_samples += 1
+                    return
+                if key in self._unserved:
+                    return
+                subject, body_key = keys.split_subject(key)
+                site, _ = keys.parse(body_key)
+                if site.branch not in self.branches:
+                    if len(self._unserved) < MAX_FOREIGN_KEYS:
+                        self._unserved.add(key)
+                    return
+                if self.share is not None and not self.share.owns(subject):
+                    if len(self._foreign) < MAX_FOREIGN_KEYS:
+                        self._foreign.add(key)
+                    self.foreign_samples += 1
+                    return
+            raw = raw_sample.decode(payload)
+        except DecodeError as exc:
+            self.rejected[exc.reason] += 1
+            return
+        except keys.KeySpaceError:
+            self.rejected[Reason.UNKNOWN_NODE] += 1
+            return
+        if route is None:  # a key's first good sample: its body is made now
+            if (body := self._body(subject)) is None:
+                return
+            self._route(key, body, body.take(site, raw, now, rnd=rnd))
+        else:
+            body = route[0]
+            body.take_into(route[1], raw, now, rnd)
+        touched.add(body)
 
     def _route(self, key: str, body: _Body, kept: _Site) -> None:
         """Where a raw key's samples go from now on (at most MAX_SUBJECTS times the

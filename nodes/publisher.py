@@ -16,6 +16,11 @@ Sequence numbers come from the source's own structure where it has one (the
 IMU central's tick, the concentrator's poll cycle); :class:`PeriodicSeq`
 derives them from arrival times otherwise, so a gap means a missed period.
 
+With :meth:`SitePublisher.batch`, the samples go out together instead: a
+message on ``body/@batch/<source>`` (``codecs.raw_batch``) once every node has
+a sample in it, or ``window_s`` after its first, whichever comes first; the
+tokens and health stay per node.
+
 Raw samples go out through Zenoh's advanced publisher (``zenoh.ext``): it
 keeps the last :data:`CACHE_SAMPLES` samples of each node and sends a
 heartbeat, so an advanced subscriber (the recorder) that missed samples, e.g.
@@ -37,7 +42,7 @@ import zenoh
 import zenoh.ext
 
 from bodynet.core import keys
-from bodynet.core.codecs import raw_sample
+from bodynet.core.codecs import raw_batch, raw_sample
 from bodynet.core.errors import Reason, RejectCounts, Rejected
 from bodynet.core.keys import Site
 from bodynet.core.messages import RESUMED, RawSample, Reading, source_name
@@ -127,6 +132,51 @@ class SitePublisher:
         self._closed = False
         self._watch = threading.Thread(target=self._watchdog, name=f"{name}-watch", daemon=True)
         self._watch.start()
+        # batching (:meth:`batch`): the samples waiting, their nodes, since when
+        self.batch_s = 0.0
+        self.batches = 0  # batches published
+        self._batch_pub: zenoh.ext.AdvancedPublisher | None = None
+        self._pending: list[raw_batch.Entry] = []
+        self._pending_nodes: set[int] = set()
+        self._pending_since = 0.0
+        self._wake = threading.Condition(self._lock)
+        self._batcher: threading.Thread | None = None
+
+    def batch(self, window_s: float) -> None:
+        """Publish the samples together from now on, in one message on
+        ``body/@batch/<name>`` once every node has a sample in it or ``window_s``
+        after its first (a sample waits that long at most)."""
+        if window_s <= 0 or self._batcher is not None:
+            return
+        self.batch_s = window_s
+        self._batch_pub = _raw_publisher(self.session, keys.batch_key(self.name))
+        self._batcher = threading.Thread(target=self._send_batches, name=f"{self.name}-batch",
+                                         daemon=True)  # fmt: skip
+        self._batcher.start()
+
+    def _send_batches(self) -> None:
+        """The batcher's thread: each batch out when whole or due; what waits at
+        :meth:`close` goes out before it ends."""
+        assert self._batch_pub is not None
+        while True:
+            with self._wake:
+                while not self._pending and not self._stop.is_set():
+                    self._wake.wait()
+                due = self._pending_since + self.batch_s
+                while (not self._stop.is_set() and len(self._pending_nodes) < len(self.sites)
+                       and (left := due - time.monotonic()) > 0):  # fmt: skip
+                    self._wake.wait(left)
+                entries, self._pending = self._pending, []
+                self._pending_nodes.clear()
+            if entries:
+                try:
+                    self._batch_pub.put(raw_batch.encode(entries))
+                except zenoh.ZError as exc:  # the session was closed under us
+                    log.debug("%s: batch not published (%s); batcher ends", self.name, exc)
+                    return
+                self.batches += 1
+            elif self._stop.is_set():
+                return
 
     def publish(self, reading: Reading, seq: int, t_ns: int | None = None,
                 flags: int = 0) -> None:  # fmt: skip
@@ -156,16 +206,27 @@ class SitePublisher:
             health.window.append(now)
             while now - health.window[0] > 1.0:
                 health.window.popleft()
-            publisher = self._publishers.get(reading.node)
-            if publisher is None:
-                publisher = self._publishers[reading.node] = _raw_publisher(
-                    self.session, site.raw_key
-                )
             came_back = not health.alive
             if came_back:
                 health.alive = True
                 self._tokens[reading.node] = self.session.liveliness().declare_token(site.raw_key)
-        publisher.put(payload)
+            if self._batcher is not None:
+                if not self._pending:
+                    self._pending_since = now
+                    self._wake.notify()
+                self._pending.append((site.raw_key, payload))
+                self._pending_nodes.add(reading.node)
+                if len(self._pending_nodes) >= len(self.sites):
+                    self._wake.notify()
+                publisher = None
+            else:
+                publisher = self._publishers.get(reading.node)
+                if publisher is None:
+                    publisher = self._publishers[reading.node] = _raw_publisher(
+                        self.session, site.raw_key
+                    )
+        if publisher is not None:
+            publisher.put(payload)
         if came_back:
             log.info("%s: node %d (%s) is live", self.name, reading.node, site.raw_key)
             self.publish_health()
@@ -265,8 +326,12 @@ class SitePublisher:
         of :meth:`publish` and :meth:`set_device` do nothing."""
         if self._closed:
             return
-        self._stop.set()
+        with self._wake:
+            self._stop.set()
+            self._wake.notify()
         self._watch.join(timeout=2)
+        if self._batcher is not None:  # what waits goes out first
+            self._batcher.join(timeout=2)
         with self._lock:
             for token in self._tokens.values():
                 token.undeclare()
@@ -276,6 +341,9 @@ class SitePublisher:
             for publisher in self._publishers.values():
                 publisher.undeclare()
             self._publishers.clear()
+            if self._batch_pub is not None:
+                self._batch_pub.undeclare()
+                self._batch_pub = None
         self.publish_health()
         self._closed = True
         self._health_pub.undeclare()

@@ -147,8 +147,10 @@ def run_node(
     plans: Sequence[NodePlan],
     options: EmulationOptions,
     name: str = "node",
+    batch_s: float = 0.0,
 ) -> None:
-    """Emulated hardware and its bridge for each plan, with ground truth, until ``stop``."""
+    """Emulated hardware and its bridge for each plan, with ground truth, until
+    ``stop``; the bridges' samples in batches of ``batch_s`` at most if not 0."""
     clock = Clock()
     threads: list[threading.Thread] = []
     with ExitStack() as stack:
@@ -164,9 +166,9 @@ def run_node(
             )
             emulator.start()
             stack.callback(emulator.stop)
-            thread = threading.Thread(
-                target=target, args=(session, stop, label), kwargs=kwargs, name=label, daemon=True
-            )
+            thread = threading.Thread(target=target, args=(session, stop, label),
+                                      kwargs={**kwargs, "batch_s": batch_s}, name=label,
+                                      daemon=True)  # fmt: skip
             thread.start()
             threads.append(thread)
             log.info(

@@ -225,9 +225,12 @@ class SlimeVRBridge(Bridge):
 
 def run_bridge(session: zenoh.Session, stop: threading.Event, name: str,
                listen: tuple[str, int] = ("0.0.0.0", codec.PORT),
-               assignments: Mapping[str, Site] | None = None) -> None:  # fmt: skip
-    """A SlimeVR bridge on ``listen`` until ``stop``."""
+               assignments: Mapping[str, Site] | None = None,
+               batch_s: float = 0.0) -> None:  # fmt: skip
+    """A SlimeVR bridge on ``listen`` until ``stop``; its samples in batches of
+    ``batch_s`` at most if not 0."""
     bridge = SlimeVRBridge(session, name, assignments)
+    bridge.publisher.batch(batch_s)
     try:
         bridge.run(listen, stop)
     finally:

@@ -118,16 +118,17 @@ ALL_MESSAGES = (
 _RAW = keys.all_raw()
 _TRUTH = keys.all_sites(keys.Stream.TRUTH)
 _POSES = keys.all_poses()
+_BATCHES = keys.all_batches()  # raw samples put together (bridges with --batch-ms)
 
 #: What each role may do: verb -> bodynet key expressions (prefixed with the
 #: identity's subject on the wire).
 GRANTS: dict[Role, dict[str, tuple[str, ...]]] = {
     Role.NODE: {
-        "write": (_RAW, _TRUTH, keys.all_health()),
+        "write": (_RAW, _BATCHES, _TRUTH, keys.all_health()),
         "token": (_RAW,),
     },
     Role.GATEWAY: {
-        "read": (_RAW,),
+        "read": (_RAW, _BATCHES),
         "watch": (_RAW,),
         "write": (_POSES, keys.TOPOLOGY, keys.health_key("gateway")),
         "serve": (keys.TOPOLOGY, keys.CALIBRATE_TPOSE, keys.CALIBRATE_YAW),
@@ -141,7 +142,7 @@ GRANTS: dict[Role, dict[str, tuple[str, ...]]] = {
         "ask": (keys.TOPOLOGY,),
     },
     Role.RECORDER: {
-        "read": (keys.all_data(), keys.TOPOLOGY, keys.all_health()),
+        "read": (keys.all_data(), _BATCHES, keys.TOPOLOGY, keys.all_health()),
         "ask": (keys.TOPOLOGY,),
     },
 }
@@ -149,7 +150,8 @@ GRANTS: dict[Role, dict[str, tuple[str, ...]]] = {
 #: The admin may do anything anywhere: ``**`` never matches ``@`` chunks, so
 #: bodynet's admin keys and Zenoh's admin space are named too.
 ADMIN_KEYS = ("**", f"**/{keys.HEALTH}/**", f"**/{keys.TOPOLOGY}",
-              f"**/{keys.CALIBRATE_TPOSE}", f"**/{keys.CALIBRATE_YAW}", "@/**")  # fmt: skip
+              f"**/{keys.CALIBRATE_TPOSE}", f"**/{keys.CALIBRATE_YAW}", f"**/{keys.BATCH}/*",
+              "@/**")  # fmt: skip
 
 
 def _prefix(identity: Identity, named_subjects: bool) -> str:

@@ -119,9 +119,11 @@ def test_tiny_gateway_benchmark_reports_both_paths(tmp_path: Path) -> None:
     result = gateway.run(seconds=1.0, out_dir=tmp_path, bodies=(1, 2), gateways=(1, 2))
     rows = result["runs"]
     assert [(r["bodies"], r["feed"], r["gateways"]) for r in rows] == [
-        (1, "realistic", 1), (1, "locked", 1), (2, "realistic", 1), (2, "locked", 1),
+        (1, "realistic", 1), (1, "batched", 1), (1, "locked", 1),
+        (2, "realistic", 1), (2, "batched", 1), (2, "locked", 1),
         (1, "realistic", 2), (2, "realistic", 2)]  # fmt: skip
-    for one, two in ((rows[0], rows[2]), (rows[1], rows[3]), (rows[4], rows[5])):
+    for one, two in ((rows[0], rows[3]), (rows[1], rows[4]), (rows[2], rows[5]),
+                     (rows[6], rows[7])):  # fmt: skip
         assert 0 < one["sent"] <= 1500  # at most 15 nodes x 100 Hz x 1 s
         assert 1500 < two["sent"] <= 3000
         for row in (one, two):
@@ -132,8 +134,11 @@ def test_tiny_gateway_benchmark_reports_both_paths(tmp_path: Path) -> None:
     table = (tmp_path / "gateway.md").read_text()
     assert table.startswith("| bodies | feed |")
     assert "| 2 | realistic | gateway (raw -> pose) |" in table
+    assert "| 2 | batched | gateway (raw -> pose) |" in table
     assert "| 2 | realistic | 2 gateways sharing (raw -> pose) |" in table
     assert set(result["sustained_by_gateways"]) == {1, 2}
+    assert set(result["sustained_by_feed"]) == {"realistic", "batched", "locked"}
+    assert "One gateway by feed: realistic " in table
 
 
 def test_gateway_benchmark_apart_feeds_relay_and_gateway_one_after_the_other(

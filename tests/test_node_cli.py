@@ -364,3 +364,32 @@ def test_a_replay_says_what_it_replayed_and_a_log_of_no_frame_is_an_error(
         capture_output=True, text=True, timeout=60, check=False)  # fmt: skip
     assert ok.returncode == 0, ok.stderr
     assert f"1 frames replayed from {mixed}; skipped 1 (garbage: 1) at line 2" in ok.stderr
+
+
+def test_a_bridge_with_batch_ms_puts_its_samples_together_on_its_batch_key(
+    router_endpoint: str, zsession: zenoh.Session, data_dir: Path
+) -> None:
+    """``bodynet bridge can --replay ... --batch-ms 5``: every sample of the log
+    comes in batches on ``body/@batch/<name>``, none on the sites' own keys; a
+    window out of range is refused by its option."""
+    from bodynet.core import keys
+    from bodynet.core.codecs import raw_batch
+
+    per_site = raw_collector(zsession, keys.all_raw())
+    batches = Collector(zsession, keys.all_batches(), raw_batch.decode)
+    log = data_dir / "smartsuit_arm.log"
+    argv = [str(BODYNET), "bridge", "can", "--replay", str(log), "--name", "arm"]
+    ok = subprocess.run([*argv, "--batch-ms", "5", "-e", router_endpoint],
+                        capture_output=True, text=True, timeout=60, check=False)  # fmt: skip
+    assert ok.returncode == 0, ok.stderr
+    decoded = json.loads((data_dir / "smartsuit_arm.log.manifest.json").read_text())["decoded"]
+    got = batches.wait_for(lambda s: sum(len(e) for _, e in s) >= decoded)
+    assert {key for key, _ in got} == {keys.batch_key("arm")}
+    assert sum(len(e) for _, e in got) == decoded  # every sample, once
+    assert len(got) < decoded / 2  # together: the nodes' frames of a cycle in one batch
+    assert not per_site.drained()
+    bad = subprocess.run([*argv, "--batch-ms", "500", "-e", router_endpoint],
+                         capture_output=True, text=True, timeout=60, check=False)  # fmt: skip
+    assert bad.returncode == 2
+    assert "argument --batch-ms: '500' is outside [0, 10] (ms)" in bad.stderr
+    assert "Traceback" not in bad.stderr

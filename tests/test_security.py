@@ -345,6 +345,29 @@ def test_a_node_publishes_its_own_subject_and_the_gateway_and_recorder_get_it(
     token.undeclare()
 
 
+def test_a_nodes_batches_reach_the_gateway_and_recorder_and_a_viewers_do_not(
+    open_as: Callable[..., zenoh.Session],
+) -> None:
+    """A bridge run with ``--batch-ms`` puts on ``body/@batch/<name>``: the node may,
+    the gateway and the recorder read it, a viewer may not put there."""
+    batch = keys.batch_key("imu")
+    gateway = open_as("gateway@alice")
+    recorder = open_as("recorder@alice")
+    at_gateway = raw_bytes(gateway, keys.all_batches())
+    at_recorder = raw_bytes(recorder, keys.all_batches())
+    round_trip(gateway)
+    round_trip(recorder)
+    viewer = open_as("viewer@alice")
+    viewer.put(batch, b"injected")
+    round_trip(viewer)  # the router has handled the put
+    node = open_as("node@alice")
+    publisher = node.declare_publisher(batch)
+    round_trip(node)
+    publisher.put(b"marker")
+    assert [v for _, v in wait_marker(at_gateway, b"marker")] == [b"marker"]
+    assert [v for _, v in wait_marker(at_recorder, b"marker")] == [b"marker"]
+
+
 def test_a_viewer_cannot_inject_raw_samples_nor_read_them(
     open_as: Callable[..., zenoh.Session],
 ) -> None:

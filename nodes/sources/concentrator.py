@@ -105,7 +105,7 @@ class Concentrator(SerialSource):
 
     def bridge(self, session: Any, stop: Any, name: str, args: argparse.Namespace) -> None:
         Concentrator(self.sites, None, args.nodes).run_bridge(
-            session, stop, name, args.port, args.baud or self.BAUD
+            session, stop, name, args.port, args.baud or self.BAUD, batch_s=args.batch_ms / 1e3
         )
 
     def emulated_sensors(self, sensors: Any = None, branches: Any = None) -> list[Any]:

@@ -26,13 +26,15 @@ class SerialSource(Source):
         return f"{cls.name}-{Path(args.port).name}"
 
     def bridge(self, session: Any, stop: Any, name: str, args: argparse.Namespace) -> None:
-        self.run_bridge(session, stop, name, args.port, args.baud or self.BAUD)
+        self.run_bridge(session, stop, name, args.port, args.baud or self.BAUD,
+                        batch_s=args.batch_ms / 1e3)  # fmt: skip
 
     def run_bridge(self, session: Any, stop: Any, name: str, port: str,
-                   baud: int | None = None) -> None:  # fmt: skip
+                   baud: int | None = None, batch_s: float = 0.0) -> None:  # fmt: skip
         from bodynet.nodes.sources.live import SerialBridge
 
         bridge = SerialBridge(session, self, name)
+        bridge.publisher.batch(batch_s)
         try:
             bridge.run(port, stop, baud)
         finally:

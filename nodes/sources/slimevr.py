@@ -124,7 +124,7 @@ class SlimeVR(Source):
         from bodynet.nodes.slimevr_bridge import run_bridge
 
         assignments = {**args.profile, **dict(args.assign)}
-        run_bridge(session, stop, name, args.udp, assignments)
+        run_bridge(session, stop, name, args.udp, assignments, args.batch_ms / 1e3)
 
     # --- emulation ----------------------------------------------------------------------
     @classmethod

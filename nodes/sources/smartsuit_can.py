@@ -118,7 +118,7 @@ class SmartSuitCan(Source):
         bus_args = {"interface": args.interface, "channel": args.channel}
         if args.bitrate:
             bus_args["bitrate"] = args.bitrate
-        run_bridge(session, stop, name, args.replay, args.loop, **bus_args)
+        run_bridge(session, stop, name, args.replay, args.loop, args.batch_ms / 1e3, **bus_args)
 
     # --- emulation ----------------------------------------------------------------------
     @classmethod
@@ -186,11 +186,13 @@ class _BusNodes:
 
 
 def run_bridge(session: Any, stop: threading.Event, name: str, replay: Path | None = None,
-               loop: bool = False, **bus_args: Any) -> None:  # fmt: skip
-    """A CAN bridge on ``can.Bus(**bus_args)`` (or playing ``replay``) until ``stop``."""
+               loop: bool = False, batch_s: float = 0.0, **bus_args: Any) -> None:  # fmt: skip
+    """A CAN bridge on ``can.Bus(**bus_args)`` (or playing ``replay``) until ``stop``;
+    its samples in batches of ``batch_s`` at most if not 0."""
     from bodynet.nodes.sources.live import CanBusBridge
 
     bridge = CanBusBridge(session, SmartSuitCan(), name)
+    bridge.publisher.batch(batch_s)
     try:
         if replay is not None:
             bridge.run_replay(replay, stop, loop)

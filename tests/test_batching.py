@@ -1,0 +1,127 @@
+"""Bridges run with ``--batch-ms``: their samples go out together on
+``body/@batch/<bridge>`` (``core/codecs/raw_batch.py``), and the gateway, the
+recorder and the live outputs take them as they take samples on the sites' own
+keys. Emulated hardware, real Zenoh sessions, a recording read back with the
+mcap library's own reader."""
+
+from __future__ import annotations
+
+import json
+import threading
+from functools import partial
+from pathlib import Path
+
+import zenoh
+from mcap.reader import make_reader
+from zenoh_helpers import Collector, Running, client, raw_collector, wait_until
+
+from bodynet.clients import live
+from bodynet.clients.recorder import DEFAULT_KEYS, Recorder
+from bodynet.core import keys
+from bodynet.core.codecs import pose, raw_batch, raw_sample
+from bodynet.core.errors import Reason
+from bodynet.core.keys import LEFT_ARM
+from bodynet.core.messages import Quat, RawSample, Source
+from bodynet.core.profile import IMU_SITES, SMARTSUIT_SITES
+from bodynet.gateway.service import Gateway
+from bodynet.nodes.emulator import Realism
+from bodynet.nodes.motion import Routine
+from bodynet.nodes.services import EmulationOptions, NodePlan, run_node
+
+HELD = Routine("held", "", lambda t: {"left_elbow_flexion_deg": 60.0})
+IMU = tuple(n for n, s in IMU_SITES.items() if s.branch != LEFT_ARM)
+ARM_KEYS = {s.raw_key for s in SMARTSUIT_SITES.values() if s.branch == LEFT_ARM}
+IMU_KEYS = {IMU_SITES[n].raw_key for n in IMU}
+
+
+class RawSeen(live.LiveOutput):
+    """A live output that keeps the raw samples it is handed, by key."""
+
+    wants_raw = True
+
+    def __init__(self) -> None:
+        self.raw: dict[str, list[RawSample]] = {}
+        self.lock = threading.Lock()
+
+    def on_pose(self, subject: str, frame: pose.PoseFrame) -> None:
+        pass
+
+    def on_raw(self, subject: str, key: str, sample: RawSample) -> None:
+        with self.lock:
+            self.raw.setdefault(key, []).append(sample)
+
+
+def test_batching_bridges_feed_the_gateway_the_recorder_and_a_live_output(
+    gateway: Gateway, router_endpoint: str, zsession: zenoh.Session, tmp_path: Path
+) -> None:
+    """A SmartSuit arm on CAN and the IMU central's tags, both batching: nothing on
+    the sites' own keys, every site in the poses, the recording holding each
+    site's samples on its own key, in order, and a live output handed them."""
+    per_site = raw_collector(zsession, keys.all_raw())
+    batches = Collector(zsession, keys.all_batches(), raw_batch.decode)
+    poses = Collector(zsession, keys.pose_key(), pose.decode)
+    recorder = Recorder(zsession, tmp_path / "batched.mcap", DEFAULT_KEYS)
+    seen, stop = RawSeen(), threading.Event()
+    output = threading.Thread(target=live.run, args=(client(router_endpoint), seen, stop))
+    output.start()
+    plans = [NodePlan("smartsuit", "can", (LEFT_ARM,)), NodePlan("imu", "imu-central", None, IMU)]
+    nodes = Running(partial(run_node, client(router_endpoint), plans=plans,
+                            options=EmulationOptions(HELD, Realism.ideal()), name="batch",
+                            batch_s=0.005))  # fmt: skip
+    everyone = ARM_KEYS | IMU_KEYS
+    try:
+        poses.wait_for(lambda s: len(s) > 50 and everyone <= set(s[-1][1].sources), timeout=30)
+        wait_until(lambda: set(seen.raw) >= everyone, what="raw samples of every site")
+    finally:
+        nodes.stop()
+        stop.set()
+        output.join(timeout=10)
+        recorder.close()
+    assert not per_site.drained()  # the bridges put nothing on the sites' own keys
+    assert {key for key, _ in batches.drained()} == {
+        keys.batch_key("batch-can-0"),
+        keys.batch_key("batch-imu-central-1"),
+    }
+    assert not recorder.rejected
+    by_topic: dict[str, list[int]] = {}
+    with (tmp_path / "batched.mcap").open("rb") as f:
+        for _, channel, message in make_reader(f).iter_messages():
+            if channel.topic.endswith("/raw"):
+                by_topic.setdefault(channel.topic, []).append(json.loads(message.data)["seq"])
+    assert set(by_topic) == everyone
+    for topic, seqs in by_topic.items():  # each site's samples, in their order
+        assert len(seqs) > 20, topic
+        assert seqs == sorted(seqs), topic
+    for key in everyone:  # the live output's are the same samples as the recording's
+        assert [s.seq for s in seen.raw[key]][:20] == by_topic[key][:20]
+
+
+def test_a_hostile_batch_is_counted_entry_by_entry_and_its_good_samples_taken(
+    gateway: Gateway, router_endpoint: str, zsession: zenoh.Session
+) -> None:
+    """One entry on a topology's key, one cut short after a good one: the good
+    sample goes into the pose, the others are counted, and the gateway goes on."""
+    site = IMU_SITES[2]
+    good = raw_sample.encode(RawSample(Quat(2, (1.0, 0.0, 0.0, 0.0)), 0, 1, Source.IMU_CENTRAL))
+    hostile = raw_batch.encode([(keys.TOPOLOGY, good), (site.raw_key, good), (site.raw_key, good)])
+    poses = Collector(zsession, keys.pose_key(), pose.decode)
+    node = client(router_endpoint)
+    try:
+        wait_matching_batches(node)
+        node.put(keys.batch_key("hostile"), hostile[:-3])
+        poses.wait_for(lambda s: bool(s) and site.raw_key in s[-1][1].sources)
+        wait_until(lambda: gateway.rejected[Reason.TRUNCATED] == 1, what="the cut entry counted")
+        assert gateway.rejected[Reason.UNKNOWN_NODE] == 1  # the topology's key
+        node.put(keys.batch_key("hostile"), b"BN" + hostile)  # not a batch at all
+        wait_until(lambda: gateway.rejected[Reason.BAD_MAGIC] == 1, what="the bad batch counted")
+        assert gateway.samples == 1
+    finally:
+        node.close()
+
+
+def wait_matching_batches(session: zenoh.Session) -> None:
+    publisher = session.declare_publisher(keys.batch_key("hostile"))
+    try:
+        wait_until(lambda: publisher.matching_status.matching, what="the gateway's subscriber")
+    finally:
+        publisher.undeclare()
