@@ -281,7 +281,7 @@ def _batch_arg(p: argparse.ArgumentParser) -> None:
     p.add_argument("--batch-ms", type=argtypes.bounded_float(0.0, 10.0, "ms"), default=0.0,
                    metavar="MS",
                    help="publish the samples together on body/@batch/<name>, once every "
-                        "node has one or MS after the first (default 0: each on its "
+                        "live node has one or MS after the first (default 0: each on its "
                         "site's key); far less CPU for the gateway, up to MS more "
                         "latency (docs/devices.md#batching)")  # fmt: skip
 

@@ -17,9 +17,9 @@ IMU central's tick, the concentrator's poll cycle); :class:`PeriodicSeq`
 derives them from arrival times otherwise, so a gap means a missed period.
 
 With :meth:`SitePublisher.batch`, the samples go out together instead: a
-message on ``body/@batch/<source>`` (``codecs.raw_batch``) once every node has
-a sample in it, or ``window_s`` after its first, whichever comes first; the
-tokens and health stay per node.
+message on ``body/@batch/<source>`` (``codecs.raw_batch``) once every live node
+(its token up) has a sample in it, or ``window_s`` after its first, whichever
+comes first; the tokens and health stay per node.
 
 Raw samples go out through Zenoh's advanced publisher (``zenoh.ext``): it
 keeps the last :data:`CACHE_SAMPLES` samples of each node and sends a
@@ -144,8 +144,9 @@ class SitePublisher:
 
     def batch(self, window_s: float) -> None:
         """Publish the samples together from now on, in one message on
-        ``body/@batch/<name>`` once every node has a sample in it or ``window_s``
-        after its first (a sample waits that long at most)."""
+        ``body/@batch/<name>`` once every live node has a sample in it (a profile's
+        sites with no node on the device are not waited for) or ``window_s`` after
+        its first (a sample waits that long at most)."""
         if window_s <= 0 or self._batcher is not None:
             return
         self.batch_s = window_s
@@ -153,6 +154,10 @@ class SitePublisher:
         self._batcher = threading.Thread(target=self._send_batches, name=f"{self.name}-batch",
                                          daemon=True)  # fmt: skip
         self._batcher.start()
+
+    def _whole(self) -> bool:
+        """Whether every live node has a sample in the batch (under the lock)."""
+        return len(self._pending_nodes) >= len(self._tokens)
 
     def _send_batches(self) -> None:
         """The batcher's thread: each batch out when whole or due; what waits at
@@ -163,7 +168,7 @@ class SitePublisher:
                 while not self._pending and not self._stop.is_set():
                     self._wake.wait()
                 due = self._pending_since + self.batch_s
-                while (not self._stop.is_set() and len(self._pending_nodes) < len(self.sites)
+                while (not self._stop.is_set() and not self._whole()
                        and (left := due - time.monotonic()) > 0):  # fmt: skip
                     self._wake.wait(left)
                 entries, self._pending = self._pending, []
@@ -216,7 +221,7 @@ class SitePublisher:
                     self._wake.notify()
                 self._pending.append((site.raw_key, payload))
                 self._pending_nodes.add(reading.node)
-                if len(self._pending_nodes) >= len(self.sites):
+                if self._whole():
                     self._wake.notify()
                 publisher = None
             else:

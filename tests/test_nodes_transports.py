@@ -21,11 +21,13 @@ import can
 import pytest
 import zenoh
 from zenoh_helpers import (
+    Collector,
     Liveliness,
     Running,
     client,
     health_collector,
     raw_collector,
+    wait_matching,
     wait_until,
 )
 
@@ -284,6 +286,34 @@ def test_a_publisher_whose_session_is_closed_under_it_ends_quietly(
     session.close()
     wait_until(lambda: not publisher._watch.is_alive(), what="the watchdog to end")
     assert died == []
+
+
+def test_a_batching_publisher_waits_only_for_the_nodes_that_are_live(
+    router_endpoint: str, zsession: zenoh.Session
+) -> None:
+    """A profile of fifteen sites and three nodes on the device (one SmartSuit
+    arm): a batch goes once those three each have a sample in it, not after its
+    window (a minute here, far past the wait) for nodes that do not exist."""
+    from bodynet.core import keys
+    from bodynet.core.codecs import raw_batch, raw_sample
+    from bodynet.nodes.publisher import SitePublisher
+
+    batches = Collector(zsession, keys.all_batches(), raw_batch.decode)
+    session = client(router_endpoint)
+    publisher = SitePublisher(session, dict(SMARTSUIT_SITES), Source.CAN, "arm", 0.01)
+    publisher.batch(60.0)
+    try:
+        wait_matching(session, keys.batch_key("arm"))
+        for seq in range(3):
+            for node in (1, 2, 3):
+                publisher.publish(OleAccel(node, seq, (0, 0, -1024)), seq)
+        got = batches.wait_for(lambda s: sum(len(e) for _, e in s) >= 9)
+    finally:
+        publisher.close()
+        session.close()
+    entries = [e for _, batch in got for e in batch]
+    assert [raw_sample.decode(m).reading.encoder for _, m in entries] == [0] * 3 + [1] * 3 + [2] * 3
+    assert {k for k, _ in entries} == {SMARTSUIT_SITES[n].raw_key for n in (1, 2, 3)}
 
 
 def test_a_pty_link_replaces_only_a_stale_link_and_removes_only_its_own(tmp_path: Path) -> None:
