@@ -71,7 +71,11 @@ def test_batching_bridges_feed_the_gateway_the_recorder_and_a_live_output(
     everyone = ARM_KEYS | IMU_KEYS
     try:
         poses.wait_for(lambda s: len(s) > 50 and everyone <= set(s[-1][1].sources), timeout=30)
-        wait_until(lambda: set(seen.raw) >= everyone, what="raw samples of every site")
+        # thirty samples of every site handed on: the bridges put out that many, and so
+        # the recording, subscribed before they started, holds them too
+        wait_until(lambda: set(seen.raw) >= everyone
+                   and min(len(seen.raw[k]) for k in everyone) >= 30,
+                   timeout=30, what="raw samples of every site")  # fmt: skip
     finally:
         nodes.stop()
         stop.set()
