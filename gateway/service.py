@@ -661,7 +661,7 @@ class Gateway:
         period ran out first (samples may still be waiting)."""
         taken, touched = 0, set()
         until = now + self.period_s  # a flood (of garbage, say) still leaves time to solve
-        routes = self._routes
+        routes, foreign = self._routes, self._foreign
         quat_fields = raw_sample.quat_fields
         rnd = _Round(time.time())  # the arrival time of its samples, for the clock offset
         with self._lock:
@@ -672,6 +672,9 @@ class Gateway:
                     taken += 1
                     key = str(sample.key_expr)
                     route = routes.get(key)
+                    if route is None and key in foreign:  # another gateway's: not read
+                        self.foreign_samples += 1
+                        continue
                     payload = sample.payload.to_bytes()
                     if route is not None:
                         fields = quat_fields(payload)
