@@ -59,7 +59,6 @@ def _feed(endpoint: str, seconds: float, sent: Any, ready: Any, bodies: range, t
     BLOCK). With ``hold``: once done, add one to ``finished`` and keep the
     session open until ``hold`` is set (closing it drops what its queues still
     hold, which a subscriber that is behind has not yet had)."""
-    from bodynet.core import keys
     from bodynet.core.codecs import raw_sample
     from bodynet.core.messages import RawSample, Source
     from bodynet.nodes.emulator import BodyEmulator, imu_tags
@@ -72,11 +71,7 @@ def _feed(endpoint: str, seconds: float, sent: Any, ready: Any, bodies: range, t
         body.sample(k / rate_hz)[0] for k in range(int(rate_hz))
     ]  # a second of motion, looped
     batched = feed == "batched"
-    # a publisher per body (its bridge's batch key) if batched, else one per node
-    pubs = _publishers(session, [subject(b, total) + (keys.batch_key("bench") if batched else k)
-                                 for b in bodies
-                                 for k in ([""] if batched else [t.site.raw_key for t in tags])],
-                       bridges)  # fmt: skip
+    pubs = _publishers(session, _feed_keys(bodies, total, tags, batched), bridges)
     schedule = feed_schedule(bodies, len(tags), rate_hz, "realistic" if batched else feed)
     rng = np.random.default_rng(bodies.start + 1)
     jitter = 0.0 if feed == "locked" else JITTER_S
@@ -115,6 +110,16 @@ def _feed(endpoint: str, seconds: float, sent: Any, ready: Any, bodies: range, t
             finished.value += 1
         hold.wait(120)
     session.close()
+
+
+def _feed_keys(bodies: range, total: int, tags: list[Any], batched: bool) -> list[str]:
+    """Where the feed puts ``bodies``' samples: a key per body (its bridge's batch
+    key) if ``batched``, else one per node (its site's raw key)."""
+    from bodynet.core import keys
+
+    if batched:
+        return [subject(b, total) + keys.batch_key("bench") for b in bodies]
+    return [subject(b, total) + t.site.raw_key for b in bodies for t in tags]
 
 
 def _publishers(session: Any, keys: list[str], bridges: bool) -> list[Any]:

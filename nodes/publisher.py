@@ -134,7 +134,6 @@ class SitePublisher:
         self._watch.start()
         # batching (:meth:`batch`): the samples waiting, their nodes, since when
         self.batch_s = 0.0
-        self.batches = 0  # batches published
         self._batch_pub: zenoh.ext.AdvancedPublisher | None = None
         self._pending: list[raw_batch.Entry] = []
         self._pending_nodes: set[int] = set()
@@ -179,7 +178,6 @@ class SitePublisher:
                 except zenoh.ZError as exc:  # the session was closed under us
                     log.debug("%s: batch not published (%s); batcher ends", self.name, exc)
                     return
-                self.batches += 1
             elif self._stop.is_set():
                 return
 

@@ -115,10 +115,9 @@ def decode(payload: bytes | bytearray) -> list[Entry | Rejected]:
 def subject_of_batch(key: str) -> str | None:
     """What comes before ``body/`` in ``key`` (``"alice/"``, or ``""``) if it is a
     batch's key, else None."""
-    _, sep, source = key.partition(f"{keys.BATCH}/")
+    prefix, sep, source = key.partition(f"{keys.BATCH}/")
     if not sep or "/" in source or not source:
         return None
-    prefix = key[: len(key) - len(source) - len(keys.BATCH) - 1]
     if prefix:
         try:
             keys.split_subject(key)  # one chunk, the subject's, before body/
