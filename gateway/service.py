@@ -123,8 +123,12 @@ CLOCK_STEP_MS = 5.0
 
 class _Round:
     """One round of taking samples (``Gateway._take_pending``): the gateway's wall
-    clock (s) when it began, and whether it emptied the queues. Only then are its
-    sites' last samples fresh, their times against ``wall`` a clock offset."""
+    clock (s) when it ended, and whether it emptied the queues. Only then are its
+    sites' last samples fresh, their times against ``wall`` a clock offset. Each
+    sample arrived before the round's end, so a lead counted against it is never
+    more than the sample's own: against the round's start, a sample that arrived
+    during a long round (a loaded gateway's) led by up to the round's length,
+    and a node's clock was said to be ahead that was not."""
 
     __slots__ = ("drained", "wall")
 
@@ -663,7 +667,7 @@ class Gateway:
         until = now + self.period_s  # a flood (of garbage, say) still leaves time to solve
         routes, foreign = self._routes, self._foreign
         quat_fields = raw_sample.quat_fields
-        rnd = _Round(time.time())  # the arrival time of its samples, for the clock offset
+        rnd = _Round(math.inf)  # the arrival time of its samples (its end), for the clock offset
         with self._lock:
             for sub in self._subs:
                 while (taken % 256 or time.monotonic() < until) and (
@@ -698,6 +702,7 @@ class Gateway:
                     self._take_one(key, payload, route, now, rnd, touched)
         # the loops stop at an empty queue, or on a 256th sample past the period
         more = not taken % 256 and time.monotonic() >= until
+        rnd.wall = time.time()
         rnd.drained = not more
         return taken, touched, more
 

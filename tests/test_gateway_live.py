@@ -907,6 +907,54 @@ def test_a_gateway_behind_its_feed_says_so_and_blames_no_clock(
     assert gw.health()["rounds_cut_short"] == gw.rounds_cut_short > 0
 
 
+def test_samples_that_come_during_a_long_round_do_not_make_a_clock_ahead(
+    router_endpoint: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A round of taking samples that lasts (each sample made 5 ms slower to take,
+    while a node on the gateway's own clock sends every 2 ms for 60 ms) ends
+    with its queue emptied, and counts towards the clock offset: the samples that
+    came during it are counted against the round's end, so the offset says no
+    more than the network's delay (not ahead). Against the round's start, the
+    last of them led by some 50 ms: a loaded gateway warned of hosts' clocks
+    that were right."""
+    from bodynet.gateway import service
+
+    count = service._Body._count
+
+    def slow_count(self: Any, kept: Any, now: float) -> None:
+        time.sleep(0.005)
+        count(self, kept, now)
+
+    monkeypatch.setattr(service._Body, "_count", slow_count)
+    session, feeder = client(router_endpoint), client(router_endpoint)
+    gw = Gateway(session)
+    site, quat = IMU_SITES[2], Quat(2, (1.0, 0.0, 0.0, 0.0))
+    try:
+        pub = feeder.declare_publisher(site.raw_key)
+        wait_matching(feeder, site.raw_key)
+
+        def feed() -> None:
+            for seq in range(30):
+                pub.put(raw_sample.encode(RawSample(quat, seq, time.time_ns(),
+                                                    Source.IMU_CENTRAL)))  # fmt: skip
+                time.sleep(0.002)
+
+        feeding = threading.Thread(target=feed)
+        feeding.start()
+        time.sleep(0.01)
+        taken, _, more = gw._take_pending(time.monotonic())
+        feeding.join()
+        assert taken >= 10, taken
+        assert not more
+        kept = gw._bodies[None].latest[site]
+        kept.fold_lead()
+        assert -1.0 < kept.lead <= 0.0, kept.lead  # on time, and delayed on the way
+    finally:
+        gw.close()
+        session.close()
+        feeder.close()
+
+
 def test_a_clock_offset_is_warned_of_once_and_again_when_it_moves_a_lot(
     router_endpoint: str,
 ) -> None:
