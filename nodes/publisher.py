@@ -252,11 +252,16 @@ class SitePublisher:
 
     def move(self, node: int, site: Site) -> None:
         """Node ``node`` sits at ``site`` from now on (a tracker assigned live): what
-        it published elsewhere is dropped, its health starts over."""
+        it published elsewhere is dropped (its samples waiting in a batch too), its
+        health starts over."""
         with self._lock:
-            if self.sites.get(node) == site:
+            old = self.sites.get(node)
+            if old == site:
                 return
             self.sites[node] = site
+            if old is not None and node in self._pending_nodes:
+                self._pending = [e for e in self._pending if e[0] != old.raw_key]
+                self._pending_nodes.discard(node)
             token = self._tokens.pop(node, None)
             if token is not None:
                 token.undeclare()

@@ -316,6 +316,41 @@ def test_a_batching_publisher_waits_only_for_the_nodes_that_are_live(
     assert {k for k, _ in entries} == {SMARTSUIT_SITES[n].raw_key for n in (1, 2, 3)}
 
 
+def test_a_node_moved_while_its_sample_waits_in_a_batch_is_not_sent_on_its_old_key(
+    router_endpoint: str, zsession: zenoh.Session
+) -> None:
+    """A tracker assigned live to another site (``SitePublisher.move``) while its
+    sample waits in a batch: that sample is dropped with the rest of what it
+    published at its old site, not sent on the old site's key, and the batch
+    goes once the nodes still live are in it; its next samples go on the new key."""
+    from bodynet.core import keys
+    from bodynet.core.codecs import raw_batch, raw_sample
+    from bodynet.nodes.publisher import SitePublisher
+
+    batches = Collector(zsession, keys.all_batches(), raw_batch.decode)
+    session = client(router_endpoint)
+    publisher = SitePublisher(session, dict(SMARTSUIT_SITES), Source.CAN, "arm", 0.01)
+    new, other = SMARTSUIT_SITES[4].raw_key, SMARTSUIT_SITES[2].raw_key
+    try:
+        for node in (1, 2):  # both live before batching starts
+            publisher.publish(OleAccel(node, 0, (0, 0, -1024)), 0)
+        publisher.batch(60.0)
+        wait_matching(session, keys.batch_key("arm"))
+        publisher.publish(OleAccel(1, 1, (0, 0, -1024)), 1)  # waits for node 2
+        publisher.move(1, SMARTSUIT_SITES[4])
+        publisher.publish(OleAccel(2, 1, (0, 0, -1024)), 1)  # node 2 alone is live
+        batches.wait_for(lambda s: len(s) >= 1)
+        for node in (1, 2):
+            publisher.publish(OleAccel(node, 2, (0, 0, -1024)), 2)
+        got = batches.wait_for(lambda s: sum(len(e) for _, e in s) >= 3)
+    finally:
+        publisher.close()
+        session.close()
+    sent = [[(k, raw_sample.decode(m).seq) for k, m in batch] for _, batch in got]
+    assert sent[0] == [(other, 1)]
+    assert sorted(e for b in sent[1:] for e in b) == sorted([(new, 2), (other, 2)])
+
+
 def test_a_pty_link_replaces_only_a_stale_link_and_removes_only_its_own(tmp_path: Path) -> None:
     """Nothing the port did not make is deleted: a file where the link goes is
     refused (kept), a stale link to a pseudo-terminal (a killed emulator's) is
