@@ -137,8 +137,9 @@ def _truth(path: Path) -> Series | None:
 
 
 def _reference_csv(path: Path) -> tuple[pd.DataFrame, list[str]]:
-    """A reference CSV's good rows, and why each other row was left out (a
-    row with more or fewer fields than the header, or no number for t_s)."""
+    """A reference CSV's good rows, and what was left out and why (a row with
+    more or fewer fields than the header, or no number for t_s; an angle cell
+    that is not a number, taken as missing: an empty or ``nan`` cell is one)."""
     left_out: list[str] = []
     rows: list[list[str]] = []
     try:
@@ -151,6 +152,7 @@ def _reference_csv(path: Path) -> tuple[pd.DataFrame, list[str]]:
             if "t_s" not in header or not any(h.endswith("_deg") for h in header):
                 raise ReportError(f"{path}: a reference CSV needs a t_s column and *_deg columns")
             t_col = header.index("t_s")
+            angle_cols = [i for i, h in enumerate(header) if h.endswith("_deg")]
             for row in reader:
                 line = reader.line_num
                 if not row or all(not cell.strip() for cell in row):
@@ -167,6 +169,15 @@ def _reference_csv(path: Path) -> tuple[pd.DataFrame, list[str]]:
                     left_out.append(f"line {line} left out: t_s {row[t_col][:20]!r} is not a "
                                     "finite number")  # fmt: skip
                     continue
+                for i in angle_cols:
+                    cell = row[i].strip()
+                    if cell and cell.lower() != "nan":
+                        try:
+                            float(cell)
+                        except ValueError:
+                            left_out.append(f"line {line}: {header[i]} {cell[:20]!r} is not a "
+                                            "number, taken as missing")  # fmt: skip
+                            row[i] = ""
                 rows.append(row)
     except (OSError, csv.Error) as exc:
         raise ReportError(f"{path}: cannot read the reference CSV ({exc})") from None
@@ -191,7 +202,7 @@ def load_reference(path: Path) -> Series:
         if left_out:
             shown = "; ".join(left_out[:5]) + (f"; and {len(left_out) - 5} more"
                                                if len(left_out) > 5 else "")  # fmt: skip
-            source += f" ({len(left_out)} rows left out: {shown})"
+            source += f" ({len(left_out)} left out: {shown})"
         return Series(source, table["t_s"].to_numpy(float), values.reset_index(drop=True))
     truth = _truth(path)
     if truth is not None:
@@ -420,6 +431,12 @@ def uncertainty(rec: Recording, still: tuple[float, float] | None, still_s: floa
             how = (f"auto: the {still_s:g} s in which the angles moved least"
                    + (" after calibration" if start else ""))  # fmt: skip
         else:
+            # a window past either end is not the one asked for: said, not clipped
+            step = float(np.median(np.diff(t))) if len(t) > 1 else 0.0
+            if still[0] < t[0] - step or still[1] > t[-1] + step:
+                raise ReportError(f"{rec.source}: the still window {still[0]:g}-{still[1]:g} s "
+                                  f"(--still) is not within the recording, "
+                                  f"{t[0]:.2f}-{t[-1]:.2f} s")  # fmt: skip
             a = int(np.searchsorted(t, still[0], side="left"))
             b = int(np.searchsorted(t, still[1], side="right"))
             how = "given (--still)"
@@ -461,6 +478,10 @@ def analyse(
             raise ReportError(f"{rec.source}: no joint angle was measured in it (every sample "
                               f"has a flag: {why}); a report needs measured samples")  # fmt: skip
     first = recs[0]
+    if joint is not None and joint not in first.observed:
+        known = ", ".join(first.observed[:8]) + (", ..." if len(first.observed) > 8 else "")
+        raise ReportError(f"{first.source}: no measured joint angle {joint!r} (--joint); "
+                          f"its measured ones: {known}")  # fmt: skip
     if reference is not None:
         ref: Series | None = load_reference(reference)
         note = ""

@@ -469,11 +469,51 @@ def test_bad_input_exits_2_with_a_message_and_writes_nothing(
     _fails_cleanly(["report", str(arm_recording["recording"]), "--reference",
                     str(no_time), "-o", out], capsys, tmp_path,
                    "a reference CSV needs a t_s column")  # fmt: skip
-    _fails_cleanly(["report", str(arm_recording["recording"]), "--still", "100:101",
+    _fails_cleanly(["report", str(arm_recording["recording"]), "--still", "5:5.001",
                     "--no-trials", "-o", out], capsys, tmp_path,
-                   "the still window holds 0 poses")  # fmt: skip
+                   "the still window holds")  # fmt: skip
     _fails_cleanly(["report", str(tmp_path / "missing.mcap"), "-o", out], capsys, tmp_path,
                    "missing.mcap")  # fmt: skip
+    # a window past the recording's end was clipped, an unknown joint ignored: refused
+    _fails_cleanly(["report", str(arm_recording["recording"]), "--still", "0:100",
+                    "--no-trials", "-o", out], capsys, tmp_path,
+                   "the still window 0-100 s (--still) is not within the recording")  # fmt: skip
+    for trials in ([], ["--no-trials"]):
+        _fails_cleanly(["report", str(arm_recording["recording"]), str(arm_recording["second"]),
+                        "--joint", "nosuch", *trials, "-o", out], capsys, tmp_path,
+                       "no measured joint angle 'nosuch' (--joint)")  # fmt: skip
+
+
+def test_a_reference_cell_that_is_not_a_number_is_named_by_its_line(
+    arm_recording: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A reference whose angle cell is ``abc`` (line 4): that cell is taken as
+    missing and named with its line, on stderr and in the report; an empty or
+    ``nan`` cell is missing and not named; the other rows and cells are kept."""
+    lines = arm_recording["reference"].read_text().splitlines()
+    header = lines[0].split(",")
+    col = next(i for i, h in enumerate(header) if h.endswith("_deg"))
+
+    def with_cell(line: list[str], value: str) -> str:
+        return ",".join(value if i == col else c for i, c in enumerate(line))
+
+    lines[3] = with_cell(lines[3].split(","), "abc")
+    lines[5] = with_cell(lines[5].split(","), "nan")
+    lines[6] = with_cell(lines[6].split(","), "")
+    bad = tmp_path / "goniometer.csv"
+    bad.write_text("\n".join(lines) + "\n")
+    out = tmp_path / "r.md"
+    code = cli_main(["report", str(arm_recording["recording"]), "--reference", str(bad),
+                     "--no-trials", "-o", str(out)])  # fmt: skip
+    err = capsys.readouterr().err
+    assert code == 0, err
+    said = f"line 4: {header[col]} 'abc' is not a number, taken as missing"
+    assert f"{bad}: {said}" in err
+    assert said in out.read_text()
+    assert "line 6" not in err
+    assert "line 7" not in err
+    acc = _first_table_after(out.read_text(), "## Accuracy")
+    assert float(acc.loc["left_elbow_flexion_deg", "RMS error (deg)"]) < 1.0
 
 
 def test_the_plots_beside_a_report_are_checked_as_the_report_is(
