@@ -226,6 +226,11 @@ class Profile:
         """The profile ``data`` (a parsed TOML file) holds; ``ProfileError`` names the
         first key that is unknown, of the wrong type or out of its range (``KEYS``)."""
         version = data.get("version")
+        if version is None:
+            raise ProfileError(f"no version in the profile (version = {VERSION} for this bodynet)")
+        if type(version) is not int:  # "1" is a string in TOML, not the number 1
+            raise ProfileError(f"profile version must be a number (version = {VERSION}), "
+                               f"not {type(version).__name__} {version!r:.40}")  # fmt: skip
         if version != VERSION:
             raise ProfileError(f"profile version {version!r}; this bodynet reads version {VERSION}")
         _known("", data, KEYS)
@@ -245,6 +250,8 @@ class Profile:
             ole = dict(default_ole_table())
             for name, c in data.get("ole", {}).items():
                 _known(f"ole.{name}.", c, ("radius_mm", "sf_travel_mm", "sf"))
+                if "radius_mm" not in c:
+                    raise ProfileError(f"ole.{name} needs radius_mm")
                 ole[name] = OleCalibration(
                     float(c["radius_mm"]),
                     tuple(map(float, c.get("sf_travel_mm", [0.0]))),
@@ -257,6 +264,9 @@ class Profile:
                 except (ValueError, KeySpaceError) as exc:
                     raise ProfileError(f"trackers[{tracker!r}]: {exc}") from None
             ref = data.get("heading_reference")
+            if ref is not None and (missing := [k for k in ("key", "axis") if k not in ref]):
+                raise ProfileError(f"heading_reference needs key and axis; "
+                                   f"{' and '.join(missing)} missing")  # fmt: skip
             reference = (str(ref["key"]), str(ref["axis"])) if ref is not None else None
             return cls(
                 pose=str(data.get("pose", "tpose")),

@@ -18,7 +18,8 @@ HEADER = (
 def load(path: Path) -> Profile:
     """The profile in ``path``; ``ProfileError`` says what is wrong with it."""
     try:
-        data = tomllib.loads(path.read_text(encoding="utf-8"))
+        # an editor's byte order mark (Notepad's "UTF-8 with BOM") is no TOML statement
+        data = tomllib.loads(path.read_text(encoding="utf-8-sig"))
     except OSError as exc:
         raise ProfileError(f"{path}: cannot read it ({exc.strerror or exc})") from None
     except UnicodeDecodeError:

@@ -85,13 +85,28 @@ def test_profile_toml_round_trip(tmp_path: Path) -> None:
         ("version = 1\n[imu_mounts]\n'body/arm/left/upperarm/raw' = [1, 0]\n", "4 numbers"),
         ("version = [\n", "not valid TOML"),
         ("version = 1\ndrift = 'sometimes'\n", "drift must be one of auto, joints, hinges, off"),
+        ("", "no version in the profile"),
+        ("version = '1'\n", "profile version must be a number .*, not str '1'"),
+        ("version = 1\n[heading_reference]\nkey = 'a/b/raw'\n",
+         "heading_reference needs key and axis; axis missing"),
+        ("version = 1\n[ole.left_elbow_flexion_deg]\nsf = [1]\n",
+         "ole.left_elbow_flexion_deg needs radius_mm"),
     ],
-)
+)  # fmt: skip
 def test_bad_profiles_say_why(tmp_path: Path, text: str, message: str) -> None:
     path = tmp_path / "bad.toml"
     path.write_text(text)
     with pytest.raises(ProfileError, match=message):
         profile_file.load(path)
+
+
+def test_a_profile_saved_with_a_byte_order_mark_loads_as_without(tmp_path: Path) -> None:
+    """Notepad's "UTF-8 with BOM": the same profile, not "not valid TOML"."""
+    path = tmp_path / "s7.toml"
+    profile_file.save(Profile(subject="s7"), path)
+    marked = tmp_path / "marked.toml"
+    marked.write_bytes(b"\xef\xbb\xbf" + path.read_bytes())
+    assert profile_file.load(marked) == profile_file.load(path)
 
 
 MOUNT = "'body/arm/left/upperarm/raw'"
