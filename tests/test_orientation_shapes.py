@@ -176,6 +176,24 @@ def test_other_sensor_columns_are_left_out_and_told(
     assert "left out 6 columns that are not quaternions (pelvis_acc_x, pelvis_acc_y, " in err
 
 
+def test_quaternion_columns_with_no_site_are_named(
+    plain: list, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Quaternion columns whose names map to no site (OpenSim's body names,
+    ``femur_r`` and ``calcn_l``): left out and counted as before, and now named,
+    with the option that takes them (they were only counted)."""
+    extra = [f"{n}_{c}" for n in ("femur_r", "calcn_l") for c in "wxyz"]
+    lines = csv_text(PLAIN).splitlines()
+    text = "".join(f"{line},{','.join(extra if i == 0 else ['1', '0', '0', '0'] * 2)}\n"
+                   for i, line in enumerate(lines))  # fmt: skip
+    path = tmp_path / "opensim-names.csv"
+    path.write_text(text)
+    code, samples, err = decode(capsys, path)
+    assert code == 0, err
+    assert samples == plain
+    assert "left out 2 quaternion columns with no site (femur_r, calcn_l): --map" in err
+
+
 def test_a_dropped_sample_s_empty_cells_are_no_sample_and_counted(
     plain: list, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

@@ -204,6 +204,12 @@ class OrientationFile(Source):
             shown = ", ".join(table.ignored[:6]) + (", ..." if len(table.ignored) > 6 else "")
             stats.notes.append(f"left out {len(table.ignored)} columns that are not "
                                f"quaternions ({shown})")  # fmt: skip
+        unmapped = [c for c in table.columns
+                    if self.column_map.get(c) is None and c not in self.asked]  # fmt: skip
+        if unmapped:  # each also a rejection (counted): here by name, for --map
+            shown = ", ".join(unmapped[:8]) + (", ..." if len(unmapped) > 8 else "")
+            stats.notes.append(f"left out {len(unmapped)} quaternion columns with no site "
+                               f"({shown}): --map COLUMN=SITE takes one")  # fmt: skip
         adapter, sink = self.adapter(), CaptureSink(sites, stats)
         adapter.events(events, None, sink)
         for row, (_, t, quats) in enumerate(table.rows):
