@@ -469,10 +469,19 @@ def _read_manifest(layout: Layout) -> dict[str, Any] | None:
         return None
     try:
         info = json.loads(layout.manifest.read_text())
+    except (OSError, ValueError) as exc:
+        raise SecurityError(f"cannot read {layout.manifest}: {exc}") from None
+    fields = ("subjects", "hosts", "users", "port")
+    damaged = f"{layout.manifest} is damaged (not what bodynet certs wrote"
+    if not isinstance(info, dict) or (missing := [f for f in fields if f not in info]):
+        what = (f"no {', '.join(missing)}" if isinstance(info, dict)
+                else f"a JSON {type(info).__name__}, not an object")  # fmt: skip
+        raise SecurityError(f"{damaged}: {what}); remove the directory and run it again")
+    try:
         return {"subjects": list(info["subjects"]), "hosts": list(info["hosts"]),
                 "users": bool(info["users"]), "port": int(info["port"])}  # fmt: skip
-    except (OSError, ValueError, KeyError, TypeError) as exc:
-        raise SecurityError(f"cannot read {layout.manifest}: {exc}") from None
+    except (ValueError, TypeError) as exc:
+        raise SecurityError(f"{damaged}: {exc}); remove the directory and run it again") from None
 
 
 def _ca(layout: Layout, made: Made, days: int) -> certs.KeyPair:

@@ -28,6 +28,7 @@ from bodynet.core import keys
 from bodynet.core.codecs import pose
 from bodynet.session import SessionError, certs, open_session, session_config
 from bodynet.session.security import (
+    MANIFEST,
     Identity,
     Layout,
     SecurityError,
@@ -164,8 +165,16 @@ def test_certs_again_keeps_everything_and_adds_new_subjects(tmp_path: Path) -> N
         (lambda d: make_certs(d, ["alice"]), ["--host", "10.1.2.3"], "not valid for 10.1.2.3"),
         (lambda d: None, ["--subject", "a/b"], "one key chunk"),
         (lambda d: None, ["--host", "bad host"], "neither a host name"),
+        (lambda d: (d / MANIFEST).write_text('{"x": 1}'), [],
+         "bodynet-certs.json is damaged (not what bodynet certs wrote: no subjects, hosts, "
+         "users, port)"),
+        (lambda d: (d / MANIFEST).write_text("[]"), [],
+         "is damaged (not what bodynet certs wrote: a JSON list, not an object)"),
+        (lambda d: (d / MANIFEST).write_text('{"subjects": [], "hosts": [], "users": false, '
+                                             '"port": "x"}'), [],
+         "is damaged (not what bodynet certs wrote: invalid literal"),
     ],
-)
+)  # fmt: skip
 def test_certs_refuses_clearly_and_leaves_the_directory_as_it_was(
     tmp_path: Path,
     capsys: pytest.CaptureFixture[str],
