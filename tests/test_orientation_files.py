@@ -101,6 +101,8 @@ MALFORMED = {
                       "0.01\t1,0,0,0\n", 5),
     "short row": ("DataType=Quaternion\nendheader\ntime\tpelvis_imu\ttorso_imu\n"
                   "0\t1,0,0,0\n", 4),
+    "positions, not quaternions": ("version=3\nDataType=Vec3\nOpenSimVersion=4.6\nendheader\n"
+                                   "time\tpelvis_imu\n0\t1,0,0\n", 2),
 }  # fmt: skip
 
 
