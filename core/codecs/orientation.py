@@ -210,8 +210,9 @@ def parse_sto(lines: Iterable[str]) -> Table:
         raise OrientationFileError(n if header else 1, "no 'endheader' line: not a .sto file")
     kind = header.get("DataType", "Quaternion")
     if kind != "Quaternion":
-        raise OrientationFileError(header_lines["DataType"],
-                                   f"DataType={kind}: an orientation file holds Quaternion")
+        raise OrientationFileError(
+            header_lines["DataType"], f"DataType={kind}: an orientation file holds Quaternion"
+        )
     labels: list[str] | None = None
     table = Table([], header, header_lines=header_lines)
     clock = _Clock()
