@@ -74,6 +74,10 @@ def cmd_view(args: argparse.Namespace) -> int:
     if args.connect_viewer is not None:
         args.viewer, args.url = "connect", args.connect_viewer or args.url
     mode = args.viewer
+    if mode == "none" and args.save is None:
+        print("bodynet view: --viewer none (--headless) shows nothing and writes nothing "
+              "without --save FILE.rrd", file=sys.stderr)  # fmt: skip
+        return 2
     from bodynet.session.outputs import OutputError, check_output
 
     if args.save is not None:

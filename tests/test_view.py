@@ -94,6 +94,16 @@ def test_bad_recording_is_a_clear_error_and_leaves_no_rrd(tmp_path: Path) -> Non
         assert sorted(p.name for p in tmp_path.iterdir()) == sorted([*inputs, "x.rrd"])
 
 
+def test_no_viewer_and_nothing_saved_is_refused(tmp_path: Path) -> None:
+    """``--viewer none`` (``--headless``) without ``--save``, of a recording or
+    live: nothing shown and nothing written, which exited 0 as if it had."""
+    for args in ([foreign_mcap(tmp_path / "f.mcap"), "--headless"], ["--viewer", "none"]):
+        result = run("view", *args, timeout=30)
+        assert result.returncode == 2, result.stderr
+        assert "shows nothing and writes nothing without --save" in result.stderr
+        assert "Traceback" not in result.stderr
+
+
 def test_save_into_a_missing_folder_is_a_clear_error(tmp_path: Path) -> None:
     result = run("view", foreign_mcap(tmp_path / "f.mcap"), "--save", tmp_path / "no" / "x.rrd")
     assert result.returncode == 2
