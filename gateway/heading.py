@@ -360,9 +360,12 @@ def calibrate_window(
     want = max(MIN_WINDOW_S, 0.8 * seconds if seconds else 0.0)
     if span_all < want or short:
         what = f"{len(short)} tag(s) with fewer than {MIN_SAMPLES} samples" if short else ""
+        # of a window asked for (a capture's first seconds, --window), most of it
+        asked = f" ({0.8:g} of the {seconds:.3g} s asked)" if want > MIN_WINDOW_S else ""
         raise CalibrationRefused(
             f"the window is too short: {span_all:.3g} s"
-            + (f" ({what})" if what else "") + f"; it needs at least {want:.3g} s", report
+            + (f" ({what})" if what else "") + f"; it needs at least {want:.3g} s{asked}",
+            report,
         )  # fmt: skip
     moved = {k: t["still_deg"] for k, t in tags.items() if t["still_deg"] > t["still_limit_deg"]}
     if moved:
