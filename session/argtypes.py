@@ -429,6 +429,12 @@ def endpoint(text: str) -> str:
         fail(f"{_shown(text)} is not a Zenoh endpoint like {proto}/127.0.0.1:7447")
     if int(m["port"]) > 65535:
         fail(f"{_shown(text)}: port {m['port']} is above 65535")
+    addr = m["addr"]
+    if re.fullmatch(r"[\d.]+", addr):  # numbers and dots: an IPv4 address, or a typo of one
+        try:
+            ipaddress.IPv4Address(addr)
+        except ValueError:
+            fail(f"{_shown(text)}: {addr} is not an IPv4 address (four numbers 0-255)")
     return text
 
 

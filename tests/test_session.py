@@ -68,6 +68,9 @@ def test_a_session_receives_on_the_app_threads_unless_told_otherwise() -> None:
     ("BODYNET_SUBJECT", "body", "environment variable BODYNET_SUBJECT: subject 'body'"),
     ("BODYNET_ZENOH_CONNECT", "nonsense", "environment variable BODYNET_ZENOH_CONNECT: "
                                           "'nonsense' is not a Zenoh endpoint"),
+    ("BODYNET_ZENOH_CONNECT", "tcp/999.1.1.1:7447", "environment variable BODYNET_ZENOH_CONNECT:"
+                                                    " 'tcp/999.1.1.1:7447': 999.1.1.1 is not an "
+                                                    "IPv4 address"),
     ("ZENOH_RUNTIME", "garbage", "Zenoh failed to start: "),
 ])  # fmt: skip
 def test_a_bad_environment_variable_is_one_line_as_a_bad_flag(
