@@ -109,6 +109,8 @@ _SNIFFERS: tuple[tuple[str, re.Pattern[bytes]], ...] = (
     ("a Data Concentrator capture (--format concentrator)",
      re.compile(rb"[A-Z]E[0-9A-Fa-f]{4}X[0-9A-Fa-f]{4}Y[0-9A-Fa-f]{4}Z")),
     ("an IMU central capture (--format imu-central)", re.compile(rb"\A([0-9a-fA-F]{52,56}\r?\n)+")),
+    ("an OpenSense orientation file (--format sto, named .sto)",
+     re.compile(rb"^\s*endheader\s*$", re.M | re.I)),
 )  # fmt: skip
 
 

@@ -124,6 +124,25 @@ def test_a_malformed_sto_is_refused_naming_its_line(
     assert not (tmp_path / "x.mcap").exists()
 
 
+def test_a_sto_file_named_csv_is_told_what_it_looks_like(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """An OpenSense .sto saved as .csv: read as a CSV it has no quaternion
+    columns, and the error says it looks like a .sto and how to read it; a .sto
+    named so gets no such hint with its own error."""
+    text = "DataType=Quaternion\nversion=3\nendheader\ntime\tpelvis_imu\n0\t1,0,0,0\n"
+    misnamed = tmp_path / "trial.csv"
+    misnamed.write_text(text)
+    assert main(["decode", "--format", "orientation-csv", str(misnamed)]) == 2
+    err = capsys.readouterr().err
+    assert "no quaternion columns" in err
+    assert "it looks like an OpenSense orientation file (--format sto, named .sto)" in err
+    bad = tmp_path / "bad.sto"
+    bad.write_text(MALFORMED["bad cell"][0])
+    assert main(["decode", "--format", "sto", str(bad)]) == 2
+    assert "looks like" not in capsys.readouterr().err
+
+
 STO_HEAD = "DataType=Quaternion\n{}\nendheader\ntime\tpelvis_imu\n0\t1,0,0,0\n"
 CSV_HEAD = "time,pelvis_w,pelvis_x,pelvis_y,pelvis_z\n0,1,0,0,0\n"
 #: read as a table, refused by the reader: the header's values, a time no sample holds

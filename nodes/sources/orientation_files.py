@@ -190,7 +190,9 @@ class OrientationFile(Source):
             to_bodynet = _to_bodynet(table) if fmt == "sto" else None
             start = _start_s(table) if fmt == "sto" else 0.0
         except OrientationFileError as exc:
-            raise CaptureError(f"{path}: {exc}") from None
+            from bodynet.nodes.captures import looks_else
+
+            raise CaptureError(f"{path}: {exc}{looks_else(path, fmt)}") from None
         sites, events = self._sites(path, table)
         for line, t, _ in table.rows:  # all refused before a sample is given
             why = time_refused(start + t)
