@@ -457,6 +457,10 @@ def _fill(
     certs.write_private(layout.manifest, (json.dumps(info, indent=2) + "\n").encode())
 
 
+#: what to do about a damaged manifest: its CA signed certificates that may be in use
+_REDO = "; restore it from a copy, or make new certificates in a new directory"
+
+
 def _read_manifest(layout: Layout) -> dict[str, Any] | None:
     root = layout.root
     if root.exists() and not root.is_dir():
@@ -476,12 +480,12 @@ def _read_manifest(layout: Layout) -> dict[str, Any] | None:
     if not isinstance(info, dict) or (missing := [f for f in fields if f not in info]):
         what = (f"no {', '.join(missing)}" if isinstance(info, dict)
                 else f"a JSON {type(info).__name__}, not an object")  # fmt: skip
-        raise SecurityError(f"{damaged}: {what}); remove the directory and run it again")
+        raise SecurityError(f"{damaged}: {what}){_REDO}")
     try:
         return {"subjects": list(info["subjects"]), "hosts": list(info["hosts"]),
                 "users": bool(info["users"]), "port": int(info["port"])}  # fmt: skip
     except (ValueError, TypeError) as exc:
-        raise SecurityError(f"{damaged}: {exc}); remove the directory and run it again") from None
+        raise SecurityError(f"{damaged}: {exc}){_REDO}") from None
 
 
 def _ca(layout: Layout, made: Made, days: int) -> certs.KeyPair:
