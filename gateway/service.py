@@ -107,6 +107,12 @@ MAX_FOREIGN_KEYS = 1 << 14
 #: How long the idle worker sleeps before it looks again: while samples flow and a
 #: frame may come whole (``rounds.next_window``), and at most.
 IDLE_S, IDLE_QUIET_S = 0.0003, 0.005
+#: A sample's time (ns since 1970) is refused (``out_of_range``, counted) before
+#: 1970 or more than this far ahead of the gateway's clock: no host's clock is, and
+#: one such time would date every pose of its body (the newest sample's time). A
+#: host's clock far behind (a board that booted without a clock) is shown, as any
+#: offset is, not refused.
+AHEAD_MAX_NS = 366 * 86_400 * 10**9
 #: A source's clock offset (its host's clock minus the gateway's) is the most its
 #: samples' times led their arrival over the last one to two windows of this many
 #: seconds: network delay only delays, so the least delayed sample tells. Only
@@ -579,6 +585,7 @@ class Gateway:
         self.all_subjects = all_subjects
         self.profile_dir = profile_dir
         self.rejected = RejectCounts()
+        self._ahead_ns = 0  # the latest sample time taken (see AHEAD_MAX_NS), set each round
         self.solver_errors = 0
         self.refused_subjects = 0
         self.solves = 0  # batched solves: ticks / solves is the mean batch
@@ -668,6 +675,7 @@ class Gateway:
         routes, foreign = self._routes, self._foreign
         quat_fields = raw_sample.quat_fields
         rnd = _Round(math.inf)  # the arrival time of its samples (its end), for the clock offset
+        self._ahead_ns = ahead = time.time_ns() + AHEAD_MAX_NS
         with self._lock:
             for sub in self._subs:
                 while (taken % 256 or time.monotonic() < until) and (
@@ -682,7 +690,8 @@ class Gateway:
                     payload = sample.payload.to_bytes()
                     if route is not None:
                         fields = quat_fields(payload)
-                        if fields is not None:  # the common case: no RawSample made
+                        # the common case: no RawSample made
+                        if fields is not None and 0 <= fields[2] <= ahead:
                             route[0].take_fields(route[1], fields, now, rnd)
                             touched.add(route[0])
                             continue
@@ -693,7 +702,8 @@ class Gateway:
                                 continue
                             k, message = entry
                             route = routes.get(k)
-                            if route is not None and (fields := quat_fields(message)) is not None:
+                            if (route is not None and (fields := quat_fields(message)) is not None
+                                    and 0 <= fields[2] <= ahead):  # fmt: skip
                                 route[0].take_fields(route[1], fields, now, rnd)
                                 touched.add(route[0])
                             else:
@@ -731,6 +741,8 @@ class Gateway:
                     self.foreign_samples += 1
                     return
             raw = raw_sample.decode(payload)
+            if not 0 <= raw.t_ns <= self._ahead_ns:
+                raise DecodeError(Reason.OUT_OF_RANGE, f"time {raw.t_ns} ns")
         except DecodeError as exc:
             self.rejected[exc.reason] += 1
             return

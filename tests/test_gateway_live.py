@@ -955,6 +955,66 @@ def test_samples_that_come_during_a_long_round_do_not_make_a_clock_ahead(
         feeder.close()
 
 
+def test_a_sample_time_before_1970_or_a_year_ahead_is_refused_and_counted(
+    router_endpoint: str,
+) -> None:
+    """A sample stamped before 1970, or at the end of 64-bit time (a hostile or
+    broken node), on its own key, in a bridge's batch, as a quaternion message
+    and as an encoder's: refused as ``out_of_range``, counted, and not taken (one
+    such time dated every pose of its body, and a metrics client that read them
+    asked for terabytes). A host's clock a week behind is taken, its offset shown."""
+    from bodynet.core.codecs import raw_batch
+    from bodynet.core.errors import Reason
+
+    session, feeder = client(router_endpoint), client(router_endpoint)
+    gw = Gateway(session)
+    tag, module = IMU_SITES[2], SMARTSUIT_SITES[1]
+    quat, ole = Quat(2, (1.0, 0.0, 0.0, 0.0)), OleAccel(1, 100, (0, 0, 1024))
+    now_ns = time.time_ns()
+    bad = (-5, 2**63 - 1, now_ns + 400 * 86_400 * 10**9)
+    try:
+        batch_key = keys.batch_key("hostile")
+        for key in (tag.raw_key, module.raw_key, batch_key):
+            feeder.declare_publisher(key)
+        wait_matching(feeder, batch_key)
+        wait_matching(feeder, tag.raw_key)
+        seq = 0
+
+        def put(site: Any, reading: Any, t_ns: int, batched: bool = False) -> None:
+            nonlocal seq
+            seq += 1
+            message = raw_sample.encode(RawSample(reading, seq, t_ns, Source.IMU_CENTRAL))
+            if batched:
+                feeder.put(batch_key, raw_batch.encode([(site.raw_key, message)]))
+            else:
+                feeder.put(site.raw_key, message)
+
+        put(tag, quat, now_ns)  # a good first sample of each: their routes are made
+        put(module, ole, now_ns)
+        wait_until(lambda: gw._take_pending(time.monotonic())[0] > 0 and gw.samples >= 2, 10,
+                   "the first samples")  # fmt: skip
+        for t_ns in bad:
+            put(tag, quat, t_ns)
+            put(module, ole, t_ns)
+            put(tag, quat, t_ns, batched=True)
+        week_behind = now_ns - 7 * 86_400 * 10**9
+        put(tag, quat, week_behind, batched=True)
+        taken = 0
+        deadline = time.monotonic() + 10
+        while taken < 3 * len(bad) + 1 and time.monotonic() < deadline:
+            taken += gw._take_pending(time.monotonic())[0]
+            time.sleep(0.01)
+        body = gw._bodies[None]
+        assert gw.rejected[Reason.OUT_OF_RANGE] == 3 * len(bad)
+        assert gw.samples == 3
+        assert body.latest[tag].sample.t_ns == week_behind
+        assert body.latest[module].sample.t_ns == now_ns
+    finally:
+        gw.close()
+        session.close()
+        feeder.close()
+
+
 def test_a_clock_offset_is_warned_of_once_and_again_when_it_moves_a_lot(
     router_endpoint: str,
 ) -> None:
