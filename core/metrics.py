@@ -55,6 +55,10 @@ SPARC_RATE_HZ = 100.0
 HISTORY = 2000
 #: The shortest movement SPARC is computed for (s).
 MIN_MOVEMENT_S = 0.1
+#: A jump of the poses' time by more than this (s), forward or back, ends a
+#: dof's speed history: no movement spans it (the stream paused, or a time that
+#: is no clock's; a movement across 2**63 ns asked numpy for terabytes).
+GAP_S = 1.0
 #: Dofs one body keeps metrics of (the body model has 32): names past this many
 #: (a publisher inventing them) are passed over, so memory stays bounded.
 MAX_DOFS = 64
@@ -188,8 +192,13 @@ class DofMetrics:
             self._phase = "low"
         elif x >= self.hi - span / 4 and self._phase == "low":
             self._phase = "high"
-        if self._t and t_s <= self._t[-1]:
-            return  # out of order or repeated: not part of a speed profile
+        if self._t:
+            step = t_s - self._t[-1]
+            if abs(step) > GAP_S:
+                self._t.clear()
+                self._x.clear()
+            elif step <= 0:
+                return  # out of order or repeated: not part of a speed profile
         self._t.append(t_s)
         self._x.append(x)
 

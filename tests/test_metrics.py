@@ -92,6 +92,25 @@ def test_range_repetitions_and_the_current_movements_smoothness() -> None:
     assert snap["sparc"] == pytest.approx(-1.41, abs=0.03)
 
 
+def test_a_pose_time_that_jumps_starts_the_movement_afresh() -> None:
+    """One pose stamped at the end of 64-bit time between poses of a reach (a
+    hostile publisher, or a broken clock): the movement measured after it is the
+    reach's own, and no speed profile spans the jump (one asked numpy for 2.7
+    TiB and ended ``bodynet metrics``); the poses' time back where it was
+    starts afresh too, rather than being taken as out of order for ever."""
+    body = metrics.BodyMetrics()
+    t = np.arange(0, 4, 1 / FS)
+    angle = reach_angles(t, 1.0, 60.0, 1.0) + reach_angles(t, 2.5, -60.0, 1.0)
+    t0 = 1_700_000_000 * 10**9
+    for k, (ti, xi) in enumerate(zip(t, angle, strict=True)):
+        if k == 150:  # between the two reaches
+            body.add(2**63 - 1, {"left_elbow_flexion_deg": float(xi)})
+        body.add(t0 + round(ti * 1e9), {"left_elbow_flexion_deg": float(xi)})
+    dof = body.dofs["left_elbow_flexion_deg"]
+    assert dof.smoothness() == pytest.approx(-1.41, abs=0.03)
+    assert dof.repetitions == 1
+
+
 def test_body_metrics_snapshot_is_json_and_counts_only_what_it_is_given() -> None:
     body = metrics.BodyMetrics()
     assert body.snapshot() == {"v": 1, "t_ns": None, "dofs": {}}
