@@ -18,6 +18,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from bodynet.clients import foxglove_pb
+from bodynet.core.codecs._common import QUAT_NORM_RANGE
 from bodynet.core.codecs.pose import UNOBSERVED, UPRIGHT, PoseFrame
 from bodynet.core.metrics import measured_angles
 from bodynet.core.skeleton import Skeleton, build_skeleton
@@ -111,6 +112,15 @@ def frame_transforms(
     return Transforms(parents, world_frame).messages(rows)
 
 
+def _usable(values: np.ndarray) -> bool:
+    """Rows ``(..., 7)`` of finite numbers whose quaternions are rotations (a
+    norm near 1; a zero one made transforms of NaN)."""
+    if not np.isfinite(values).all():
+        return False
+    norms = np.linalg.norm(values[..., 3:], axis=-1)
+    return bool(((norms >= QUAT_NORM_RANGE[0]) & (norms <= QUAT_NORM_RANGE[1])).all())
+
+
 class Transforms:
     """``foxglove.FrameTransforms`` messages (protobuf bytes, see
     ``foxglove_pb``) of whole-body poses: the root segment in ``world_frame``,
@@ -134,8 +144,8 @@ class Transforms:
         """One message per pose ``(t_ns, segment names, rows)``, in order; a row is
         a segment's world pose ``[x, y, z, qw, qx, qy, qz]`` (the rows: a sequence
         of them or an array); ``t_ns`` from 0 to ``2**64 - 1``. Names may be UTF-8
-        bytes. A pose whose rows are not that (or not finite numbers) gets a
-        message with no transforms."""
+        bytes. A pose whose rows are not that (not finite numbers, or a
+        quaternion that is no rotation) gets a message with no transforms."""
         groups: dict[tuple[str | bytes, ...], list[int]] = {}
         for i, (_, names, _) in enumerate(poses):
             groups.setdefault(tuple(names), []).append(i)
@@ -146,8 +156,7 @@ class Transforms:
                 continue
             try:
                 values = np.array([poses[i][2] for i in members], dtype=float)
-                good = values.shape == (len(members), len(names), 7)
-                good = good and bool(np.isfinite(values).all())
+                good = values.shape == (len(members), len(names), 7) and _usable(values)
             except (ValueError, TypeError):
                 good = False
             if not good:  # one bad pose spoils the group's array: each on its own
@@ -168,7 +177,7 @@ class Transforms:
         plan = self._plan(tuple(names))
         if plan is None:
             return [_NO_TRANSFORMS] * len(times)
-        if values.shape == (len(times), len(names), 7) and bool(np.isfinite(values).all()):
+        if values.shape == (len(times), len(names), 7) and _usable(values):
             return plan.fill(list(times), values)
         return self.messages([(t, names, v) for t, v in zip(times, values, strict=True)])
 

@@ -159,6 +159,31 @@ def test_poses_stored_as_they_came_with_the_same_transforms(
     assert [t for t, _ in read_poses(out)] == [t for t, _ in poses]
 
 
+def test_a_pose_whose_quaternions_are_no_rotation_gets_no_transforms(
+    body_mcap: Path, tmp_path: Path
+) -> None:
+    """A whole-body pose whose segments' quaternions are all zero (a hostile
+    publisher's): stored as it came, with an empty transforms message, not
+    transforms of NaN (the recorder normalised the zeros); the next poses'
+    transforms are as ever. Read back with Foxglove's schema."""
+    poses = [(t, d) for t, d in _messages(body_mcap, keys.pose_key()) if t > 0][:3]
+    d = orjson.loads(poses[0][1])
+    for seg in d["segments"].values():
+        seg["q"] = [0.0, 0.0, 0.0, 0.0]
+    zeroed = orjson.dumps(d)
+    out = tmp_path / "zeroed.mcap"
+    sink = McapSink(out)
+    for data in [zeroed, *(data for _, data in poses[1:])]:
+        sink.write_pose_message(keys.pose_key(), data)
+    sink.close()
+    tfs = _messages(out, TF)
+    assert tfs[0] == (poses[0][0], foxglove_pb.NO_TRANSFORMS)
+    first = FrameTransforms.FromString(tfs[0][1])
+    assert len(first.transforms) == 0
+    again = dict(_messages(body_mcap, TF))
+    assert all(data == again[t] for t, data in tfs[1:])
+
+
 def test_glance_reads_what_decode_reads(body_mcap: Path) -> None:
     messages = [data for _, data in _messages(body_mcap, keys.pose_key())][:100]
     texts = []
