@@ -958,15 +958,18 @@ class Gateway:
         return {**result.report, "encoders": encoders, "profile": str(body.profile_path or "")}
 
     def _on_tpose_query(self, query: zenoh.Query) -> None:
+        text = query.parameters.get("seconds")
         try:
-            seconds = float(query.parameters.get("seconds") or 1.0)
-        except ValueError:
-            seconds = 1.0
+            seconds: float | None = float(text or 1.0)
+        except ValueError:  # refused, not read as the default window
+            seconds = None
         pose = query.parameters.get("pose") or None
         try:
             for subject, _, key in self._answering(query, keys.CALIBRATE_TPOSE):
                 try:
-                    answer = self.calibrate_tpose(seconds, subject, pose)
+                    answer = (self.calibrate_tpose(seconds, subject, pose) if seconds is not None
+                              else {"ok": False, "error": f"seconds={text!r:.40} is not a "
+                                                          "number of seconds"})  # fmt: skip
                 except Exception as exc:  # a calibration that fails must not end the service
                     log.exception("gateway: calibration failed")
                     answer = {"ok": False, "error": f"calibration failed: {exc}"}
