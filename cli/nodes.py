@@ -168,6 +168,10 @@ def cmd_emulate(args: argparse.Namespace) -> int:
 def cmd_node(args: argparse.Namespace) -> int:
     from bodynet.nodes.services import NodePlan, body_plan, run_node
 
+    if args.sensors and args.system not in ("imu", "slimevr"):  # it was passed over
+        print(f"bodynet node {args.system}: --sensors picks IMU tags (node imu, node "
+              "slimevr); here it would be passed over", file=sys.stderr)  # fmt: skip
+        return 2
     if args.system == "body":
         plans = body_plan()
     elif args.system in ("imu", "slimevr"):  # IMU tags on the central, or as SlimeVR trackers

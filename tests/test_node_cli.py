@@ -331,6 +331,9 @@ def test_an_unknown_can_interface_is_refused_by_its_option(command: str) -> None
     ("imu", ["--sensors", "13-15", "--branch", "left-arm"],
      "--sensors 13,14,15 with --branch left-arm matches no imu sensor"),
     ("slimevr", ["--sensors", "16-20"], "--sensors 16,17,18,19,20 matches no slimevr sensor"),
+    # the SmartSuit's sensors go by branch: --sensors was passed over, the whole suit run
+    ("smartsuit", ["--sensors", "99"], "--sensors picks IMU tags (node imu, node slimevr)"),
+    ("body", ["--sensors", "3"], "--sensors picks IMU tags"),
 ])  # fmt: skip
 def test_a_selection_of_no_sensor_is_refused_at_once(
     system: str, selection: list[str], said: str
