@@ -168,15 +168,16 @@ class SlimeVRBridge(Bridge):
         next_beat = time.monotonic()
         try:
             while not stop.is_set():
+                data: bytes | None
                 try:
                     data, addr, t_s = receive(sock, stamped)
                 except TimeoutError:
-                    data = b""
+                    data = None
                 except OSError as exc:  # e.g. ICMP port unreachable reported on Linux
                     log.debug("%s: %s", self.publisher.name, exc)
-                    data = b""
+                    data = None
                 now = time.monotonic()
-                if data:
+                if data is not None:  # an empty datagram too: counted (truncated)
                     self.feed(self.server.receive(data, addr), t_s)
                     if addr in self.server.connections:  # a tracker that shook hands
                         self._heard[addr] = now
