@@ -136,6 +136,9 @@ def _truth(path: Path) -> Series | None:
     return Series(f"ground truth in {path}", np.asarray(times, dtype=float) / 1e9, frame)
 
 
+_AS_MISSING = ", taken as missing"
+
+
 def _reference_csv(path: Path) -> tuple[pd.DataFrame, list[str]]:
     """A reference CSV's good rows, and what was left out and why (a row with
     more or fewer fields than the header, or no number for t_s; an angle cell
@@ -176,7 +179,7 @@ def _reference_csv(path: Path) -> tuple[pd.DataFrame, list[str]]:
                             float(cell)
                         except ValueError:
                             left_out.append(f"line {line}: {header[i]} {cell[:20]!r} is not a "
-                                            "number, taken as missing")  # fmt: skip
+                                            f"number{_AS_MISSING}")  # fmt: skip
                             row[i] = ""
                 rows.append(row)
     except (OSError, csv.Error) as exc:
@@ -199,10 +202,13 @@ def load_reference(path: Path) -> Series:
         for why in left_out:
             print(f"bodynet report: {path}: {why}", file=sys.stderr)
         source = str(path)
-        if left_out:
-            shown = "; ".join(left_out[:5]) + (f"; and {len(left_out) - 5} more"
-                                               if len(left_out) > 5 else "")  # fmt: skip
-            source += f" ({len(left_out)} left out: {shown})"
+        cells = [why for why in left_out if why.endswith(_AS_MISSING)]
+        rows = [why for why in left_out if not why.endswith(_AS_MISSING)]
+        for what, said in (("rows left out", rows), ("cells not numbers", cells)):
+            if said:
+                shown = "; ".join(said[:5]) + (f"; and {len(said) - 5} more"
+                                               if len(said) > 5 else "")  # fmt: skip
+                source += f" ({len(said)} {what}: {shown})"
         return Series(source, table["t_s"].to_numpy(float), values.reset_index(drop=True))
     truth = _truth(path)
     if truth is not None:
