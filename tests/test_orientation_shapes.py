@@ -159,17 +159,21 @@ def test_a_csv_written_another_way_gives_the_same_samples(
     assert samples == plain
 
 
+def _with_columns(path: Path, names: list[str], cells: list[str]) -> Path:
+    """The plain CSV with columns ``names`` added, ``cells`` in every row."""
+    lines = csv_text(PLAIN).splitlines()
+    path.write_text("".join(f"{line},{','.join(names if i == 0 else cells)}\n"
+                            for i, line in enumerate(lines)))  # fmt: skip
+    return path
+
+
 def test_other_sensor_columns_are_left_out_and_told(
     plain: list, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     """Accelerations (`pelvis_acc_x`..), `FreeAcc_X`.., `gyr_x`, a counter: x/y/z with no
     w are not a quaternion: left out, and said."""
     extra = ["pelvis_acc_x", "pelvis_acc_y", "pelvis_acc_z", "FreeAcc_X", "gyr_x", "counter"]
-    lines = csv_text(PLAIN).splitlines()
-    text = "".join(f"{line},{','.join(extra if i == 0 else ['0.5'] * len(extra))}\n"
-                   for i, line in enumerate(lines))  # fmt: skip
-    path = tmp_path / "acc.csv"
-    path.write_text(text)
+    path = _with_columns(tmp_path / "acc.csv", extra, ["0.5"] * len(extra))
     code, samples, err = decode(capsys, path)
     assert code == 0, err
     assert samples == plain
@@ -183,11 +187,7 @@ def test_quaternion_columns_with_no_site_are_named(
     ``femur_r`` and ``calcn_l``): left out and counted as before, and now named,
     with the option that takes them (they were only counted)."""
     extra = [f"{n}_{c}" for n in ("femur_r", "calcn_l") for c in "wxyz"]
-    lines = csv_text(PLAIN).splitlines()
-    text = "".join(f"{line},{','.join(extra if i == 0 else ['1', '0', '0', '0'] * 2)}\n"
-                   for i, line in enumerate(lines))  # fmt: skip
-    path = tmp_path / "opensim-names.csv"
-    path.write_text(text)
+    path = _with_columns(tmp_path / "opensim-names.csv", extra, ["1", "0", "0", "0"] * 2)
     code, samples, err = decode(capsys, path)
     assert code == 0, err
     assert samples == plain
