@@ -189,8 +189,10 @@ def test_a_capture_recording_takes_its_format_from_its_suffix(
     assert main(["calibrate", "tpose", "--from", str(unknown), "--profile",
                  str(profile_path)]) == 2  # fmt: skip
     err = capsys.readouterr().err
+    # a .sto by its content: which --format reads it is said
     assert err == (f"bodynet calibrate tpose: {unknown}: say which --format the recording is "
-                   "in (its suffix '.quat' names none)\n")  # fmt: skip
+                   "in (its suffix '.quat' names none; it looks like an OpenSense orientation "
+                   "file (--format sto, named .sto))\n")  # fmt: skip
     assert not profile_path.exists()
 
 
