@@ -199,9 +199,21 @@ def cmd_calibrate_tpose(args: argparse.Namespace) -> int:
         return 2
     query = f"{keys.CALIBRATE_TPOSE}?seconds={args.seconds}" + (
         f";pose={args.pose}" if args.pose else "")  # fmt: skip
+    return _ask_gateway(args, "tpose", query, 10.0 + 2 * args.seconds)
+
+
+def cmd_calibrate_yaw(args: argparse.Namespace) -> int:
+    """``calibrate yaw``: the yaw reset of the live gateway (the subject faces
+    forward now); its JSON answer printed, exit 1 if refused or unanswered."""
+    return _ask_gateway(args, "yaw", keys.CALIBRATE_YAW, 10.0)
+
+
+def _ask_gateway(args: argparse.Namespace, what: str, query: str, timeout: float) -> int:
+    """Ask the live gateway's calibration ``query``; print its JSON answer (and
+    a refusal's reason, or the headings a calibration dropped, on stderr)."""
     session = open_session(config_from_args(args))
     try:
-        replies = list(session.get(query, timeout=10.0 + 2 * args.seconds))
+        replies = list(session.get(query, timeout=timeout))
     finally:
         session.close()
     for reply in replies:
@@ -216,7 +228,7 @@ def cmd_calibrate_tpose(args: argparse.Namespace) -> int:
                 if note := dropped_note(result):
                     print(f"bodynet calibrate: {note}", file=sys.stderr)
             return 0 if result.get("ok") else 1
-    print("bodynet calibrate tpose: no gateway answered", file=sys.stderr)
+    print(f"bodynet calibrate {what}: no gateway answered", file=sys.stderr)
     return 1
 
 
@@ -318,6 +330,10 @@ def add_calibrate_args(cal: argparse.ArgumentParser) -> None:
     add_heading_args(p)
     add_session_args(p)
     p.set_defaults(func=cmd_calibrate_tpose)
+    p = csub.add_parser("yaw", help="yaw reset: the subject faces forward now (the live "
+                                    "gateway; its heading must be known)")  # fmt: skip
+    add_session_args(p)
+    p.set_defaults(func=cmd_calibrate_yaw)
     add_calibrate_ole_parser(csub)
     add_calibrate_assign_parser(csub)
 

@@ -1015,6 +1015,71 @@ def test_a_sample_time_before_1970_or_a_year_ahead_is_refused_and_counted(
         feeder.close()
 
 
+def test_bodynet_calibrate_yaw_resets_the_live_gateways_heading(
+    router_endpoint: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``bodynet calibrate yaw`` asks the live gateway's yaw reset
+    (``body/@calibrate/yaw``): refused with its reason (exit 1) before the
+    subject's first pose; with the subject standing turned 30 deg from the
+    calibration's facing, the tags' headings turn by that (exit 0, the JSON
+    answer printed), and the next poses face +X. With no gateway: said, exit 1."""
+    from scipy.spatial.transform import Rotation
+
+    from bodynet.cli.main import main as cli_main
+    from bodynet.core.subject import Profile
+    from bodynet.gateway.heading import yaw_deg
+    from bodynet.gateway.solver import tpose_mounts
+
+    def facing(output: Any) -> float:
+        return yaw_deg(Rotation.from_quat(output.segments["pelvis"][1], scalar_first=True)
+                       .as_matrix())  # fmt: skip
+
+    tags = imu_tags()
+    still = BodyEmulator(ROUTINES["tpose"], tags, seed=3)
+    window: dict[Any, list[Any]] = {}
+    for k in range(10):
+        for tag, r in zip(tags, still.sample(k / 100)[0], strict=True):
+            window.setdefault(tag.site, []).append(r.wxyz)
+    profile = Profile(heading="fixed").with_mounts(tpose_mounts(window))
+    yaw = ["calibrate", "yaw", "-e", router_endpoint, "--connect-timeout", "5"]
+    assert cli_main(yaw) == 1
+    assert "bodynet calibrate yaw: no gateway answered" in capsys.readouterr().err
+    session, feeder = client(router_endpoint), client(router_endpoint)
+    gw = Gateway(session, profile=profile)
+    running = Running(gw.run)
+    turned = BodyEmulator(ROUTINES["tpose"], tags, realism=Realism(facing_deg=30.0), seed=3)
+    try:
+        assert cli_main(yaw) == 1
+        assert "refused: no pose of this subject yet" in capsys.readouterr().err
+        pubs = [feeder.declare_publisher(t.site.raw_key) for t in tags]
+        wait_matching(feeder, tags[0].site.raw_key)
+
+        def feed(k0: int, n: int) -> None:
+            for k in range(k0, k0 + n):
+                for pub, r in zip(pubs, turned.sample(k / 100)[0], strict=True):
+                    pub.put(raw_sample.encode(RawSample(r, k, time.time_ns(),
+                                                        Source.IMU_CENTRAL)))  # fmt: skip
+                time.sleep(0.01)
+
+        feed(0, 30)
+        wait_until(lambda: gw.ticks >= 5, 10, "the turned subject's poses")
+        body = gw._bodies[None]
+        assert abs(facing(body.last_output)) > 25  # as stood
+        assert cli_main(yaw) == 0
+        answer = json.loads(capsys.readouterr().out)
+        assert answer["ok"] is True
+        assert abs(answer["turned_deg"]) == pytest.approx(30.0, abs=3.0)
+        ticks = gw.ticks
+        feed(30, 30)
+        wait_until(lambda: gw.ticks >= ticks + 5, 10, "poses after the reset")
+        assert abs(facing(body.last_output)) < 3  # faces +X now
+    finally:
+        running.stop()
+        gw.close()
+        session.close()
+        feeder.close()
+
+
 def test_a_clock_offset_is_warned_of_once_and_again_when_it_moves_a_lot(
     router_endpoint: str,
 ) -> None:
