@@ -585,7 +585,7 @@ class Gateway:
         self.all_subjects = all_subjects
         self.profile_dir = profile_dir
         self.rejected = RejectCounts()
-        self._ahead_ns = 0  # the latest sample time taken (see AHEAD_MAX_NS), set each round
+        self._ahead_ns = 0  # the latest sample time accepted (see AHEAD_MAX_NS), set each round
         self.solver_errors = 0
         self.refused_subjects = 0
         self.solves = 0  # batched solves: ticks / solves is the mean batch
