@@ -136,14 +136,16 @@ def _truth(path: Path) -> Series | None:
     return Series(f"ground truth in {path}", np.asarray(times, dtype=float) / 1e9, frame)
 
 
-_AS_MISSING = ", taken as missing"
+#: what a reference CSV leaves out: a whole row, or a cell taken as missing
+_ROWS, _CELLS = "rows left out", "cells not numbers"
 
 
-def _reference_csv(path: Path) -> tuple[pd.DataFrame, list[str]]:
-    """A reference CSV's good rows, and what was left out and why (a row with
-    more or fewer fields than the header, or no number for t_s; an angle cell
-    that is not a number, taken as missing: an empty or ``nan`` cell is one)."""
-    left_out: list[str] = []
+def _reference_csv(path: Path) -> tuple[pd.DataFrame, list[tuple[str, str]]]:
+    """A reference CSV's good rows, and what was left out (``_ROWS`` or ``_CELLS``)
+    and why, in the file's order: a row with more or fewer fields than the
+    header, or no number for t_s; an angle cell that is not a number, taken as
+    missing (an empty or ``nan`` cell is one)."""
+    left_out: list[tuple[str, str]] = []
     rows: list[list[str]] = []
     try:
         with path.open(newline="", encoding="utf-8-sig", errors="replace") as f:
@@ -161,16 +163,16 @@ def _reference_csv(path: Path) -> tuple[pd.DataFrame, list[str]]:
                 if not row or all(not cell.strip() for cell in row):
                     continue
                 if len(row) != len(header):
-                    left_out.append(f"line {line} left out: {len(row)} fields, the header has "
-                                    f"{len(header)}")  # fmt: skip
+                    left_out.append((_ROWS, f"line {line} left out: {len(row)} fields, the "
+                                           f"header has {len(header)}"))  # fmt: skip
                     continue
                 try:
                     t = float(row[t_col])
                 except ValueError:
                     t = math.nan
                 if not math.isfinite(t):
-                    left_out.append(f"line {line} left out: t_s {row[t_col][:20]!r} is not a "
-                                    "finite number")  # fmt: skip
+                    left_out.append((_ROWS, f"line {line} left out: t_s {row[t_col][:20]!r} is "
+                                           "not a finite number"))  # fmt: skip
                     continue
                 for i in angle_cols:
                     cell = row[i].strip()
@@ -178,15 +180,15 @@ def _reference_csv(path: Path) -> tuple[pd.DataFrame, list[str]]:
                         try:
                             float(cell)
                         except ValueError:
-                            left_out.append(f"line {line}: {header[i]} {cell[:20]!r} is not a "
-                                            f"number{_AS_MISSING}")  # fmt: skip
+                            left_out.append((_CELLS, f"line {line}: {header[i]} {cell[:20]!r} is "
+                                                    "not a number, taken as missing"))  # fmt: skip
                             row[i] = ""
                 rows.append(row)
     except (OSError, csv.Error) as exc:
         raise ReportError(f"{path}: cannot read the reference CSV ({exc})") from None
     if not rows:
         raise ReportError(f"{path}: the reference CSV has no usable row"
-                          + (f" ({left_out[0]}...)" if left_out else ""))  # fmt: skip
+                          + (f" ({left_out[0][1]}...)" if left_out else ""))  # fmt: skip
     table = pd.DataFrame(rows, columns=header)
     table["t_s"] = table["t_s"].astype(float)
     return table, left_out
@@ -199,13 +201,11 @@ def load_reference(path: Path) -> Series:
         columns = [c for c in table.columns if str(c).endswith("_deg")]
         table = table.sort_values("t_s", kind="stable")
         values = table[columns].apply(pd.to_numeric, errors="coerce")
-        for why in left_out:
+        for _, why in left_out:
             print(f"bodynet report: {path}: {why}", file=sys.stderr)
         source = str(path)
-        cells = [why for why in left_out if why.endswith(_AS_MISSING)]
-        rows = [why for why in left_out if not why.endswith(_AS_MISSING)]
-        for what, said in (("rows left out", rows), ("cells not numbers", cells)):
-            if said:
+        for what in (_ROWS, _CELLS):
+            if said := [why for kind, why in left_out if kind == what]:
                 shown = "; ".join(said[:5]) + (f"; and {len(said) - 5} more"
                                                if len(said) > 5 else "")  # fmt: skip
                 source += f" ({len(said)} {what}: {shown})"

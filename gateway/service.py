@@ -585,7 +585,6 @@ class Gateway:
         self.all_subjects = all_subjects
         self.profile_dir = profile_dir
         self.rejected = RejectCounts()
-        self._ahead_ns = 0  # the latest sample time accepted (see AHEAD_MAX_NS), set each round
         self.solver_errors = 0
         self.refused_subjects = 0
         self.solves = 0  # batched solves: ticks / solves is the mean batch
@@ -675,7 +674,7 @@ class Gateway:
         routes, foreign = self._routes, self._foreign
         quat_fields = raw_sample.quat_fields
         rnd = _Round(math.inf)  # the arrival time of its samples (its end), for the clock offset
-        self._ahead_ns = ahead = time.time_ns() + AHEAD_MAX_NS
+        ahead = time.time_ns() + AHEAD_MAX_NS  # the latest sample time taken
         with self._lock:
             for sub in self._subs:
                 while (taken % 256 or time.monotonic() < until) and (
@@ -741,7 +740,7 @@ class Gateway:
                     self.foreign_samples += 1
                     return
             raw = raw_sample.decode(payload)
-            if not 0 <= raw.t_ns <= self._ahead_ns:
+            if not 0 <= raw.t_ns <= time.time_ns() + AHEAD_MAX_NS:
                 raise DecodeError(Reason.OUT_OF_RANGE, f"time {raw.t_ns} ns")
         except DecodeError as exc:
             self.rejected[exc.reason] += 1
