@@ -89,13 +89,14 @@ def test_soak_feeds_as_the_bridges_do(router_endpoint: str) -> None:
 
 @pytest.mark.soak
 @pytest.mark.timeout(300)
-def test_half_minute_soak_loses_nothing(tmp_path: Path) -> None:
+def test_quarter_minute_soak_loses_nothing(tmp_path: Path) -> None:
     """The CI version of the hour's soak: one body through gateway and recorder
-    (its memory is measured, not judged: half a minute says nothing of an hour)."""
-    result = soak.run(minutes=0.5, out_dir=tmp_path, warmup_s=10.0)
+    (its memory is measured, not judged: a quarter of a minute says nothing of an
+    hour; its growth here was 0.1-0.4%, 2026-12-07)."""
+    result = soak.run(minutes=0.25, out_dir=tmp_path, warmup_s=5.0)
     assert result["sent"] > 0
     assert result["feeder_exitcode"] == 0
-    assert len(result["rss_mb"]["gateway"]) >= 25  # sampled each second of the feed
+    assert len(result["rss_mb"]["gateway"]) >= 12  # sampled each second of the feed
     assert result["load_1min"]["max"] > 0.0  # sampled: this run loads the machine itself
     assert result["lost_gateway"] == 0
     assert result["lost_recorder"] == 0
