@@ -435,20 +435,15 @@ def cmd_process(args: argparse.Namespace) -> int:
     if args.calibration is not None:  # a recording by its suffix, as `calibrate --from`'s
         mcap = RECORDING if args.calibration.suffix.lower() == ".mcap" else None
         calibration = (args.calibration, format_of(args.calibration) or mcap or fmt)
-    tpose_s = 3.0 if args.tpose_s is None else args.tpose_s
     try:
         profile = with_heading_args(_profile(args.profile), args)
         with atomic_path(args.output, [args.input, args.profile, args.calibration]) as tmp:
             result = process(args.input, fmt, tmp, profile, args.rate_hz,
-                             args.tick_hz, tpose_s, capture_options(args),
+                             args.tick_hz, args.tpose_s, capture_options(args),
                              calibration, window=args.window, pose=args.pose)  # fmt: skip
             if not result.samples:  # nothing written: no empty recording is left
                 raise _Unusable(f"no {fmt} samples in {args.input} ({result.stats.summary()})"
                                 + looks_else(args.input, fmt))  # fmt: skip
-            too_long = args.tpose_s is not None and args.tpose_s > result.span_s
-            if too_long and calibration is None and args.window is None:
-                raise _Unusable(f"--tpose-s {args.tpose_s:g} is longer than the capture "
-                                f"({result.span_s:.3g} s of samples); nothing written")  # fmt: skip
     except CalibrationRefused as exc:
         print(f"bodynet process: calibration refused: {exc}; nothing written", file=sys.stderr)
         return 1
@@ -500,7 +495,8 @@ def add_process_args(p: argparse.ArgumentParser) -> None:
         type=argtypes.non_negative_float(3600.0, "seconds at the capture's start"),
         default=None,
         help="seconds at the start still in the calibration pose, to calibrate orientation "
-        "sensors (default 3, or the whole capture if shorter; longer than the capture is "
+        "sensors (default 3, or the whole capture if shorter, solved uncalibrated if the "
+        "subject moved in them; given, refused as --window is; longer than the capture is "
         "refused; 0: the orientations are the segments' own, as bodynet exports them)",
     )
     p.add_argument("--window", type=argtypes.time_window, default=None, metavar="START:END",

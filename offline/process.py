@@ -56,6 +56,9 @@ from bodynet.nodes import sources
 from bodynet.nodes.captures import RECORDING
 from bodynet.nodes.sources.base import CapturedSample, CaptureError, CaptureStats
 
+#: the calibration window when none is asked for: the capture's first seconds
+TPOSE_S = 3.0
+
 
 @dataclass
 class ProcessResult:
@@ -156,16 +159,18 @@ def _ticks(samples: Iterator[CapturedSample], period_s: float) -> Iterator[list[
 
 
 def _survey(path: Path, fmt: str, rate_hz: float | None, options: Mapping[str, Any] | None,
-            profile: Profile) -> tuple[set[str], set[Site]]:  # fmt: skip
-    """Every site of a capture (the solver's expected sensors), and its orientation
-    sensors with no mount in the profile."""
+            profile: Profile) -> tuple[set[str], set[Site], float]:  # fmt: skip
+    """Every site of a capture (the solver's expected sensors), its orientation
+    sensors with no mount in the profile, and its span (s, first sample to last)."""
     topology: set[str] = set()
     uncalibrated: set[Site] = set()
-    for _, site, reading in recorded_samples(path, fmt, CaptureStats(), rate_hz, options):
+    first, t = None, 0.0
+    for t, site, reading in recorded_samples(path, fmt, CaptureStats(), rate_hz, options):
+        first = t if first is None else first
         topology.add(site.raw_key)
         if isinstance(reading, Quat) and site.raw_key not in profile.imu_mounts:
             uncalibrated.add(site)
-    return topology, uncalibrated
+    return topology, uncalibrated, 0.0 if first is None else t - first
 
 
 def _solver(profile: Profile, topology: set[str], as_given: bool) -> BodySolver:
@@ -268,22 +273,26 @@ def _solver_of(heading: BodyHeading, topology: set[str], as_given: bool
 
 def process(path: Path, fmt: str, out: Path, profile: Profile | None = None,
             rate_hz: float | None = None, tick_hz: float = 100.0,
-            tpose_s: float = 3.0, options: Mapping[str, Any] | None = None,
+            tpose_s: float | None = None, options: Mapping[str, Any] | None = None,
             calibration: tuple[Path, str | None] | None = None, *,
             window: tuple[float, float] | None = None,
             pose: str | None = None) -> ProcessResult:  # fmt: skip
     """Solve every tick of a capture and write poses and raw samples to ``out``
     (``options``: the source's capture options, e.g. an orientation file's ``map``).
-    The calibration pose is the first ``tpose_s`` seconds, or ``window``, of the
-    capture or of ``calibration`` (another file of the session, and its format).
-    Raises ``CalibrationRefused`` (nothing written) when an asked-for calibration
-    window (``window``, ``calibration``) cannot be used; when the default one
-    (the first ``tpose_s``) cannot, the capture is solved without it
-    (``ProcessResult.refused`` says why)."""
+    The calibration pose is the first ``tpose_s`` seconds (None: the first
+    ``TPOSE_S``), or ``window``, of the capture or of ``calibration`` (another file
+    of the session, and its format). Raises ``CalibrationRefused`` (nothing
+    written) when an asked-for calibration window (``tpose_s``, ``window``,
+    ``calibration``) cannot be used; when the default one cannot, the capture
+    is solved without it (``ProcessResult.refused`` says why)."""
     profile = profile or Profile()
-    topology, uncalibrated = _survey(path, fmt, rate_hz, options, profile)
+    topology, uncalibrated, span = _survey(path, fmt, rate_hz, options, profile)
+    if tpose_s is not None and window is None and calibration is None and tpose_s > span:
+        raise ValueError(f"--tpose-s {tpose_s:g} is longer than the capture ({span:.3g} s of "
+                         "samples); nothing written")  # fmt: skip
     # no calibration window: the orientations are the segments' own, as given
-    as_given = bool(uncalibrated) and tpose_s <= 0 and window is None and calibration is None
+    asked = tpose_s is not None or window is not None or calibration is not None
+    as_given = bool(uncalibrated) and tpose_s == 0 and window is None and calibration is None
     calibrated, refused = None, None
     if as_given:
         # no calibration window: the orientations are the segments' own, in the body's
@@ -296,12 +305,11 @@ def process(path: Path, fmt: str, out: Path, profile: Profile | None = None,
         )
     elif uncalibrated or window is not None or calibration is not None:
         where, where_fmt = calibration or (path, fmt)
-        asked = window is not None or calibration is not None
         try:
             calibrated = calibrate_recording(
                 recorded_samples(where, where_fmt, CaptureStats(), rate_hz, options),
                 profile,
-                window or (0.0, tpose_s),
+                window or (0.0, TPOSE_S if tpose_s is None else tpose_s),
                 pose,
                 strict=window is not None,
             )
@@ -326,12 +334,8 @@ def process(path: Path, fmt: str, out: Path, profile: Profile | None = None,
     seqs: dict[Site, int] = {}
     wires: dict[Site, int] = {}  # each site's source byte
     ticks = 0
-    first_t: float | None = None
-    last_t = 0.0
     try:
         for tick in _ticks(_captured(path, fmt, stats, rate_hz, options, wires), 1.0 / tick_hz):
-            first_t = tick[0].t_s if first_t is None else first_t
-            last_t = tick[-1].t_s
             for s in tick:
                 seq = seqs[s.site] = seqs.get(s.site, -1) + 1
                 sample = latest[s.site] = _raw(s, seq, wires[s.site], zeros)
@@ -347,7 +351,6 @@ def process(path: Path, fmt: str, out: Path, profile: Profile | None = None,
                 sink.write_pose(keys.pose_key(branch), view, t_ns)
     finally:
         sink.close()
-    span = 0.0 if first_t is None else last_t - first_t
     return ProcessResult(
         ticks,
         stats.decoded,

@@ -72,7 +72,9 @@ def test_a_recording_is_calibrated_again_from_a_window_of_it(
 ) -> None:
     """A live session's recording whose subject moved in its first seconds: solved
     as it is, the tags stay uncalibrated (the default window is refused, said);
-    with ``--window`` on the still T-pose later in it, the knee bends as the truth's."""
+    a ``--tpose-s`` asked over the motion is refused, nothing written, as a
+    ``--window`` would be; with ``--window`` on the still T-pose later in it, the
+    knee bends as the truth's."""
     held = dict(CALIBRATION_POSES["tpose"])
     bend = {"left_knee_flexion_deg": 70.0, "left_hip_flexion_deg": 20.0}
     wave = {"left_shoulder_flexion_deg": 40.0, "right_elbow_flexion_deg": 60.0}
@@ -83,8 +85,14 @@ def test_a_recording_is_calibrated_again_from_a_window_of_it(
     session = tmp_path / "session.mcap"
     record_tags(session, body, 4.5)
     as_recorded, again = tmp_path / "as-recorded.mcap", tmp_path / "again.mcap"
-    assert main(["process", str(session), "--tpose-s", "0.8", "-o", str(as_recorded)]) == 0
-    assert "NOT calibrated" in capsys.readouterr().err
+    assert main(["process", str(session), "-o", str(as_recorded)]) == 0
+    assert "NOT calibrated: the subject moved" in capsys.readouterr().err
+    asked = tmp_path / "asked.mcap"
+    assert main(["process", str(session), "--tpose-s", "0.8", "-o", str(asked)]) == 1
+    err = capsys.readouterr().err
+    assert "calibration refused: the subject moved" in err, err
+    assert "nothing written" in err
+    assert not asked.exists()
     assert all(f["left_knee_flexion_deg"] == "uncalibrated" for _, _, f in _poses(as_recorded))
     assert main(["process", str(session), "--window", "1.2:2.8", "-o", str(again)]) == 0
     err = capsys.readouterr().err

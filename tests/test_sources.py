@@ -149,8 +149,7 @@ def test_a_source_added_by_the_registry_alone_runs_offline(
     assert err.strip() == "decoded 120, rejected 1 (garbage: 1)"
 
     out_mcap = tmp_path / "session.mcap"
-    assert main(["process", str(capture), "--format", "toy-lines", "--tpose-s", "0.1",
-                 "-o", str(out_mcap)]) == 0  # fmt: skip
+    assert main(["process", str(capture), "--format", "toy-lines", "-o", str(out_mcap)]) == 0
     raw = list(read_raw(out_mcap))
     assert len(raw) == 120
     assert {sample.source for _, _, sample in raw} == {TOY_ID}
