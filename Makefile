@@ -12,10 +12,8 @@ $(STAMP): pyproject.toml
 	$(BIN)/python -m pip install --quiet --upgrade pip
 	@# setuptools says on every editable install that a folder named like the package
 	@# could shadow it (none does here: the roles install as bodynet.*)
-	@# --no-compile: Python compiles what is imported when first imported; compiling
-	@# every installed module up front was half of a fresh install's 75 s
 	PYTHONWARNINGS='ignore:Editable installation' \
-	  $(BIN)/python -m pip install --quiet --no-compile -e '.[dev,bench]'
+	  $(BIN)/python -m pip install --quiet -e '.[dev,bench]'
 	@# the gateway's compiled kernels: built once here (seconds), cached beside their source
 	$(BIN)/python -c 'import bodynet.gateway.kernels'
 	touch $(STAMP)
