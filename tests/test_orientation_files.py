@@ -228,7 +228,8 @@ def test_our_sto_reader_agrees_with_opensims(body_mcap: Path, tmp_path: Path) ->
 def test_calibrated_from_another_file_of_the_session(tmp_path: Path) -> None:
     """Tags at random mounts: a static T-pose file and a trial file that starts
     moving at once. `--calibration static.csv` takes the T-pose from the first;
-    without it the trial's own start (no T-pose) gives wrong angles."""
+    without it the trial's own start (no T-pose) gives wrong angles, and asked
+    for (`--tpose-s 1`) is refused."""
     from bodynet.core.skeleton import TPOSE
     from bodynet.nodes.motion import Routine
 
@@ -248,10 +249,12 @@ def test_calibrated_from_another_file_of_the_session(tmp_path: Path) -> None:
     write(tmp_path / "static.csv", [0.02 * k for k in range(50)])
     write(tmp_path / "trial.csv", [1.5 + 0.02 * k for k in range(100)])
     static = ["--calibration", str(tmp_path / "static.csv")]
-    for calibration, close in ((static, True), ([], False)):
+    trial = ["process", str(tmp_path / "trial.csv")]
+    assert main([*trial, "--tpose-s", "1", "-o", str(tmp_path / "refused.mcap")]) == 1
+    assert not (tmp_path / "refused.mcap").exists()
+    for calibration, close in ((["--tpose-s", "1", *static], True), ([], False)):
         out = tmp_path / f"trial{len(calibration)}.mcap"
-        assert main(["process", str(tmp_path / "trial.csv"), "--tpose-s", "1", *calibration,
-                     "-o", str(out)]) == 0  # fmt: skip
+        assert main([*trial, *calibration, "-o", str(out)]) == 0
         errors = [
             abs(frame.angles_deg[name] - motion.angles(t_ns / 1e9).get(name, 0.0))
             for t_ns, frame in read_poses(out)
