@@ -16,6 +16,9 @@ $(STAMP): pyproject.toml
 	  $(BIN)/python -m pip install --quiet -e '.[dev,bench]'
 	@# the gateway's compiled kernels: built once here (seconds), cached beside their source
 	$(BIN)/python -c 'import bodynet.gateway.kernels'
+	@# our own modules' bytecode, as pip's for the libraries: where PYTHONDONTWRITEBYTECODE
+	@# is set nothing else writes it, and every process would compile them again
+	$(BIN)/python -m compileall -q bench cli clients core gateway kinematics nodes offline session
 	touch $(STAMP)
 
 demo: $(STAMP)
