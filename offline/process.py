@@ -287,7 +287,8 @@ def process(path: Path, fmt: str, out: Path, profile: Profile | None = None,
     is solved without it (``ProcessResult.refused`` says why)."""
     profile = profile or Profile()
     topology, uncalibrated, span = _survey(path, fmt, rate_hz, options, profile)
-    if tpose_s is not None and window is None and calibration is None and tpose_s > span:
+    if topology and tpose_s is not None and window is None and calibration is None and (
+            tpose_s > span):  # fmt: skip
         raise ValueError(f"--tpose-s {tpose_s:g} is longer than the capture ({span:.3g} s of "
                          "samples); nothing written")  # fmt: skip
     # no calibration window: the orientations are the segments' own, as given

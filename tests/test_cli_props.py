@@ -477,6 +477,10 @@ def test_unusable_captures_are_errors_naming_what_they_look_like(
                         "-o", out)  # fmt: skip
         assert code == 2
         assert "--tpose-s 100 is longer than the capture" in err
+        code, err = cli(capsys, "process", corpus["empty"], "--format", "can-log", "--tpose-s",
+                        "2", "-o", out)  # fmt: skip
+        assert code == 2
+        assert "no can-log samples" in err, err  # what is wrong, not a window past its end
         for profile in ("profile-bytes", "profile-list", "profile-nan"):
             code, err = cli(capsys, "process", corpus["smartsuit_arm.log"], "--profile",
                             corpus[profile], "-o", out)  # fmt: skip
