@@ -9,14 +9,15 @@ STAMP := $(VENV)/.installed
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
-	$(BIN)/python -m pip install --quiet --upgrade pip uv
+	$(BIN)/python -m pip install --quiet --upgrade pip
 	@# uv installs what pip would (the same versions) in a third of the time; where it
-	@# cannot (it reads no pip.conf: an index only pip knows), pip does. setuptools says
-	@# on every editable install that a folder named like the package could shadow it
-	@# (none does here: the roles install as bodynet.*)
+	@# cannot (not on the index, or it reads no pip.conf: an index only pip knows), pip
+	@# does. setuptools says on every editable install that a folder named like the
+	@# package could shadow it (none does here: the roles install as bodynet.*)
 	export PYTHONWARNINGS='ignore:Editable installation'; \
-	  $(BIN)/python -m uv pip install --quiet --python $(BIN)/python --compile-bytecode \
-	    -e '.[dev,bench]' || $(BIN)/python -m pip install --quiet -e '.[dev,bench]'
+	  { $(BIN)/python -m pip install --quiet uv && \
+	    $(BIN)/python -m uv pip install --quiet --python $(BIN)/python --compile-bytecode \
+	      -e '.[dev,bench]'; } || $(BIN)/python -m pip install --quiet -e '.[dev,bench]'
 	@# the gateway's compiled kernels: built once here (seconds), cached beside their source
 	$(BIN)/python -c 'import bodynet.gateway.kernels'
 	@# our own modules' bytecode, as pip's for the libraries: where PYTHONDONTWRITEBYTECODE
