@@ -59,19 +59,23 @@ def encode(entries: Sequence[Entry]) -> bytes:
 
 
 @lru_cache(maxsize=4096)  # on every batched sample's path; the key space is small
-def _raw_key(key: bytes) -> str | None:
-    """``key`` as text if it is a site's raw key, else None."""
+def _raw_key(key: bytes, prefix: str = "") -> str | None:
+    """``key`` as text, after ``prefix``, if it is a site's raw key, else None."""
     try:
         text = key.decode("ascii")
         site, stream = keys.parse(text)
     except (UnicodeDecodeError, keys.KeySpaceError):
         return None
-    return text if stream is keys.Stream.RAW and keys.chunk(site.name) == site.name else None
+    if stream is not keys.Stream.RAW or keys.chunk(site.name) != site.name:
+        return None
+    return prefix + text
 
 
-def decode(payload: bytes | bytearray) -> list[Entry | Rejected]:
-    """The entries of one batch, each a ``(raw key, message)`` pair or, where it
-    cannot be read, a rejection; ``DecodeError`` if the header is not a batch's."""
+def decode(payload: bytes | bytearray, prefix: str = "") -> list[Entry | Rejected]:
+    """The entries of one batch, each a ``(raw key, message)`` pair (the key after
+    ``prefix``, a subject's) or, where it cannot be read, a rejection;
+    ``DecodeError`` if the header is not a batch's."""
+    payload = bytes(payload)  # slices of it are then the entries' bytes
     if len(payload) < _HEADER.size:
         raise DecodeError(Reason.TRUNCATED, f"{len(payload)} bytes, a batch's header is 5")
     magic, version, count = _HEADER.unpack_from(payload)
@@ -92,18 +96,18 @@ def decode(payload: bytes | bytearray) -> list[Entry | Rejected]:
                                 f"entry {index} of {count}: key of {k} bytes",
                                 bytes(payload[pos : pos + 64])))  # fmt: skip
             return out
-        (m,) = _LEN.unpack_from(payload, key_end)
+        m = payload[key_end] | payload[key_end + 1] << 8  # _LEN, written out: every entry
         start = key_end + _LEN.size
         if start + m > end:
             why = f"entry {index} of {count}: message of {m} bytes, {end - start} left"
-            out.append(Rejected(Reason.TRUNCATED, why, bytes(payload[pos : pos + 64])))
+            out.append(Rejected(Reason.TRUNCATED, why, payload[pos : pos + 64]))
             return out
-        key = _raw_key(bytes(payload[pos + 1 : key_end]))
+        key = _raw_key(payload[pos + 1 : key_end], prefix)
         if key is None:
             out.append(Rejected(Reason.UNKNOWN_NODE, f"entry {index} of {count}: not a raw key",
-                                bytes(payload[pos + 1 : key_end][:64])))  # fmt: skip
+                                payload[pos + 1 : key_end][:64]))  # fmt: skip
         else:
-            out.append((key, bytes(payload[start : start + m])))
+            out.append((key, payload[start : start + m]))
         pos = start + m
     if pos != end:
         out.append(Rejected(Reason.BAD_LENGTH, f"{end - pos} bytes after the {count} entries",
@@ -134,9 +138,6 @@ def split(key: str, payload: bytes) -> list[Entry | Rejected]:
     if prefix is None:
         return [(key, payload)]
     try:
-        entries = decode(payload)
+        return decode(payload, prefix)
     except DecodeError as exc:
         return [Rejected.of(exc, payload[:64])]
-    if prefix:
-        entries = [e if isinstance(e, Rejected) else (prefix + e[0], e[1]) for e in entries]
-    return entries
