@@ -94,7 +94,7 @@ def decode(payload: bytes | bytearray, prefix: str = "") -> list[Entry | Rejecte
         if k == 0 or key_end + _LEN.size > end:
             out.append(Rejected(Reason.TRUNCATED if k else Reason.BAD_LENGTH,
                                 f"entry {index} of {count}: key of {k} bytes",
-                                bytes(payload[pos : pos + 64])))  # fmt: skip
+                                payload[pos : pos + 64]))  # fmt: skip
             return out
         m = payload[key_end] | payload[key_end + 1] << 8  # _LEN, written out: every entry
         start = key_end + _LEN.size
@@ -111,7 +111,7 @@ def decode(payload: bytes | bytearray, prefix: str = "") -> list[Entry | Rejecte
         pos = start + m
     if pos != end:
         out.append(Rejected(Reason.BAD_LENGTH, f"{end - pos} bytes after the {count} entries",
-                            bytes(payload[pos : pos + 64])))  # fmt: skip
+                            payload[pos : pos + 64]))  # fmt: skip
     return out
 
 
