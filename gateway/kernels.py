@@ -293,9 +293,71 @@ def forward_poses(angles, segments, root_at, root_z, parents, axes, offsets, seg
     return positions, quats
 
 
+_I2, _B2 = "int64[:, :]", "boolean[:, :]"
+
+
+@_compiled(f"({_A3}, {_F1}, {_I1}, {_I1}, {_A2}, {_I1}, {_I2}, {_A2}, {_I1}, {_I1}, {_I1}, "
+           f"{_F1}, {_A2}, {_I1}, {_A2}, {_A2}, float64, float64)")  # fmt: skip
+def direct_split(segments, residual, parents, children, last, owner, index, known, i, j, k, e,
+                 signs, n, lo, hi, gimbal_cos, unc_max):  # fmt: skip
+    """The first half of a solve's direct joints (``BodySolver._solve_direct``) in
+    one call: each joint's relative rotation (``relative_rotations``), its
+    previous angles gathered from its body's row of ``last`` (``owner``, the
+    dofs' columns ``index``), what its two tags give it (``known``, deg) widened
+    by the residual turn of its two segments (``residual``, deg, one a segment;
+    an unmeasured pelvis none) and :func:`split_rows`. Returns the relative
+    rotations, the previous angles, the split, the rows at a gimbal lock (for
+    the scalar split) with their count, and the dofs' uncertainties."""
+    relative = relative_rotations(segments, parents, children)
+    m, ns = parents.shape[0], segments.shape[0]
+    previous = np.empty((m, 3))
+    widened = known.copy()
+    moved = False
+    for s in range(ns):
+        moved = moved or residual[s] != 0.0
+    for r in range(m):
+        for d in range(3):
+            previous[r, d] = last[owner[r], index[r, d]]
+        if moved:
+            p = parents[r]
+            off = math.hypot(residual[p] if p < ns else 0.0, residual[children[r]])
+            for d in range(3):
+                widened[r, d] = math.hypot(known[r, d], off)
+    chosen, gimbal, stated = split_rows(relative, previous, i, j, k, e, signs, n, lo, hi,
+                                        gimbal_cos, widened, unc_max)  # fmt: skip
+    locked = 0
+    for r in range(m):
+        locked += gimbal[r]
+    return relative, previous, chosen, gimbal, locked, stated
+
+
+@_compiled(f"({_A2}, {_A2}, {_A3}, {_I1}, {_I2}, {_I1}, {_A2}, {_A2}, {_A3}, {_B2}, {_A3}, "
+           f"{_A2}, {_A2}, {_A2})")  # fmt: skip
+def direct_commit(values, stated, relative, owner, index, rows, lo, hi, axis, unused, cal_inv,
+                  angles, unc, rel):  # fmt: skip
+    """The second half (after any gimbal rows' scalar split): :func:`commit_rows`,
+    and each body's angles, uncertainties (its row of ``angles``, ``unc``: the
+    dofs' columns ``index``, the last column for absent dofs, set to 0 in
+    ``angles``) and joints' total rotations (``rel``, at ``rows``) written in
+    place. Returns the joint rotations, which dofs were clamped to their range
+    of motion, and how many of the joints' own dofs were."""
+    clipped, clamped, matrices, total = commit_rows(values, lo, hi, axis, cal_inv, relative)
+    m, last = values.shape[0], angles.shape[1] - 1
+    count = 0
+    for r in range(m):
+        b = owner[r]
+        for d in range(3):
+            angles[b, index[r, d]] = clipped[r, d]
+            unc[b, index[r, d]] = stated[r, d]
+            count += clamped[r, d] and not unused[r, d]
+        rel[b, rows[r]] = total[r]
+    for b in range(angles.shape[0]):
+        angles[b, last] = 0.0  # the absent dofs' column
+    return matrices, clamped, count
+
+
 #: a site's sample time before it has one (``align_quats``'s ``times``)
 NO_TIME = -(2**62)
-_I2 = "int64[:, :]"
 
 
 @_compiled(

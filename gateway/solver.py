@@ -440,9 +440,15 @@ class _SplitBatch:
         chosen, gimbal, stated = kernels.split_rows(rel, previous, p.i, p.j, p.k, p.e, p.signs,
                                                     p.n, p.lo, p.hi, GIMBAL_COS, base,
                                                     UNC_SPLIT_MAX_DEG)  # fmt: skip
+        self.unlock(rows, gimbal, chosen, rel, previous)
+        return chosen, stated
+
+    def unlock(self, rows: np.ndarray, gimbal: np.ndarray, chosen: np.ndarray, rel: np.ndarray,
+               previous: np.ndarray) -> None:  # fmt: skip
+        """The rows at a gimbal lock (``gimbal``) of a split ``chosen`` split again
+        by the scalar code, which holds the first angle there."""
         for r in np.flatnonzero(gimbal).tolist():
             chosen[r] = self.axes[rows[r]].split(rel[r], previous[r])
-        return chosen, stated
 
     def commit(
         self,
@@ -617,6 +623,7 @@ class _Memory:
 _NO_FRAMES = np.zeros((0, 3, 3))
 _NO_QUATS = np.zeros((0, 4))
 _NO_RESIDUAL = np.zeros(0)
+_NO_ROWS = np.zeros(0, dtype=int)
 
 
 def _carry_history(old: _Sorted | None, new: _Sorted) -> None:
@@ -739,11 +746,11 @@ class _Tick:
         self.t_ns = 0
         self.measured: dict[str, np.ndarray] = {}  # segment -> world orientation
         # the joints split from two sensors: their rows and rotations
-        self.direct_rows: np.ndarray = np.zeros(0, dtype=int)
-        self.direct_rot: np.ndarray = np.zeros((0, 3, 3))
-        self.angles = np.zeros(0)  # the skeleton's angle vector (+1: see angle_index)
-        self.rel = np.zeros(0)
-        self.unc = np.zeros(0)  # each angle's uncertainty (deg), NaN: none
+        self.direct_rows: np.ndarray = _NO_ROWS
+        self.direct_rot: np.ndarray = _NO_FRAMES
+        self.angles = _NO_RESIDUAL  # the skeleton's angle vector (+1: see angle_index)
+        self.rel = _NO_RESIDUAL
+        self.unc = _NO_RESIDUAL  # each angle's uncertainty (deg), NaN: none
         # angle -> why it is no plain measurement (frozen: the same sets serve tick after tick)
         self.reasons: dict[str, frozenset[str]] = {}
         self.rests: dict[str, frozenset[str]] = {}  # segment -> what its orientation rests on
@@ -812,11 +819,14 @@ class _Shape:
     once some 130 ms more before its first pose. Shared: nothing may write to them."""
 
     __slots__ = ("accel_axes", "angle_at", "axes", "batch", "by_child", "calibration",
-                 "calibration_inv", "model", "names", "skeleton", "slices")  # fmt: skip
+                 "calibration_inv", "lengths", "model", "names", "skeleton", "slices")  # fmt: skip
 
     def __init__(self, lengths: Mapping[str, float], pose: str) -> None:
         self.skeleton = skeleton = build_skeleton(lengths)
         self.model = BodyModel(skeleton)
+        chain = self.model.chain
+        #: the lengths as a batch of one body (``BodySolver._outputs``)
+        self.lengths = (np.array([chain.root_z]), chain.offsets[None], chain.floor_points[None])
         self.axes = {j.name: JointAxes.of(j) for j in skeleton.joints}
         angles = CALIBRATION_POSES[pose]
         self.calibration = {
@@ -869,6 +879,7 @@ class BodySolver:
         self._calibration, self._calibration_inv = shape.calibration, shape.calibration_inv
         self._batch, self._slices, self._angle_at = shape.batch, shape.slices, shape.angle_at
         self._by_child, self._accel_axes = shape.by_child, shape.accel_axes
+        self._lengths = shape.lengths
         #: per angle (and the absent column), how well the tags' headings are known
         #: where a three-dof joint's assumption holds them (deg; None: nowhere)
         self._heading_unc: np.ndarray | None = None
@@ -1010,8 +1021,11 @@ class BodySolver:
                 residual = np.concatenate([t.residual for t in ticks])
             else:
                 quats, residual = ticks[0].quats, ticks[0].residual
-            lefts = np.concatenate([t.lefts for t in ticks])
-            mounts = np.concatenate([t.mounts for t in ticks])
+            if len(ticks) > 1:
+                lefts = np.concatenate([t.lefts for t in ticks])
+                mounts = np.concatenate([t.mounts for t in ticks])
+            else:
+                lefts, mounts = ticks[0].lefts, ticks[0].mounts
             segments = kernels.segment_rotations(quats, lefts, mounts)
             start = 0
             for b, tick in enumerate(ticks):
@@ -1184,26 +1198,31 @@ class BodySolver:
                 self._layouts.clear()
             layout = self._layouts[key] = _Layout(ticks, batch)
         owner, rows, index = layout.owner, layout.rows, layout.index
-        relative = kernels.relative_rotations(segments, layout.parents, layout.children)
         nothing = np.zeros(angles.shape[1])  # a body's first tick: no previous angles
-        last = np.stack([t.last if t.last is not None else nothing for t in ticks])
-        prep = layout.prep
+        if len(ticks) == 1:
+            last = (nothing if ticks[0].last is None else ticks[0].last)[None]
+        else:
+            last = np.stack([t.last if t.last is not None else nothing for t in ticks])
+        p = layout.prep
         known = layout.unc  # how well the tags give each relative rotation
         for tick, at, span in zip(ticks, layout.unc_index, layout.spans, strict=True):
             extra = tick.solver._heading_unc
             if extra is not None:  # a tag whose heading a three-dof joint holds widens them
                 known = known.copy() if known is layout.unc else known
                 known[span] = np.hypot(known[span], extra[at])  # (gateway/heading.py)
-        if residual.any():  # the two segments' orientations brought to the tick's time
-            both = np.append(residual, 0.0)  # an unmeasured pelvis: nothing
-            known = np.hypot(known, np.hypot(both[layout.parents], both[layout.children])[:, None])
-        split, stated = batch.split(rows, relative, last[owner[:, None], index], prep, known)
-        values, clamped, matrices, total = batch.commit(rows, split, layout.cal_inv, relative,
-                                                        prep)  # fmt: skip
-        angles[owner[:, None], index] = values
-        unc[owner[:, None], index] = stated
-        angles[:, -1] = 0.0  # the absent dofs' column
-        rel[owner, rows] = total
+        # in two compiled calls: relative rotations, widened by the two segments'
+        # residual turns (brought to the tick's time), split; then committed and
+        # written into each body's rows (gateway/kernels.py)
+        relative, previous, split, gimbal, locked, stated = kernels.direct_split(
+            segments, residual, layout.parents, layout.children, last, owner, index, known,
+            p.i, p.j, p.k, p.e, p.signs, p.n, p.lo, p.hi, GIMBAL_COS, UNC_SPLIT_MAX_DEG,
+        )  # fmt: skip
+        if locked:
+            batch.unlock(rows, gimbal, split, relative, previous)
+        matrices, clamped, n_clamped = kernels.direct_commit(
+            split, stated, relative, owner, index, rows, p.lo, p.hi, p.axis, p.unused,
+            layout.cal_inv, angles, unc, rel,
+        )  # fmt: skip
         start = 0
         for tick, plan in zip(ticks, plans, strict=True):
             mine = plan.rows
@@ -1215,7 +1234,9 @@ class BodySolver:
             if known is None:
                 known = tick.sort.reasons[pelvis] = tick.solver._direct_reasons(tick, pelvis)
             tick.reasons.update(known)
-        at, dof = np.nonzero(clamped & ~prep.unused)
+        if not n_clamped:
+            return
+        at, dof = np.nonzero(clamped & ~p.unused)
         names = batch.names
         for b, row, d in zip(owner[at].tolist(), rows[at].tolist(), dof.tolist(), strict=True):
             reasons, name = ticks[b].reasons, names[row][d]
@@ -1251,11 +1272,16 @@ class BodySolver:
         canonical quaternions (w >= 0). Each body's pelvis is turned as its
         sensor measured it (``segments[roots[b]]``), else upright."""
         chain = self.model.chain
-        chains = [t.solver.model.chain for t in ticks]  # the lengths are each body's
+        if len(ticks) == 1:  # the body's lengths, as a batch of one (worked out once)
+            root_z, offsets, floor = ticks[0].solver._lengths
+        else:
+            chains = [t.solver.model.chain for t in ticks]  # the lengths are each body's
+            root_z, offsets, floor = (np.array([c.root_z for c in chains]),
+                                      np.array([c.offsets for c in chains]),
+                                      np.array([c.floor_points for c in chains]))  # fmt: skip
         positions, quats = kernels.forward_poses(
-            angles, segments, roots, np.array([c.root_z for c in chains]), chain.parents,
-            chain.axes, np.array([c.offsets for c in chains]), chain.segment_joints,
-            chain.floor_joints, np.array([c.floor_points for c in chains]),
+            angles, segments, roots, root_z, chain.parents, chain.axes, offsets,
+            chain.segment_joints, chain.floor_joints, floor,
         )  # fmt: skip
         for tick in ticks:  # what the next tick's angles are continuous with
             tick.solver._memory.last = tick.angles

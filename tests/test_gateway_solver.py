@@ -369,6 +369,74 @@ def test_batch_commit_agrees_with_each_joints_own_rotation() -> None:
     assert not clamped.all()
 
 
+def test_direct_joints_in_two_calls_agree_with_their_parts() -> None:
+    """The solve's direct joints in two compiled calls (``direct_split``, the
+    scalar split of gimbal rows, ``direct_commit``) give what their parts give
+    one after the other: relative rotations, the tags' uncertainty widened by
+    the segments' residual turns, the batch split and commit, written into
+    each body's rows, an unmeasured pelvis (a parent past the segments) and
+    clamped dofs, gimbal locks and absent dofs included."""
+    from scipy.spatial.transform import Rotation
+
+    from bodynet.gateway import kernels
+    from bodynet.gateway.solver import GIMBAL_COS, UNC_SPLIT_MAX_DEG
+
+    batch = BodySolver()._batch
+    rng = np.random.default_rng(12)
+    n_rows, n_segs, n_bodies = len(batch.axes), 30, 2
+    width = int(batch.n.sum()) + 1
+    rows = np.tile(np.arange(n_rows), n_bodies)
+    owner = np.repeat(np.arange(n_bodies), n_rows)
+    index = batch.angle_index[rows]
+    segments = Rotation.random(n_segs, random_state=13).as_matrix()
+    children = rng.integers(0, n_segs, size=len(rows))
+    parents = rng.integers(0, n_segs + 1, size=len(rows))  # n_segs: the unmeasured pelvis
+    # a few joints exactly at their gimbal lock: the middle dof at +90 degrees
+    for r in range(0, len(rows), 7):
+        ax = batch.axes[rows[r]]
+        if len(ax.axes) == 3 and parents[r] < n_segs:
+            lock = ax.matrix(np.array([20.0, 90.0 * ax.signs[1], -35.0]))
+            segments[children[r]] = segments[parents[r]] @ lock
+    last = rng.uniform(-120.0, 120.0, size=(n_bodies, width))
+    known = rng.uniform(0.5, 6.0, size=(len(rows), 3))
+    cal_inv = Rotation.random(len(rows), random_state=14).as_matrix()
+    p = batch.prepare(rows)
+    for residual in (np.zeros(n_segs), rng.uniform(0.0, 4.0, size=n_segs)):
+        relative, previous, split, gimbal, locked, stated = kernels.direct_split(
+            segments, residual, parents, children, last, owner, index, known, p.i, p.j, p.k,
+            p.e, p.signs, p.n, p.lo, p.hi, GIMBAL_COS, UNC_SPLIT_MAX_DEG,
+        )  # fmt: skip
+        assert locked == gimbal.sum() > 0
+        batch.unlock(rows, gimbal, split, relative, previous)
+        angles, unc = np.zeros((n_bodies, width)), np.zeros((n_bodies, width))
+        rel = np.zeros((n_bodies, n_rows))
+        matrices, clamped, n_clamped = kernels.direct_commit(
+            split, stated, relative, owner, index, rows, p.lo, p.hi, p.axis, p.unused, cal_inv,
+            angles, unc, rel,
+        )  # fmt: skip
+        # the parts, one after the other
+        want_rel = kernels.relative_rotations(segments, parents, children)
+        np.testing.assert_array_equal(relative, want_rel)
+        np.testing.assert_array_equal(previous, last[owner[:, None], index])
+        both = np.append(residual, 0.0)
+        widened = np.hypot(known, np.hypot(both[parents], both[children])[:, None])
+        want_split, want_unc = batch.split(rows, want_rel, previous, p, widened)
+        np.testing.assert_array_equal(split, want_split)
+        np.testing.assert_array_equal(stated, want_unc)
+        clipped, want_clamped, want_matrices, total = batch.commit(rows, want_split, cal_inv,
+                                                                   want_rel, p)  # fmt: skip
+        np.testing.assert_array_equal(matrices, want_matrices)
+        np.testing.assert_array_equal(clamped, want_clamped)
+        assert n_clamped == (want_clamped & ~p.unused).sum() > 0
+        want_angles, want_stated = np.zeros_like(angles), np.zeros_like(unc)
+        want_angles[owner[:, None], index] = clipped
+        want_stated[owner[:, None], index] = want_unc
+        want_angles[:, -1] = 0.0
+        np.testing.assert_array_equal(angles, want_angles)
+        np.testing.assert_array_equal(unc, want_stated)
+        np.testing.assert_array_equal(rel[owner, rows], total)
+
+
 def test_segment_and_relative_rotations_agree_with_scipy() -> None:
     """The compiled sensor-to-segment rotations (gateway/kernels.py) are scipy's
     rotations of the quaternions (not unit: they are normalised), turned into the
