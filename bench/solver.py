@@ -10,7 +10,9 @@ Both run tick after tick, the code and data hot in the caches. A gateway ticks
 every 10 ms and waits between, and here a tick's CPU grows with the wait
 (caches refilled: on this shared VM, 2-3x after 9 ms, spinning or sleeping):
 ``paced`` solves the batch once a period, as live, and counts the CPU of the
-ticks alone. Unsynchronised bodies come due in ever other sets (see
+ticks alone; beside it, one compiled call on the same bodies (their forward
+kinematics) paced the same way: what the time away costs a tick that is a
+single compiled pass. Unsynchronised bodies come due in ever other sets (see
 gateway/rounds.py), so each number of bodies is measured twice: all of them
 due every tick, and a new set of them each tick (:func:`due_sets`).
 """
@@ -26,6 +28,7 @@ import numpy as np
 
 from bodynet.core.messages import RawSample, Source
 from bodynet.core.subject import Profile
+from bodynet.gateway import kernels
 from bodynet.gateway.frames import whole_body_message
 from bodynet.gateway.solver import BodySolver, solve_bodies, tpose_mounts
 from bodynet.nodes.emulator import BodyEmulator, imu_tags
@@ -109,6 +112,38 @@ def _paced_per_body_tick_us(bodies: int, seconds: float, profile: Profile,
     return 1e6 * cpu / solved
 
 
+def _paced_compiled_us(bodies: int, seconds: float, profile: Profile,
+                       frames: list[dict[Any, RawSample]],
+                       varying: bool = False) -> float:  # fmt: skip
+    """CPU per body-tick of one compiled call on the same bodies once a period,
+    sleeping between: their forward kinematics (``kernels.forward_poses``) from
+    a tick's angles, the floor of what the time away costs a tick that is one
+    compiled pass (the Python tick's ratio to it is what its Python costs)."""
+    solver = BodySolver(profile)
+    chain = solver.model.chain
+    sets = due_sets(bodies, varying)
+    width = len(solver.names.angles) + 1
+    angles = np.zeros((bodies, width))
+    angles[:, :-1] = solve_bodies([(solver, frames[0])])[0].angles  # a walking body's
+    segments, roots = np.zeros((0, 3, 3)), np.full(bodies, -1)
+    root_z = np.full(bodies, chain.root_z)
+    offsets = np.repeat(chain.offsets[None], bodies, 0)
+    floor = np.repeat(chain.floor_points[None], bodies, 0)
+    ticks, solved, cpu, start = 0, 0, 0.0, time.perf_counter()
+    while time.perf_counter() - start < seconds or ticks < 3:
+        n = len(sets[ticks % len(sets)])
+        due = start + (ticks + 1) * PERIOD_S
+        c = time.thread_time()
+        kernels.forward_poses(angles[:n], segments, roots[:n], root_z[:n], chain.parents,
+                              chain.axes, offsets[:n], chain.segment_joints, chain.floor_joints,
+                              floor[:n])  # fmt: skip
+        cpu += time.thread_time() - c
+        ticks += 1
+        solved += n
+        time.sleep(max(0.0, due - time.perf_counter()))
+    return 1e6 * cpu / solved
+
+
 def run(seconds: float = 2.0, out_dir: Path = Path("bench-results"),
         bodies: tuple[int, ...] = (1, 5, 20)) -> dict[str, Any]:  # fmt: skip
     """Measure each number of bodies alone, batched, and batched once a period,
@@ -120,22 +155,26 @@ def run(seconds: float = 2.0, out_dir: Path = Path("bench-results"),
         alone = _per_body_tick_us(n, seconds, False, profile, frames, varying)
         batched = _per_body_tick_us(n, seconds, True, profile, frames, varying)
         paced = _paced_per_body_tick_us(n, seconds, profile, frames, varying)
+        compiled = _paced_compiled_us(n, seconds, profile, frames, varying)
         sizes = [len(s) for s in due_sets(n, varying)]
         rows.append({"bodies": n, "varying": varying, "due": (min(sizes), max(sizes)),
                      "alone_us": alone, "batched_us": batched,
                      "speedup": alone / batched,
                      "body_ticks_per_s_batched": 1e6 / batched,
-                     "paced_us": paced, "paced_over_batched": paced / batched})  # fmt: skip
+                     "paced_us": paced, "paced_over_batched": paced / batched,
+                     "paced_compiled_us": compiled})  # fmt: skip
     lines = ["| bodies due together | one at a time us per body-tick | batched us per body-tick "
              "| speed-up | body-ticks/s on one core (batched) | batched once a period: CPU us "
-             "per body-tick | paced / back to back |",
-             "|---:|---:|---:|---:|---:|---:|---:|"]  # fmt: skip
+             "per body-tick | paced / back to back | paced, one compiled call instead: CPU us "
+             "per body-tick |",
+             "|---:|---:|---:|---:|---:|---:|---:|---:|"]  # fmt: skip
     for r in rows:
         lo, hi = r["due"]
         due = f"{lo}-{hi} of {r['bodies']}, a new set each tick" if r["varying"] else r["bodies"]
         lines.append(f"| {due} | {r['alone_us']:.0f} | {r['batched_us']:.0f} "
                      f"| {r['speedup']:.2f} | {r['body_ticks_per_s_batched']:.0f} "
-                     f"| {r['paced_us']:.0f} | {r['paced_over_batched']:.2f} |")  # fmt: skip
+                     f"| {r['paced_us']:.0f} | {r['paced_over_batched']:.2f} "
+                     f"| {r['paced_compiled_us']:.1f} |")  # fmt: skip
     table = "\n".join(lines) + "\n"
     print(f"Gateway tick work per body (solve, pose message, encode), IMU body of 15 tags, "
           f"{seconds:g} s each\n\n{table}")  # fmt: skip

@@ -43,6 +43,7 @@ def test_tiny_solver_benchmark_compares_batched_with_alone(tmp_path: Path) -> No
     assert "| 3 |" in (tmp_path / "solver.md").read_text()
     assert "| 1-2 of 3, a new set each tick |" in (tmp_path / "solver.md").read_text()
     assert "batched once a period" in (tmp_path / "solver.md").read_text()
+    assert all(r["paced_compiled_us"] > 0 for r in result["runs"])
 
 
 def test_demo_runs_the_live_body_network(tmp_path: Path) -> None:
