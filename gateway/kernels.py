@@ -512,3 +512,17 @@ def align_quats(quats, t_ns, target_ns, times, held, recent, scatter_rad, max_sp
         out[s, 2] = w * dy - x * dz + y * dw + z * dx
         out[s, 3] = w * dz + x * dy - y * dx + z * dw
     return out, residual
+
+
+@_compiled(f"({_A2}, {_I1}, int64, {_I2}, {_A3}, {_F1}, {_F1}, int64, int64, float64, float64, "
+           f"float64, {_F1}, {_A3}, {_A3})")  # fmt: skip
+def aligned_segments(quats, t_ns, target_ns, times, held, recent, scatter_rad, max_span_ns,
+                     max_ahead_ns, change_per_s, max_rate_deg_s, memory_s, spread_ns, lefts,
+                     mounts):  # fmt: skip
+    """:func:`align_quats` and then :func:`segment_rotations` of what it gives, in
+    one call (a body's tick): the quaternions brought to ``target_ns``, how far
+    each may be off for that (deg), and the segments' world rotations (n, 3, 3)."""
+    out, residual = align_quats(quats, t_ns, target_ns, times, held, recent, scatter_rad,
+                                max_span_ns, max_ahead_ns, change_per_s, max_rate_deg_s,
+                                memory_s, spread_ns)  # fmt: skip
+    return out, residual, segment_rotations(out, lefts, mounts)

@@ -726,10 +726,10 @@ class _Tick:
     """One body's working state during one solve: plain data that its
     :class:`BodySolver` fills (:meth:`BodySolver._gather`) and reads."""
 
-    __slots__ = ("angles", "direct_rot", "direct_rows", "harm", "held_tilt", "last", "lefts",
-                 "measured", "modules", "mounts", "plan", "quats", "reasons", "rel", "residual",
-                 "rests", "segs", "solver", "sort", "sources", "stale", "stale_modules", "t_ns",
-                 "unc", "uncal", "unknown")  # fmt: skip
+    __slots__ = ("angles", "direct_rot", "direct_rows", "harm", "held_tilt", "last", "measured",
+                 "modules", "plan", "quats", "reasons", "rel", "residual", "rests", "segments",
+                 "segs", "solver", "sort", "sources", "stale", "stale_modules", "t_ns", "unc",
+                 "uncal", "unknown")  # fmt: skip
 
     def __init__(self, solver: BodySolver, last: np.ndarray | None, sort: _Sorted) -> None:
         self.solver = solver
@@ -737,10 +737,10 @@ class _Tick:
         self.sort = sort  # how its samples sort (BodySolver._sort): these are its
         self.segs, self.plan = sort.segs, sort.plan
         self.unknown, self.uncal = sort.unknown, sort.uncal
-        self.lefts, self.mounts = sort.lefts, sort.mounts
         self.stale, self.stale_modules = sort.stale_segs, sort.stale_modules
         self.quats = _NO_QUATS  # the quaternions of ``sort.used``, at the tick's time (n, 4)
         self.residual = _NO_RESIDUAL  # how far each may be off for that (deg, n)
+        self.segments = _NO_FRAMES  # their segments' world rotations (n, 3, 3)
         self.modules: dict[str, tuple[Site, OleAccel]] = {}  # SmartSuit modules by segment
         self.sources: dict[str, int] = {}  # raw key -> the source time of its sample
         self.t_ns = 0
@@ -1017,16 +1017,10 @@ class BodySolver:
         roots = np.full(len(ticks), -1)  # each body's pelvis in ``segments`` (-1: upright)
         if any(len(t.quats) for t in ticks):
             if len(ticks) > 1:
-                quats = np.concatenate([t.quats for t in ticks])
+                segments = np.concatenate([t.segments for t in ticks])
                 residual = np.concatenate([t.residual for t in ticks])
             else:
-                quats, residual = ticks[0].quats, ticks[0].residual
-            if len(ticks) > 1:
-                lefts = np.concatenate([t.lefts for t in ticks])
-                mounts = np.concatenate([t.mounts for t in ticks])
-            else:
-                lefts, mounts = ticks[0].lefts, ticks[0].mounts
-            segments = kernels.segment_rotations(quats, lefts, mounts)
+                segments, residual = ticks[0].segments, ticks[0].residual
             start = 0
             for b, tick in enumerate(ticks):
                 tick.measured = dict(zip(tick.segs, segments[start : start + len(tick.segs)],
@@ -1064,12 +1058,13 @@ class BodySolver:
             # each orientation turned on at its own rate to the tick's time: tags on
             # timers of their own sample up to a period apart, and a shank turning at
             # 350 deg/s against its thigh's sample 15 ms older is 5 deg off
-            tick.quats, tick.residual = kernels.align_quats(
+            tick.quats, tick.residual, tick.segments = kernels.aligned_segments(
                 np.array([values[i].reading.wxyz for i in sort.quats], dtype=float),  # type: ignore[union-attr]
                 np.array([times[i] for i in sort.quats], dtype=np.int64), t_ns, sort.times,
                 sort.held, sort.recent, sort.scatter_rad, ALIGN_SPAN_NS, ALIGN_AHEAD_NS,
                 ALIGN_CHANGE_PER_S, ALIGN_RATE_MAX_DEG_S, ALIGN_RATE_MEMORY_S,
                 np.array([_SPREAD_NS.get(values[i].source, 0.0) for i in sort.quats]),
+                sort.lefts, sort.mounts,
             )  # fmt: skip
             self._memory.expected.update(sort.segs)
         return tick
