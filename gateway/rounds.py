@@ -1,7 +1,8 @@
 """When the gateway's worker solves the bodies whose frames are whole.
 
 Bodies solved in one call share the solver's fixed costs (``bodynet bench
---only solver``: about 240 us per body-tick alone, 85 in a batch of twenty).
+--only solver``, 2026-12-07: about 75 us per body-tick alone, 55 in a batch
+of twenty, back to back; once a period, as live, some 400 and 80).
 Suits that are not phase-locked come whole one by one, so a worker that
 solves each body the moment its frame is whole pays the single body's cost
 for every tick, and at twenty bodies falls behind. So: while the worker has
