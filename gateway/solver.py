@@ -1193,10 +1193,10 @@ class BodySolver:
                 self._layouts.clear()
             layout = self._layouts[key] = _Layout(ticks, batch)
         owner, rows, index = layout.owner, layout.rows, layout.index
-        nothing = np.zeros(angles.shape[1])  # a body's first tick: no previous angles
-        if len(ticks) == 1:
-            last = (nothing if ticks[0].last is None else ticks[0].last)[None]
+        if len(ticks) == 1 and ticks[0].last is not None:
+            last = ticks[0].last[None]
         else:
+            nothing = np.zeros(angles.shape[1])  # a body's first tick: no previous angles
             last = np.stack([t.last if t.last is not None else nothing for t in ticks])
         p = layout.prep
         known = layout.unc  # how well the tags give each relative rotation
