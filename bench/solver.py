@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import json
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -93,23 +94,35 @@ def _per_body_tick_us(bodies: int, seconds: float, batched: bool,
 PERIOD_S = 0.01  # the gateway's tick at 100 Hz
 
 
+def _paced(seconds: float, job: Callable[[int], tuple[Callable[[], object], int]]) -> float:
+    """CPU per body-tick of tick after tick run once a period, sleeping between:
+    ``job(tick)`` gives the tick's work (made before its CPU is counted) and its
+    number of bodies."""
+    ticks, solved, cpu, start = 0, 0, 0.0, time.perf_counter()
+    while time.perf_counter() - start < seconds or ticks < 3:
+        work, n = job(ticks)
+        due = start + (ticks + 1) * PERIOD_S
+        c = time.thread_time()
+        work()
+        cpu += time.thread_time() - c
+        ticks += 1
+        solved += n
+        time.sleep(max(0.0, due - time.perf_counter()))
+    return 1e6 * cpu / solved
+
+
 def _paced_per_body_tick_us(bodies: int, seconds: float, profile: Profile,
                             frames: list[dict[Any, RawSample]],
                             varying: bool = False) -> float:  # fmt: skip
     """CPU per body-tick of the batch solved once a period, sleeping between."""
     solvers = [BodySolver(profile) for _ in range(bodies)]
     sets = due_sets(bodies, varying)
-    ticks, solved, cpu, start = 0, 0, 0.0, time.perf_counter()
-    while time.perf_counter() - start < seconds or ticks < 3:
-        work = [(solvers[b], frames[(ticks + b) % FRAMES]) for b in sets[ticks % len(sets)]]
-        due = start + (ticks + 1) * PERIOD_S
-        c = time.thread_time()
-        _tick(work, ticks)
-        cpu += time.thread_time() - c
-        ticks += 1
-        solved += len(work)
-        time.sleep(max(0.0, due - time.perf_counter()))
-    return 1e6 * cpu / solved
+
+    def job(tick: int) -> tuple[Callable[[], object], int]:
+        work = [(solvers[b], frames[(tick + b) % FRAMES]) for b in sets[tick % len(sets)]]
+        return (lambda: _tick(work, tick)), len(work)
+
+    return _paced(seconds, job)
 
 
 def _paced_compiled_us(bodies: int, seconds: float, profile: Profile,
@@ -122,26 +135,20 @@ def _paced_compiled_us(bodies: int, seconds: float, profile: Profile,
     solver = BodySolver(profile)
     chain = solver.model.chain
     sets = due_sets(bodies, varying)
-    width = len(solver.names.angles) + 1
-    angles = np.zeros((bodies, width))
+    angles = np.zeros((bodies, len(solver.names.angles) + 1))
     angles[:, :-1] = solve_bodies([(solver, frames[0])])[0].angles  # a walking body's
     segments, roots = np.zeros((0, 3, 3)), np.full(bodies, -1)
     root_z = np.full(bodies, chain.root_z)
     offsets = np.repeat(chain.offsets[None], bodies, 0)
     floor = np.repeat(chain.floor_points[None], bodies, 0)
-    ticks, solved, cpu, start = 0, 0, 0.0, time.perf_counter()
-    while time.perf_counter() - start < seconds or ticks < 3:
-        n = len(sets[ticks % len(sets)])
-        due = start + (ticks + 1) * PERIOD_S
-        c = time.thread_time()
-        kernels.forward_poses(angles[:n], segments, roots[:n], root_z[:n], chain.parents,
-                              chain.axes, offsets[:n], chain.segment_joints, chain.floor_joints,
-                              floor[:n])  # fmt: skip
-        cpu += time.thread_time() - c
-        ticks += 1
-        solved += n
-        time.sleep(max(0.0, due - time.perf_counter()))
-    return 1e6 * cpu / solved
+
+    def job(tick: int) -> tuple[Callable[[], object], int]:
+        n = len(sets[tick % len(sets)])
+        args = (angles[:n], segments, roots[:n], root_z[:n], chain.parents, chain.axes,
+                offsets[:n], chain.segment_joints, chain.floor_joints, floor[:n])  # fmt: skip
+        return (lambda: kernels.forward_poses(*args)), n
+
+    return _paced(seconds, job)
 
 
 def run(seconds: float = 2.0, out_dir: Path = Path("bench-results"),
