@@ -431,6 +431,26 @@ def _rows(rrd: Path, entity: str, writing: bool = False) -> int:
     return sum(c.to_record_batch().num_rows for c in chunks if c.entity_path == entity)
 
 
+def _ended(proc: subprocess.Popen[str], timeout_s: float) -> tuple[int, str]:
+    """The exit code and stderr of ``proc``, read while it ends (a pipe nobody
+    reads would hold a chatty process at its next write). Not ended within
+    ``timeout_s``: what it had said, and where each of its threads was
+    (``PYTHONFAULTHANDLER``'s dump on SIGABRT)."""
+    import signal
+
+    try:
+        _, err = proc.communicate(timeout=timeout_s)
+    except subprocess.TimeoutExpired:
+        proc.send_signal(signal.SIGABRT)
+        try:
+            said = proc.communicate(timeout=10)[1]
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            said = proc.communicate()[1]
+        raise AssertionError(f"not ended {timeout_s:g} s after SIGTERM; it said: {said}") from None
+    return proc.returncode, err
+
+
 def test_sigterm_ends_a_live_view_promptly_flushing_what_it_has(
     tmp_path: Path, router_endpoint: str
 ) -> None:
@@ -449,7 +469,8 @@ def test_sigterm_ends_a_live_view_promptly_flushing_what_it_has(
     def view(url: str, rrd: str) -> subprocess.Popen[str]:
         procs.append(subprocess.Popen([str(BODYNET), "view", "--connect-viewer", url, "--save",
                                        tmp_path / rrd, "-e", router_endpoint],
-                                      stderr=subprocess.PIPE, text=True))  # fmt: skip
+                                      stderr=subprocess.PIPE, text=True,
+                                      env={**os.environ, "PYTHONFAULTHANDLER": "1"}))  # fmt: skip
         return procs[-1]
 
     # in a session of its own: ``rerun`` is a wrapper whose child is the viewer, which
@@ -466,8 +487,8 @@ def test_sigterm_ends_a_live_view_promptly_flushing_what_it_has(
             publisher.put(keys.pose_key(), pose.encode(full_pose(i, t0 + i * 10_000_000)))
         wait(lambda: _rows(got, angle, writing=True) == 20, timeout=60)  # the viewer has them
         there.send_signal(signal.SIGTERM)
-        assert there.wait(timeout=30) == 0
-        assert there.communicate()[1] == f"bodynet view: 20 poses, saved to {tmp_path}/there.rrd\n"
+        code, err = _ended(there, 30)
+        assert (code, err) == (0, f"bodynet view: 20 poses, saved to {tmp_path}/there.rrd\n")
         assert _rows(tmp_path / "there.rrd", angle) == 20
         poses = publisher.declare_publisher(keys.pose_key())
         wait(lambda: not poses.matching_status.matching, timeout=60)  # that view is gone
@@ -480,7 +501,8 @@ def test_sigterm_ends_a_live_view_promptly_flushing_what_it_has(
             wait_matching(publisher, keys.pose_key(), timeout=60)
             gone.send_signal(signal.SIGTERM)
             with peer:
-                assert gone.wait(timeout=30) == 1  # it waited 60 s (and lost the .rrd)
+                code, err = _ended(gone, 30)
+                assert code == 1, err  # it waited 60 s (and lost the .rrd)
     finally:
         publisher.close()
         for proc in procs:
@@ -490,7 +512,6 @@ def test_sigterm_ends_a_live_view_promptly_flushing_what_it_has(
         with contextlib.suppress(ProcessLookupError):
             os.killpg(viewer.pid, signal.SIGKILL)
         viewer.wait(timeout=10)
-    err = gone.communicate()[1]
     assert err.startswith(f"bodynet view: the viewer at {url} did not take the poses"), err
     assert err.count("\n") == 1, err
     assert _rows(tmp_path / "silent.rrd", "/gauges/faces") == 1
