@@ -130,6 +130,9 @@ def test_tiny_gateway_benchmark_reports_both_paths(tmp_path: Path) -> None:
         for row in (one, two):
             assert row["relay"]["received"] > 0
             assert row["gateway"]["poses"] > 0
+            # the worker thread's CPU, a part of its process's (both over the same span)
+            gw = row["gateway"]
+            assert 0 < gw["worker_cpu_ms_per_body_s"] <= gw["cpu_ms_per_body_s"]
         # two bodies: poses of both subjects came back
         assert two["gateway"]["samples_received"] > one["gateway"]["samples_received"]
     table = (tmp_path / "gateway.md").read_text()
