@@ -119,7 +119,14 @@ def cmd_view(args: argparse.Namespace) -> int:
             assert stop is not None
             session = open_session(config_from_args(args))
             try:
-                n = view_live(session, viewer, stop)
+                n = view_live(
+                    session,
+                    viewer,
+                    stop,
+                    on_live=lambda: print(
+                        "bodynet view: live, poses arriving", file=sys.stderr, flush=True
+                    ),
+                )
             finally:
                 session.close()
         complete = True

@@ -646,10 +646,12 @@ def view_recording(path: Path, viewer: Viewer, batch: int = 100) -> int:
     return count
 
 
-def view_live(session: zenoh.Session, viewer: Viewer, stop: threading.Event) -> int:
+def view_live(session: zenoh.Session, viewer: Viewer, stop: threading.Event,
+              on_live: Callable[[], object] | None = None) -> int:  # fmt: skip
     """Log the live poses, topology, health and metrics until ``stop``; returns how many
-    poses were shown. No message stops it: what cannot be shown is counted in
-    ``viewer.bad`` (and in the status panel) and the view goes on."""
+    poses were shown, calling ``on_live`` once the first are. No message stops it:
+    what cannot be shown is counted in ``viewer.bad`` (and in the status panel) and
+    the view goes on."""
     inbox: queue.SimpleQueue[tuple[str, bytes]] = queue.SimpleQueue()
 
     def put(sample: zenoh.Sample) -> None:
@@ -687,6 +689,9 @@ def view_live(session: zenoh.Session, viewer: Viewer, stop: threading.Event) -> 
                     viewer.bad += 1  # a client shows what it can; the gateway counts garbage
             try:
                 count += viewer.log_poses(frames)
+                if count and on_live is not None:
+                    on_live()
+                    on_live = None
             except Exception:  # a batch Rerun refused: counted, and the view goes on
                 viewer.bad += len(frames)
                 failures += 1

@@ -79,6 +79,9 @@ def test_clients_resume_and_recorder_loses_nothing(services: Services, tmp_path:
     viewer = services.start("viewer", bodynet("view", "--viewer", "none", "--save", str(rrd), *zen))
     live.wait_for(lambda alive: set(LEFT_ARM_IMU) <= alive, timeout=60)
     poses.count(50, timeout=60)  # two seconds of poses reach the recorder and viewer too
+    # the viewer is live before the outage (under load it may start later than the
+    # recorder: a view that only ever saw the router come back proves no resuming)
+    viewer.wait_line("bodynet view: live, poses arriving", timeout=60)
 
     t_kill = time.time_ns()
     router.proc.send_signal(signal.SIGKILL)

@@ -208,7 +208,12 @@ def test_live_viewer_draws_partial_poses_and_survives_hostile_ones(
     viewer_session, publisher = client(router_endpoint), client(router_endpoint)
     stop = threading.Event()
     shown: list[int] = []
-    thread = threading.Thread(target=lambda: shown.append(view_live(viewer_session, viewer, stop)))
+    lives: list[int] = []  # on_live: once, when the first poses are shown
+    thread = threading.Thread(
+        target=lambda: shown.append(
+            view_live(viewer_session, viewer, stop, on_live=lambda: lives.append(viewer.shown))
+        )
+    )
     thread.start()
     try:
         for key in (keys.TOPOLOGY, keys.health_key("imu"), keys.METRICS, keys.pose_key()):
@@ -228,6 +233,8 @@ def test_live_viewer_draws_partial_poses_and_survives_hostile_ones(
             s.close()
         viewer.close()
     assert shown == [len(good)]
+    assert len(lives) == 1
+    assert lives[0] > 0
     printed = subprocess.run([str(RERUN), "rrd", "print", str(rrd)], capture_output=True,
                              text=True, timeout=60, check=True).stdout  # fmt: skip
     for entity in ("/body/figure", "/body/joints", "/angles/left_elbow_flexion", "/status"):
@@ -488,7 +495,11 @@ def test_sigterm_ends_a_live_view_promptly_flushing_what_it_has(
         wait(lambda: _rows(got, angle, writing=True) == 20, timeout=60)  # the viewer has them
         there.send_signal(signal.SIGTERM)
         code, err = _ended(there, 30)
-        assert (code, err) == (0, f"bodynet view: 20 poses, saved to {tmp_path}/there.rrd\n")
+        assert (code, err) == (
+            0,
+            "bodynet view: live, poses arriving\n"
+            f"bodynet view: 20 poses, saved to {tmp_path}/there.rrd\n",
+        )
         assert _rows(tmp_path / "there.rrd", angle) == 20
         poses = publisher.declare_publisher(keys.pose_key())
         wait(lambda: not poses.matching_status.matching, timeout=60)  # that view is gone
