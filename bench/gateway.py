@@ -379,6 +379,33 @@ def run_once(bodies: int, seconds: float, rate_hz: float = RATE_HZ, feed: str = 
     }  # fmt: skip
 
 
+def _ranges(runs: dict[tuple[int, str, int, bool], list[dict[str, Any]]], repeat: int) -> str:
+    """The range of each row's figures over its ``repeat`` runs, a line a row."""
+
+    def span(values: list[float], fmt: str) -> str:
+        lo, hi = min(values), max(values)
+        return format(lo, fmt) if format(lo, fmt) == format(hi, fmt) else \
+            f"{format(lo, fmt)}-{format(hi, fmt)}"  # fmt: skip
+
+    lines = [
+        f"\nRanges over the {repeat} runs of each row (gateway: ticks delivered, p99 "
+        "ratio, CPU ms per body-second, of which the worker thread; relay: CPU):\n"
+    ]
+    for (n, feed, g, alone), rs in runs.items():
+        gws = [r["gateway"] for r in rs]
+        ratios = [r["p99_ratio"] for r in rs if r["p99_ratio"] is not None]
+        who = "gateway" if g == 1 else f"{g} gateways sharing"
+        lines.append(
+            f"- {n} {'body' if n == 1 else 'bodies'}, {feed}{', apart' if alone else ''}, "
+            f"{who}: {span([100 * x['pose_rate'] for x in gws], '.0f')}% of ticks, "
+            f"p99 ratio {span(ratios, '.2f') if ratios else '-'}, "
+            f"{span([x['cpu_ms_per_body_s'] for x in gws], '.0f')} ms "
+            f"({span([x['worker_cpu_ms_per_body_s'] for x in gws], '.0f')}); relay "
+            f"{span([r['relay']['cpu_ms_per_body_s'] for r in rs], '.0f')} ms"
+        )  # fmt: skip
+    return "\n".join(lines) + "\n"
+
+
 def keys_pose(bodies: int) -> str:
     from bodynet.core import keys
 
@@ -406,6 +433,7 @@ def run(
     feeds: tuple[str, ...] = FEEDS,
     gateways: tuple[int, ...] = (1,),
     apart: bool = False,
+    repeat: int = 1,
 ) -> dict[str, Any]:
     """Run the comparison for each number of bodies and each feed (realistic
     first, see :func:`feed_schedule`), each node sending ``rate_hz``; print a
@@ -415,31 +443,32 @@ def run(
     other than 1 adds a row per number of bodies: that many gateway processes
     sharing the bodies (``gateway --share``), on the first feed; ``apart`` adds
     one per number of bodies and feed (but the locked one) with relay and
-    gateway fed one after the other."""
+    gateway fed one after the other. ``repeat``: each row that many times,
+    the rows' runs interleaved (the machine's drift hits each alike), with
+    the ranges of their figures after the table; a number of bodies counts
+    as sustained only if every run of it is."""
     from bodynet.bench import machine
 
-    rows = [run_once(n, seconds, rate_hz, feed) for n in bodies for feed in feeds]
-    rows += [run_once(n, seconds, rate_hz, feeds[0], g)
-             for g in gateways if g != 1 for n in bodies]  # fmt: skip
-    rows += [run_once(n, seconds, rate_hz, feed, apart=True)
-             for feed in feeds if apart and feed != "locked" for n in bodies]  # fmt: skip
-    first = [r for r in rows if r["feed"] == feeds[0] and r["gateways"] == 1 and not r["apart"]]
-    best = {
-        path: max((r["bodies"] for r in first if sustained(r, path)), default=0)
-        for path in ("relay", "gateway")
-    }
-    by_gateways = {
-        g: max((r["bodies"] for r in rows
-                if r["gateways"] == g and r["feed"] == feeds[0] and not r["apart"]
-                and sustained(r, "gateway")),
-               default=0)
-        for g in sorted({1, *gateways})
-    }  # fmt: skip
-    by_feed = {
-        feed: max((r["bodies"] for r in rows if r["feed"] == feed and r["gateways"] == 1
-                   and not r["apart"] and sustained(r, "gateway")), default=0)
-        for feed in feeds
-    }  # fmt: skip
+    configs = [(n, feed, 1, False) for n in bodies for feed in feeds]
+    configs += [(n, feeds[0], g, False) for g in gateways if g != 1 for n in bodies]
+    configs += [(n, feed, 1, True) for feed in feeds if apart and feed != "locked"
+                for n in bodies]  # fmt: skip
+    runs: dict[tuple[int, str, int, bool], list[dict[str, Any]]] = {c: [] for c in configs}
+    for k in range(repeat):
+        for n, feed, g, alone in configs:
+            row = run_once(n, seconds, rate_hz, feed, g, apart=alone)
+            runs[n, feed, g, alone].append({**row, "run": k + 1})
+    rows = [row for c in configs for row in runs[c]]
+
+    def most(feed: str, g: int, path: str) -> int:
+        """The most bodies sustained on ``feed`` by ``g`` gateways, in every run."""
+        return max((n for (n, f, gs, alone), rs in runs.items()
+                    if f == feed and gs == g and not alone
+                    and all(sustained(r, path) for r in rs)), default=0)  # fmt: skip
+
+    best = {path: most(feeds[0], 1, path) for path in ("relay", "gateway")}
+    by_gateways = {g: most(feeds[0], g, "gateway") for g in sorted({1, *gateways})}
+    by_feed = {feed: most(feed, 1, "gateway") for feed in feeds}
     result = {
         "machine": f"{machine.cpu_model()}, {mp.cpu_count()} cores, "
         f"Python {platform.python_version()}",
@@ -458,6 +487,8 @@ def run(
     for row in rows:
         r, g = row["relay"], row["gateway"]
         f = row["feed"] + (", apart" if row["apart"] else "")
+        if repeat > 1:
+            f += f", run {row['run']} of {repeat}"
         lines.append(
             f"| {row['bodies']} | {f} | bare relay (raw -> raw) | {r['sent']} | {r['lost']} "
             f"| | {r['p50_ms']:.2f} | {r['p99_ms']:.2f} | | {r['cpu_ms_per_body_s']:.0f} | | |"
@@ -480,6 +511,7 @@ def run(
         + ". One gateway by feed: "
         + ", ".join(f"{feed} {n}" for feed, n in by_feed.items())
         + ".\n"
+        + (_ranges(runs, repeat) if repeat > 1 else "")
     )
     print(f"Gateway vs bare relay (15 nodes x {rate_hz:g} Hz per body), {seconds:g} s each, "
           f"{result['machine']}\n\n{table}")  # fmt: skip
