@@ -142,7 +142,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
     if "gateway" in only:
         gateway.run(seconds=args.gateway_seconds, out_dir=args.out, bodies=tuple(args.bodies),
                     gateways=tuple(args.gateways), apart=args.apart,
-                    repeat=args.repeat)  # fmt: skip
+                    repeat=args.gateway_runs)  # fmt: skip
     if "peer" in only:
         peer.run(seconds=args.gateway_seconds, out_dir=args.out)
     if "rate" in only:
@@ -230,7 +230,7 @@ def add_bench_args(p: argparse.ArgumentParser) -> None:
                    help="gateway benchmark: also feed relay, gateway and a bare Zenoh "
                         "subscriber (the floor) one after the other, each on the machine "
                         "alone")  # fmt: skip
-    p.add_argument("--repeat", type=argtypes.positive_int(20, "runs"), default=1,
+    p.add_argument("--gateway-runs", type=argtypes.positive_int(20, "runs"), default=1,
                    help="gateway benchmark: run each row this many times, interleaved, "
                         "and give the ranges of its figures (default 1)")  # fmt: skip
     p.add_argument("--only", action="append", choices=BENCHMARKS,
