@@ -689,14 +689,14 @@ def view_live(session: zenoh.Session, viewer: Viewer, stop: threading.Event,
                     viewer.bad += 1  # a client shows what it can; the gateway counts garbage
             try:
                 count += viewer.log_poses(frames)
-                if count and on_live is not None:
-                    on_live()
-                    on_live = None
             except Exception:  # a batch Rerun refused: counted, and the view goes on
                 viewer.bad += len(frames)
                 failures += 1
                 if failures <= 3:
                     log.exception("bodynet view: a batch of %d poses failed", len(frames))
+            if count and on_live is not None:
+                on_live()
+                on_live = None
             if changed or viewer.bad != bad:
                 viewer.log_status(status_text(topology, health, viewer.bad))
                 viewer.calibration = calibration_marks(health)
