@@ -1,7 +1,7 @@
 """A solve's array maths, compiled (numba): the segments' rotations from their
 sensors' quaternions, the joints' relative rotations, splitting those into dofs
 and committing them, and forward kinematics with the floor, for every joint of
-every body in a solve.
+every body in a solve; and the whole-body pose message's text (``write_message``).
 
 A solve of the bodies due paid some hundred numpy calls here whatever their
 number (a few us each: about 150 us of one body's 420 alone, docs/benchmarks.md),
@@ -30,6 +30,14 @@ from typing import Any
 
 import numpy as np
 from numba import njit
+
+from bodynet.core.codecs.pose import (
+    SLOT_FLAGS,
+    SLOT_SEQ,
+    SLOT_SOURCES,
+    SLOT_STALE,
+    SLOT_T_NS,
+)
 
 _DEG, _RAD = 180.0 / math.pi, math.pi / 180.0
 
@@ -531,3 +539,146 @@ def aligned_segments(quats, t_ns, target_ns, times, held, recent, scatter_rad, m
                                 max_span_ns, max_ahead_ns, change_per_s, max_rate_deg_s,
                                 memory_s, spread_ns)  # fmt: skip
     return out, residual, segment_rotations(out, lefts, mounts)
+
+
+# --- the whole-body pose message's text ---------------------------------------------
+_U1, _BYTES = "uint8[:]", "Bytes(uint8, 1, 'C', readonly=True)"
+_ZERO, _POINT, _MINUS, _E = 48, 46, 45, 101
+#: a number rounded to more than this many units of its last place goes back to
+#: orjson (``write_message`` returns ``REFUSED``): below it, the text written here is
+#: orjson's (its shortest round-trip text of the rounded double), which the tests
+#: check over some 760,000 numbers
+ROUNDED_MAX = 1e15
+REFUSED, SHORT = -1, -2
+
+
+#: "00" to "99", for writing an integer two digits at a time
+_PAIRS = np.frombuffer("".join(f"{i:02d}" for i in range(100)).encode(), dtype=np.uint8).copy()
+_TENS = np.array([10**i for i in range(19)], dtype=np.int64)
+
+
+@_compiled(f"int64({_U1}, int64, int64)")
+def _integer(out, at, k):
+    """``k``'s decimal digits written at ``out[at:]``; where they end."""
+    if k < 0:
+        out[at] = _MINUS
+        at += 1
+        k = -k
+    n = 1
+    while n < 19 and k >= _TENS[n]:
+        n += 1
+    end = i = at + n
+    while k >= 100:
+        q = k // 100
+        r = 2 * (k - 100 * q)
+        out[i - 2], out[i - 1] = _PAIRS[r], _PAIRS[r + 1]
+        i -= 2
+        k = q
+    if k >= 10:
+        out[i - 2], out[i - 1] = _PAIRS[2 * k], _PAIRS[2 * k + 1]
+    else:
+        out[i - 1] = _ZERO + k
+    return end
+
+
+@_compiled(f"int64({_U1}, int64, float64, float64, int64)")
+def _number(out, at, x, scale, places):
+    """``x`` rounded to ``places`` decimals (``numpy.round``: ``rint(x * scale) /
+    scale``, ``scale`` being 10**places) written at ``out[at:]`` as orjson writes
+    that float (NaN and infinities as ``null``); where it ends, or ``REFUSED``
+    past ``ROUNDED_MAX``."""
+    if not math.isfinite(x):
+        out[at], out[at + 1], out[at + 2], out[at + 3] = 110, 117, 108, 108  # null
+        return at + 4
+    y = x * scale
+    if abs(y) >= ROUNDED_MAX:
+        return REFUSED
+    # numpy's rint (half to even), written out: its scalar call costs more here
+    # than the rest of the number (y + 0.5 is exact below ROUNDED_MAX)
+    r = math.floor(y + 0.5)
+    if r - y == 0.5 and r % 2.0 != 0.0:
+        r -= 1.0
+    if r < 0.0 or (r == 0.0 and math.copysign(1.0, y) < 0.0):  # -0.0, as rint keeps it
+        out[at] = _MINUS
+        at += 1
+    k = int(abs(r))
+    if k == 0:
+        out[at], out[at + 1], out[at + 2] = _ZERO, _POINT, _ZERO
+        return at + 3
+    exponent = -places  # the number is k * 10**exponent, k without trailing zeros
+    while k % 10 == 0:
+        k //= 10
+        exponent += 1
+    n = 1
+    while n < 19 and k >= _TENS[n]:
+        n += 1
+    point = n + exponent  # how many of k's digits come before the decimal point
+    if exponent >= 0:  # a whole number: 1500.0
+        at = _integer(out, at, k)
+        for _ in range(exponent):
+            out[at] = _ZERO
+            at += 1
+        out[at], out[at + 1] = _POINT, _ZERO
+        return at + 2
+    if point > 0:  # 12.345
+        end = _integer(out, at + 1, k)
+        for i in range(point):
+            out[at + i] = out[at + 1 + i]
+        out[at + point] = _POINT
+        return end
+    if point > -5:  # 0.00012
+        out[at], out[at + 1] = _ZERO, _POINT
+        at += 2
+        for _ in range(-point):
+            out[at] = _ZERO
+            at += 1
+        return _integer(out, at, k)
+    if n == 1:  # 3e-6
+        out[at], out[at + 1] = _ZERO + k, _E
+        return _integer(out, at + 2, point - 1)
+    return REFUSED  # not reached for six places or fewer
+
+
+@_compiled(f"int64({_F1}, {_I1}, {_F1}, {_I1}, {_U1}, {_I1}, {_I1}, int64, int64, {_BYTES}, "
+           f"{_BYTES}, {_BYTES}, {_BYTES}, {_U1})")  # fmt: skip
+def write_message(numbers, order, scale, places, text, ends, slots, seq, t_ns, flags, sources,
+                  stale, reasons, out):  # fmt: skip
+    """A whole-body pose message written into ``out`` in one pass
+    (``core.codecs.pose.WholeBodyEncoder``'s layout: the fixed ``text`` cut at
+    ``ends``, and what each slot between two pieces holds: the ``k``-th number
+    of ``order`` for ``k >= 0``, rounded to ``places``; else, by ``SLOT_*``, the
+    tick, its time, or one of the four maps already in JSON). Returns its
+    length, ``REFUSED`` for a number this writer does not spell as orjson does,
+    or ``SHORT`` if ``out`` is too small."""
+    at, start = 0, 0
+    size = out.shape[0]
+    for s in range(ends.shape[0]):
+        end = ends[s]
+        if at + end - start + 32 > size:
+            return SHORT
+        for i in range(end - start):
+            out[at + i] = text[start + i]
+        at += end - start
+        start = end
+        if s == slots.shape[0]:
+            break
+        what = slots[s]
+        if what >= 0:
+            at = _number(out, at, numbers[order[what]], scale[what], places[what])
+            if at < 0:
+                return REFUSED
+            continue
+        if what == SLOT_SEQ:
+            at = _integer(out, at, seq)
+            continue
+        if what == SLOT_T_NS:
+            at = _integer(out, at, t_ns)
+            continue
+        given = flags if what == SLOT_FLAGS else sources if what == SLOT_SOURCES else \
+            stale if what == SLOT_STALE else reasons  # fmt: skip
+        if at + len(given) + 32 > size:
+            return SHORT
+        for i in range(len(given)):  # (bytes take no slice assignment here)
+            out[at + i] = given[i]
+        at += len(given)
+    return at

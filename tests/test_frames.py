@@ -2,7 +2,10 @@
 (``whole_body_message``), is byte for byte the message of the pose frame
 (``pose.encode(pose_frame(...))``), which offline processing and the branch
 views still build: for bodies of every kind, calibrated or not, with flags,
-uncertainties of null, clamped dofs and stale sites."""
+uncertainties of null, clamped dofs and stale sites. Its numbers are written
+by a compiled writer (``kernels.write_message``), held here to orjson's text
+of the same rounded floats over some 760,000 numbers, and handing what it does
+not write back to orjson."""
 
 from __future__ import annotations
 
@@ -16,8 +19,9 @@ from bodynet.core.codecs import pose
 from bodynet.core.keys import LEFT_ARM
 from bodynet.core.messages import RawSample, Source
 from bodynet.core.subject import Profile
+from bodynet.gateway import kernels
 from bodynet.gateway.frames import pose_frame, whole_body_message
-from bodynet.gateway.solver import BodySolver, solve_bodies
+from bodynet.gateway.solver import BodyOutput, BodySolver, solve_bodies
 from bodynet.nodes.emulator import BodyEmulator, Realism, imu_tags, smartsuit_sensors
 from bodynet.nodes.motion import ROUTINES
 from tests.test_gateway_solver import IDEAL_RANDOM_MOUNTS, calibrated_profile
@@ -60,6 +64,63 @@ def test_whole_body_messages_are_the_frames_messages() -> None:
     assert checked == 600
     assert flagged > 150
     assert nulls > 0
+    # a number past what the compiled writer spells goes to orjson: the same bytes
+    output = solve_bodies(work)[0]
+    output.rel[0] = 1e16
+    assert _compiled(output, 7, []) == kernels.REFUSED
+    assert whole_body_message(output, 7, []) == pose.encode(pose_frame(output, 7, []))
+    assert b"1e+16" in whole_body_message(output, 7, [])
+
+
+def _compiled(output: BodyOutput, seq: int, stale: list[str]) -> int:
+    """What ``kernels.write_message`` returns for an output (its length, or why not)."""
+    encoder = output.names.encoder
+    parts = (output.positions.ravel(), output.quats.ravel(), output.angles, output.rel, output.unc)
+    maps = [orjson.dumps(m) for m in (output.flags, output.sources, stale, output.reasons)]
+    out = np.empty(encoder.capacity + sum(map(len, maps)), dtype=np.uint8)
+    return int(kernels.write_message(np.concatenate(parts), encoder.order, encoder.scale,
+                                     encoder.places, encoder.text, encoder.ends, encoder.slots,
+                                     seq, output.t_ns, *maps, out))  # fmt: skip
+
+
+def test_the_compiled_writer_spells_numbers_as_orjson() -> None:
+    """Some 760,000 numbers, rounded to six places (angles) and three
+    (uncertainties), through the compiled writer and through orjson: the same
+    text. Every integer count of the last place near zero, where the text
+    changes form (``1e-6``, ``0.00001``, ``-0.0``), halves (rounded to even),
+    and numbers of every size up to ``ROUNDED_MAX`` units."""
+    rng = np.random.default_rng(11)
+    near = np.arange(-20_000, 20_001)
+    wide = rng.integers(-(10**15) + 1, 10**15, 100_000)
+    for places in (6, 3):
+        unit = 10.0**-places
+        jittered = wide + rng.uniform(-0.5, 0.5, wide.size)
+        values = np.concatenate([
+            near * unit, (near + 0.5) * unit, wide * unit, jittered * unit,
+            rng.normal(size=100_000) * 10.0 ** rng.integers(-9, 15 - places, 100_000),
+            [math.nan, math.inf, -math.inf, -0.0, 0.0, -1e-9, 4e-7, -6e-7, 0.5e-6, 2.5e-6],
+        ])  # fmt: skip
+        values = values[~(np.abs(np.rint(values / unit)) >= kernels.ROUNDED_MAX)]
+        names = [f"a{i}" for i in range(len(values))]
+        encoder = pose.WholeBodyEncoder(names, (), (), ())
+        # the angles are rounded to six places, their uncertainties to three: the
+        # numbers under test go where they are rounded as ``places`` says
+        numbers = np.concatenate([values, values]) if places == 6 else \
+            np.concatenate([np.zeros(len(values)), values])  # fmt: skip
+        maps = [orjson.dumps(m) for m in ({}, {}, [], {})]
+        out = np.empty(encoder.capacity, dtype=np.uint8)
+        n = kernels.write_message(numbers, encoder.order, encoder.scale, encoder.places,
+                                  encoder.text, encoder.ends, encoder.slots, 3, 17, *maps,
+                                  out)  # fmt: skip
+        assert n > 0
+        assert out[:n].tobytes() == encoder.encode(3, 17, numbers, {}, {}, [], {}), places
+    big = pose.WholeBodyEncoder(["a"], (), (), ())
+    out = np.empty(big.capacity, dtype=np.uint8)
+    for number in (1e9, -1e9):  # 1e15 units of 1e-6
+        got = kernels.write_message(np.array([number, 0.0]), big.order, big.scale, big.places,
+                                    big.text, big.ends, big.slots, 0, 0, b"{}", b"{}", b"[]",
+                                    b"{}", out)  # fmt: skip
+        assert got == kernels.REFUSED
 
 
 def test_names_are_escaped_and_numbers_written_as_the_frame_does() -> None:

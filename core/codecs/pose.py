@@ -161,6 +161,10 @@ def encode(frame: PoseFrame) -> bytes:
     )
 
 
+#: What a slot of :attr:`WholeBodyEncoder.slots` holds when it is not a number.
+SLOT_SEQ, SLOT_T_NS, SLOT_FLAGS, SLOT_SOURCES, SLOT_STALE, SLOT_REASONS = range(-1, -7, -1)
+
+
 class WholeBodyEncoder:
     """:func:`encode` of whole-body frames whose names are these, byte for byte,
     from the numbers as arrays: no dictionary of the message is built. The
@@ -193,7 +197,7 @@ class WholeBodyEncoder:
         #: where each slot's number sits in ``numbers``, in the message's order
         self.order = np.array(a_rel + seg + jnt + unc, dtype=np.intp)
         # numpy.round(x, d) is rint(x * 10**d) / 10**d: one pass with each slot's 10**d
-        self._scale = np.where(self.order >= at_u, 1e3, 1e6)
+        self.scale = np.where(self.order >= at_u, 1e3, 1e6)
         self._n_first, self._n_segs = len(a_rel), len(a_rel) + len(seg) + len(jnt)
         self.size = at_u + n_a
 
@@ -210,6 +214,34 @@ class WholeBodyEncoder:
             + ',"sources":%s,"stale":%s,"reasons":%s,"unc_deg":' + obj(angles, "%s") + "}"
         )  # fmt: skip
         self._template = text.encode()
+        # the same message laid out for a compiled writer (gateway/kernels.write_message):
+        # the fixed text between the slots, joined, with where each piece ends
+        # (``ends``), and what each slot holds (``slots``): the k-th number of
+        # ``order`` (k >= 0, rounded to ``places``), or a SLOT_* (negative)
+        pieces, piece, i = [], bytearray(), 0
+        template = self._template
+        while i < len(template):
+            if template[i] == 37:  # "%": "%%" is one, "%s" a slot
+                if template[i + 1] == 37:
+                    piece.append(37)
+                else:
+                    pieces.append(bytes(piece))
+                    piece = bytearray()
+                i += 2
+            else:
+                piece.append(template[i])
+                i += 1
+        pieces.append(bytes(piece))
+        self.text = np.frombuffer(b"".join(pieces), dtype=np.uint8).copy()
+        self.ends = np.cumsum([len(p) for p in pieces], dtype=np.int64)
+        first, segs, n = self._n_first, self._n_segs, len(self.order)
+        self.slots = np.array([SLOT_SEQ, SLOT_T_NS, *range(first), SLOT_FLAGS,
+                               *range(first, segs), SLOT_SOURCES, SLOT_STALE, SLOT_REASONS,
+                               *range(segs, n)], dtype=np.int64)  # fmt: skip
+        self.places = np.where(self.order >= at_u, 3, 6).astype(np.int64)
+        #: what the message takes at most besides its four maps: the fixed text, 24
+        #: characters a number ("-123456789.123456" and more) and two integers
+        self.capacity = len(self.text) + 24 * n + 2 * 21
 
     def encode(self, seq: int, t_ns: int, numbers: Any, flags: Mapping[str, str],
                sources: Mapping[str, int], stale: Sequence[str],
@@ -219,9 +251,9 @@ class WholeBodyEncoder:
         if len(numbers) != self.size:
             raise ValueError(f"{len(numbers)} numbers, the message has {self.size}")
         picked = numbers[self.order]
-        picked *= self._scale
+        picked *= self.scale
         np.rint(picked, out=picked)
-        picked /= self._scale
+        picked /= self.scale
         texts = orjson.dumps(picked, option=orjson.OPT_SERIALIZE_NUMPY)[1:-1]
         slots = texts.split(b",")
         first, segs = self._n_first, self._n_segs
