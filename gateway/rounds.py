@@ -18,7 +18,8 @@ period, or less for faster sources), at the phase of its slowest source plus
 that source's jitter, so its :class:`Cadence` tells the worker when the next
 frame may come whole (the earliest such instant seen, a frame on) and
 :func:`next_window` opens a window of polls there; the worker sleeps through
-the rest.
+the rest (:func:`next_poll`: every 0.3 ms in a window of a body whose frames
+come whole at a steady instant, every 1 ms in others').
 
 Pure: the worker tells it when it slept and what the clock says.
 """
@@ -46,6 +47,13 @@ WINDOW_S = 0.1
 #: come (then it is solved when its oldest sample has waited a period, as frames
 #: that never come whole are).
 EARLY_S, EARLY_WIDE_S, LATE_S = 0.0003, 0.0015, 0.004
+#: How often the idle worker looks while a window is open: a ``regular`` body's
+#: frame is expected within a fraction of a millisecond, others' (a bridge's
+#: batches, which a 5 ms window starts at no steady instant; sources at another
+#: rate; a body not yet known) anywhere in several, where looking three times as
+#: often finds the frame a few tenths of a millisecond sooner for a third more of
+#: one body's CPU (docs/benchmarks.md, 2026-12-07).
+POLL_S, POLL_WIDE_S = 0.0003, 0.001
 #: How many of its last intervals a body's cadence looks at (and periods: the
 #: earliest instant of their frames, carried on), and how many intervals it
 #: needs before it is trusted.
@@ -182,3 +190,21 @@ def next_window(now: float, bodies: Iterable[tuple[Cadence, bool]]) -> float:
             return now
         opens = min(opens, start)
     return opens
+
+
+def next_poll(now: float, bodies: Iterable[tuple[Cadence, bool]]) -> float:
+    """When the idle worker next looks for whole frames of ``bodies`` (as for
+    :func:`next_window`): ``POLL_S`` on while the window of a ``regular`` body,
+    or of one whose frames come whole every few milliseconds or not yet at all,
+    is open; ``POLL_WIDE_S`` on while only other bodies' are (or sooner, where
+    one of the first opens), else when the next window opens."""
+    opens, wide = math.inf, False
+    for cadence, unsolved in bodies:
+        start = cadence.window(now, unsolved)
+        if start > now:
+            opens = min(opens, start)
+        elif cadence.regular or cadence.every < 2 * POLL_WIDE_S:
+            return now + POLL_S  # (frames as often as that would merge in wide polls)
+        else:
+            wide = True
+    return min(opens, now + POLL_WIDE_S) if wide else opens

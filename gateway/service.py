@@ -73,7 +73,7 @@ from bodynet.gateway.heading import (
     pose_angles,
     yaw_reset,
 )
-from bodynet.gateway.rounds import Cadence, Rounds, next_window
+from bodynet.gateway.rounds import Cadence, Rounds, next_poll
 from bodynet.gateway.shards import Share
 from bodynet.gateway.solver import (
     STALE_S,
@@ -104,9 +104,9 @@ INTAKE_DEPTH = 1 << 16
 #: Raw keys of subjects another sharing gateway serves, remembered so that their
 #: samples are skipped before decoding (past this many they are still skipped).
 MAX_FOREIGN_KEYS = 1 << 14
-#: How long the idle worker sleeps before it looks again: while samples flow and a
-#: frame may come whole (``rounds.next_window``), and at most.
-IDLE_S, IDLE_QUIET_S = 0.0003, 0.005
+#: How long the idle worker sleeps at most before it looks again (while a frame may
+#: come whole, less: ``rounds.next_poll``).
+IDLE_QUIET_S = 0.005
 #: A sample's time (ns since 1970) is refused (``out_of_range``, counted) before
 #: 1970 or more than this far ahead of the gateway's clock: no host's clock is, and
 #: one such time would date every pose of its body (the newest sample's time). A
@@ -1086,13 +1086,12 @@ class Gateway:
 
     def _idle_until(self, now: float, wake: float, flowing: bool) -> float:
         """Until when the idle worker sleeps: ``wake`` (a body due) at the latest;
-        while samples flow (``flowing``), ``IDLE_S`` while a frame may come whole,
-        else until one may (``rounds.next_window``); ``IDLE_QUIET_S`` at most."""
+        while samples flow (``flowing``), a poll while a frame may come whole, else
+        until one may (``rounds.next_poll``); ``IDLE_QUIET_S`` at most."""
         until = now + IDLE_QUIET_S
         if flowing:
             bodies = ((b.cadence, b.first_new is not None) for b in self._bodies.values())
-            opens = next_window(now, bodies)
-            until = now + IDLE_S if opens <= now else min(opens, until)
+            until = min(next_poll(now, bodies), until)
         return min(until, wake)
 
     def _round(self, now: float, touched: set[_Body]) -> tuple[bool, float]:

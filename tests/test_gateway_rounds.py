@@ -17,11 +17,14 @@ from bodynet.gateway.rounds import (
     EARLY_WIDE_S,
     FRAMES,
     LATE_S,
+    POLL_S,
+    POLL_WIDE_S,
     Cadence,
     Rounds,
+    next_poll,
     next_window,
 )
-from bodynet.gateway.service import IDLE_S, Gateway
+from bodynet.gateway.service import Gateway
 from bodynet.nodes.emulator import BodyEmulator, imu_tags
 from bodynet.nodes.motion import ROUTINES
 
@@ -171,6 +174,38 @@ def test_next_window_opens_around_each_expected_whole_frame() -> None:
     assert next_window(fast.at + 1e-5, [(fast, False)]) == fast.at + 1e-5
 
 
+def test_the_worker_polls_a_steady_frame_closely_and_others_every_millisecond() -> None:
+    """While a ``regular`` body's window is open the worker looks every POLL_S;
+    while only other bodies' are (a bridge's batches come whole at no steady
+    instant), every POLL_WIDE_S, or at a regular body's window if that opens
+    sooner; outside every window, when the next opens."""
+    inf = float("inf")
+    assert next_poll(5.0, []) == inf
+    assert next_poll(5.0, [(Cadence(PERIOD), False)]) == inf
+    assert next_poll(5.0, [(Cadence(PERIOD), True)]) == 5.0 + POLL_S  # never whole yet
+    steady = cadence_of([PERIOD * k for k in range(101)])
+    assert steady.regular
+    assert np.isclose(next_poll(1.001, [(steady, True)]), 1.01 - EARLY_S)  # closed: its start
+    assert next_poll(1.01, [(steady, True)]) == 1.01 + POLL_S
+    rng = np.random.default_rng(5)
+    batched = cadence_of(np.cumsum(rng.uniform(0.006, 0.013, 100)))  # 6-13 ms apart
+    assert not batched.regular
+    at = batched.earliest + batched.every  # when it may come whole next
+    assert batched.window(at, True) == at  # its window is open
+    assert next_poll(at, [(batched, True)]) == at + POLL_WIDE_S
+    # a regular body's window opening sooner than the wide poll
+    opens = at + POLL_WIDE_S / 2
+    soon = cadence_of([opens + EARLY_S - PERIOD * k for k in range(100, 0, -1)])
+    assert soon.regular
+    assert np.isclose(next_poll(at, [(batched, True), (soon, True)]), opens)
+    assert next_poll(opens, [(batched, True), (soon, True)]) == opens + POLL_S
+    # frames every millisecond or two: as closely as a regular body's (wide polls
+    # would merge them)
+    fast = cadence_of([1.0 + k * 0.0015 for k in range(40)])
+    assert not fast.regular
+    assert next_poll(fast.at + 0.0015, [(fast, True)]) == fast.at + 0.0015 + POLL_S
+
+
 def test_a_cadence_polls_from_the_earliest_instant_its_frames_come_whole() -> None:
     """Frames come whole at the phase of the slowest source plus up to a
     millisecond of jitter: the window opens before the earliest of those, not
@@ -266,6 +301,9 @@ def test_the_idle_worker_sleeps_between_whole_frames_and_misses_none(
         session.close()
     assert body.ticks >= 0.97 * frames, (body.ticks, frames)  # the first waits a period
     assert len(delays) >= 0.9 * frames  # nearly every tick a whole frame
-    assert max(delays) <= IDLE_S + 1e-9, max(delays)
+    # within a poll of its last sample: the close one once the cadence is regular
+    assert max(delays) <= POLL_WIDE_S + 1e-9, max(delays)
+    if every == PERIOD:
+        assert max(delays[FRAMES:]) <= POLL_S + 1e-9, max(delays[FRAMES:])
     if wakes_per_tick is not None:
         assert wakes / body.ticks < wakes_per_tick, wakes / body.ticks  # polling: about 33
