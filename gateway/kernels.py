@@ -590,15 +590,10 @@ def _number(out, at, x, scale, places):
     if not math.isfinite(x):
         out[at], out[at + 1], out[at + 2], out[at + 3] = 110, 117, 108, 108  # null
         return at + 4
-    y = x * scale
-    if abs(y) >= ROUNDED_MAX:
+    r = np.rint(x * scale)
+    if abs(r) >= ROUNDED_MAX:
         return REFUSED
-    # numpy's rint (half to even), written out: its scalar call costs more here
-    # than the rest of the number (y + 0.5 is exact below ROUNDED_MAX)
-    r = math.floor(y + 0.5)
-    if r - y == 0.5 and r % 2.0 != 0.0:
-        r -= 1.0
-    if r < 0.0 or (r == 0.0 and math.copysign(1.0, y) < 0.0):  # -0.0, as rint keeps it
+    if r < 0.0 or (r == 0.0 and math.copysign(1.0, r) < 0.0):  # -0.0 too
         out[at] = _MINUS
         at += 1
     k = int(abs(r))
