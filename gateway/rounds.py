@@ -16,10 +16,10 @@ Between rounds the idle worker sleeps; each wake costs a context switch (about
 body's worker. A body's frames come whole as often as its sources deliver (a
 period, or less for faster sources), at the phase of its slowest source plus
 that source's jitter, so its :class:`Cadence` tells the worker when the next
-frame may come whole (the earliest such instant seen, a frame on) and
-:func:`next_window` opens a window of polls there; the worker sleeps through
-the rest (:func:`next_poll`: every 0.3 ms in a window of a body whose frames
-come whole at a steady instant, every 1 ms in others').
+frame may come whole (the earliest such instant seen, a frame on), a window
+of polls opens there (:func:`next_poll`: every 0.3 ms in the window of a body
+whose frames come whole at a steady instant, or every 2 ms or more often;
+every 1 ms in others'), and the worker sleeps through the rest.
 
 Pure: the worker tells it when it slept and what the clock says.
 """
@@ -50,9 +50,9 @@ EARLY_S, EARLY_WIDE_S, LATE_S = 0.0003, 0.0015, 0.004
 #: How often the idle worker looks while a window is open: a ``regular`` body's
 #: frame is expected within a fraction of a millisecond, others' (a bridge's
 #: batches, which a 5 ms window starts at no steady instant; sources at another
-#: rate; a body not yet known) anywhere in several, where looking three times as
-#: often finds the frame a few tenths of a millisecond sooner for a third more of
-#: one body's CPU (docs/benchmarks.md, 2026-12-07).
+#: rate) anywhere in several, where looking every 0.3 ms would find the frame at
+#: most 0.7 ms sooner for some 15% more of one body's CPU (docs/benchmarks.md,
+#: 2026-12-07).
 POLL_S, POLL_WIDE_S = 0.0003, 0.001
 #: How many of its last intervals a body's cadence looks at (and periods: the
 #: earliest instant of their frames, carried on), and how many intervals it
@@ -179,25 +179,13 @@ class Cadence:
         return now if start <= now else start
 
 
-def next_window(now: float, bodies: Iterable[tuple[Cadence, bool]]) -> float:
-    """When the idle worker next has to poll for whole frames: ``now`` while a
-    window of one of ``bodies`` (its cadence, whether it holds unsolved samples;
-    :meth:`Cadence.window`) is open, else when the next opens."""
-    opens = math.inf
-    for cadence, unsolved in bodies:
-        start = cadence.window(now, unsolved)
-        if start <= now:
-            return now
-        opens = min(opens, start)
-    return opens
-
-
 def next_poll(now: float, bodies: Iterable[tuple[Cadence, bool]]) -> float:
-    """When the idle worker next looks for whole frames of ``bodies`` (as for
-    :func:`next_window`): ``POLL_S`` on while the window of a ``regular`` body,
-    or of one whose frames come whole every few milliseconds or not yet at all,
-    is open; ``POLL_WIDE_S`` on while only other bodies' are (or sooner, where
-    one of the first opens), else when the next window opens."""
+    """When the idle worker next looks for whole frames of ``bodies`` (each
+    one's cadence, and whether it holds unsolved samples: :meth:`Cadence.window`):
+    ``POLL_S`` on while the window of a ``regular`` body, or of one whose frames
+    come whole every few milliseconds or not yet at all, is open; ``POLL_WIDE_S``
+    on while only other bodies' are (or sooner, where one of the first opens);
+    else when the next window opens."""
     opens, wide = math.inf, False
     for cadence, unsolved in bodies:
         start = cadence.window(now, unsolved)

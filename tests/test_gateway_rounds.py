@@ -22,7 +22,6 @@ from bodynet.gateway.rounds import (
     Cadence,
     Rounds,
     next_poll,
-    next_window,
 )
 from bodynet.gateway.service import Gateway
 from bodynet.nodes.emulator import BodyEmulator, imu_tags
@@ -148,6 +147,12 @@ def cadence_of(instants: Sequence[float]) -> Cadence:
     for t in instants:
         cadence.whole(t)
     return cadence
+
+
+def next_window(now: float, bodies: Sequence[tuple[Cadence, bool]]) -> float:
+    """When the first of ``bodies``' windows opens (``now`` while one is open)."""
+    return min((cadence.window(now, unsolved) for cadence, unsolved in bodies),
+               default=float("inf"))  # fmt: skip
 
 
 def test_next_window_opens_around_each_expected_whole_frame() -> None:
