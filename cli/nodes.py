@@ -28,7 +28,10 @@ def stop_on_signals() -> threading.Event:
     stop = threading.Event()
 
     def handler(*_: object) -> None:
-        stop.set()
+        # set by another thread: the signal may come while this (the main) thread is
+        # inside ``stop.wait()`` holding the event's lock, which ``stop.set()`` here
+        # would wait on for ever (a service that then never stopped on SIGTERM)
+        threading.Thread(target=stop.set, name="stop", daemon=True).start()
         if is_opening():  # still waiting for the router: nothing to close yet, and
             sys.stdout.flush()  # unwinding while Zenoh's opener thread runs would abort
             sys.stderr.flush()

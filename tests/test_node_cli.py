@@ -238,6 +238,31 @@ def test_emulated_trackers_given_a_server_by_name_stop_on_sigterm() -> None:
     assert "emulated slimevr on localhost:" in first
 
 
+_SIGNAL_IN_WAIT = """
+import os, signal, sys
+from bodynet.cli.nodes import stop_on_signals
+stop = stop_on_signals()
+# the signal comes while this thread holds the event's lock, as it does for a
+# moment inside stop.wait() (CPython's Event: a Condition over a plain Lock)
+with stop._cond:
+    os.kill(os.getpid(), signal.SIGTERM)
+    for _ in range(1000):  # bytecodes: the handler runs between two of them
+        pass
+sys.exit(0 if stop.wait(10) else 3)
+"""
+
+
+def test_sigterm_in_the_middle_of_the_wait_still_stops() -> None:
+    """A service's SIGTERM that comes while its main thread is inside
+    ``stop.wait()`` (emulate, bridge, node: they print that they run, then
+    wait) stops it: the handler sets the event from another thread, not while
+    the lock it would need is held by the thread it interrupted (a hang that
+    CI met once, ``bodynet emulate slimevr`` never ending on SIGTERM)."""
+    done = subprocess.run([sys.executable, "-c", _SIGNAL_IN_WAIT], capture_output=True, check=False,
+                          text=True, timeout=30)  # fmt: skip
+    assert done.returncode == 0, done.stderr
+
+
 def _until_sigterm(*args: object, started: Callable[[], bool] = lambda: True) -> str:
     """Run ``bodynet *args`` until its first line, check ``started``, end it with
     SIGTERM: it exits 0 with no traceback. Its first line."""
