@@ -557,6 +557,15 @@ _PAIRS = np.frombuffer("".join(f"{i:02d}" for i in range(100)).encode(), dtype=n
 _TENS = np.array([10**i for i in range(19)], dtype=np.int64)
 
 
+@_compiled("int64(int64)")
+def _length(k):
+    """How many decimal digits ``k`` (>= 0) has."""
+    n = 1
+    while n < 19 and k >= _TENS[n]:
+        n += 1
+    return n
+
+
 @_compiled(f"int64({_U1}, int64, int64)")
 def _integer(out, at, k):
     """``k``'s decimal digits written at ``out[at:]``; where they end."""
@@ -564,10 +573,7 @@ def _integer(out, at, k):
         out[at] = _MINUS
         at += 1
         k = -k
-    n = 1
-    while n < 19 and k >= _TENS[n]:
-        n += 1
-    end = i = at + n
+    end = i = at + _length(k)
     while k >= 100:
         q = k // 100
         r = 2 * (k - 100 * q)
@@ -604,9 +610,7 @@ def _number(out, at, x, scale, places):
     while k % 10 == 0:
         k //= 10
         exponent += 1
-    n = 1
-    while n < 19 and k >= _TENS[n]:
-        n += 1
+    n = _length(k)
     point = n + exponent  # how many of k's digits come before the decimal point
     if exponent >= 0:  # a whole number: 1500.0
         at = _integer(out, at, k)

@@ -196,8 +196,10 @@ class WholeBodyEncoder:
         unc = [*range(at_u, at_u + n_a)]
         #: where each slot's number sits in ``numbers``, in the message's order
         self.order = np.array(a_rel + seg + jnt + unc, dtype=np.intp)
-        # numpy.round(x, d) is rint(x * 10**d) / 10**d: one pass with each slot's 10**d
-        self.scale = np.where(self.order >= at_u, 1e3, 1e6)
+        # numpy.round(x, d) is rint(x * 10**d) / 10**d: one pass with each slot's 10**d,
+        # d being 6 (micrometres, microdegrees) and 3 for the uncertainties
+        self.places = np.where(self.order >= at_u, 3, 6).astype(np.int64)
+        self.scale = 10.0**self.places
         self._n_first, self._n_segs = len(a_rel), len(a_rel) + len(seg) + len(jnt)
         self.size = at_u + n_a
 
@@ -238,7 +240,6 @@ class WholeBodyEncoder:
         self.slots = np.array([SLOT_SEQ, SLOT_T_NS, *range(first), SLOT_FLAGS,
                                *range(first, segs), SLOT_SOURCES, SLOT_STALE, SLOT_REASONS,
                                *range(segs, n)], dtype=np.int64)  # fmt: skip
-        self.places = np.where(self.order >= at_u, 3, 6).astype(np.int64)
         #: what the message takes at most besides its four maps: the fixed text, 24
         #: characters a number ("-123456789.123456" and more) and two integers
         self.capacity = len(self.text) + 24 * n + 2 * 21
