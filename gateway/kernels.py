@@ -31,12 +31,37 @@ from typing import Any
 import numpy as np
 from numba import njit
 
+from bodynet.core.codecs import raw_sample
 from bodynet.core.codecs.pose import (
     SLOT_FLAGS,
     SLOT_SEQ,
     SLOT_SOURCES,
     SLOT_STALE,
     SLOT_T_NS,
+)
+from bodynet.gateway.columns import (
+    AFTER,
+    ARRIVED,
+    COUNT,
+    ENDED,
+    FRESH,
+    HEAD,
+    KEPT_AT,
+    LEAD,
+    LEFT,
+    NODE,
+    OWED,
+    PENDING,
+    QUAT,
+    READY,
+    ROUND,
+    RUNS,
+    SAMPLES,
+    SEQ,
+    SOURCE,
+    T_NS,
+    UNSOLVED,
+    W,
 )
 
 _DEG, _RAD = 180.0 / math.pi, math.pi / 180.0
@@ -681,3 +706,213 @@ def write_message(numbers, order, scale, places, text, ends, slots, seq, t_ns, f
             out[at + i] = given[i]
         at += len(given)
     return at
+
+
+# --- the intake: samples into a body's rows (gateway/columns.py) --------------------
+_RO = "Array(uint8, 1, 'C', readonly=True)"
+_M0, _M1 = raw_sample.MAGIC
+_QV, _QK, _QLEN = raw_sample.VERSION, raw_sample.KIND_QUAT, raw_sample.QUAT_MESSAGE_LEN
+_BATCH_HEAD = 5  # a batch's magic, version and count (core/codecs/raw_batch.py)
+_ROWS = "int64[:, :]"
+_INTAKE = f"{_ROWS}, {_A2}, {_A3}, {_I1}, float64, int64, int64, float64, float64, float64"
+
+
+@_compiled(f"void({_ROWS}, {_A2}, {_I1}, int64, float64, int64)")
+def _count(ints, floats, tally, row, now, rnd):
+    """A new sample of row ``row`` came in round ``rnd``: the frame's accounting
+    (``_Body``'s), its arrival and its Rhythm's countdown."""
+    tally[SAMPLES] += 1
+    if ints[row, FRESH] == 0:
+        tally[UNSOLVED] += 1
+        ints[row, FRESH] = 1
+    owed = ints[row, OWED]
+    if owed < 2:  # at most 2: see _Body.snapshot
+        if owed == 0:
+            tally[READY] += 1
+        ints[row, OWED] = owed + 1
+    floats[row, ARRIVED] = now
+    ints[row, LEFT] -= 1
+    if ints[row, LEFT] < 0 and ints[row, ENDED] == 0:  # Python ends the run (_Body._taken)
+        ints[row, ENDED] = 1
+        tally[RUNS] += 1
+    ints[row, ROUND] = rnd
+
+
+@_compiled(f"void({_ROWS}, {_A2}, {_A3}, {_I1}, int64, int64, int64, int64, int64, float64, "
+           "float64, float64, float64, float64, int64, float64)")  # fmt: skip
+def take_fields(ints, floats, history, tally, row, node, seq, t_ns, source, w, x, y, z, now, rnd,
+                step_s):  # fmt: skip
+    """A quaternion sample's numbers into row ``row``: counted (``_count``), kept
+    as its latest (PENDING: no sample made of them yet), and in its ring of
+    orientations if ``step_s`` of sample time has passed since the last kept
+    (by the sample's own time: a round's samples all arrive at once)."""
+    _count(ints, floats, tally, row, now, rnd)
+    ints[row, T_NS], ints[row, NODE], ints[row, SEQ], ints[row, SOURCE] = t_ns, node, seq, source
+    ints[row, PENDING], ints[row, QUAT] = 1, 1
+    floats[row, W], floats[row, W + 1], floats[row, W + 2], floats[row, W + 3] = w, x, y, z
+    t = t_ns / 1e9
+    if t - floats[row, KEPT_AT] >= step_s:
+        head = ints[row, HEAD]
+        history[row, head, 0], history[row, head, 1], history[row, head, 2] = t, w, x
+        history[row, head, 3], history[row, head, 4] = y, z
+        ints[row, HEAD] = (head + 1) % history.shape[1]
+        ints[row, COUNT] = min(ints[row, COUNT] + 1, history.shape[1])
+        floats[row, KEPT_AT] = t
+
+
+@_compiled(f"void({_ROWS}, {_A2}, {_I1}, int64, int64, float64, int64)")
+def take_other(ints, floats, tally, row, t_ns, now, rnd):
+    """A sample that is not a quaternion into row ``row``: counted, its time
+    kept (the clock's lead); the sample itself is Python's (``_Body.objects``)."""
+    _count(ints, floats, tally, row, now, rnd)
+    ints[row, T_NS], ints[row, QUAT] = t_ns, 0
+
+
+@_compiled(f"boolean({_RO}, int64, int64, {_INTAKE})")
+def _take_quat(buf, at, row, ints, floats, history, tally, now, rnd, ahead_ns, sq_lo, sq_hi,
+               step_s):  # fmt: skip
+    """The quaternion message at ``buf[at:]`` (``raw_sample.QUAT_MESSAGE_LEN`` bytes)
+    into row ``row`` if ``raw_sample.quat_fields`` would read it and its time is
+    within 0..``ahead_ns``; False (nothing written) for anything else, which
+    Python then decodes or rejects; else ``take_fields``."""
+    if ints[row, QUAT] == 0:
+        return False
+    if (buf[at] != _M0 or buf[at + 1] != _M1 or buf[at + 2] != _QV or buf[at + 3] != _QK
+            or buf[at + _QLEN - 1] != 0):  # fmt: skip
+        return False
+    node = np.int64(buf[at + 6]) | np.int64(buf[at + 7]) << 8
+    t_ns = buf[at + 12 : at + 20].view(np.int64)[0]
+    q = buf[at + 20 : at + 52].view(np.float64)
+    sq = q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]
+    if node == 0 or not (sq_lo <= sq <= sq_hi) or t_ns < 0 or t_ns > ahead_ns:
+        return False
+    seq = np.int64(buf[at + 8 : at + 12].view(np.uint32)[0])
+    take_fields(ints, floats, history, tally, row, node, seq, t_ns, np.int64(buf[at + 4]),
+                q[0], q[1], q[2], q[3], now, rnd, step_s)  # fmt: skip
+    return True
+
+
+#: a deferred message's row, before it (``take_messages``)
+ROW_TAG = 2
+
+
+@_compiled(f"int64({_RO}, int64, {_INTAKE})")
+def take_messages(buf, pos, ints, floats, history, tally, now, rnd, ahead_ns, sq_lo, sq_hi,
+                  step_s):  # fmt: skip
+    """Quaternion messages (``raw_sample.QUAT_MESSAGE_LEN`` bytes each) end to end
+    in ``buf``, each after its row (``ROW_TAG`` bytes, little-endian), from byte
+    ``pos``: each as ``_take_quat``, until one it does not take. Returns where
+    that one's row starts (``len(buf)``: all were taken), for Python to take it
+    and go on after it."""
+    size, step = buf.shape[0], ROW_TAG + _QLEN
+    p = pos
+    while p + step <= size:
+        row = np.int64(buf[p]) | np.int64(buf[p + 1]) << 8
+        if not _take_quat(buf, p + ROW_TAG, row, ints, floats, history, tally, now, rnd,
+                          ahead_ns, sq_lo, sq_hi, step_s):  # fmt: skip
+            return p
+        p += step
+    return p
+
+
+@_compiled(f"int64({_RO}, int64, int64, {_U1}, {_I1}, int64)")
+def _row_of(buf, at, k, keys, ends, n):
+    """The row whose key is ``buf[at:at + k]``, -1 if none."""
+    start = 0
+    for row in range(n):
+        end = ends[row]
+        if end - start == k:
+            i = k - 1  # from the end: keys differ in their site, not in "body/"
+            while i >= 0 and keys[start + i] == buf[at + i]:
+                i -= 1
+            if i < 0:
+                return row
+        start = end
+    return -1
+
+
+@_compiled(f"int64({_RO}, int64, {_U1}, {_I1}, int64, {_INTAKE})")
+def take_batch(buf, pos, keys, ends, n, ints, floats, history, tally, now, rnd, ahead_ns, sq_lo,
+               sq_hi, step_s):  # fmt: skip
+    """A bridge's batch (core/codecs/raw_batch.py) into a body's rows (``keys``
+    and ``ends``: theirs, ``n`` of them), from the entry at byte ``pos``: each
+    entry as ``_take_quat``, until one it does not take (a key with no row
+    yet, or a message that is not a plain quaternion). Returns where that
+    entry starts (``len(buf)``: all were taken), for Python to take it and go
+    on after it; -1 if the batch is not well formed (read from its start,
+    ``pos`` = 5, only), nothing taken then: ``raw_batch.split`` says what is
+    wrong with it."""
+    size = buf.shape[0]
+    if pos == _BATCH_HEAD:
+        if size < _BATCH_HEAD or buf[0] != 66 or buf[1] != 66 or buf[2] != 1:  # b"BB", 1
+            return -1
+        p = _BATCH_HEAD
+        for _ in range(np.int64(buf[3]) | np.int64(buf[4]) << 8):
+            if p >= size:
+                return -1
+            k = np.int64(buf[p])
+            if k == 0 or p + 1 + k + 2 > size:
+                return -1
+            p += 1 + k + 2 + (np.int64(buf[p + 1 + k]) | np.int64(buf[p + 2 + k]) << 8)
+            if p > size:
+                return -1
+        if p != size:
+            return -1
+    p = pos
+    while p < size:
+        k = np.int64(buf[p])
+        at = p + 1 + k + 2
+        m = np.int64(buf[p + 1 + k]) | np.int64(buf[p + 2 + k]) << 8
+        row = _row_of(buf, p + 1, k, keys, ends, n)
+        if row < 0 or m != _QLEN:
+            return p
+        if not _take_quat(buf, at, row, ints, floats, history, tally, now, rnd, ahead_ns, sq_lo,
+                          sq_hi, step_s):  # fmt: skip
+            return p
+        p = at + m
+    return p
+
+
+@_compiled(f"void({_ROWS}, {_A2}, int64, int64, float64)")
+def fold_leads(ints, floats, n, rnd, wall):
+    """The clock lead of each row whose latest sample came in round ``rnd``, which
+    emptied the queues at ``wall`` (s): its time against that, the most so far."""
+    for row in range(n):
+        if ints[row, ROUND] == rnd:
+            lead = ints[row, T_NS] / 1e9 - wall
+            floats[row, LEAD] = max(floats[row, LEAD], lead)
+
+
+@_compiled(f"UniTuple(int64, 2)({_ROWS}, {_A2}, int64, float64, {_U1})")
+def settle_rows(ints, floats, n, now, stale):
+    """A solve takes the rows (``_Body.snapshot``): which are stale (``stale``, 1
+    each; past their Rhythm's ``after_s``), and the frame's accounting carried
+    on (a row owed twice counts for the next frame; a body a whole frame
+    behind starts afresh). Returns the rows ready for the next frame and how
+    many are stale."""
+    behind, n_stale = True, 0
+    for row in range(n):
+        if now - floats[row, ARRIVED] > floats[row, AFTER]:
+            stale[row] = 1
+            n_stale += 1
+        else:
+            stale[row] = 0
+            behind = behind and ints[row, OWED] > 1
+    ready = 0
+    for row in range(n):
+        ints[row, FRESH] = 0
+        owed = ints[row, OWED]
+        if owed:
+            owed = 0 if behind else owed - 1
+            ints[row, OWED] = owed
+            ready += owed
+    return ready, n_stale
+
+
+@_compiled(f"boolean({_ROWS}, {_A2}, int64, float64)")
+def all_delivered(ints, floats, n, now):
+    """Has every row delivered for the next frame, or gone stale?"""
+    for row in range(n):
+        if ints[row, OWED] == 0 and now - floats[row, ARRIVED] <= floats[row, AFTER]:
+            return False
+    return True

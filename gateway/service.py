@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import contextlib
 import gc
+import itertools
 import json
 import logging
 import math
@@ -42,21 +43,26 @@ import queue
 import threading
 import time
 from collections import Counter, deque
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
 import zenoh
 
 from bodynet.core import keys
 from bodynet.core.codecs import pose, raw_batch, raw_sample
+from bodynet.core.codecs._common import _SQ_HI, _SQ_LO
 from bodynet.core.codecs.raw_batch import subject_of_batch
+from bodynet.core.codecs.raw_sample import QUAT_MESSAGE_LEN
 from bodynet.core.errors import DecodeError, Reason, RejectCounts, Rejected
 from bodynet.core.keys import BRANCHES, Branch, Site
 from bodynet.core.messages import OleAccel, Quat, RawSample, source_name
 from bodynet.core.profile import OLE_DOF, mount
 from bodynet.core.subject import Profile, ProfileError, QuatWxyz
+from bodynet.gateway import columns, kernels
 from bodynet.gateway.aside import AsideFits
+from bodynet.gateway.columns import Columns, Frame
 from bodynet.gateway.encoders import (
     EncoderZero,
     states,
@@ -92,6 +98,9 @@ HISTORY_S = 5.0
 #: average a still pose as well as a thousand, and a short history is a short walk
 #: for Python's cyclic collector.
 HISTORY_STEP_S = 0.02
+#: The entries of a site's ring of recent orientations (gateway/columns.py): a step
+#: apart at least, they span the history and a little more.
+HISTORY_DEPTH = math.ceil(HISTORY_S / HISTORY_STEP_S) + 2
 #: A calibration asked before its window has filled waits while a sensor was heard
 #: within this (longer than STALE_S: a loaded machine's sensors and worker lag).
 FILL_HEARD_S = 2.0
@@ -116,8 +125,11 @@ AHEAD_MAX_NS = 366 * 86_400 * 10**9
 #: A source's clock offset (its host's clock minus the gateway's) is the most its
 #: samples' times led their arrival over the last one to two windows of this many
 #: seconds: network delay only delays, so the least delayed sample tells. Only
-#: rounds that emptied the gateway's queues count (``_Round``): a round cut short
-#: took samples that waited in them, which says the gateway is behind, not a clock.
+#: rounds that emptied the gateway's queues count (``Gateway._take_pending``): a
+#: round cut short took samples that waited in them, which says the gateway is
+#: behind, not a clock. Each site's last sample of a round is counted against the
+#: round's end (each arrived before it: against its start, a sample that arrived
+#: during a long round, a loaded gateway's, led by up to the round's length).
 CLOCK_WINDOW_S = 2.0
 #: An offset past this (ms, beyond a LAN's delay) is logged as a warning, once, and
 #: again when it has moved by ``CLOCK_REWARN_MS``.
@@ -127,54 +139,27 @@ CLOCK_WARN_MS, CLOCK_REWARN_MS = 20.0, 100.0
 CLOCK_STEP_MS = 5.0
 
 
-class _Round:
-    """One round of taking samples (``Gateway._take_pending``): the gateway's wall
-    clock (s) when it ended, and whether it emptied the queues. Only then are its
-    sites' last samples fresh, their times against ``wall`` a clock offset. Each
-    sample arrived before the round's end, so a lead counted against it is never
-    more than the sample's own: against the round's start, a sample that arrived
-    during a long round (a loaded gateway's) led by up to the round's length,
-    and a node's clock was said to be ahead that was not."""
-
-    __slots__ = ("drained", "wall")
-
-    def __init__(self, wall: float, drained: bool = False) -> None:
-        self.wall, self.drained = wall, drained
+#: Round numbers (``Gateway._take_pending``; ``_Body.take`` outside one): the
+#: round each site's latest sample came in, for its clock offset (``fold_leads``).
+_ROUNDS = itertools.count(1)
 
 
 class _Site:
-    """What the gateway keeps of one site: its latest sample, and for orientation
-    sensors the recent history (T-pose calibration).
+    """What the gateway keeps of one site besides its row of the body's
+    columns (gateway/columns.py: its latest sample, the frame's accounting, its
+    recent orientations for T-pose calibration, its clock's lead): its
+    Rhythm, the clock offset shown, and a SmartSuit module's encoder."""
 
-    The latest sample of a quaternion message is kept as its numbers
-    (``fields``) and made a :class:`RawSample` only when read: most samples are
-    superseded before a solve reads them when the gateway is busy."""
-
-    __slots__ = ("_sample", "arrived", "counts", "fields", "fresh", "history", "kept_at",
-                 "lead", "lead_before", "offset_ms", "owed", "rhythm", "round",
+    __slots__ = ("body", "counts", "lead_before", "offset_ms", "rhythm", "row", "tag",
                  "warned_ms", "zero")  # fmt: skip
 
-    def __init__(self, sample: RawSample, arrived: float) -> None:
-        self._sample: RawSample | None = sample
-        self.fields: raw_sample.QuatFields | None = None  # the latest, not read yet
-        self.arrived = arrived  # monotonic
+    def __init__(self, body: _Body, row: int) -> None:
+        self.body, self.row = body, row
+        self.tag = row.to_bytes(kernels.ROW_TAG, "little")  # before its deferred messages
         self.rhythm = Rhythm()  # its usual interval between arrivals: when it is stale
-        self.fresh = False  # not yet in a solved tick
-        # how many of the body's frames this site has delivered for, counted from the
-        # last solve (at most 2): a sample taken before a solve that the frame being
-        # solved did not need counts for the next one (see _Body.snapshot)
-        self.owed = 0
-        # (arrival, w, x, y, z): tuples of floats only, which Python's cyclic collector
-        # stops tracking, so seconds of history do not lengthen its full passes
-        self.history: deque[tuple[float, float, float, float, float]] | None = None
-        # the sample time of the history's last entry, beside it: every sample asks,
-        # and a field of this record is at hand where the history's last tuple is not
-        self.kept_at = -math.inf
-        # the most a sample's time has led its arrival (s, the gateway's wall clock) in
-        # this window of CLOCK_WINDOW_S and in the one before: the clock offset
-        self.lead = self.lead_before = -math.inf
-        # the round its latest sample came in, not yet in ``lead`` (see fold_lead)
-        self.round: _Round | None = None
+        # the most a sample's time led its arrival in the window before this one (this
+        # window's is the row's LEAD; see _Body.clock_check)
+        self.lead_before = -math.inf
         self.offset_ms: float | None = None  # the offset shown (see _Body.clock_check)
         self.warned_ms: float | None = None  # the offset last warned of
         # a SmartSuit module's: its encoder's zero (shared with the solver) and its
@@ -182,27 +167,39 @@ class _Site:
         self.zero: EncoderZero | None = None
         self.counts: deque[tuple[float, int]] | None = None
 
-    def fold_lead(self) -> None:
-        """Count the lead of the latest sample (the last its round took: the least
-        delayed) into ``lead`` if its round emptied the queues; called before the
-        next round's first sample replaces it, and by ``_Body.clock_check``."""
-        rnd, self.round = self.round, None
-        if rnd is not None and rnd.drained:
-            fields = self.fields
-            t_ns = fields[2] if fields is not None else self._sample.t_ns  # type: ignore[union-attr]
-            if (lead := t_ns / 1e9 - rnd.wall) > self.lead:
-                self.lead = lead
-
     @property
     def sample(self) -> RawSample:
         """The site's latest sample."""
-        if self.fields is not None:
-            self._sample, self.fields = raw_sample.of_fields(self.fields), None
-        return self._sample  # type: ignore[return-value]
+        return self.body.sample(self.row)
 
-    @sample.setter
-    def sample(self, sample: RawSample) -> None:
-        self._sample, self.fields = sample, None
+    @property
+    def arrived(self) -> float:
+        """When its latest sample came (monotonic)."""
+        return float(self.body.columns.floats[self.row, columns.ARRIVED])
+
+    @property
+    def owed(self) -> int:
+        """How many of the body's frames it has delivered for since the last solve."""
+        return int(self.body.columns.ints[self.row, columns.OWED])
+
+    @property
+    def lead(self) -> float:
+        """The most its samples' times led their arrival in this clock window (s)."""
+        return float(self.body.columns.floats[self.row, columns.LEAD])
+
+    @lead.setter
+    def lead(self, lead: float) -> None:
+        self.body.columns.floats[self.row, columns.LEAD] = lead
+
+    @property
+    def history(self) -> list[tuple[float, float, float, float, float]] | None:
+        """Its recent orientations, (sample time s, w, x, y, z) every
+        ``HISTORY_STEP_S`` over ``HISTORY_S``, oldest first; None if it never
+        delivered one."""
+        cols = self.body.columns
+        if not cols.ints[self.row, columns.COUNT]:
+            return None
+        return cols.recent(self.row, HISTORY_S)
 
 
 class _Body:
@@ -225,7 +222,21 @@ class _Body:
         # the tags' heading: known, or being found; then held against drift
         self.heading = BodyHeading(profile, fits)
         self.last_output: BodyOutput | None = None
+        # each site's row of columns (gateway/columns.py), and beside them, by row: its
+        # site and raw key, its latest reading's type, and its latest sample where one
+        # was made (not a plain quaternion, or one read: see sample())
+        self.columns = Columns(HISTORY_DEPTH)
         self.latest: dict[Site, _Site] = {}
+        self.rows: dict[Site, int] = {}
+        self.sites: tuple[Site, ...] = ()
+        self.keys: list[str] = []
+        self.key_rows: dict[str, int] = {}
+        self.kinds: list[type] = []
+        self.objects: list[RawSample] = []
+        self.site_rows: list[_Site] = []
+        # a round's plain messages, each after its row's tag, taken at its end
+        # (take_deferred)
+        self.inbox: list[bytes] = []
         self.alive: set[str] = set()
         # keys whose token went away -> when (monotonic): stale until a sample comes
         # after that with the token back (a node declares it just before its first
@@ -234,10 +245,7 @@ class _Body:
         self.unassigned: set[str] = set()  # trackers streaming with no site yet
         self.published_stale: set[str] = set()
         self.topology_text = ""
-        self.samples = 0
         self.ticks = 0
-        self.unsolved_sites = 0  # sites whose latest sample is not in a solved tick yet
-        self.ready_sites = 0  # sites that have delivered for the next frame (owed)
         self.first_new: float | None = None  # when the oldest unsolved sample came
         self.cadence = Cadence(period_s)  # when its frames come whole (monotonic)
         self.next_housekeeping = 0.0  # monotonic: when its topology and health go out next
@@ -264,42 +272,136 @@ class _Body:
             # meanwhile (a subscriber arriving): that one stands
             self.matching.setdefault(view, pub.matching_status.matching)
 
+    @property
+    def samples(self) -> int:
+        """Samples taken."""
+        return int(self.columns.tally[columns.SAMPLES])
+
+    @property
+    def unsolved_sites(self) -> int:
+        """Sites whose latest sample is not in a solved tick yet."""
+        return int(self.columns.tally[columns.UNSOLVED])
+
+    @property
+    def ready_sites(self) -> int:
+        """Sites that have delivered for the next frame (see :meth:`snapshot`)."""
+        return int(self.columns.tally[columns.READY])
+
     def take(self, site: Site, sample: RawSample, now: float, wall: float | None = None,
-             rnd: _Round | None = None) -> _Site:  # fmt: skip
+             rnd: int | None = None) -> _Site:  # fmt: skip
         """Keep a sample as its site's latest (and, for T-pose, in its recent
-        history of ``HISTORY_S``, trimmed as it grows: a second's trim of every
-        site at once took milliseconds at twenty bodies, a stall every pose
-        behind it felt). Returns the site's record, for :meth:`take_into`.
-        ``now`` is the monotonic clock; ``rnd`` the round that took it, else
-        ``wall`` the wall clock (s; now if None) when it was taken, a round of its
-        own."""
+        history of ``HISTORY_S``). Returns the site's record, for
+        :meth:`take_into`. ``now`` is the monotonic clock; ``rnd`` the round
+        that took it (``_ROUNDS``), else ``wall`` the wall clock (s; now if
+        None) when it was taken, a round of its own."""
         kept = self.latest.get(site)
         if kept is None:
-            kept = self.latest[site] = _Site(sample, now)
+            row = self.columns.add(site.raw_key, STALE_S)
+            kept = self.latest[site] = _Site(self, row)
+            self.rows[site] = row
+            self.sites = (*self.sites, site)
+            self.keys.append(site.raw_key)
+            self.key_rows[site.raw_key] = row
+            self.kinds.append(type(sample.reading))
+            self.objects.append(sample)
+            self.site_rows.append(kept)
             if type(sample.reading) is OleAccel and site.name in OLE_DOF:
                 kept.zero = self.encoders[site.raw_key] = EncoderZero()
                 kept.counts = deque()
         if rnd is None:
-            rnd = _Round(time.time() if wall is None else wall, drained=True)
-        self.take_into(kept, sample, now, rnd)
+            rnd = next(_ROUNDS)
+            self.take_into(kept, sample, now, rnd)
+            self.fold_leads(rnd, time.time() if wall is None else wall)
+        else:
+            self.take_into(kept, sample, now, rnd)
         return kept
 
-    def take_into(self, kept: _Site, sample: RawSample, now: float, rnd: _Round) -> None:
+    def take_into(self, kept: _Site, sample: RawSample, now: float, rnd: int) -> None:
         """:meth:`take` for a site whose record the caller holds (a key's first
-        sample, and samples that are not plain quaternion messages)."""
-        reading = sample.reading
-        if type(reading) is Quat:
+        sample, and samples that are not plain quaternion messages, which the
+        compiled intake takes: :meth:`take_batch`, :meth:`take_deferred`)."""
+        cols, row, reading = self.columns, kept.row, sample.reading
+        kind = type(reading)
+        if kind is Quat:
             w, x, y, z = reading.wxyz
-            fields = (reading.node, sample.seq, sample.t_ns, int(sample.source), w, x, y, z)
-            self.take_fields(kept, fields, now, rnd)
+            kernels.take_fields(cols.ints, cols.floats, cols.history, cols.tally, row,
+                                reading.node, sample.seq, sample.t_ns, int(sample.source),
+                                w, x, y, z, now, rnd, HISTORY_STEP_S)  # fmt: skip
         else:
-            self._count(kept, now)
-            if kept.round is not rnd:
-                kept.fold_lead()
-                kept.round = rnd
-            if kept.zero is not None and type(reading) is OleAccel:
+            kernels.take_other(cols.ints, cols.floats, cols.tally, row, sample.t_ns, now, rnd)
+            if kept.zero is not None and kind is OleAccel:
                 self._encoder(kept, kept.zero, sample)
-        kept.sample = sample  # as it came (with a quaternion's extra bytes)
+        cols.ints[row, columns.PENDING] = 0
+        self.objects[row] = sample  # as it came (with a quaternion's extra bytes)
+        self.kinds[row] = kind
+        self._taken(now)
+
+    def take_batch(self, batch: np.ndarray, pos: int, now: float, rnd: int, ahead_ns: int) -> int:
+        """A bridge's batch for this body (its bytes), from the entry at ``pos``,
+        in one compiled call (``kernels.take_batch``): where it stopped (the
+        batch's length: at its end), -1 if it is not well formed."""
+        cols = self.columns
+        end = kernels.take_batch(batch, pos, cols.keys, cols.ends, cols.n, cols.ints, cols.floats,
+                                 cols.history, cols.tally, now, rnd, ahead_ns, _SQ_LO, _SQ_HI,
+                                 HISTORY_STEP_S)  # fmt: skip
+        if end > pos:
+            self._taken(now)
+        return end
+
+    def defer(self, kept: _Site, message: bytes) -> None:
+        """A message of ``raw_sample.QUAT_MESSAGE_LEN`` bytes that came on
+        ``kept``'s key, for :meth:`take_deferred`."""
+        self.inbox += (kept.tag, message)
+
+    def take_deferred(self, now: float, rnd: int, ahead_ns: int) -> Iterator[tuple[_Site, bytes]]:
+        """The messages deferred this round (:meth:`defer`), in the order they
+        came: the plain quaternion messages taken in one compiled call
+        (``kernels.take_messages``), each other one yielded for the caller to
+        take (decode or reject) before the call goes on after it."""
+        inbox, self.inbox = self.inbox, []
+        buf = np.frombuffer(b"".join(inbox), np.uint8)
+        cols, pos, taken = self.columns, 0, False
+        while True:
+            stop = kernels.take_messages(buf, pos, cols.ints, cols.floats, cols.history,
+                                         cols.tally, now, rnd, ahead_ns, _SQ_LO, _SQ_HI,
+                                         HISTORY_STEP_S)  # fmt: skip
+            taken = taken or stop > pos
+            if stop == len(buf):
+                break
+            index = 2 * (stop // (kernels.ROW_TAG + QUAT_MESSAGE_LEN))
+            yield self.site_rows[int.from_bytes(inbox[index], "little")], inbox[index + 1]
+            pos = stop + kernels.ROW_TAG + QUAT_MESSAGE_LEN
+        if taken:
+            self._taken(now)
+
+    def _taken(self, now: float) -> None:
+        """Samples came: the frame's clock, and the runs of Rhythm they ended."""
+        if self.first_new is None:
+            self.first_new = now
+        cols = self.columns
+        if cols.tally[columns.RUNS]:
+            cols.tally[columns.RUNS] = 0
+            ints, floats = cols.ints, cols.floats
+            for row in np.flatnonzero(ints[: cols.n, columns.ENDED]).tolist():
+                rhythm = self.site_rows[row].rhythm
+                past = -1 - int(ints[row, columns.LEFT])  # samples taken after it ended
+                rhythm.end_run(now)
+                ints[row, columns.LEFT] = max(rhythm.left - past, 0)
+                ints[row, columns.ENDED] = 0
+                floats[row, columns.AFTER] = rhythm.after_s
+
+    def fold_leads(self, rnd: int, wall: float) -> None:
+        """Round ``rnd`` emptied the queues at ``wall``: its samples' clock leads."""
+        cols = self.columns
+        kernels.fold_leads(cols.ints, cols.floats, cols.n, rnd, wall)
+
+    def sample(self, row: int) -> RawSample:
+        """Row ``row``'s latest sample (made once read)."""
+        cols = self.columns
+        if cols.ints[row, columns.PENDING]:
+            self.objects[row] = cols.made(row)
+            cols.ints[row, columns.PENDING] = 0
+        return self.objects[row]
 
     def _encoder(self, kept: _Site, zero: EncoderZero, sample: RawSample) -> None:
         """A module's sample: one its bridge flagged ``RESUMED`` loses its encoder's
@@ -319,65 +421,25 @@ class _Body:
             while t - counts[0][0] > HISTORY_S:
                 counts.popleft()
 
-    def take_fields(self, kept: _Site, fields: raw_sample.QuatFields, now: float,
-                    rnd: _Round) -> None:  # fmt: skip
-        """:meth:`take_into` for a quaternion message's numbers
-        (:func:`raw_sample.quat_fields`), on every IMU sample's path: the sample is
-        made only when read (``_Site.sample``). ``rnd``: the round that took it,
-        for the clock offset."""
-        self._count(kept, now)
-        # the clock offset: the previous round's last sample, once a round (a compare
-        # a sample, not a max: this runs for every sample)
-        if kept.round is not rnd:
-            kept.fold_lead()
-            kept.round = rnd
-        kept.fields = fields
-        # kept by the sample's own time: the worker takes samples in rounds, and
-        # by arrival a round's samples would all have one time (one kept a round)
-        t = fields[2] / 1e9
-        if t - kept.kept_at >= HISTORY_STEP_S:
-            hist = kept.history
-            if hist is None:
-                hist = kept.history = deque()
-            hist.append((t, *fields[4:]))
-            kept.kept_at = t
-            while t - hist[0][0] > HISTORY_S:
-                hist.popleft()
-
-    def _count(self, kept: _Site, now: float) -> None:
-        """A new sample of ``kept``'s site came: the frame's accounting."""
-        self.samples += 1
-        if not kept.fresh:
-            self.unsolved_sites += 1
-            kept.fresh = True
-        owed = kept.owed
-        if owed < 2:
-            if not owed:
-                self.ready_sites += 1
-            kept.owed = owed + 1
-        kept.arrived = now
-        rhythm = kept.rhythm  # Rhythm.seen(now), written out: every sample comes here
-        rhythm.left -= 1
-        if rhythm.left < 0:
-            rhythm.end_run(now)
-        if self.first_new is None:
-            self.first_new = now
-
     def frame_complete(self, now: float) -> bool:
         """Has every site that is not stale delivered for the next frame (and every
         node whose token is up delivered at all), with something new since the last
         solve?"""
-        if len(self.alive) > len(self.latest) or not self.ticks or not self.unsolved_sites:
+        cols = self.columns
+        tally = cols.tally
+        if len(self.alive) > cols.n or not self.ticks or not tally[columns.UNSOLVED]:
             return False  # a node's first sample is on its way; a new body waits a period
-        if self.ready_sites < len(self.latest) - len(self.published_stale):
+        if tally[columns.READY] < cols.n - len(self.published_stale):
             return False  # some live site has not delivered yet: the common, cheap answer
-        return all(v.owed or now - v.arrived > v.rhythm.after_s for v in self.latest.values())
+        return bool(kernels.all_delivered(cols.ints, cols.floats, cols.n, now))
 
     def newly_stale(self, now: float) -> bool:
-        return any(now - v.arrived > v.rhythm.after_s and s.raw_key not in self.published_stale
-                   for s, v in self.latest.items())  # fmt: skip
+        cols = self.columns
+        floats = cols.floats[: cols.n]
+        stale = np.flatnonzero(now - floats[:, columns.ARRIVED] > floats[:, columns.AFTER])
+        return any(self.keys[row] not in self.published_stale for row in stale.tolist())
 
-    def snapshot(self, now: float) -> tuple[dict[Site, RawSample], list[str], BodySolver]:
+    def snapshot(self, now: float) -> tuple[Frame, list[str], BodySolver]:
         """What the next solve needs; marks every sample as used.
 
         The solve takes each site's newest sample. Where a site delivered twice
@@ -386,33 +448,31 @@ class _Body:
         next frame is whole when the others deliver again, not a period after
         that site's next sample (which cost one tick in three at twenty
         unsynchronised bodies). A body a whole frame behind starts afresh."""
-        latest: dict[Site, RawSample] = {}
-        stale, behind, gone = [], True, self.gone
-        for site, s in self.latest.items():
-            latest[site] = s.sample
-            if now - s.arrived > s.rhythm.after_s:  # a few of its usual intervals
-                stale.append(site.raw_key)
-            else:
-                behind = behind and s.owed > 1
-                if gone and (went := gone.get(site.raw_key)) is not None:
-                    if s.arrived > went and site.raw_key in self.alive:
-                        del gone[site.raw_key]  # back, and heard from since
-                    else:
-                        stale.append(site.raw_key)
-        ready = 0
-        for s in self.latest.values():
-            s.fresh = False
-            if s.owed:
-                s.owed = 0 if behind else s.owed - 1
-                ready += s.owed
-        self.unsolved_sites = 0
-        self.ready_sites = ready
+        cols = self.columns
+        n = cols.n
+        frame = Frame(self.sites, self.rows, tuple(self.kinds), cols.ints[:n].copy(),
+                      cols.floats[:n].copy(), self.objects.copy())  # fmt: skip
+        # stale: past a few of its usual intervals (in cols.flags)
+        ready, n_stale = kernels.settle_rows(cols.ints, cols.floats, n, now, cols.flags)
+        stale = [self.keys[row] for row in np.flatnonzero(cols.flags[:n]).tolist()] \
+            if n_stale else []  # fmt: skip
+        if gone := self.gone:
+            for key, went in list(gone.items()):
+                row = self.key_rows.get(key)
+                if row is None or cols.flags[row]:
+                    continue
+                if cols.floats[row, columns.ARRIVED] > went and key in self.alive:
+                    del gone[key]  # back, and heard from since
+                else:
+                    stale.append(key)
+        cols.tally[columns.UNSOLVED] = 0
+        cols.tally[columns.READY] = ready
         stale.sort()
         self.published_stale = set(stale)
         self.first_new = None
         self.solver.expect(self.alive)
         self.solver.set_stale(stale)
-        return latest, stale, self.solver
+        return frame, stale, self.solver
 
     def listened(self) -> tuple[bool, list[Branch]]:
         """Whether anyone subscribes to the whole body, and to which branch views:
@@ -469,7 +529,6 @@ class _Body:
             self.clock_window_end = now + CLOCK_WINDOW_S
         out = []
         for site, kept in self.latest.items():
-            kept.fold_lead()
             lead = max(kept.lead, kept.lead_before)
             if roll:
                 kept.lead_before, kept.lead = kept.lead, -math.inf
@@ -611,6 +670,7 @@ class Gateway:
         self._lock = threading.RLock()
         self._bodies: dict[str | None, _Body] = {}
         self._routes: dict[str, tuple[_Body, _Site]] = {}  # raw key -> where its samples go
+        self._batch_bodies: dict[str, _Body] = {}  # a batch's key -> its subject's body
         # each routed raw key declared to Zenoh, which then routes its samples by the
         # declaration instead of matching the key's text against every declaration of
         # this session, sample by sample (8% of the gateway's CPU at twenty bodies)
@@ -671,9 +731,8 @@ class Gateway:
         period ran out first (samples may still be waiting)."""
         taken, touched = 0, set()
         until = now + self.period_s  # a flood (of garbage, say) still leaves time to solve
-        routes, foreign = self._routes, self._foreign
-        quat_fields = raw_sample.quat_fields
-        rnd = _Round(math.inf)  # the arrival time of its samples (its end), for the clock offset
+        routes, foreign, batches = self._routes, self._foreign, self._batch_bodies
+        rnd = next(_ROUNDS)  # the round its samples came in, for the clock offset
         ahead = time.time_ns() + AHEAD_MAX_NS  # the latest sample time taken
         with self._lock:
             for sub in self._subs:
@@ -688,35 +747,72 @@ class Gateway:
                         continue
                     payload = sample.payload.to_bytes()
                     if route is not None:
-                        fields = quat_fields(payload)
-                        # the common case: no RawSample made
-                        if fields is not None and 0 <= fields[2] <= ahead:
-                            route[0].take_fields(route[1], fields, now, rnd)
-                            touched.add(route[0])
+                        body = route[0]
+                        touched.add(body)
+                        if len(payload) == QUAT_MESSAGE_LEN:  # the common case: at the end
+                            body.defer(route[1], payload)
                             continue
-                    elif subject_of_batch(key) is not None:
-                        for entry in raw_batch.split(key, payload):
-                            if isinstance(entry, Rejected):
-                                self.rejected[entry.reason] += 1
-                                continue
-                            k, message = entry
-                            route = routes.get(k)
-                            if (route is not None and (fields := quat_fields(message)) is not None
-                                    and 0 <= fields[2] <= ahead):  # fmt: skip
-                                route[0].take_fields(route[1], fields, now, rnd)
-                                touched.add(route[0])
-                            else:
-                                self._take_one(k, message, route, now, rnd, touched)
+                        if body.inbox:  # the samples before it first
+                            self._take_deferred(body, now, rnd, ahead)
+                        self._take_one(key, payload, route, now, rnd, touched)
                         continue
-                    self._take_one(key, payload, route, now, rnd, touched)
+                    if (body := batches.get(key)) is not None:
+                        self._take_batch(key, payload, body, now, rnd, ahead, touched)
+                        continue
+                    if subject_of_batch(key) is not None:
+                        self._take_entries(key, raw_batch.split(key, payload), now, rnd, touched)
+                        continue
+                    self._take_one(key, payload, None, now, rnd, touched)
+            for body in touched:
+                if body.inbox:
+                    self._take_deferred(body, now, rnd, ahead)
         # the loops stop at an empty queue, or on a 256th sample past the period
         more = not taken % 256 and time.monotonic() >= until
-        rnd.wall = time.time()
-        rnd.drained = not more
+        if not more:
+            wall = time.time()
+            for body in touched:
+                body.fold_leads(rnd, wall)
         return taken, touched, more
 
+    def _take_batch(self, key: str, payload: bytes, body: _Body, now: float, rnd: int,
+                    ahead: int, touched: set[_Body]) -> None:  # fmt: skip
+        """A bridge's batch for ``body``: its plain quaternion messages in one
+        compiled call each run of them (``_Body.take_batch``), any other entry
+        as a sample on its own key; a batch that is not well formed as
+        ``raw_batch.split`` says."""
+        if body.inbox:  # its samples that came before, first
+            self._take_deferred(body, now, rnd, ahead)
+        batch = np.frombuffer(payload, np.uint8)
+        pos = raw_batch.HEADER_LEN
+        while (end := body.take_batch(batch, pos, now, rnd, ahead)) < len(payload):
+            if end < 0:
+                self._take_entries(key, raw_batch.split(key, payload), now, rnd, touched)
+                return
+            entry, pos = raw_batch.entry_at(payload, end, body.prefix)
+            self._take_entries(key, [entry], now, rnd, touched)
+        touched.add(body)
+
+    def _take_deferred(self, body: _Body, now: float, rnd: int, ahead: int) -> None:
+        """``body``'s samples of this round (``_Body.take_deferred``): those the
+        compiled intake does not take, one by one here."""
+        for kept, message in body.take_deferred(now, rnd, ahead):
+            self._take_one(body.keys[kept.row], message, (body, kept), now, rnd, set())
+
+    def _take_entries(self, key: str, entries: list[raw_batch.Entry | Rejected], now: float,
+                      rnd: int, touched: set[_Body]) -> None:  # fmt: skip
+        """A batch's entries (``raw_batch.split``) taken one by one; the body they
+        went to remembered for the batch's next ones (``_take_batch``)."""
+        for entry in entries:
+            if isinstance(entry, Rejected):
+                self.rejected[entry.reason] += 1
+                continue
+            k, message = entry
+            self._take_one(k, message, self._routes.get(k), now, rnd, touched)
+            if key not in self._batch_bodies and (route := self._routes.get(k)) is not None:
+                self._batch_bodies[key] = route[0]
+
     def _take_one(self, key: str, payload: bytes, route: tuple[_Body, _Site] | None,
-                  now: float, rnd: _Round, touched: set[_Body]) -> None:  # fmt: skip
+                  now: float, rnd: int, touched: set[_Body]) -> None:  # fmt: skip
         """Take one raw sample that came on ``key`` (``route``: where its key's
         samples go, if known): decoded and kept, or counted as a rejection, or
         passed over (a subject another gateway serves; a branch this one does not,
@@ -809,6 +905,8 @@ class Gateway:
                         del self._routes[key]
                         if (declared := self._declared.pop(key, None)) is not None:
                             self.session.undeclare(declared)
+                    for key in [k for k, b in self._batch_bodies.items() if b is body]:
+                        del self._batch_bodies[key]
                     body.close()
                     log.info("gateway: subject %s is now another gateway's", subject)
             self._foreign.clear()

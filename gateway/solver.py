@@ -77,6 +77,7 @@ from bodynet.core.profile import OLE_DOF, mount
 from bodynet.core.skeleton import CALIBRATION_POSES, TPOSE, Joint, build_skeleton, part, rom
 from bodynet.core.subject import Profile, QuatWxyz
 from bodynet.gateway import kernels
+from bodynet.gateway.columns import SOURCE, T_NS, Frame, W
 from bodynet.gateway.encoders import EncoderZero
 from bodynet.kinematics.model import BodyModel, accel_axes
 
@@ -174,7 +175,9 @@ ALIGN_CHANGE_PER_S = 12.0
 ALIGN_RATE_MAX_DEG_S = 1000.0
 #: ``STAMP_SPREAD_S`` by source id, in ns: what a sample stamped on its arrival
 #: states for the time it may have been taken before (kernels.align_quats)
-_SPREAD_NS = {int(source): spread * 1e9 for source, spread in STAMP_SPREAD_S.items()}
+_SPREAD_BY_SOURCE = np.zeros(256)  # by source id (a byte)
+for _source, _spread in STAMP_SPREAD_S.items():
+    _SPREAD_BY_SOURCE[_source] = _spread * 1e9
 #: A sample with no rate of its own (a sensor's first, or the first after a gap
 #: over ``ALIGN_SPAN_NS``) states its age at the sensor's recent rate: the fastest
 #: of its turns, each forgotten over this long (s; a gait cycle), else
@@ -766,9 +769,9 @@ class _Sorted:
     tenth of a hot solve)."""
 
     __slots__ = ("flagged", "held", "keys", "kinds", "lefts", "modules", "mounts", "pelvis",
-                 "plan", "quats", "reasons", "recent", "scatter", "scatter_rad", "segs", "sites",
-                 "stale", "stale_modules", "stale_segs", "tainted", "times", "uncal", "unknown",
-                 "upright", "used")  # fmt: skip
+                 "plan", "quats", "reasons", "recent", "rows", "scatter", "scatter_rad", "segs",
+                 "sites", "stale", "stale_modules", "stale_segs", "tainted", "times", "uncal",
+                 "unknown", "upright", "used")  # fmt: skip
 
     def __init__(self, sites: tuple[Site, ...], kinds: tuple[type, ...],
                  stale: frozenset[str]) -> None:  # fmt: skip
@@ -781,6 +784,7 @@ class _Sorted:
         self.used: list[Site] = []  # the orientation sensors of ``segs``, in that order
         self.scatter: list[float] = []  # and each one's in calibration (deg, 0: not known)
         self.quats: list[int] = []  # where their samples are among the tick's
+        self.rows = _NO_ROWS  # the same, an array
         self.unknown: set[str] = set()  # segments whose sensor's heading is not known
         self.uncal: set[str] = set()  # segments whose orientation sensor has no mount yet
         self.modules: list[tuple[str, int]] = []  # SmartSuit modules: segment, sample
@@ -1038,33 +1042,34 @@ class BodySolver:
         return first._outputs(ticks, angles, segments, roots)
 
     def _gather(self, samples: Mapping[Site, RawSample]) -> _Tick:
-        """A new tick of this body: its samples sorted by kind, against its last angles."""
-        values = list(samples.values())
-        sites, kinds = tuple(samples), tuple([type(s.reading) for s in values])
+        """A new tick of this body: its samples sorted by kind, against its last
+        angles. The gateway's are a :class:`Frame` already (arrays, no sample
+        read); other mappings are made one."""
+        frame = Frame.of(samples)
+        sites, kinds = frame.sites, frame.kinds
         sort = self._sorted
-        if sort is None or sort.sites != sites or sort.kinds != kinds or \
-                sort.stale is not self._stale or self._resort:  # fmt: skip
+        if sort is None or (sort.sites is not sites and sort.sites != sites) or \
+                sort.kinds != kinds or sort.stale is not self._stale or self._resort:  # fmt: skip
             sort = self._sorted = self._sort(sites, kinds)
             self._resort = False
         tick = _Tick(self, self._memory.last, sort)
-        times = [s.t_ns for s in values]
-        tick.sources = dict(zip(sort.keys, times, strict=True))
-        tick.t_ns = t_ns = max(max(times, default=0), 0)
+        times = frame.ints[:, T_NS]
+        tick.sources = dict(zip(sort.keys, times.tolist(), strict=True))
+        tick.t_ns = t_ns = max(int(times.max()) if len(times) else 0, 0)
         if self._memory.first_t_ns == -1:
             self._memory.first_t_ns = t_ns
-        tick.modules = {seg: (sites[i], values[i].reading)  # type: ignore[misc]
+        tick.modules = {seg: (sites[i], frame.reading(i).reading)  # type: ignore[misc]
                         for seg, i in sort.modules}  # fmt: skip
         if sort.segs:
             # each orientation turned on at its own rate to the tick's time: tags on
             # timers of their own sample up to a period apart, and a shank turning at
             # 350 deg/s against its thigh's sample 15 ms older is 5 deg off
+            rows = sort.rows
             tick.quats, tick.residual, tick.segments = kernels.aligned_segments(
-                np.array([values[i].reading.wxyz for i in sort.quats], dtype=float),  # type: ignore[union-attr]
-                np.array([times[i] for i in sort.quats], dtype=np.int64), t_ns, sort.times,
+                frame.floats[rows, W : W + 4], times[rows], t_ns, sort.times,
                 sort.held, sort.recent, sort.scatter_rad, ALIGN_SPAN_NS, ALIGN_AHEAD_NS,
                 ALIGN_CHANGE_PER_S, ALIGN_RATE_MAX_DEG_S, ALIGN_RATE_MEMORY_S,
-                np.array([_SPREAD_NS.get(values[i].source, 0.0) for i in sort.quats]),
-                sort.lefts, sort.mounts,
+                _SPREAD_BY_SOURCE[frame.ints[rows, SOURCE]], sort.lefts, sort.mounts,
             )  # fmt: skip
             self._memory.expected.update(sort.segs)
         return tick
@@ -1106,6 +1111,7 @@ class BodySolver:
                     upright.add(joint.child)
             sorted_.upright = frozenset(upright)
         if sorted_.segs:
+            sorted_.rows = np.array(sorted_.quats, dtype=np.int64)
             _carry_history(self._sorted, sorted_)
             sorted_.scatter_rad = np.radians(sorted_.scatter)
             if "pelvis" in seen:

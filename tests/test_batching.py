@@ -11,6 +11,7 @@ import threading
 from functools import partial
 from pathlib import Path
 
+import pytest
 import zenoh
 from mcap.reader import make_reader
 from zenoh_helpers import Collector, Running, client, raw_collector, wait_until
@@ -19,9 +20,9 @@ from bodynet.clients import live
 from bodynet.clients.recorder import DEFAULT_KEYS, Recorder
 from bodynet.core import keys
 from bodynet.core.codecs import pose, raw_batch, raw_sample
-from bodynet.core.errors import Reason
+from bodynet.core.errors import DecodeError, Reason
 from bodynet.core.keys import LEFT_ARM
-from bodynet.core.messages import Quat, RawSample, Source
+from bodynet.core.messages import OleAccel, Quat, RawSample, Source
 from bodynet.core.profile import IMU_SITES, SMARTSUIT_SITES
 from bodynet.gateway.service import Gateway
 from bodynet.nodes.emulator import Realism
@@ -119,6 +120,58 @@ def test_a_hostile_batch_is_counted_entry_by_entry_and_its_good_samples_taken(
         node.put(keys.batch_key("hostile"), b"BN" + hostile)  # not a batch at all
         wait_until(lambda: gateway.rejected[Reason.BAD_MAGIC] == 1, what="the bad batch counted")
         assert gateway.samples == 1
+    finally:
+        node.close()
+
+
+def test_a_batch_on_a_known_key_is_judged_entry_by_entry_as_the_codec_does(
+    gateway: Gateway, router_endpoint: str, zsession: zenoh.Session
+) -> None:
+    """From a bridge's second batch on, its key's batches go through the compiled
+    intake (``kernels.take_batch``), which takes plain quaternion messages and
+    leaves the rest to Python: a batch mixing good samples, an entry on a
+    topology's key, a quaternion with extra bytes, one that is not unit, a
+    SmartSuit module's sample and a site seen for the first time is taken and
+    counted as the codec judges each entry, in order (the site's latest is its
+    last good sample); a batch that is not well formed is counted as
+    ``raw_batch.decode`` counts it, its readable entries taken."""
+    a, b, c = IMU_SITES[2], IMU_SITES[3], IMU_SITES[4]
+    module = next(iter(SMARTSUIT_SITES.items()))
+
+    def quat(node: int, seq: int, wxyz: tuple[float, ...] = (1.0, 0.0, 0.0, 0.0),
+             extra: bytes = b"") -> bytes:  # fmt: skip
+        return raw_sample.encode(RawSample(Quat(node, wxyz, extra), seq, 1_000 + seq,
+                                           Source.IMU_CENTRAL))  # fmt: skip
+
+    node = client(router_endpoint)
+    key = keys.batch_key("mixed")
+    body = gateway._bodies[None]
+    try:
+        wait_matching_batches(node)
+        node.put(key, raw_batch.encode([(a.raw_key, quat(2, 1)), (b.raw_key, quat(3, 1))]))
+        wait_until(lambda: gateway.samples == 2, what="the first batch")
+        assert key in gateway._batch_bodies  # the next go through the compiled intake
+        turned = (0.0, 1.0, 0.0, 0.0)
+        mixed = [(a.raw_key, quat(2, 2)), (keys.TOPOLOGY, quat(2, 3)),
+                 (b.raw_key, quat(3, 2, turned, b"\x01")), (a.raw_key, quat(2, 4, (2.0, 0, 0, 0))),
+                 (module[1].raw_key, raw_sample.encode(RawSample(
+                     OleAccel(module[0], 50, (0, 0, 1024)), 1, 1_001, Source.CAN))),
+                 (c.raw_key, quat(4, 1, turned)), (a.raw_key, quat(2, 5, turned))]  # fmt: skip
+        node.put(key, raw_batch.encode(mixed))
+        wait_until(lambda: gateway.samples == 7, what="the mixed batch's good samples")
+        assert gateway.rejected[Reason.UNKNOWN_NODE] == 1  # the topology's key
+        with pytest.raises(DecodeError) as not_unit:
+            raw_sample.decode(quat(2, 4, (2.0, 0, 0, 0)))
+        assert gateway.rejected[not_unit.value.reason] == 1
+        with gateway._lock:
+            latest = {site: body.latest[site].sample for site in (a, b, c, module[1])}
+        assert latest[a] == raw_sample.decode(quat(2, 5, turned))  # the last, not the refused
+        assert latest[b].reading.extra == b"\x01"  # type: ignore[union-attr]
+        assert latest[c].reading.wxyz == turned  # type: ignore[union-attr]
+        assert latest[module[1]].reading.encoder == 50  # type: ignore[union-attr]
+        node.put(key, raw_batch.encode([(a.raw_key, quat(2, 6)), (c.raw_key, quat(4, 2))])[:-3])
+        wait_until(lambda: gateway.rejected[Reason.TRUNCATED] == 1, what="the cut batch counted")
+        assert gateway.samples == 8  # its first entry taken
     finally:
         node.close()
 

@@ -36,6 +36,7 @@ from ..errors import DecodeError, Reason, Rejected
 MAGIC = b"BB"
 VERSION = 1
 _HEADER = struct.Struct("<2sBH")
+HEADER_LEN = _HEADER.size
 _LEN = struct.Struct("<H")
 MAX_ENTRIES = 0xFFFF
 
@@ -113,6 +114,20 @@ def decode(payload: bytes | bytearray, prefix: str = "") -> list[Entry | Rejecte
         out.append(Rejected(Reason.BAD_LENGTH, f"{end - pos} bytes after the {count} entries",
                             payload[pos : pos + 64]))  # fmt: skip
     return out
+
+
+def entry_at(payload: bytes, pos: int, prefix: str = "") -> tuple[Entry | Rejected, int]:
+    """The entry at byte ``pos`` of a batch whose entries :func:`decode` reads
+    whole (a well-formed batch's), as :func:`decode` gives it, and where the
+    next entry starts."""
+    k = payload[pos]
+    start = pos + 1 + k + _LEN.size
+    m = payload[start - 2] | payload[start - 1] << 8
+    key = _raw_key(payload[pos + 1 : pos + 1 + k], prefix)
+    if key is None:
+        return Rejected(Reason.UNKNOWN_NODE, "entry: not a raw key",
+                        payload[pos + 1 : pos + 1 + k][:64]), start + m  # fmt: skip
+    return (key, payload[start : start + m]), start + m
 
 
 @lru_cache(maxsize=4096)
