@@ -1072,7 +1072,8 @@ class BodySolver:
                 frame.floats[rows, W : W + 4], times[rows], t_ns, sort.times,
                 sort.held, sort.recent, sort.scatter_rad, ALIGN_SPAN_NS, ALIGN_AHEAD_NS,
                 ALIGN_CHANGE_PER_S, ALIGN_RATE_MAX_DEG_S, ALIGN_RATE_MEMORY_S,
-                _SPREAD_BY_SOURCE[frame.ints[rows, SOURCE]], sort.lefts, sort.mounts,
+                _SPREAD_BY_SOURCE.take(frame.ints[rows, SOURCE], mode="clip"),  # ids past a byte: 0
+                sort.lefts, sort.mounts,
             )  # fmt: skip
             self._memory.expected.update(sort.segs)
         return tick

@@ -15,6 +15,7 @@ from bodynet.core.errors import DecodeError, Rejected
 from bodynet.core.messages import Quat, RawSample, Source
 from bodynet.gateway import columns, kernels
 from bodynet.gateway.columns import Columns, Frame
+from bodynet.gateway.solver import BodySolver
 from bodynet.nodes.emulator import imu_tags
 
 TAGS = imu_tags()
@@ -182,3 +183,12 @@ def test_a_frame_reads_as_its_samples() -> None:
     assert list(frame.t_ns) == [s.t_ns for s in samples.values()]
     quats = [list(s.reading.wxyz) for s in samples.values()]  # type: ignore[union-attr]
     assert frame.floats[:, columns.W : columns.W + 4].tolist() == quats
+
+
+def test_a_source_id_the_wire_cannot_carry_still_solves() -> None:
+    """A sample made in Python may carry any source id, where the wire carries a
+    byte: the solver's table of stamp spreads takes it as one it does not know."""
+    samples = {tag.site: RawSample(Quat(tag.node, (1.0, 0.0, 0.0, 0.0)), 0, 10, 300 + i)
+               for i, tag in enumerate(TAGS)}  # fmt: skip
+    out = BodySolver().solve(samples)
+    assert out.sources == {tag.site.raw_key: 10 for tag in TAGS}
