@@ -31,7 +31,7 @@ from typing import Any
 import numpy as np
 from numba import njit
 
-from bodynet.core.codecs import raw_sample
+from bodynet.core.codecs import raw_batch, raw_sample
 from bodynet.core.codecs.pose import (
     SLOT_FLAGS,
     SLOT_SEQ,
@@ -712,7 +712,8 @@ def write_message(numbers, order, scale, places, text, ends, slots, seq, t_ns, f
 _RO = "Array(uint8, 1, 'C', readonly=True)"
 _M0, _M1 = raw_sample.MAGIC
 _QV, _QK, _QLEN = raw_sample.VERSION, raw_sample.KIND_QUAT, raw_sample.QUAT_MESSAGE_LEN
-_BATCH_HEAD = 5  # a batch's magic, version and count (core/codecs/raw_batch.py)
+_B0, _B1 = raw_batch.MAGIC
+_BV, _BATCH_HEAD = raw_batch.VERSION, raw_batch.HEADER_LEN  # (its magic, version, count)
 _ROWS = "int64[:, :]"
 _INTAKE = f"{_ROWS}, {_A2}, {_A3}, {_I1}, float64, int64, int64, float64, float64, float64"
 
@@ -840,11 +841,11 @@ def take_batch(buf, pos, keys, ends, n, ints, floats, history, tally, now, rnd, 
     yet, or a message that is not a plain quaternion). Returns where that
     entry starts (``len(buf)``: all were taken), for Python to take it and go
     on after it; -1 if the batch is not well formed (read from its start,
-    ``pos`` = 5, only), nothing taken then: ``raw_batch.split`` says what is
+    ``pos`` = ``raw_batch.HEADER_LEN``, only), nothing taken then: ``raw_batch.split`` says what is
     wrong with it."""
     size = buf.shape[0]
     if pos == _BATCH_HEAD:
-        if size < _BATCH_HEAD or buf[0] != 66 or buf[1] != 66 or buf[2] != 1:  # b"BB", 1
+        if size < _BATCH_HEAD or buf[0] != _B0 or buf[1] != _B1 or buf[2] != _BV:
             return -1
         p = _BATCH_HEAD
         for _ in range(np.int64(buf[3]) | np.int64(buf[4]) << 8):

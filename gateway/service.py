@@ -223,17 +223,15 @@ class _Body:
         self.heading = BodyHeading(profile, fits)
         self.last_output: BodyOutput | None = None
         # each site's row of columns (gateway/columns.py), and beside them, by row: its
-        # site and raw key, its latest reading's type, and its latest sample where one
-        # was made (not a plain quaternion, or one read: see sample())
+        # site, its latest reading's type, and its latest sample where one was made
+        # (not a plain quaternion, or one read: see sample()); ``latest`` and ``rows``
+        # find a site's record and row (sites come in row order)
         self.columns = Columns(HISTORY_DEPTH)
         self.latest: dict[Site, _Site] = {}
         self.rows: dict[Site, int] = {}
         self.sites: tuple[Site, ...] = ()
-        self.keys: list[str] = []
-        self.key_rows: dict[str, int] = {}
         self.kinds: list[type] = []
         self.objects: list[RawSample] = []
-        self.site_rows: list[_Site] = []
         # a round's plain messages, each after its row's tag, taken at its end
         # (take_deferred)
         self.inbox: list[bytes] = []
@@ -300,20 +298,16 @@ class _Body:
             kept = self.latest[site] = _Site(self, row)
             self.rows[site] = row
             self.sites = (*self.sites, site)
-            self.keys.append(site.raw_key)
-            self.key_rows[site.raw_key] = row
             self.kinds.append(type(sample.reading))
             self.objects.append(sample)
-            self.site_rows.append(kept)
             if type(sample.reading) is OleAccel and site.name in OLE_DOF:
                 kept.zero = self.encoders[site.raw_key] = EncoderZero()
                 kept.counts = deque()
-        if rnd is None:
-            rnd = next(_ROUNDS)
-            self.take_into(kept, sample, now, rnd)
+        alone = rnd is None
+        rnd = next(_ROUNDS) if rnd is None else rnd
+        self.take_into(kept, sample, now, rnd)
+        if alone:
             self.fold_leads(rnd, time.time() if wall is None else wall)
-        else:
-            self.take_into(kept, sample, now, rnd)
         return kept
 
     def take_into(self, kept: _Site, sample: RawSample, now: float, rnd: int) -> None:
@@ -369,7 +363,8 @@ class _Body:
             if stop == len(buf):
                 break
             index = 2 * (stop // (kernels.ROW_TAG + QUAT_MESSAGE_LEN))
-            yield self.site_rows[int.from_bytes(inbox[index], "little")], inbox[index + 1]
+            site = self.sites[int.from_bytes(inbox[index], "little")]
+            yield self.latest[site], inbox[index + 1]
             pos = stop + kernels.ROW_TAG + QUAT_MESSAGE_LEN
         if taken:
             self._taken(now)
@@ -383,7 +378,7 @@ class _Body:
             cols.tally[columns.RUNS] = 0
             ints, floats = cols.ints, cols.floats
             for row in np.flatnonzero(ints[: cols.n, columns.ENDED]).tolist():
-                rhythm = self.site_rows[row].rhythm
+                rhythm = self.latest[self.sites[row]].rhythm
                 past = -1 - int(ints[row, columns.LEFT])  # samples taken after it ended
                 rhythm.end_run(now)
                 ints[row, columns.LEFT] = max(rhythm.left - past, 0)
@@ -437,7 +432,7 @@ class _Body:
         cols = self.columns
         floats = cols.floats[: cols.n]
         stale = np.flatnonzero(now - floats[:, columns.ARRIVED] > floats[:, columns.AFTER])
-        return any(self.keys[row] not in self.published_stale for row in stale.tolist())
+        return any(self.sites[row].raw_key not in self.published_stale for row in stale.tolist())
 
     def snapshot(self, now: float) -> tuple[Frame, list[str], BodySolver]:
         """What the next solve needs; marks every sample as used.
@@ -454,12 +449,12 @@ class _Body:
                       cols.floats[:n].copy(), self.objects.copy())  # fmt: skip
         # stale: past a few of its usual intervals (in cols.flags)
         ready, n_stale = kernels.settle_rows(cols.ints, cols.floats, n, now, cols.flags)
-        stale = [self.keys[row] for row in np.flatnonzero(cols.flags[:n]).tolist()] \
+        stale = [self.sites[row].raw_key for row in np.flatnonzero(cols.flags[:n]).tolist()] \
             if n_stale else []  # fmt: skip
         if gone := self.gone:
-            for key, went in list(gone.items()):
-                row = self.key_rows.get(key)
-                if row is None or cols.flags[row]:
+            for row, site in enumerate(self.sites):
+                key = site.raw_key
+                if cols.flags[row] or (went := gone.get(key)) is None:
                     continue
                 if cols.floats[row, columns.ARRIVED] > went and key in self.alive:
                     del gone[key]  # back, and heard from since
@@ -796,7 +791,7 @@ class Gateway:
         """``body``'s samples of this round (``_Body.take_deferred``): those the
         compiled intake does not take, one by one here."""
         for kept, message in body.take_deferred(now, rnd, ahead):
-            self._take_one(body.keys[kept.row], message, (body, kept), now, rnd, set())
+            self._take_one(body.sites[kept.row].raw_key, message, (body, kept), now, rnd, set())
 
     def _take_entries(self, key: str, entries: list[raw_batch.Entry | Rejected], now: float,
                       rnd: int, touched: set[_Body]) -> None:  # fmt: skip

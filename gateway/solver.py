@@ -77,7 +77,7 @@ from bodynet.core.profile import OLE_DOF, mount
 from bodynet.core.skeleton import CALIBRATION_POSES, TPOSE, Joint, build_skeleton, part, rom
 from bodynet.core.subject import Profile, QuatWxyz
 from bodynet.gateway import kernels
-from bodynet.gateway.columns import SOURCE, T_NS, Frame, W
+from bodynet.gateway.columns import SOURCE, Frame, W
 from bodynet.gateway.encoders import EncoderZero
 from bodynet.kinematics.model import BodyModel, accel_axes
 
@@ -772,7 +772,7 @@ class _Sorted:
     tenth of a hot solve)."""
 
     __slots__ = ("flagged", "held", "keys", "kinds", "lefts", "modules", "mounts", "pelvis",
-                 "plan", "quats", "reasons", "recent", "rows", "scatter", "scatter_rad", "segs",
+                 "plan", "reasons", "recent", "rows", "scatter", "scatter_rad", "segs",
                  "sites", "stale", "stale_modules", "stale_segs", "tainted", "times", "uncal",
                  "unknown", "upright", "used")  # fmt: skip
 
@@ -786,8 +786,7 @@ class _Sorted:
         self.segs: list[str] = []  # segments with an orientation sensor (the first one wins)
         self.used: list[Site] = []  # the orientation sensors of ``segs``, in that order
         self.scatter: list[float] = []  # and each one's in calibration (deg, 0: not known)
-        self.quats: list[int] = []  # where their samples are among the tick's
-        self.rows = _NO_ROWS  # the same, an array
+        self.rows = _NO_ROWS  # where their samples are among the tick's
         self.unknown: set[str] = set()  # segments whose sensor's heading is not known
         self.uncal: set[str] = set()  # segments whose orientation sensor has no mount yet
         self.modules: list[tuple[str, int]] = []  # SmartSuit modules: segment, sample
@@ -1056,7 +1055,7 @@ class BodySolver:
             sort = self._sorted = self._sort(sites, kinds)
             self._resort = False
         tick = _Tick(self, self._memory.last, sort)
-        times = frame.ints[:, T_NS]
+        times = frame.t_ns
         tick.sources = dict(zip(sort.keys, times.tolist(), strict=True))
         tick.t_ns = t_ns = max(int(times.max()) if len(times) else 0, 0)
         if self._memory.first_t_ns == -1:
@@ -1085,6 +1084,7 @@ class BodySolver:
         stale = self._stale
         sorted_ = _Sorted(sites, kinds, stale)
         seen: set[str] = set()
+        rows: list[int] = []  # the used sensors' samples among the tick's
         for i, (site, kind) in enumerate(zip(sites, kinds, strict=True)):
             seg, _, key, module, _, heading_known, calibrated = self._site(site)
             sorted_.keys.append(key)
@@ -1092,7 +1092,7 @@ class BodySolver:
                 if seg not in seen:
                     seen.add(seg)
                     sorted_.segs.append(seg)
-                    sorted_.quats.append(i)
+                    rows.append(i)
                     sorted_.used.append(site)
                     sorted_.scatter.append(self.profile.imu_scatter_deg.get(key, 0.0))
                     if not heading_known:
@@ -1115,7 +1115,7 @@ class BodySolver:
                     upright.add(joint.child)
             sorted_.upright = frozenset(upright)
         if sorted_.segs:
-            sorted_.rows = np.array(sorted_.quats, dtype=np.int64)
+            sorted_.rows = np.array(rows, dtype=np.int64)
             _carry_history(self._sorted, sorted_)
             sorted_.scatter_rad = np.radians(sorted_.scatter)
             if "pelvis" in seen:

@@ -103,29 +103,26 @@ def decode(payload: bytes | bytearray, prefix: str = "") -> list[Entry | Rejecte
             why = f"entry {index} of {count}: message of {m} bytes, {end - start} left"
             out.append(Rejected(Reason.TRUNCATED, why, payload[pos : pos + 64]))
             return out
-        key = _raw_key(payload[pos + 1 : key_end], prefix)
-        if key is None:
-            out.append(Rejected(Reason.UNKNOWN_NODE, f"entry {index} of {count}: not a raw key",
-                                payload[pos + 1 : key_end][:64]))  # fmt: skip
-        else:
-            out.append((key, payload[start : start + m]))
-        pos = start + m
+        entry, pos = entry_at(payload, pos, prefix, f"entry {index} of {count}")
+        out.append(entry)
     if pos != end:
         out.append(Rejected(Reason.BAD_LENGTH, f"{end - pos} bytes after the {count} entries",
                             payload[pos : pos + 64]))  # fmt: skip
     return out
 
 
-def entry_at(payload: bytes, pos: int, prefix: str = "") -> tuple[Entry | Rejected, int]:
-    """The entry at byte ``pos`` of a batch whose entries :func:`decode` reads
-    whole (a well-formed batch's), as :func:`decode` gives it, and where the
-    next entry starts."""
+def entry_at(payload: bytes, pos: int, prefix: str = "",
+             which: str = "entry") -> tuple[Entry | Rejected, int]:  # fmt: skip
+    """The entry at byte ``pos`` of a batch, whose key and message lie whole
+    within it (:func:`decode` checks that first), and where the next entry
+    starts: the ``(raw key, message)`` pair, or its rejection (``which``
+    names the entry in it)."""
     k = payload[pos]
     start = pos + 1 + k + _LEN.size
-    m = payload[start - 2] | payload[start - 1] << 8
+    m = payload[start - 2] | payload[start - 1] << 8  # _LEN, written out: every entry
     key = _raw_key(payload[pos + 1 : pos + 1 + k], prefix)
     if key is None:
-        return Rejected(Reason.UNKNOWN_NODE, "entry: not a raw key",
+        return Rejected(Reason.UNKNOWN_NODE, f"{which}: not a raw key",
                         payload[pos + 1 : pos + 1 + k][:64]), start + m  # fmt: skip
     return (key, payload[start : start + m]), start + m
 
