@@ -25,6 +25,7 @@ source time, its wait in the batch included.
 
 from __future__ import annotations
 
+import heapq
 import json
 import multiprocessing as mp
 import platform
@@ -82,29 +83,22 @@ def _feed(endpoint: str, seconds: float, sent: Any, ready: Any, bodies: range, t
     start = time.monotonic()
     # each node's next send (nodes.timing.Sends); locked nodes all come due together
     sends = Sends(schedule, start, jitter, rng, end=start + seconds)
-    count = 0
-    batches = _Batches(pubs, len(tags))
-    while sends or batches:
-        now = time.monotonic()
-        count += batches.flush_due(now)
-        nxt = min(sends.next_due, batches.next_due)
-        if nxt == float("inf"):
-            break
-        if nxt > now:
-            with sent.get_lock():
-                sent.value += count
-            count = 0
-            time.sleep(nxt - now)
-            continue
-        if sends.next_due > now:
-            continue
-        _, i, tick = sends.pop()
-        reading = frames[tick % len(frames)][i % len(tags)]
-        payload = raw_sample.encode(RawSample(reading, tick, time.time_ns(), Source.IMU_CENTRAL))
-        if batched:
-            count += batches.add(i // len(tags), tags[i % len(tags)].site.raw_key, payload, now)
-        else:
-            pubs[i].put(payload)
+    if batched:
+        count = _feed_batches(sends, frames, tags, _Batches(pubs, len(tags)), sent)
+    else:
+        count = 0
+        while sends:
+            now = time.monotonic()
+            if (nxt := sends.next_due) > now:
+                with sent.get_lock():
+                    sent.value += count
+                count = 0
+                time.sleep(nxt - now)
+                continue
+            _, i, tick = sends.pop()
+            reading = frames[tick % len(frames)][i % len(tags)]
+            stamp = time.time_ns()
+            pubs[i].put(raw_sample.encode(RawSample(reading, tick, stamp, Source.IMU_CENTRAL)))
             count += 1
     with sent.get_lock():
         sent.value += count
@@ -113,6 +107,34 @@ def _feed(endpoint: str, seconds: float, sent: Any, ready: Any, bodies: range, t
             finished.value += 1
         hold.wait(120)
     session.close()
+
+
+def _feed_batches(sends: Sends, frames: list[Any], tags: list[Any], batches: _Batches,
+                  sent: Any) -> int:  # fmt: skip
+    """The batched feed's sends, put out in ``batches``: each sample stamped with
+    its send's due time on the wall clock and added ahead, up to when the next
+    batch goes out, when the feeder wakes (see :class:`_Batches`). Counts what
+    was put in ``sent``; returns what is left to count."""
+    from bodynet.core.codecs import raw_sample
+    from bodynet.core.messages import RawSample, Source
+
+    wall_ns, mono = time.time_ns(), time.monotonic()
+    count = 0
+    while sends or batches:
+        now = time.monotonic()
+        count += batches.flush_due(now)
+        while sends and sends.next_due <= max(now, batches.next_due):
+            due, i, tick = sends.pop()
+            reading = frames[tick % len(frames)][i % len(tags)]
+            stamp = wall_ns + round((due - mono) * 1e9)
+            payload = raw_sample.encode(RawSample(reading, tick, stamp, Source.IMU_CENTRAL))
+            batches.add(i // len(tags), tags[i % len(tags)].site.raw_key, payload, due)
+        if batches and (nxt := batches.next_due) > now:  # (none: the sends are done)
+            with sent.get_lock():
+                sent.value += count
+            count = 0
+            time.sleep(nxt - now)
+    return count
 
 
 def _feed_keys(bodies: range, total: int, tags: list[Any], batched: bool) -> list[str]:
@@ -141,37 +163,48 @@ def _publishers(session: Any, keys: list[str], bridges: bool) -> list[Any]:
 class _Batches:
     """Each body's samples put together as a bridge run with ``--batch-ms`` does
     (``nodes.publisher``): out on the body's publisher once every node has one
-    in, or :data:`BATCH_S` after the first. Counts are of samples published."""
+    in, or :data:`BATCH_S` after the first. The feeder adds each send ahead, at
+    its due time, up to when the next batch goes (``next_due``), and wakes
+    then: once a batch, not once a sample (150 nodes a feeder woke it some
+    15,000 times a second, 0.4 of a core of the two the gateway is measured
+    on). Counts are of samples published."""
 
     def __init__(self, pubs: list[Any], nodes: int) -> None:
         self.pubs, self.nodes = pubs, nodes
-        self.pending: dict[int, list[tuple[str, bytes]]] = {}  # body -> its batch so far
-        self.due: dict[int, float] = {}  # body -> when its batch goes at the latest
+        # body -> its open batch's first due time and entries; batches closed, a heap by
+        # when each goes out
+        self.open: dict[int, tuple[float, list[tuple[str, bytes]]]] = {}
+        self.closed: list[tuple[float, int, list[tuple[str, bytes]]]] = []
 
     def __bool__(self) -> bool:
-        return bool(self.pending)
+        return bool(self.open or self.closed)
 
     @property
     def next_due(self) -> float:
-        return min(self.due.values(), default=float("inf"))
+        """When the next batch goes out (``inf``: none is open)."""
+        soonest = self.closed[0][0] if self.closed else float("inf")
+        return min([soonest, *(first + BATCH_S for first, _ in self.open.values())])
 
-    def add(self, body: int, key: str, payload: bytes, now: float) -> int:
-        entries = self.pending.setdefault(body, [])
-        if not entries:
-            self.due[body] = now + BATCH_S
+    def add(self, body: int, key: str, payload: bytes, due: float) -> None:
+        """A send of ``body`` due at ``due`` (no later than ``next_due``)."""
+        entries = self.open.setdefault(body, (due, []))[1]
         entries.append((key, payload))
-        return self._flush(body) if len(entries) == self.nodes else 0
+        if len(entries) == self.nodes:  # every node in: out at once
+            heapq.heappush(self.closed, (due, body, self.open.pop(body)[1]))
 
     def flush_due(self, now: float) -> int:
-        return sum(self._flush(b) for b, t in list(self.due.items()) if t <= now)
-
-    def _flush(self, body: int) -> int:
+        """Put every batch due by ``now``; how many samples they held."""
         from bodynet.core.codecs import raw_batch
 
-        entries = self.pending.pop(body)
-        del self.due[body]
-        self.pubs[body].put(raw_batch.encode(entries))
-        return len(entries)
+        for body, (first, _) in list(self.open.items()):
+            if first + BATCH_S <= now:
+                heapq.heappush(self.closed, (first + BATCH_S, body, self.open.pop(body)[1]))
+        count = 0
+        while self.closed and self.closed[0][0] <= now:
+            _, body, entries = heapq.heappop(self.closed)
+            self.pubs[body].put(raw_batch.encode(entries))
+            count += len(entries)
+        return count
 
 
 #: Every raw key and every bridge's batches, of the namespace-less subject and
