@@ -7,6 +7,7 @@ import json
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -368,3 +369,47 @@ def test_tiny_truth_benchmark_compares_recorded_sessions_with_the_truth(tmp_path
     assert json.loads((tmp_path / "truth.json").read_text()) == result
     with pytest.raises(ValueError, match="no truth scenario named nothing"):
         truth.run(tmp_path, only=["nothing"])
+
+
+def test_the_batched_feed_puts_each_batch_as_a_bridge_does(router_endpoint: str,
+                                                           zsession: Any) -> None:  # fmt: skip
+    """The benchmark's batched feed works its batches out ahead and wakes once a
+    batch: every sample still comes once, stamped with its send's due time, in a
+    batch of its body's nodes that went out when all fifteen were in or 5 ms
+    after the first, never before its last sample was due."""
+    import multiprocessing as mp
+    import threading
+    import time
+
+    from zenoh_helpers import wait_until
+
+    from bodynet.bench import gateway
+    from bodynet.core.codecs import raw_batch, raw_sample
+
+    got: list[tuple[int, str, list[tuple[str, bytes]]]] = []
+    sub = zsession.declare_subscriber(
+        "*/body/@batch/*",
+        lambda s: got.append(
+            (
+                time.time_ns(),
+                str(s.key_expr),
+                raw_batch.split(str(s.key_expr), s.payload.to_bytes()),
+            )
+        ),
+    )
+    time.sleep(0.5)  # the subscription reaches the router
+    sent, ready = mp.Value("q", 0), threading.Event()
+    ready.set()
+    gateway._feed(router_endpoint, 0.3, sent, ready, range(2), 2, feed="batched")
+    wait_until(lambda: sum(len(e) for _, _, e in got) >= sent.value, 10, "every batch")
+    sub.undeclare()
+    seen = [(key, raw_sample.decode(m).seq) for _, _, entries in got for key, m in entries]
+    assert len(seen) == len(set(seen)) == sent.value >= 2 * 15 * 25  # ~30 ticks of 30 nodes
+    for received, _, entries in got:
+        stamps = [raw_sample.source_time(m) for _, m in entries]
+        assert 1 <= len(entries) <= 15
+        assert stamps == sorted(stamps)
+        assert stamps[-1] - stamps[0] <= gateway.BATCH_S * 1e9  # one bridge window
+        assert received >= stamps[-1] - 100_000  # not out before its last sample (0.1 ms: clocks)
+        if len(entries) < 15:  # closed by its window, not by its nodes
+            assert received >= stamps[0] + gateway.BATCH_S * 1e9 - 100_000
