@@ -552,14 +552,28 @@ def align_quats(quats, t_ns, target_ns, times, held, recent, scatter_rad, max_sp
     return out, residual
 
 
-@_compiled(f"({_A2}, {_I1}, int64, {_I2}, {_A3}, {_F1}, {_F1}, int64, int64, float64, float64, "
-           f"float64, {_F1}, {_A3}, {_A3})")  # fmt: skip
-def aligned_segments(quats, t_ns, target_ns, times, held, recent, scatter_rad, max_span_ns,
-                     max_ahead_ns, change_per_s, max_rate_deg_s, memory_s, spread_ns, lefts,
-                     mounts):  # fmt: skip
-    """:func:`align_quats` and then :func:`segment_rotations` of what it gives, in
-    one call (a body's tick): the quaternions brought to ``target_ns``, how far
-    each may be off for that (deg), and the segments' world rotations (n, 3, 3)."""
+@_compiled(f"({_A2}, {_I2}, {_I1}, {_F1}, int64, {_I2}, {_A3}, {_F1}, {_F1}, int64, int64, "
+           f"float64, float64, float64, {_A3}, {_A3})")  # fmt: skip
+def aligned_segments(floats, ints, rows, spread_by_source, target_ns, times, held, recent,
+                     scatter_rad, max_span_ns, max_ahead_ns, change_per_s, max_rate_deg_s,
+                     memory_s, lefts, mounts):  # fmt: skip
+    """A body's tick's orientation sensors, read from its frame's arrays (``floats``
+    and ``ints``, the rows of ``gateway/columns.py``; the sensors' are ``rows``):
+    their quaternions brought to ``target_ns`` (:func:`align_quats`, each stamp's
+    spread by its source id from ``spread_by_source``, an id past either end
+    taking that end's), how far each may be off for that (deg), and the
+    segments' world rotations (n, 3, 3: :func:`segment_rotations`). In one call:
+    gathering the rows in numpy took four more a tick."""
+    n, last = rows.shape[0], spread_by_source.shape[0] - 1
+    quats = np.empty((n, 4))
+    t_ns = np.empty(n, dtype=np.int64)
+    spread_ns = np.empty(n)
+    for s in range(n):
+        r = rows[s]
+        for c in range(4):
+            quats[s, c] = floats[r, W + c]
+        t_ns[s] = ints[r, T_NS]
+        spread_ns[s] = spread_by_source[min(max(ints[r, SOURCE], 0), last)]
     out, residual = align_quats(quats, t_ns, target_ns, times, held, recent, scatter_rad,
                                 max_span_ns, max_ahead_ns, change_per_s, max_rate_deg_s,
                                 memory_s, spread_ns)  # fmt: skip

@@ -77,7 +77,7 @@ from bodynet.core.profile import OLE_DOF, mount
 from bodynet.core.skeleton import CALIBRATION_POSES, TPOSE, Joint, build_skeleton, part, rom
 from bodynet.core.subject import Profile, QuatWxyz
 from bodynet.gateway import kernels
-from bodynet.gateway.columns import SOURCE, Frame, W
+from bodynet.gateway.columns import Frame
 from bodynet.gateway.encoders import EncoderZero
 from bodynet.kinematics.model import BodyModel, accel_axes
 
@@ -732,7 +732,7 @@ class _Tick:
     """One body's working state during one solve: plain data that its
     :class:`BodySolver` fills (:meth:`BodySolver._gather`) and reads."""
 
-    __slots__ = ("angles", "direct_rot", "direct_rows", "harm", "held_tilt", "last", "measured",
+    __slots__ = ("_measured", "angles", "direct_rot", "direct_rows", "harm", "held_tilt", "last",
                  "modules", "plan", "quats", "reasons", "rel", "residual", "rests", "segments",
                  "segs", "solver", "sort", "sources", "stale", "stale_modules", "t_ns", "unc",
                  "uncal", "unknown")  # fmt: skip
@@ -750,7 +750,7 @@ class _Tick:
         self.modules: dict[str, tuple[Site, OleAccel]] = {}  # SmartSuit modules by segment
         self.sources: dict[str, int] = {}  # raw key -> the source time of its sample
         self.t_ns = 0
-        self.measured: dict[str, np.ndarray] = {}  # segment -> world orientation
+        self._measured: dict[str, np.ndarray] | None = None
         # the joints split from two sensors: their rows and rotations
         self.direct_rows: np.ndarray = _NO_ROWS
         self.direct_rot: np.ndarray = _NO_FRAMES
@@ -763,6 +763,14 @@ class _Tick:
         # segment -> how far (rad) held dofs above it may tilt it from what gravity says
         self.harm: dict[str, float] = {}
         self.held_tilt = 0.0  # the harm of the dofs held in the joint being solved
+
+    @property
+    def measured(self) -> dict[str, np.ndarray]:
+        """Segment -> its world orientation, where a sensor measures it: made when
+        first read (a body whose joints are all between two sensors never does)."""
+        if self._measured is None:
+            self._measured = dict(zip(self.segs, self.segments, strict=True))
+        return self._measured
 
 
 class _Sorted:
@@ -1029,8 +1037,6 @@ class BodySolver:
                 segments, residual = ticks[0].segments, ticks[0].residual
             start = 0
             for b, tick in enumerate(ticks):
-                tick.measured = dict(zip(tick.segs, segments[start : start + len(tick.segs)],
-                                         strict=True))  # fmt: skip
                 if tick.sort.pelvis >= 0:
                     roots[b] = start + tick.sort.pelvis
                 start += len(tick.segs)
@@ -1055,9 +1061,9 @@ class BodySolver:
             sort = self._sorted = self._sort(sites, kinds)
             self._resort = False
         tick = _Tick(self, self._memory.last, sort)
-        times = frame.t_ns
-        tick.sources = dict(zip(sort.keys, times.tolist(), strict=True))
-        tick.t_ns = t_ns = max(int(times.max()) if len(times) else 0, 0)
+        stamps = frame.t_ns.tolist()
+        tick.sources = dict(zip(sort.keys, stamps, strict=True))
+        tick.t_ns = t_ns = max(max(stamps, default=0), 0)
         if self._memory.first_t_ns == -1:
             self._memory.first_t_ns = t_ns
         tick.modules = {seg: (sites[i], frame.reading(i).reading)  # type: ignore[misc]
@@ -1066,13 +1072,11 @@ class BodySolver:
             # each orientation turned on at its own rate to the tick's time: tags on
             # timers of their own sample up to a period apart, and a shank turning at
             # 350 deg/s against its thigh's sample 15 ms older is 5 deg off
-            rows = sort.rows
             tick.quats, tick.residual, tick.segments = kernels.aligned_segments(
-                frame.floats[rows, W : W + 4], times[rows], t_ns, sort.times,
+                frame.floats, frame.ints, sort.rows, _SPREAD_BY_SOURCE, t_ns, sort.times,
                 sort.held, sort.recent, sort.scatter_rad, ALIGN_SPAN_NS, ALIGN_AHEAD_NS,
-                ALIGN_CHANGE_PER_S, ALIGN_RATE_MAX_DEG_S, ALIGN_RATE_MEMORY_S,
-                _SPREAD_BY_SOURCE.take(frame.ints[rows, SOURCE], mode="clip"),  # ids past a byte: 0
-                sort.lefts, sort.mounts,
+                ALIGN_CHANGE_PER_S, ALIGN_RATE_MAX_DEG_S, ALIGN_RATE_MEMORY_S, sort.lefts,
+                sort.mounts,
             )  # fmt: skip
             self._memory.expected.update(sort.segs)
         return tick
