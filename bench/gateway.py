@@ -18,9 +18,10 @@ threads.
 
 The ``batched`` feed is the realistic one put out as bridges run with
 ``--batch-ms 5`` do (``nodes.publisher``): each body's samples together on its
-batch key, once all fifteen are in or 5 ms after the first; the relay
-republishes the batches, and a relayed sample's latency counts from its own
-source time, its wait in the batch included.
+batch key, once all fifteen are in or 5 ms after the first, each stamped with
+its send's due time (a node's stamp); the relay republishes the batches, and
+a relayed sample's latency counts from its own source time, its wait in the
+batch included.
 """
 
 from __future__ import annotations
