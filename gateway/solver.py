@@ -780,7 +780,7 @@ class _Sorted:
     tenth of a hot solve)."""
 
     __slots__ = ("flagged", "held", "keys", "kinds", "lefts", "modules", "mounts", "pelvis",
-                 "plan", "reasons", "recent", "rows", "scatter", "scatter_rad", "segs",
+                 "plan", "reasons", "recent", "rows", "scatter", "scatter_rad", "seen", "segs",
                  "sites", "stale", "stale_modules", "stale_segs", "tainted", "times", "uncal",
                  "unknown", "upright", "used")  # fmt: skip
 
@@ -792,6 +792,7 @@ class _Sorted:
         self.stale_modules: set[str] = set()  # segments whose SmartSuit module is stale
         self.keys: list[str] = []  # each site's raw key
         self.segs: list[str] = []  # segments with an orientation sensor (the first one wins)
+        self.seen: frozenset[str] = _NOTHING  # and as a set
         self.used: list[Site] = []  # the orientation sensors of ``segs``, in that order
         self.scatter: list[float] = []  # and each one's in calibration (deg, 0: not known)
         self.rows = _NO_ROWS  # where their samples are among the tick's
@@ -973,7 +974,7 @@ class BodySolver:
         if sort.tainted is None:
             tainted = set(tick.unknown)
             for joint in self.skeleton.joints:
-                if joint.parent in tainted and joint.child not in tick.measured:
+                if joint.parent in tainted and joint.child not in tick.sort.seen:
                     tainted.add(joint.child)
             sort.tainted = frozenset(tainted)
         return sort.tainted
@@ -1109,6 +1110,7 @@ class BodySolver:
                 sorted_.modules.append((seg, i))
                 if key in stale:
                     sorted_.stale_modules.add(seg)
+        sorted_.seen = frozenset(seen)
         if "pelvis" not in seen:
             # no sensor on the pelvis: the trunk stands on the upright model as far
             # up as nothing measures it (what the lumbar and neck are taken against)
@@ -1364,12 +1366,12 @@ class BodySolver:
         measurements (``rests``): an uncalibrated sensor, or an expected sensor
         that has not delivered (the pelvis or trunk assumed upright). The tilt
         dofs of modules below it inherit those reasons."""
-        measured, modules = tick.measured, tick.modules
+        modules = tick.modules
         if len(tick.direct_rows) == len(self.skeleton.joints) and not modules:
             return
         direct = dict(zip([self.names.joints[r] for r in tick.direct_rows.tolist()],
                           tick.direct_rot, strict=True))  # fmt: skip
-        expected = self._memory.expected
+        measured, expected = tick.measured, self._memory.expected
         world: dict[str, np.ndarray] = {"pelvis": measured.get("pelvis", np.eye(3))}
         rests, harm, last = tick.rests, tick.harm, tick.last
         rests["pelvis"], harm["pelvis"] = self._rests("pelvis", tick), 0.0
@@ -1440,7 +1442,7 @@ class BodySolver:
         why, by_child, reasons = _NOTHING, self._by_child, tick.reasons
         segment = joint.parent
         upright = tick.sort.upright
-        while segment not in tick.measured and segment not in upright and segment in by_child:
+        while segment not in tick.sort.seen and segment not in upright and segment in by_child:
             above = by_child[segment]
             stated = tick.unc[self._slices[above.name]]
             var += float(np.sum(stated[np.isfinite(stated)] ** 2))
@@ -1452,7 +1454,7 @@ class BodySolver:
     def _rests(self, segment: str, tick: _Tick) -> frozenset[str]:
         """What a segment's own orientation rests on besides measurement: its
         sensor uncalibrated, or (the pelvis) expected but not delivering."""
-        if segment in tick.measured:
+        if segment in tick.sort.seen:
             if segment in tick.stale:
                 return _UNCAL_STALE if segment in tick.uncal else _STALE
             return _UNCAL if segment in tick.uncal else _NOTHING
