@@ -182,7 +182,7 @@ class _Batches:
 
     @property
     def next_due(self) -> float:
-        """When the next batch goes out (``inf``: none is open)."""
+        """When the next batch goes out (``inf``: none waits)."""
         soonest = self.closed[0][0] if self.closed else float("inf")
         return min([soonest, *(first + BATCH_S for first, _ in self.open.values())])
 
