@@ -187,7 +187,10 @@ class _Batches:
         return min([soonest, *(first + BATCH_S for first, _ in self.open.values())])
 
     def add(self, body: int, key: str, payload: bytes, due: float) -> None:
-        """A send of ``body`` due at ``due`` (no later than ``next_due``)."""
+        """A send of ``body`` due at ``due`` (the sends come in the order due)."""
+        if (batch := self.open.get(body)) is not None and batch[0] + BATCH_S <= due:
+            # its batch's window ended before this send (a feeder running late)
+            heapq.heappush(self.closed, (batch[0] + BATCH_S, body, self.open.pop(body)[1]))
         entries = self.open.setdefault(body, (due, []))[1]
         entries.append((key, payload))
         if len(entries) == self.nodes:  # every node in: out at once

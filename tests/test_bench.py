@@ -415,3 +415,36 @@ def test_the_batched_feed_puts_each_batch_as_a_bridge_does(router_endpoint: str,
         assert received >= stamps[-1] - 500_000
         if len(entries) < 15:
             assert received >= stamps[0] + gateway.BATCH_S * 1e9 - 500_000
+
+
+def test_a_late_feeder_still_closes_each_batch_at_its_windows_end(zsession: Any) -> None:
+    """Sends taken late, all at once (a feeder behind its schedule), still make
+    the batches a bridge would have: a new one where a send comes after its
+    body's window closed, each put out once its time has passed."""
+    import time
+
+    from zenoh_helpers import wait_until
+
+    from bodynet.bench import gateway
+    from bodynet.core.codecs import raw_batch, raw_sample
+    from bodynet.core.messages import RawSample, Source
+    from bodynet.nodes.emulator import BodyEmulator, imu_tags
+    from bodynet.nodes.motion import ROUTINES
+
+    tag = imu_tags()[0]
+    reading = BodyEmulator(ROUTINES["walk"], [tag]).sample(0.0)[0][0]
+    key = "s00/body/@batch/bench"
+    got: list[list[tuple[str, bytes]]] = []
+    sub = zsession.declare_subscriber(key, lambda s: got.append(
+        raw_batch.split(key, s.payload.to_bytes())))  # fmt: skip
+    pub = gateway._publishers(zsession, [key], bridges=False)[0]
+    time.sleep(0.3)  # the subscription is known
+    batches = gateway._Batches([pub], nodes=15)
+    for ms in range(13):  # a send every millisecond, one body, the sample's seq its ms
+        message = raw_sample.encode(RawSample(reading, ms, ms, Source.IMU_CENTRAL))
+        batches.add(0, tag.site.raw_key, message, ms / 1000)
+    assert batches.flush_due(1.0) == 13  # long after all of them: every batch out
+    wait_until(lambda: len(got) == 3, 10, "three batches")
+    sub.undeclare()
+    assert [[raw_sample.decode(m).seq for _, m in batch] for batch in got] == [
+        [0, 1, 2, 3, 4], [5, 6, 7, 8, 9], [10, 11, 12]]  # fmt: skip
