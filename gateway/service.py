@@ -233,8 +233,9 @@ class _Body:
         self.kinds: list[type] = []
         self.objects: list[RawSample] = []
         # a round's plain messages, each after its row's tag, taken at its end
-        # (take_deferred)
+        # (take_deferred), and the tags of the rows they are for
         self.inbox: list[bytes] = []
+        self.deferred: set[bytes] = set()
         self.alive: set[str] = set()
         # keys whose token went away -> when (monotonic): stale until a sample comes
         # after that with the token back (a node declares it just before its first
@@ -346,6 +347,7 @@ class _Body:
         """A message of ``raw_sample.QUAT_MESSAGE_LEN`` bytes that came on
         ``kept``'s key, for :meth:`take_deferred`."""
         self.inbox += (kept.tag, message)
+        self.deferred.add(kept.tag)
 
     def take_deferred(self, now: float, rnd: int, ahead_ns: int) -> Iterator[tuple[_Site, bytes]]:
         """The messages deferred this round (:meth:`defer`), in the order they
@@ -353,6 +355,7 @@ class _Body:
         (``kernels.take_messages``), each other one yielded for the caller to
         take (decode or reject) before the call goes on after it."""
         inbox, self.inbox = self.inbox, []
+        self.deferred.clear()
         buf = np.frombuffer(b"".join(inbox), np.uint8)
         cols, pos, taken = self.columns, 0, False
         while True:
@@ -747,7 +750,9 @@ class Gateway:
                         if len(payload) == QUAT_MESSAGE_LEN:  # the common case: at the end
                             body.defer(route[1], payload)
                             continue
-                        if body.inbox:  # the samples before it first
+                        # its site's samples before it first (another site's, as a
+                        # SmartSuit module's among tags, wait for the round's end)
+                        if route[1].tag in body.deferred:
                             self._take_deferred(body, now, rnd, ahead)
                         self._take_one(key, payload, route, now, rnd, touched)
                         continue

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import threading
+import time
 from functools import partial
 from pathlib import Path
 
@@ -182,3 +183,58 @@ def wait_matching_batches(session: zenoh.Session) -> None:
         wait_until(lambda: publisher.matching_status.matching, what="the gateway's subscriber")
     finally:
         publisher.undeclare()
+
+
+def test_only_a_sites_own_messages_take_what_waits_before_them(
+    router_endpoint: str, tmp_path: Path
+) -> None:
+    """Plain quaternion messages wait for one compiled call at the end of a take
+    (``_Body.defer``); another message of the same site first takes them, so the
+    site's latest is the last it sent. Another site's message (a SmartSuit
+    module's among tags) leaves them waiting: the round's tags still take one
+    call, not one per module sample."""
+    a, b = IMU_SITES[2], IMU_SITES[3]
+    module_node, module = next(iter(SMARTSUIT_SITES.items()))
+
+    def quat(node: int, seq: int, extra: bytes = b"") -> bytes:
+        return raw_sample.encode(RawSample(Quat(node, (1.0, 0.0, 0.0, 0.0), extra), seq,
+                                           1_000 + seq, Source.IMU_CENTRAL))  # fmt: skip
+
+    def ole(seq: int) -> bytes:
+        return raw_sample.encode(RawSample(OleAccel(module_node, seq, (0, 0, 1024)), seq,
+                                           1_000 + seq, Source.CAN))  # fmt: skip
+
+    session, node = client(router_endpoint), client(router_endpoint)
+    gw = Gateway(session, profile_path=tmp_path / "subject.toml")  # taking by hand: no worker
+    flushes: list[int] = []
+    take_deferred = gw._take_deferred
+    gw._take_deferred = lambda *args: flushes.append(1) or take_deferred(*args)  # type: ignore[method-assign]
+    try:
+        pubs = {s.raw_key: node.declare_publisher(s.raw_key) for s in (a, b, module)}
+        wait_until(lambda: all(p.matching_status.matching for p in pubs.values()),
+                   what="the gateway's subscriber")  # fmt: skip
+
+        def take(sent: list[tuple[str, bytes]]) -> int:
+            """Put ``sent``, then take it in one take, as one round would."""
+            for key, payload in sent:
+                pubs[key].put(payload)
+            time.sleep(1.0)  # on loopback: all in the gateway's queue long before
+            return gw._take_pending(time.monotonic())[0]
+
+        first = [(a.raw_key, quat(2, 1)), (b.raw_key, quat(3, 1)), (module.raw_key, ole(1))]
+        assert take(first) == 3  # each site's first sample: its route made
+        flushes.clear()
+        sent = [(a.raw_key, quat(2, 2)), (b.raw_key, quat(3, 2)), (module.raw_key, ole(2)),
+                (b.raw_key, quat(3, 3)), (module.raw_key, ole(3)),
+                (a.raw_key, quat(2, 3, b"\x01"))]  # fmt: skip
+        assert take(sent) == 6
+        body = gw._bodies[None]
+        latest = {site: body.latest[site].sample for site in (a, b, module)}
+        assert latest[a] == raw_sample.decode(quat(2, 3, b"\x01"))  # not the plain one before
+        assert latest[b].seq == 3
+        assert latest[module].reading.encoder == 3  # type: ignore[union-attr]
+        assert len(flushes) == 1  # before a's own message; the modules' took none
+    finally:
+        gw.close()
+        node.close()
+        session.close()
