@@ -189,12 +189,16 @@ class _Batches:
     def add(self, body: int, key: str, payload: bytes, due: float) -> None:
         """A send of ``body`` due at ``due`` (the sends come in the order due)."""
         if (batch := self.open.get(body)) is not None and batch[0] + BATCH_S <= due:
-            # its batch's window ended before this send (a feeder running late)
-            heapq.heappush(self.closed, (batch[0] + BATCH_S, body, self.open.pop(body)[1]))
+            self._close(body)  # its window ended before this send (a feeder running late)
         entries = self.open.setdefault(body, (due, []))[1]
         entries.append((key, payload))
         if len(entries) == self.nodes:  # every node in: out at once
-            heapq.heappush(self.closed, (due, body, self.open.pop(body)[1]))
+            self._close(body, due)
+
+    def _close(self, body: int, at: float | None = None) -> None:
+        """``body``'s open batch closed, to go out at ``at`` (else its window's end)."""
+        first, entries = self.open.pop(body)
+        heapq.heappush(self.closed, (first + BATCH_S if at is None else at, body, entries))
 
     def flush_due(self, now: float) -> int:
         """Put every batch due by ``now``; how many samples they held."""
@@ -202,7 +206,7 @@ class _Batches:
 
         for body, (first, _) in list(self.open.items()):
             if first + BATCH_S <= now:
-                heapq.heappush(self.closed, (first + BATCH_S, body, self.open.pop(body)[1]))
+                self._close(body)
         count = 0
         while self.closed and self.closed[0][0] <= now:
             _, body, entries = heapq.heappop(self.closed)
