@@ -102,3 +102,21 @@ class Services:
 
 def bodynet(*args: str) -> list[str]:
     return [str(BODYNET), *args]
+
+
+def ended(proc: subprocess.Popen[str], timeout_s: float) -> tuple[int, str]:
+    """The exit code and stderr of ``proc``, read while it ends (a pipe nobody
+    reads would hold a chatty process at its next write). Not ended within
+    ``timeout_s``: what it had said, and where each of its threads was
+    (``PYTHONFAULTHANDLER``'s dump on SIGABRT)."""
+    try:
+        _, err = proc.communicate(timeout=timeout_s)
+    except subprocess.TimeoutExpired:
+        proc.send_signal(signal.SIGABRT)
+        try:
+            said = proc.communicate(timeout=10)[1]
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            said = proc.communicate()[1]
+        raise AssertionError(f"not ended {timeout_s:g} s after SIGTERM; it said: {said}") from None
+    return proc.returncode, err

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import signal
 import subprocess
 import sys
@@ -12,6 +13,7 @@ from pathlib import Path
 import can
 import pytest
 import zenoh
+from service_procs import ended
 from zenoh_helpers import Collector, Liveliness, raw_collector
 
 from bodynet.core.keys import LEFT_ARM, RIGHT_ARM
@@ -267,18 +269,20 @@ def _until_sigterm(*args: object, started: Callable[[], bool] = lambda: True) ->
     """Run ``bodynet *args`` until its first line, check ``started``, end it with
     SIGTERM: it exits 0 with no traceback. Its first line."""
     proc = subprocess.Popen([str(BODYNET), *map(str, args)], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True)  # fmt: skip
+                            stderr=subprocess.PIPE, text=True,
+                            env={**os.environ, "PYTHONFAULTHANDLER": "1"})  # fmt: skip
     try:
         assert proc.stdout is not None
         first = proc.stdout.readline()
         assert started(), first
         proc.send_signal(signal.SIGTERM)
-        assert proc.wait(timeout=30) == 0
+        code, err = ended(proc, 30)  # else where each thread was, in the failure
     finally:
         if proc.poll() is None:
             proc.kill()
             proc.wait(timeout=10)
-    assert "Traceback" not in proc.communicate()[1]
+    assert code == 0, err
+    assert "Traceback" not in err
     return first
 
 

@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 from mcap.writer import Writer
 from rerun.chunk import RrdReader
+from service_procs import ended
 from zenoh_helpers import client, free_port, wait_matching
 
 from bodynet.clients.view import Viewer, view_live
@@ -438,26 +439,6 @@ def _rows(rrd: Path, entity: str, writing: bool = False) -> int:
     return sum(c.to_record_batch().num_rows for c in chunks if c.entity_path == entity)
 
 
-def _ended(proc: subprocess.Popen[str], timeout_s: float) -> tuple[int, str]:
-    """The exit code and stderr of ``proc``, read while it ends (a pipe nobody
-    reads would hold a chatty process at its next write). Not ended within
-    ``timeout_s``: what it had said, and where each of its threads was
-    (``PYTHONFAULTHANDLER``'s dump on SIGABRT)."""
-    import signal
-
-    try:
-        _, err = proc.communicate(timeout=timeout_s)
-    except subprocess.TimeoutExpired:
-        proc.send_signal(signal.SIGABRT)
-        try:
-            said = proc.communicate(timeout=10)[1]
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            said = proc.communicate()[1]
-        raise AssertionError(f"not ended {timeout_s:g} s after SIGTERM; it said: {said}") from None
-    return proc.returncode, err
-
-
 def test_sigterm_ends_a_live_view_promptly_flushing_what_it_has(
     tmp_path: Path, router_endpoint: str
 ) -> None:
@@ -494,7 +475,7 @@ def test_sigterm_ends_a_live_view_promptly_flushing_what_it_has(
             publisher.put(keys.pose_key(), pose.encode(full_pose(i, t0 + i * 10_000_000)))
         wait(lambda: _rows(got, angle, writing=True) == 20, timeout=60)  # the viewer has them
         there.send_signal(signal.SIGTERM)
-        code, err = _ended(there, 30)
+        code, err = ended(there, 30)
         assert (code, err) == (
             0,
             "bodynet view: live, poses arriving\n"
@@ -512,7 +493,7 @@ def test_sigterm_ends_a_live_view_promptly_flushing_what_it_has(
             wait_matching(publisher, keys.pose_key(), timeout=60)
             gone.send_signal(signal.SIGTERM)
             with peer:
-                code, err = _ended(gone, 30)
+                code, err = ended(gone, 30)
                 assert code == 1, err  # it waited 60 s (and lost the .rrd)
     finally:
         publisher.close()
