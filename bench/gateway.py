@@ -10,7 +10,10 @@ the same feed, so the machine's noise hits both alike; the ratio is the figure
 to read. On two cores each then runs on what the other leaves: ``--apart``
 feeds them one after the other instead (the same feed each), rows marked
 "apart", with a third phase: a subscriber whose samples never reach Python,
-Zenoh's own CPU for receiving the feed (the floor under any gateway's). Loss:
+Zenoh's own CPU for receiving the feed (the floor under any gateway's), and
+a fourth (one gateway): a Python thread that wakes as often as the gateway's
+worker did and takes each sample's bytes, nothing else (the floor under a
+worker that polls Zenoh's queues, as the gateway's does). Loss:
 what the relay and the gateway received against what was sent. A gateway's
 CPU is its process's; the part its worker thread spent (``Gateway.run``: the
 Python of every sample and every tick) is beside it, the rest being Zenoh's
@@ -254,11 +257,44 @@ def _floor(endpoint: str, stop: Any, cpu: Any, serving: Any) -> None:
     _subscribed(_session(endpoint), zenoh.handlers.RingChannel(1), stop, cpu, serving)
 
 
+def _poller(endpoint: str, stop: Any, cpu: Any, serving: Any, wakes_per_s: float) -> None:
+    """The floor under a Python worker that polls Zenoh's queues as the gateway's
+    does: the gateway's subscribers, and a thread that wakes ``wakes_per_s``
+    times a second (as the gateway's worker did on the same feed) and takes
+    each waiting sample's bytes, nothing else. Its process's CPU into ``cpu``."""
+    import threading
+
+    import zenoh
+
+    from bodynet.gateway.service import INTAKE_DEPTH
+
+    session = _session(endpoint)
+    subs = [session.declare_subscriber(sel, zenoh.handlers.FifoChannel(INTAKE_DEPTH))
+            for sel in RAW_SELECTORS]  # fmt: skip
+
+    def poll() -> None:
+        while not stop.is_set():
+            for sub in subs:
+                while (sample := sub.try_recv()) is not None:
+                    sample.payload.to_bytes()
+            time.sleep(1.0 / wakes_per_s)
+
+    thread = threading.Thread(target=poll)
+    serving.set()
+    cpu0 = time.process_time()
+    thread.start()
+    stop.wait()
+    cpu.value = time.process_time() - cpu0
+    thread.join()
+    session.close()
+
+
 def _gateway(endpoint: str, stop: Any, samples: Any, cpu: Any, all_subjects: bool,
              share: str | None = None, serving: Any = None,
-             solves: Any = None, worker: Any = None) -> None:  # fmt: skip
-    """A gateway process: its CPU while fed into ``cpu``, and its worker thread's
-    (``Gateway.run``: every sample's and every tick's Python) into ``worker``."""
+             solves: Any = None, worker: Any = None, wakes: Any = None) -> None:  # fmt: skip
+    """A gateway process: its CPU while fed into ``cpu``, its worker thread's
+    (``Gateway.run``: every sample's and every tick's Python) into ``worker``,
+    and how often that thread woke from a sleep into ``wakes``."""
     import threading
 
     from bodynet.gateway.service import Gateway
@@ -273,8 +309,12 @@ def _gateway(endpoint: str, stop: Any, samples: Any, cpu: Any, all_subjects: boo
     if serving is not None:
         serving.set()
     cpu0, worker0 = time.process_time(), time.clock_gettime(clock)
+    sleeps0 = gateway.rounds.sleeps
     stop.wait()
     worker_s = time.clock_gettime(clock) - worker0  # within the process's span
+    if wakes is not None:
+        with wakes.get_lock():
+            wakes.value += gateway.rounds.sleeps - sleeps0
     with cpu.get_lock():
         cpu.value += time.process_time() - cpu0
     if worker is not None:
@@ -308,12 +348,13 @@ def _stats(lat: list[int]) -> dict[str, float]:
 
 
 def _phase(bodies: int, seconds: float, rate_hz: float, feed: str, relay: bool,
-           gateways: int, floor: bool = False) -> dict[str, Any]:  # fmt: skip
+           gateways: int, floor: bool = False, poll_hz: float = 0.0) -> dict[str, Any]:  # fmt: skip
     """Feed ``bodies`` bodies for ``seconds`` through the relay (if ``relay``) and
     ``gateways`` gateway processes at the same time (or, with ``floor``, a
-    subscriber that only receives), on a router of their own, with a probe
-    taking each relayed sample's and each pose's latency (ns). What was sent,
-    the latencies, each path's CPU (s), the gateways' samples taken and solves."""
+    subscriber that only receives; with ``poll_hz``, :func:`_poller` waking
+    that often), on a router of their own, with a probe taking each relayed
+    sample's and each pose's latency (ns). What was sent, the latencies, each
+    path's CPU (s), the gateways' samples taken, solves and wakes."""
     import socket
 
     from bodynet.core.codecs import pose, raw_sample
@@ -327,19 +368,23 @@ def _phase(bodies: int, seconds: float, rate_hz: float, feed: str, relay: bool,
     ctx = mp.get_context("spawn")
     sent, gw_samples, gw_solves = ctx.Value("q", 0), ctx.Value("q", 0), ctx.Value("q", 0)
     relay_cpu, gw_cpu, floor_cpu = ctx.Value("d", 0.0), ctx.Value("d", 0.0), ctx.Value("d", 0.0)
-    gw_worker = ctx.Value("d", 0.0)
+    gw_worker, gw_wakes = ctx.Value("d", 0.0), ctx.Value("q", 0)
     stop, ready = ctx.Event(), ctx.Event()
     share = (lambda k: f"bench-{k}") if gateways > 1 else (lambda k: None)
     serving = [ctx.Event() for _ in range(gateways)]
     procs = [ctx.Process(target=_gateway, args=(endpoint, stop, gw_samples, gw_cpu,
                                                 bodies > 1 or gateways > 1, share(k), serving[k],
-                                                gw_solves, gw_worker))
+                                                gw_solves, gw_worker, gw_wakes))
              for k in range(gateways)]  # fmt: skip
     if relay:
         procs.append(ctx.Process(target=_relay, args=(endpoint, stop, relay_cpu)))
     if floor:
         serving.append(ctx.Event())
         procs.append(ctx.Process(target=_floor, args=(endpoint, stop, floor_cpu, serving[-1])))
+    if poll_hz:
+        serving.append(ctx.Event())
+        poller = (endpoint, stop, floor_cpu, serving[-1], poll_hz)
+        procs.append(ctx.Process(target=_poller, args=poller))
     # one feeder process per 10 bodies, so the feed keeps its rate
     feeders = [
         ctx.Process(target=_feed, args=(endpoint, seconds, sent, ready,
@@ -383,7 +428,7 @@ def _phase(bodies: int, seconds: float, rate_hz: float, feed: str, relay: bool,
     return {"sent": sent.value, "relay_lat": relay_lat, "pose_lat": pose_lat,
             "relay_cpu_s": relay_cpu.value, "gateway_cpu_s": gw_cpu.value,
             "gateway_worker_cpu_s": gw_worker.value,
-            "floor_cpu_s": floor_cpu.value,
+            "floor_cpu_s": floor_cpu.value, "wakes": gw_wakes.value,
             "samples": gw_samples.value, "solves": gw_solves.value}  # fmt: skip
 
 
@@ -394,11 +439,15 @@ def run_once(bodies: int, seconds: float, rate_hz: float = RATE_HZ, feed: str = 
     with ``apart`` one after the other (the same feed each). ``gateways`` > 1:
     that many gateway processes share the bodies (``gateway --share``); their
     samples and CPU are added up."""
-    floor = None
+    floor = poller = None
     if apart:
         relay = _phase(bodies, seconds, rate_hz, feed, True, 0)
         gw = _phase(bodies, seconds, rate_hz, feed, False, gateways)
         floor = _phase(bodies, seconds, rate_hz, feed, False, 0, floor=True)
+        if gateways == 1 and gw["wakes"]:
+            poll_hz = gw["wakes"] / seconds
+            poller = {**_phase(bodies, seconds, rate_hz, feed, False, 0, poll_hz=poll_hz),
+                      "wakes_per_s": poll_hz}  # fmt: skip
     else:
         relay = gw = _phase(bodies, seconds, rate_hz, feed, True, gateways)
     r, g = _stats(relay["relay_lat"]), _stats(gw["pose_lat"])
@@ -417,11 +466,17 @@ def run_once(bodies: int, seconds: float, rate_hz: float = RATE_HZ, feed: str = 
                     "cpu_ms_per_body_s": 1e3 * gw["gateway_cpu_s"] / seconds / bodies,
                     # of which its worker thread's: the Python of every sample and tick
                     "worker_cpu_ms_per_body_s":
-                        1e3 * gw["gateway_worker_cpu_s"] / seconds / bodies},
+                        1e3 * gw["gateway_worker_cpu_s"] / seconds / bodies,
+                    # how often its worker woke from a sleep (each gateway's, added up)
+                    "wakes_per_s": gw["wakes"] / seconds},
         # apart only: Zenoh's own cost of receiving the same feed, with no Python per sample
         "floor": None if floor is None else {
             "sent": floor["sent"],
             "cpu_ms_per_body_s": 1e3 * floor["floor_cpu_s"] / seconds / bodies},
+        # apart, one gateway: the floor under a Python worker that polls as its worker did
+        "poller": None if poller is None else {
+            "sent": poller["sent"], "wakes_per_s": poller["wakes_per_s"],
+            "cpu_ms_per_body_s": 1e3 * poller["floor_cpu_s"] / seconds / bodies},
         "p50_ratio": g["p50_ms"] / r["p50_ms"] if r["n"] and g["n"] else None,
         "p99_ratio": g["p99_ms"] / r["p99_ms"] if r["n"] and g["n"] else None,
     }  # fmt: skip
@@ -552,6 +607,11 @@ def run(
             lines.append(f"| {row['bodies']} | {f} | Zenoh subscriber alone (floor: receives, "
                          f"no Python) | {row['floor']['sent']} | | | | | "
                          f"| {row['floor']['cpu_ms_per_body_s']:.0f} | | |")  # fmt: skip
+        if poller := row.get("poller"):
+            lines.append(f"| {row['bodies']} | {f} | Python worker alone (floor: polls as the "
+                         f"gateway's did, {poller['wakes_per_s']:.0f} wakes/s, takes each "
+                         f"sample's bytes) | {poller['sent']} | | | | | "
+                         f"| {poller['cpu_ms_per_body_s']:.0f} | | |")  # fmt: skip
     table = "\n".join(lines) + (
         f"\n\nSustained with zero loss ({feeds[0]} feed): relay {best['relay']} bodies, "
         f"gateway {best['gateway']} bodies (at least {TICKS_GOAL:.0%} of ticks delivered)"

@@ -227,9 +227,9 @@ def add_bench_args(p: argparse.ArgumentParser) -> None:
                    default=[1, 2, 4],
                    help="numbers of gateway processes sharing the bodies (--share)")  # fmt: skip
     p.add_argument("--apart", action="store_true",
-                   help="gateway benchmark: also feed relay, gateway and a bare Zenoh "
-                        "subscriber (the floor) one after the other, each on the machine "
-                        "alone")  # fmt: skip
+                   help="gateway benchmark: also feed relay, gateway, a bare Zenoh "
+                        "subscriber (the floor) and a Python thread polling as the gateway's "
+                        "worker did one after the other, each on the machine alone")  # fmt: skip
     p.add_argument("--gateway-runs", type=argtypes.positive_int(20, "runs"), default=1,
                    help="gateway benchmark: run each row this many times, interleaved, "
                         "and give the ranges of its figures (default 1)")  # fmt: skip

@@ -75,10 +75,12 @@ class Rounds:
         self.busy = 0.0  # the busy share of the last whole window
         self._start: float | None = None
         self._idle = 0.0
+        self.sleeps = 0  # how often the worker slept (each ends in a wake)
 
     def slept(self, seconds: float) -> None:
         """The worker slept (waited for samples) this long."""
         self._idle += seconds
+        self.sleeps += 1
 
     def hold(self, now: float, bodies: int) -> float:
         """How long a whole frame may wait for the round now: 0 while the worker

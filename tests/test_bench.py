@@ -167,6 +167,14 @@ def test_gateway_benchmark_apart_feeds_relay_and_gateway_one_after_the_other(
     assert apart["floor"]["cpu_ms_per_body_s"] > 0
     assert together["floor"] is None
     assert "| 1 | realistic, apart | Zenoh subscriber alone (floor: receives, no Python) |" in table
+    # the floor under a polling worker: as often as the gateway's woke, the same feed
+    poller = apart["poller"]
+    assert poller["sent"] == apart["sent"]
+    assert poller["wakes_per_s"] == apart["gateway"]["wakes_per_s"] > 0
+    assert poller["cpu_ms_per_body_s"] > 0
+    assert together["poller"] is None
+    assert f"Python worker alone (floor: polls as the gateway's did, {poller['wakes_per_s']:.0f}" \
+        in table  # fmt: skip
 
 
 def test_gateway_benchmark_runs_each_row_again_and_gives_the_ranges(
