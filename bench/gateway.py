@@ -439,15 +439,20 @@ def run_once(bodies: int, seconds: float, rate_hz: float = RATE_HZ, feed: str = 
     with ``apart`` one after the other (the same feed each). ``gateways`` > 1:
     that many gateway processes share the bodies (``gateway --share``); their
     samples and CPU are added up."""
+
+    def floor_row(phase: dict[str, Any]) -> dict[str, Any]:
+        return {"sent": phase["sent"],
+                "cpu_ms_per_body_s": 1e3 * phase["floor_cpu_s"] / seconds / bodies}  # fmt: skip
+
     floor = poller = None
     if apart:
         relay = _phase(bodies, seconds, rate_hz, feed, True, 0)
         gw = _phase(bodies, seconds, rate_hz, feed, False, gateways)
-        floor = _phase(bodies, seconds, rate_hz, feed, False, 0, floor=True)
+        floor = floor_row(_phase(bodies, seconds, rate_hz, feed, False, 0, floor=True))
         if gateways == 1 and gw["wakes"]:
             poll_hz = gw["wakes"] / seconds
-            poller = {**_phase(bodies, seconds, rate_hz, feed, False, 0, poll_hz=poll_hz),
-                      "wakes_per_s": poll_hz}  # fmt: skip
+            poller = {**floor_row(_phase(bodies, seconds, rate_hz, feed, False, 0,
+                                         poll_hz=poll_hz)), "wakes_per_s": poll_hz}  # fmt: skip
     else:
         relay = gw = _phase(bodies, seconds, rate_hz, feed, True, gateways)
     r, g = _stats(relay["relay_lat"]), _stats(gw["pose_lat"])
@@ -470,16 +475,18 @@ def run_once(bodies: int, seconds: float, rate_hz: float = RATE_HZ, feed: str = 
                     # how often its worker woke from a sleep (each gateway's, added up)
                     "wakes_per_s": gw["wakes"] / seconds},
         # apart only: Zenoh's own cost of receiving the same feed, with no Python per sample
-        "floor": None if floor is None else {
-            "sent": floor["sent"],
-            "cpu_ms_per_body_s": 1e3 * floor["floor_cpu_s"] / seconds / bodies},
+        "floor": floor,
         # apart, one gateway: the floor under a Python worker that polls as its worker did
-        "poller": None if poller is None else {
-            "sent": poller["sent"], "wakes_per_s": poller["wakes_per_s"],
-            "cpu_ms_per_body_s": 1e3 * poller["floor_cpu_s"] / seconds / bodies},
+        "poller": poller,
         "p50_ratio": g["p50_ms"] / r["p50_ms"] if r["n"] and g["n"] else None,
         "p99_ratio": g["p99_ms"] / r["p99_ms"] if r["n"] and g["n"] else None,
     }  # fmt: skip
+
+
+#: the apart rows' floors: each one's key in a run and its path in the table
+_FLOORS = (("floor", "Zenoh subscriber alone (floor: receives, no Python)"),
+           ("poller", "Python worker alone (floor: polls as the gateway's did, "
+                      "{wakes_per_s:.0f} wakes/s, takes each sample's bytes)"))  # fmt: skip
 
 
 def _ranges(runs: dict[tuple[int, str, int, bool], list[dict[str, Any]]], repeat: int) -> str:
@@ -603,15 +610,10 @@ def run(
                      f"| {g['lost']} | {g['pose_rate'] * RATE_HZ:.0f} | {g['p50_ms']:.2f} "
                      f"| {g['p99_ms']:.2f} | {ratio} | {g['cpu_ms_per_body_s']:.0f} "
                      f"| {g['worker_cpu_ms_per_body_s']:.0f} | {batch} |")  # fmt: skip
-        if row.get("floor"):
-            lines.append(f"| {row['bodies']} | {f} | Zenoh subscriber alone (floor: receives, "
-                         f"no Python) | {row['floor']['sent']} | | | | | "
-                         f"| {row['floor']['cpu_ms_per_body_s']:.0f} | | |")  # fmt: skip
-        if poller := row.get("poller"):
-            lines.append(f"| {row['bodies']} | {f} | Python worker alone (floor: polls as the "
-                         f"gateway's did, {poller['wakes_per_s']:.0f} wakes/s, takes each "
-                         f"sample's bytes) | {poller['sent']} | | | | | "
-                         f"| {poller['cpu_ms_per_body_s']:.0f} | | |")  # fmt: skip
+        for key, path in _FLOORS:
+            if got := row.get(key):
+                lines.append(f"| {row['bodies']} | {f} | {path.format(**got)} | {got['sent']} "
+                             f"| | | | | | {got['cpu_ms_per_body_s']:.0f} | | |")  # fmt: skip
     table = "\n".join(lines) + (
         f"\n\nSustained with zero loss ({feeds[0]} feed): relay {best['relay']} bodies, "
         f"gateway {best['gateway']} bodies (at least {TICKS_GOAL:.0%} of ticks delivered)"
