@@ -31,34 +31,52 @@ from bodynet.core.messages import RawSample, Source
 from bodynet.core.subject import Profile
 from bodynet.gateway import kernels
 from bodynet.gateway.frames import whole_body_message
-from bodynet.gateway.solver import BodySolver, solve_bodies, tpose_mounts
+from bodynet.gateway.heading import calibrate_window
+from bodynet.gateway.solver import BodySolver, solve_bodies
 from bodynet.nodes.emulator import BodyEmulator, imu_tags
 from bodynet.nodes.motion import ROUTINES
 
 FRAMES = 100  # a second of motion at 100 Hz, looped
 
 
-def _frames() -> tuple[Profile, list[dict[Any, RawSample]]]:
-    """A calibrated IMU body walking: its profile and a second of sample frames."""
-    tags = imu_tags()
-    still = BodyEmulator(ROUTINES["tpose"], tags, seed=3)
-    window: dict[Any, list[Any]] = {}
-    for k in range(10):
-        for tag, r in zip(tags, still.sample(k / 100)[0], strict=True):
-            window.setdefault(tag.site, []).append(r.wxyz)  # type: ignore[union-attr]
-    profile = Profile(heading="fixed").with_mounts(tpose_mounts(window))  # faces +X
-    body = BodyEmulator(ROUTINES["walk"], tags, seed=3)
-    frames = []
-    for k in range(FRAMES):
-        readings, _ = body.sample(k / 100)
-        frames.append({tag.site: RawSample(r, k, k * 10_000_000, Source.IMU_CENTRAL)
-                       for tag, r in zip(tags, readings, strict=True)})  # fmt: skip
-    return profile, frames
+def _bodies(n: int) -> list[tuple[Profile, list[dict[Any, RawSample]]]]:
+    """``n`` calibrated IMU bodies walking, each with its own tags (mounts and
+    noise: seeded by body) and calibrated on its own still window, as the
+    gateway calibrates a suit (its mounts and its tags' scatter, which their
+    joints' uncertainty carries): each one's profile and a second of sample
+    frames. Each body's samples come in an order of its own, as the gateway
+    keeps a body's sites in the order their first samples came in (its nodes'
+    phases)."""
+    out = []
+    for b in range(n):
+        tags = imu_tags()
+        np.random.default_rng(b).shuffle(tags)  # type: ignore[arg-type]
+        still = BodyEmulator(ROUTINES["tpose"], tags, seed=3 + b)
+        window: dict[Any, list[Any]] = {}
+        for k in range(50):
+            for tag, r in zip(tags, still.sample(k / 100)[0], strict=True):
+                window.setdefault(tag.site, []).append((k / 100, r.wxyz))  # type: ignore[union-attr]
+        fixed = Profile(heading="fixed")  # the subject faces +X of the tags' shared frame
+        profile = calibrate_window(window, fixed).apply(fixed)
+        body = BodyEmulator(ROUTINES["walk"], tags, seed=3 + b)
+        frames = []
+        for k in range(FRAMES):
+            readings, _ = body.sample(k / 100)
+            frames.append({tag.site: RawSample(r, k, k * 10_000_000, Source.IMU_CENTRAL)
+                           for tag, r in zip(tags, readings, strict=True)})  # fmt: skip
+        out.append((profile, frames))
+    return out
 
 
 def _tick(work: list[tuple[BodySolver, dict[Any, RawSample]]], seq: int) -> None:
     for output in solve_bodies(work):
         whole_body_message(output, seq, [])
+
+
+#: how many sets of bodies due together :func:`due_sets` draws: a minute of
+#: ticks, so that a run sees sets as new as live (where timing draws them, and a
+#: set seldom comes again), not a loop of a few it could remember
+SETS = 6000
 
 
 def due_sets(bodies: int, varying: bool) -> list[list[int]]:
@@ -70,17 +88,20 @@ def due_sets(bodies: int, varying: bool) -> list[list[int]]:
     rng = np.random.default_rng(0)
     return [sorted(rng.choice(bodies, int(rng.integers(max(1, bodies // 2), bodies)),
                               replace=False).tolist())
-            for _ in range(FRAMES)]  # fmt: skip
+            for _ in range(SETS)]  # fmt: skip
 
 
-def _per_body_tick_us(bodies: int, seconds: float, batched: bool,
-                      profile: Profile, frames: list[dict[Any, RawSample]],
+Bodies = list[tuple[Profile, list[dict[Any, RawSample]]]]
+
+
+def _per_body_tick_us(bodies: Bodies, seconds: float, batched: bool,
                       varying: bool = False) -> float:  # fmt: skip
-    solvers = [BodySolver(profile) for _ in range(bodies)]
-    sets = due_sets(bodies, varying)
+    solvers = [BodySolver(profile) for profile, _ in bodies]
+    sets = due_sets(len(bodies), varying)
     ticks, solved, start = 0, 0, time.perf_counter()
     while time.perf_counter() - start < seconds or ticks < 3:
-        work = [(solvers[b], frames[(ticks + b) % FRAMES]) for b in sets[ticks % len(sets)]]
+        work = [(solvers[b], bodies[b][1][(ticks + b) % FRAMES])
+                for b in sets[ticks % len(sets)]]  # fmt: skip
         if batched:
             _tick(work, ticks)
         else:
@@ -111,36 +132,34 @@ def _paced(seconds: float, job: Callable[[int], tuple[Callable[[], object], int]
     return 1e6 * cpu / solved
 
 
-def _paced_per_body_tick_us(bodies: int, seconds: float, profile: Profile,
-                            frames: list[dict[Any, RawSample]],
-                            varying: bool = False) -> float:  # fmt: skip
+def _paced_per_body_tick_us(bodies: Bodies, seconds: float, varying: bool = False) -> float:
     """CPU per body-tick of the batch solved once a period, sleeping between."""
-    solvers = [BodySolver(profile) for _ in range(bodies)]
-    sets = due_sets(bodies, varying)
+    solvers = [BodySolver(profile) for profile, _ in bodies]
+    sets = due_sets(len(bodies), varying)
 
     def job(tick: int) -> tuple[Callable[[], object], int]:
-        work = [(solvers[b], frames[(tick + b) % FRAMES]) for b in sets[tick % len(sets)]]
+        work = [(solvers[b], bodies[b][1][(tick + b) % FRAMES])
+                for b in sets[tick % len(sets)]]  # fmt: skip
         return (lambda: _tick(work, tick)), len(work)
 
     return _paced(seconds, job)
 
 
-def _paced_compiled_us(bodies: int, seconds: float, profile: Profile,
-                       frames: list[dict[Any, RawSample]],
-                       varying: bool = False) -> float:  # fmt: skip
+def _paced_compiled_us(bodies: Bodies, seconds: float, varying: bool = False) -> float:
     """CPU per body-tick of one compiled call on the same bodies once a period,
     sleeping between: their forward kinematics (``kernels.forward_poses``) from
     a tick's angles, the floor of what the time away costs a tick that is one
     compiled pass (the Python tick's ratio to it is what its Python costs)."""
+    (profile, frames), n = bodies[0], len(bodies)
     solver = BodySolver(profile)
     chain = solver.model.chain
-    sets = due_sets(bodies, varying)
-    angles = np.zeros((bodies, len(solver.names.angles) + 1))
+    sets = due_sets(n, varying)
+    angles = np.zeros((n, len(solver.names.angles) + 1))
     angles[:, :-1] = solve_bodies([(solver, frames[0])])[0].angles  # a walking body's
-    segments, roots = np.zeros((0, 3, 3)), np.full(bodies, -1)
-    root_z = np.full(bodies, chain.root_z)
-    offsets = np.repeat(chain.offsets[None], bodies, 0)
-    floor = np.repeat(chain.floor_points[None], bodies, 0)
+    segments, roots = np.zeros((0, 3, 3)), np.full(n, -1)
+    root_z = np.full(n, chain.root_z)
+    offsets = np.repeat(chain.offsets[None], n, 0)
+    floor = np.repeat(chain.floor_points[None], n, 0)
 
     def job(tick: int) -> tuple[Callable[[], object], int]:
         n = len(sets[tick % len(sets)])
@@ -156,13 +175,13 @@ def run(seconds: float = 2.0, out_dir: Path = Path("bench-results"),
     """Measure each number of bodies alone, batched, and batched once a period,
     all of them due each tick and (three bodies or more) varying sets of them
     (:func:`due_sets`); print a table; write solver.{json,md}."""
-    profile, frames = _frames()
+    suits = _bodies(max(bodies))
     rows = []
     for n, varying in [(n, v) for n in bodies for v in (False, True) if n >= 3 or not v]:
-        alone = _per_body_tick_us(n, seconds, False, profile, frames, varying)
-        batched = _per_body_tick_us(n, seconds, True, profile, frames, varying)
-        paced = _paced_per_body_tick_us(n, seconds, profile, frames, varying)
-        compiled = _paced_compiled_us(n, seconds, profile, frames, varying)
+        alone = _per_body_tick_us(suits[:n], seconds, False, varying)
+        batched = _per_body_tick_us(suits[:n], seconds, True, varying)
+        paced = _paced_per_body_tick_us(suits[:n], seconds, varying)
+        compiled = _paced_compiled_us(suits[:n], seconds, varying)
         sizes = [len(s) for s in due_sets(n, varying)]
         rows.append({"bodies": n, "varying": varying, "due": (min(sizes), max(sizes)),
                      "alone_us": alone, "batched_us": batched,

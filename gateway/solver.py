@@ -425,6 +425,8 @@ class _SplitBatch:
         starts = np.cumsum([0, *self.n[:-1]])
         self.angle_index = np.where(self.unused, int(self.n.sum()),
                                     starts[:, None] + np.arange(3)[None, :])  # fmt: skip
+        # the layouts of the sets of bodies solved together (BodySolver._solve_direct)
+        self.layouts: dict[tuple[tuple[int | bytes, ...], ...], _Layout] = {}
 
     def prepare(self, rows: np.ndarray) -> _Rows:
         """What :meth:`split` and :meth:`commit` take of the batch for joints
@@ -501,10 +503,11 @@ class _Plan:
                  segments: int = 0) -> None:  # fmt: skip
         self.rows, self.parents, self.children = rows, parents, children
         self.index, self.cal_inv, self.unc = index, cal_inv, unc
-        # what the plan is, of its ``segments`` measured: one object for every plan of
-        # the same numbers (bodies of one kind), which a batch's layout is kept by
-        key = (segments, *(a.tobytes() for a in (rows, parents, children, cal_inv, unc)))
-        if len(_SHAPES) >= 1024:  # recalibrated bodies: new shapes (equal ones still match)
+        # which joints the plan has, of its ``segments`` measured: one object for every
+        # plan of the same joints (bodies of one kind), which a batch's layout is kept
+        # by; not their numbers (each body's tags scatter by their own calibration)
+        key = (segments, *(a.tobytes() for a in (rows, parents, children)))
+        if len(_SHAPES) >= 1024:
             _SHAPES.clear()
         self.shape = _SHAPES.setdefault(key, key)
 
@@ -521,10 +524,11 @@ class _Layout:
     their shapes (which sensors deliver changes rarely, and bodies of one kind
     share a shape), so that unsynchronised bodies, which come due in ever other
     sets, find theirs: joining the plans took some 220 us of a round of twenty
-    bodies' 1,700 (2026-12-07), in nearly every round when kept by solver."""
+    bodies' 1,700 (2026-12-07). The batch keeps them (``_SplitBatch.layouts``),
+    for every solver of its skeleton. The plans' numbers (``cal_inv``, ``unc``)
+    are each body's, joined each round."""
 
-    __slots__ = ("cal_inv", "children", "index", "owner", "parents", "prep", "rows", "spans",
-                 "unc", "unc_index")  # fmt: skip
+    __slots__ = ("children", "index", "owner", "parents", "prep", "rows", "spans", "unc_index")
 
     def __init__(self, ticks: Sequence[_Tick], batch: _SplitBatch) -> None:
         plans = [t.plan for t in ticks]
@@ -539,11 +543,8 @@ class _Layout:
         self.parents = np.where(parents >= 0, parents + offsets, sum(sizes))
         self.owner, self.rows = owner, rows
         self.index = np.concatenate([p.index for p in plans])
-        # each body's own calibration pose (T or N): the total rotations are from it
-        self.cal_inv = np.concatenate([p.cal_inv for p in plans])
         self.prep = batch.prepare(rows)
         self.unc_index = [p.index for p in plans]
-        self.unc = np.concatenate([p.unc for p in plans])  # the tags' (deg), before headings
         ends = np.cumsum(counts).tolist()
         self.spans = [slice(end - c, end) for end, c in zip(ends, counts, strict=True)]
 
@@ -791,7 +792,7 @@ class _Sorted:
         self.stale_segs: set[str] = set()  # segments of ``segs`` whose sensor is stale
         self.stale_modules: set[str] = set()  # segments whose SmartSuit module is stale
         self.keys: list[str] = []  # each site's raw key
-        self.segs: list[str] = []  # segments with an orientation sensor (the first one wins)
+        self.segs: list[str] = []  # segments with an orientation sensor (the first key wins)
         self.seen: frozenset[str] = _NOTHING  # and as a set
         self.used: list[Site] = []  # the orientation sensors of ``segs``, in that order
         self.scatter: list[float] = []  # and each one's in calibration (deg, 0: not known)
@@ -902,7 +903,6 @@ class BodySolver:
         self._all_mounted = False  # assume_calibrated
         self._sites: dict[Site, tuple[str, np.ndarray, str, bool, np.ndarray, bool, bool]] = {}
         self._plans: dict[tuple[tuple[str, ...], tuple[float, ...]], _Plan] = {}
-        self._layouts: dict[tuple[tuple[int, int], ...], _Layout] = {}  # see _solve_direct
         # the sensors' stacked frames (turns, mounts) by the sensors used, see _frames
         self._stacked: dict[tuple[Site, ...], tuple[np.ndarray, np.ndarray]] = {}
         self._told: set[str] = set()  # raw keys ``expect`` has taken (parsing 15 cost 15 us)
@@ -1084,15 +1084,21 @@ class BodySolver:
 
     def _sort(self, sites: tuple[Site, ...], kinds: tuple[type, ...]) -> _Sorted:
         """How a tick of samples from ``sites``, of readings ``kinds``, sorts (see
-        :class:`_Sorted`): each segment's first orientation sensor measures it,
-        SmartSuit modules by segment."""
+        :class:`_Sorted`): each segment's orientation sensor of the first raw key
+        measures it, SmartSuit modules by segment.
+
+        The sensors are taken in the order of their raw keys, not of ``sites``
+        (the order their first samples came in): bodies of one kind then sort
+        alike, and a batch of them finds its layout kept (``_solve_direct``),
+        however their nodes' phases fell when they started."""
         stale = self._stale
         sorted_ = _Sorted(sites, kinds, stale)
         seen: set[str] = set()
         rows: list[int] = []  # the used sensors' samples among the tick's
-        for i, (site, kind) in enumerate(zip(sites, kinds, strict=True)):
+        sorted_.keys = [self._site(site)[2] for site in sites]
+        for i in sorted(range(len(sites)), key=sorted_.keys.__getitem__):
+            site, kind = sites[i], kinds[i]
             seg, _, key, module, _, heading_known, calibrated = self._site(site)
-            sorted_.keys.append(key)
             if kind is Quat:
                 if seg not in seen:
                     seen.add(seg)
@@ -1205,11 +1211,11 @@ class BodySolver:
         # kept by the shapes of the plans: bodies of one kind come due in ever other
         # sets, each set of m of them laid out as any other
         key = tuple([t.plan.shape for t in ticks])
-        layout = self._layouts.get(key)
+        layout = batch.layouts.get(key)
         if layout is None:
-            if len(self._layouts) >= 64:  # bodies of several kinds in ever other orders
-                self._layouts.clear()
-            layout = self._layouts[key] = _Layout(ticks, batch)
+            if len(batch.layouts) >= 256:  # bodies of several kinds in ever other orders
+                batch.layouts.clear()
+            layout = batch.layouts[key] = _Layout(ticks, batch)
         owner, rows, index = layout.owner, layout.rows, layout.index
         if len(ticks) == 1 and ticks[0].last is not None:
             last = ticks[0].last[None]
@@ -1217,11 +1223,17 @@ class BodySolver:
             nothing = np.zeros(angles.shape[1])  # a body's first tick: no previous angles
             last = np.stack([t.last if t.last is not None else nothing for t in ticks])
         p = layout.prep
-        known = layout.unc  # how well the tags give each relative rotation
+        # how well the tags give each relative rotation (deg), and each body's own
+        # calibration pose (T or N), which the total rotations are from
+        if len(plans) == 1:
+            known, cal_inv = plans[0].unc, plans[0].cal_inv
+        else:
+            known = np.concatenate([plan.unc for plan in plans])
+            cal_inv = np.concatenate([plan.cal_inv for plan in plans])
         for tick, at, span in zip(ticks, layout.unc_index, layout.spans, strict=True):
             extra = tick.solver._heading_unc
             if extra is not None:  # a tag whose heading a three-dof joint holds widens them
-                known = known.copy() if known is layout.unc else known
+                known = known.copy() if known is plans[0].unc else known
                 known[span] = np.hypot(known[span], extra[at])  # (gateway/heading.py)
         # in two compiled calls: relative rotations, widened by the two segments'
         # residual turns (brought to the tick's time), split; then committed and
@@ -1234,7 +1246,7 @@ class BodySolver:
             batch.unlock(rows, gimbal, split, relative, previous)
         matrices, clamped, n_clamped = kernels.direct_commit(
             split, stated, relative, owner, index, rows, p.lo, p.hi, p.axis, p.unused,
-            layout.cal_inv, angles, unc, rel,
+            cal_inv, angles, unc, rel,
         )  # fmt: skip
         start = 0
         for tick, plan in zip(ticks, plans, strict=True):

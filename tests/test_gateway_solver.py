@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Iterator, Mapping, Sequence
 from typing import Any
@@ -529,6 +530,25 @@ def test_kernels_compile_where_nothing_can_cache_them() -> None:
     assert _compiled("float64(float64)")(namespace["twice"])(3.0) == 6.0
 
 
+def test_a_body_solves_alike_whatever_order_its_sites_first_came_in() -> None:
+    """A segment two orientation sensors measure (a chest tag and a SmartSuit
+    trunk IMU on the thorax, a sacrum tag and one on the pelvis) is measured by
+    the same one whichever of them delivered first: the pose does not hang on
+    the phases its nodes started at."""
+    sensors = imu_tags() + smartsuit_sensors()
+    body = BodyEmulator(ROUTINES["reach"], sensors, seed=SEED)  # random mounts: they differ
+    first, reversed_ = BodySolver(), BodySolver()
+    for tick in range(3):
+        readings, _ = body.sample(tick / 100)
+        samples = [(s.site, RawSample(r, tick, tick * 10_000_000))
+                   for s, r in zip(sensors, readings, strict=True)]  # fmt: skip
+        a, b = first.solve(dict(samples)), reversed_.solve(dict(samples[::-1]))
+        assert a.flags == b.flags
+        assert a.reasons == b.reasons
+        np.testing.assert_array_equal(a.angles, b.angles)
+        np.testing.assert_array_equal(a.quats, b.quats)
+
+
 def test_bodies_solved_together_match_each_solved_alone() -> None:
     """The gateway solves the bodies that are due in one batch: every output of
     every body (angles, flags, total rotations, poses) must be what that body
@@ -550,13 +570,17 @@ def test_bodies_solved_together_match_each_solved_alone() -> None:
         (1.0, {"left_shoulder_flexion_deg": 30.0, "left_shoulder_abduction_deg": 90.0}),
         (3.0, {"left_shoulder_flexion_deg": 30.0, "left_shoulder_abduction_deg": 90.0}),
     ], loop=False))  # fmt: skip
+    # the same tags as the first body's, each scattering as much as its own
+    # calibration showed: each body's tags give its joints their own uncertainty
+    scattered = dataclasses.replace(calibrated_profile(tags), imu_scatter_deg={
+        s.site.raw_key: 0.2 + 0.1 * i for i, s in enumerate(tags)})  # fmt: skip
     kinds: list[tuple[Any, Profile | None, Routine, Realism | None]] = [
         (tags, calibrated_profile(tags), ROUTINES["walk"], IDEAL_RANDOM_MOUNTS),
         (smartsuit_sensors(), None, ROUTINES["reach"], None),
         (hybrid, calibrated_profile(hybrid_tags), ROUTINES["reach"], IDEAL_RANDOM_MOUNTS),
         (tags, tall, ROUTINES["full-body"], None),
         (tags, Profile(heading="fixed"), ROUTINES["random"], None),
-        (tags, calibrated_profile(tags), into_lock, IDEAL_RANDOM_MOUNTS),
+        (tags, scattered, into_lock, IDEAL_RANDOM_MOUNTS),
     ]
     emulators = [
         BodyEmulator(routine, sensors, seed=SEED, **({"realism": r} if r else {}))
