@@ -760,6 +760,11 @@ class Gateway:
                         self._take_batch(key, payload, body, now, rnd, ahead, touched)
                         continue
                     if subject_of_batch(key) is not None:
+                        # a bridge's first batch: the samples waiting before it first
+                        # (whichever body it turns out to feed; ``_take_batch`` after)
+                        for body in touched:
+                            if body.inbox:
+                                self._take_deferred(body, now, rnd, ahead)
                         self._take_entries(key, raw_batch.split(key, payload), now, rnd, touched)
                         continue
                     self._take_one(key, payload, None, now, rnd, touched)

@@ -238,3 +238,43 @@ def test_only_a_sites_own_messages_take_what_waits_before_them(
         gw.close()
         node.close()
         session.close()
+
+
+def test_a_bridges_first_batch_comes_after_the_samples_taken_before_it(
+    router_endpoint: str, tmp_path: Path
+) -> None:
+    """A site's samples that came on its own key before a bridge's first batch
+    (its key not yet known to the gateway) are taken before the batch's: the
+    site's latest is the batch's, the last it sent, not the older one."""
+    a, b = IMU_SITES[2], IMU_SITES[3]
+
+    def quat(node: int, seq: int) -> bytes:
+        return raw_sample.encode(RawSample(Quat(node, (1.0, 0.0, 0.0, 0.0)), seq, 1_000 + seq,
+                                           Source.IMU_CENTRAL))  # fmt: skip
+
+    session, node = client(router_endpoint), client(router_endpoint)
+    gw = Gateway(session, profile_path=tmp_path / "subject.toml")  # taking by hand: no worker
+    try:
+        batch = keys.batch_key("first")
+        pubs = {k: node.declare_publisher(k) for k in (a.raw_key, b.raw_key, batch)}
+        wait_until(lambda: all(p.matching_status.matching for p in pubs.values()),
+                   what="the gateway's subscribers")  # fmt: skip
+
+        def take(sent: list[tuple[str, bytes]]) -> int:
+            """Put ``sent``, then take it in one take, as one round would."""
+            for key, payload in sent:
+                pubs[key].put(payload)
+            time.sleep(1.0)  # on loopback: all in the gateway's queues long before
+            return gw._take_pending(time.monotonic())[0]
+
+        assert take([(a.raw_key, quat(2, 1)), (b.raw_key, quat(3, 1))]) == 2  # routes made
+        entries = raw_batch.encode([(a.raw_key, quat(2, 3)), (b.raw_key, quat(3, 3))])
+        assert take([(a.raw_key, quat(2, 2)), (batch, entries)]) == 2
+        body = gw._bodies[None]
+        assert body.latest[a].sample.seq == 3
+        assert body.latest[b].sample.seq == 3
+        assert batch in gw._batch_bodies  # its next batches: the compiled intake
+    finally:
+        gw.close()
+        node.close()
+        session.close()
