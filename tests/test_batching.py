@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import threading
 import time
+from collections.abc import Callable
 from functools import partial
 from pathlib import Path
 
@@ -185,6 +186,25 @@ def wait_matching_batches(session: zenoh.Session) -> None:
         publisher.undeclare()
 
 
+def _taker(
+    gw: Gateway, node: zenoh.Session, keys_: list[str]
+) -> Callable[[list[tuple[str, bytes]]], int]:
+    """For a gateway with no worker: ``take(sent)`` puts ``sent`` (key, payload)
+    from ``node``, then takes it in one take, as one round would, and says how
+    many samples it took."""
+    pubs = {k: node.declare_publisher(k) for k in keys_}
+    wait_until(lambda: all(p.matching_status.matching for p in pubs.values()),
+               what="the gateway's subscribers")  # fmt: skip
+
+    def take(sent: list[tuple[str, bytes]]) -> int:
+        for key, payload in sent:
+            pubs[key].put(payload)
+        time.sleep(1.0)  # on loopback: all in the gateway's queues long before
+        return gw._take_pending(time.monotonic())[0]
+
+    return take
+
+
 def test_only_a_sites_own_messages_take_what_waits_before_them(
     router_endpoint: str, tmp_path: Path
 ) -> None:
@@ -210,16 +230,7 @@ def test_only_a_sites_own_messages_take_what_waits_before_them(
     take_deferred = gw._take_deferred
     gw._take_deferred = lambda *args: flushes.append(1) or take_deferred(*args)  # type: ignore[method-assign]
     try:
-        pubs = {s.raw_key: node.declare_publisher(s.raw_key) for s in (a, b, module)}
-        wait_until(lambda: all(p.matching_status.matching for p in pubs.values()),
-                   what="the gateway's subscriber")  # fmt: skip
-
-        def take(sent: list[tuple[str, bytes]]) -> int:
-            """Put ``sent``, then take it in one take, as one round would."""
-            for key, payload in sent:
-                pubs[key].put(payload)
-            time.sleep(1.0)  # on loopback: all in the gateway's queue long before
-            return gw._take_pending(time.monotonic())[0]
+        take = _taker(gw, node, [s.raw_key for s in (a, b, module)])
 
         first = [(a.raw_key, quat(2, 1)), (b.raw_key, quat(3, 1)), (module.raw_key, ole(1))]
         assert take(first) == 3  # each site's first sample: its route made
@@ -256,16 +267,7 @@ def test_a_bridges_first_batch_comes_after_the_samples_taken_before_it(
     gw = Gateway(session, profile_path=tmp_path / "subject.toml")  # taking by hand: no worker
     try:
         batch = keys.batch_key("first")
-        pubs = {k: node.declare_publisher(k) for k in (a.raw_key, b.raw_key, batch)}
-        wait_until(lambda: all(p.matching_status.matching for p in pubs.values()),
-                   what="the gateway's subscribers")  # fmt: skip
-
-        def take(sent: list[tuple[str, bytes]]) -> int:
-            """Put ``sent``, then take it in one take, as one round would."""
-            for key, payload in sent:
-                pubs[key].put(payload)
-            time.sleep(1.0)  # on loopback: all in the gateway's queues long before
-            return gw._take_pending(time.monotonic())[0]
+        take = _taker(gw, node, [a.raw_key, b.raw_key, batch])
 
         assert take([(a.raw_key, quat(2, 1)), (b.raw_key, quat(3, 1))]) == 2  # routes made
         entries = raw_batch.encode([(a.raw_key, quat(2, 3)), (b.raw_key, quat(3, 3))])
