@@ -750,24 +750,16 @@ class Gateway:
                         if len(payload) == QUAT_MESSAGE_LEN:  # the common case: at the end
                             body.defer(route[1], payload)
                             continue
-                        # its site's samples before it first (another site's, as a
-                        # SmartSuit module's among tags, wait for the round's end)
-                        if route[1].tag in body.deferred:
-                            self._take_deferred(body, now, rnd, ahead)
-                        self._take_one(key, payload, route, now, rnd, touched)
+                        self._take_one(key, payload, route, now, rnd, ahead, touched)
                         continue
                     if (body := batches.get(key)) is not None:
                         self._take_batch(key, payload, body, now, rnd, ahead, touched)
                         continue
                     if subject_of_batch(key) is not None:
-                        # a bridge's first batch: the samples waiting before it first
-                        # (whichever body it turns out to feed; ``_take_batch`` after)
-                        for body in touched:
-                            if body.inbox:
-                                self._take_deferred(body, now, rnd, ahead)
-                        self._take_entries(key, raw_batch.split(key, payload), now, rnd, touched)
+                        self._take_entries(key, raw_batch.split(key, payload), now, rnd, ahead,
+                                           touched)  # fmt: skip
                         continue
-                    self._take_one(key, payload, None, now, rnd, touched)
+                    self._take_one(key, payload, None, now, rnd, ahead, touched)
             for body in touched:
                 if body.inbox:
                     self._take_deferred(body, now, rnd, ahead)
@@ -791,20 +783,21 @@ class Gateway:
         pos = raw_batch.HEADER_LEN
         while (end := body.take_batch(batch, pos, now, rnd, ahead)) < len(payload):
             if end < 0:
-                self._take_entries(key, raw_batch.split(key, payload), now, rnd, touched)
+                self._take_entries(key, raw_batch.split(key, payload), now, rnd, ahead, touched)
                 return
             entry, pos = raw_batch.entry_at(payload, end, body.prefix)
-            self._take_entries(key, [entry], now, rnd, touched)
+            self._take_entries(key, [entry], now, rnd, ahead, touched)
         touched.add(body)
 
     def _take_deferred(self, body: _Body, now: float, rnd: int, ahead: int) -> None:
         """``body``'s samples of this round (``_Body.take_deferred``): those the
         compiled intake does not take, one by one here."""
         for kept, message in body.take_deferred(now, rnd, ahead):
-            self._take_one(body.sites[kept.row].raw_key, message, (body, kept), now, rnd, set())
+            self._take_one(body.sites[kept.row].raw_key, message, (body, kept), now, rnd, ahead,
+                           set())  # fmt: skip
 
     def _take_entries(self, key: str, entries: list[raw_batch.Entry | Rejected], now: float,
-                      rnd: int, touched: set[_Body]) -> None:  # fmt: skip
+                      rnd: int, ahead: int, touched: set[_Body]) -> None:  # fmt: skip
         """A batch's entries (``raw_batch.split``) taken one by one; the body they
         went to remembered for the batch's next ones (``_take_batch``)."""
         for entry in entries:
@@ -812,12 +805,12 @@ class Gateway:
                 self.rejected[entry.reason] += 1
                 continue
             k, message = entry
-            self._take_one(k, message, self._routes.get(k), now, rnd, touched)
+            self._take_one(k, message, self._routes.get(k), now, rnd, ahead, touched)
             if key not in self._batch_bodies and (route := self._routes.get(k)) is not None:
                 self._batch_bodies[key] = route[0]
 
     def _take_one(self, key: str, payload: bytes, route: tuple[_Body, _Site] | None,
-                  now: float, rnd: int, touched: set[_Body]) -> None:  # fmt: skip
+                  now: float, rnd: int, ahead: int, touched: set[_Body]) -> None:  # fmt: skip
         """Take one raw sample that came on ``key`` (``route``: where its key's
         samples go, if known): decoded and kept, or counted as a rejection, or
         passed over (a subject another gateway serves; a branch this one does not,
@@ -855,6 +848,11 @@ class Gateway:
             self._route(key, body, body.take(site, raw, now, rnd=rnd))
         else:
             body = route[0]
+            # its site's samples that came before it, first (a lone message or a
+            # batch's entry); another site's, as a SmartSuit module's among tags,
+            # wait for the round's end
+            if route[1].tag in body.deferred:
+                self._take_deferred(body, now, rnd, ahead)
             body.take_into(route[1], raw, now, rnd)
         touched.add(body)
 

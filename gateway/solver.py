@@ -1095,10 +1095,11 @@ class BodySolver:
         sorted_ = _Sorted(sites, kinds, stale)
         seen: set[str] = set()
         rows: list[int] = []  # the used sensors' samples among the tick's
-        sorted_.keys = [self._site(site)[2] for site in sites]
+        known = [self._site(site) for site in sites]
+        sorted_.keys = [k[2] for k in known]
         for i in sorted(range(len(sites)), key=sorted_.keys.__getitem__):
             site, kind = sites[i], kinds[i]
-            seg, _, key, module, _, heading_known, calibrated = self._site(site)
+            seg, _, key, module, _, heading_known, calibrated = known[i]
             if kind is Quat:
                 if seg not in seen:
                     seen.add(seg)
